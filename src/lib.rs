@@ -1,0 +1,34 @@
+//! `arkit_tool`: read, validate, render and synthesise data of the ARKitFace dataset
+//! (Kao et al., IEEE TIP 2023), and of data shaped like it.
+//!
+//! The binary `arkit-tool` is a thin command-line front over this library.
+//!
+//! Modules, one job each:
+//! - [`conventions`]: [`Pose`] (the release's `R_t`, OpenCV form, Euler 'yxz') and
+//!   [`Camera`] (OpenGL projection, viewport, y flip, pixel centres).
+//! - [`topology`]: [`FaceTopology`]: triangles, UVs, landmarks, and what is derived from
+//!   them (boundary loops, hole fills, mirror map).
+//! - [`synthetic_face`]: the built-in stand-in face model (not Apple's topology).
+//! - [`raster`]: the CPU triangle rasterizer core.
+//! - [`npy`]: NumPy `.npy` / `.npz` reading and writing.
+//! - [`release`]: the release's files: `_info.npz` annotations, list CSVs, layout.
+//! - [`synth`]: the synthetic dataset generator.
+//! - [`rng`]: the seeded random streams that make output reproducible.
+//! - [`atomic_file`]: writes that never leave a half-written file.
+
+#![warn(missing_docs)]
+
+pub mod atomic_file;
+pub mod conventions;
+pub mod error;
+pub mod npy;
+pub mod raster;
+pub mod release;
+pub mod rng;
+pub mod synth;
+pub mod synthetic_face;
+pub mod topology;
+
+pub use conventions::{Camera, EulerAngles, Pose};
+pub use error::{Error, Result};
+pub use topology::FaceTopology;
