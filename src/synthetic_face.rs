@@ -541,7 +541,7 @@ fn deform(p: &Point3<f32>, id: &[f64; IDENTITY_DIMS], ex: &[f64; EXPRESSION_DIMS
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::topology::{LANDMARK_MIRROR, NOSE_TIP_LANDMARK, mirror_map};
+    use crate::topology::{LANDMARK_MIRROR, NOSE_TIP_LANDMARK, nearest_mirror_partners};
 
     #[test]
     fn exact_counts_and_four_loops() {
@@ -581,8 +581,10 @@ mod tests {
     fn exactly_mirror_symmetric_with_mirrored_landmarks() {
         let topo = &builtin().topology;
         let v = topo.template.as_ref().unwrap();
-        let (map, worst) = mirror_map(v);
+        let (map, worst) = nearest_mirror_partners(v);
         assert!(worst < 1e-6, "{worst}");
+        // The UV-derived map used for flipping agrees with the geometry exactly.
+        assert_eq!(topo.mirror_map().unwrap(), map);
         for i in 0..v.len() {
             assert_eq!(map[map[i] as usize] as usize, i);
         }

@@ -12,7 +12,8 @@
 //! - [`FaceTopology::hole_fill`]: fan triangles that close the mouth and the two eyes
 //!   around one extra centroid vertex each (ids `V`, `V+1`, `V+2` in the order mouth,
 //!   eye of landmarks 36-41, eye of landmarks 42-47), as the release's `tris_2388x3.npy`.
-//! - [`mirror_map`]: each vertex's partner under `x -> -x` on a symmetric face.
+//! - [`FaceTopology::mirror_map`]: each vertex's partner under `x -> -x`, read from the
+//!   symmetric UV layout.
 
 use crate::error::{Error, Result};
 use crate::npy;
@@ -406,16 +407,61 @@ impl FaceTopology {
         Ok(HoleFill { centroids, triangles })
     }
 
+    /// The left-right mirror map: vertex `i` of a face is vertex `map[i]` of its
+    /// mirror image (used to flip samples). It is read from the UV layout, which is
+    /// exactly symmetric under `u -> 1 - u` in the release (to 1e-7) and in the built-in
+    /// face, so it does not depend on any one face being symmetric (a real face is not:
+    /// nearest neighbours under `x -> -x` on the real template pair up only about 1,040
+    /// of 1,220 vertices, and the mesh's connectivity is not symmetric either).
+    /// Errors if the UV layout has no symmetric partner for some vertex.
+    pub fn mirror_map(&self) -> Result<Vec<u32>> {
+        // Bucket UVs on a grid so the search is near-linear.
+        const CELL: f32 = 0.01;
+        let key = |u: f32, v: f32| ((u / CELL).floor() as i64, (v / CELL).floor() as i64);
+        let mut grid: HashMap<(i64, i64), Vec<u32>> = HashMap::new();
+        for (i, t) in self.uv.iter().enumerate() {
+            grid.entry(key(t[0], t[1])).or_default().push(i as u32);
+        }
+        let mut map = Vec::with_capacity(self.vertex_count);
+        for (i, t) in self.uv.iter().enumerate() {
+            let target = [1.0 - t[0], t[1]];
+            let (cx, cy) = key(target[0], target[1]);
+            let mut best = (u32::MAX, f32::INFINITY);
+            for dx in -1..=1 {
+                for dy in -1..=1 {
+                    for &j in grid.get(&(cx + dx, cy + dy)).map(|v| v.as_slice()).unwrap_or(&[]) {
+                        let q = self.uv[j as usize];
+                        let d = (q[0] - target[0]).hypot(q[1] - target[1]);
+                        if d < best.1 {
+                            best = (j, d);
+                        }
+                    }
+                }
+            }
+            if best.1 > 1e-4 {
+                return Err(Error::format(
+                    &self.source,
+                    format!("the UV layout is not left-right symmetric: vertex {i} at UV {t:?} has no partner at u = 1 - u"),
+                ));
+            }
+            map.push(best.0);
+        }
+        if let Some(v) = (0..self.vertex_count).find(|&v| map[map[v] as usize] as usize != v) {
+            return Err(Error::format(&self.source, format!("the UV mirror map is not an involution at vertex {v}")));
+        }
+        Ok(map)
+    }
+
     /// The source as a path, for error messages.
     pub fn source_path(&self) -> PathBuf {
         PathBuf::from(&self.source)
     }
 }
 
-/// Each vertex's mirror partner: the vertex nearest to `(-x, y, z)`. Returns the map
-/// and the largest distance between a mirrored vertex and its partner (metres), which
-/// is 0 on an exactly symmetric face and a few millimetres on a real one.
-pub fn mirror_map(verts: &[Point3<f32>]) -> (Vec<u32>, f32) {
+/// For each vertex, the vertex nearest to its mirror position `(-x, y, z)`, and the
+/// largest such distance (metres): 0 on an exactly symmetric face. A measure of a
+/// face's symmetry; the mirror map used for flipping is [`FaceTopology::mirror_map`].
+pub fn nearest_mirror_partners(verts: &[Point3<f32>]) -> (Vec<u32>, f32) {
     let mut map = Vec::with_capacity(verts.len());
     let mut worst = 0.0f32;
     for v in verts {
@@ -528,7 +574,7 @@ mod tests {
     #[test]
     fn mirror_map_of_a_symmetric_set() {
         let v = vec![Point3::new(-1.0, 0.0, 0.0), Point3::new(0.0, 1.0, 0.0), Point3::new(1.0, 0.0, 0.0)];
-        let (m, worst) = mirror_map(&v);
+        let (m, worst) = nearest_mirror_partners(&v);
         assert_eq!(m, vec![2, 1, 0]);
         assert_eq!(worst, 0.0);
     }

@@ -1,0 +1,54 @@
+//! Argument parsing and dispatch. Subcommand files parse, call the library, report
+//! progress and errors; they hold no geometry.
+
+mod info;
+mod synth;
+mod topology;
+
+use arkit_tool::Result;
+use clap::{Parser, Subcommand};
+use std::process::ExitCode;
+
+/// Fast, validated tooling for the ARKitFace 6DoF face-pose dataset.
+///
+/// Conventions (see the README): poses are the release's row-vector `R_t`
+/// (`[x y z 1] @ R_t`, tz < 0), Euler angles are SciPy's `as_euler('yxz')` of
+/// `R_t[:3,:3]^T` in degrees, images are projected with the release's OpenGL matrix and
+/// y flip, and pixel (i, j) has its centre at (i + 0.5, j + 0.5).
+#[derive(Parser, Debug)]
+#[command(name = "arkit-tool", version, about, long_about)]
+pub struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand, Debug)]
+enum Command {
+    Synth(synth::SynthArgs),
+    Topology(topology::TopologyArgs),
+    Info(info::InfoArgs),
+}
+
+/// Runs a parsed command line.
+pub fn run(cli: Cli) -> Result<ExitCode> {
+    match cli.command {
+        Command::Synth(a) => synth::run(a),
+        Command::Topology(a) => topology::run(a),
+        Command::Info(a) => info::run(a),
+    }
+}
+
+/// Parses `WxH`.
+pub fn parse_size(s: &str) -> std::result::Result<(u32, u32), String> {
+    let (w, h) = s.split_once(['x', 'X']).ok_or_else(|| format!("'{s}' is not WIDTHxHEIGHT (for example 800x800)"))?;
+    let parse = |v: &str| v.trim().parse::<u32>().map_err(|_| format!("'{v}' in '{s}' is not a whole number of pixels"));
+    Ok((parse(w)?, parse(h)?))
+}
+
+/// Reads the topology named by `--resources` (or the built-in face without it).
+pub fn load_topology(resources: Option<&std::path::Path>) -> Result<arkit_tool::FaceTopology> {
+    match resources {
+        Some(dir) => arkit_tool::FaceTopology::from_resources(dir),
+        None => Ok(arkit_tool::synthetic_face::builtin().topology.clone()),
+    }
+}
