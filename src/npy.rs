@@ -281,7 +281,11 @@ impl NpyArray {
             ArrayData::I64(v) => ints(v.clone()),
             ArrayData::U64(v) => v
                 .iter()
-                .map(|&x| i64::try_from(x).map_err(|_| Error::invalid("array", format!("value {x} does not fit in int64"))))
+                .map(|&x| {
+                    i64::try_from(x).map_err(|_| {
+                        Error::invalid("array", format!("value {x} does not fit in int64"))
+                    })
+                })
                 .collect(),
         }
     }
@@ -308,10 +312,18 @@ fn parse_header_dict(text: &str) -> std::result::Result<(String, bool, Vec<usize
     let mut shape = None;
     let mut rest = inner.trim();
     while !rest.is_empty() {
-        let quote = rest.chars().next().filter(|c| *c == '\'' || *c == '"').ok_or_else(|| format!("expected a quoted key at {rest:?}"))?;
+        let quote = rest
+            .chars()
+            .next()
+            .filter(|c| *c == '\'' || *c == '"')
+            .ok_or_else(|| format!("expected a quoted key at {rest:?}"))?;
         let end = rest[1..].find(quote).ok_or("unterminated key")? + 1;
         let key = &rest[1..end];
-        rest = rest[end + 1..].trim_start().strip_prefix(':').ok_or("expected ':' after a key")?.trim_start();
+        rest = rest[end + 1..]
+            .trim_start()
+            .strip_prefix(':')
+            .ok_or("expected ':' after a key")?
+            .trim_start();
         // Value: a quoted string, True/False, or a tuple.
         let (value, after) = if rest.starts_with('\'') || rest.starts_with('"') {
             let q = rest.chars().next().unwrap_or('\'');
@@ -327,7 +339,9 @@ fn parse_header_dict(text: &str) -> std::result::Result<(String, bool, Vec<usize
         match key {
             "descr" => {
                 if !(value.starts_with('\'') || value.starts_with('"')) {
-                    return Err(format!("unsupported dtype {value} (structured or record arrays are not supported)"));
+                    return Err(format!(
+                        "unsupported dtype {value} (structured or record arrays are not supported)"
+                    ));
                 }
                 descr = Some(value[1..value.len() - 1].to_string());
             }
@@ -335,7 +349,11 @@ fn parse_header_dict(text: &str) -> std::result::Result<(String, bool, Vec<usize
                 fortran = Some(match value {
                     "True" => true,
                     "False" => false,
-                    _ => return Err(format!("fortran_order must be True or False, found {value}")),
+                    _ => {
+                        return Err(format!(
+                            "fortran_order must be True or False, found {value}"
+                        ));
+                    }
                 })
             }
             "shape" => {
@@ -344,7 +362,11 @@ fn parse_header_dict(text: &str) -> std::result::Result<(String, bool, Vec<usize
                     .split(',')
                     .map(|d| d.trim())
                     .filter(|d| !d.is_empty())
-                    .map(|d| d.trim_end_matches('L').parse::<usize>().map_err(|_| format!("bad dimension {d:?} in shape {value}")))
+                    .map(|d| {
+                        d.trim_end_matches('L')
+                            .parse::<usize>()
+                            .map_err(|_| format!("bad dimension {d:?} in shape {value}"))
+                    })
                     .collect();
                 shape = Some(dims?);
             }
@@ -373,17 +395,30 @@ pub fn parse_npy(bytes: &[u8], source: &Path) -> Result<NpyArray> {
             if bytes.len() < 12 {
                 return Err(err("truncated header".into()));
             }
-            (u32::from_le_bytes([bytes[8], bytes[9], bytes[10], bytes[11]]) as usize, 12)
+            (
+                u32::from_le_bytes([bytes[8], bytes[9], bytes[10], bytes[11]]) as usize,
+                12,
+            )
         }
-        _ => return Err(err(format!("unsupported .npy format version {major}.{minor}"))),
+        _ => {
+            return Err(err(format!(
+                "unsupported .npy format version {major}.{minor}"
+            )));
+        }
     };
-    let end = start.checked_add(header_len).filter(|&e| e <= bytes.len()).ok_or_else(|| err("truncated header".into()))?;
+    let end = start
+        .checked_add(header_len)
+        .filter(|&e| e <= bytes.len())
+        .ok_or_else(|| err("truncated header".into()))?;
     let text = if major == 3 {
-        std::str::from_utf8(&bytes[start..end]).map_err(|_| err("header is not UTF-8".into()))?.to_string()
+        std::str::from_utf8(&bytes[start..end])
+            .map_err(|_| err("header is not UTF-8".into()))?
+            .to_string()
     } else {
         bytes[start..end].iter().map(|&b| b as char).collect()
     };
-    let (descr, fortran_order, shape) = parse_header_dict(&text).map_err(|m| err(format!("malformed header: {m}")))?;
+    let (descr, fortran_order, shape) =
+        parse_header_dict(&text).map_err(|m| err(format!("malformed header: {m}")))?;
     let (dtype, big_endian) = DType::parse(&descr).ok_or_else(|| {
         err(format!(
             "unsupported dtype '{descr}' (supported: bool, int8-64, uint8-64, float32, float64)"
@@ -400,7 +435,9 @@ pub fn parse_npy(bytes: &[u8], source: &Path) -> Result<NpyArray> {
         .iter()
         .try_fold(1usize, |a, &d| a.checked_mul(d))
         .ok_or_else(|| err(format!("shape {:?} is too large", header.shape)))?;
-    let need = count.checked_mul(dtype.size()).ok_or_else(|| err("shape is too large".into()))?;
+    let need = count
+        .checked_mul(dtype.size())
+        .ok_or_else(|| err("shape is too large".into()))?;
     let data = &bytes[end..];
     if data.len() < need {
         return Err(err(format!(
@@ -424,7 +461,11 @@ fn shape_text(shape: &[usize]) -> String {
     if shape.is_empty() {
         "scalar".into()
     } else {
-        shape.iter().map(|d| d.to_string()).collect::<Vec<_>>().join("x")
+        shape
+            .iter()
+            .map(|d| d.to_string())
+            .collect::<Vec<_>>()
+            .join("x")
     }
 }
 
@@ -435,7 +476,11 @@ fn decode(bytes: &[u8], h: &Header) -> ArrayData {
                 .chunks_exact($n)
                 .map(|c| {
                     let a: [u8; $n] = c.try_into().expect("chunk size");
-                    if h.big_endian { <$t>::from_be_bytes(a) } else { <$t>::from_le_bytes(a) }
+                    if h.big_endian {
+                        <$t>::from_be_bytes(a)
+                    } else {
+                        <$t>::from_le_bytes(a)
+                    }
                 })
                 .collect();
             ArrayData::$variant(v)
@@ -530,9 +575,21 @@ pub fn write_npy(w: &mut dyn Write, array: &NpyArray) -> std::io::Result<()> {
     let shape = match array.shape.len() {
         0 => "()".to_string(),
         1 => format!("({},)", array.shape[0]),
-        _ => format!("({})", array.shape.iter().map(|d| d.to_string()).collect::<Vec<_>>().join(", ")),
+        _ => format!(
+            "({})",
+            array
+                .shape
+                .iter()
+                .map(|d| d.to_string())
+                .collect::<Vec<_>>()
+                .join(", ")
+        ),
     };
-    let mut header = format!("{{'descr': '{}', 'fortran_order': False, 'shape': {}, }}", array.dtype().descr(), shape);
+    let mut header = format!(
+        "{{'descr': '{}', 'fortran_order': False, 'shape': {}, }}",
+        array.dtype().descr(),
+        shape
+    );
     // magic(6) + version(2) + length(2) + header + '\n' is a multiple of 64.
     let total = 10 + header.len() + 1;
     let pad = (64 - total % 64) % 64;
@@ -546,14 +603,30 @@ pub fn write_npy(w: &mut dyn Write, array: &NpyArray) -> std::io::Result<()> {
         ArrayData::Bool(v) => buf.extend(v.iter().map(|&b| b as u8)),
         ArrayData::U8(v) => buf.extend_from_slice(v),
         ArrayData::I8(v) => buf.extend(v.iter().map(|&x| x as u8)),
-        ArrayData::U16(v) => v.iter().for_each(|x| buf.extend_from_slice(&x.to_le_bytes())),
-        ArrayData::I16(v) => v.iter().for_each(|x| buf.extend_from_slice(&x.to_le_bytes())),
-        ArrayData::U32(v) => v.iter().for_each(|x| buf.extend_from_slice(&x.to_le_bytes())),
-        ArrayData::I32(v) => v.iter().for_each(|x| buf.extend_from_slice(&x.to_le_bytes())),
-        ArrayData::U64(v) => v.iter().for_each(|x| buf.extend_from_slice(&x.to_le_bytes())),
-        ArrayData::I64(v) => v.iter().for_each(|x| buf.extend_from_slice(&x.to_le_bytes())),
-        ArrayData::F32(v) => v.iter().for_each(|x| buf.extend_from_slice(&x.to_le_bytes())),
-        ArrayData::F64(v) => v.iter().for_each(|x| buf.extend_from_slice(&x.to_le_bytes())),
+        ArrayData::U16(v) => v
+            .iter()
+            .for_each(|x| buf.extend_from_slice(&x.to_le_bytes())),
+        ArrayData::I16(v) => v
+            .iter()
+            .for_each(|x| buf.extend_from_slice(&x.to_le_bytes())),
+        ArrayData::U32(v) => v
+            .iter()
+            .for_each(|x| buf.extend_from_slice(&x.to_le_bytes())),
+        ArrayData::I32(v) => v
+            .iter()
+            .for_each(|x| buf.extend_from_slice(&x.to_le_bytes())),
+        ArrayData::U64(v) => v
+            .iter()
+            .for_each(|x| buf.extend_from_slice(&x.to_le_bytes())),
+        ArrayData::I64(v) => v
+            .iter()
+            .for_each(|x| buf.extend_from_slice(&x.to_le_bytes())),
+        ArrayData::F32(v) => v
+            .iter()
+            .for_each(|x| buf.extend_from_slice(&x.to_le_bytes())),
+        ArrayData::F64(v) => v
+            .iter()
+            .for_each(|x| buf.extend_from_slice(&x.to_le_bytes())),
     }
     w.write_all(&buf)
 }
@@ -599,7 +672,10 @@ impl Npz {
         self.get(key).ok_or_else(|| {
             Error::format(
                 &self.path,
-                format!("missing key '{key}' (keys present: {})", self.keys().collect::<Vec<_>>().join(", ")),
+                format!(
+                    "missing key '{key}' (keys present: {})",
+                    self.keys().collect::<Vec<_>>().join(", ")
+                ),
             )
         })
     }
@@ -620,13 +696,19 @@ impl Npz {
     pub fn require_finite_f64(&self, key: &str, shape: &[usize]) -> Result<Vec<f64>> {
         let a = self.require_shape(key, shape)?;
         if a.dtype() == DType::Bool {
-            return Err(Error::format(self.member_path(key), format!("'{key}' must be numeric, found bool")));
+            return Err(Error::format(
+                self.member_path(key),
+                format!("'{key}' must be numeric, found bool"),
+            ));
         }
         let v = a.to_f64_vec();
         if let Some(i) = v.iter().position(|x| !x.is_finite()) {
             return Err(Error::format(
                 self.member_path(key),
-                format!("'{key}' has a non-finite value ({}) at flat index {i}", v[i]),
+                format!(
+                    "'{key}' has a non-finite value ({}) at flat index {i}",
+                    v[i]
+                ),
             ));
         }
         Ok(v)
@@ -635,8 +717,12 @@ impl Npz {
 
 /// Parses `.npz` bytes; `source` names the archive in errors.
 pub fn parse_npz(bytes: &[u8], source: &Path) -> Result<Npz> {
-    let mut zip = zip::ZipArchive::new(std::io::Cursor::new(bytes))
-        .map_err(|e| Error::format(source, format!("not a valid zip archive (truncated or corrupt): {e}")))?;
+    let mut zip = zip::ZipArchive::new(std::io::Cursor::new(bytes)).map_err(|e| {
+        Error::format(
+            source,
+            format!("not a valid zip archive (truncated or corrupt): {e}"),
+        )
+    })?;
     let mut members = Vec::with_capacity(zip.len());
     for i in 0..zip.len() {
         let mut f = zip
@@ -651,8 +737,12 @@ pub fn parse_npz(bytes: &[u8], source: &Path) -> Result<Npz> {
             return Err(Error::format(&member, "member is not a .npy array"));
         };
         let mut buf = Vec::with_capacity(f.size() as usize);
-        f.read_to_end(&mut buf)
-            .map_err(|e| Error::format(&member, format!("cannot read member (truncated or corrupt): {e}")))?;
+        f.read_to_end(&mut buf).map_err(|e| {
+            Error::format(
+                &member,
+                format!("cannot read member (truncated or corrupt): {e}"),
+            )
+        })?;
         members.push((key.to_string(), parse_npy(&buf, &member)?));
     }
     Ok(Npz {
@@ -669,7 +759,11 @@ pub fn read_npz(path: &Path) -> Result<Npz> {
 
 /// Writes an `.npz` archive of `members` (as `np.savez` or `np.savez_compressed`),
 /// deterministically: fixed timestamps (1980-01-01) and permissions.
-pub fn write_npz<W: Write + Seek>(w: &mut W, members: &[(&str, &NpyArray)], compression: NpzCompression) -> Result<()> {
+pub fn write_npz<W: Write + Seek>(
+    w: &mut W,
+    members: &[(&str, &NpyArray)],
+    compression: NpzCompression,
+) -> Result<()> {
     let bad = |e: String| Error::invalid("npz", e);
     let mut zip = zip::ZipWriter::new(w);
     let method = match compression {
@@ -682,7 +776,8 @@ pub fn write_npz<W: Write + Seek>(w: &mut W, members: &[(&str, &NpyArray)], comp
         .unix_permissions(0o644)
         .large_file(false);
     for (key, array) in members {
-        zip.start_file(format!("{key}.npy"), options).map_err(|e| bad(e.to_string()))?;
+        zip.start_file(format!("{key}.npy"), options)
+            .map_err(|e| bad(e.to_string()))?;
         write_npy(&mut zip, array).map_err(|e| bad(e.to_string()))?;
     }
     zip.finish().map_err(|e| bad(e.to_string()))?;
@@ -699,14 +794,27 @@ mod tests {
 
     #[test]
     fn header_variants() {
-        let (d, f, s) = parse_header_dict("{'descr': '<f4', 'fortran_order': False, 'shape': (3,), }").unwrap();
+        let (d, f, s) =
+            parse_header_dict("{'descr': '<f4', 'fortran_order': False, 'shape': (3,), }").unwrap();
         assert_eq!((d.as_str(), f, s), ("<f4", false, vec![3]));
-        let (_, f, s) = parse_header_dict("{\"descr\": \"<u2\", \"fortran_order\": True, \"shape\": (2304, 3)}").unwrap();
+        let (_, f, s) = parse_header_dict(
+            "{\"descr\": \"<u2\", \"fortran_order\": True, \"shape\": (2304, 3)}",
+        )
+        .unwrap();
         assert_eq!((f, s), (true, vec![2304, 3]));
-        let (_, _, s) = parse_header_dict("{'descr': '|b1', 'fortran_order': False, 'shape': (), }   \n").unwrap();
+        let (_, _, s) =
+            parse_header_dict("{'descr': '|b1', 'fortran_order': False, 'shape': (), }   \n")
+                .unwrap();
         assert!(s.is_empty());
-        assert!(parse_header_dict("{'descr': [('a', '<f4')], 'fortran_order': False, 'shape': (1,)}").is_err());
-        assert!(parse_header_dict("{'descr': '<f4', 'shape': (1,)}").unwrap_err().contains("fortran_order"));
+        assert!(
+            parse_header_dict("{'descr': [('a', '<f4')], 'fortran_order': False, 'shape': (1,)}")
+                .is_err()
+        );
+        assert!(
+            parse_header_dict("{'descr': '<f4', 'shape': (1,)}")
+                .unwrap_err()
+                .contains("fortran_order")
+        );
     }
 
     fn all_dtypes() -> Vec<NpyArray> {
@@ -720,7 +828,11 @@ mod tests {
             NpyArray::new(vec![2], ArrayData::I32(vec![i32::MIN, 5])).unwrap(),
             NpyArray::new(vec![1], ArrayData::U64(vec![u64::MAX])).unwrap(),
             NpyArray::new(vec![2, 2], ArrayData::I64(vec![1, -2, 3, -4])).unwrap(),
-            NpyArray::new(vec![2, 3], ArrayData::F32(vec![0.5, -1.0, 2.25, f32::MAX, 0.0, -0.0])).unwrap(),
+            NpyArray::new(
+                vec![2, 3],
+                ArrayData::F32(vec![0.5, -1.0, 2.25, f32::MAX, 0.0, -0.0]),
+            )
+            .unwrap(),
             NpyArray::new(vec![], ArrayData::F64(vec![std::f64::consts::PI])).unwrap(),
         ]
     }
@@ -730,7 +842,11 @@ mod tests {
         for a in all_dtypes() {
             let mut buf = Vec::new();
             write_npy(&mut buf, &a).unwrap();
-            assert_eq!((buf.len() - a.len() * a.dtype().size()) % 64, 0, "data aligned to 64");
+            assert_eq!(
+                (buf.len() - a.len() * a.dtype().size()) % 64,
+                0,
+                "data aligned to 64"
+            );
             assert_eq!(parse_npy(&buf, p()).unwrap(), a);
         }
     }
@@ -739,7 +855,11 @@ mod tests {
     fn npz_round_trip_both_compressions_and_deterministic() {
         let arrays = all_dtypes();
         let names: Vec<String> = (0..arrays.len()).map(|i| format!("a{i}")).collect();
-        let members: Vec<(&str, &NpyArray)> = names.iter().map(|s| s.as_str()).zip(arrays.iter()).collect();
+        let members: Vec<(&str, &NpyArray)> = names
+            .iter()
+            .map(|s| s.as_str())
+            .zip(arrays.iter())
+            .collect();
         for c in [NpzCompression::Stored, NpzCompression::Deflated] {
             let mut cur = std::io::Cursor::new(Vec::new());
             write_npz(&mut cur, &members, c).unwrap();
@@ -747,7 +867,10 @@ mod tests {
             write_npz(&mut again, &members, c).unwrap();
             assert_eq!(cur.get_ref(), again.get_ref());
             let npz = parse_npz(cur.get_ref(), Path::new("x.npz")).unwrap();
-            assert_eq!(npz.keys().collect::<Vec<_>>(), names.iter().map(|s| s.as_str()).collect::<Vec<_>>());
+            assert_eq!(
+                npz.keys().collect::<Vec<_>>(),
+                names.iter().map(|s| s.as_str()).collect::<Vec<_>>()
+            );
             for (n, a) in &members {
                 assert_eq!(npz.get(n).unwrap(), *a);
             }
@@ -759,7 +882,7 @@ mod tests {
         // A 2x3 array [[0,1,2],[3,4,5]] stored column-major: 0 3 1 4 2 5.
         let mut bytes = b"\x93NUMPY\x01\x00".to_vec();
         let mut h = "{'descr': '<u2', 'fortran_order': True, 'shape': (2, 3), }".to_string();
-        while (10 + h.len() + 1) % 64 != 0 {
+        while !(10 + h.len() + 1).is_multiple_of(64) {
             h.push(' ');
         }
         h.push('\n');
@@ -784,7 +907,10 @@ mod tests {
         write_npz(&mut cur, &[("verts", &a)], NpzCompression::Deflated).unwrap();
         let z = cur.into_inner();
         for n in 0..z.len() {
-            assert!(parse_npz(&z[..n], Path::new("t.npz")).is_err(), "npz prefix {n}");
+            assert!(
+                parse_npz(&z[..n], Path::new("t.npz")).is_err(),
+                "npz prefix {n}"
+            );
         }
         // Flipped bytes never panic (they may or may not parse).
         for i in 0..buf.len() {
@@ -796,29 +922,57 @@ mod tests {
 
     #[test]
     fn errors_name_the_file_and_the_problem() {
-        let e = parse_npy(b"PK\x03\x04 not numpy at all", Path::new("a.npy")).unwrap_err().to_string();
+        let e = parse_npy(b"PK\x03\x04 not numpy at all", Path::new("a.npy"))
+            .unwrap_err()
+            .to_string();
         assert!(e.starts_with("a.npy:") && e.contains("magic"), "{e}");
         let a = NpyArray::from_f32(vec![1220, 3], vec![0.0; 3660]).unwrap();
         let mut buf = Vec::new();
         write_npy(&mut buf, &a).unwrap();
-        let e = parse_npy(&buf[..buf.len() - 640], Path::new("v.npy")).unwrap_err().to_string();
-        assert!(e.contains("truncated: header says 1220x3 <f4 = 14640 bytes, file holds 14000"), "{e}");
+        let e = parse_npy(&buf[..buf.len() - 640], Path::new("v.npy"))
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("truncated: header says 1220x3 <f4 = 14640 bytes, file holds 14000"),
+            "{e}"
+        );
         let mut bad = buf.clone();
         bad[6] = 9;
-        assert!(parse_npy(&bad, p()).unwrap_err().to_string().contains("version 9"));
+        assert!(
+            parse_npy(&bad, p())
+                .unwrap_err()
+                .to_string()
+                .contains("version 9")
+        );
         let mut c = buf.clone();
         let at = c.windows(3).position(|w| w == b"<f4").unwrap();
         c[at..at + 3].copy_from_slice(b"<c8");
-        assert!(parse_npy(&c, p()).unwrap_err().to_string().contains("unsupported dtype '<c8'"));
+        assert!(
+            parse_npy(&c, p())
+                .unwrap_err()
+                .to_string()
+                .contains("unsupported dtype '<c8'")
+        );
         let mut cur = std::io::Cursor::new(Vec::new());
         write_npz(&mut cur, &[("verts", &a)], NpzCompression::Stored).unwrap();
         let npz = parse_npz(cur.get_ref(), Path::new("s_info.npz")).unwrap();
         let e = npz.require("R_t").unwrap_err().to_string();
         assert_eq!(e, "s_info.npz: missing key 'R_t' (keys present: verts)");
-        let e = npz.require_shape("verts", &[1220, 2]).unwrap_err().to_string();
-        assert!(e.starts_with("s_info.npz:verts.npy:") && e.contains("[1220, 3]"), "{e}");
+        let e = npz
+            .require_shape("verts", &[1220, 2])
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.starts_with("s_info.npz:verts.npy:") && e.contains("[1220, 3]"),
+            "{e}"
+        );
         assert!(NpyArray::from_f64(vec![2], vec![1.0]).is_err());
-        assert!(NpyArray::from_f64(vec![2], vec![1.0, 2.0]).unwrap().to_i64_vec().is_err());
+        assert!(
+            NpyArray::from_f64(vec![2], vec![1.0, 2.0])
+                .unwrap()
+                .to_i64_vec()
+                .is_err()
+        );
         let big = NpyArray::new(vec![1], ArrayData::U64(vec![u64::MAX])).unwrap();
         assert!(big.to_i64_vec().is_err());
     }

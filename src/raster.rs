@@ -198,7 +198,8 @@ impl TriangleSetup {
         for y in self.y0..=self.y1 {
             let mut e = row;
             for x in self.x0..=self.x1 {
-                if e[0] + self.bias[0] >= 0 && e[1] + self.bias[1] >= 0 && e[2] + self.bias[2] >= 0 {
+                if e[0] + self.bias[0] >= 0 && e[1] + self.bias[1] >= 0 && e[2] + self.bias[2] >= 0
+                {
                     emit(self.fragment(x, y, e, area));
                 }
                 e[0] += self.dx[0];
@@ -214,7 +215,11 @@ impl TriangleSetup {
     #[inline]
     fn fragment(&self, x: u32, y: u32, e: [i64; 3], area: f64) -> Fragment {
         let l = [e[0] as f64 / area, e[1] as f64 / area, e[2] as f64 / area];
-        let pw = [l[0] * self.inv_w[0] as f64, l[1] * self.inv_w[1] as f64, l[2] * self.inv_w[2] as f64];
+        let pw = [
+            l[0] * self.inv_w[0] as f64,
+            l[1] * self.inv_w[1] as f64,
+            l[2] * self.inv_w[2] as f64,
+        ];
         let inv_w = pw[0] + pw[1] + pw[2];
         let r = 1.0 / inv_w;
         let mut bary = [0f32; 3];
@@ -245,15 +250,16 @@ impl TriangleSetup {
 /// left edge. Of an edge and its reverse exactly one qualifies, which is what makes a
 /// shared edge's pixels belong to exactly one triangle.
 fn top_left_edge(ax: i64, ay: i64, bx: i64, by: i64) -> bool {
-    if ay == by {
-        bx < ax
-    } else {
-        by > ay
-    }
+    if ay == by { bx < ax } else { by > ay }
 }
 
 /// Calls `emit` for every pixel covered by one triangle (no depth test).
-pub fn rasterize_triangle(v: [ScreenVertex; 3], width: u32, height: u32, emit: impl FnMut(Fragment)) {
+pub fn rasterize_triangle(
+    v: [ScreenVertex; 3],
+    width: u32,
+    height: u32,
+    emit: impl FnMut(Fragment),
+) {
     if let Some(setup) = TriangleSetup::new(v, width, height, Culling::None) {
         setup.for_each_covered(emit);
     }
@@ -307,7 +313,10 @@ impl VisibilityBuffer {
     /// An empty buffer. Panics if a side exceeds [`MAX_VIEWPORT`] (a programming error:
     /// image sizes are checked where they are read).
     pub fn new(width: u32, height: u32) -> Self {
-        assert!(width <= MAX_VIEWPORT && height <= MAX_VIEWPORT, "viewport {width}x{height} exceeds {MAX_VIEWPORT}");
+        assert!(
+            width <= MAX_VIEWPORT && height <= MAX_VIEWPORT,
+            "viewport {width}x{height} exceeds {MAX_VIEWPORT}"
+        );
         let n = width as usize * height as usize;
         VisibilityBuffer {
             width,
@@ -337,7 +346,11 @@ impl VisibilityBuffer {
     }
 
     /// Rasterizes a mesh with the depth test, recording the nearest triangle per pixel.
-    pub fn rasterize_mesh(&mut self, vertices: &[ScreenVertex], triangles: &[[u32; 3]]) -> Result<(), BadTriangle> {
+    pub fn rasterize_mesh(
+        &mut self,
+        vertices: &[ScreenVertex],
+        triangles: &[[u32; 3]],
+    ) -> Result<(), BadTriangle> {
         self.rasterize_mesh_with(vertices, triangles, |_, _, _| {})
     }
 
@@ -350,7 +363,11 @@ impl VisibilityBuffer {
         triangles: &[[u32; 3]],
         mut on_visible: impl FnMut(usize, u32, &Fragment),
     ) -> Result<(), BadTriangle> {
-        if let Some((i, t)) = triangles.iter().enumerate().find(|(_, t)| t.iter().any(|&v| v as usize >= vertices.len())) {
+        if let Some((i, t)) = triangles
+            .iter()
+            .enumerate()
+            .find(|(_, t)| t.iter().any(|&v| v as usize >= vertices.len()))
+        {
             return Err(BadTriangle {
                 triangle: i,
                 indices: *t,
@@ -359,7 +376,11 @@ impl VisibilityBuffer {
         }
         let width = self.width as usize;
         for (ti, t) in triangles.iter().enumerate() {
-            let v = [vertices[t[0] as usize], vertices[t[1] as usize], vertices[t[2] as usize]];
+            let v = [
+                vertices[t[0] as usize],
+                vertices[t[1] as usize],
+                vertices[t[2] as usize],
+            ];
             let Some(setup) = TriangleSetup::new(v, self.width, self.height, self.culling) else {
                 continue;
             };
@@ -400,7 +421,12 @@ mod tests {
         // (i + 0.5, i + 0.5)... no: through corners. Use a square offset by 0.5 so the
         // diagonal and all four sides pass exactly through pixel centres.
         let (a, b, c, d) = (sv(2.5, 2.5), sv(18.5, 2.5), sv(18.5, 18.5), sv(2.5, 18.5));
-        for (t1, t2) in [([a, b, c], [a, c, d]), ([a, c, b], [a, d, c]), ([a, b, d], [b, c, d]), ([d, b, a], [c, b, d])] {
+        for (t1, t2) in [
+            ([a, b, c], [a, c, d]),
+            ([a, c, b], [a, d, c]),
+            ([a, b, d], [b, c, d]),
+            ([d, b, a], [c, b, d]),
+        ] {
             let cov = coverage(&[t1, t2], 24, 24);
             assert!(cov.iter().all(|&c| c <= 1), "a pixel drawn twice");
             // Pixel centres inside [2.5, 18.5) on both axes by the top-left rule: the top
@@ -421,10 +447,17 @@ mod tests {
         // lie in the closed triangle. The top edge (y = 0.5) and the left edge (x = 0.5)
         // are in; the hypotenuse i + j = 4 is neither top nor left: out.
         let cov = coverage(&[[sv(0.5, 0.5), sv(4.5, 0.5), sv(0.5, 4.5)]], 6, 6);
-        let expected: Vec<(u32, u32)> = (0..6).flat_map(|j| (0..6).map(move |i| (i, j))).filter(|(i, j)| i + j < 4).collect();
+        let expected: Vec<(u32, u32)> = (0..6)
+            .flat_map(|j| (0..6).map(move |i| (i, j)))
+            .filter(|(i, j)| i + j < 4)
+            .collect();
         for y in 0..6 {
             for x in 0..6 {
-                assert_eq!(cov[(y * 6 + x) as usize] == 1, expected.contains(&(x, y)), "({x}, {y})");
+                assert_eq!(
+                    cov[(y * 6 + x) as usize] == 1,
+                    expected.contains(&(x, y)),
+                    "({x}, {y})"
+                );
             }
         }
         assert_eq!(expected.len(), 10);
@@ -444,8 +477,17 @@ mod tests {
         let mut grid = vec![[0f32; 2]; (n + 1) * (n + 1)];
         for j in 0..=n {
             for i in 0..=n {
-                let jitter = |r: &mut Rng| if i == 0 || j == 0 || i == n || j == n { 0.0 } else { r.uniform(-1.2, 1.2) as f32 };
-                grid[j * (n + 1) + i] = [4.0 + 5.0 * i as f32 + jitter(&mut r), 4.0 + 5.0 * j as f32 + jitter(&mut r)];
+                let jitter = |r: &mut Rng| {
+                    if i == 0 || j == 0 || i == n || j == n {
+                        0.0
+                    } else {
+                        r.uniform(-1.2, 1.2) as f32
+                    }
+                };
+                grid[j * (n + 1) + i] = [
+                    4.0 + 5.0 * i as f32 + jitter(&mut r),
+                    4.0 + 5.0 * j as f32 + jitter(&mut r),
+                ];
             }
         }
         let p = |i: usize, j: usize| sv(grid[j * (n + 1) + i][0], grid[j * (n + 1) + i][1]);
@@ -473,7 +515,8 @@ mod tests {
                 sv(20.0 + 13.0 * a.cos(), 20.0 + 11.0 * a.sin())
             })
             .collect();
-        let fan: Vec<[ScreenVertex; 3]> = (0..12).map(|k| [c, ring[k], ring[(k + 1) % 12]]).collect();
+        let fan: Vec<[ScreenVertex; 3]> =
+            (0..12).map(|k| [c, ring[k], ring[(k + 1) % 12]]).collect();
         assert!(coverage(&fan, 40, 40).iter().all(|&c| c <= 1));
     }
 
@@ -483,13 +526,20 @@ mod tests {
         // within half a pixel diagonal of an edge, so |count - area| <= perimeter * 0.71 + 4.
         let mut r = Rng::new(11);
         for _ in 0..300 {
-            let v: Vec<ScreenVertex> = (0..3).map(|_| sv(r.uniform(0.0, 64.0) as f32, r.uniform(0.0, 64.0) as f32)).collect();
+            let v: Vec<ScreenVertex> = (0..3)
+                .map(|_| sv(r.uniform(0.0, 64.0) as f32, r.uniform(0.0, 64.0) as f32))
+                .collect();
             let t = [v[0], v[1], v[2]];
-            let area = 0.5 * ((t[1].x - t[0].x) * (t[2].y - t[0].y) - (t[2].x - t[0].x) * (t[1].y - t[0].y)).abs() as f64;
+            let area = 0.5
+                * ((t[1].x - t[0].x) * (t[2].y - t[0].y) - (t[2].x - t[0].x) * (t[1].y - t[0].y))
+                    .abs() as f64;
             let d = |a: ScreenVertex, b: ScreenVertex| ((a.x - b.x).hypot(a.y - b.y)) as f64;
             let perimeter = d(t[0], t[1]) + d(t[1], t[2]) + d(t[2], t[0]);
             let count = coverage(&[t], 64, 64).iter().sum::<u32>() as f64;
-            assert!((count - area).abs() <= perimeter * 0.71 + 4.0, "count {count} area {area}");
+            assert!(
+                (count - area).abs() <= perimeter * 0.71 + 4.0,
+                "count {count} area {area}"
+            );
         }
     }
 
@@ -507,14 +557,24 @@ mod tests {
         let v = pts.map(project);
         let mut n = 0;
         rasterize_triangle(v, 100, 100, |fr| {
-            let p: Vec<f64> = (0..3).map(|c| (0..3).map(|k| fr.bary[k] as f64 * pts[k][c]).sum()).collect();
+            let p: Vec<f64> = (0..3)
+                .map(|c| (0..3).map(|k| fr.bary[k] as f64 * pts[k][c]).sum())
+                .collect();
             let (u, w) = (f * p[0] / p[2] + 50.0, f * p[1] / p[2] + 50.0);
-            assert!((u - (fr.x as f64 + 0.5)).abs() < 2e-3 && (w - (fr.y as f64 + 0.5)).abs() < 2e-3, "{u} {w} {fr:?}");
+            assert!(
+                (u - (fr.x as f64 + 0.5)).abs() < 2e-3 && (w - (fr.y as f64 + 0.5)).abs() < 2e-3,
+                "{u} {w} {fr:?}"
+            );
             // Screen barycentrics interpolate the 2D vertices to the centre.
-            let sx: f64 = (0..3).map(|k| fr.screen_bary[k] as f64 * v[k].x as f64).sum();
+            let sx: f64 = (0..3)
+                .map(|k| fr.screen_bary[k] as f64 * v[k].x as f64)
+                .sum();
             assert!((sx - (fr.x as f64 + 0.5)).abs() < 1e-3);
             let sum: f32 = fr.bary.iter().sum();
-            assert!((sum - 1.0).abs() < 1e-5 && fr.bary.iter().all(|&b| (-1e-5..=1.0 + 1e-5).contains(&b)));
+            assert!(
+                (sum - 1.0).abs() < 1e-5
+                    && fr.bary.iter().all(|&b| (-1e-5..=1.0 + 1e-5).contains(&b))
+            );
             // Depth key is 1 / z of the interpolated point.
             assert!((fr.inv_w as f64 - 1.0 / p[2]).abs() < 1e-4);
             n += 1;
@@ -526,7 +586,14 @@ mod tests {
     fn depth_test_keeps_the_nearest_and_ties_keep_the_first() {
         let near = |x, y| ScreenVertex { x, y, inv_w: 2.0 };
         let far = |x, y| ScreenVertex { x, y, inv_w: 1.0 };
-        let verts = vec![near(1.0, 1.0), near(15.0, 1.0), near(1.0, 15.0), far(2.0, 2.0), far(16.0, 2.0), far(2.0, 16.0)];
+        let verts = vec![
+            near(1.0, 1.0),
+            near(15.0, 1.0),
+            near(1.0, 15.0),
+            far(2.0, 2.0),
+            far(16.0, 2.0),
+            far(2.0, 16.0),
+        ];
         for tris in [vec![[0, 1, 2], [3, 4, 5]], vec![[3, 4, 5], [0, 1, 2]]] {
             let mut vb = VisibilityBuffer::new(20, 20);
             vb.rasterize_mesh(&verts, &tris).unwrap();
@@ -539,28 +606,46 @@ mod tests {
         let verts = vec![near(1.0, 1.0), near(15.0, 1.0), near(1.0, 15.0)];
         let mut vb = VisibilityBuffer::new(20, 20);
         vb.rasterize_mesh(&verts, &[[0, 1, 2], [0, 2, 1]]).unwrap();
-        assert!(vb.triangle.iter().all(|&t| t == VisibilityBuffer::EMPTY || t == 0));
+        assert!(
+            vb.triangle
+                .iter()
+                .all(|&t| t == VisibilityBuffer::EMPTY || t == 0)
+        );
         assert!(vb.covered_pixels() > 50);
     }
 
     #[test]
     fn invalid_and_off_screen_triangles_are_skipped_safely() {
         let cases = [
-            [sv(1.0, 1.0), sv(5.0, 5.0), sv(9.0, 9.0)],              // collinear
-            [sv(1.0, 1.0), sv(1.0, 1.0), sv(9.0, 2.0)],              // repeated vertex
-            [sv(f32::NAN, 1.0), sv(5.0, 5.0), sv(9.0, 1.0)],         // NaN
-            [sv(-50.0, -50.0), sv(-10.0, -50.0), sv(-30.0, -10.0)],  // off-screen
-            [sv(1e9, 1.0), sv(5.0, 5.0), sv(9.0, 1.0)],              // outside the guard band
-            [ScreenVertex { x: 1.0, y: 1.0, inv_w: -1.0 }, sv(9.0, 1.0), sv(1.0, 9.0)], // behind
+            [sv(1.0, 1.0), sv(5.0, 5.0), sv(9.0, 9.0)], // collinear
+            [sv(1.0, 1.0), sv(1.0, 1.0), sv(9.0, 2.0)], // repeated vertex
+            [sv(f32::NAN, 1.0), sv(5.0, 5.0), sv(9.0, 1.0)], // NaN
+            [sv(-50.0, -50.0), sv(-10.0, -50.0), sv(-30.0, -10.0)], // off-screen
+            [sv(1e9, 1.0), sv(5.0, 5.0), sv(9.0, 1.0)], // outside the guard band
+            [
+                ScreenVertex {
+                    x: 1.0,
+                    y: 1.0,
+                    inv_w: -1.0,
+                },
+                sv(9.0, 1.0),
+                sv(1.0, 9.0),
+            ], // behind
         ];
         for t in cases {
             assert_eq!(coverage(&[t], 16, 16).iter().sum::<u32>(), 0, "{t:?}");
         }
         // Partly off-screen: only in-bounds pixels, and all of them.
-        let cov = coverage(&[[sv(-20.0, -20.0), sv(60.0, -20.0), sv(-20.0, 60.0)]], 16, 16);
+        let cov = coverage(
+            &[[sv(-20.0, -20.0), sv(60.0, -20.0), sv(-20.0, 60.0)]],
+            16,
+            16,
+        );
         assert_eq!(cov.iter().sum::<u32>(), 256);
         let mut vb = VisibilityBuffer::new(4, 4);
-        let err = vb.rasterize_mesh(&[sv(0.0, 0.0)], &[[0, 1, 2]]).unwrap_err();
+        let err = vb
+            .rasterize_mesh(&[sv(0.0, 0.0)], &[[0, 1, 2]])
+            .unwrap_err();
         assert_eq!(err.triangle, 0);
         assert!(err.to_string().contains("refers to a vertex"));
     }

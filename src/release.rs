@@ -31,7 +31,11 @@ pub struct SampleKey {
 
 impl fmt::Display for SampleKey {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        write!(f, "{}/{}/{}", self.subject_id, self.facial_action, self.img_id)
+        write!(
+            f,
+            "{}/{}/{}",
+            self.subject_id, self.facial_action, self.img_id
+        )
     }
 }
 
@@ -135,7 +139,10 @@ pub struct InfoAnnotation {
 pub const ARKIT_VERTEX_COUNT: usize = 1220;
 
 fn points3(values: Vec<f64>) -> Vec<Point3<f32>> {
-    values.chunks(3).map(|c| Point3::new(c[0] as f32, c[1] as f32, c[2] as f32)).collect()
+    values
+        .chunks(3)
+        .map(|c| Point3::new(c[0] as f32, c[1] as f32, c[2] as f32))
+        .collect()
 }
 
 fn mat16(values: Vec<f64>) -> [f64; 16] {
@@ -171,7 +178,8 @@ impl InfoAnnotation {
             projection_matrix: optional("projectionMatrix", &[4, 4])?.map(mat16),
             euler_angles_pyr: optional("euler_angles", &[3])?.map(|v| [v[0], v[1], v[2]]),
             translation: optional("translation", &[3])?.map(|v| [v[0], v[1], v[2]]),
-            points2d: optional("points2d", &[ARKIT_VERTEX_COUNT, 2])?.map(|v| v.chunks(2).map(|c| [c[0], c[1]]).collect()),
+            points2d: optional("points2d", &[ARKIT_VERTEX_COUNT, 2])?
+                .map(|v| v.chunks(2).map(|c| [c[0], c[1]]).collect()),
         })
     }
 
@@ -217,7 +225,11 @@ impl InfoAnnotation {
     /// uses (float32 for vertices and 2D points, float64 for matrices and angles).
     pub fn to_arrays(&self) -> Vec<(&'static str, NpyArray)> {
         let v32 = |v: &[Point3<f32>]| {
-            NpyArray::from_f32(vec![v.len(), 3], v.iter().flat_map(|p| [p.x, p.y, p.z]).collect()).expect("shape")
+            NpyArray::from_f32(
+                vec![v.len(), 3],
+                v.iter().flat_map(|p| [p.x, p.y, p.z]).collect(),
+            )
+            .expect("shape")
         };
         let m44 = |m: &[f64; 16]| NpyArray::from_f64(vec![4, 4], m.to_vec()).expect("shape");
         let mut out = vec![("verts", v32(&self.verts)), ("R_t", m44(&self.rt))];
@@ -234,15 +246,25 @@ impl InfoAnnotation {
             out.push(("projectionMatrix", m44(m)));
         }
         if let Some(e) = &self.euler_angles_pyr {
-            out.push(("euler_angles", NpyArray::from_f64(vec![3], e.to_vec()).expect("shape")));
+            out.push((
+                "euler_angles",
+                NpyArray::from_f64(vec![3], e.to_vec()).expect("shape"),
+            ));
         }
         if let Some(t) = &self.translation {
-            out.push(("translation", NpyArray::from_f64(vec![3], t.to_vec()).expect("shape")));
+            out.push((
+                "translation",
+                NpyArray::from_f64(vec![3], t.to_vec()).expect("shape"),
+            ));
         }
         if let Some(p) = &self.points2d {
             out.push((
                 "points2d",
-                NpyArray::from_f32(vec![p.len(), 2], p.iter().flat_map(|q| [q[0] as f32, q[1] as f32]).collect()).expect("shape"),
+                NpyArray::from_f32(
+                    vec![p.len(), 2],
+                    p.iter().flat_map(|q| [q[0] as f32, q[1] as f32]).collect(),
+                )
+                .expect("shape"),
             ));
         }
         out
@@ -298,10 +320,15 @@ pub fn parse_list(text: &str, path: &Path) -> Result<Vec<ListRow>> {
         }
     };
     let col = |name: &str| -> Result<usize> {
-        header
-            .iter()
-            .position(|h| h.trim() == name)
-            .ok_or_else(|| Error::format(path, format!("header has no '{name}' column (found: {})", header.join(", "))))
+        header.iter().position(|h| h.trim() == name).ok_or_else(|| {
+            Error::format(
+                path,
+                format!(
+                    "header has no '{name}' column (found: {})",
+                    header.join(", ")
+                ),
+            )
+        })
     };
     let (cs, ca, ci) = (col("subject_id")?, col("facial_action")?, col("img_id")?);
     let mut rows = Vec::new();
@@ -317,7 +344,10 @@ pub fn parse_list(text: &str, path: &Path) -> Result<Vec<ListRow>> {
                 .filter(|s| !s.is_empty())
                 .ok_or_else(|| Error::format(path, format!("line {}: missing {name}", n + 1)))?;
             if v.contains('/') || v.contains('\\') || v == "." || v == ".." {
-                return Err(Error::format(path, format!("line {}: {name} '{v}' is not a plain name", n + 1)));
+                return Err(Error::format(
+                    path,
+                    format!("line {}: {name} '{v}' is not a plain name", n + 1),
+                ));
             }
             Ok(v)
         };
@@ -358,7 +388,10 @@ fn split_csv_line(line: &str) -> Vec<String> {
 pub fn list_csv_text(keys: &[SampleKey]) -> String {
     let mut s = String::from("subject_id,facial_action,img_id\n");
     for k in keys {
-        s.push_str(&format!("{},{},{}\n", k.subject_id, k.facial_action, k.img_id));
+        s.push_str(&format!(
+            "{},{},{}\n",
+            k.subject_id, k.facial_action, k.img_id
+        ));
     }
     s
 }
@@ -388,13 +421,20 @@ mod tests {
         let k = key("000123", "09_LeftToRight_Frown", "1616212233525");
         assert_eq!(
             l.image_path(Split::Train, &k),
-            PathBuf::from("/data/ARKitFace_image_train/image/000123/09_LeftToRight_Frown/1616212233525_ar.jpg")
+            PathBuf::from(
+                "/data/ARKitFace_image_train/image/000123/09_LeftToRight_Frown/1616212233525_ar.jpg"
+            )
         );
         assert_eq!(
             l.info_path(Split::Test, &k),
-            PathBuf::from("/data/ARKitFace_info_test/info/000123/09_LeftToRight_Frown/1616212233525_info.npz")
+            PathBuf::from(
+                "/data/ARKitFace_info_test/info/000123/09_LeftToRight_Frown/1616212233525_info.npz"
+            )
         );
-        assert_eq!(l.list_path(Split::Test), PathBuf::from("/data/ARKitFace_list/list/ARKitFace_test.csv"));
+        assert_eq!(
+            l.list_path(Split::Test),
+            PathBuf::from("/data/ARKitFace_list/list/ARKitFace_test.csv")
+        );
     }
 
     #[test]
@@ -405,25 +445,52 @@ mod tests {
         assert_eq!(rows[1].key, key("42", "a,b", "7"));
         assert_eq!(rows[1].line, 3);
         // Round trip of our own writer.
-        let keys: Vec<_> = rows.iter().map(|r| r.key.clone()).filter(|k| !k.facial_action.contains(',')).collect();
+        let keys: Vec<_> = rows
+            .iter()
+            .map(|r| r.key.clone())
+            .filter(|k| !k.facial_action.contains(','))
+            .collect();
         let back = parse_list(&list_csv_text(&keys), Path::new("x")).unwrap();
         assert_eq!(back.into_iter().map(|r| r.key).collect::<Vec<_>>(), keys);
     }
 
     #[test]
     fn list_errors_name_file_and_line() {
-        let err = parse_list("subject_id,img_id\n1,2\n", Path::new("a.csv")).unwrap_err().to_string();
-        assert!(err.starts_with("a.csv:") && err.contains("facial_action"), "{err}");
-        let err = parse_list("subject_id,facial_action,img_id\n1,,3\n", Path::new("a.csv")).unwrap_err().to_string();
-        assert!(err.contains("line 2") && err.contains("facial_action"), "{err}");
-        let err = parse_list("subject_id,facial_action,img_id\n1,../x,3\n", Path::new("a.csv")).unwrap_err().to_string();
+        let err = parse_list("subject_id,img_id\n1,2\n", Path::new("a.csv"))
+            .unwrap_err()
+            .to_string();
+        assert!(
+            err.starts_with("a.csv:") && err.contains("facial_action"),
+            "{err}"
+        );
+        let err = parse_list(
+            "subject_id,facial_action,img_id\n1,,3\n",
+            Path::new("a.csv"),
+        )
+        .unwrap_err()
+        .to_string();
+        assert!(
+            err.contains("line 2") && err.contains("facial_action"),
+            "{err}"
+        );
+        let err = parse_list(
+            "subject_id,facial_action,img_id\n1,../x,3\n",
+            Path::new("a.csv"),
+        )
+        .unwrap_err()
+        .to_string();
         assert!(err.contains("not a plain name"), "{err}");
         assert!(parse_list("", Path::new("a.csv")).is_err());
     }
 
     fn sample_info() -> InfoAnnotation {
-        let verts: Vec<Point3<f32>> = (0..ARKIT_VERTEX_COUNT).map(|i| Point3::new(i as f32 * 1e-4, -0.01, 0.02)).collect();
-        let pose = Pose::from_euler(EulerAngles::new(20.0, -10.0, 5.0), Vector3::new(0.01, 0.02, -0.5));
+        let verts: Vec<Point3<f32>> = (0..ARKIT_VERTEX_COUNT)
+            .map(|i| Point3::new(i as f32 * 1e-4, -0.01, 0.02))
+            .collect();
+        let pose = Pose::from_euler(
+            EulerAngles::new(20.0, -10.0, 5.0),
+            Vector3::new(0.01, 0.02, -0.5),
+        );
         let cam_t = Matrix4::new_translation(&Vector3::new(0.1, 0.2, 0.3));
         InfoAnnotation::complete(verts, &pose, &Camera::release(640, 480), cam_t)
     }
@@ -432,7 +499,10 @@ mod tests {
     fn info_round_trip_and_consistency() {
         let dir = tempfile::tempdir().unwrap();
         let info = sample_info();
-        for (i, c) in [NpzCompression::Stored, NpzCompression::Deflated].into_iter().enumerate() {
+        for (i, c) in [NpzCompression::Stored, NpzCompression::Deflated]
+            .into_iter()
+            .enumerate()
+        {
             let p = dir.path().join(format!("{i}_info.npz"));
             write_info(&p, &info, c).unwrap();
             let back = read_info(&p).unwrap();
@@ -472,19 +542,34 @@ mod tests {
         assert!(e.contains("missing_info.npz") && e.contains("R_t"), "{e}");
         // Wrong shape.
         let short = NpyArray::from_f32(vec![1219, 3], vec![0.0; 1219 * 3]).unwrap();
-        let p = write("short_info.npz", vec![("verts", short), ("R_t", get("R_t"))]);
+        let p = write(
+            "short_info.npz",
+            vec![("verts", short), ("R_t", get("R_t"))],
+        );
         let e = read_info(&p).unwrap_err().to_string();
         assert!(e.contains("short_info.npz") && e.contains("1219"), "{e}");
         // NaN.
         let mut v = get("verts").to_f32_vec();
         v[10] = f32::NAN;
-        let p = write("nan_info.npz", vec![("verts", NpyArray::from_f32(vec![1220, 3], v).unwrap()), ("R_t", get("R_t"))]);
+        let p = write(
+            "nan_info.npz",
+            vec![
+                ("verts", NpyArray::from_f32(vec![1220, 3], v).unwrap()),
+                ("R_t", get("R_t")),
+            ],
+        );
         let e = read_info(&p).unwrap_err().to_string();
         assert!(e.contains("nan_info.npz") && e.contains("verts"), "{e}");
         // Positive tz.
         let mut rt = info.rt;
         rt[14] = 0.5;
-        let p = write("tz_info.npz", vec![("verts", get("verts")), ("R_t", NpyArray::from_f64(vec![4, 4], rt.to_vec()).unwrap())]);
+        let p = write(
+            "tz_info.npz",
+            vec![
+                ("verts", get("verts")),
+                ("R_t", NpyArray::from_f64(vec![4, 4], rt.to_vec()).unwrap()),
+            ],
+        );
         let e = read_info(&p).unwrap_err().to_string();
         assert!(e.contains("tz_info.npz") && e.contains("negative"), "{e}");
         // Truncated archive.

@@ -97,8 +97,14 @@ mod tests {
     fn streams_are_reproducible_and_distinct() {
         let a: Vec<u64> = (0..4).map(|_| Rng::for_stream(7, 3).next_u64()).collect();
         assert!(a.windows(2).all(|w| w[0] == w[1]));
-        assert_ne!(Rng::for_stream(7, 3).next_u64(), Rng::for_stream(7, 4).next_u64());
-        assert_ne!(Rng::for_stream(7, 3).next_u64(), Rng::for_stream(8, 3).next_u64());
+        assert_ne!(
+            Rng::for_stream(7, 3).next_u64(),
+            Rng::for_stream(7, 4).next_u64()
+        );
+        assert_ne!(
+            Rng::for_stream(7, 3).next_u64(),
+            Rng::for_stream(8, 3).next_u64()
+        );
     }
 
     #[test]
@@ -117,6 +123,9 @@ mod tests {
             c[r.below(3) as usize] += 1;
             c
         });
-        assert!(counts.iter().all(|&c| (19_000..21_000).contains(&c)), "{counts:?}");
+        assert!(
+            counts.iter().all(|&c| (19_000..21_000).contains(&c)),
+            "{counts:?}"
+        );
     }
 }

@@ -86,10 +86,16 @@ impl SynthOptions {
     /// Checks the options.
     pub fn check(&self) -> Result<()> {
         if self.subjects == 0 || self.images_per_subject == 0 {
-            return Err(Error::invalid("synth options", "need at least one subject and one image per subject"));
+            return Err(Error::invalid(
+                "synth options",
+                "need at least one subject and one image per subject",
+            ));
         }
         if self.width < 32 || self.height < 32 || self.width > 8192 || self.height > 8192 {
-            return Err(Error::invalid("--size", format!("{}x{} is outside 32..8192 pixels", self.width, self.height)));
+            return Err(Error::invalid(
+                "--size",
+                format!("{}x{} is outside 32..8192 pixels", self.width, self.height),
+            ));
         }
         if !(0.0..=1.0).contains(&self.test_fraction) {
             return Err(Error::invalid("--test-fraction", "must be in [0, 1]"));
@@ -135,7 +141,10 @@ impl FaceSource {
     /// `--resources`, whose folder has `template_verts.npy`).
     pub fn new(topology: FaceTopology) -> Result<Self> {
         let neutral = topology.template.clone().ok_or_else(|| {
-            Error::format(topology.source_path(), "no template face (template_verts.npy) to draw: synth needs one")
+            Error::format(
+                topology.source_path(),
+                "no template face (template_verts.npy) to draw: synth needs one",
+            )
         })?;
         let hole_fill = topology.hole_fill()?;
         let lm = |i: usize| neutral[topology.landmarks[i] as usize];
@@ -146,7 +155,10 @@ impl FaceSource {
         let eye_centres = [mean(36..42), mean(42..48)];
         let eye_radius = 0.5 * (lm(39) - lm(36)).norm() * 0.42;
         let mouth_centre = mean(48..60);
-        let mouth_half = ((lm(54).x - lm(48).x).abs() / 2.0 * 1.05, ((lm(51).y - lm(57).y).abs() / 2.0).max(0.006));
+        let mouth_half = (
+            (lm(54).x - lm(48).x).abs() / 2.0 * 1.05,
+            ((lm(51).y - lm(57).y).abs() / 2.0).max(0.006),
+        );
         let features = Features {
             eye_centres,
             eye_radius,
@@ -181,7 +193,8 @@ pub struct PlannedSample {
 pub fn plan(options: &SynthOptions) -> Vec<PlannedSample> {
     let mut rng = Rng::for_stream(options.seed, u64::MAX);
     let n_test = if options.subjects >= 2 {
-        ((options.subjects as f64 * options.test_fraction).round() as usize).clamp(1, options.subjects - 1)
+        ((options.subjects as f64 * options.test_fraction).round() as usize)
+            .clamp(1, options.subjects - 1)
     } else {
         0
     };
@@ -190,7 +203,11 @@ pub fn plan(options: &SynthOptions) -> Vec<PlannedSample> {
     let mut out = Vec::new();
     for s in 0..options.subjects {
         let subject_id = format!("0{:05}", base + 37 * s);
-        let split = if s >= options.subjects - n_test { Split::Test } else { Split::Train };
+        let split = if s >= options.subjects - n_test {
+            Split::Test
+        } else {
+            Split::Train
+        };
         let t0 = 1_616_212_233_525u64 + rng.below(1_000_000_000);
         for i in 0..options.images_per_subject {
             let action = FACIAL_ACTIONS[i % FACIAL_ACTIONS.len()].0;
@@ -230,7 +247,12 @@ fn subject_look(seed: u64, subject: usize) -> Subject {
     let skin = [0.95 - 0.55 * tone, 0.78 - 0.5 * tone, 0.68 - 0.45 * tone];
     let dark = r.uniform(0.05, 0.35) as f32;
     let brow = [dark * 1.1, dark * 0.8, dark * 0.6];
-    let irises = [[0.35, 0.22, 0.1], [0.2, 0.35, 0.55], [0.25, 0.4, 0.25], [0.15, 0.1, 0.06]];
+    let irises = [
+        [0.35, 0.22, 0.1],
+        [0.2, 0.35, 0.55],
+        [0.25, 0.4, 0.25],
+        [0.15, 0.1, 0.06],
+    ];
     let iris = irises[r.below(4) as usize];
     let lips = [skin[0] * 0.85 + 0.1, skin[1] * 0.55, skin[2] * 0.6];
     Subject {
@@ -268,9 +290,16 @@ pub struct SyntheticSample {
 }
 
 /// Renders one planned sample.
-pub fn render_sample(source: &FaceSource, options: &SynthOptions, planned: &PlannedSample) -> Result<SyntheticSample> {
+pub fn render_sample(
+    source: &FaceSource,
+    options: &SynthOptions,
+    planned: &PlannedSample,
+) -> Result<SyntheticSample> {
     let subject = subject_look(options.seed, planned.subject);
-    let mut r = Rng::for_stream(options.seed, (planned.subject as u64) << 20 | planned.image as u64);
+    let mut r = Rng::for_stream(
+        options.seed,
+        (planned.subject as u64) << 20 | planned.image as u64,
+    );
     let action = FACIAL_ACTIONS
         .iter()
         .find(|(n, _)| *n == planned.key.facial_action)
@@ -284,7 +313,12 @@ pub fn render_sample(source: &FaceSource, options: &SynthOptions, planned: &Plan
     let camera = Camera::release(options.width, options.height);
     let k = camera.pinhole();
     let verts64: Vec<Point3<f64>> = verts.iter().map(|p| p.cast()).collect();
-    let landmarks: Vec<Point3<f64>> = source.topology.landmarks.iter().map(|&i| verts64[i as usize]).collect();
+    let landmarks: Vec<Point3<f64>> = source
+        .topology
+        .landmarks
+        .iter()
+        .map(|&i| verts64[i as usize])
+        .collect();
     // Draw until every landmark and vertex lands inside the image (a few tries at most).
     let mut pose = None;
     for _ in 0..200 {
@@ -292,12 +326,25 @@ pub fn render_sample(source: &FaceSource, options: &SynthOptions, planned: &Plan
         let distance = r.uniform(ranges::DISTANCE_M.0, ranges::DISTANCE_M.1);
         let u = r.uniform(0.3, 0.7) * options.width as f64;
         let v = r.uniform(0.3, 0.7) * options.height as f64;
-        let t = Vector3::new((u - k.cx) * distance / k.fx, -(v - k.cy) * distance / k.fy, -distance);
+        let t = Vector3::new(
+            (u - k.cx) * distance / k.fx,
+            -(v - k.cy) * distance / k.fy,
+            -distance,
+        );
         let candidate = Pose::from_euler(angles, t);
         let inside = |p: &crate::conventions::ImagePoint| {
-            p.u > 1.0 && p.v > 1.0 && p.u < options.width as f64 - 1.0 && p.v < options.height as f64 - 1.0 && p.depth_m > 0.05
+            p.u > 1.0
+                && p.v > 1.0
+                && p.u < options.width as f64 - 1.0
+                && p.v < options.height as f64 - 1.0
+                && p.depth_m > 0.05
         };
-        if camera.project_all(&candidate, &verts64).iter().all(inside) && camera.project_all(&candidate, &landmarks).iter().all(inside) {
+        if camera.project_all(&candidate, &verts64).iter().all(inside)
+            && camera
+                .project_all(&candidate, &landmarks)
+                .iter()
+                .all(inside)
+        {
             pose = Some(candidate);
             break;
         }
@@ -305,17 +352,26 @@ pub fn render_sample(source: &FaceSource, options: &SynthOptions, planned: &Plan
     let pose = pose.ok_or_else(|| {
         Error::invalid(
             "--size",
-            format!("no pose keeps the face inside a {}x{} image; use a larger size", options.width, options.height),
+            format!(
+                "no pose keeps the face inside a {}x{} image; use a larger size",
+                options.width, options.height
+            ),
         )
     })?;
     // The camera's pose in the world, as ARKit records it (any rigid map works).
     let cam_angle = r.uniform(-180.0, 180.0);
     let camera_transform = Pose::from_euler(
         EulerAngles::new(cam_angle, 0.0, 0.0),
-        Vector3::new(r.uniform(-1.0, 1.0), r.uniform(0.0, 1.5), r.uniform(-1.0, 1.0)),
+        Vector3::new(
+            r.uniform(-1.0, 1.0),
+            r.uniform(0.0, 1.5),
+            r.uniform(-1.0, 1.0),
+        ),
     )
     .release_matrix();
-    let light = Vector3::new(r.uniform(-0.6, 0.6), r.uniform(-0.2, 0.8), 1.0).normalize().cast::<f32>();
+    let light = Vector3::new(r.uniform(-0.6, 0.6), r.uniform(-0.2, 0.8), 1.0)
+        .normalize()
+        .cast::<f32>();
     let mut image = background(options.width, options.height, &mut r);
     draw_face(&mut image, source, &subject, &verts, &pose, &camera, &light);
     let info = InfoAnnotation::complete(verts, &pose, &camera, camera_transform);
@@ -323,13 +379,25 @@ pub fn render_sample(source: &FaceSource, options: &SynthOptions, planned: &Plan
 }
 
 fn lerp3(a: [f32; 3], b: [f32; 3], t: f32) -> [f32; 3] {
-    [a[0] + (b[0] - a[0]) * t, a[1] + (b[1] - a[1]) * t, a[2] + (b[2] - a[2]) * t]
+    [
+        a[0] + (b[0] - a[0]) * t,
+        a[1] + (b[1] - a[1]) * t,
+        a[2] + (b[2] - a[2]) * t,
+    ]
 }
 
 /// A background: a two-colour gradient with soft blobs and stripes.
 fn background(width: u32, height: u32, r: &mut Rng) -> RgbImage {
-    let c0 = [r.next_f64() as f32, r.next_f64() as f32, r.next_f64() as f32];
-    let c1 = [r.next_f64() as f32, r.next_f64() as f32, r.next_f64() as f32];
+    let c0 = [
+        r.next_f64() as f32,
+        r.next_f64() as f32,
+        r.next_f64() as f32,
+    ];
+    let c1 = [
+        r.next_f64() as f32,
+        r.next_f64() as f32,
+        r.next_f64() as f32,
+    ];
     let angle = r.uniform(0.0, std::f64::consts::TAU) as f32;
     let (dx, dy) = (angle.cos(), angle.sin());
     let blobs: Vec<(f32, f32, f32, [f32; 3])> = (0..6)
@@ -338,7 +406,11 @@ fn background(width: u32, height: u32, r: &mut Rng) -> RgbImage {
                 r.next_f64() as f32 * width as f32,
                 r.next_f64() as f32 * height as f32,
                 (0.05 + 0.2 * r.next_f64() as f32) * width.max(height) as f32,
-                [r.next_f64() as f32, r.next_f64() as f32, r.next_f64() as f32],
+                [
+                    r.next_f64() as f32,
+                    r.next_f64() as f32,
+                    r.next_f64() as f32,
+                ],
             )
         })
         .collect();
@@ -346,7 +418,8 @@ fn background(width: u32, height: u32, r: &mut Rng) -> RgbImage {
     let diag = (width as f32).hypot(height as f32);
     RgbImage::from_fn(width, height, |x, y| {
         let (fx, fy) = (x as f32 + 0.5, y as f32 + 0.5);
-        let t = (((fx - width as f32 / 2.0) * dx + (fy - height as f32 / 2.0) * dy) / diag + 0.5).clamp(0.0, 1.0);
+        let t = (((fx - width as f32 / 2.0) * dx + (fy - height as f32 / 2.0) * dy) / diag + 0.5)
+            .clamp(0.0, 1.0);
         let mut c = lerp3(c0, c1, t);
         for &(bx, by, br, bc) in &blobs {
             let d2 = ((fx - bx).powi(2) + (fy - by).powi(2)) / (br * br);
@@ -364,7 +437,10 @@ fn value_noise(p: &Point3<f32>, cell: f32, seed: u64) -> f32 {
     let f = q - base;
     let s = f.map(|v| v * v * (3.0 - 2.0 * v));
     let hash = |x: i64, y: i64, z: i64| -> f32 {
-        let mut h = seed ^ (x as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15) ^ (y as u64).wrapping_mul(0xC2B2_AE3D_27D4_EB4F) ^ (z as u64).wrapping_mul(0x1656_67B1_9E37_79F9);
+        let mut h = seed
+            ^ (x as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15)
+            ^ (y as u64).wrapping_mul(0xC2B2_AE3D_27D4_EB4F)
+            ^ (z as u64).wrapping_mul(0x1656_67B1_9E37_79F9);
         (crate::rng::splitmix64(&mut h) >> 40) as f32 / (1u64 << 24) as f32
     };
     let (bx, by, bz) = (base.x as i64, base.y as i64, base.z as i64);
@@ -394,7 +470,8 @@ fn polyline_distance(p: &Point3<f32>, pts: &[Point3<f32>]) -> f32 {
 /// Colour of the skin surface at neutral position `p`.
 fn skin_albedo(source: &FaceSource, subject: &Subject, p: &Point3<f32>) -> [f32; 3] {
     let f = &source.features;
-    let n = 0.85 + 0.3 * value_noise(p, 0.012, subject.texture_seed) - 0.08 * value_noise(p, 0.003, subject.texture_seed ^ 1);
+    let n = 0.85 + 0.3 * value_noise(p, 0.012, subject.texture_seed)
+        - 0.08 * value_noise(p, 0.003, subject.texture_seed ^ 1);
     let mut c = subject.skin.map(|v| v * n);
     // Cheeks and nose tip a little redder.
     let blush = (-((p - f.nose_tip).norm() / 0.012).powi(2)).exp() * 0.25;
@@ -403,20 +480,22 @@ fn skin_albedo(source: &FaceSource, subject: &Subject, p: &Point3<f32>) -> [f32;
     let (left, right) = f.brows.split_at(5);
     let d = polyline_distance(p, left).min(polyline_distance(p, right));
     if d < 0.0045 && (p.x.abs() > 0.008) {
-        let t = (1.0 - d / 0.0045).min(1.0).powf(0.5) * (0.7 + 0.3 * value_noise(p, 0.002, subject.texture_seed ^ 2));
+        let t = (1.0 - d / 0.0045).min(1.0).powf(0.5)
+            * (0.7 + 0.3 * value_noise(p, 0.002, subject.texture_seed ^ 2));
         c = lerp3(c, subject.brow, t);
     }
     // Lips.
     let (mx, my) = f.mouth_half;
-    let lx = (p.x - f.mouth_centre.x) / (mx * 1.05);
-    let ly = (p.y - f.mouth_centre.y) / (my * 1.9 + 0.004);
+    let lx = (p.x - f.mouth_centre.x) / mx;
+    let ly = (p.y - f.mouth_centre.y) / (my * 1.15);
     let l = lx * lx + ly * ly;
     if l < 1.0 {
         c = lerp3(c, subject.lips, ((1.0 - l) * 4.0).min(1.0));
     }
     // Eyelid shadow around the eye openings.
     for e in &f.eye_centres {
-        let d = ((p.x - e.x) / (f.eye_radius * 2.4)).powi(2) + ((p.y - e.y) / (f.eye_radius * 1.3)).powi(2);
+        let d = ((p.x - e.x) / (f.eye_radius * 2.4)).powi(2)
+            + ((p.y - e.y) / (f.eye_radius * 1.3)).powi(2);
         if d < 1.6 {
             c = c.map(|v| v * (0.75 + 0.25 * ((d - 0.6).max(0.0) / 1.0).min(1.0)));
         }
@@ -425,15 +504,28 @@ fn skin_albedo(source: &FaceSource, subject: &Subject, p: &Point3<f32>) -> [f32;
 }
 
 /// Colour inside an eye or the mouth opening at neutral position `p`.
-fn opening_albedo(source: &FaceSource, subject: &Subject, role: LoopRole, p: &Point3<f32>) -> [f32; 3] {
+fn opening_albedo(
+    source: &FaceSource,
+    subject: &Subject,
+    role: LoopRole,
+    p: &Point3<f32>,
+) -> [f32; 3] {
     let f = &source.features;
     match role {
         LoopRole::Mouth => {
             let t = ((p.y - f.mouth_centre.y) / f.mouth_half.1.max(1e-3)).clamp(-1.0, 1.0);
-            if t > 0.2 { [0.92, 0.9, 0.85] } else { [0.25, 0.06, 0.06] }
+            if t > 0.2 {
+                [0.92, 0.9, 0.85]
+            } else {
+                [0.25, 0.06, 0.06]
+            }
         }
         _ => {
-            let e = if role == LoopRole::RightEye { f.eye_centres[0] } else { f.eye_centres[1] };
+            let e = if role == LoopRole::RightEye {
+                f.eye_centres[0]
+            } else {
+                f.eye_centres[1]
+            };
             let d = (p.xy() - e.xy()).norm() / f.eye_radius;
             if d < 0.45 {
                 [0.03, 0.03, 0.03]
@@ -491,7 +583,8 @@ fn draw_face(
     }
     let (w, h) = (camera.width, camera.height);
     let mut vis = VisibilityBuffer::new(w, h);
-    vis.rasterize_mesh(&screen, &triangles).expect("indices checked by the topology");
+    vis.rasterize_mesh(&screen, &triangles)
+        .expect("indices checked by the topology");
     let hole_role = |tri: usize| -> Option<LoopRole> {
         if tri < topo.triangles.len() {
             return None;
@@ -508,8 +601,15 @@ fn draw_face(
             }
             let t = triangles[tri as usize];
             let b = vis.bary[idx];
-            let p = Point3::from(neutral[t[0] as usize].coords * b[0] + neutral[t[1] as usize].coords * b[1] + neutral[t[2] as usize].coords * b[2]);
-            let n = (normals[t[0] as usize] * b[0] + normals[t[1] as usize] * b[1] + normals[t[2] as usize] * b[2]).normalize();
+            let p = Point3::from(
+                neutral[t[0] as usize].coords * b[0]
+                    + neutral[t[1] as usize].coords * b[1]
+                    + neutral[t[2] as usize].coords * b[2],
+            );
+            let n = (normals[t[0] as usize] * b[0]
+                + normals[t[1] as usize] * b[1]
+                + normals[t[2] as usize] * b[2])
+                .normalize();
             let albedo = match hole_role(tri as usize) {
                 None => skin_albedo(source, subject, &p),
                 Some(role) => opening_albedo(source, subject, role, &p),
@@ -566,14 +666,25 @@ pub fn generate(
     let samples = plan(options);
     samples.par_iter().try_for_each(|s| -> Result<()> {
         let sample = render_sample(source, options, s)?;
-        atomic_file::write_bytes(&layout.image_path(s.split, &s.key), &jpeg_bytes(&sample.image, options.jpeg_quality)?)?;
-        release::write_info(&layout.info_path(s.split, &s.key), &sample.info, NpzCompression::Deflated)?;
+        atomic_file::write_bytes(
+            &layout.image_path(s.split, &s.key),
+            &jpeg_bytes(&sample.image, options.jpeg_quality)?,
+        )?;
+        release::write_info(
+            &layout.info_path(s.split, &s.key),
+            &sample.info,
+            NpzCompression::Deflated,
+        )?;
         progress();
         Ok(())
     })?;
     let mut counts = [0usize; 2];
     for split in [Split::Train, Split::Test] {
-        let keys: Vec<SampleKey> = samples.iter().filter(|s| s.split == split).map(|s| s.key.clone()).collect();
+        let keys: Vec<SampleKey> = samples
+            .iter()
+            .filter(|s| s.split == split)
+            .map(|s| s.key.clone())
+            .collect();
         counts[split as usize] = keys.len();
         release::write_list(&layout.list_path(split), &keys)?;
     }
@@ -589,17 +700,26 @@ pub fn generate(
     })
 }
 
-/// Draws the projected mesh (edges) and landmarks over an image, for a person to check
-/// that annotation and image agree.
-pub fn draw_overlay(image: &mut RgbImage, topology: &FaceTopology, info: &InfoAnnotation) -> Result<()> {
+/// Draws the projected face outline, eye and mouth openings (green), a sparse set of
+/// mesh edges (dark green) and the 68 landmarks (red) over an image, for a person to
+/// check that annotation and image agree.
+pub fn draw_overlay(
+    image: &mut RgbImage,
+    topology: &FaceTopology,
+    info: &InfoAnnotation,
+) -> Result<()> {
     let pose = info.pose()?;
     let camera = Camera::release(image.width(), image.height());
     let pts: Vec<Point3<f64>> = info.verts.iter().map(|p| p.cast()).collect();
     let p = camera.project_all(&pose, &pts);
-    for t in &topology.triangles {
-        for k in 0..3 {
-            let (a, b) = (&p[t[k] as usize], &p[t[(k + 1) % 3] as usize]);
-            draw_line(image, (a.u, a.v), (b.u, b.v), Rgb([40, 230, 90]));
+    for t in topology.triangles.iter().step_by(7) {
+        let (a, b) = (&p[t[0] as usize], &p[t[1] as usize]);
+        draw_line(image, (a.u, a.v), (b.u, b.v), Rgb([20, 120, 40]));
+    }
+    for (_, l) in &topology.boundary_loops()?.loops {
+        for k in 0..l.len() {
+            let (a, b) = (&p[l[k] as usize], &p[l[(k + 1) % l.len()] as usize]);
+            draw_line(image, (a.u, a.v), (b.u, b.v), Rgb([40, 240, 90]));
         }
     }
     for &l in &topology.landmarks {
@@ -631,11 +751,24 @@ fn draw_line(image: &mut RgbImage, a: (f64, f64), b: (f64, f64), colour: Rgb<u8>
 pub fn contact_sheet(images: &[RgbImage], columns: usize, cell: u32) -> RgbImage {
     let columns = columns.max(1);
     let rows = images.len().div_ceil(columns).max(1);
-    let cell_h = images.first().map(|i| (cell as f64 * i.height() as f64 / i.width() as f64).round() as u32).unwrap_or(cell);
-    let mut sheet = RgbImage::from_pixel(columns as u32 * cell, rows as u32 * cell_h, Rgb([30, 30, 30]));
+    let cell_h = images
+        .first()
+        .map(|i| (cell as f64 * i.height() as f64 / i.width() as f64).round() as u32)
+        .unwrap_or(cell);
+    let mut sheet = RgbImage::from_pixel(
+        columns as u32 * cell,
+        rows as u32 * cell_h,
+        Rgb([30, 30, 30]),
+    );
     for (k, img) in images.iter().enumerate() {
-        let small = image::imageops::resize(img, cell, cell_h, image::imageops::FilterType::Triangle);
-        image::imageops::overlay(&mut sheet, &small, (k % columns) as i64 * cell as i64, (k / columns) as i64 * cell_h as i64);
+        let small =
+            image::imageops::resize(img, cell, cell_h, image::imageops::FilterType::Triangle);
+        image::imageops::overlay(
+            &mut sheet,
+            &small,
+            (k % columns) as i64 * cell as i64,
+            (k / columns) as i64 * cell_h as i64,
+        );
     }
     sheet
 }

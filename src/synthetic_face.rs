@@ -54,10 +54,30 @@ impl Ellipse {
     }
 }
 
-const OUTER: Ellipse = Ellipse { cs: 0.0, ct: 0.0, a: 1.0, b: 1.0 };
-const EYE_R: Ellipse = Ellipse { cs: -0.435, ct: 0.26, a: 0.19, b: 0.075 };
-const EYE_L: Ellipse = Ellipse { cs: 0.435, ct: 0.26, a: 0.19, b: 0.075 };
-const MOUTH: Ellipse = Ellipse { cs: 0.0, ct: -0.47, a: 0.27, b: 0.055 };
+const OUTER: Ellipse = Ellipse {
+    cs: 0.0,
+    ct: 0.0,
+    a: 1.0,
+    b: 1.0,
+};
+const EYE_R: Ellipse = Ellipse {
+    cs: -0.435,
+    ct: 0.26,
+    a: 0.19,
+    b: 0.075,
+};
+const EYE_L: Ellipse = Ellipse {
+    cs: 0.435,
+    ct: 0.26,
+    a: 0.19,
+    b: 0.075,
+};
+const MOUTH: Ellipse = Ellipse {
+    cs: 0.0,
+    ct: -0.47,
+    a: 0.27,
+    b: 0.055,
+};
 const HOLES: [Ellipse; 3] = [MOUTH, EYE_R, EYE_L];
 
 /// Half-width, half-height and vertical offset of the face in metres (ARKit-like).
@@ -116,12 +136,20 @@ fn build_lattice(h: f64) -> Lattice {
         let lower_odd = j.rem_euclid(2) == 1;
         for i in -imax..imax {
             let cands: [[(i64, i64); 3]; 2] = if !lower_odd {
-                [[(i, j), (i + 1, j), (i, j + 1)], [(i + 1, j), (i + 1, j + 1), (i, j + 1)]]
+                [
+                    [(i, j), (i + 1, j), (i, j + 1)],
+                    [(i + 1, j), (i + 1, j + 1), (i, j + 1)],
+                ]
             } else {
-                [[(i, j), (i + 1, j + 1), (i, j + 1)], [(i, j), (i + 1, j), (i + 1, j + 1)]]
+                [
+                    [(i, j), (i + 1, j + 1), (i, j + 1)],
+                    [(i, j), (i + 1, j), (i + 1, j + 1)],
+                ]
             };
             for c in cands {
-                let (Some(&a), Some(&b), Some(&d)) = (ids.get(&c[0]), ids.get(&c[1]), ids.get(&c[2])) else {
+                let (Some(&a), Some(&b), Some(&d)) =
+                    (ids.get(&c[0]), ids.get(&c[1]), ids.get(&c[2]))
+                else {
                     continue;
                 };
                 let (pa, pb, pd) = (params[a as usize], params[b as usize], params[d as usize]);
@@ -157,7 +185,10 @@ fn build_lattice(h: f64) -> Lattice {
             *v = remap[*v as usize];
         }
     }
-    Lattice { params: kept, triangles }
+    Lattice {
+        params: kept,
+        triangles,
+    }
 }
 
 fn placeholder_topology(l: &Lattice) -> FaceTopology {
@@ -172,7 +203,10 @@ fn placeholder_topology(l: &Lattice) -> FaceTopology {
 }
 
 fn param_to_uv(p: [f64; 2]) -> [f32; 2] {
-    [(0.03 + 0.94 * (p[0] + 1.0) / 2.0) as f32, (0.03 + 0.94 * (1.0 - p[1]) / 2.0) as f32]
+    [
+        (0.03 + 0.94 * (p[0] + 1.0) / 2.0) as f32,
+        (0.03 + 0.94 * (1.0 - p[1]) / 2.0) as f32,
+    ]
 }
 
 /// Loops of a lattice, if its boundary is 4 clean loops.
@@ -228,14 +262,19 @@ fn split_edges_to(l: &mut Lattice, target: usize) {
                 let self_mirror = (p[0] + q[0]).abs() < 1e-12;
                 // Splits go in mirror pairs (one edge on each side), or one self-mirrored
                 // edge when an odd count remains.
-                ts.len() == 2 && if need % 2 == 1 { self_mirror } else { p[0] + q[0] < -1e-12 }
+                ts.len() == 2
+                    && if need % 2 == 1 {
+                        self_mirror
+                    } else {
+                        p[0] + q[0] < -1e-12
+                    }
             })
             .map(|(e, _)| *e)
             .collect();
         candidates.sort_by(|a, b| len(b).total_cmp(&len(a)).then(a.cmp(b)));
         let e = candidates[0];
         let mut to_split = vec![e];
-        if need % 2 == 0 {
+        if need.is_multiple_of(2) {
             // Find the mirror edge.
             let (p, q) = (l.params[e.0 as usize], l.params[e.1 as usize]);
             let find = |x: [f64; 2]| {
@@ -264,7 +303,11 @@ fn centre_boundary_edges(l: &Lattice) -> Vec<(u32, u32)> {
     }
     let mut edges: Vec<(u32, u32)> = uses
         .into_iter()
-        .filter(|(e, n)| *n == 1 && (l.params[e.0 as usize][0] + l.params[e.1 as usize][0]).abs() < 1e-12 && l.params[e.0 as usize][0] != 0.0)
+        .filter(|(e, n)| {
+            *n == 1
+                && (l.params[e.0 as usize][0] + l.params[e.1 as usize][0]).abs() < 1e-12
+                && l.params[e.0 as usize][0] != 0.0
+        })
         .map(|(e, _)| e)
         .collect();
     edges.sort_unstable();
@@ -298,10 +341,11 @@ fn build() -> SyntheticFace {
         if l.params.len() + centre_boundary_edges(&l).len() > VERTEX_COUNT {
             continue;
         }
-        if let Some(loops) = clean_loops(&l) {
-            if best.as_ref().is_none_or(|b| l.params.len() > b.1.params.len()) {
-                best = Some((h, l, loops));
-            }
+        let better = best
+            .as_ref()
+            .is_none_or(|b| l.params.len() > b.1.params.len());
+        if better && let Some(loops) = clean_loops(&l) {
+            best = Some((h, l, loops));
         }
     }
     let (h, mut lattice, loops) = best.expect("a lattice with 4 clean boundary loops exists");
@@ -329,7 +373,11 @@ fn build() -> SyntheticFace {
     // Give the outer contour and the mouth a vertex on the centre line (chin, lips).
     for e in centre_boundary_edges(&lattice) {
         let p = lattice.params[e.0 as usize];
-        let curve = if MOUTH.level(0.0, p[1]) < 4.0 { MOUTH } else { OUTER };
+        let curve = if MOUTH.level(0.0, p[1]) < 4.0 {
+            MOUTH
+        } else {
+            OUTER
+        };
         split_edge(&mut lattice, e);
         let m = lattice.params.len() - 1;
         let q = lattice.params[m];
@@ -353,7 +401,10 @@ fn build() -> SyntheticFace {
 fn landmark_targets() -> Vec<([f64; 2], Option<LoopRole>)> {
     let mut t = Vec::with_capacity(68);
     for k in 0..17 {
-        t.push((OUTER.at_angle(190.0 + k as f64 * 10.0), Some(LoopRole::Outer)));
+        t.push((
+            OUTER.at_angle(190.0 + k as f64 * 10.0),
+            Some(LoopRole::Outer),
+        ));
     }
     let brow = |s: f64| [s, 0.50 + 0.07 * (1.0 - ((s.abs() - 0.42) / 0.3).powi(2))];
     for s in [-0.72, -0.6, -0.46, -0.32, -0.18] {
@@ -374,12 +425,20 @@ fn landmark_targets() -> Vec<([f64; 2], Option<LoopRole>)> {
     for a in [180.0, 120.0, 60.0, 0.0, -60.0, -120.0] {
         t.push((EYE_L.at_angle(a), Some(LoopRole::LeftEye)));
     }
-    let outer_lip = Ellipse { cs: 0.0, ct: -0.47, a: 0.36, b: 0.16 };
+    let outer_lip = Ellipse {
+        cs: 0.0,
+        ct: -0.47,
+        a: 0.36,
+        b: 0.16,
+    };
     for k in 0..12 {
         t.push((outer_lip.at_angle(180.0 - 30.0 * k as f64), None));
     }
     for k in 0..8 {
-        t.push((MOUTH.at_angle(180.0 - 45.0 * k as f64), Some(LoopRole::Mouth)));
+        t.push((
+            MOUTH.at_angle(180.0 - 45.0 * k as f64),
+            Some(LoopRole::Mouth),
+        ));
     }
     t
 }
@@ -395,7 +454,12 @@ fn place_landmarks(topo: &FaceTopology, params: &[[f64; 2]]) -> Vec<u32> {
         }
         let p = params[v as usize];
         let d = |e: &Ellipse| (e.level(p[0], p[1]) - 1.0).abs();
-        let cands = [(LoopRole::Outer, d(&OUTER)), (LoopRole::Mouth, d(&MOUTH)), (LoopRole::RightEye, d(&EYE_R)), (LoopRole::LeftEye, d(&EYE_L))];
+        let cands = [
+            (LoopRole::Outer, d(&OUTER)),
+            (LoopRole::Mouth, d(&MOUTH)),
+            (LoopRole::RightEye, d(&EYE_R)),
+            (LoopRole::LeftEye, d(&EYE_L)),
+        ];
         cands.iter().min_by(|a, b| a.1.total_cmp(&b.1)).map(|c| c.0)
     };
     let mirror_of = |v: u32| -> u32 {
@@ -410,7 +474,12 @@ fn place_landmarks(topo: &FaceTopology, params: &[[f64; 2]]) -> Vec<u32> {
     // The nose tip first: the most forward vertex on the centre line.
     chosen[crate::topology::NOSE_TIP_LANDMARK] = (0..params.len() as u32)
         .filter(|&v| params[v as usize][0].abs() < 1e-9)
-        .max_by(|&a, &b| embed(params[a as usize]).z.total_cmp(&embed(params[b as usize]).z).then(b.cmp(&a)))
+        .max_by(|&a, &b| {
+            embed(params[a as usize])
+                .z
+                .total_cmp(&embed(params[b as usize]).z)
+                .then(b.cmp(&a))
+        })
         .expect("centre-line vertices");
     for (i, (target, role)) in targets.iter().enumerate() {
         let mirror = crate::topology::LANDMARK_MIRROR[i];
@@ -424,7 +493,11 @@ fn place_landmarks(topo: &FaceTopology, params: &[[f64; 2]]) -> Vec<u32> {
         }
         let best = (0..params.len() as u32)
             .filter(|&v| role.is_none_or(|r| role_of(v) == Some(r)))
-            .filter(|&v| !centre_line || params[v as usize][0].abs() < 1e-9 || !has_centre_vertex(params, role, &role_of))
+            .filter(|&v| {
+                !centre_line
+                    || params[v as usize][0].abs() < 1e-9
+                    || !has_centre_vertex(params, role, &role_of)
+            })
             .filter(|&v| !chosen.contains(&v))
             .min_by(|&a, &b| {
                 let d = |v: u32| {
@@ -439,8 +512,13 @@ fn place_landmarks(topo: &FaceTopology, params: &[[f64; 2]]) -> Vec<u32> {
     chosen
 }
 
-fn has_centre_vertex(params: &[[f64; 2]], role: &Option<LoopRole>, role_of: &dyn Fn(u32) -> Option<LoopRole>) -> bool {
-    (0..params.len() as u32).any(|v| params[v as usize][0].abs() < 1e-9 && role.is_none_or(|r| role_of(v) == Some(r)))
+fn has_centre_vertex(
+    params: &[[f64; 2]],
+    role: &Option<LoopRole>,
+    role_of: &dyn Fn(u32) -> Option<LoopRole>,
+) -> bool {
+    (0..params.len() as u32)
+        .any(|v| params[v as usize][0].abs() < 1e-9 && role.is_none_or(|r| role_of(v) == Some(r)))
 }
 
 fn landmarks_targets_cached() -> &'static Vec<([f64; 2], Option<LoopRole>)> {
@@ -467,7 +545,8 @@ fn embed(p: [f64; 2]) -> Point3<f32> {
     let dome = (1.0 - s * s).max(0.0).powf(0.55) * (1.0 - 0.28 * t * t);
     let mut z = -0.025 + 0.070 * dome;
     // Nose: a ridge from the bridge to the tip, then a quick fall to the base.
-    let ridge = smoothstep(0.32, -0.07, t) * (1.0 - smoothstep(-0.07, -0.2, t)) + 0.25 * smoothstep(0.45, 0.3, t) * smoothstep(-0.2, 0.3, t);
+    let ridge = smoothstep(0.32, -0.07, t) * (1.0 - smoothstep(-0.07, -0.2, t))
+        + 0.25 * smoothstep(0.45, 0.3, t) * smoothstep(-0.2, 0.3, t);
     let width = 0.11 + 0.08 * smoothstep(0.2, -0.15, t);
     z += 0.024 * ridge.min(1.0) * gauss(s, 0.0, width);
     // Nostril wings.
@@ -509,8 +588,15 @@ impl FaceShapeModel {
     }
 
     /// The face of an identity and an expression.
-    pub fn shape(&self, identity: &[f64; IDENTITY_DIMS], expression: &[f64; EXPRESSION_DIMS]) -> Vec<Point3<f32>> {
-        self.neutral.iter().map(|p| deform(p, identity, expression)).collect()
+    pub fn shape(
+        &self,
+        identity: &[f64; IDENTITY_DIMS],
+        expression: &[f64; EXPRESSION_DIMS],
+    ) -> Vec<Point3<f32>> {
+        self.neutral
+            .iter()
+            .map(|p| deform(p, identity, expression))
+            .collect()
     }
 }
 
@@ -589,7 +675,10 @@ mod tests {
             assert_eq!(map[map[i] as usize] as usize, i);
         }
         for i in 0..68 {
-            assert_eq!(map[topo.landmarks[i] as usize], topo.landmarks[LANDMARK_MIRROR[i]], "landmark {i}");
+            assert_eq!(
+                map[topo.landmarks[i] as usize], topo.landmarks[LANDMARK_MIRROR[i]],
+                "landmark {i}"
+            );
         }
     }
 
@@ -606,15 +695,26 @@ mod tests {
         // Eyes above the nose tip, mouth below it, brows above eyes.
         assert!(lm(37).y > tip.y && lm(62).y < tip.y && lm(19).y > lm(37).y);
         // Sized like the ARKit template: ~16 cm wide, ~18 cm tall.
-        let (xmin, xmax) = v.iter().fold((f32::MAX, f32::MIN), |a, p| (a.0.min(p.x), a.1.max(p.x)));
-        let (ymin, ymax) = v.iter().fold((f32::MAX, f32::MIN), |a, p| (a.0.min(p.y), a.1.max(p.y)));
+        let (xmin, xmax) = v
+            .iter()
+            .fold((f32::MAX, f32::MIN), |a, p| (a.0.min(p.x), a.1.max(p.x)));
+        let (ymin, ymax) = v
+            .iter()
+            .fold((f32::MAX, f32::MIN), |a, p| (a.0.min(p.y), a.1.max(p.y)));
         assert!((0.14..0.17).contains(&(xmax - xmin)) && (0.17..0.19).contains(&(ymax - ymin)));
         // Each hole's landmarks lie on that hole's loop.
         let loops = topo.boundary_loops().unwrap();
-        for (role, range) in [(LoopRole::Mouth, 60..68), (LoopRole::RightEye, 36..42), (LoopRole::LeftEye, 42..48)] {
+        for (role, range) in [
+            (LoopRole::Mouth, 60..68),
+            (LoopRole::RightEye, 36..42),
+            (LoopRole::LeftEye, 42..48),
+        ] {
             let l = loops.get(role).unwrap();
             for i in range {
-                assert!(l.contains(&topo.landmarks[i]), "landmark {i} not on {role:?}");
+                assert!(
+                    l.contains(&topo.landmarks[i]),
+                    "landmark {i} not on {role:?}"
+                );
             }
         }
     }

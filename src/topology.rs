@@ -93,7 +93,9 @@ impl HoleFill {
         self.centroids
             .iter()
             .map(|(_, l)| {
-                let sum = l.iter().fold(nalgebra::Vector3::zeros(), |acc, &i| acc + verts[i as usize].coords);
+                let sum = l.iter().fold(nalgebra::Vector3::zeros(), |acc, &i| {
+                    acc + verts[i as usize].coords
+                });
                 Point3::from(sum / l.len() as f32)
             })
             .collect()
@@ -109,28 +111,55 @@ impl FaceTopology {
         }
         for (i, t) in self.triangles.iter().enumerate() {
             if t.iter().any(|&v| v as usize >= self.vertex_count) {
-                return bad(format!("triangle {i} {t:?} refers to a vertex >= {}", self.vertex_count));
+                return bad(format!(
+                    "triangle {i} {t:?} refers to a vertex >= {}",
+                    self.vertex_count
+                ));
             }
             if t[0] == t[1] || t[1] == t[2] || t[0] == t[2] {
                 return bad(format!("triangle {i} {t:?} repeats a vertex"));
             }
         }
         if self.uv.len() != self.vertex_count {
-            return bad(format!("{} UV coordinates for {} vertices", self.uv.len(), self.vertex_count));
+            return bad(format!(
+                "{} UV coordinates for {} vertices",
+                self.uv.len(),
+                self.vertex_count
+            ));
         }
-        if let Some(i) = self.uv.iter().position(|p| !p.iter().all(|c| c.is_finite() && (-1e-6..=1.0 + 1e-6).contains(c))) {
-            return bad(format!("UV coordinate {i} {:?} is outside [0, 1]", self.uv[i]));
+        if let Some(i) = self.uv.iter().position(|p| {
+            !p.iter()
+                .all(|c| c.is_finite() && (-1e-6..=1.0 + 1e-6).contains(c))
+        }) {
+            return bad(format!(
+                "UV coordinate {i} {:?} is outside [0, 1]",
+                self.uv[i]
+            ));
         }
         if self.landmarks.len() != LANDMARK_COUNT {
-            return bad(format!("{} landmarks, expected {LANDMARK_COUNT}", self.landmarks.len()));
+            return bad(format!(
+                "{} landmarks, expected {LANDMARK_COUNT}",
+                self.landmarks.len()
+            ));
         }
-        if let Some(i) = self.landmarks.iter().position(|&v| v as usize >= self.vertex_count) {
-            return bad(format!("landmark {i} is vertex {} >= {}", self.landmarks[i], self.vertex_count));
+        if let Some(i) = self
+            .landmarks
+            .iter()
+            .position(|&v| v as usize >= self.vertex_count)
+        {
+            return bad(format!(
+                "landmark {i} is vertex {} >= {}",
+                self.landmarks[i], self.vertex_count
+            ));
         }
-        if let Some(t) = &self.template {
-            if t.len() != self.vertex_count {
-                return bad(format!("template has {} vertices, expected {}", t.len(), self.vertex_count));
-            }
+        if let Some(t) = &self.template
+            && t.len() != self.vertex_count
+        {
+            return bad(format!(
+                "template has {} vertices, expected {}",
+                t.len(),
+                self.vertex_count
+            ));
         }
         Ok(())
     }
@@ -141,29 +170,46 @@ impl FaceTopology {
         let tri_path = dir.join("triangles.npy");
         let tri = npy::read_npy(&tri_path)?;
         if tri.shape().len() != 2 || tri.shape()[1] != 3 {
-            return Err(Error::format(&tri_path, format!("expected shape (T, 3), found {:?}", tri.shape())));
+            return Err(Error::format(
+                &tri_path,
+                format!("expected shape (T, 3), found {:?}", tri.shape()),
+            ));
         }
         let flat = tri.to_i64_vec().map_err(|e| e.in_file(&tri_path))?;
         let max = flat.iter().copied().max().unwrap_or(-1);
         if flat.iter().any(|&v| v < 0) {
             return Err(Error::format(&tri_path, "negative vertex index"));
         }
-        let triangles: Vec<[u32; 3]> = flat.chunks(3).map(|c| [c[0] as u32, c[1] as u32, c[2] as u32]).collect();
+        let triangles: Vec<[u32; 3]> = flat
+            .chunks(3)
+            .map(|c| [c[0] as u32, c[1] as u32, c[2] as u32])
+            .collect();
 
         let uv_path = dir.join("uv_coords_std_202109.npy");
         let uv_arr = npy::read_npy(&uv_path)?;
         if uv_arr.shape().len() != 2 || uv_arr.shape()[1] != 2 {
-            return Err(Error::format(&uv_path, format!("expected shape (N, 2), found {:?}", uv_arr.shape())));
+            return Err(Error::format(
+                &uv_path,
+                format!("expected shape (N, 2), found {:?}", uv_arr.shape()),
+            ));
         }
         let vertex_count = (max + 1) as usize;
         if uv_arr.shape()[0] < vertex_count {
             return Err(Error::format(
                 &uv_path,
-                format!("{} UV rows for {} mesh vertices", uv_arr.shape()[0], vertex_count),
+                format!(
+                    "{} UV rows for {} mesh vertices",
+                    uv_arr.shape()[0],
+                    vertex_count
+                ),
             ));
         }
         let uv_flat = uv_arr.to_f32_vec();
-        let uv: Vec<[f32; 2]> = uv_flat.chunks(2).take(vertex_count).map(|c| [c[0], c[1]]).collect();
+        let uv: Vec<[f32; 2]> = uv_flat
+            .chunks(2)
+            .take(vertex_count)
+            .map(|c| [c[0], c[1]])
+            .collect();
 
         let kpt_path = dir.join("kpt_ind.npy");
         let kpt = npy::read_npy(&kpt_path)?;
@@ -171,7 +217,11 @@ impl FaceTopology {
             .to_i64_vec()
             .map_err(|e| e.in_file(&kpt_path))?
             .into_iter()
-            .map(|v| u32::try_from(v).map_err(|_| Error::format(&kpt_path, format!("landmark index {v} is negative"))))
+            .map(|v| {
+                u32::try_from(v).map_err(|_| {
+                    Error::format(&kpt_path, format!("landmark index {v} is negative"))
+                })
+            })
             .collect::<Result<_>>()?;
 
         let template_path = dir.join("template_verts.npy");
@@ -185,7 +235,10 @@ impl FaceTopology {
             }
             let f = t.to_f32_vec();
             if f.iter().any(|v| !v.is_finite()) {
-                return Err(Error::format(&template_path, "non-finite vertex coordinate"));
+                return Err(Error::format(
+                    &template_path,
+                    "non-finite vertex coordinate",
+                ));
             }
             Some(f.chunks(3).map(|c| Point3::new(c[0], c[1], c[2])).collect())
         } else {
@@ -217,7 +270,10 @@ impl FaceTopology {
         )
         .map_err(|e| Error::format(path, format!("cannot read OBJ: {e}")))?;
         if models.len() != 1 {
-            return Err(Error::format(path, format!("expected one mesh, found {}", models.len())));
+            return Err(Error::format(
+                path,
+                format!("expected one mesh, found {}", models.len()),
+            ));
         }
         let mesh = &models[0].mesh;
         let vertex_count = mesh.positions.len() / 3;
@@ -225,7 +281,10 @@ impl FaceTopology {
         let mut uv = vec![[f32::NAN; 2]; vertex_count];
         if !mesh.texcoords.is_empty() {
             if mesh.texcoord_indices.len() != mesh.indices.len() {
-                return Err(Error::format(path, "texture coordinates do not cover every face corner"));
+                return Err(Error::format(
+                    path,
+                    "texture coordinates do not cover every face corner",
+                ));
             }
             for (&vi, &ti) in mesh.indices.iter().zip(&mesh.texcoord_indices) {
                 let (vi, ti) = (vi as usize, ti as usize);
@@ -234,16 +293,29 @@ impl FaceTopology {
                 if uv[vi][0].is_nan() {
                     uv[vi] = t;
                 } else if (uv[vi][0] - t[0]).abs() > 1e-6 || (uv[vi][1] - t[1]).abs() > 1e-6 {
-                    return Err(Error::format(path, format!("vertex {vi} has two different texture coordinates")));
+                    return Err(Error::format(
+                        path,
+                        format!("vertex {vi} has two different texture coordinates"),
+                    ));
                 }
             }
             if let Some(i) = uv.iter().position(|p| p[0].is_nan()) {
-                return Err(Error::format(path, format!("vertex {i} has no texture coordinate")));
+                return Err(Error::format(
+                    path,
+                    format!("vertex {i} has no texture coordinate"),
+                ));
             }
         } else {
-            return Err(Error::format(path, "the OBJ has no texture coordinates (vt): UVs are required"));
+            return Err(Error::format(
+                path,
+                "the OBJ has no texture coordinates (vt): UVs are required",
+            ));
         }
-        let template = mesh.positions.chunks(3).map(|c| Point3::new(c[0], c[1], c[2])).collect();
+        let template = mesh
+            .positions
+            .chunks(3)
+            .map(|c| Point3::new(c[0], c[1], c[2]))
+            .collect();
         let topo = FaceTopology {
             source: path.display().to_string(),
             vertex_count,
@@ -269,7 +341,13 @@ impl FaceTopology {
             let _ = writeln!(s, "vt {} {}", t[0], 1.0 - t[1]);
         }
         for t in &self.triangles {
-            let _ = writeln!(s, "f {a}/{a} {b}/{b} {c}/{c}", a = t[0] + 1, b = t[1] + 1, c = t[2] + 1);
+            let _ = writeln!(
+                s,
+                "f {a}/{a} {b}/{b} {c}/{c}",
+                a = t[0] + 1,
+                b = t[1] + 1,
+                c = t[2] + 1
+            );
         }
         crate::atomic_file::write_bytes(path, s.as_bytes())
     }
@@ -288,7 +366,10 @@ impl FaceTopology {
                 e.0 += 1;
                 first_dir.entry(key).or_insert((a, b));
                 if e.0 > 2 {
-                    return Err(Error::format(&self.source, format!("edge {a}-{b} is shared by more than two triangles")));
+                    return Err(Error::format(
+                        &self.source,
+                        format!("edge {a}-{b} is shared by more than two triangles"),
+                    ));
                 }
             }
         }
@@ -326,19 +407,25 @@ impl FaceTopology {
             let mut cur = next[&start];
             while cur != start {
                 if !seen.insert(cur) {
-                    return Err(Error::format(&self.source, format!("boundary revisits vertex {cur}")));
+                    return Err(Error::format(
+                        &self.source,
+                        format!("boundary revisits vertex {cur}"),
+                    ));
                 }
                 l.push(cur);
-                cur = *next
-                    .get(&cur)
-                    .ok_or_else(|| Error::format(&self.source, format!("boundary stops at vertex {cur}")))?;
+                cur = *next.get(&cur).ok_or_else(|| {
+                    Error::format(&self.source, format!("boundary stops at vertex {cur}"))
+                })?;
             }
             loops.push(l);
         }
         if loops.len() != 4 {
             return Err(Error::format(
                 &self.source,
-                format!("expected 4 boundary loops (outer contour, two eyes, mouth), found {}", loops.len()),
+                format!(
+                    "expected 4 boundary loops (outer contour, two eyes, mouth), found {}",
+                    loops.len()
+                ),
             ));
         }
         loops.sort_by_key(|l| std::cmp::Reverse(l.len()));
@@ -348,7 +435,11 @@ impl FaceTopology {
             let d = self.hop_distances(hole);
             group.map(|i| d[self.landmarks[i] as usize]).sum()
         };
-        let groups = [(LoopRole::Mouth, 60..68), (LoopRole::RightEye, 36..42), (LoopRole::LeftEye, 42..48)];
+        let groups = [
+            (LoopRole::Mouth, 60..68),
+            (LoopRole::RightEye, 36..42),
+            (LoopRole::LeftEye, 42..48),
+        ];
         let mut result = vec![(LoopRole::Outer, outer)];
         let mut remaining = loops;
         for (role, range) in groups {
@@ -394,7 +485,10 @@ impl FaceTopology {
         let loops = self.boundary_loops()?;
         let mut centroids = Vec::new();
         let mut triangles = Vec::new();
-        for (k, role) in [LoopRole::Mouth, LoopRole::RightEye, LoopRole::LeftEye].into_iter().enumerate() {
+        for (k, role) in [LoopRole::Mouth, LoopRole::RightEye, LoopRole::LeftEye]
+            .into_iter()
+            .enumerate()
+        {
             let l = loops.get(role).expect("roles assigned").clone();
             let c = (self.vertex_count + k) as u32;
             // A boundary edge a->b runs along its triangle; the fan triangle uses b->a.
@@ -404,7 +498,10 @@ impl FaceTopology {
             }
             centroids.push((role, l));
         }
-        Ok(HoleFill { centroids, triangles })
+        Ok(HoleFill {
+            centroids,
+            triangles,
+        })
     }
 
     /// The left-right mirror map: vertex `i` of a face is vertex `map[i]` of its
@@ -429,7 +526,11 @@ impl FaceTopology {
             let mut best = (u32::MAX, f32::INFINITY);
             for dx in -1..=1 {
                 for dy in -1..=1 {
-                    for &j in grid.get(&(cx + dx, cy + dy)).map(|v| v.as_slice()).unwrap_or(&[]) {
+                    for &j in grid
+                        .get(&(cx + dx, cy + dy))
+                        .map(|v| v.as_slice())
+                        .unwrap_or(&[])
+                    {
                         let q = self.uv[j as usize];
                         let d = (q[0] - target[0]).hypot(q[1] - target[1]);
                         if d < best.1 {
@@ -441,13 +542,18 @@ impl FaceTopology {
             if best.1 > 1e-4 {
                 return Err(Error::format(
                     &self.source,
-                    format!("the UV layout is not left-right symmetric: vertex {i} at UV {t:?} has no partner at u = 1 - u"),
+                    format!(
+                        "the UV layout is not left-right symmetric: vertex {i} at UV {t:?} has no partner at u = 1 - u"
+                    ),
                 ));
             }
             map.push(best.0);
         }
         if let Some(v) = (0..self.vertex_count).find(|&v| map[map[v] as usize] as usize != v) {
-            return Err(Error::format(&self.source, format!("the UV mirror map is not an involution at vertex {v}")));
+            return Err(Error::format(
+                &self.source,
+                format!("the UV mirror map is not an involution at vertex {v}"),
+            ));
         }
         Ok(map)
     }
@@ -470,7 +576,10 @@ pub fn nearest_mirror_partners(verts: &[Point3<f32>]) -> (Vec<u32>, f32) {
             .iter()
             .enumerate()
             .map(|(j, w)| (j, (w - m).norm_squared()))
-            .fold((0, f32::INFINITY), |acc, x| if x.1 < acc.1 { x } else { acc });
+            .fold(
+                (0, f32::INFINITY),
+                |acc, x| if x.1 < acc.1 { x } else { acc },
+            );
         worst = worst.max(d2.sqrt());
         map.push(best as u32);
     }
@@ -513,7 +622,28 @@ mod tests {
             assert_eq!(LANDMARK_MIRROR[LANDMARK_MIRROR[i]], i, "landmark {i}");
         }
         // Hand-checked pairs of the iBUG scheme.
-        let pairs = [(0, 16), (8, 8), (17, 26), (21, 22), (30, 30), (31, 35), (33, 33), (36, 45), (39, 42), (40, 47), (41, 46), (37, 44), (48, 54), (51, 51), (57, 57), (55, 59), (60, 64), (62, 62), (66, 66), (65, 67)];
+        let pairs = [
+            (0, 16),
+            (8, 8),
+            (17, 26),
+            (21, 22),
+            (30, 30),
+            (31, 35),
+            (33, 33),
+            (36, 45),
+            (39, 42),
+            (40, 47),
+            (41, 46),
+            (37, 44),
+            (48, 54),
+            (51, 51),
+            (57, 57),
+            (55, 59),
+            (60, 64),
+            (62, 62),
+            (66, 66),
+            (65, 67),
+        ];
         for (a, b) in pairs {
             assert_eq!(LANDMARK_MIRROR[a], b, "{a}");
         }
@@ -549,7 +679,12 @@ mod tests {
         // 12 outer edges and 4 around the hole.
         assert_eq!(e.len(), 16);
         // Only 2 loops, so the role assignment refuses it.
-        assert!(t.boundary_loops().unwrap_err().to_string().contains("found 2"));
+        assert!(
+            t.boundary_loops()
+                .unwrap_err()
+                .to_string()
+                .contains("found 2")
+        );
     }
 
     #[test]
@@ -557,7 +692,12 @@ mod tests {
         let mut t = square_topology();
         t.triangles.push([0, 1, 9]);
         t.triangles.push([1, 0, 10]);
-        assert!(t.boundary_edges().unwrap_err().to_string().contains("more than two"));
+        assert!(
+            t.boundary_edges()
+                .unwrap_err()
+                .to_string()
+                .contains("more than two")
+        );
     }
 
     #[test]
@@ -565,15 +705,27 @@ mod tests {
         let mut t = square_topology();
         t.triangles.push([0, 1, 99]);
         let msg = t.validate().unwrap_err().to_string();
-        assert!(msg.starts_with("test grid:") && msg.contains("refers to a vertex"), "{msg}");
+        assert!(
+            msg.starts_with("test grid:") && msg.contains("refers to a vertex"),
+            "{msg}"
+        );
         let mut t = square_topology();
         t.uv[3] = [1.5, 0.0];
-        assert!(t.validate().unwrap_err().to_string().contains("UV coordinate 3"));
+        assert!(
+            t.validate()
+                .unwrap_err()
+                .to_string()
+                .contains("UV coordinate 3")
+        );
     }
 
     #[test]
     fn mirror_map_of_a_symmetric_set() {
-        let v = vec![Point3::new(-1.0, 0.0, 0.0), Point3::new(0.0, 1.0, 0.0), Point3::new(1.0, 0.0, 0.0)];
+        let v = vec![
+            Point3::new(-1.0, 0.0, 0.0),
+            Point3::new(0.0, 1.0, 0.0),
+            Point3::new(1.0, 0.0, 0.0),
+        ];
         let (m, worst) = nearest_mirror_partners(&v);
         assert_eq!(m, vec![2, 1, 0]);
         assert_eq!(worst, 0.0);

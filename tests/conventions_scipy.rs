@@ -7,7 +7,10 @@ use nalgebra::{Matrix3, Rotation3};
 
 #[test]
 fn euler_angles_match_scipy_as_euler_yxz() {
-    let path = concat!(env!("CARGO_MANIFEST_DIR"), "/fixtures/scipy/euler_yxz_golden.csv");
+    let path = concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/fixtures/scipy/euler_yxz_golden.csv"
+    );
     let text = std::fs::read_to_string(path).expect("fixture present");
     let mut rows = 0;
     let mut worst: f64 = 0.0;
@@ -21,7 +24,11 @@ fn euler_angles_match_scipy_as_euler_yxz() {
             // Angles are equal modulo 360 (+180 and -180 are the same angle).
             let d = (ours - theirs + 180.0).rem_euclid(360.0) - 180.0;
             worst = worst.max(d.abs());
-            assert!(d.abs() < 1e-6, "row {rows}: ours {e:?}, scipy {:?}", &v[9..]);
+            assert!(
+                d.abs() < 1e-6,
+                "row {rows}: ours {e:?}, scipy {:?}",
+                &v[9..]
+            );
         }
         rows += 1;
     }

@@ -1,10 +1,10 @@
 //! Checks against the real ARKit topology in `../shared/arkitface-resources/`.
 //! Every test skips, saying so, when that folder is absent (a fresh clone alone).
 
+use arkit_tool::FaceTopology;
 use arkit_tool::conventions::{Camera, EulerAngles, Pose};
 use arkit_tool::npy;
 use arkit_tool::topology::{LANDMARK_MIRROR, LoopRole, NOSE_TIP_LANDMARK, nearest_mirror_partners};
-use arkit_tool::FaceTopology;
 use nalgebra::{Point3, Vector3};
 use std::collections::HashSet;
 use std::path::PathBuf;
@@ -14,7 +14,10 @@ fn resources() -> Option<PathBuf> {
     if dir.join("triangles.npy").exists() {
         Some(dir)
     } else {
-        eprintln!("SKIPPED: {} is absent; real-topology checks not run", dir.display());
+        eprintln!(
+            "SKIPPED: {} is absent; real-topology checks not run",
+            dir.display()
+        );
         None
     }
 }
@@ -57,7 +60,12 @@ fn boundary_loops_of_the_real_mesh() {
     assert_eq!(len(LoopRole::RightEye), 24);
     assert_eq!(len(LoopRole::LeftEye), 24);
     // Landmark 36 (right eye's outer corner) lies on the right eye loop.
-    assert!(loops.get(LoopRole::RightEye).unwrap().contains(&topo.landmarks[36]));
+    assert!(
+        loops
+            .get(LoopRole::RightEye)
+            .unwrap()
+            .contains(&topo.landmarks[36])
+    );
     // V - E + F = -2 for a disc with three holes.
     let mut edges = HashSet::new();
     for t in &topo.triangles {
@@ -74,19 +82,39 @@ fn hole_fill_equals_the_release_tris_2388() {
     let Some(dir) = resources() else { return };
     let topo = FaceTopology::from_resources(&dir).unwrap();
     let fill = topo.hole_fill().unwrap();
-    let release = npy::read_npy(&dir.join("tris_2388x3.npy")).unwrap().to_i64_vec().unwrap();
+    let release = npy::read_npy(&dir.join("tris_2388x3.npy"))
+        .unwrap()
+        .to_i64_vec()
+        .unwrap();
     let norm = |t: [i64; 3]| {
         let mut s = t;
         s.sort();
         s
     };
-    let theirs: HashSet<[i64; 3]> = release[2304 * 3..].chunks(3).map(|c| norm([c[0], c[1], c[2]])).collect();
-    let ours: HashSet<[i64; 3]> = fill.triangles.iter().map(|t| norm([t[0] as i64, t[1] as i64, t[2] as i64])).collect();
+    let theirs: HashSet<[i64; 3]> = release[2304 * 3..]
+        .chunks(3)
+        .map(|c| norm([c[0], c[1], c[2]]))
+        .collect();
+    let ours: HashSet<[i64; 3]> = fill
+        .triangles
+        .iter()
+        .map(|t| norm([t[0] as i64, t[1] as i64, t[2] as i64]))
+        .collect();
     assert_eq!(fill.triangles.len(), 84);
-    assert_eq!(ours, theirs, "centroid order mouth, right eye, left eye as in the release");
+    assert_eq!(
+        ours, theirs,
+        "centroid order mouth, right eye, left eye as in the release"
+    );
     // The first 2304 rows are the mesh triangles themselves.
-    let mesh: Vec<[i64; 3]> = release[..2304 * 3].chunks(3).map(|c| [c[0], c[1], c[2]]).collect();
-    let topo_tris: Vec<[i64; 3]> = topo.triangles.iter().map(|t| [t[0] as i64, t[1] as i64, t[2] as i64]).collect();
+    let mesh: Vec<[i64; 3]> = release[..2304 * 3]
+        .chunks(3)
+        .map(|c| [c[0], c[1], c[2]])
+        .collect();
+    let topo_tris: Vec<[i64; 3]> = topo
+        .triangles
+        .iter()
+        .map(|t| [t[0] as i64, t[1] as i64, t[2] as i64])
+        .collect();
     assert_eq!(mesh, topo_tris);
 }
 
@@ -99,7 +127,9 @@ fn mirror_map_of_the_real_template() {
     let map = topo.mirror_map().unwrap();
     // Landmarks map to their iBUG partners, except two pairs the release's kpt_ind.npy
     // places one vertex off symmetric (jaw 1/15 and lower eyelid 41/46).
-    let off: Vec<usize> = (0..68).filter(|&i| map[topo.landmarks[i] as usize] != topo.landmarks[LANDMARK_MIRROR[i]]).collect();
+    let off: Vec<usize> = (0..68)
+        .filter(|&i| map[topo.landmarks[i] as usize] != topo.landmarks[LANDMARK_MIRROR[i]])
+        .collect();
     assert_eq!(off, vec![1, 15, 41, 46]);
     // Geometrically, partners sit at mirrored positions within a few millimetres (a
     // real face is not exactly symmetric).
@@ -109,14 +139,19 @@ fn mirror_map_of_the_real_template() {
             (Point3::new(-p.x, p.y, p.z) - q).norm()
         })
         .fold(0.0f32, f32::max);
-    eprintln!("real template: UV mirror map, largest geometric mismatch {:.2} mm", worst * 1000.0);
+    eprintln!(
+        "real template: UV mirror map, largest geometric mismatch {:.2} mm",
+        worst * 1000.0
+    );
     assert!(worst < 0.015, "{worst}");
     // The mesh is denser than the face's asymmetry, so nearest neighbours under x -> -x
     // often pick another vertex: that is why the map comes from the UV layout.
     let (nn, _) = nearest_mirror_partners(t);
     let agree = (0..1220).filter(|&i| nn[i] == map[i]).count();
     eprintln!("nearest-neighbour map agrees on {agree} of 1220 vertices");
-    let mut d: Vec<f32> = (0..1220).map(|i| (Point3::new(-t[i].x, t[i].y, t[i].z) - t[map[i] as usize]).norm()).collect();
+    let mut d: Vec<f32> = (0..1220)
+        .map(|i| (Point3::new(-t[i].x, t[i].y, t[i].z) - t[map[i] as usize]).norm())
+        .collect();
     d.sort_by(f32::total_cmp);
     assert!(d[610] < 0.003, "median mirror mismatch {} m", d[610]);
 }
@@ -132,9 +167,13 @@ fn projection_matrix_file_matches_the_release_camera() {
 fn real_nose_tip_projects_where_the_pinhole_says() {
     let Some(dir) = resources() else { return };
     let topo = FaceTopology::from_resources(&dir).unwrap();
-    let tip = topo.template.as_ref().unwrap()[topo.landmarks[NOSE_TIP_LANDMARK] as usize].cast::<f64>();
+    let tip =
+        topo.template.as_ref().unwrap()[topo.landmarks[NOSE_TIP_LANDMARK] as usize].cast::<f64>();
     // yaw 30 degrees, 0.5 m away on the optical axis, 800x800 camera (f = 629.774804 px).
-    let pose = Pose::from_euler(EulerAngles::new(30.0, 0.0, 0.0), Vector3::new(0.0, 0.0, -0.5));
+    let pose = Pose::from_euler(
+        EulerAngles::new(30.0, 0.0, 0.0),
+        Vector3::new(0.0, 0.0, -0.5),
+    );
     let cam = Camera::release(800, 800);
     let q = cam.project(&pose, &tip);
     // By hand: Ry(30) (x, y, z) = (x cos30 + z sin30, y, -x sin30 + z cos30).
@@ -145,5 +184,8 @@ fn real_nose_tip_projects_where_the_pinhole_says() {
     let v = 400.0 - f * pc.y / -pc.z;
     assert!((q.u - u).abs() < 1e-9 && (q.v - v).abs() < 1e-9);
     // Numbers: tip (0.00067574, -0.00429178, 0.0693207) -> (u, v) = (450.41, 406.14).
-    assert!((q.u - 450.412).abs() < 0.01 && (q.v - 406.139).abs() < 0.01, "{q:?}");
+    assert!(
+        (q.u - 450.412).abs() < 0.01 && (q.v - 406.139).abs() < 0.01,
+        "{q:?}"
+    );
 }

@@ -52,12 +52,19 @@ pub fn run(a: InfoArgs) -> Result<ExitCode> {
             Err(err) => {
                 bad += 1;
                 if a.json {
-                    println!("{}", json!({"file": path, "ok": false, "error": err.to_string()}));
+                    println!(
+                        "{}",
+                        json!({"file": path, "ok": false, "error": err.to_string()})
+                    );
                 } else {
                     eprintln!("{err}");
                 }
             }
         }
     }
-    Ok(if bad == 0 { ExitCode::SUCCESS } else { ExitCode::from(1) })
+    Ok(if bad == 0 {
+        ExitCode::SUCCESS
+    } else {
+        ExitCode::from(1)
+    })
 }

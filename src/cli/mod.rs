@@ -40,8 +40,14 @@ pub fn run(cli: Cli) -> Result<ExitCode> {
 
 /// Parses `WxH`.
 pub fn parse_size(s: &str) -> std::result::Result<(u32, u32), String> {
-    let (w, h) = s.split_once(['x', 'X']).ok_or_else(|| format!("'{s}' is not WIDTHxHEIGHT (for example 800x800)"))?;
-    let parse = |v: &str| v.trim().parse::<u32>().map_err(|_| format!("'{v}' in '{s}' is not a whole number of pixels"));
+    let (w, h) = s
+        .split_once(['x', 'X'])
+        .ok_or_else(|| format!("'{s}' is not WIDTHxHEIGHT (for example 800x800)"))?;
+    let parse = |v: &str| {
+        v.trim()
+            .parse::<u32>()
+            .map_err(|_| format!("'{v}' in '{s}' is not a whole number of pixels"))
+    };
     Ok((parse(w)?, parse(h)?))
 }
 

@@ -45,7 +45,8 @@ pub struct SynthArgs {
     /// template_verts.npy) instead of the built-in stand-in face.
     #[arg(long)]
     resources: Option<PathBuf>,
-    /// Also write a PNG grid of the first samples with their projected mesh drawn over them.
+    /// Also write a PNG grid of the first samples, each beside a copy with its annotation
+    /// (outline, eye and mouth openings, landmarks) projected over it.
     #[arg(long, value_name = "FILE.png")]
     preview: Option<PathBuf>,
     /// Print a JSON summary instead of text.
@@ -70,19 +71,24 @@ pub fn run(a: SynthArgs) -> Result<ExitCode> {
     };
     let total = (options.subjects * options.images_per_subject) as u64;
     let bar = ProgressBar::new(total).with_style(
-        ProgressStyle::with_template("{spinner} synth [{bar:30}] {pos}/{len} samples {per_sec} eta {eta}")
-            .expect("valid template")
-            .progress_chars("=> "),
+        ProgressStyle::with_template(
+            "{spinner} synth [{bar:30}] {pos}/{len} samples {per_sec} eta {eta}",
+        )
+        .expect("valid template")
+        .progress_chars("=> "),
     );
     let summary = synth::generate(&source, &options, &a.output, &|| bar.inc(1))?;
     bar.finish_and_clear();
     if let Some(path) = &a.preview {
-        let samples: Vec<_> = synth::plan(&options).into_iter().take(8).collect();
+        // Each sample twice: as written, and with its annotation drawn over it.
+        let samples: Vec<_> = synth::plan(&options).into_iter().take(6).collect();
         let mut images = Vec::new();
         for s in &samples {
-            let mut sample = synth::render_sample(&source, &options, s)?;
-            synth::draw_overlay(&mut sample.image, &source.topology, &sample.info)?;
+            let sample = synth::render_sample(&source, &options, s)?;
+            let mut drawn = sample.image.clone();
+            synth::draw_overlay(&mut drawn, &source.topology, &sample.info)?;
             images.push(sample.image);
+            images.push(drawn);
         }
         let sheet = synth::contact_sheet(&images, 4, 320);
         let mut bytes = std::io::Cursor::new(Vec::new());
@@ -92,7 +98,10 @@ pub fn run(a: SynthArgs) -> Result<ExitCode> {
         arkit_tool::atomic_file::write_bytes(path, bytes.get_ref())?;
     }
     if a.json {
-        println!("{}", serde_json::to_string_pretty(&summary).expect("serialisable"));
+        println!(
+            "{}",
+            serde_json::to_string_pretty(&summary).expect("serialisable")
+        );
     } else {
         println!(
             "wrote {} train + {} test samples of {} subjects ({}x{}, seed {}, {}) to {}",

@@ -32,7 +32,9 @@ pub fn run(a: TopologyArgs) -> Result<ExitCode> {
     let fill = topo.hole_fill()?;
     let mirror_map = topo.mirror_map()?;
     let mirror = topo.template.as_ref().map(|t| nearest_mirror_partners(t));
-    let self_mirrored = (0..topo.vertex_count).filter(|&i| mirror_map[i] as usize == i).count();
+    let self_mirrored = (0..topo.vertex_count)
+        .filter(|&i| mirror_map[i] as usize == i)
+        .count();
     let loop_list: Vec<_> = loops
         .loops
         .iter()
@@ -53,14 +55,26 @@ pub fn run(a: TopologyArgs) -> Result<ExitCode> {
         println!("{}", serde_json::to_string_pretty(&report).expect("json"));
     } else {
         println!("{}", topo.source);
-        println!("  {} vertices, {} triangles, {} landmarks", topo.vertex_count, topo.triangles.len(), topo.landmarks.len());
+        println!(
+            "  {} vertices, {} triangles, {} landmarks",
+            topo.vertex_count,
+            topo.triangles.len(),
+            topo.landmarks.len()
+        );
         for (role, l) in &loops.loops {
             println!("  boundary loop {role:?}: {} vertices", l.len());
         }
-        println!("  {} boundary edges; {} triangles fill the eyes and mouth", loops.edge_count(), fill.triangles.len());
+        println!(
+            "  {} boundary edges; {} triangles fill the eyes and mouth",
+            loops.edge_count(),
+            fill.triangles.len()
+        );
         println!("  mirror map (from the UV layout): {self_mirrored} vertices on the centre line");
         if let Some((_, worst)) = mirror {
-            println!("  template asymmetry: a mirrored vertex is at most {:.2} mm from its nearest vertex", worst * 1000.0);
+            println!(
+                "  template asymmetry: a mirrored vertex is at most {:.2} mm from its nearest vertex",
+                worst * 1000.0
+            );
         }
     }
     if let (Some(path), Some(t)) = (&a.obj, &topo.template) {

@@ -81,10 +81,22 @@ impl Camera {
     pub fn release_projection() -> Matrix4<f64> {
         let f = Self::RELEASE_FOCAL_NDC;
         Matrix4::new(
-            f, 0.0, 0.0, 0.0, //
-            0.0, f, 0.0, 0.0, //
-            0.0, 0.0, -0.99999976, -1.0, //
-            0.0, 0.0, -Self::RELEASE_NEAR_M, 0.0,
+            f,
+            0.0,
+            0.0,
+            0.0, //
+            0.0,
+            f,
+            0.0,
+            0.0, //
+            0.0,
+            0.0,
+            -0.99999976,
+            -1.0, //
+            0.0,
+            0.0,
+            -Self::RELEASE_NEAR_M,
+            0.0,
         )
     }
 
@@ -140,9 +152,13 @@ impl Camera {
         }
         let p = &self.projection;
         if p.iter().any(|v| !v.is_finite()) {
-            return Err(Error::invalid("camera", "projection matrix has a non-finite value"));
+            return Err(Error::invalid(
+                "camera",
+                "projection matrix has a non-finite value",
+            ));
         }
-        let perspective = p[(2, 3)] == -1.0 && p[(0, 3)] == 0.0 && p[(1, 3)] == 0.0 && p[(3, 3)] == 0.0;
+        let perspective =
+            p[(2, 3)] == -1.0 && p[(0, 3)] == 0.0 && p[(1, 3)] == 0.0 && p[(3, 3)] == 0.0;
         if !perspective {
             return Err(Error::invalid(
                 "camera",
@@ -152,11 +168,18 @@ impl Camera {
         if p[(0, 0)] <= 0.0 || p[(1, 1)] <= 0.0 {
             return Err(Error::invalid(
                 "camera",
-                format!("focal lengths must be positive, found {} and {}", p[(0, 0)], p[(1, 1)]),
+                format!(
+                    "focal lengths must be positive, found {} and {}",
+                    p[(0, 0)],
+                    p[(1, 1)]
+                ),
             ));
         }
         if p[(1, 0)] != 0.0 || p[(0, 1)] != 0.0 || p[(3, 0)] != 0.0 || p[(3, 1)] != 0.0 {
-            return Err(Error::invalid("camera", "projection matrix has skew or a shift this camera model cannot express"));
+            return Err(Error::invalid(
+                "camera",
+                "projection matrix has skew or a shift this camera model cannot express",
+            ));
         }
         Ok(())
     }
@@ -194,7 +217,10 @@ impl Camera {
     /// Projects many points with one matrix chain (see [`Camera::project`]).
     pub fn project_all(&self, pose: &Pose, points: &[Point3<f64>]) -> Vec<ImagePoint> {
         let chain = pose.release_matrix() * self.projection * self.viewport_matrix();
-        points.iter().map(|p| self.project_with_chain(&chain, p)).collect()
+        points
+            .iter()
+            .map(|p| self.project_with_chain(&chain, p))
+            .collect()
     }
 
     fn project_with_chain(&self, chain: &Matrix4<f64>, p: &Point3<f64>) -> ImagePoint {
@@ -223,10 +249,12 @@ impl Camera {
         let near = self.near_plane_m();
         for (i, p) in points.iter().enumerate() {
             let depth = -pose.to_camera(p).z;
-            if !(depth > near) {
+            if depth.is_nan() || depth <= near {
                 return Err(Error::invalid(
                     "pose",
-                    format!("vertex {i} is {depth:.4} m in front of the camera, not beyond the near plane ({near} m)"),
+                    format!(
+                        "vertex {i} is {depth:.4} m in front of the camera, not beyond the near plane ({near} m)"
+                    ),
                 ));
             }
         }
@@ -266,7 +294,10 @@ mod tests {
         //   u = 400 + 629.774804 * 0.05 / 0.4133975 = 400 + 76.1711...
         //   v = 400 (on the optical axis vertically).
         let cam = Camera::release(800, 800);
-        let pose = Pose::from_euler(EulerAngles::new(30.0, 0.0, 0.0), Vector3::new(0.0, 0.0, -0.5));
+        let pose = Pose::from_euler(
+            EulerAngles::new(30.0, 0.0, 0.0),
+            Vector3::new(0.0, 0.0, -0.5),
+        );
         let q = cam.project(&pose, &Point3::new(0.0, 0.0, 0.1));
         let f = 1.57443701 * 400.0;
         let expected_u = 400.0 + f * 0.05 / (0.5 - 0.1 * (30f64).to_radians().cos());
@@ -279,7 +310,10 @@ mod tests {
     #[test]
     fn y_is_flipped_so_up_is_smaller_v() {
         let cam = Camera::release(640, 480);
-        let pose = Pose::from_euler(EulerAngles::new(0.0, 0.0, 0.0), Vector3::new(0.0, 0.0, -0.5));
+        let pose = Pose::from_euler(
+            EulerAngles::new(0.0, 0.0, 0.0),
+            Vector3::new(0.0, 0.0, -0.5),
+        );
         let top = cam.project(&pose, &Point3::new(0.0, 0.05, 0.0));
         let bottom = cam.project(&pose, &Point3::new(0.0, -0.05, 0.0));
         assert!(top.v < 240.0 && bottom.v > 240.0);
@@ -297,8 +331,13 @@ mod tests {
         p[(0, 0)] = f64::NAN;
         assert!(Camera::new(p, 800, 800).is_err());
         let cam = Camera::release(800, 800);
-        let pose = Pose::from_euler(EulerAngles::new(0.0, 0.0, 0.0), Vector3::new(0.0, 0.0, -0.05));
-        let err = cam.check_projectable(&pose, &[Point3::new(0.0, 0.0, 0.1)]).unwrap_err();
+        let pose = Pose::from_euler(
+            EulerAngles::new(0.0, 0.0, 0.0),
+            Vector3::new(0.0, 0.0, -0.05),
+        );
+        let err = cam
+            .check_projectable(&pose, &[Point3::new(0.0, 0.0, 0.1)])
+            .unwrap_err();
         assert!(format!("{err}").contains("vertex 0"));
     }
 
@@ -307,10 +346,16 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("projection_matrix.txt");
         std::fs::write(&path, "1.57443701 0.0 0.0 0.0\n0.0 1.57443701 0.0 0.0\n0.0 0.0 -0.99999976 -1.0\n0.0 0.0 -0.001 0.0\n").unwrap();
-        assert_eq!(Camera::read_projection_txt(&path).unwrap(), Camera::release_projection());
+        assert_eq!(
+            Camera::read_projection_txt(&path).unwrap(),
+            Camera::release_projection()
+        );
         std::fs::write(&path, "1 2 3").unwrap();
         let err = Camera::read_projection_txt(&path).unwrap_err().to_string();
-        assert!(err.contains("projection_matrix.txt") && err.contains("16 numbers"), "{err}");
+        assert!(
+            err.contains("projection_matrix.txt") && err.contains("16 numbers"),
+            "{err}"
+        );
     }
 
     proptest! {

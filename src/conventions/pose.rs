@@ -21,7 +21,9 @@
 //! roll is set to zero and yaw absorbs the rest), so values match SciPy to rounding.
 
 use crate::error::{Error, Result};
-use nalgebra::{Isometry3, Matrix3, Matrix4, Point3, Rotation3, Translation3, UnitQuaternion, Vector3};
+use nalgebra::{
+    Isometry3, Matrix3, Matrix4, Point3, Rotation3, Translation3, UnitQuaternion, Vector3,
+};
 
 /// Largest deviation of `R^T R` from the identity accepted for a rotation read from a
 /// file. The release stores float32 matrices, whose rounding is about 1e-7.
@@ -177,13 +179,17 @@ impl Pose {
             ));
         }
         let last_col = [rt[3], rt[7], rt[11], rt[15]];
-        if (last_col[0].abs() + last_col[1].abs() + last_col[2].abs() + (last_col[3] - 1.0).abs()) > 1e-6 {
+        if (last_col[0].abs() + last_col[1].abs() + last_col[2].abs() + (last_col[3] - 1.0).abs())
+            > 1e-6
+        {
             return Err(Error::invalid(
                 "R_t",
                 format!("last column must be (0, 0, 0, 1) in row-vector form, found {last_col:?}"),
             ));
         }
-        let r = Matrix3::new(rt[0], rt[1], rt[2], rt[4], rt[5], rt[6], rt[8], rt[9], rt[10]);
+        let r = Matrix3::new(
+            rt[0], rt[1], rt[2], rt[4], rt[5], rt[6], rt[8], rt[9], rt[10],
+        );
         let deviation = (r.transpose() * r - Matrix3::identity()).abs().max();
         if deviation > ORTHONORMAL_TOLERANCE {
             return Err(Error::invalid(
@@ -192,12 +198,18 @@ impl Pose {
             ));
         }
         if r.determinant() <= 0.0 {
-            return Err(Error::invalid("R_t", "rotation is a reflection (determinant <= 0)"));
+            return Err(Error::invalid(
+                "R_t",
+                "rotation is a reflection (determinant <= 0)",
+            ));
         }
         if rt[14] >= 0.0 {
             return Err(Error::invalid(
                 "R_t",
-                format!("tz = {} m must be negative (the camera looks down -z)", rt[14]),
+                format!(
+                    "tz = {} m must be negative (the camera looks down -z)",
+                    rt[14]
+                ),
             ));
         }
         Ok(())
@@ -311,7 +323,10 @@ mod tests {
 
     #[test]
     fn release_rt_layout_is_row_vector() {
-        let pose = Pose::from_euler(EulerAngles::new(30.0, 0.0, 0.0), Vector3::new(0.01, 0.02, -0.5));
+        let pose = Pose::from_euler(
+            EulerAngles::new(30.0, 0.0, 0.0),
+            Vector3::new(0.01, 0.02, -0.5),
+        );
         let rt = pose.to_release_rt();
         // Translation in row 3, last column (0,0,0,1).
         assert_eq!(&rt[12..15], &[0.01, 0.02, -0.5]);
@@ -343,7 +358,10 @@ mod tests {
 
     #[test]
     fn rejects_poses_that_cannot_project() {
-        let good = Pose::from_euler(EulerAngles::new(10.0, 5.0, 0.0), Vector3::new(0.0, 0.0, -0.4));
+        let good = Pose::from_euler(
+            EulerAngles::new(10.0, 5.0, 0.0),
+            Vector3::new(0.0, 0.0, -0.4),
+        );
         let rt = good.to_release_rt();
         assert!(Pose::from_release_rt(&rt).is_ok());
         let mut bad = rt;
