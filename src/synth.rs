@@ -16,7 +16,7 @@ use crate::atomic_file;
 use crate::conventions::{Camera, EulerAngles, Pose};
 use crate::error::{Error, Result};
 use crate::npy::NpzCompression;
-use crate::raster::{ScreenVertex, VisibilityBuffer};
+use crate::raster::VisibilityBuffer;
 use crate::release::{self, InfoAnnotation, ReleaseLayout, SampleKey, Split};
 use crate::rng::Rng;
 use crate::synthetic_face::{EXPRESSION_DIMS, FaceShapeModel, IDENTITY_DIMS};
@@ -557,16 +557,7 @@ fn draw_face(
     neutral.extend(source.hole_fill.centroid_positions(&source.shape.neutral));
     let mut triangles = topo.triangles.clone();
     triangles.extend_from_slice(&source.hole_fill.triangles);
-    let pts: Vec<Point3<f64>> = all.iter().map(|p| p.cast()).collect();
-    let projected = camera.project_all(pose, &pts);
-    let screen: Vec<ScreenVertex> = projected
-        .iter()
-        .map(|p| ScreenVertex {
-            x: p.u as f32,
-            y: p.v as f32,
-            inv_w: (1.0 / p.depth_m) as f32,
-        })
-        .collect();
+    let screen = camera.project_to_screen(pose, &all);
     // Vertex normals in camera space (area-weighted).
     let rot = pose.rotation().cast::<f32>();
     let cam: Vec<Vector3<f32>> = all.iter().map(|p| rot * p.coords).collect();

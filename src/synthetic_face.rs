@@ -211,32 +211,7 @@ fn param_to_uv(p: [f64; 2]) -> [f32; 2] {
 
 /// Loops of a lattice, if its boundary is 4 clean loops.
 fn clean_loops(l: &Lattice) -> Option<Vec<Vec<u32>>> {
-    let topo = placeholder_topology(l);
-    let edges = topo.boundary_edges().ok()?;
-    let mut next = HashMap::new();
-    for &(a, b) in &edges {
-        if next.insert(a, b).is_some() {
-            return None;
-        }
-    }
-    let mut seen = std::collections::HashSet::new();
-    let mut loops = Vec::new();
-    for &(s, _) in &edges {
-        if seen.contains(&s) {
-            continue;
-        }
-        let mut lp = vec![s];
-        seen.insert(s);
-        let mut c = next[&s];
-        while c != s {
-            if !seen.insert(c) {
-                return None;
-            }
-            lp.push(c);
-            c = *next.get(&c)?;
-        }
-        loops.push(lp);
-    }
+    let loops = placeholder_topology(l).unclassified_boundary_loops().ok()?;
     (loops.len() == 4).then_some(loops)
 }
 

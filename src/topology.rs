@@ -256,9 +256,16 @@ impl FaceTopology {
         Ok(topo)
     }
 
-    /// Reads an OBJ mesh (positions, triangles, and texture coordinates if present)
-    /// with the given 68 landmark indices. Positions become the template. Polygons are
-    /// triangulated as fans; a vertex given two different UVs is an error.
+    /// Reads an OBJ mesh (positions, triangles and texture coordinates) with the given
+    /// 68 landmark indices, which refer to the file's vertex numbering. Positions become
+    /// the template. Polygons are triangulated as fans; a vertex given two different
+    /// UVs is an error.
+    ///
+    /// tobj renumbers a model's vertices in the order faces first use them; landmarks
+    /// (and every other per-vertex table) need the file's own numbering, so it is
+    /// recovered by matching each loaded position to the file's `v` lines (exact f32
+    /// values, as both parse the same text). Two vertices at exactly the same position
+    /// make that ambiguous and are reported.
     pub fn from_obj(path: &Path, landmarks: Vec<u32>) -> Result<Self> {
         let (models, _) = tobj::load_obj(
             path,
@@ -276,44 +283,66 @@ impl FaceTopology {
             ));
         }
         let mesh = &models[0].mesh;
-        let vertex_count = mesh.positions.len() / 3;
-        let triangles: Vec<[u32; 3]> = mesh.indices.chunks(3).map(|c| [c[0], c[1], c[2]]).collect();
-        let mut uv = vec![[f32::NAN; 2]; vertex_count];
-        if !mesh.texcoords.is_empty() {
-            if mesh.texcoord_indices.len() != mesh.indices.len() {
+        let file_positions = obj_vertex_lines(path)?;
+        let bits = |p: &[f32]| [p[0].to_bits(), p[1].to_bits(), p[2].to_bits()];
+        let mut by_position: HashMap<[u32; 3], u32> = HashMap::new();
+        for (i, p) in file_positions.iter().enumerate() {
+            if by_position.insert(bits(p), i as u32).is_some() {
                 return Err(Error::format(
                     path,
-                    "texture coordinates do not cover every face corner",
+                    format!(
+                        "vertex {i} repeats the position of an earlier vertex; the numbering cannot be recovered"
+                    ),
                 ));
             }
-            for (&vi, &ti) in mesh.indices.iter().zip(&mesh.texcoord_indices) {
-                let (vi, ti) = (vi as usize, ti as usize);
-                // OBJ's v points up; ours points down.
-                let t = [mesh.texcoords[2 * ti], 1.0 - mesh.texcoords[2 * ti + 1]];
-                if uv[vi][0].is_nan() {
-                    uv[vi] = t;
-                } else if (uv[vi][0] - t[0]).abs() > 1e-6 || (uv[vi][1] - t[1]).abs() > 1e-6 {
-                    return Err(Error::format(
-                        path,
-                        format!("vertex {vi} has two different texture coordinates"),
-                    ));
-                }
-            }
-            if let Some(i) = uv.iter().position(|p| p[0].is_nan()) {
-                return Err(Error::format(
-                    path,
-                    format!("vertex {i} has no texture coordinate"),
-                ));
-            }
-        } else {
+        }
+        let original: Vec<u32> = mesh
+            .positions
+            .chunks(3)
+            .map(|p| {
+                by_position
+                    .get(&bits(p))
+                    .copied()
+                    .ok_or_else(|| Error::format(path, "a loaded position matches no 'v' line"))
+            })
+            .collect::<Result<_>>()?;
+        let vertex_count = file_positions.len();
+        let indices: Vec<u32> = mesh.indices.iter().map(|&i| original[i as usize]).collect();
+        let triangles: Vec<[u32; 3]> = indices.chunks(3).map(|c| [c[0], c[1], c[2]]).collect();
+        if mesh.texcoords.is_empty() {
             return Err(Error::format(
                 path,
                 "the OBJ has no texture coordinates (vt): UVs are required",
             ));
         }
-        let template = mesh
-            .positions
-            .chunks(3)
+        if mesh.texcoord_indices.len() != mesh.indices.len() {
+            return Err(Error::format(
+                path,
+                "texture coordinates do not cover every face corner",
+            ));
+        }
+        let mut uv = vec![[f32::NAN; 2]; vertex_count];
+        for (&vi, &ti) in indices.iter().zip(&mesh.texcoord_indices) {
+            let (vi, ti) = (vi as usize, ti as usize);
+            // OBJ's v points up; ours points down.
+            let t = [mesh.texcoords[2 * ti], 1.0 - mesh.texcoords[2 * ti + 1]];
+            if uv[vi][0].is_nan() {
+                uv[vi] = t;
+            } else if (uv[vi][0] - t[0]).abs() > 1e-6 || (uv[vi][1] - t[1]).abs() > 1e-6 {
+                return Err(Error::format(
+                    path,
+                    format!("vertex {vi} has two different texture coordinates"),
+                ));
+            }
+        }
+        if let Some(i) = uv.iter().position(|p| p[0].is_nan()) {
+            return Err(Error::format(
+                path,
+                format!("vertex {i} has no texture coordinate (is it used by a face?)"),
+            ));
+        }
+        let template = file_positions
+            .iter()
             .map(|c| Point3::new(c[0], c[1], c[2]))
             .collect();
         let topo = FaceTopology {
@@ -382,10 +411,9 @@ impl FaceTopology {
         Ok(edges)
     }
 
-    /// The boundary loops with their roles (see module docs). Needs 4 loops; the outer
-    /// one is the longest, the others are told apart by the landmarks nearest to them
-    /// (mouth: 60-67, right eye: 36-41, left eye: 42-47) measured along the mesh.
-    pub fn boundary_loops(&self) -> Result<BoundaryLoops> {
+    /// The boundary edges chained into closed loops, in no particular order. Errors
+    /// where the boundary pinches (a vertex starts two boundary edges) or breaks off.
+    pub fn unclassified_boundary_loops(&self) -> Result<Vec<BoundaryLoop>> {
         let edges = self.boundary_edges()?;
         let mut next: HashMap<u32, u32> = HashMap::new();
         for &(a, b) in &edges {
@@ -419,6 +447,14 @@ impl FaceTopology {
             }
             loops.push(l);
         }
+        Ok(loops)
+    }
+
+    /// The boundary loops with their roles (see module docs). Needs 4 loops; the outer
+    /// one is the longest, the others are told apart by the landmarks nearest to them
+    /// (mouth: 60-67, right eye: 36-41, left eye: 42-47) measured along the mesh.
+    pub fn boundary_loops(&self) -> Result<BoundaryLoops> {
+        let mut loops = self.unclassified_boundary_loops()?;
         if loops.len() != 4 {
             return Err(Error::format(
                 &self.source,
@@ -562,6 +598,29 @@ impl FaceTopology {
     pub fn source_path(&self) -> PathBuf {
         PathBuf::from(&self.source)
     }
+}
+
+/// The positions of an OBJ file's `v` lines, in file order.
+fn obj_vertex_lines(path: &Path) -> Result<Vec<[f32; 3]>> {
+    let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
+    let mut out = Vec::new();
+    for (n, line) in text.lines().enumerate() {
+        let mut it = line.split_whitespace();
+        if it.next() != Some("v") {
+            continue;
+        }
+        let mut p = [0f32; 3];
+        for c in &mut p {
+            *c = it.next().and_then(|s| s.parse().ok()).ok_or_else(|| {
+                Error::format(
+                    path,
+                    format!("line {}: a 'v' line needs three numbers", n + 1),
+                )
+            })?;
+        }
+        out.push(p);
+    }
+    Ok(out)
 }
 
 /// For each vertex, the vertex nearest to its mirror position `(-x, y, z)`, and the
@@ -729,5 +788,50 @@ mod tests {
         let (m, worst) = nearest_mirror_partners(&v);
         assert_eq!(m, vec![2, 1, 0]);
         assert_eq!(worst, 0.0);
+    }
+}
+
+#[cfg(test)]
+mod obj_tests {
+    use super::*;
+
+    #[test]
+    fn obj_round_trip_of_the_built_in_face() {
+        let topo = &crate::synthetic_face::builtin().topology;
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("face.obj");
+        topo.write_obj(&path, topo.template.as_ref().unwrap())
+            .unwrap();
+        let back = FaceTopology::from_obj(&path, topo.landmarks.clone()).unwrap();
+        assert_eq!(back.vertex_count, topo.vertex_count);
+        assert_eq!(back.triangles, topo.triangles);
+        for (a, b) in back.uv.iter().zip(&topo.uv) {
+            assert!((a[0] - b[0]).abs() < 1e-6 && (a[1] - b[1]).abs() < 1e-6);
+        }
+        for (a, b) in back
+            .template
+            .unwrap()
+            .iter()
+            .zip(topo.template.as_ref().unwrap())
+        {
+            assert!((a - b).norm() < 1e-7);
+        }
+    }
+
+    #[test]
+    fn obj_errors_name_the_file() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("no_uv.obj");
+        std::fs::write(&path, "v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n").unwrap();
+        let e = FaceTopology::from_obj(&path, vec![0; 68])
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("no_uv.obj") && e.contains("no texture coordinates"),
+            "{e}"
+        );
+        let path = dir.path().join("bad_index.obj");
+        std::fs::write(&path, "v 0 0 0\nvt 0 0\nf 1/1 2/1 9/1\n").unwrap();
+        assert!(FaceTopology::from_obj(&path, vec![0; 68]).is_err());
     }
 }

@@ -189,3 +189,17 @@ fn real_nose_tip_projects_where_the_pinhole_says() {
         "{q:?}"
     );
 }
+
+#[test]
+fn real_topology_survives_an_obj_round_trip() {
+    let Some(dir) = resources() else { return };
+    let topo = FaceTopology::from_resources(&dir).unwrap();
+    let out = tempfile::tempdir().unwrap();
+    let path = out.path().join("arkit.obj");
+    topo.write_obj(&path, topo.template.as_ref().unwrap())
+        .unwrap();
+    let back = FaceTopology::from_obj(&path, topo.landmarks.clone()).unwrap();
+    assert_eq!(back.triangles, topo.triangles);
+    assert_eq!(back.boundary_loops().unwrap().edge_count(), 140);
+    assert_eq!(back.mirror_map().unwrap(), topo.mirror_map().unwrap());
+}

@@ -25,6 +25,7 @@
 
 use super::pose::Pose;
 use crate::error::{Error, Result};
+use crate::raster::ScreenVertex;
 use nalgebra::{Matrix3, Matrix4, Point2, Point3, RowVector4};
 use std::path::Path;
 
@@ -231,6 +232,22 @@ impl Camera {
             v: self.height as f64 - q[1] / w,
             depth_m: w,
         }
+    }
+
+    /// Projects points to rasterizer input: image position and `1 / depth`.
+    pub fn project_to_screen(&self, pose: &Pose, points: &[Point3<f32>]) -> Vec<ScreenVertex> {
+        let chain = pose.release_matrix() * self.projection * self.viewport_matrix();
+        points
+            .iter()
+            .map(|p| {
+                let q = self.project_with_chain(&chain, &p.cast());
+                ScreenVertex {
+                    x: q.u as f32,
+                    y: q.v as f32,
+                    inv_w: (1.0 / q.depth_m) as f32,
+                }
+            })
+            .collect()
     }
 
     /// Projects a point already in OpenGL camera coordinates with the pinhole model.

@@ -1,0 +1,73 @@
+//! What we write matches the machine-readable schemas in `schemas/`.
+
+use arkit_tool::npy::DType;
+use arkit_tool::synth::{self, FaceSource, SynthOptions};
+use std::path::PathBuf;
+
+fn schema(name: &str) -> serde_json::Value {
+    let p = PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+        .join("schemas")
+        .join(name);
+    serde_json::from_str(&std::fs::read_to_string(p).unwrap()).unwrap()
+}
+
+#[test]
+fn info_npz_written_by_synth_matches_its_schema() {
+    let s = schema("info_npz.json");
+    let keys = s["keys"].as_array().unwrap();
+    let options = SynthOptions {
+        subjects: 1,
+        images_per_subject: 1,
+        width: 96,
+        height: 96,
+        ..SynthOptions::default()
+    };
+    let plan = synth::plan(&options);
+    let sample = synth::render_sample(&FaceSource::builtin(), &options, &plan[0]).unwrap();
+    let arrays = sample.info.to_arrays();
+    assert_eq!(
+        arrays.len(),
+        keys.len(),
+        "synth writes every key of the schema"
+    );
+    for k in keys {
+        let name = k["key"].as_str().unwrap();
+        let (_, a) = arrays
+            .iter()
+            .find(|(n, _)| *n == name)
+            .unwrap_or_else(|| panic!("{name} not written"));
+        let dtype = match k["dtype"].as_str().unwrap() {
+            "float32" => DType::F32,
+            "float64" => DType::F64,
+            other => panic!("schema dtype {other}"),
+        };
+        assert_eq!(a.dtype(), dtype, "{name}");
+        let shape: Vec<usize> = k["shape"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|d| d.as_u64().unwrap() as usize)
+            .collect();
+        assert_eq!(a.shape(), shape.as_slice(), "{name}");
+    }
+    // The required keys are exactly the ones the reader insists on.
+    let required: Vec<&str> = keys
+        .iter()
+        .filter(|k| k["required"] == true)
+        .map(|k| k["key"].as_str().unwrap())
+        .collect();
+    assert_eq!(required, vec!["verts", "R_t"]);
+}
+
+#[test]
+fn list_csv_header_matches_its_schema() {
+    let s = schema("list_csv.json");
+    let header: Vec<&str> = s["header_required"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|v| v.as_str().unwrap())
+        .collect();
+    let text = arkit_tool::release::list_csv_text(&[]);
+    assert_eq!(text.trim_end(), header.join(","));
+}
