@@ -13,6 +13,9 @@
 //! - [`npy`]: NumPy `.npy` / `.npz` reading and writing.
 //! - [`release`]: the release's files: `_info.npz` annotations, list CSVs, layout.
 //! - [`synth`]: the synthetic dataset generator.
+//! - [`convert`]: the release into validated, sharded Parquet; [`samples_table`]: the
+//!   `samples` and `errors` tables; [`split`]: subject-disjoint splits; [`plot`]:
+//!   histogram pictures.
 //! - [`rng`]: the seeded random streams that make output reproducible.
 //! - [`atomic_file`]: writes that never leave a half-written file.
 
@@ -20,11 +23,15 @@
 
 pub mod atomic_file;
 pub mod conventions;
+pub mod convert;
 pub mod error;
 pub mod npy;
+pub mod plot;
 pub mod raster;
 pub mod release;
 pub mod rng;
+pub mod samples_table;
+pub mod split;
 pub mod synth;
 pub mod synthetic_face;
 pub mod topology;

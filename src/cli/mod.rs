@@ -1,7 +1,10 @@
 //! Argument parsing and dispatch. Subcommand files parse, call the library, report
 //! progress and errors; they hold no geometry.
 
+mod convert;
 mod info;
+mod inspect;
+mod split;
 mod synth;
 mod topology;
 
@@ -25,6 +28,10 @@ pub struct Cli {
 #[derive(Subcommand, Debug)]
 enum Command {
     Synth(synth::SynthArgs),
+    Convert(convert::ConvertArgs),
+    Merge(convert::MergeArgs),
+    Split(split::SplitArgs),
+    Inspect(inspect::InspectArgs),
     Topology(topology::TopologyArgs),
     Info(info::InfoArgs),
 }
@@ -33,6 +40,10 @@ enum Command {
 pub fn run(cli: Cli) -> Result<ExitCode> {
     match cli.command {
         Command::Synth(a) => synth::run(a),
+        Command::Convert(a) => convert::run(a),
+        Command::Merge(a) => convert::run_merge(a),
+        Command::Split(a) => split::run(a),
+        Command::Inspect(a) => inspect::run(a),
         Command::Topology(a) => topology::run(a),
         Command::Info(a) => info::run(a),
     }

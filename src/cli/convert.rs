@@ -1,0 +1,172 @@
+//! `arkit-tool convert` and `arkit-tool merge`.
+
+use arkit_tool::conventions::Camera;
+use arkit_tool::convert::{self, ConvertOptions, ValidationContext};
+use arkit_tool::{Error, Result};
+use clap::Args;
+use indicatif::{ProgressBar, ProgressStyle};
+use std::path::PathBuf;
+use std::process::ExitCode;
+
+/// Convert the release (or data shaped like it) into validated, sharded Parquet.
+///
+/// Reads the download layout (ARKitFace_image_{split}/image/..., ARKitFace_info_{split}/info/...,
+/// ARKitFace_list/list/*.csv) or the flat one (image/, info/, one CSV). Every sample is
+/// validated (annotation keys, shapes and values, R_t, the JPEG decodes, landmarks land
+/// inside the image); a bad sample is skipped and recorded with its reason in
+/// errors/part-K.parquet, and files no list names in errors/listing.parquet.
+/// Writes samples/part-K.parquet and dataset.json (counts, shards, SHA-256 checksums).
+/// A rerun keeps finished shards. The output is byte-identical whatever --jobs.
+///
+/// Example: arkit-tool convert --input data/synth --output data/synth-parquet
+/// Cluster: run `convert --shard I/N` for I in 0..N (same --output), then `arkit-tool merge`.
+#[derive(Args, Debug)]
+pub struct ConvertArgs {
+    /// The release folder.
+    #[arg(long)]
+    input: PathBuf,
+    /// Output folder (samples/, errors/, dataset.json).
+    #[arg(long)]
+    output: PathBuf,
+    /// Release resource folder (triangles.npy, kpt_ind.npy, ...; projection_matrix.txt
+    /// if present). Needed for the real release: its 68 landmark indices place the face
+    /// box. Without it, the built-in synthetic topology's landmarks are used.
+    #[arg(long)]
+    resources: Option<PathBuf>,
+    /// Rows per Parquet shard (memory is bounded by one shard).
+    #[arg(long, default_value_t = 4096)]
+    rows_per_shard: usize,
+    /// Worker threads (default: all cores).
+    #[arg(long)]
+    jobs: Option<usize>,
+    /// Store each JPEG's bytes in the samples table.
+    #[arg(long)]
+    embed_images: bool,
+    /// Convert only part I of N (shards k with k % N == I), for job arrays.
+    #[arg(long, value_name = "I/N", value_parser = parse_shard)]
+    shard: Option<(usize, usize)>,
+    /// Exit with status 1 if any sample was skipped (after converting everything else).
+    #[arg(long)]
+    strict: bool,
+    /// Print the manifest as JSON.
+    #[arg(long)]
+    json: bool,
+}
+
+fn parse_shard(s: &str) -> std::result::Result<(usize, usize), String> {
+    let (i, n) = s
+        .split_once('/')
+        .ok_or_else(|| format!("'{s}' is not I/N (for example 0/8)"))?;
+    let (i, n): (usize, usize) = (
+        i.trim()
+            .parse()
+            .map_err(|_| format!("'{i}' is not a number"))?,
+        n.trim()
+            .parse()
+            .map_err(|_| format!("'{n}' is not a number"))?,
+    );
+    if n == 0 || i >= n {
+        return Err(format!("shard {i}/{n}: need 0 <= I < N"));
+    }
+    Ok((i, n))
+}
+
+pub fn run(a: ConvertArgs) -> Result<ExitCode> {
+    let topology = super::load_topology(a.resources.as_deref())?;
+    let projection = match &a.resources {
+        Some(dir) if dir.join("projection_matrix.txt").exists() => {
+            Camera::read_projection_txt(&dir.join("projection_matrix.txt"))?
+        }
+        _ => Camera::release_projection(),
+    };
+    if a.resources.is_none() {
+        eprintln!(
+            "note: no --resources: landmarks and face boxes use the built-in synthetic topology (right for `synth` data, not for the real release)"
+        );
+    }
+    let (shard_index, shard_count) = a.shard.unwrap_or((0, 1));
+    let options = ConvertOptions {
+        input: a.input.clone(),
+        output: a.output.clone(),
+        resources: a.resources.clone(),
+        rows_per_shard: a.rows_per_shard,
+        embed_images: a.embed_images,
+        shard_index,
+        shard_count,
+    };
+    let ctx = ValidationContext {
+        projection,
+        topology,
+        embed_images: a.embed_images,
+    };
+    let input = convert::discover(&a.input)?;
+    let (rows, _) = convert::plan_rows(&input)?;
+    eprintln!(
+        "found the {} layout in {}: {} listed samples in {}",
+        match input.kind {
+            convert::LayoutKind::Download => "download",
+            convert::LayoutKind::Flat => "flat",
+        },
+        a.input.display(),
+        rows.len(),
+        input
+            .lists
+            .iter()
+            .map(|(s, _)| s.as_str())
+            .collect::<Vec<_>>()
+            .join(", ")
+    );
+    let bar = ProgressBar::new(rows.len() as u64).with_style(
+        ProgressStyle::with_template(
+            "{spinner} convert [{bar:30}] {pos}/{len} samples {per_sec} eta {eta}",
+        )
+        .expect("template")
+        .progress_chars("=> "),
+    );
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(a.jobs.unwrap_or(0))
+        .build()
+        .map_err(|e| Error::invalid("--jobs", e.to_string()))?;
+    let manifest = pool.install(|| convert::convert(&options, &ctx, &|n| bar.inc(n as u64)))?;
+    bar.finish_and_clear();
+    if a.json {
+        println!("{}", serde_json::to_string_pretty(&manifest).expect("json"));
+    }
+    let manifest_file = a
+        .output
+        .join(convert::manifest_name(shard_index, shard_count));
+    eprintln!(
+        "converted {} samples, skipped {} (reasons in {}), {} listing problems; manifest {}",
+        manifest.converted,
+        manifest.skipped,
+        a.output.join("errors").display(),
+        manifest.listing_problems,
+        manifest_file.display()
+    );
+    if a.strict && (manifest.skipped > 0 || manifest.listing_problems > 0) {
+        return Ok(ExitCode::from(1));
+    }
+    Ok(ExitCode::SUCCESS)
+}
+
+/// Join the parts of a `convert --shard I/N` run into dataset.json.
+///
+/// Example: arkit-tool merge --dataset data/parquet
+#[derive(Args, Debug)]
+pub struct MergeArgs {
+    /// The output folder all parts wrote to.
+    #[arg(long)]
+    dataset: PathBuf,
+}
+
+pub fn run_merge(a: MergeArgs) -> Result<ExitCode> {
+    let m = convert::merge(&a.dataset)?;
+    println!(
+        "merged {} shards: {} samples converted, {} skipped -> {}",
+        m.shards.len(),
+        m.converted,
+        m.skipped,
+        a.dataset.join("dataset.json").display()
+    );
+    Ok(ExitCode::SUCCESS)
+}

@@ -1,0 +1,118 @@
+//! `arkit-tool inspect`.
+
+use arkit_tool::Result;
+use arkit_tool::convert::read_manifest;
+use arkit_tool::plot::{Histogram, histogram_panel};
+use arkit_tool::samples_table::{f64_values, read_parquet_columns, str_values};
+use clap::Args;
+use std::collections::BTreeSet;
+use std::path::PathBuf;
+use std::process::ExitCode;
+
+/// Summarise a converted dataset: subjects, images, actions, errors, and the pose
+/// distributions (yaw, pitch, roll, distance) as histograms.
+///
+/// Example: arkit-tool inspect --dataset data/parquet --plot poses.png
+#[derive(Args, Debug)]
+pub struct InspectArgs {
+    /// A folder written by `convert` (with dataset.json).
+    #[arg(long)]
+    dataset: PathBuf,
+    /// Also draw the four histograms into a PNG.
+    #[arg(long, value_name = "FILE.png")]
+    plot: Option<PathBuf>,
+    /// Print JSON.
+    #[arg(long)]
+    json: bool,
+}
+
+pub fn run(a: InspectArgs) -> Result<ExitCode> {
+    let m = read_manifest(&a.dataset.join("dataset.json"))?;
+    let (mut yaw, mut pitch, mut roll, mut dist) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
+    let (mut subjects, mut actions) = (BTreeSet::new(), BTreeSet::new());
+    for s in &m.shards {
+        let path = a.dataset.join(&s.samples_file);
+        let df = read_parquet_columns(
+            &path,
+            &[
+                "subject_id",
+                "facial_action",
+                "yaw_deg",
+                "pitch_deg",
+                "roll_deg",
+                "tz_m",
+            ],
+        )?;
+        subjects.extend(str_values(&df, "subject_id", &path)?);
+        actions.extend(str_values(&df, "facial_action", &path)?);
+        yaw.extend(f64_values(&df, "yaw_deg", &path)?);
+        pitch.extend(f64_values(&df, "pitch_deg", &path)?);
+        roll.extend(f64_values(&df, "roll_deg", &path)?);
+        dist.extend(f64_values(&df, "tz_m", &path)?.into_iter().map(|z| -z));
+    }
+    let hists = [
+        (
+            "yaw (deg)",
+            Histogram::new(yaw.iter().copied(), -90.0, 90.0, 18),
+        ),
+        (
+            "pitch (deg)",
+            Histogram::new(pitch.iter().copied(), -90.0, 90.0, 18),
+        ),
+        (
+            "roll (deg)",
+            Histogram::new(roll.iter().copied(), -90.0, 90.0, 18),
+        ),
+        (
+            "distance (m)",
+            Histogram::new(dist.iter().copied(), 0.0, 1.2, 12),
+        ),
+    ];
+    if a.json {
+        let h: Vec<serde_json::Value> = hists
+            .iter()
+            .map(|(n, h)| serde_json::json!({"name": n, "lo": h.lo, "hi": h.hi, "counts": h.counts, "outside": h.outside}))
+            .collect();
+        println!(
+            "{}",
+            serde_json::to_string_pretty(&serde_json::json!({
+                "subjects": subjects.len(), "images": yaw.len(), "facial_actions": actions.len(),
+                "skipped": m.skipped, "listing_problems": m.listing_problems, "shards": m.shards.len(),
+                "histograms": h,
+            }))
+            .expect("json")
+        );
+    } else {
+        println!("{}", a.dataset.display());
+        println!(
+            "  {} subjects, {} images, {} facial actions, {} shards",
+            subjects.len(),
+            yaw.len(),
+            actions.len(),
+            m.shards.len()
+        );
+        println!(
+            "  {} samples skipped, {} listing problems (see errors/)",
+            m.skipped, m.listing_problems
+        );
+        for (name, h) in &hists {
+            println!("\n{name}");
+            for line in h.text_lines(40) {
+                println!("  {line}");
+            }
+            if h.outside > 0 {
+                println!("  ({} outside the range)", h.outside);
+            }
+        }
+    }
+    if let Some(path) = &a.plot {
+        let panels: Vec<(&str, &Histogram)> = hists.iter().map(|(n, h)| (*n, h)).collect();
+        let img = histogram_panel(&panels);
+        let mut bytes = std::io::Cursor::new(Vec::new());
+        img.write_to(&mut bytes, image::ImageFormat::Png)
+            .map_err(|e| arkit_tool::Error::invalid("plot", e.to_string()))?;
+        arkit_tool::atomic_file::write_bytes(path, bytes.get_ref())?;
+        println!("plot: {}", path.display());
+    }
+    Ok(ExitCode::SUCCESS)
+}

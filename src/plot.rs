@@ -1,0 +1,202 @@
+//! Small PNG charts (histograms) for people to look at, with a built-in 5x7 pixel font
+//! so no font files or plotting libraries are needed.
+
+use image::{Rgb, RgbImage};
+
+/// A histogram over `[lo, hi)` with equal-width bins.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Histogram {
+    /// Left edge of the first bin.
+    pub lo: f64,
+    /// Right edge of the last bin.
+    pub hi: f64,
+    /// Counts per bin.
+    pub counts: Vec<usize>,
+    /// Values outside `[lo, hi)`.
+    pub outside: usize,
+}
+
+impl Histogram {
+    /// Counts `values` into `bins` bins over `[lo, hi)`.
+    pub fn new(values: impl IntoIterator<Item = f64>, lo: f64, hi: f64, bins: usize) -> Self {
+        let mut counts = vec![0; bins.max(1)];
+        let mut outside = 0;
+        let width = (hi - lo) / counts.len() as f64;
+        for v in values {
+            let k = ((v - lo) / width).floor();
+            if v.is_finite() && k >= 0.0 && (k as usize) < counts.len() {
+                counts[k as usize] += 1;
+            } else {
+                outside += 1;
+            }
+        }
+        Histogram {
+            lo,
+            hi,
+            counts,
+            outside,
+        }
+    }
+
+    /// Lines of text: one per bin, `[lo, hi)  count  ####`.
+    pub fn text_lines(&self, width: usize) -> Vec<String> {
+        let max = self.counts.iter().copied().max().unwrap_or(0).max(1);
+        let step = (self.hi - self.lo) / self.counts.len() as f64;
+        self.counts
+            .iter()
+            .enumerate()
+            .map(|(i, &c)| {
+                let a = self.lo + step * i as f64;
+                let bar = "#".repeat((c * width).div_ceil(max));
+                format!("{:>8.2} .. {:<8.2} {:>8}  {}", a, a + step, c, bar)
+            })
+            .collect()
+    }
+}
+
+/// 5x7 glyphs, one `u8` per row (low 5 bits, leftmost pixel in bit 4).
+fn glyph(c: char) -> [u8; 7] {
+    match c.to_ascii_lowercase() {
+        '0' => [14, 17, 19, 21, 25, 17, 14],
+        '1' => [4, 12, 4, 4, 4, 4, 14],
+        '2' => [14, 17, 1, 2, 4, 8, 31],
+        '3' => [31, 2, 4, 2, 1, 17, 14],
+        '4' => [2, 6, 10, 18, 31, 2, 2],
+        '5' => [31, 16, 30, 1, 1, 17, 14],
+        '6' => [6, 8, 16, 30, 17, 17, 14],
+        '7' => [31, 1, 2, 4, 8, 8, 8],
+        '8' => [14, 17, 17, 14, 17, 17, 14],
+        '9' => [14, 17, 17, 15, 1, 2, 12],
+        'a' => [0, 0, 14, 1, 15, 17, 15],
+        'b' => [16, 16, 22, 25, 17, 17, 30],
+        'c' => [0, 0, 14, 16, 16, 17, 14],
+        'd' => [1, 1, 13, 19, 17, 17, 15],
+        'e' => [0, 0, 14, 17, 31, 16, 14],
+        'f' => [6, 9, 8, 28, 8, 8, 8],
+        'g' => [0, 15, 17, 17, 15, 1, 14],
+        'h' => [16, 16, 22, 25, 17, 17, 17],
+        'i' => [4, 0, 12, 4, 4, 4, 14],
+        'j' => [2, 0, 6, 2, 2, 18, 12],
+        'k' => [16, 16, 18, 20, 24, 20, 18],
+        'l' => [12, 4, 4, 4, 4, 4, 14],
+        'm' => [0, 0, 26, 21, 21, 17, 17],
+        'n' => [0, 0, 22, 25, 17, 17, 17],
+        'o' => [0, 0, 14, 17, 17, 17, 14],
+        'p' => [0, 0, 30, 17, 30, 16, 16],
+        'q' => [0, 0, 13, 19, 15, 1, 1],
+        'r' => [0, 0, 22, 25, 16, 16, 16],
+        's' => [0, 0, 14, 16, 14, 1, 30],
+        't' => [8, 8, 28, 8, 8, 9, 6],
+        'u' => [0, 0, 17, 17, 17, 19, 13],
+        'v' => [0, 0, 17, 17, 17, 10, 4],
+        'w' => [0, 0, 17, 17, 21, 21, 10],
+        'x' => [0, 0, 17, 10, 4, 10, 17],
+        'y' => [0, 0, 17, 17, 15, 1, 14],
+        'z' => [0, 0, 31, 2, 4, 8, 31],
+        '-' => [0, 0, 0, 31, 0, 0, 0],
+        '.' => [0, 0, 0, 0, 0, 12, 12],
+        ',' => [0, 0, 0, 0, 12, 4, 8],
+        ':' => [0, 12, 12, 0, 12, 12, 0],
+        '(' => [2, 4, 8, 8, 8, 4, 2],
+        ')' => [8, 4, 2, 2, 2, 4, 8],
+        '/' => [0, 1, 2, 4, 8, 16, 0],
+        '%' => [24, 25, 2, 4, 8, 19, 3],
+        _ => [0; 7],
+    }
+}
+
+/// Draws `text` with its top-left corner at `(x, y)`, each font pixel `scale` pixels.
+pub fn draw_text(img: &mut RgbImage, x: i64, y: i64, text: &str, scale: u32, colour: Rgb<u8>) {
+    for (k, c) in text.chars().enumerate() {
+        let g = glyph(c);
+        for (row, bits) in g.iter().enumerate() {
+            for col in 0..5 {
+                if bits >> (4 - col) & 1 == 1 {
+                    for dy in 0..scale as i64 {
+                        for dx in 0..scale as i64 {
+                            let px = x + (k as i64 * 6 + col) * scale as i64 + dx;
+                            let py = y + row as i64 * scale as i64 + dy;
+                            if px >= 0
+                                && py >= 0
+                                && (px as u32) < img.width()
+                                && (py as u32) < img.height()
+                            {
+                                img.put_pixel(px as u32, py as u32, colour);
+                            }
+                        }
+                    }
+                }
+            }
+        }
+    }
+}
+
+fn fill(img: &mut RgbImage, x0: i64, y0: i64, x1: i64, y1: i64, c: Rgb<u8>) {
+    for y in y0.max(0)..y1.min(img.height() as i64) {
+        for x in x0.max(0)..x1.min(img.width() as i64) {
+            img.put_pixel(x as u32, y as u32, c);
+        }
+    }
+}
+
+/// A panel of histograms side by side, each titled, with its range and peak count.
+pub fn histogram_panel(panels: &[(&str, &Histogram)]) -> RgbImage {
+    let (pw, ph) = (360i64, 260i64);
+    let mut img = RgbImage::from_pixel(
+        (pw * panels.len() as i64) as u32,
+        ph as u32,
+        Rgb([255, 255, 255]),
+    );
+    let ink = Rgb([30, 30, 30]);
+    for (i, (title, h)) in panels.iter().enumerate() {
+        let ox = i as i64 * pw;
+        draw_text(&mut img, ox + 20, 10, title, 2, ink);
+        let (x0, x1, y0, y1) = (ox + 30, ox + pw - 20, 50, ph - 40);
+        fill(&mut img, x0, y1, x1, y1 + 1, ink);
+        fill(&mut img, x0, y0, x0 + 1, y1, ink);
+        let max = h.counts.iter().copied().max().unwrap_or(0).max(1);
+        let n = h.counts.len() as i64;
+        let bw = (x1 - x0) / n.max(1);
+        for (k, &c) in h.counts.iter().enumerate() {
+            let top = y1 - ((y1 - y0) as f64 * c as f64 / max as f64).round() as i64;
+            fill(
+                &mut img,
+                x0 + 1 + k as i64 * bw,
+                top,
+                x0 + (k as i64 + 1) * bw,
+                y1,
+                Rgb([70, 120, 200]),
+            );
+        }
+        draw_text(&mut img, x0, y1 + 8, &format!("{}", h.lo), 1, ink);
+        let hi = format!("{}", h.hi);
+        draw_text(&mut img, x1 - 6 * hi.len() as i64, y1 + 8, &hi, 1, ink);
+        draw_text(&mut img, x0 + 6, y0 - 12, &format!("max {max}"), 1, ink);
+    }
+    img
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn histogram_counts_and_edges() {
+        let h = Histogram::new([0.0, 0.5, 1.0, 9.99, 10.0, -0.1, f64::NAN], 0.0, 10.0, 10);
+        assert_eq!(h.counts, vec![2, 1, 0, 0, 0, 0, 0, 0, 0, 1]);
+        assert_eq!(h.outside, 3);
+        let lines = h.text_lines(10);
+        assert_eq!(lines.len(), 10);
+        assert!(lines[0].ends_with("##########"));
+    }
+
+    #[test]
+    fn text_is_drawn_inside_the_image() {
+        let mut img = RgbImage::from_pixel(60, 10, Rgb([0, 0, 0]));
+        draw_text(&mut img, 0, 0, "yaw 90", 1, Rgb([255, 255, 255]));
+        let lit = img.pixels().filter(|p| p.0[0] == 255).count();
+        assert!(lit > 20);
+        // Drawing past the edge does not panic.
+        draw_text(&mut img, 55, 5, "long text", 2, Rgb([255, 255, 255]));
+    }
+}

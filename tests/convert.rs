@@ -1,0 +1,407 @@
+//! `convert`, `merge` and `split` on synthetic data and on every kind of broken input.
+
+use arkit_tool::conventions::{Camera, Pose};
+use arkit_tool::convert::{self, ConvertOptions, ValidationContext};
+use arkit_tool::npy::{self, NpyArray, NpzCompression};
+use arkit_tool::release::{self, ReleaseLayout, SampleKey, Split};
+use arkit_tool::samples_table::{self, ERRORS_COLUMNS, SAMPLES_COLUMNS};
+use arkit_tool::split::{self, HoldOut};
+use arkit_tool::synth::{self, FaceSource, SynthOptions};
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+
+fn make_release(dir: &Path, subjects: usize, images: usize) -> SynthOptions {
+    let options = SynthOptions {
+        subjects,
+        images_per_subject: images,
+        width: 128,
+        height: 128,
+        seed: 11,
+        ..SynthOptions::default()
+    };
+    synth::generate(&FaceSource::builtin(), &options, dir, &|| {}).unwrap();
+    options
+}
+
+fn context() -> ValidationContext {
+    ValidationContext {
+        projection: Camera::release_projection(),
+        topology: arkit_tool::synthetic_face::builtin().topology.clone(),
+        embed_images: false,
+    }
+}
+
+fn options(input: &Path, output: &Path, rows_per_shard: usize) -> ConvertOptions {
+    ConvertOptions {
+        input: input.to_path_buf(),
+        output: output.to_path_buf(),
+        resources: None,
+        rows_per_shard,
+        embed_images: false,
+        shard_index: 0,
+        shard_count: 1,
+    }
+}
+
+fn run(opts: &ConvertOptions, threads: usize) -> convert::Manifest {
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(threads)
+        .build()
+        .unwrap();
+    pool.install(|| convert::convert(opts, &context(), &|_| {}).unwrap())
+}
+
+fn files(root: &Path, sub: &str) -> BTreeMap<String, Vec<u8>> {
+    let mut out = BTreeMap::new();
+    if let Ok(rd) = std::fs::read_dir(root.join(sub)) {
+        for e in rd.flatten() {
+            out.insert(
+                e.file_name().to_string_lossy().into_owned(),
+                std::fs::read(e.path()).unwrap(),
+            );
+        }
+    }
+    out
+}
+
+fn keys_of(dir: &Path, split: Split) -> Vec<SampleKey> {
+    release::read_list(&ReleaseLayout::new(dir).list_path(split))
+        .unwrap()
+        .into_iter()
+        .map(|r| r.key)
+        .collect()
+}
+
+#[test]
+fn converts_synthetic_data_exactly_and_deterministically() {
+    let input = tempfile::tempdir().unwrap();
+    make_release(input.path(), 3, 4);
+    let (a, b) = (tempfile::tempdir().unwrap(), tempfile::tempdir().unwrap());
+    let m1 = run(&options(input.path(), a.path(), 5), 1);
+    let m2 = run(&options(input.path(), b.path(), 5), 2);
+    assert_eq!(
+        (m1.converted, m1.skipped, m1.listing_problems, m1.listed),
+        (12, 0, 0, 12)
+    );
+    assert_eq!(m1.shards.len(), 3);
+    assert_eq!(
+        files(a.path(), "samples"),
+        files(b.path(), "samples"),
+        "thread count changed the bytes"
+    );
+    assert_eq!(m1.shards, m2.shards);
+    // Values equal the npz values exactly.
+    let rows = convert::read_dataset_samples(a.path()).unwrap();
+    let layout = ReleaseLayout::new(input.path());
+    let listed: Vec<SampleKey> = keys_of(input.path(), Split::Train)
+        .into_iter()
+        .chain(keys_of(input.path(), Split::Test))
+        .collect();
+    assert_eq!(
+        rows.iter().map(|r| r.key.clone()).collect::<Vec<_>>(),
+        listed,
+        "list order kept"
+    );
+    for r in &rows {
+        let split = if r.split == "train" {
+            Split::Train
+        } else {
+            Split::Test
+        };
+        let info = release::read_info(&layout.info_path(split, &r.key)).unwrap();
+        let flat: Vec<f32> = info.verts.iter().flat_map(|p| [p.x, p.y, p.z]).collect();
+        assert_eq!(r.verts, flat);
+        assert_eq!(r.rt, info.rt);
+        let e = Pose::from_release_rt(&info.rt).unwrap().euler();
+        assert_eq!(
+            (r.yaw_deg, r.pitch_deg, r.roll_deg),
+            (e.yaw_deg, e.pitch_deg, e.roll_deg)
+        );
+        assert_eq!((r.image_width, r.image_height), (128, 128));
+        assert_eq!(r.landmarks_2d.len(), 136);
+        // The crop box is square, contains every landmark, and is 1.5x their extent.
+        let (us, vs): (Vec<f32>, Vec<f32>) = r.landmarks_2d.chunks(2).map(|c| (c[0], c[1])).unzip();
+        let ext = (us.iter().cloned().fold(f32::MIN, f32::max)
+            - us.iter().cloned().fold(f32::MAX, f32::min))
+        .max(
+            vs.iter().cloned().fold(f32::MIN, f32::max)
+                - vs.iter().cloned().fold(f32::MAX, f32::min),
+        );
+        assert!(((r.face_box[2] - r.face_box[0]) - 1.5 * ext as f64).abs() < 1e-3);
+        assert!(
+            us.iter()
+                .all(|&u| (u as f64) >= r.face_box[0] && (u as f64) <= r.face_box[2])
+        );
+    }
+}
+
+fn write_npz(path: &Path, members: Vec<(&str, NpyArray)>) {
+    let refs: Vec<(&str, &NpyArray)> = members.iter().map(|(k, a)| (*k, a)).collect();
+    let mut f = std::fs::File::create(path).unwrap();
+    npy::write_npz(&mut f, &refs, NpzCompression::Stored).unwrap();
+}
+
+#[test]
+fn every_kind_of_broken_sample_is_reported_and_the_rest_converts() {
+    let input = tempfile::tempdir().unwrap();
+    make_release(input.path(), 4, 4);
+    let root = input.path();
+    let layout = ReleaseLayout::new(root);
+    let train = keys_of(root, Split::Train);
+    assert!(train.len() >= 12);
+    let info = |k: &SampleKey| layout.info_path(Split::Train, k);
+    let image = |k: &SampleKey| layout.image_path(Split::Train, k);
+    let good = release::read_info(&info(&train[0])).unwrap();
+    let arrays = good.to_arrays();
+    let get = |name: &str| arrays.iter().find(|(n, _)| *n == name).unwrap().1.clone();
+    // 0: truncated npz.
+    let bytes = std::fs::read(info(&train[0])).unwrap();
+    std::fs::write(info(&train[0]), &bytes[..bytes.len() / 3]).unwrap();
+    // 1: missing key.
+    write_npz(&info(&train[1]), vec![("verts", get("verts"))]);
+    // 2: verts of the wrong shape.
+    write_npz(
+        &info(&train[2]),
+        vec![
+            (
+                "verts",
+                NpyArray::from_f32(vec![1219, 3], vec![0.0; 3657]).unwrap(),
+            ),
+            ("R_t", get("R_t")),
+        ],
+    );
+    // 3: NaN.
+    let mut v = get("verts").to_f32_vec();
+    v[7] = f32::NAN;
+    write_npz(
+        &info(&train[3]),
+        vec![
+            ("verts", NpyArray::from_f32(vec![1220, 3], v).unwrap()),
+            ("R_t", get("R_t")),
+        ],
+    );
+    // 4: positive tz.
+    let mut rt = good.rt;
+    rt[14] = 0.4;
+    write_npz(
+        &info(&train[4]),
+        vec![
+            ("verts", get("verts")),
+            ("R_t", NpyArray::from_f64(vec![4, 4], rt.to_vec()).unwrap()),
+        ],
+    );
+    // 5: missing image.
+    std::fs::remove_file(image(&train[5])).unwrap();
+    // 6: truncated JPEG.
+    let jpg = std::fs::read(image(&train[6])).unwrap();
+    std::fs::write(image(&train[6]), &jpg[..jpg.len() / 2]).unwrap();
+    // 7: not a JPEG.
+    std::fs::write(image(&train[7]), b"\x89PNG\r\n\x1a\n not really").unwrap();
+    // 8: a list row with no files.
+    let list = layout.list_path(Split::Train);
+    let mut text = std::fs::read_to_string(&list).unwrap();
+    text.push_str("099999,01_Neutral,1234567890123\n");
+    std::fs::write(&list, text).unwrap();
+    // An unlisted file on disk.
+    let orphan = info(&train[8]).with_file_name("9999999999999_info.npz");
+    std::fs::copy(info(&train[8]), &orphan).unwrap();
+
+    let out = tempfile::tempdir().unwrap();
+    let m = run(&options(root, out.path(), 4), 2);
+    let listed = m.listed;
+    assert_eq!(m.skipped, 9);
+    assert_eq!(m.converted, listed - 9);
+    assert_eq!(m.listing_problems, 1);
+    let mut errors = Vec::new();
+    for s in &m.shards {
+        errors.extend(samples_table::read_errors(&out.path().join(&s.errors_file)).unwrap());
+    }
+    let reason = |k: &SampleKey| {
+        errors
+            .iter()
+            .find(|e| &e.key == k)
+            .map(|e| e.reason.clone())
+            .unwrap_or_else(|| panic!("{k} not in errors"))
+    };
+    assert!(reason(&train[0]).contains("zip"), "{}", reason(&train[0]));
+    assert!(reason(&train[1]).contains("missing key 'R_t'"));
+    assert!(reason(&train[2]).contains("[1220, 3]") && reason(&train[2]).contains("[1219, 3]"));
+    assert!(reason(&train[3]).contains("non-finite"));
+    assert!(reason(&train[4]).contains("negative"));
+    assert!(reason(&train[5]).to_lowercase().contains("no such file"));
+    assert!(reason(&train[6]).contains("truncated JPEG"));
+    assert!(reason(&train[7]).contains("not a JPEG"));
+    let ghost = SampleKey {
+        subject_id: "099999".into(),
+        facial_action: "01_Neutral".into(),
+        img_id: "1234567890123".into(),
+    };
+    assert!(reason(&ghost).contains("No such file") || reason(&ghost).contains("no such file"));
+    // Each error names the file at fault, relative to the input root.
+    let e6 = errors.iter().find(|e| e.key == train[6]).unwrap();
+    assert!(e6.file.starts_with("ARKitFace_image_train/image/") && e6.file.ends_with("_ar.jpg"));
+    let listing = samples_table::read_errors(&out.path().join("errors/listing.parquet")).unwrap();
+    assert_eq!(listing.len(), 1);
+    assert!(listing[0].file.ends_with("9999999999999_info.npz"));
+    // Every other sample converted.
+    let rows = convert::read_dataset_samples(out.path()).unwrap();
+    assert_eq!(rows.len(), listed - 9);
+    assert!(rows.iter().any(|r| r.key == train[9]));
+}
+
+#[test]
+fn resume_keeps_finished_shards_and_gives_the_same_bytes() {
+    let input = tempfile::tempdir().unwrap();
+    make_release(input.path(), 2, 5);
+    let out = tempfile::tempdir().unwrap();
+    let first = run(&options(input.path(), out.path(), 3), 2);
+    let before = files(out.path(), "samples");
+    // Simulate an interruption: one shard lost, a stale temporary left behind.
+    std::fs::remove_file(out.path().join("samples/part-00002.parquet")).unwrap();
+    std::fs::write(
+        out.path().join("samples/.part-00002.parquet.tmp-1"),
+        b"half",
+    )
+    .unwrap();
+    let second = run(&options(input.path(), out.path(), 3), 1);
+    assert_eq!(first, second);
+    let mut after = files(out.path(), "samples");
+    after.retain(|k, _| !k.starts_with('.'));
+    assert_eq!(before, after);
+    // A finished shard from other input is refused, not silently mixed.
+    let other = tempfile::tempdir().unwrap();
+    make_release(other.path(), 3, 5);
+    let e = convert::convert(&options(other.path(), out.path(), 3), &context(), &|_| {})
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("other input"), "{e}");
+}
+
+#[test]
+fn shard_parts_merge_to_the_single_run() {
+    let input = tempfile::tempdir().unwrap();
+    make_release(input.path(), 3, 3);
+    let single = tempfile::tempdir().unwrap();
+    let whole = run(&options(input.path(), single.path(), 2), 2);
+    let parts = tempfile::tempdir().unwrap();
+    for i in 0..3 {
+        let mut o = options(input.path(), parts.path(), 2);
+        o.shard_index = i;
+        o.shard_count = 3;
+        run(&o, 1);
+    }
+    // Not all parts present yet? All three are; merge.
+    let merged = convert::merge(parts.path()).unwrap();
+    assert_eq!(merged.shards, whole.shards);
+    assert_eq!(
+        (merged.converted, merged.skipped),
+        (whole.converted, whole.skipped)
+    );
+    assert_eq!(
+        convert::read_dataset_samples(parts.path()).unwrap(),
+        convert::read_dataset_samples(single.path()).unwrap()
+    );
+    // A missing part is named.
+    std::fs::remove_file(parts.path().join(convert::manifest_name(1, 3))).unwrap();
+    let e = convert::merge(parts.path()).unwrap_err().to_string();
+    assert!(e.contains("part 1 of 3 is missing"), "{e}");
+}
+
+#[test]
+fn flat_layout_is_discovered() {
+    let input = tempfile::tempdir().unwrap();
+    make_release(input.path(), 2, 2);
+    let flat = tempfile::tempdir().unwrap();
+    let root = input.path();
+    // Move train files into image/ and info/ with one CSV.
+    for kind in ["image", "info"] {
+        std::fs::rename(
+            root.join(format!("ARKitFace_{kind}_train")).join(kind),
+            flat.path().join(kind),
+        )
+        .unwrap();
+    }
+    std::fs::copy(
+        ReleaseLayout::new(root).list_path(Split::Train),
+        flat.path().join("list.csv"),
+    )
+    .unwrap();
+    let d = convert::discover(flat.path()).unwrap();
+    assert_eq!(d.kind, convert::LayoutKind::Flat);
+    let out = tempfile::tempdir().unwrap();
+    let m = run(&options(flat.path(), out.path(), 10), 1);
+    assert_eq!((m.converted, m.skipped), (m.listed, 0));
+    let e = convert::discover(out.path()).unwrap_err().to_string();
+    assert!(e.contains("not an ARKitFace release"), "{e}");
+}
+
+#[test]
+fn written_tables_match_the_schema_files() {
+    let dir = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("schemas");
+    for (file, spec) in [
+        ("samples.json", &SAMPLES_COLUMNS[..]),
+        ("errors.json", &ERRORS_COLUMNS[..]),
+    ] {
+        let v: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(dir.join(file)).unwrap()).unwrap();
+        let cols: Vec<(String, String)> = v["columns"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|c| {
+                (
+                    c["name"].as_str().unwrap().to_string(),
+                    c["type"].as_str().unwrap().to_string(),
+                )
+            })
+            .collect();
+        let code: Vec<(String, String)> = spec
+            .iter()
+            .map(|c| (c.name.to_string(), c.dtype.to_string()))
+            .collect();
+        assert_eq!(cols, code, "{file} and the code disagree");
+    }
+    // What convert writes has exactly these columns and types.
+    let input = tempfile::tempdir().unwrap();
+    make_release(input.path(), 2, 1);
+    let out = tempfile::tempdir().unwrap();
+    let m = run(&options(input.path(), out.path(), 10), 1);
+    for (path, spec) in [
+        (&m.shards[0].samples_file, &SAMPLES_COLUMNS[..]),
+        (&m.shards[0].errors_file, &ERRORS_COLUMNS[..]),
+    ] {
+        let df = samples_table::read_parquet(&out.path().join(path)).unwrap();
+        let got: Vec<(String, String)> = df
+            .schema()
+            .iter()
+            .map(|(n, t)| (n.to_string(), format!("{t:?}")))
+            .collect();
+        let want: Vec<(String, String)> = spec
+            .iter()
+            .map(|c| {
+                (
+                    c.name.to_string(),
+                    format!("{:?}", samples_table::polars_dtype(c.dtype).unwrap()),
+                )
+            })
+            .collect();
+        assert_eq!(got, want);
+    }
+}
+
+#[test]
+fn split_is_subject_disjoint_and_reproducible() {
+    let input = tempfile::tempdir().unwrap();
+    make_release(input.path(), 6, 2);
+    let out = tempfile::tempdir().unwrap();
+    run(&options(input.path(), out.path(), 100), 2);
+    let rows = convert::read_dataset_samples(out.path()).unwrap();
+    let mut per: BTreeMap<String, usize> = BTreeMap::new();
+    for r in &rows {
+        *per.entry(r.key.subject_id.clone()).or_default() += 1;
+    }
+    let a = split::assign(&per, HoldOut::Subjects(2), 1, 5).unwrap();
+    assert_eq!(a, split::assign(&per, HoldOut::Subjects(2), 1, 5).unwrap());
+    let c = a.counts(&per);
+    assert_eq!((c["train"].0, c["test"].0, c["val"].0), (3, 2, 1));
+}
