@@ -478,34 +478,46 @@ pub fn convert(
         )?;
     }
     let mut shards = Vec::new();
-    let (mut converted, mut skipped) = (0, 0);
-    for (index, chunk) in rows.chunks(options.rows_per_shard).enumerate() {
-        if index % options.shard_count != options.shard_index {
-            continue;
-        }
-        let samples_rel = format!("samples/part-{index:05}.parquet");
-        let errors_rel = format!("errors/part-{index:05}.parquet");
-        let (samples_path, errors_path) = (out.join(&samples_rel), out.join(&errors_rel));
-        let (n_ok, n_bad) = if samples_path.exists() && errors_path.exists() {
-            // Finished by an earlier run: keep it.
-            let counts = (
-                samples_table::parquet_row_count(&samples_path)?,
-                samples_table::parquet_row_count(&errors_path)?,
-            );
-            if counts.0 + counts.1 != chunk.len() {
-                return Err(Error::format(
-                    &samples_path,
-                    format!(
-                        "holds {} + {} error rows but this shard has {} listed rows: it was made from other input or options; remove the output folder",
-                        counts.0,
-                        counts.1,
-                        chunk.len()
-                    ),
-                ));
+    // Validation of shard k+1 (rayon) overlaps the writing of shard k (one writer
+    // thread), so the sequential Parquet encoding does not leave a core idle.
+    std::thread::scope(|scope| -> Result<()> {
+        let mut pending: Option<std::thread::ScopedJoinHandle<'_, Result<ShardEntry>>> = None;
+        for (index, chunk) in rows.chunks(options.rows_per_shard).enumerate() {
+            if index % options.shard_count != options.shard_index {
+                continue;
             }
-            progress(chunk.len());
-            counts
-        } else {
+            let samples_rel = format!("samples/part-{index:05}.parquet");
+            let errors_rel = format!("errors/part-{index:05}.parquet");
+            let (samples_path, errors_path) = (out.join(&samples_rel), out.join(&errors_rel));
+            if samples_path.exists() && errors_path.exists() {
+                // Finished by an earlier run: keep it.
+                let counts = (
+                    samples_table::parquet_row_count(&samples_path)?,
+                    samples_table::parquet_row_count(&errors_path)?,
+                );
+                if counts.0 + counts.1 != chunk.len() {
+                    return Err(Error::format(
+                        &samples_path,
+                        format!(
+                            "holds {} + {} error rows but this shard has {} listed rows: it was made from other input or options; remove the output folder",
+                            counts.0,
+                            counts.1,
+                            chunk.len()
+                        ),
+                    ));
+                }
+                progress(chunk.len());
+                shards.push(ShardEntry {
+                    index,
+                    samples_file: samples_rel,
+                    rows: counts.0,
+                    sha256: sha256_file(&samples_path)?,
+                    errors_file: errors_rel,
+                    error_rows: counts.1,
+                    errors_sha256: sha256_file(&errors_path)?,
+                });
+                continue;
+            }
             let results: Vec<std::result::Result<SampleRecord, Box<ErrorRecord>>> = chunk
                 .par_iter()
                 .map(|row| {
@@ -514,31 +526,45 @@ pub fn convert(
                     r
                 })
                 .collect();
-            let mut good = Vec::new();
-            let mut bad = Vec::new();
+            let (mut good, mut bad) = (Vec::new(), Vec::new());
             for r in results {
                 match r {
                     Ok(s) => good.push(s),
                     Err(e) => bad.push(*e),
                 }
             }
-            // Errors first: a samples file without its errors file is never "finished".
-            samples_table::write_parquet(&errors_path, &mut samples_table::errors_frame(&bad)?)?;
-            samples_table::write_parquet(&samples_path, &mut samples_table::samples_frame(&good)?)?;
-            (good.len(), bad.len())
-        };
-        converted += n_ok;
-        skipped += n_bad;
-        shards.push(ShardEntry {
-            index,
-            samples_file: samples_rel,
-            rows: n_ok,
-            sha256: sha256_file(&samples_path)?,
-            errors_file: errors_rel,
-            error_rows: n_bad,
-            errors_sha256: sha256_file(&errors_path)?,
-        });
-    }
+            if let Some(h) = pending.take() {
+                shards.push(h.join().expect("writer thread")?);
+            }
+            pending = Some(scope.spawn(move || {
+                // Errors first: a samples file without its errors file is never "finished".
+                samples_table::write_parquet(
+                    &errors_path,
+                    &mut samples_table::errors_frame(&bad)?,
+                )?;
+                samples_table::write_parquet(
+                    &samples_path,
+                    &mut samples_table::samples_frame(&good)?,
+                )?;
+                Ok(ShardEntry {
+                    index,
+                    samples_file: samples_rel,
+                    rows: good.len(),
+                    sha256: sha256_file(&samples_path)?,
+                    errors_file: errors_rel,
+                    error_rows: bad.len(),
+                    errors_sha256: sha256_file(&errors_path)?,
+                })
+            }));
+        }
+        if let Some(h) = pending.take() {
+            shards.push(h.join().expect("writer thread")?);
+        }
+        Ok(())
+    })?;
+    shards.sort_by_key(|s| s.index);
+    let converted = shards.iter().map(|s| s.rows).sum();
+    let skipped = shards.iter().map(|s| s.error_rows).sum();
     let manifest = Manifest {
         tool: "arkit-tool".into(),
         version: env!("CARGO_PKG_VERSION").into(),
