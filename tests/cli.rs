@@ -111,3 +111,69 @@ fn topology_reports_four_loops() {
     assert_eq!(out.status.code(), Some(2));
     assert!(String::from_utf8_lossy(&out.stderr).contains("/nonexistent/dir/triangles.npy"));
 }
+
+#[test]
+fn convert_reports_skips_and_strict_fails_after_converting() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = dir.path().join("data");
+    let out = tool()
+        .args([
+            "synth",
+            "--subjects",
+            "2",
+            "--images-per-subject",
+            "2",
+            "--size",
+            "96x96",
+            "--output",
+        ])
+        .arg(&data)
+        .output()
+        .unwrap();
+    assert!(out.status.success());
+    // Break one image.
+    let img_root = data.join("ARKitFace_image_train/image");
+    let subject = std::fs::read_dir(&img_root)
+        .unwrap()
+        .next()
+        .unwrap()
+        .unwrap()
+        .path();
+    let action = std::fs::read_dir(&subject)
+        .unwrap()
+        .next()
+        .unwrap()
+        .unwrap()
+        .path();
+    let jpg = std::fs::read_dir(&action)
+        .unwrap()
+        .next()
+        .unwrap()
+        .unwrap()
+        .path();
+    std::fs::write(&jpg, b"garbage").unwrap();
+    for (strict, code) in [(false, 0), (true, 1)] {
+        let pq = dir.path().join(format!("pq-{strict}"));
+        let mut cmd = tool();
+        cmd.args(["convert", "--input"])
+            .arg(&data)
+            .arg("--output")
+            .arg(&pq);
+        if strict {
+            cmd.arg("--strict");
+        }
+        let out = cmd.output().unwrap();
+        assert_eq!(out.status.code(), Some(code));
+        let stderr = String::from_utf8_lossy(&out.stderr);
+        let last = stderr.lines().last().unwrap();
+        assert!(last.starts_with("converted 3 samples, skipped 1"), "{last}");
+        assert!(pq.join("dataset.json").exists());
+    }
+    let out = tool()
+        .args(["convert", "--output", "/tmp/x", "--shard", "3/2", "--input"])
+        .arg(&data)
+        .output()
+        .unwrap();
+    assert_eq!(out.status.code(), Some(2));
+    assert!(String::from_utf8_lossy(&out.stderr).contains("need 0 <= I < N"));
+}
