@@ -10,6 +10,9 @@
 //!   them (boundary loops, hole fills, mirror map).
 //! - [`synthetic_face`]: the built-in stand-in face model (not Apple's topology).
 //! - [`raster`]: the CPU triangle rasterizer core.
+//! - [`render`]: crops, masks, correspondences and UV position maps of one sample;
+//!   [`targets_table`]: their compact storage and the dense reader;
+//!   [`render_dataset`]: a whole converted dataset, shard by shard.
 //! - [`npy`]: NumPy `.npy` / `.npz` reading and writing.
 //! - [`release`]: the release's files: `_info.npz` annotations, list CSVs, layout.
 //! - [`synth`]: the synthetic dataset generator.
@@ -29,11 +32,14 @@ pub mod npy;
 pub mod plot;
 pub mod raster;
 pub mod release;
+pub mod render;
+pub mod render_dataset;
 pub mod rng;
 pub mod samples_table;
 pub mod split;
 pub mod synth;
 pub mod synthetic_face;
+pub mod targets_table;
 pub mod topology;
 
 pub use conventions::{Camera, EulerAngles, Pose};

@@ -405,3 +405,98 @@ fn split_is_subject_disjoint_and_reproducible() {
     let c = a.counts(&per);
     assert_eq!((c["train"].0, c["test"].0, c["val"].0), (3, 2, 1));
 }
+
+#[test]
+fn rendered_targets_read_back_dense_equal_the_rasterizer() {
+    use arkit_tool::render::{CropTransform, FaceRenderer};
+    use arkit_tool::render_dataset::{self, RenderOptions};
+    use arkit_tool::targets_table;
+    let input = tempfile::tempdir().unwrap();
+    make_release(input.path(), 2, 3);
+    let out = tempfile::tempdir().unwrap();
+    run(&options(input.path(), out.path(), 4), 2);
+    let renderer = FaceRenderer::new(
+        arkit_tool::synthetic_face::builtin().topology.clone(),
+        Camera::release_projection(),
+    )
+    .unwrap();
+    let ro = RenderOptions {
+        size: 96,
+        uv_size: 64,
+        points: 256,
+        seed: 3,
+        output: out.path().to_path_buf(),
+    };
+    let summary = render_dataset::render_dataset(out.path(), &renderer, &ro, &|_| {}).unwrap();
+    assert_eq!(summary.samples, 6);
+    let samples = convert::read_dataset_samples(out.path()).unwrap();
+    let mut targets = Vec::new();
+    for k in 0..2 {
+        targets.extend(
+            targets_table::read_targets(&out.path().join(format!("targets/part-{k:05}.parquet")))
+                .unwrap(),
+        );
+    }
+    assert_eq!(targets.len(), 6);
+    let mut vb = arkit_tool::raster::VisibilityBuffer::new(96, 96);
+    for (s, t) in samples.iter().zip(&targets) {
+        assert_eq!(s.key, t.key);
+        let verts: Vec<nalgebra::Point3<f32>> = s
+            .verts
+            .chunks(3)
+            .map(|c| nalgebra::Point3::new(c[0], c[1], c[2]))
+            .collect();
+        let pose = Pose::from_release_rt(&s.rt).unwrap();
+        let crop = CropTransform::around_landmarks(&s.landmarks_2d, 96);
+        let direct = renderer
+            .render(&verts, &pose, s.image_width, s.image_height, &crop, &mut vb)
+            .unwrap();
+        let d = targets_table::dense(t, &verts).unwrap();
+        // The mask and the correspondence rows match the rasterizer's, within the
+        // stated quantisation error.
+        assert_eq!(
+            d.mask.iter().map(|&m| m == 1).collect::<Vec<_>>(),
+            direct.mask
+        );
+        let pixels = direct.mask_pixels();
+        assert_eq!(d.chosen_pixels.len(), 256);
+        for (row, &p) in t.points.iter().enumerate() {
+            assert_eq!(d.chosen_pixels[row], pixels[p as usize]);
+            let ids = direct.corr_vertices[p as usize];
+            let w = direct.corr_weights[p as usize];
+            for k in 0..3 {
+                let stored = d.corr_matrix[row * 1220 + ids[k] as usize];
+                assert!(
+                    (stored - w[k]).abs() <= 2.0 * targets_table::WEIGHT_QUANTUM,
+                    "{stored} vs {}",
+                    w[k]
+                );
+            }
+            assert!(
+                (d.corr_matrix[row * 1220..(row + 1) * 1220]
+                    .iter()
+                    .sum::<f32>()
+                    - 1.0)
+                    .abs()
+                    < 1e-5
+            );
+        }
+        // UV map: float16 of the direct map.
+        let uv = arkit_tool::render::UvMapper::derive(renderer.topology())
+            .unwrap()
+            .position_map(&verts, 64);
+        for (a, b) in d.uv_map.chunks(3).zip(&uv) {
+            for k in 0..3 {
+                assert!(
+                    (a[k].is_nan() && b[k].is_nan()) || (a[k] - b[k]).abs() <= 3.06e-5,
+                    "{} {}",
+                    a[k],
+                    b[k]
+                );
+            }
+        }
+    }
+    // A rerun keeps the shards.
+    let again = render_dataset::render_dataset(out.path(), &renderer, &ro, &|_| {}).unwrap();
+    assert_eq!(again.bytes, summary.bytes);
+}

@@ -4,6 +4,7 @@
 mod convert;
 mod info;
 mod inspect;
+mod render;
 mod split;
 mod synth;
 mod topology;
@@ -32,6 +33,7 @@ enum Command {
     Merge(convert::MergeArgs),
     Split(split::SplitArgs),
     Inspect(inspect::InspectArgs),
+    Render(render::RenderArgs),
     Topology(topology::TopologyArgs),
     Info(info::InfoArgs),
 }
@@ -44,6 +46,7 @@ pub fn run(cli: Cli) -> Result<ExitCode> {
         Command::Merge(a) => convert::run_merge(a),
         Command::Split(a) => split::run(a),
         Command::Inspect(a) => inspect::run(a),
+        Command::Render(a) => render::run(a),
         Command::Topology(a) => topology::run(a),
         Command::Info(a) => info::run(a),
     }

@@ -1,0 +1,92 @@
+//! `arkit-tool render`.
+
+use arkit_tool::Result;
+use arkit_tool::conventions::Camera;
+use arkit_tool::render::FaceRenderer;
+use arkit_tool::render_dataset::{self, RenderOptions};
+use clap::Args;
+use indicatif::{ProgressBar, ProgressStyle};
+use std::path::PathBuf;
+use std::process::ExitCode;
+
+/// Render PerspNet's training targets for a converted dataset, once.
+///
+/// For each sample: the official 192x192 crop box, the face mask (eye and mouth
+/// openings excluded, but they still hide what is behind them), for every face pixel the
+/// visible triangle's vertex ids and perspective-correct barycentric weights (the
+/// correspondence matrix row), a UV position map (one per distinct mesh), and
+/// --points pixels sampled from --seed. Stored compactly in targets/part-K.parquet
+/// (schemas/targets.json), row for row with samples/part-K.parquet.
+///
+/// Example: arkit-tool render --dataset data/pq
+#[derive(Args, Debug)]
+pub struct RenderArgs {
+    /// A folder written by `convert`.
+    #[arg(long)]
+    dataset: PathBuf,
+    /// Where to write targets/ (default: the dataset folder).
+    #[arg(long)]
+    output: Option<PathBuf>,
+    /// Crop side in pixels.
+    #[arg(long, default_value_t = 192)]
+    size: u32,
+    /// UV position map side in texels.
+    #[arg(long, default_value_t = 192)]
+    uv_size: u32,
+    /// Pixels sampled per sample (repeated cyclically when the face has fewer).
+    #[arg(long, default_value_t = 1024)]
+    points: usize,
+    /// Seed of the sampling.
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    /// The release's resource folder (real topology); the built-in face without it.
+    #[arg(long)]
+    resources: Option<PathBuf>,
+    /// Worker threads (default: all cores).
+    #[arg(long)]
+    jobs: Option<usize>,
+    /// Print the summary as JSON.
+    #[arg(long)]
+    json: bool,
+}
+
+pub fn run(a: RenderArgs) -> Result<ExitCode> {
+    let topology = super::load_topology(a.resources.as_deref())?;
+    let renderer = FaceRenderer::new(topology, Camera::release_projection())?;
+    let manifest = arkit_tool::convert::read_manifest(&a.dataset.join("dataset.json"))?;
+    let options = RenderOptions {
+        size: a.size,
+        uv_size: a.uv_size,
+        points: a.points,
+        seed: a.seed,
+        output: a.output.clone().unwrap_or_else(|| a.dataset.clone()),
+    };
+    let bar = ProgressBar::new(manifest.converted as u64).with_style(
+        ProgressStyle::with_template(
+            "{spinner} render [{bar:30}] {pos}/{len} samples {per_sec} eta {eta}",
+        )
+        .expect("template")
+        .progress_chars("=> "),
+    );
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(a.jobs.unwrap_or(0))
+        .build()
+        .map_err(|e| arkit_tool::Error::invalid("--jobs", e.to_string()))?;
+    let summary = pool.install(|| {
+        render_dataset::render_dataset(&a.dataset, &renderer, &options, &|n| bar.inc(n as u64))
+    })?;
+    bar.finish_and_clear();
+    if a.json {
+        println!("{}", serde_json::to_string_pretty(&summary).expect("json"));
+    } else {
+        println!(
+            "rendered {} samples in {} shards: {:.1} KiB per sample ({} distinct meshes) -> {}",
+            summary.samples,
+            summary.shards,
+            summary.bytes_per_sample / 1024.0,
+            summary.distinct_meshes,
+            options.output.join("targets").display()
+        );
+    }
+    Ok(ExitCode::SUCCESS)
+}

@@ -1,0 +1,582 @@
+//! `render`: PerspNet's geometric training targets for one sample, rendered once.
+//!
+//! Stages, each a function of its own:
+//! 1. **Crop** ([`CropTransform`]): the official square box (centre of the 68 projected
+//!    landmarks' bounding box, half-side 0.75 x its larger side) mapped onto a
+//!    `size x size` crop. The box edge `[x0, x0 + side]` maps to `[0, size]` in the
+//!    crop's continuous coordinates, so crop pixel `(i, j)` (centre `(i + 0.5, j + 0.5)`)
+//!    looks at image point `x0 + (i + 0.5) side / size` (the crate's pixel-centre rule,
+//!    `conventions::camera`).
+//! 2. **Visibility** ([`FaceRenderer::render`]): the mesh plus the fans that close the
+//!    eyes and mouth, projected with the release camera, mapped into the crop and
+//!    rasterized ([`crate::raster`]) with the depth test. The fans take part in the
+//!    depth test (a cheek seen through an eye opening at large yaw stays hidden) but are
+//!    not face pixels.
+//! 3. **Targets** ([`FaceTargets`]): the mask (visible mesh triangles), and per mask pixel
+//!    the visible triangle's three vertex ids and perspective-correct barycentric
+//!    weights: the ground-truth row of the correspondence matrix M. The coordinate map
+//!    is not stored: it is `sum_k w_k V_k` ([`FaceTargets::coordinate_map`]).
+//! 4. **UV position map** ([`UvMapper`]): the canonical face drawn in UV space: each
+//!    texel holds the 3D position interpolated over the UV triangles, including the
+//!    ring outside the contour and the three hole centroids (1,279 UV vertices for
+//!    ARKit). It depends only on the mesh, so callers cache it per distinct mesh.
+//! 5. **Points** ([`sample_points`]): `M` mask pixels drawn from a seed, repeated
+//!    cyclically when the face has fewer than `M` pixels, as the official training does.
+
+use crate::conventions::{Camera, Pose};
+use crate::error::{Error, Result};
+use crate::raster::{ScreenVertex, VisibilityBuffer};
+use crate::rng::Rng;
+use crate::topology::{FaceTopology, HoleFill, LoopRole};
+use image::{Rgb, RgbImage};
+use nalgebra::Point3;
+
+/// The affine map from image pixels to a square crop (see module docs, stage 1).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct CropTransform {
+    /// Left edge of the box in image pixels.
+    pub x0: f64,
+    /// Top edge of the box in image pixels.
+    pub y0: f64,
+    /// Side of the box in image pixels.
+    pub side: f64,
+    /// Side of the crop in pixels.
+    pub size: u32,
+}
+
+impl CropTransform {
+    /// The official box around projected landmarks `[u0, v0, u1, v1, ...]`.
+    pub fn around_landmarks(landmarks_2d: &[f32], size: u32) -> Self {
+        let (mut x0, mut y0, mut x1, mut y1) = (f64::MAX, f64::MAX, f64::MIN, f64::MIN);
+        for p in landmarks_2d.chunks(2) {
+            let (u, v) = (p[0] as f64, p[1] as f64);
+            x0 = x0.min(u);
+            x1 = x1.max(u);
+            y0 = y0.min(v);
+            y1 = y1.max(v);
+        }
+        let half = 0.75 * (x1 - x0).max(y1 - y0);
+        let (cx, cy) = ((x0 + x1) / 2.0, (y0 + y1) / 2.0);
+        CropTransform {
+            x0: cx - half,
+            y0: cy - half,
+            side: 2.0 * half,
+            size,
+        }
+    }
+
+    /// Crop scale: crop pixels per image pixel.
+    pub fn scale(&self) -> f64 {
+        self.size as f64 / self.side
+    }
+
+    /// Image point to crop point.
+    pub fn to_crop(&self, u: f64, v: f64) -> (f64, f64) {
+        ((u - self.x0) * self.scale(), (v - self.y0) * self.scale())
+    }
+
+    /// Crop point to image point.
+    pub fn to_image(&self, cu: f64, cv: f64) -> (f64, f64) {
+        (self.x0 + cu / self.scale(), self.y0 + cv / self.scale())
+    }
+
+    /// The map as a 2x3 row-major affine matrix, image to crop: `[a, b, c, d, e, f]` with
+    /// `cu = a u + b v + c`, `cv = d u + e v + f`.
+    pub fn affine(&self) -> [f64; 6] {
+        let s = self.scale();
+        [s, 0.0, -self.x0 * s, 0.0, s, -self.y0 * s]
+    }
+
+    /// Resamples `image` into the crop (bilinear, each crop pixel centre mapped to the
+    /// image; outside the image reads as black).
+    pub fn crop_image(&self, image: &RgbImage) -> RgbImage {
+        let (w, h) = (image.width() as i64, image.height() as i64);
+        let px = |x: i64, y: i64| -> [f32; 3] {
+            if x < 0 || y < 0 || x >= w || y >= h {
+                [0.0; 3]
+            } else {
+                image.get_pixel(x as u32, y as u32).0.map(|c| c as f32)
+            }
+        };
+        RgbImage::from_fn(self.size, self.size, |i, j| {
+            let (u, v) = self.to_image(i as f64 + 0.5, j as f64 + 0.5);
+            // Sample positions relative to pixel centres.
+            let (fx, fy) = (u - 0.5, v - 0.5);
+            let (x, y) = (fx.floor() as i64, fy.floor() as i64);
+            let (tx, ty) = ((fx - x as f64) as f32, (fy - y as f64) as f32);
+            let (a, b, c, d) = (px(x, y), px(x + 1, y), px(x, y + 1), px(x + 1, y + 1));
+            let mut out = [0u8; 3];
+            for k in 0..3 {
+                let top = a[k] + (b[k] - a[k]) * tx;
+                let bottom = c[k] + (d[k] - c[k]) * tx;
+                out[k] = (top + (bottom - top) * ty).round().clamp(0.0, 255.0) as u8;
+            }
+            Rgb(out)
+        })
+    }
+}
+
+/// The targets of one sample at crop resolution.
+#[derive(Clone, Debug, PartialEq)]
+pub struct FaceTargets {
+    /// The crop.
+    pub crop: CropTransform,
+    /// Face mask, row-major `size * size`.
+    pub mask: Vec<bool>,
+    /// For each mask pixel in row-major order: the visible triangle's vertex ids.
+    pub corr_vertices: Vec<[u16; 3]>,
+    /// For each mask pixel: perspective-correct barycentric weights (sum 1).
+    pub corr_weights: Vec<[f32; 3]>,
+}
+
+impl FaceTargets {
+    /// Row-major indices of the mask pixels (the rows of the correspondence matrix).
+    pub fn mask_pixels(&self) -> Vec<u32> {
+        self.mask
+            .iter()
+            .enumerate()
+            .filter(|(_, m)| **m)
+            .map(|(i, _)| i as u32)
+            .collect()
+    }
+
+    /// The coordinate map at the mask pixels: the canonical position under each pixel,
+    /// `sum_k w_k V_k`.
+    pub fn coordinate_map(&self, verts: &[Point3<f32>]) -> Vec<Point3<f32>> {
+        self.corr_vertices
+            .iter()
+            .zip(&self.corr_weights)
+            .map(|(v, w)| {
+                Point3::from(
+                    verts[v[0] as usize].coords * w[0]
+                        + verts[v[1] as usize].coords * w[1]
+                        + verts[v[2] as usize].coords * w[2],
+                )
+            })
+            .collect()
+    }
+}
+
+/// Renders masks and correspondences for one topology (see module docs).
+#[derive(Clone, Debug)]
+pub struct FaceRenderer {
+    topology: FaceTopology,
+    hole_fill: HoleFill,
+    triangles: Vec<[u32; 3]>,
+    camera_projection: nalgebra::Matrix4<f64>,
+}
+
+impl FaceRenderer {
+    /// A renderer for `topology`, projecting with `projection` (row-vector OpenGL form).
+    pub fn new(topology: FaceTopology, projection: nalgebra::Matrix4<f64>) -> Result<Self> {
+        if topology.vertex_count > u16::MAX as usize {
+            return Err(Error::invalid(
+                "topology",
+                "more than 65,535 vertices do not fit the u16 correspondence ids",
+            ));
+        }
+        let hole_fill = topology.hole_fill()?;
+        let mut triangles = topology.triangles.clone();
+        triangles.extend_from_slice(&hole_fill.triangles);
+        Ok(FaceRenderer {
+            topology,
+            hole_fill,
+            triangles,
+            camera_projection: projection,
+        })
+    }
+
+    /// The topology.
+    pub fn topology(&self) -> &FaceTopology {
+        &self.topology
+    }
+
+    /// Renders the targets of `verts` at `pose` in an image of `width` x `height`, into
+    /// the crop `crop`. `buffer` is reused between calls (it is resized if needed).
+    pub fn render(
+        &self,
+        verts: &[Point3<f32>],
+        pose: &Pose,
+        width: u32,
+        height: u32,
+        crop: &CropTransform,
+        buffer: &mut VisibilityBuffer,
+    ) -> Result<FaceTargets> {
+        if verts.len() != self.topology.vertex_count {
+            return Err(Error::invalid(
+                "verts",
+                format!(
+                    "{} vertices, the topology has {}",
+                    verts.len(),
+                    self.topology.vertex_count
+                ),
+            ));
+        }
+        let camera = Camera::new(self.camera_projection, width, height)?;
+        let mut all = verts.to_vec();
+        all.extend(self.hole_fill.centroid_positions(verts));
+        let s = crop.scale() as f32;
+        let (x0, y0) = (crop.x0 as f32, crop.y0 as f32);
+        let screen: Vec<ScreenVertex> = camera
+            .project_to_screen(pose, &all)
+            .into_iter()
+            .map(|p| ScreenVertex {
+                x: (p.x - x0) * s,
+                y: (p.y - y0) * s,
+                inv_w: p.inv_w,
+            })
+            .collect();
+        if buffer.width != crop.size || buffer.height != crop.size {
+            *buffer = VisibilityBuffer::new(crop.size, crop.size);
+        } else {
+            buffer.clear();
+        }
+        buffer
+            .rasterize_mesh(&screen, &self.triangles)
+            .map_err(|e| Error::invalid("mesh", e.to_string()))?;
+        let n_mesh = self.topology.triangles.len() as u32;
+        let mut mask = vec![false; buffer.triangle.len()];
+        let mut corr_vertices = Vec::new();
+        let mut corr_weights = Vec::new();
+        for (i, &t) in buffer.triangle.iter().enumerate() {
+            if t < n_mesh {
+                mask[i] = true;
+                let tri = self.triangles[t as usize];
+                corr_vertices.push([tri[0] as u16, tri[1] as u16, tri[2] as u16]);
+                corr_weights.push(buffer.bary[i]);
+            }
+        }
+        Ok(FaceTargets {
+            crop: *crop,
+            mask,
+            corr_vertices,
+            corr_weights,
+        })
+    }
+}
+
+/// `M` of `n` mask pixels (indices into the mask pixel list), drawn from `seed`: a
+/// random subset without repetition when `n >= M`, else all `n` repeated cyclically
+/// (numpy's `np.pad(choose, (0, M - n), 'wrap')`, as the official loader does).
+pub fn sample_points(n: usize, m: usize, seed: u64) -> Vec<u32> {
+    if n == 0 {
+        return Vec::new();
+    }
+    if n <= m {
+        return (0..m).map(|k| (k % n) as u32).collect();
+    }
+    // Partial Fisher-Yates, then sorted so the rows keep the pixel order.
+    let mut idx: Vec<u32> = (0..n as u32).collect();
+    let mut rng = Rng::new(seed);
+    for k in 0..m {
+        let j = k + rng.below((n - k) as u64) as usize;
+        idx.swap(k, j);
+    }
+    let mut chosen = idx[..m].to_vec();
+    chosen.sort_unstable();
+    chosen
+}
+
+/// The UV layout extended beyond the mesh, and the UV-space triangles over it.
+#[derive(Clone, Debug)]
+pub struct UvMapper {
+    /// UV coordinates of the mesh vertices, then the ring, then the hole centroids.
+    pub uv: Vec<[f32; 2]>,
+    /// Triangles over those UV vertices: mesh, ring, hole fans.
+    pub triangles: Vec<[u32; 3]>,
+    /// The mesh vertex each ring vertex is pushed out from.
+    pub ring_of: Vec<u32>,
+    /// The hole loops whose centroids come after the ring (mouth, right eye, left eye).
+    pub centroid_loops: Vec<Vec<u32>>,
+}
+
+/// How far the ring outside the contour is pushed (the release's `* 1.1`).
+pub const RING_SCALE: f32 = 1.1;
+
+impl UvMapper {
+    /// Derives the extension from the topology: the outer contour's UVs pushed out by
+    /// [`RING_SCALE`] about their mean, joined to the contour by a ring of triangles;
+    /// the hole centroids at the mean UV of each hole's loop, with fans.
+    pub fn derive(topology: &FaceTopology) -> Result<Self> {
+        let loops = topology.boundary_loops()?;
+        let fill = topology.hole_fill()?;
+        let outer = loops.get(LoopRole::Outer).expect("outer loop").clone();
+        let v = topology.vertex_count as u32;
+        let mut uv = topology.uv.clone();
+        let n = outer.len() as f32;
+        let mean = outer.iter().fold([0.0f32; 2], |a, &i| {
+            [
+                a[0] + topology.uv[i as usize][0] / n,
+                a[1] + topology.uv[i as usize][1] / n,
+            ]
+        });
+        for &c in &outer {
+            let p = topology.uv[c as usize];
+            uv.push([
+                (mean[0] + (p[0] - mean[0]) * RING_SCALE).clamp(0.0, 1.0),
+                (mean[1] + (p[1] - mean[1]) * RING_SCALE).clamp(0.0, 1.0),
+            ]);
+        }
+        let mut triangles = topology.triangles.clone();
+        let k = outer.len() as u32;
+        for i in 0..k {
+            let (c0, c1) = (outer[i as usize], outer[((i + 1) % k) as usize]);
+            let (p0, p1) = (v + i, v + (i + 1) % k);
+            triangles.push([c0, p1, p0]);
+            triangles.push([c0, c1, p1]);
+        }
+        let base = v + k;
+        let mut centroid_loops = Vec::new();
+        for (j, (_, l)) in fill.centroids.iter().enumerate() {
+            let n = l.len() as f32;
+            uv.push(l.iter().fold([0.0f32; 2], |a, &i| {
+                [
+                    a[0] + topology.uv[i as usize][0] / n,
+                    a[1] + topology.uv[i as usize][1] / n,
+                ]
+            }));
+            for t in fill.triangles.iter().filter(|t| t[2] == v + j as u32) {
+                triangles.push([t[0], t[1], base + j as u32]);
+            }
+            centroid_loops.push(l.clone());
+        }
+        Ok(UvMapper {
+            uv,
+            triangles,
+            ring_of: outer,
+            centroid_loops,
+        })
+    }
+
+    /// The extended positions of a face: the mesh, the ring (contour vertices scaled by
+    /// [`RING_SCALE`] about the canonical origin, as the release), the hole centroids.
+    pub fn extended_positions(&self, verts: &[Point3<f32>]) -> Vec<Point3<f32>> {
+        let mut out = verts.to_vec();
+        out.extend(
+            self.ring_of
+                .iter()
+                .map(|&c| Point3::from(verts[c as usize].coords * RING_SCALE)),
+        );
+        for l in &self.centroid_loops {
+            let sum = l.iter().fold(nalgebra::Vector3::zeros(), |a, &i| {
+                a + verts[i as usize].coords
+            });
+            out.push(Point3::from(sum / l.len() as f32));
+        }
+        out
+    }
+
+    /// The UV position map of `verts`: `size x size` texels, row-major, each the
+    /// canonical position (metres) interpolated over the UV triangles, or NaN where no
+    /// triangle covers the texel. Texel `(i, j)` is sampled at UV `((i + 0.5) / size,
+    /// (j + 0.5) / size)`.
+    pub fn position_map(&self, verts: &[Point3<f32>], size: u32) -> Vec<[f32; 3]> {
+        let pos = self.extended_positions(verts);
+        let screen: Vec<ScreenVertex> = self
+            .uv
+            .iter()
+            .map(|t| ScreenVertex {
+                x: t[0] * size as f32,
+                y: t[1] * size as f32,
+                inv_w: 1.0,
+            })
+            .collect();
+        let mut vb = VisibilityBuffer::new(size, size);
+        let mut out = vec![[f32::NAN; 3]; (size * size) as usize];
+        vb.rasterize_mesh_with(&screen, &self.triangles, |idx, t, f| {
+            let tri = self.triangles[t as usize];
+            let p = pos[tri[0] as usize].coords * f.bary[0]
+                + pos[tri[1] as usize].coords * f.bary[1]
+                + pos[tri[2] as usize].coords * f.bary[2];
+            out[idx] = [p.x, p.y, p.z];
+        })
+        .expect("UV triangles index the extended vertices");
+        out
+    }
+
+    /// Reads the map bilinearly at a UV coordinate (texel centres at `(i + 0.5) / size`).
+    pub fn sample(map: &[[f32; 3]], size: u32, uv: [f32; 2]) -> [f32; 3] {
+        let (fx, fy) = (uv[0] * size as f32 - 0.5, uv[1] * size as f32 - 0.5);
+        let (x, y) = (fx.floor(), fy.floor());
+        let (tx, ty) = (fx - x, fy - y);
+        let at = |x: f32, y: f32| {
+            let (xi, yi) = (
+                (x.max(0.0) as u32).min(size - 1),
+                (y.max(0.0) as u32).min(size - 1),
+            );
+            map[(yi * size + xi) as usize]
+        };
+        let (a, b, c, d) = (
+            at(x, y),
+            at(x + 1.0, y),
+            at(x, y + 1.0),
+            at(x + 1.0, y + 1.0),
+        );
+        let mut out = [0.0; 3];
+        for k in 0..3 {
+            let top = a[k] + (b[k] - a[k]) * tx;
+            let bottom = c[k] + (d[k] - c[k]) * tx;
+            out[k] = top + (bottom - top) * ty;
+        }
+        out
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::conventions::EulerAngles;
+    use nalgebra::Vector3;
+
+    fn face() -> (FaceRenderer, Vec<Point3<f32>>) {
+        let topo = crate::synthetic_face::builtin().topology.clone();
+        let verts = topo.template.clone().unwrap();
+        (
+            FaceRenderer::new(topo, Camera::release_projection()).unwrap(),
+            verts,
+        )
+    }
+
+    fn landmarks(r: &FaceRenderer, verts: &[Point3<f32>], pose: &Pose, w: u32, h: u32) -> Vec<f32> {
+        let cam = Camera::release(w, h);
+        r.topology()
+            .landmarks
+            .iter()
+            .flat_map(|&i| {
+                let p = cam.project(pose, &verts[i as usize].cast());
+                [p.u as f32, p.v as f32]
+            })
+            .collect()
+    }
+
+    #[test]
+    fn crop_transform_round_trip_and_affine() {
+        let c = CropTransform {
+            x0: 100.0,
+            y0: 50.0,
+            side: 300.0,
+            size: 192,
+        };
+        let (cu, cv) = c.to_crop(250.0, 200.0);
+        assert!((cu - 96.0).abs() < 1e-12 && (cv - 96.0).abs() < 1e-12);
+        let (u, v) = c.to_image(cu, cv);
+        assert!((u - 250.0).abs() < 1e-12 && (v - 200.0).abs() < 1e-12);
+        let a = c.affine();
+        assert!((a[0] * 250.0 + a[1] * 200.0 + a[2] - cu).abs() < 1e-12);
+        assert!((a[3] * 250.0 + a[4] * 200.0 + a[5] - cv).abs() < 1e-12);
+        // Cropping a constant image inside its bounds gives the constant.
+        let img = RgbImage::from_pixel(640, 480, Rgb([10, 20, 30]));
+        assert!(c.crop_image(&img).pixels().all(|p| p.0 == [10, 20, 30]));
+        // A horizontal ramp is resampled linearly: crop pixel i looks at image u.
+        let ramp = RgbImage::from_fn(640, 480, |x, _| Rgb([(x / 3) as u8, 0, 0]));
+        let out = c.crop_image(&ramp);
+        let (u, _) = c.to_image(10.5, 10.5);
+        let expected = (u - 0.5) / 3.0;
+        assert!((out.get_pixel(10, 10).0[0] as f64 - expected).abs() <= 1.0);
+    }
+
+    #[test]
+    fn every_correspondence_lands_in_its_pixel() {
+        let (r, verts) = face();
+        let mut vb = VisibilityBuffer::new(1, 1);
+        for (yaw, pitch, roll) in [(0.0, 0.0, 0.0), (35.0, -10.0, 20.0), (-70.0, 15.0, -40.0)] {
+            let pose = Pose::from_euler(
+                EulerAngles::new(yaw, pitch, roll),
+                Vector3::new(0.02, -0.01, -0.5),
+            );
+            let crop =
+                CropTransform::around_landmarks(&landmarks(&r, &verts, &pose, 800, 800), 192);
+            let t = r.render(&verts, &pose, 800, 800, &crop, &mut vb).unwrap();
+            let cam = Camera::release(800, 800);
+            let pixels = t.mask_pixels();
+            assert!(pixels.len() > 3000, "{}", pixels.len());
+            for (k, p) in t.coordinate_map(&verts).iter().enumerate() {
+                let q = cam.project(&pose, &p.cast());
+                let (cu, cv) = crop.to_crop(q.u, q.v);
+                let (i, j) = (pixels[k] % 192, pixels[k] / 192);
+                assert!(
+                    (cu - (i as f64 + 0.5)).abs() < 2e-3 && (cv - (j as f64 + 0.5)).abs() < 2e-3,
+                    "pixel ({i}, {j}) -> ({cu}, {cv})"
+                );
+                let w = t.corr_weights[k];
+                assert!((w.iter().sum::<f32>() - 1.0).abs() < 1e-5);
+            }
+        }
+    }
+
+    #[test]
+    fn a_roll_about_the_camera_axis_rotates_the_mask() {
+        let (r, verts) = face();
+        let mut vb = VisibilityBuffer::new(1, 1);
+        let base = Pose::from_euler(
+            EulerAngles::new(25.0, 10.0, 0.0),
+            Vector3::new(0.0, 0.0, -0.5),
+        );
+        // Roll the whole camera-space scene by 90 degrees about the optical axis.
+        let rz =
+            nalgebra::Rotation3::from_axis_angle(&Vector3::z_axis(), std::f64::consts::FRAC_PI_2);
+        let rolled = Pose::new(rz * base.rotation(), rz * base.translation_m());
+        // One crop centred on the principal point for both.
+        let crop = CropTransform {
+            x0: 400.0 - 150.0,
+            y0: 400.0 - 150.0,
+            side: 300.0,
+            size: 128,
+        };
+        let a = r
+            .render(&verts, &base, 800, 800, &crop, &mut vb)
+            .unwrap()
+            .mask;
+        let b = r
+            .render(&verts, &rolled, 800, 800, &crop, &mut vb)
+            .unwrap()
+            .mask;
+        let n = 128usize;
+        // +90 degrees about +z (y up) is a quarter turn counter-clockwise on screen:
+        // image pixel (i, j) goes to (j, n - 1 - i).
+        let mut differ = 0;
+        for j in 0..n {
+            for i in 0..n {
+                if a[j * n + i] != b[(n - 1 - i) * n + j] {
+                    differ += 1;
+                }
+            }
+        }
+        let area = a.iter().filter(|&&m| m).count();
+        assert!(area > 2000);
+        // Only pixel centres exactly on an edge can differ (the fill rule is not
+        // rotation-invariant there).
+        assert!(differ * 200 < area, "{differ} of {area}");
+    }
+
+    #[test]
+    fn uv_map_gives_back_the_vertices() {
+        let topo = crate::synthetic_face::builtin().topology.clone();
+        let verts = topo.template.clone().unwrap();
+        let uv = UvMapper::derive(&topo).unwrap();
+        let size = 256;
+        let map = uv.position_map(&verts, size);
+        let mut worst = 0.0f32;
+        for (v, t) in verts.iter().zip(&topo.uv) {
+            let s = UvMapper::sample(&map, size, *t);
+            assert!(
+                s.iter().all(|c| c.is_finite()),
+                "vertex UV {t:?} not covered"
+            );
+            worst = worst.max((Point3::new(s[0], s[1], s[2]) - v).norm());
+        }
+        // A texel spans about 0.7 mm of face here; bilinear reads are within a texel.
+        assert!(worst < 1.5e-3, "{worst}");
+    }
+
+    #[test]
+    fn points_are_sampled_as_the_official_training_does() {
+        assert_eq!(sample_points(3, 7, 1), vec![0, 1, 2, 0, 1, 2, 0]);
+        let p = sample_points(5000, 1024, 9);
+        assert_eq!(p.len(), 1024);
+        assert!(p.windows(2).all(|w| w[0] < w[1]));
+        assert_eq!(p, sample_points(5000, 1024, 9));
+        assert_ne!(p, sample_points(5000, 1024, 10));
+        assert!(sample_points(0, 10, 0).is_empty());
+    }
+}

@@ -1,0 +1,145 @@
+//! Rendering the targets of a whole converted dataset, shard by shard: for each
+//! `samples/part-K.parquet`, `targets/part-K.parquet` with one row per sample, in the
+//! same order. Parallel over samples; deterministic (each sample's points are drawn
+//! from `seed` and its position in the dataset); shards already written are kept.
+
+use crate::conventions::Pose;
+use crate::convert::read_manifest;
+use crate::error::{Error, Result};
+use crate::raster::VisibilityBuffer;
+use crate::render::{CropTransform, FaceRenderer, UvMapper, sample_points};
+use crate::samples_table;
+use crate::targets_table::{self, TargetsRecord};
+use nalgebra::Point3;
+use rayon::prelude::*;
+use std::collections::HashMap;
+use std::path::{Path, PathBuf};
+
+/// What to render.
+#[derive(Clone, Debug)]
+pub struct RenderOptions {
+    /// Crop side in pixels.
+    pub size: u32,
+    /// UV map side in texels.
+    pub uv_size: u32,
+    /// Sampled points per sample.
+    pub points: usize,
+    /// Seed of the point sampling.
+    pub seed: u64,
+    /// Output folder (`targets/part-K.parquet`).
+    pub output: PathBuf,
+}
+
+/// What a run wrote.
+#[derive(Clone, Debug, serde::Serialize)]
+pub struct RenderSummary {
+    /// Samples rendered (or kept from an earlier run).
+    pub samples: usize,
+    /// Shards written.
+    pub shards: usize,
+    /// Bytes of the targets files.
+    pub bytes: u64,
+    /// Bytes per sample.
+    pub bytes_per_sample: f64,
+    /// Distinct meshes whose UV map was computed.
+    pub distinct_meshes: usize,
+}
+
+fn mesh_key(verts: &[f32]) -> Vec<u32> {
+    verts.iter().map(|v| v.to_bits()).collect()
+}
+
+/// Renders every shard of the converted dataset in `dataset`.
+pub fn render_dataset(
+    dataset: &Path,
+    renderer: &FaceRenderer,
+    options: &RenderOptions,
+    progress: &(dyn Fn(usize) + Sync),
+) -> Result<RenderSummary> {
+    let manifest = read_manifest(&dataset.join("dataset.json"))?;
+    let uv = UvMapper::derive(renderer.topology())?;
+    std::fs::create_dir_all(options.output.join("targets"))
+        .map_err(|e| Error::io(&options.output, e))?;
+    let (mut samples, mut bytes, mut distinct) = (0usize, 0u64, 0usize);
+    let mut offset = 0u64;
+    for shard in &manifest.shards {
+        let out = options
+            .output
+            .join("targets")
+            .join(format!("part-{:05}.parquet", shard.index));
+        if out.exists() && samples_table::parquet_row_count(&out)? == shard.rows {
+            progress(shard.rows);
+        } else {
+            let rows = samples_table::read_samples(&dataset.join(&shard.samples_file))?;
+            // UV maps depend only on the mesh: one per distinct mesh.
+            let mut uv_maps: HashMap<Vec<u32>, usize> = HashMap::new();
+            let mut unique: Vec<&[f32]> = Vec::new();
+            let index: Vec<usize> = rows
+                .iter()
+                .map(|r| {
+                    *uv_maps.entry(mesh_key(&r.verts)).or_insert_with(|| {
+                        unique.push(&r.verts);
+                        unique.len() - 1
+                    })
+                })
+                .collect();
+            distinct += unique.len();
+            let maps: Vec<Vec<[f32; 3]>> = unique
+                .par_iter()
+                .map(|v| {
+                    let pts: Vec<Point3<f32>> =
+                        v.chunks(3).map(|c| Point3::new(c[0], c[1], c[2])).collect();
+                    uv.position_map(&pts, options.uv_size)
+                })
+                .collect();
+            let records: Vec<TargetsRecord> = rows
+                .par_iter()
+                .enumerate()
+                .map_init(
+                    || VisibilityBuffer::new(options.size, options.size),
+                    |buffer, (i, r)| -> Result<TargetsRecord> {
+                        let verts: Vec<Point3<f32>> = r
+                            .verts
+                            .chunks(3)
+                            .map(|c| Point3::new(c[0], c[1], c[2]))
+                            .collect();
+                        let pose = Pose::from_release_rt(&r.rt)?;
+                        let crop = CropTransform::around_landmarks(&r.landmarks_2d, options.size);
+                        let t = renderer.render(
+                            &verts,
+                            &pose,
+                            r.image_width,
+                            r.image_height,
+                            &crop,
+                            buffer,
+                        )?;
+                        let seed =
+                            options.seed ^ (offset + i as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15);
+                        let points = sample_points(t.corr_vertices.len(), options.points, seed);
+                        progress(1);
+                        Ok(TargetsRecord::new(
+                            r.key.clone(),
+                            &t,
+                            points,
+                            options.uv_size,
+                            &maps[index[i]],
+                        ))
+                    },
+                )
+                .collect::<Result<_>>()?;
+            samples_table::write_parquet(&out, &mut targets_table::targets_frame(&records)?)?;
+        }
+        samples += shard.rows;
+        offset += shard.rows as u64;
+        bytes += std::fs::metadata(&out)
+            .map_err(|e| Error::io(&out, e))?
+            .len();
+    }
+    Ok(RenderSummary {
+        samples,
+        shards: manifest.shards.len(),
+        bytes,
+        bytes_per_sample: bytes as f64 / samples.max(1) as f64,
+        distinct_meshes: distinct,
+    })
+}
