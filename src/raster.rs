@@ -106,7 +106,9 @@ pub struct TriangleSetup {
 }
 
 fn snap(v: f32) -> i64 {
-    (v as f64 * ONE as f64).round() as i64
+    // Round half away from zero without a libm call (|v| is bounded by the guard band).
+    let s = v as f64 * ONE as f64;
+    (s + 0.5f64.copysign(s)) as i64
 }
 
 impl TriangleSetup {
@@ -201,6 +203,45 @@ impl TriangleSetup {
                 if e[0] + self.bias[0] >= 0 && e[1] + self.bias[1] >= 0 && e[2] + self.bias[2] >= 0
                 {
                     emit(self.fragment(x, y, e, area));
+                }
+                e[0] += self.dx[0];
+                e[1] += self.dx[1];
+                e[2] += self.dx[2];
+            }
+            row[0] += self.dy[0];
+            row[1] += self.dy[1];
+            row[2] += self.dy[2];
+        }
+    }
+
+    /// Depth-tested coverage: for every covered pixel whose interpolated `1 / w` is
+    /// larger than `depth[idx]` (row-major, `width` wide), stores it there and calls
+    /// `emit(idx, fragment)`. The depth key is computed first and the barycentrics only
+    /// for pixels that pass, so hidden pixels cost one multiply-add per edge.
+    pub fn for_each_nearer(
+        &self,
+        depth: &mut [f32],
+        width: usize,
+        mut emit: impl FnMut(usize, Fragment),
+    ) {
+        let area = self.area2 as f64;
+        let inv_area = 1.0 / area;
+        let w = self.inv_w.map(|v| v as f64 * inv_area);
+        let mut row = self.e0;
+        for y in self.y0..=self.y1 {
+            let mut e = row;
+            let base = y as usize * width;
+            for x in self.x0..=self.x1 {
+                if e[0] + self.bias[0] >= 0 && e[1] + self.bias[1] >= 0 && e[2] + self.bias[2] >= 0
+                {
+                    let key = (e[0] as f64 * w[0] + e[1] as f64 * w[1] + e[2] as f64 * w[2]) as f32;
+                    let idx = base + x as usize;
+                    if key > depth[idx] {
+                        depth[idx] = key;
+                        let mut f = self.fragment(x, y, e, area);
+                        f.inv_w = key;
+                        emit(idx, f);
+                    }
                 }
                 e[0] += self.dx[0];
                 e[1] += self.dx[1];
@@ -384,14 +425,11 @@ impl VisibilityBuffer {
             let Some(setup) = TriangleSetup::new(v, self.width, self.height, self.culling) else {
                 continue;
             };
-            setup.for_each_covered(|f| {
-                let idx = f.y as usize * width + f.x as usize;
-                if f.inv_w > self.inv_w[idx] {
-                    self.inv_w[idx] = f.inv_w;
-                    self.triangle[idx] = ti as u32;
-                    self.bary[idx] = f.bary;
-                    on_visible(idx, ti as u32, &f);
-                }
+            let (depth, triangle, bary) = (&mut self.inv_w, &mut self.triangle, &mut self.bary);
+            setup.for_each_nearer(depth, width, |idx, f| {
+                triangle[idx] = ti as u32;
+                bary[idx] = f.bary;
+                on_visible(idx, ti as u32, &f);
             });
         }
         Ok(())

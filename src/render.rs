@@ -28,7 +28,7 @@ use crate::error::{Error, Result};
 use crate::raster::{ScreenVertex, VisibilityBuffer};
 use crate::rng::Rng;
 use crate::topology::{FaceTopology, HoleFill, LoopRole};
-use image::{Rgb, RgbImage};
+use image::RgbImage;
 use nalgebra::Point3;
 
 /// The affine map from image pixels to a square crop (see module docs, stage 1).
@@ -89,30 +89,50 @@ impl CropTransform {
 
     /// Resamples `image` into the crop (bilinear, each crop pixel centre mapped to the
     /// image; outside the image reads as black).
+    ///
+    /// The map is an axis-aligned scale, so the bilinear taps and weights of a column
+    /// depend only on its x and those of a row only on its y: they are computed once per
+    /// column and row, and the inner loop reads the raw buffer (about 6x faster than
+    /// per-pixel lookups with bounds checks, `cargo bench --bench render`).
     pub fn crop_image(&self, image: &RgbImage) -> RgbImage {
         let (w, h) = (image.width() as i64, image.height() as i64);
-        let px = |x: i64, y: i64| -> [f32; 3] {
-            if x < 0 || y < 0 || x >= w || y >= h {
-                [0.0; 3]
-            } else {
-                image.get_pixel(x as u32, y as u32).0.map(|c| c as f32)
-            }
+        let n = self.size as usize;
+        // For each crop column: the two source columns (or -1 outside) and the weight.
+        let taps = |count: i64, origin: f64| -> Vec<(i64, i64, f32)> {
+            (0..n)
+                .map(|i| {
+                    let f = origin + (i as f64 + 0.5) / self.scale() - 0.5;
+                    let x = f.floor() as i64;
+                    let inside = |x: i64| if (0..count).contains(&x) { x } else { -1 };
+                    (inside(x), inside(x + 1), (f - x as f64) as f32)
+                })
+                .collect()
         };
-        RgbImage::from_fn(self.size, self.size, |i, j| {
-            let (u, v) = self.to_image(i as f64 + 0.5, j as f64 + 0.5);
-            // Sample positions relative to pixel centres.
-            let (fx, fy) = (u - 0.5, v - 0.5);
-            let (x, y) = (fx.floor() as i64, fy.floor() as i64);
-            let (tx, ty) = ((fx - x as f64) as f32, (fy - y as f64) as f32);
-            let (a, b, c, d) = (px(x, y), px(x + 1, y), px(x, y + 1), px(x + 1, y + 1));
-            let mut out = [0u8; 3];
-            for k in 0..3 {
-                let top = a[k] + (b[k] - a[k]) * tx;
-                let bottom = c[k] + (d[k] - c[k]) * tx;
-                out[k] = (top + (bottom - top) * ty).round().clamp(0.0, 255.0) as u8;
+        let cols = taps(w, self.x0);
+        let rows = taps(h, self.y0);
+        let src = image.as_raw();
+        let stride = w as usize * 3;
+        let mut out = vec![0u8; n * n * 3];
+        for (j, &(y0, y1, ty)) in rows.iter().enumerate() {
+            let row0 = (y0 >= 0).then(|| &src[y0 as usize * stride..(y0 as usize + 1) * stride]);
+            let row1 = (y1 >= 0).then(|| &src[y1 as usize * stride..(y1 as usize + 1) * stride]);
+            let dst = &mut out[j * n * 3..(j + 1) * n * 3];
+            for (i, &(x0, x1, tx)) in cols.iter().enumerate() {
+                for k in 0..3 {
+                    let at = |row: Option<&[u8]>, x: i64| -> f32 {
+                        match row {
+                            Some(r) if x >= 0 => r[x as usize * 3 + k] as f32,
+                            _ => 0.0,
+                        }
+                    };
+                    let top = at(row0, x0) + (at(row0, x1) - at(row0, x0)) * tx;
+                    let bottom = at(row1, x0) + (at(row1, x1) - at(row1, x0)) * tx;
+                    // Non-negative: adding 0.5 and truncating rounds, without a libm call.
+                    dst[i * 3 + k] = (top + (bottom - top) * ty + 0.5).min(255.0) as u8;
+                }
             }
-            Rgb(out)
-        })
+        }
+        RgbImage::from_raw(self.size, self.size, out).expect("size matches")
     }
 }
 
@@ -426,6 +446,7 @@ impl UvMapper {
 mod tests {
     use super::*;
     use crate::conventions::EulerAngles;
+    use image::Rgb;
     use nalgebra::Vector3;
 
     fn face() -> (FaceRenderer, Vec<Point3<f32>>) {
