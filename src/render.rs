@@ -314,9 +314,12 @@ pub struct UvMapper {
 pub const RING_SCALE: f32 = 1.1;
 
 impl UvMapper {
-    /// Derives the extension from the topology: the outer contour's UVs pushed out by
-    /// [`RING_SCALE`] about their mean, joined to the contour by a ring of triangles;
-    /// the hole centroids at the mean UV of each hole's loop, with fans.
+    /// Derives the extension from the topology: the hole centroids at the mean UV of
+    /// each hole's loop (exactly the release's values), with fans; the outer contour's
+    /// vertices pushed out into a ring joined to the contour by triangles. The ring's
+    /// UVs are the topology's own extension rows when it has them (the release's file:
+    /// each ring row is matched to the contour vertex nearest to it in UV), otherwise
+    /// the contour UVs scaled by [`RING_SCALE`] about their mean.
     pub fn derive(topology: &FaceTopology) -> Result<Self> {
         let loops = topology.boundary_loops()?;
         let fill = topology.hole_fill()?;
@@ -330,12 +333,25 @@ impl UvMapper {
                 a[1] + topology.uv[i as usize][1] / n,
             ]
         });
+        let ring_rows = &topology.uv_extension[..topology.uv_extension.len().min(outer.len())];
+        let use_release_ring = ring_rows.len() == outer.len();
         for &c in &outer {
             let p = topology.uv[c as usize];
-            uv.push([
+            let pushed = [
                 (mean[0] + (p[0] - mean[0]) * RING_SCALE).clamp(0.0, 1.0),
                 (mean[1] + (p[1] - mean[1]) * RING_SCALE).clamp(0.0, 1.0),
-            ]);
+            ];
+            if use_release_ring {
+                // The release row nearest to the contour vertex's UV.
+                let d = |q: &[f32; 2]| (q[0] - p[0]).powi(2) + (q[1] - p[1]).powi(2);
+                let best = ring_rows
+                    .iter()
+                    .min_by(|a, b| d(a).total_cmp(&d(b)))
+                    .expect("rows");
+                uv.push(*best);
+            } else {
+                uv.push(pushed);
+            }
         }
         let mut triangles = topology.triangles.clone();
         let k = outer.len() as u32;

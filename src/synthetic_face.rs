@@ -199,6 +199,7 @@ fn placeholder_topology(l: &Lattice) -> FaceTopology {
         uv: l.params.iter().map(|p| param_to_uv(*p)).collect(),
         landmarks: vec![0; 68],
         template: None,
+        uv_extension: Vec::new(),
     }
 }
 

@@ -41,6 +41,10 @@ pub struct FaceTopology {
     pub landmarks: Vec<u32>,
     /// A neutral face in the canonical frame (metres), when the source has one.
     pub template: Option<Vec<Point3<f32>>>,
+    /// UV rows beyond the mesh vertices, when the source has them: the release's
+    /// `uv_coords_std_202109.npy` has 59 (the ring outside the contour, then the mouth
+    /// and eye centroids), which [`crate::render::UvMapper`] uses.
+    pub uv_extension: Vec<[f32; 2]>,
 }
 
 /// A boundary loop: vertex indices in order, following the triangles' orientation.
@@ -205,11 +209,8 @@ impl FaceTopology {
             ));
         }
         let uv_flat = uv_arr.to_f32_vec();
-        let uv: Vec<[f32; 2]> = uv_flat
-            .chunks(2)
-            .take(vertex_count)
-            .map(|c| [c[0], c[1]])
-            .collect();
+        let mut uv: Vec<[f32; 2]> = uv_flat.chunks(2).map(|c| [c[0], c[1]]).collect();
+        let uv_extension = uv.split_off(vertex_count);
 
         let kpt_path = dir.join("kpt_ind.npy");
         let kpt = npy::read_npy(&kpt_path)?;
@@ -251,6 +252,7 @@ impl FaceTopology {
             uv,
             landmarks,
             template,
+            uv_extension,
         };
         topo.validate()?;
         Ok(topo)
@@ -352,6 +354,7 @@ impl FaceTopology {
             uv,
             landmarks,
             template: Some(template),
+            uv_extension: Vec::new(),
         };
         topo.validate()?;
         Ok(topo)
@@ -728,6 +731,7 @@ mod tests {
             uv: vec![[0.5, 0.5]; 16],
             landmarks: vec![0; 68],
             template: None,
+            uv_extension: Vec::new(),
         }
     }
 

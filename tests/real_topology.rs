@@ -203,3 +203,146 @@ fn real_topology_survives_an_obj_round_trip() {
     assert_eq!(back.boundary_loops().unwrap().edge_count(), 140);
     assert_eq!(back.mirror_map().unwrap(), topo.mirror_map().unwrap());
 }
+
+#[test]
+fn real_mask_area_agrees_with_the_projected_contour() {
+    use arkit_tool::raster::VisibilityBuffer;
+    use arkit_tool::render::{CropTransform, FaceRenderer};
+    let Some(dir) = resources() else { return };
+    let topo = FaceTopology::from_resources(&dir).unwrap();
+    let verts = topo.template.clone().unwrap();
+    let renderer = FaceRenderer::new(topo.clone(), Camera::release_projection()).unwrap();
+    // Frontal: no part of the face hides another, so face + openings fill the contour.
+    let pose = Pose::from_euler(
+        EulerAngles::new(0.0, 0.0, 0.0),
+        Vector3::new(0.0, 0.0, -0.45),
+    );
+    let crop = CropTransform {
+        x0: 200.0,
+        y0: 200.0,
+        side: 400.0,
+        size: 400,
+    };
+    let mut vb = VisibilityBuffer::new(400, 400);
+    let t = renderer
+        .render(&verts, &pose, 800, 800, &crop, &mut vb)
+        .unwrap();
+    let covered = vb.covered_pixels() as f64; // face plus eye and mouth openings
+    let face = t.mask.iter().filter(|&&m| m).count() as f64;
+    let cam = Camera::release(800, 800);
+    let outer = topo
+        .boundary_loops()
+        .unwrap()
+        .get(LoopRole::Outer)
+        .unwrap()
+        .clone();
+    let poly: Vec<(f64, f64)> = outer
+        .iter()
+        .map(|&i| {
+            let p = cam.project(&pose, &verts[i as usize].cast());
+            crop.to_crop(p.u, p.v)
+        })
+        .collect();
+    let (mut area, mut perimeter) = (0.0, 0.0);
+    for k in 0..poly.len() {
+        let (a, b) = (poly[k], poly[(k + 1) % poly.len()]);
+        area += a.0 * b.1 - b.0 * a.1;
+        perimeter += ((b.0 - a.0).powi(2) + (b.1 - a.1).powi(2)).sqrt();
+    }
+    let area = area.abs() / 2.0;
+    eprintln!("contour polygon {area:.0} px, covered {covered:.0} px, face mask {face:.0} px");
+    // Everything inside the contour is covered (up to a half-pixel band along it); the
+    // surface also bulges a little beyond the contour in projection (the contour runs
+    // along the back of the cheeks), measured here at 2%.
+    assert!(covered >= area - 0.5 * perimeter, "{covered} vs {area}");
+    assert!(covered <= 1.03 * area, "{covered} vs {area}");
+    assert!(face < covered && face > 0.85 * covered);
+}
+
+#[test]
+fn uv_map_matches_one_drawn_from_the_release_files() {
+    use arkit_tool::raster::{ScreenVertex, VisibilityBuffer};
+    use arkit_tool::render::UvMapper;
+    let Some(dir) = resources() else { return };
+    let topo = FaceTopology::from_resources(&dir).unwrap();
+    assert_eq!(topo.uv_extension.len(), 59);
+    let verts = topo.template.clone().unwrap();
+    let ours = UvMapper::derive(&topo).unwrap();
+    // Our extension reproduces the release's 1,279 UVs as a set: the centroids are the
+    // loop means, the ring rows are the release's own.
+    let release_uv: Vec<[f32; 2]> = topo.uv.iter().chain(&topo.uv_extension).copied().collect();
+    for (k, p) in ours.uv.iter().enumerate() {
+        let d = release_uv
+            .iter()
+            .map(|q| (q[0] - p[0]).hypot(q[1] - p[1]))
+            .fold(f32::MAX, f32::min);
+        assert!(
+            d < 1e-6,
+            "our UV vertex {k} {p:?} is not a release UV vertex ({d})"
+        );
+    }
+    // The release's own map: its 1,279 UVs and tris_2500x3, positions from our
+    // extension (mesh, contour x 1.1, hole centroids) matched by UV.
+    let tris = npy::read_npy(&dir.join("tris_2500x3_202110.npy"))
+        .unwrap()
+        .to_i64_vec()
+        .unwrap();
+    let ext = ours.extended_positions(&verts);
+    let pos_of_release: Vec<Point3<f32>> = release_uv
+        .iter()
+        .map(|q| {
+            let k = (0..ours.uv.len())
+                .min_by(|&a, &b| {
+                    let d = |i: usize| (ours.uv[i][0] - q[0]).hypot(ours.uv[i][1] - q[1]);
+                    d(a).total_cmp(&d(b))
+                })
+                .unwrap();
+            ext[k]
+        })
+        .collect();
+    let size = 192u32;
+    let screen: Vec<ScreenVertex> = release_uv
+        .iter()
+        .map(|t| ScreenVertex {
+            x: t[0] * size as f32,
+            y: t[1] * size as f32,
+            inv_w: 1.0,
+        })
+        .collect();
+    let tri: Vec<[u32; 3]> = tris
+        .chunks(3)
+        .map(|c| [c[0] as u32, c[1] as u32, c[2] as u32])
+        .collect();
+    let mut vb = VisibilityBuffer::new(size, size);
+    let mut theirs = vec![[f32::NAN; 3]; (size * size) as usize];
+    vb.rasterize_mesh_with(&screen, &tri, |idx, t, f| {
+        let tr = tri[t as usize];
+        let p = pos_of_release[tr[0] as usize].coords * f.bary[0]
+            + pos_of_release[tr[1] as usize].coords * f.bary[1]
+            + pos_of_release[tr[2] as usize].coords * f.bary[2];
+        theirs[idx] = [p.x, p.y, p.z];
+    })
+    .unwrap();
+    let mine = ours.position_map(&verts, size);
+    let (mut both, mut only_one, mut worst) = (0, 0, 0.0f32);
+    for (a, b) in mine.iter().zip(&theirs) {
+        match (a[0].is_nan(), b[0].is_nan()) {
+            (false, false) => {
+                both += 1;
+                worst = worst.max((0..3).map(|k| (a[k] - b[k]).abs()).fold(0.0, f32::max));
+            }
+            (true, true) => {}
+            _ => only_one += 1,
+        }
+    }
+    eprintln!(
+        "UV map vs release triangulation: {both} texels in both, {only_one} in one only, largest difference {:.3} mm",
+        worst * 1000.0
+    );
+    assert!(
+        only_one * 100 < both,
+        "coverage differs: {only_one} of {both}"
+    );
+    // The ring quads may be split along the other diagonal: differences stay within the ring.
+    assert!(worst < 0.01, "{worst}");
+}
