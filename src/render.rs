@@ -115,17 +115,34 @@ impl CropTransform {
         let zero = vec![0u8; stride.max(3)];
         let mut out = vec![0u8; n * n * 3];
         for (j, &(y0, y1, ty)) in rows.iter().enumerate() {
-            let row = |y: i64| if y >= 0 { &src[y as usize * stride..(y as usize + 1) * stride] } else { &zero[..] };
+            let row = |y: i64| {
+                if y >= 0 {
+                    &src[y as usize * stride..(y as usize + 1) * stride]
+                } else {
+                    &zero[..]
+                }
+            };
             let (r0, r1) = (row(y0), row(y1));
             let dst = &mut out[j * n * 3..(j + 1) * n * 3];
             for (i, &(x0, x1, tx)) in cols.iter().enumerate() {
                 // Outside the image a tap reads black: weight 0 on a zero row or column.
-                let (c0, w0) = if x0 >= 0 { (x0 as usize * 3, 1.0 - tx) } else { (0, 0.0) };
-                let (c1, w1) = if x1 >= 0 { (x1 as usize * 3, tx) } else { (0, 0.0) };
+                let (c0, w0) = if x0 >= 0 {
+                    (x0 as usize * 3, 1.0 - tx)
+                } else {
+                    (0, 0.0)
+                };
+                let (c1, w1) = if x1 >= 0 {
+                    (x1 as usize * 3, tx)
+                } else {
+                    (0, 0.0)
+                };
                 let (wa, wb) = (w0 * (1.0 - ty), w1 * (1.0 - ty));
                 let (wc, wd) = (w0 * ty, w1 * ty);
                 for k in 0..3 {
-                    let v = r0[c0 + k] as f32 * wa + r0[c1 + k] as f32 * wb + r1[c0 + k] as f32 * wc + r1[c1 + k] as f32 * wd;
+                    let v = r0[c0 + k] as f32 * wa
+                        + r0[c1 + k] as f32 * wb
+                        + r1[c0 + k] as f32 * wc
+                        + r1[c1 + k] as f32 * wd;
                     // Non-negative: adding 0.5 and truncating rounds, without a libm call.
                     dst[i * 3 + k] = (v + 0.5).min(255.0) as u8;
                 }

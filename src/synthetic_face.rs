@@ -9,7 +9,7 @@
 //! face). Identity and expression are smooth low-dimensional deformation fields
 //! ([`FaceShapeModel`]) that also apply to the real ARKit template.
 //!
-//! Construction (deterministic, computed once per process, about 20 ms):
+//! Construction (deterministic, computed once per process, a few tens of milliseconds):
 //! 1. A triangular lattice of spacing `h` over a parameter plane `(s, t)`, `s` right,
 //!    `t` up, both in [-1, 1]; lattice points inside the face ellipse and outside the
 //!    eye and mouth ellipses are kept; lattice triangles whose corners, edge midpoints
@@ -116,7 +116,12 @@ fn build_lattice(h: f64) -> Lattice {
     let row = h * 3f64.sqrt() / 2.0;
     let jmax = (1.0 / row).ceil() as i64 + 1;
     let imax = (1.0 / h).ceil() as i64 + 2;
-    let mut ids: HashMap<(i64, i64), u32> = HashMap::new();
+    // Dense (i, j) -> vertex id table over the lattice's index box.
+    let (ni, nj) = ((2 * imax + 1) as usize, (2 * jmax + 1) as usize);
+    let mut table = vec![u32::MAX; ni * nj];
+    let slot = |i: i64, j: i64| -> Option<usize> {
+        (i.abs() <= imax && j.abs() <= jmax).then(|| (j + jmax) as usize * ni + (i + imax) as usize)
+    };
     let mut params = Vec::new();
     let pos = |i: i64, j: i64| -> [f64; 2] {
         let off = if j.rem_euclid(2) == 1 { 0.5 } else { 0.0 };
@@ -126,7 +131,7 @@ fn build_lattice(h: f64) -> Lattice {
         for i in -imax..=imax {
             let p = pos(i, j);
             if inside(p[0], p[1]) {
-                ids.insert((i, j), params.len() as u32);
+                table[slot(i, j).expect("in the box")] = params.len() as u32;
                 params.push(p);
             }
         }
@@ -147,9 +152,9 @@ fn build_lattice(h: f64) -> Lattice {
                 ]
             };
             for c in cands {
-                let (Some(&a), Some(&b), Some(&d)) =
-                    (ids.get(&c[0]), ids.get(&c[1]), ids.get(&c[2]))
-                else {
+                let id =
+                    |(i, j): (i64, i64)| slot(i, j).map(|k| table[k]).filter(|&v| v != u32::MAX);
+                let (Some(a), Some(b), Some(d)) = (id(c[0]), id(c[1]), id(c[2])) else {
                     continue;
                 };
                 let (pa, pb, pd) = (params[a as usize], params[b as usize], params[d as usize]);
@@ -314,13 +319,17 @@ fn build() -> SyntheticFace {
     for k in 0..300 {
         let h = 0.075 - k as f64 * 0.0001;
         let l = build_lattice(h);
-        if l.params.len() + centre_boundary_edges(&l).len() > VERTEX_COUNT {
-            continue;
-        }
+        // Cheap tests first: the size budget, then whether it would improve.
         let better = best
             .as_ref()
             .is_none_or(|b| l.params.len() > b.1.params.len());
-        if better && let Some(loops) = clean_loops(&l) {
+        if !better
+            || l.params.len() > VERTEX_COUNT
+            || l.params.len() + centre_boundary_edges(&l).len() > VERTEX_COUNT
+        {
+            continue;
+        }
+        if let Some(loops) = clean_loops(&l) {
             best = Some((h, l, loops));
         }
     }
