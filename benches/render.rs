@@ -105,4 +105,29 @@ fn main() {
         OFFICIAL_MS / (per_sample + uv_map)
     );
     println!("visibility stage / floor: {:.1}x", visibility / floor);
+    // How far the official loader's rasterization differs from ours, full 800x800 image.
+    for (yaw, pitch) in [(0.0, 0.0), (30.0, -10.0), (70.0, 10.0)] {
+        let p = Pose::from_euler(
+            EulerAngles::new(yaw, pitch, 0.0),
+            Vector3::new(0.0, 0.0, -0.5),
+        );
+        for aligned in [false, true] {
+            let d = renderer
+                .compare_with_official(&verts, &p, 800, 800, aligned)
+                .unwrap();
+            println!(
+                "official vs ours, yaw {yaw:>4}, pitch {pitch:>5}, {}: {} of {} face pixels change mask ({:.2}%), {} change triangle, largest weight difference {:.4}",
+                if aligned {
+                    "same sample points"
+                } else {
+                    "as each samples   "
+                },
+                d.mask_pixels_changed,
+                d.face_pixels,
+                100.0 * d.mask_pixels_changed as f64 / d.face_pixels as f64,
+                d.triangle_changed,
+                d.max_weight_difference
+            );
+        }
+    }
 }

@@ -436,6 +436,84 @@ impl VisibilityBuffer {
     }
 }
 
+/// The official loader's rasterizer, reproduced for comparison (`face3d`'s
+/// `render_colors` as the release's code uses it): pixel `(i, j)` is sampled at the
+/// integer point `(i, j)` (our pixel's top-left corner, half a pixel from our sample
+/// point), a point is inside when its float32 barycentrics `u >= 0, v >= 0, u + v < 1`
+/// (no consistent rule on shared edges: a centre on one can be drawn twice or not at
+/// all), weights and depth are interpolated linearly in screen space (no perspective
+/// correction), depth is `-w` with larger nearer, and on a tie the earlier triangle keeps
+/// the pixel. Fills the same buffers as [`VisibilityBuffer::rasterize_mesh`]; `inv_w`
+/// then holds that screen-space depth key.
+pub fn rasterize_mesh_official(
+    buffer: &mut VisibilityBuffer,
+    vertices: &[ScreenVertex],
+    triangles: &[[u32; 3]],
+) -> Result<(), BadTriangle> {
+    if let Some((i, t)) = triangles
+        .iter()
+        .enumerate()
+        .find(|(_, t)| t.iter().any(|&v| v as usize >= vertices.len()))
+    {
+        return Err(BadTriangle {
+            triangle: i,
+            indices: *t,
+            vertex_count: vertices.len(),
+        });
+    }
+    buffer.inv_w.fill(f32::NEG_INFINITY);
+    let (w, h) = (buffer.width as i64, buffer.height as i64);
+    for (ti, t) in triangles.iter().enumerate() {
+        let [p0, p1, p2] = [
+            vertices[t[0] as usize],
+            vertices[t[1] as usize],
+            vertices[t[2] as usize],
+        ];
+        if [p0, p1, p2]
+            .iter()
+            .any(|p| !(p.x.is_finite() && p.y.is_finite() && p.inv_w > 0.0))
+        {
+            continue;
+        }
+        let depth = [-1.0 / p0.inv_w, -1.0 / p1.inv_w, -1.0 / p2.inv_w];
+        let x_min = (p0.x.min(p1.x).min(p2.x).ceil() as i64).max(0);
+        let x_max = (p0.x.max(p1.x).max(p2.x).floor() as i64).min(w - 1);
+        let y_min = (p0.y.min(p1.y).min(p2.y).ceil() as i64).max(0);
+        let y_max = (p0.y.max(p1.y).max(p2.y).floor() as i64).min(h - 1);
+        if x_max < x_min || y_max < y_min {
+            continue;
+        }
+        let (v0x, v0y, v1x, v1y) = (p2.x - p0.x, p2.y - p0.y, p1.x - p0.x, p1.y - p0.y);
+        let (dot00, dot01, dot11) = (
+            v0x * v0x + v0y * v0y,
+            v0x * v1x + v0y * v1y,
+            v1x * v1x + v1y * v1y,
+        );
+        let deno = dot00 * dot11 - dot01 * dot01;
+        let inv_deno = if deno == 0.0 { 0.0 } else { 1.0 / deno };
+        for y in y_min..=y_max {
+            for x in x_min..=x_max {
+                let (v2x, v2y) = (x as f32 - p0.x, y as f32 - p0.y);
+                let (dot02, dot12) = (v0x * v2x + v0y * v2y, v1x * v2x + v1y * v2y);
+                let u = (dot11 * dot02 - dot01 * dot12) * inv_deno;
+                let v = (dot00 * dot12 - dot01 * dot02) * inv_deno;
+                if !(u >= 0.0 && v >= 0.0 && u + v < 1.0) {
+                    continue;
+                }
+                let wts = [1.0 - u - v, v, u];
+                let z = wts[0] * depth[0] + wts[1] * depth[1] + wts[2] * depth[2];
+                let idx = (y * w + x) as usize;
+                if z > buffer.inv_w[idx] {
+                    buffer.inv_w[idx] = z;
+                    buffer.triangle[idx] = ti as u32;
+                    buffer.bary[idx] = wts;
+                }
+            }
+        }
+    }
+    Ok(())
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -686,6 +764,35 @@ mod tests {
             .unwrap_err();
         assert_eq!(err.triangle, 0);
         assert!(err.to_string().contains("refers to a vertex"));
+    }
+
+    #[test]
+    fn official_mode_samples_corners_and_interpolates_in_screen_space() {
+        // A right triangle (0,0), (4,0), (0,4): integer points with i + j < 4 are in.
+        let mut vb = VisibilityBuffer::new(6, 6);
+        rasterize_mesh_official(
+            &mut vb,
+            &[sv(0.0, 0.0), sv(4.0, 0.0), sv(0.0, 4.0)],
+            &[[0, 1, 2]],
+        )
+        .unwrap();
+        for y in 0..6u32 {
+            for x in 0..6u32 {
+                assert_eq!(vb.triangle[vb.index(x, y)] == 0, x + y < 4, "({x}, {y})");
+            }
+        }
+        // Weights are screen-space: at (1, 1) they are (0.5, 0.25, 0.25) whatever the depths.
+        let far = ScreenVertex {
+            x: 4.0,
+            y: 0.0,
+            inv_w: 0.1,
+        };
+        rasterize_mesh_official(&mut vb, &[sv(0.0, 0.0), far, sv(0.0, 4.0)], &[[0, 1, 2]]).unwrap();
+        let b = vb.bary[vb.index(1, 1)];
+        assert!(
+            (b[0] - 0.5).abs() < 1e-6 && (b[1] - 0.25).abs() < 1e-6 && (b[2] - 0.25).abs() < 1e-6,
+            "{b:?}"
+        );
     }
 
     #[test]
