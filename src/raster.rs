@@ -306,6 +306,22 @@ pub fn rasterize_triangle(
     }
 }
 
+/// The first triangle that refers to a vertex `>= vertex_count`, as an error.
+fn check_indices(vertex_count: usize, triangles: &[[u32; 3]]) -> Result<(), BadTriangle> {
+    match triangles
+        .iter()
+        .enumerate()
+        .find(|(_, t)| t.iter().any(|&v| v as usize >= vertex_count))
+    {
+        Some((i, t)) => Err(BadTriangle {
+            triangle: i,
+            indices: *t,
+            vertex_count,
+        }),
+        None => Ok(()),
+    }
+}
+
 /// A triangle that refers to a vertex that does not exist.
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub struct BadTriangle {
@@ -404,17 +420,7 @@ impl VisibilityBuffer {
         triangles: &[[u32; 3]],
         mut on_visible: impl FnMut(usize, u32, &Fragment),
     ) -> Result<(), BadTriangle> {
-        if let Some((i, t)) = triangles
-            .iter()
-            .enumerate()
-            .find(|(_, t)| t.iter().any(|&v| v as usize >= vertices.len()))
-        {
-            return Err(BadTriangle {
-                triangle: i,
-                indices: *t,
-                vertex_count: vertices.len(),
-            });
-        }
+        check_indices(vertices.len(), triangles)?;
         let width = self.width as usize;
         for (ti, t) in triangles.iter().enumerate() {
             let v = [
@@ -450,17 +456,7 @@ pub fn rasterize_mesh_official(
     vertices: &[ScreenVertex],
     triangles: &[[u32; 3]],
 ) -> Result<(), BadTriangle> {
-    if let Some((i, t)) = triangles
-        .iter()
-        .enumerate()
-        .find(|(_, t)| t.iter().any(|&v| v as usize >= vertices.len()))
-    {
-        return Err(BadTriangle {
-            triangle: i,
-            indices: *t,
-            vertex_count: vertices.len(),
-        });
-    }
+    check_indices(vertices.len(), triangles)?;
     buffer.inv_w.fill(f32::NEG_INFINITY);
     let (w, h) = (buffer.width as i64, buffer.height as i64);
     for (ti, t) in triangles.iter().enumerate() {
