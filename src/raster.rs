@@ -457,6 +457,7 @@ pub fn rasterize_mesh_official(
     triangles: &[[u32; 3]],
 ) -> Result<(), BadTriangle> {
     check_indices(vertices.len(), triangles)?;
+    buffer.triangle.fill(VisibilityBuffer::EMPTY);
     buffer.inv_w.fill(f32::NEG_INFINITY);
     let (w, h) = (buffer.width as i64, buffer.height as i64);
     for (ti, t) in triangles.iter().enumerate() {

@@ -200,6 +200,23 @@ pub struct FaceRenderer {
     hole_fill: HoleFill,
     triangles: Vec<[u32; 3]>,
     camera_projection: nalgebra::Matrix4<f64>,
+    /// How pixels are sampled and weights interpolated.
+    pub mode: RasterMode,
+}
+
+/// Which rasterization rules [`FaceRenderer::render`] follows.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum RasterMode {
+    /// Ours: pixel centres, the top-left fill rule, perspective-correct weights.
+    #[default]
+    Exact,
+    /// The official loader's rules ([`crate::raster::rasterize_mesh_official`]):
+    /// integer sample points, its inside test, screen-space weights, earlier triangle on
+    /// ties, applied at the crop's resolution. (The official loader renders at full
+    /// resolution and then warps the mask into the crop; this mode reproduces its
+    /// rasterization rules, not that resampling.)
+    Official,
 }
 
 impl FaceRenderer {
@@ -219,6 +236,7 @@ impl FaceRenderer {
             hole_fill,
             triangles,
             camera_projection: projection,
+            mode: RasterMode::Exact,
         })
     }
 
@@ -267,9 +285,13 @@ impl FaceRenderer {
         } else {
             buffer.clear();
         }
-        buffer
-            .rasterize_mesh(&screen, &self.triangles)
-            .map_err(|e| Error::invalid("mesh", e.to_string()))?;
+        match self.mode {
+            RasterMode::Exact => buffer.rasterize_mesh(&screen, &self.triangles),
+            RasterMode::Official => {
+                crate::raster::rasterize_mesh_official(buffer, &screen, &self.triangles)
+            }
+        }
+        .map_err(|e| Error::invalid("mesh", e.to_string()))?;
         let n_mesh = self.topology.triangles.len() as u32;
         let mut mask = vec![false; buffer.triangle.len()];
         let mut corr_vertices = Vec::new();
@@ -720,6 +742,45 @@ mod tests {
         assert!(a.mask_pixels_changed * 200 < a.face_pixels, "{a:?}");
         assert!(a.triangle_changed * 100 < a.face_pixels, "{a:?}");
         assert!(a.max_weight_difference < 0.02, "{a:?}");
+    }
+
+    #[test]
+    fn official_mode_targets_are_shifted_by_half_a_pixel() {
+        let (mut r, verts) = face();
+        let pose = Pose::from_euler(
+            EulerAngles::new(10.0, 5.0, 0.0),
+            Vector3::new(0.0, 0.0, -0.5),
+        );
+        let crop = CropTransform::around_landmarks(&landmarks(&r, &verts, &pose, 800, 800), 192);
+        let mut vb = VisibilityBuffer::new(192, 192);
+        let exact = r.render(&verts, &pose, 800, 800, &crop, &mut vb).unwrap();
+        r.mode = RasterMode::Official;
+        let official = r.render(&verts, &pose, 800, 800, &crop, &mut vb).unwrap();
+        // Each official correspondence, pushed through the camera, lands on its pixel's
+        // corner (the official sample point), not its centre.
+        let cam = Camera::release(800, 800);
+        let pixels = official.mask_pixels();
+        for (k, p) in official
+            .coordinate_map(&verts)
+            .iter()
+            .enumerate()
+            .step_by(7)
+        {
+            let q = cam.project(&pose, &p.cast());
+            let (cu, cv) = crop.to_crop(q.u, q.v);
+            let (i, j) = (pixels[k] % 192, pixels[k] / 192);
+            // Screen-space weights: off by the missing perspective correction only
+            // (measured up to about 0.06 px here).
+            assert!(
+                (cu - i as f64).abs() < 0.1 && (cv - j as f64).abs() < 0.1,
+                "({i}, {j}) -> ({cu}, {cv})"
+            );
+        }
+        let (a, b) = (
+            exact.mask.iter().filter(|&&m| m).count(),
+            official.mask.iter().filter(|&&m| m).count(),
+        );
+        assert!((a as f64 - b as f64).abs() < 0.03 * a as f64, "{a} vs {b}");
     }
 
     #[test]

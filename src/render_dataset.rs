@@ -7,7 +7,7 @@ use crate::conventions::Pose;
 use crate::convert::read_manifest;
 use crate::error::{Error, Result};
 use crate::raster::VisibilityBuffer;
-use crate::render::{CropTransform, FaceRenderer, UvMapper, sample_points};
+use crate::render::{CropTransform, FaceRenderer, RasterMode, UvMapper, sample_points};
 use crate::samples_table;
 use crate::targets_table::{self, TargetsRecord};
 use nalgebra::Point3;
@@ -43,6 +43,8 @@ pub struct RenderSummary {
     pub bytes_per_sample: f64,
     /// Distinct meshes whose UV map was computed.
     pub distinct_meshes: usize,
+    /// The rasterization rules used.
+    pub mode: RasterMode,
 }
 
 fn mesh_key(verts: &[f32]) -> Vec<u32> {
@@ -60,6 +62,28 @@ pub fn render_dataset(
     let uv = UvMapper::derive(renderer.topology())?;
     std::fs::create_dir_all(options.output.join("targets"))
         .map_err(|e| Error::io(&options.output, e))?;
+    // Shards are kept on a rerun only if they were made with the same options.
+    let settings = serde_json::json!({
+        "size": options.size, "uv_size": options.uv_size, "points": options.points, "seed": options.seed,
+        "mode": renderer.mode, "topology": renderer.topology().source,
+    });
+    let settings_path = options.output.join("targets").join("render.json");
+    if settings_path.exists() {
+        let text =
+            std::fs::read_to_string(&settings_path).map_err(|e| Error::io(&settings_path, e))?;
+        let old: serde_json::Value = serde_json::from_str(&text)
+            .map_err(|e| Error::format(&settings_path, e.to_string()))?;
+        if old != settings {
+            return Err(Error::format(
+                &settings_path,
+                format!(
+                    "the targets here were made with other options ({old}); remove the targets folder or choose another --output"
+                ),
+            ));
+        }
+    } else {
+        crate::atomic_file::write_bytes(&settings_path, format!("{settings:#}\n").as_bytes())?;
+    }
     let (mut samples, mut bytes, mut distinct) = (0usize, 0u64, 0usize);
     let mut offset = 0u64;
     for shard in &manifest.shards {
@@ -141,5 +165,6 @@ pub fn render_dataset(
         bytes,
         bytes_per_sample: bytes as f64 / samples.max(1) as f64,
         distinct_meshes: distinct,
+        mode: renderer.mode,
     })
 }

@@ -2,7 +2,7 @@
 
 use arkit_tool::Result;
 use arkit_tool::conventions::Camera;
-use arkit_tool::render::FaceRenderer;
+use arkit_tool::render::{FaceRenderer, RasterMode};
 use arkit_tool::render_dataset::{self, RenderOptions};
 use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
@@ -45,14 +45,30 @@ pub struct RenderArgs {
     /// Worker threads (default: all cores).
     #[arg(long)]
     jobs: Option<usize>,
+    /// Rasterization rules: `exact` (ours: pixel centres, top-left rule,
+    /// perspective-correct weights) or `official` (the official loader's: integer sample
+    /// points, screen-space weights, earlier triangle on ties), at the crop's resolution.
+    #[arg(long, value_enum, default_value = "exact")]
+    compat: Compat,
     /// Print the summary as JSON.
     #[arg(long)]
     json: bool,
 }
 
+/// `--compat` values.
+#[derive(Clone, Copy, Debug, clap::ValueEnum)]
+enum Compat {
+    Exact,
+    Official,
+}
+
 pub fn run(a: RenderArgs) -> Result<ExitCode> {
     let topology = super::load_topology(a.resources.as_deref())?;
-    let renderer = FaceRenderer::new(topology, Camera::release_projection())?;
+    let mut renderer = FaceRenderer::new(topology, Camera::release_projection())?;
+    renderer.mode = match a.compat {
+        Compat::Exact => RasterMode::Exact,
+        Compat::Official => RasterMode::Official,
+    };
     let manifest = arkit_tool::convert::read_manifest(&a.dataset.join("dataset.json"))?;
     let options = RenderOptions {
         size: a.size,
@@ -80,8 +96,9 @@ pub fn run(a: RenderArgs) -> Result<ExitCode> {
         println!("{}", serde_json::to_string_pretty(&summary).expect("json"));
     } else {
         println!(
-            "rendered {} samples in {} shards: {:.1} KiB per sample ({} distinct meshes) -> {}",
+            "rendered {} samples ({:?} rules) in {} shards: {:.1} KiB per sample ({} distinct meshes) -> {}",
             summary.samples,
+            summary.mode,
             summary.shards,
             summary.bytes_per_sample / 1024.0,
             summary.distinct_meshes,
