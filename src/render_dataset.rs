@@ -86,78 +86,99 @@ pub fn render_dataset(
     }
     let (mut samples, mut bytes, mut distinct) = (0usize, 0u64, 0usize);
     let mut offset = 0u64;
-    for shard in &manifest.shards {
-        let out = options
-            .output
-            .join("targets")
-            .join(format!("part-{:05}.parquet", shard.index));
-        if out.exists() && samples_table::parquet_row_count(&out)? == shard.rows {
-            progress(shard.rows);
-        } else {
-            let rows = samples_table::read_samples(&dataset.join(&shard.samples_file))?;
-            // UV maps depend only on the mesh: one per distinct mesh.
-            let mut uv_maps: HashMap<Vec<u32>, usize> = HashMap::new();
-            let mut unique: Vec<&[f32]> = Vec::new();
-            let index: Vec<usize> = rows
-                .iter()
-                .map(|r| {
-                    *uv_maps.entry(mesh_key(&r.verts)).or_insert_with(|| {
-                        unique.push(&r.verts);
-                        unique.len() - 1
+    // Encoding and writing shard k (one thread) overlaps reading and rendering shard
+    // k+1 (rayon), so the sequential Parquet work does not leave a core idle.
+    let mut outputs = Vec::new();
+    std::thread::scope(|scope| -> Result<()> {
+        let mut pending: Option<std::thread::ScopedJoinHandle<'_, Result<()>>> = None;
+        for shard in &manifest.shards {
+            let out = options
+                .output
+                .join("targets")
+                .join(format!("part-{:05}.parquet", shard.index));
+            if out.exists() && samples_table::parquet_row_count(&out)? == shard.rows {
+                progress(shard.rows);
+            } else {
+                let rows = samples_table::read_samples(&dataset.join(&shard.samples_file))?;
+                // UV maps depend only on the mesh: one per distinct mesh.
+                let mut uv_maps: HashMap<Vec<u32>, usize> = HashMap::new();
+                let mut unique: Vec<&[f32]> = Vec::new();
+                let index: Vec<usize> = rows
+                    .iter()
+                    .map(|r| {
+                        *uv_maps.entry(mesh_key(&r.verts)).or_insert_with(|| {
+                            unique.push(&r.verts);
+                            unique.len() - 1
+                        })
                     })
-                })
-                .collect();
-            distinct += unique.len();
-            let maps: Vec<Vec<[f32; 3]>> = unique
-                .par_iter()
-                .map(|v| {
-                    let pts: Vec<Point3<f32>> =
-                        v.chunks(3).map(|c| Point3::new(c[0], c[1], c[2])).collect();
-                    uv.position_map(&pts, options.uv_size)
-                })
-                .collect();
-            let records: Vec<TargetsRecord> = rows
-                .par_iter()
-                .enumerate()
-                .map_init(
-                    || VisibilityBuffer::new(options.size, options.size),
-                    |buffer, (i, r)| -> Result<TargetsRecord> {
-                        let verts: Vec<Point3<f32>> = r
-                            .verts
-                            .chunks(3)
-                            .map(|c| Point3::new(c[0], c[1], c[2]))
-                            .collect();
-                        let pose = Pose::from_release_rt(&r.rt)?;
-                        let crop = CropTransform::around_landmarks(&r.landmarks_2d, options.size);
-                        let t = renderer.render(
-                            &verts,
-                            &pose,
-                            r.image_width,
-                            r.image_height,
-                            &crop,
-                            buffer,
-                        )?;
-                        let seed =
-                            options.seed ^ (offset + i as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15);
-                        let points = sample_points(t.corr_vertices.len(), options.points, seed);
-                        progress(1);
-                        Ok(TargetsRecord::new(
-                            r.key.clone(),
-                            &t,
-                            points,
-                            options.uv_size,
-                            &maps[index[i]],
-                        ))
-                    },
-                )
-                .collect::<Result<_>>()?;
-            samples_table::write_parquet(&out, &mut targets_table::targets_frame(&records)?)?;
+                    .collect();
+                distinct += unique.len();
+                let maps: Vec<Vec<[f32; 3]>> = unique
+                    .par_iter()
+                    .map(|v| {
+                        let pts: Vec<Point3<f32>> =
+                            v.chunks(3).map(|c| Point3::new(c[0], c[1], c[2])).collect();
+                        uv.position_map(&pts, options.uv_size)
+                    })
+                    .collect();
+                let records: Vec<TargetsRecord> = rows
+                    .par_iter()
+                    .enumerate()
+                    .map_init(
+                        || VisibilityBuffer::new(options.size, options.size),
+                        |buffer, (i, r)| -> Result<TargetsRecord> {
+                            let verts: Vec<Point3<f32>> = r
+                                .verts
+                                .chunks(3)
+                                .map(|c| Point3::new(c[0], c[1], c[2]))
+                                .collect();
+                            let pose = Pose::from_release_rt(&r.rt)?;
+                            let crop =
+                                CropTransform::around_landmarks(&r.landmarks_2d, options.size);
+                            let t = renderer.render(
+                                &verts,
+                                &pose,
+                                r.image_width,
+                                r.image_height,
+                                &crop,
+                                buffer,
+                            )?;
+                            let seed = options.seed
+                                ^ (offset + i as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15);
+                            let points = sample_points(t.corr_vertices.len(), options.points, seed);
+                            progress(1);
+                            Ok(TargetsRecord::new(
+                                r.key.clone(),
+                                &t,
+                                points,
+                                options.uv_size,
+                                &maps[index[i]],
+                            ))
+                        },
+                    )
+                    .collect::<Result<_>>()?;
+                if let Some(h) = pending.take() {
+                    h.join().expect("writer thread")?;
+                }
+                let path = out.clone();
+                pending = Some(scope.spawn(move || {
+                    samples_table::write_parquet(
+                        &path,
+                        &mut targets_table::targets_frame(&records)?,
+                    )
+                }));
+            }
+            samples += shard.rows;
+            offset += shard.rows as u64;
+            outputs.push(out);
         }
-        samples += shard.rows;
-        offset += shard.rows as u64;
-        bytes += std::fs::metadata(&out)
-            .map_err(|e| Error::io(&out, e))?
-            .len();
+        if let Some(h) = pending.take() {
+            h.join().expect("writer thread")?;
+        }
+        Ok(())
+    })?;
+    for out in &outputs {
+        bytes += std::fs::metadata(out).map_err(|e| Error::io(out, e))?.len();
     }
     Ok(RenderSummary {
         samples,
