@@ -193,16 +193,17 @@ impl TriangleSetup {
         })
     }
 
-    /// Calls `emit` for every covered pixel, in row-major order.
-    pub fn for_each_covered(&self, mut emit: impl FnMut(Fragment)) {
-        let area = self.area2 as f64;
+    /// The coverage stage: visits every covered pixel in row-major order with its three
+    /// edge-function values, stepping them incrementally.
+    #[inline]
+    fn walk(&self, mut visit: impl FnMut(u32, u32, [i64; 3])) {
         let mut row = self.e0;
         for y in self.y0..=self.y1 {
             let mut e = row;
             for x in self.x0..=self.x1 {
                 if e[0] + self.bias[0] >= 0 && e[1] + self.bias[1] >= 0 && e[2] + self.bias[2] >= 0
                 {
-                    emit(self.fragment(x, y, e, area));
+                    visit(x, y, e);
                 }
                 e[0] += self.dx[0];
                 e[1] += self.dx[1];
@@ -212,6 +213,12 @@ impl TriangleSetup {
             row[1] += self.dy[1];
             row[2] += self.dy[2];
         }
+    }
+
+    /// Calls `emit` for every covered pixel, in row-major order.
+    pub fn for_each_covered(&self, mut emit: impl FnMut(Fragment)) {
+        let area = self.area2 as f64;
+        self.walk(|x, y, e| emit(self.fragment(x, y, e, area)));
     }
 
     /// Depth-tested coverage: for every covered pixel whose interpolated `1 / w` is
@@ -227,30 +234,16 @@ impl TriangleSetup {
         let area = self.area2 as f64;
         let inv_area = 1.0 / area;
         let w = self.inv_w.map(|v| v as f64 * inv_area);
-        let mut row = self.e0;
-        for y in self.y0..=self.y1 {
-            let mut e = row;
-            let base = y as usize * width;
-            for x in self.x0..=self.x1 {
-                if e[0] + self.bias[0] >= 0 && e[1] + self.bias[1] >= 0 && e[2] + self.bias[2] >= 0
-                {
-                    let key = (e[0] as f64 * w[0] + e[1] as f64 * w[1] + e[2] as f64 * w[2]) as f32;
-                    let idx = base + x as usize;
-                    if key > depth[idx] {
-                        depth[idx] = key;
-                        let mut f = self.fragment(x, y, e, area);
-                        f.inv_w = key;
-                        emit(idx, f);
-                    }
-                }
-                e[0] += self.dx[0];
-                e[1] += self.dx[1];
-                e[2] += self.dx[2];
+        self.walk(|x, y, e| {
+            let key = (e[0] as f64 * w[0] + e[1] as f64 * w[1] + e[2] as f64 * w[2]) as f32;
+            let idx = y as usize * width + x as usize;
+            if key > depth[idx] {
+                depth[idx] = key;
+                let mut f = self.fragment(x, y, e, area);
+                f.inv_w = key;
+                emit(idx, f);
             }
-            row[0] += self.dy[0];
-            row[1] += self.dy[1];
-            row[2] += self.dy[2];
-        }
+        });
     }
 
     #[inline]
