@@ -451,6 +451,20 @@ pub fn convert(
     ctx: &ValidationContext,
     progress: Progress,
 ) -> Result<Manifest> {
+    let input = discover(&options.input)?;
+    let plan = plan_rows(&input)?;
+    convert_planned(options, ctx, &input, plan, progress)
+}
+
+/// [`convert`] for an input already discovered and planned (so a caller that reports
+/// what it found reads the lists once).
+pub fn convert_planned(
+    options: &ConvertOptions,
+    ctx: &ValidationContext,
+    input: &DiscoveredInput,
+    plan: (Vec<PlannedRow>, Vec<ErrorRecord>),
+    progress: Progress,
+) -> Result<Manifest> {
     if options.rows_per_shard == 0 {
         return Err(Error::invalid("--rows-per-shard", "must be at least 1"));
     }
@@ -463,14 +477,13 @@ pub fn convert(
             ),
         ));
     }
-    let input = discover(&options.input)?;
-    let (rows, mut listing) = plan_rows(&input)?;
+    let (rows, mut listing) = plan;
     let out = &options.output;
     std::fs::create_dir_all(out.join("samples")).map_err(|e| Error::io(out, e))?;
     std::fs::create_dir_all(out.join("errors")).map_err(|e| Error::io(out, e))?;
     let mut listing_problems = 0;
     if options.shard_index == 0 {
-        listing.extend(find_orphans(&input, &rows));
+        listing.extend(find_orphans(input, &rows));
         listing_problems = listing.len();
         samples_table::write_parquet(
             &out.join("errors").join("listing.parquet"),

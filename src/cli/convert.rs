@@ -100,7 +100,8 @@ pub fn run(a: ConvertArgs) -> Result<ExitCode> {
         embed_images: a.embed_images,
     };
     let input = convert::discover(&a.input)?;
-    let (rows, _) = convert::plan_rows(&input)?;
+    let plan = convert::plan_rows(&input)?;
+    let rows = &plan.0;
     eprintln!(
         "found the {} layout in {}: {} listed samples in {}",
         match input.kind {
@@ -127,7 +128,9 @@ pub fn run(a: ConvertArgs) -> Result<ExitCode> {
         .num_threads(a.jobs.unwrap_or(0))
         .build()
         .map_err(|e| Error::invalid("--jobs", e.to_string()))?;
-    let manifest = pool.install(|| convert::convert(&options, &ctx, &|n| bar.inc(n as u64)))?;
+    let manifest = pool.install(|| {
+        convert::convert_planned(&options, &ctx, &input, plan, &|n| bar.inc(n as u64))
+    })?;
     bar.finish_and_clear();
     if a.json {
         println!("{}", serde_json::to_string_pretty(&manifest).expect("json"));
