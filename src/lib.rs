@@ -19,17 +19,32 @@
 //! - [`convert`]: the release into validated, sharded Parquet; [`samples_table`]: the
 //!   `samples` and `errors` tables; [`split`]: subject-disjoint splits; [`plot`]:
 //!   histogram pictures.
+//! - [`eval`]: the paper's metrics; [`predictions_table`]: the predictions file;
+//!   [`eval_dataset`]: a dataset's predictions scored, with a report.
+//! - [`overlay`]: meshes drawn over images.
+//! - [`pnp`]: the pose from 2D-3D correspondences (P3P + MSAC + Levenberg-Marquardt);
+//!   [`predict`]: crop pixels to a release pose, and the oracle predictor.
+//! - [`augment`]: face profiling, roll and mirroring of one sample;
+//!   [`augment_dataset`]: the rule, the release-layout output, previews.
 //! - [`rng`]: the seeded random streams that make output reproducible.
 //! - [`atomic_file`]: writes that never leave a half-written file.
 
 #![warn(missing_docs)]
 
 pub mod atomic_file;
+pub mod augment;
+pub mod augment_dataset;
 pub mod conventions;
 pub mod convert;
 pub mod error;
+pub mod eval;
+pub mod eval_dataset;
 pub mod npy;
+pub mod overlay;
 pub mod plot;
+pub mod pnp;
+pub mod predict;
+pub mod predictions_table;
 pub mod raster;
 pub mod release;
 pub mod render;

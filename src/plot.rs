@@ -139,8 +139,84 @@ fn fill(img: &mut RgbImage, x0: i64, y0: i64, x1: i64, y1: i64, c: Rgb<u8>) {
     }
 }
 
+/// One bar chart: a value per equal-width bin over `[lo, hi)`.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Bars {
+    /// Title drawn above the chart.
+    pub title: String,
+    /// Left edge of the first bin.
+    pub lo: f64,
+    /// Right edge of the last bin.
+    pub hi: f64,
+    /// Bar heights (NaN draws no bar).
+    pub values: Vec<f64>,
+    /// What the top of the scale means, e.g. `max 12`.
+    pub scale_label: String,
+}
+
+impl Bars {
+    /// The bars of a histogram (counts).
+    pub fn of_histogram(title: &str, h: &Histogram) -> Self {
+        let max = h.counts.iter().copied().max().unwrap_or(0).max(1);
+        Bars {
+            title: title.to_string(),
+            lo: h.lo,
+            hi: h.hi,
+            values: h.counts.iter().map(|&c| c as f64).collect(),
+            scale_label: format!("max {max}"),
+        }
+    }
+
+    /// The mean of `y` per bin of `x` over `[lo, hi)` (NaN for an empty bin).
+    pub fn binned_mean(
+        title: &str,
+        points: impl IntoIterator<Item = (f64, f64)>,
+        lo: f64,
+        hi: f64,
+        bins: usize,
+        unit: &str,
+    ) -> Self {
+        let bins = bins.max(1);
+        let (mut sum, mut n) = (vec![0.0; bins], vec![0usize; bins]);
+        let width = (hi - lo) / bins as f64;
+        for (x, y) in points {
+            let k = ((x - lo) / width).floor();
+            if x.is_finite() && y.is_finite() && k >= 0.0 && (k as usize) < bins {
+                sum[k as usize] += y;
+                n[k as usize] += 1;
+            }
+        }
+        let values: Vec<f64> = sum
+            .iter()
+            .zip(&n)
+            .map(|(s, &c)| if c == 0 { f64::NAN } else { s / c as f64 })
+            .collect();
+        let max = values
+            .iter()
+            .copied()
+            .filter(|v| v.is_finite())
+            .fold(0.0, f64::max);
+        Bars {
+            title: title.to_string(),
+            lo,
+            hi,
+            values,
+            scale_label: format!("max {max:.2} {unit}"),
+        }
+    }
+}
+
 /// A panel of histograms side by side, each titled, with its range and peak count.
 pub fn histogram_panel(panels: &[(&str, &Histogram)]) -> RgbImage {
+    let bars: Vec<Bars> = panels
+        .iter()
+        .map(|(t, h)| Bars::of_histogram(t, h))
+        .collect();
+    bars_panel(&bars)
+}
+
+/// Bar charts side by side, each titled, with its range and the top of its scale.
+pub fn bars_panel(panels: &[Bars]) -> RgbImage {
     let (pw, ph) = (360i64, 260i64);
     let mut img = RgbImage::from_pixel(
         (pw * panels.len() as i64) as u32,
@@ -148,17 +224,26 @@ pub fn histogram_panel(panels: &[(&str, &Histogram)]) -> RgbImage {
         Rgb([255, 255, 255]),
     );
     let ink = Rgb([30, 30, 30]);
-    for (i, (title, h)) in panels.iter().enumerate() {
+    for (i, b) in panels.iter().enumerate() {
         let ox = i as i64 * pw;
-        draw_text(&mut img, ox + 20, 10, title, 2, ink);
+        draw_text(&mut img, ox + 20, 10, &b.title, 2, ink);
         let (x0, x1, y0, y1) = (ox + 30, ox + pw - 20, 50, ph - 40);
         fill(&mut img, x0, y1, x1, y1 + 1, ink);
         fill(&mut img, x0, y0, x0 + 1, y1, ink);
-        let max = h.counts.iter().copied().max().unwrap_or(0).max(1);
-        let n = h.counts.len() as i64;
+        let max = b
+            .values
+            .iter()
+            .copied()
+            .filter(|v| v.is_finite())
+            .fold(0.0, f64::max);
+        let max = if max > 0.0 { max } else { 1.0 };
+        let n = b.values.len() as i64;
         let bw = (x1 - x0) / n.max(1);
-        for (k, &c) in h.counts.iter().enumerate() {
-            let top = y1 - ((y1 - y0) as f64 * c as f64 / max as f64).round() as i64;
+        for (k, &v) in b.values.iter().enumerate() {
+            if !v.is_finite() {
+                continue;
+            }
+            let top = y1 - ((y1 - y0) as f64 * v.max(0.0) / max).round() as i64;
             fill(
                 &mut img,
                 x0 + 1 + k as i64 * bw,
@@ -168,10 +253,10 @@ pub fn histogram_panel(panels: &[(&str, &Histogram)]) -> RgbImage {
                 Rgb([70, 120, 200]),
             );
         }
-        draw_text(&mut img, x0, y1 + 8, &format!("{}", h.lo), 1, ink);
-        let hi = format!("{}", h.hi);
+        draw_text(&mut img, x0, y1 + 8, &format!("{}", b.lo), 1, ink);
+        let hi = format!("{}", b.hi);
         draw_text(&mut img, x1 - 6 * hi.len() as i64, y1 + 8, &hi, 1, ink);
-        draw_text(&mut img, x0 + 6, y0 - 12, &format!("max {max}"), 1, ink);
+        draw_text(&mut img, x0 + 6, y0 - 12, &b.scale_label, 1, ink);
     }
     img
 }
@@ -188,6 +273,24 @@ mod tests {
         let lines = h.text_lines(10);
         assert_eq!(lines.len(), 10);
         assert!(lines[0].ends_with("##########"));
+    }
+
+    #[test]
+    fn binned_means_by_hand() {
+        let b = Bars::binned_mean(
+            "e",
+            [(0.5, 2.0), (0.7, 4.0), (2.5, 1.0), (9.0, 5.0)],
+            0.0,
+            3.0,
+            3,
+            "deg",
+        );
+        assert_eq!(b.values[0], 3.0);
+        assert!(b.values[1].is_nan());
+        assert_eq!(b.values[2], 1.0);
+        assert_eq!(b.scale_label, "max 3.00 deg");
+        let img = bars_panel(&[b]);
+        assert_eq!(img.width(), 360);
     }
 
     #[test]

@@ -19,7 +19,9 @@ use std::fmt;
 use std::path::{Path, PathBuf};
 
 /// The key of one sample: `(subject_id, facial_action, img_id)`, all strings.
-#[derive(Clone, Debug, PartialEq, Eq, PartialOrd, Ord, Hash)]
+#[derive(
+    Clone, Debug, PartialEq, Eq, PartialOrd, Ord, Hash, serde::Serialize, serde::Deserialize,
+)]
 pub struct SampleKey {
     /// Subject id, e.g. `225579`.
     pub subject_id: String,

@@ -699,43 +699,14 @@ pub fn draw_overlay(
     topology: &FaceTopology,
     info: &InfoAnnotation,
 ) -> Result<()> {
-    let pose = info.pose()?;
-    let camera = Camera::release(image.width(), image.height());
     let pts: Vec<Point3<f64>> = info.verts.iter().map(|p| p.cast()).collect();
-    let p = camera.project_all(&pose, &pts);
-    for t in topology.triangles.iter().step_by(7) {
-        let (a, b) = (&p[t[0] as usize], &p[t[1] as usize]);
-        draw_line(image, (a.u, a.v), (b.u, b.v), Rgb([20, 120, 40]));
-    }
-    for (_, l) in &topology.boundary_loops()?.loops {
-        for k in 0..l.len() {
-            let (a, b) = (&p[l[k] as usize], &p[l[(k + 1) % l.len()] as usize]);
-            draw_line(image, (a.u, a.v), (b.u, b.v), Rgb([40, 240, 90]));
-        }
-    }
-    for &l in &topology.landmarks {
-        let q = &p[l as usize];
-        for dy in -1..=1 {
-            for dx in -1..=1 {
-                let (x, y) = ((q.u.floor() as i64) + dx, (q.v.floor() as i64) + dy);
-                if x >= 0 && y >= 0 && (x as u32) < image.width() && (y as u32) < image.height() {
-                    image.put_pixel(x as u32, y as u32, Rgb([255, 40, 40]));
-                }
-            }
-        }
-    }
-    Ok(())
-}
-
-fn draw_line(image: &mut RgbImage, a: (f64, f64), b: (f64, f64), colour: Rgb<u8>) {
-    let steps = ((b.0 - a.0).abs().max((b.1 - a.1).abs()).ceil() as usize).max(1);
-    for i in 0..=steps {
-        let t = i as f64 / steps as f64;
-        let (x, y) = (a.0 + (b.0 - a.0) * t, a.1 + (b.1 - a.1) * t);
-        if x >= 0.0 && y >= 0.0 && x < image.width() as f64 && y < image.height() as f64 {
-            image.put_pixel(x as u32, y as u32, colour);
-        }
-    }
+    crate::overlay::draw_mesh(
+        image,
+        topology,
+        &pts,
+        &info.pose()?,
+        &crate::overlay::MeshStyle::ANNOTATION,
+    )
 }
 
 /// A grid of images (scaled to `cell` pixels wide) for previews.

@@ -71,3 +71,59 @@ fn list_csv_header_matches_its_schema() {
     let text = arkit_tool::release::list_csv_text(&[]);
     assert_eq!(text.trim_end(), header.join(","));
 }
+
+fn column_names(s: &serde_json::Value) -> Vec<String> {
+    s["columns"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|c| c["name"].as_str().unwrap().to_string())
+        .collect()
+}
+
+#[test]
+fn eval_per_sample_table_matches_its_schema() {
+    let s = schema("eval_samples.json");
+    assert_eq!(
+        column_names(&s),
+        arkit_tool::eval_dataset::PER_SAMPLE_COLUMNS
+            .iter()
+            .map(|c| c.to_string())
+            .collect::<Vec<_>>()
+    );
+    let df = arkit_tool::eval_dataset::per_sample_frame(&[]).unwrap();
+    let written: Vec<String> = df
+        .get_column_names()
+        .iter()
+        .map(|c| c.to_string())
+        .collect();
+    assert_eq!(column_names(&s), written);
+}
+
+#[test]
+fn predictions_written_match_their_schema() {
+    use arkit_tool::predictions_table::{PredictionRecord, predictions_frame};
+    use arkit_tool::release::SampleKey;
+    let s = schema("predictions.json");
+    let row = PredictionRecord {
+        key: SampleKey {
+            subject_id: "1".into(),
+            facial_action: "a".into(),
+            img_id: "2".into(),
+        },
+        rt: Some([0.0; 16]),
+        verts: Some(vec![0.0; 3]),
+        mask_rle: Some(vec![1]),
+    };
+    let df = predictions_frame(&[row]).unwrap();
+    for c in s["columns"].as_array().unwrap() {
+        let name = c["name"].as_str().unwrap();
+        let dtype = df.column(name).unwrap().dtype().clone();
+        let want = match c["type"].as_str().unwrap() {
+            "binary" => polars::prelude::DataType::Binary,
+            t => arkit_tool::samples_table::polars_dtype(t).unwrap(),
+        };
+        assert_eq!(dtype, want, "{name}");
+    }
+    assert_eq!(df.width(), s["columns"].as_array().unwrap().len());
+}

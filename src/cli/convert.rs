@@ -1,10 +1,9 @@
 //! `arkit-tool convert` and `arkit-tool merge`.
 
+use arkit_tool::Result;
 use arkit_tool::conventions::Camera;
 use arkit_tool::convert::{self, ConvertOptions, ValidationContext};
-use arkit_tool::{Error, Result};
 use clap::Args;
-use indicatif::{ProgressBar, ProgressStyle};
 use std::path::PathBuf;
 use std::process::ExitCode;
 
@@ -117,17 +116,8 @@ pub fn run(a: ConvertArgs) -> Result<ExitCode> {
             .collect::<Vec<_>>()
             .join(", ")
     );
-    let bar = ProgressBar::new(rows.len() as u64).with_style(
-        ProgressStyle::with_template(
-            "{spinner} convert [{bar:30}] {pos}/{len} samples {per_sec} eta {eta}",
-        )
-        .expect("template")
-        .progress_chars("=> "),
-    );
-    let pool = rayon::ThreadPoolBuilder::new()
-        .num_threads(a.jobs.unwrap_or(0))
-        .build()
-        .map_err(|e| Error::invalid("--jobs", e.to_string()))?;
+    let bar = super::progress_bar(rows.len() as u64, "convert", "samples");
+    let pool = super::thread_pool(a.jobs)?;
     let manifest = pool.install(|| {
         convert::convert_planned(&options, &ctx, &input, plan, &|n| bar.inc(n as u64))
     })?;

@@ -1,9 +1,12 @@
 //! Argument parsing and dispatch. Subcommand files parse, call the library, report
 //! progress and errors; they hold no geometry.
 
+mod augment;
 mod convert;
+mod eval;
 mod info;
 mod inspect;
+mod predict;
 mod render;
 mod split;
 mod synth;
@@ -34,6 +37,9 @@ enum Command {
     Split(split::SplitArgs),
     Inspect(inspect::InspectArgs),
     Render(render::RenderArgs),
+    Predict(predict::PredictArgs),
+    Eval(eval::EvalArgs),
+    Augment(augment::AugmentArgs),
     Topology(topology::TopologyArgs),
     Info(info::InfoArgs),
 }
@@ -47,6 +53,9 @@ pub fn run(cli: Cli) -> Result<ExitCode> {
         Command::Split(a) => split::run(a),
         Command::Inspect(a) => inspect::run(a),
         Command::Render(a) => render::run(a),
+        Command::Predict(a) => predict::run(a),
+        Command::Eval(a) => eval::run(a),
+        Command::Augment(a) => augment::run(a),
         Command::Topology(a) => topology::run(a),
         Command::Info(a) => info::run(a),
     }
@@ -71,4 +80,23 @@ pub fn load_topology(resources: Option<&std::path::Path>) -> Result<arkit_tool::
         Some(dir) => arkit_tool::FaceTopology::from_resources(dir),
         None => Ok(arkit_tool::synthetic_face::builtin().topology.clone()),
     }
+}
+
+/// A progress bar for `len` items of `label` work (`{label} [=====>   ] 10/200 ...`).
+pub fn progress_bar(len: u64, label: &str, unit: &str) -> indicatif::ProgressBar {
+    indicatif::ProgressBar::new(len).with_style(
+        indicatif::ProgressStyle::with_template(&format!(
+            "{{spinner}} {label} [{{bar:30}}] {{pos}}/{{len}} {unit} {{per_sec}} eta {{eta}}"
+        ))
+        .expect("valid progress template")
+        .progress_chars("=> "),
+    )
+}
+
+/// A rayon pool of `jobs` threads (all cores when `None`).
+pub fn thread_pool(jobs: Option<usize>) -> Result<rayon::ThreadPool> {
+    rayon::ThreadPoolBuilder::new()
+        .num_threads(jobs.unwrap_or(0))
+        .build()
+        .map_err(|e| arkit_tool::Error::invalid("--jobs", e.to_string()))
 }

@@ -5,7 +5,6 @@ use arkit_tool::conventions::Camera;
 use arkit_tool::render::{FaceRenderer, RasterMode};
 use arkit_tool::render_dataset::{self, RenderOptions};
 use clap::Args;
-use indicatif::{ProgressBar, ProgressStyle};
 use std::path::PathBuf;
 use std::process::ExitCode;
 
@@ -77,17 +76,8 @@ pub fn run(a: RenderArgs) -> Result<ExitCode> {
         seed: a.seed,
         output: a.output.clone().unwrap_or_else(|| a.dataset.clone()),
     };
-    let bar = ProgressBar::new(manifest.converted as u64).with_style(
-        ProgressStyle::with_template(
-            "{spinner} render [{bar:30}] {pos}/{len} samples {per_sec} eta {eta}",
-        )
-        .expect("template")
-        .progress_chars("=> "),
-    );
-    let pool = rayon::ThreadPoolBuilder::new()
-        .num_threads(a.jobs.unwrap_or(0))
-        .build()
-        .map_err(|e| arkit_tool::Error::invalid("--jobs", e.to_string()))?;
+    let bar = super::progress_bar(manifest.converted as u64, "render", "samples");
+    let pool = super::thread_pool(a.jobs)?;
     let summary = pool.install(|| {
         render_dataset::render_dataset(&a.dataset, &renderer, &options, &|n| bar.inc(n as u64))
     })?;

@@ -3,7 +3,6 @@
 use arkit_tool::synth::{self, FaceSource, SynthOptions};
 use arkit_tool::{Error, Result};
 use clap::Args;
-use indicatif::{ProgressBar, ProgressStyle};
 use std::path::PathBuf;
 use std::process::ExitCode;
 
@@ -70,13 +69,7 @@ pub fn run(a: SynthArgs) -> Result<ExitCode> {
         None => FaceSource::builtin(),
     };
     let total = (options.subjects * options.images_per_subject) as u64;
-    let bar = ProgressBar::new(total).with_style(
-        ProgressStyle::with_template(
-            "{spinner} synth [{bar:30}] {pos}/{len} samples {per_sec} eta {eta}",
-        )
-        .expect("valid template")
-        .progress_chars("=> "),
-    );
+    let bar = super::progress_bar(total, "synth", "samples");
     let summary = synth::generate(&source, &options, &a.output, &|| bar.inc(1))?;
     bar.finish_and_clear();
     if let Some(path) = &a.preview {

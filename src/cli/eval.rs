@@ -1,0 +1,133 @@
+//! `arkit-tool eval`.
+
+use arkit_tool::eval::EulerDifference;
+use arkit_tool::eval_dataset::{self, EvalOptions};
+use arkit_tool::predictions_table::read_predictions;
+use arkit_tool::{Error, Result};
+use clap::Args;
+use std::path::PathBuf;
+use std::process::ExitCode;
+
+/// Score pose predictions with the paper's metrics.
+///
+/// Every sample of --split is scored: yaw, pitch, roll and MAE_r (degrees); tx, ty, tz
+/// and MAE_t (mm); ADD (mm); geodesic rotation error; the 5deg5cm rate and the
+/// official code's second rate (rotation < 10 deg, translation < 5 cm, printed there as
+/// "5°10cm"); 3D reconstruction error when the predictions carry verts; mask accuracy,
+/// IoU and precision when they carry masks (needs `render`'s targets). A sample with no
+/// prediction, a null R_t, tz > 0 or tz < -100 m counts as a PnP failure and is scored
+/// as the identity pose, as the official evaluation does. Predictions for unknown
+/// samples and repeated ones are reported.
+///
+/// Predictions: Parquet or CSV (schemas/predictions.json) keyed by subject_id,
+/// facial_action, img_id with R_t (16 numbers, the release's row-vector form).
+///
+/// Example: arkit-tool eval --dataset data/pq --predictions pred.parquet --split test --report report/
+#[derive(Args, Debug)]
+pub struct EvalArgs {
+    /// A folder written by `convert`.
+    #[arg(long)]
+    dataset: PathBuf,
+    /// The predictions file (.parquet, or .csv).
+    #[arg(long)]
+    predictions: PathBuf,
+    /// Only this split (`splits/splits.parquet` if `split` wrote one, else the
+    /// release's lists); `all` for every sample.
+    #[arg(long, default_value = "test")]
+    split: String,
+    /// Euler differences: `official` (|a - b|, no wrap-around at +/-180) or `wrapped`
+    /// (the shortest angle).
+    #[arg(long, value_enum, default_value = "official")]
+    euler: Euler,
+    /// Where `render` wrote targets/ (for mask scores; default: the dataset).
+    #[arg(long)]
+    targets: Option<PathBuf>,
+    /// Write the per-sample errors here (Parquet, schemas/eval_samples.json).
+    #[arg(long)]
+    per_sample: Option<PathBuf>,
+    /// Write a report folder: error plots by pose and distance, the worst samples drawn
+    /// (true mesh green, predicted red), the summary.
+    #[arg(long)]
+    report: Option<PathBuf>,
+    /// The release's resource folder (real topology, to draw the meshes).
+    #[arg(long)]
+    resources: Option<PathBuf>,
+    /// Print the summary and the matching problems as JSON.
+    #[arg(long)]
+    json: bool,
+}
+
+/// `--euler` values.
+#[derive(Clone, Copy, Debug, clap::ValueEnum)]
+enum Euler {
+    Official,
+    Wrapped,
+}
+
+pub fn run(a: EvalArgs) -> Result<ExitCode> {
+    let predictions = read_predictions(&a.predictions)?;
+    let options = EvalOptions {
+        split: (a.split != "all").then(|| a.split.clone()),
+        euler: match a.euler {
+            Euler::Official => EulerDifference::Official,
+            Euler::Wrapped => EulerDifference::Wrapped,
+        },
+        targets: a.targets.clone(),
+        keep_worst: if a.report.is_some() { 8 } else { 0 },
+    };
+    let ev = eval_dataset::evaluate(&a.dataset, &predictions, &options)?;
+    if let Some(path) = &a.per_sample {
+        let mut df = eval_dataset::per_sample_frame(&ev.samples)?;
+        arkit_tool::samples_table::write_parquet(path, &mut df)?;
+    }
+    let mut written = Vec::new();
+    if let Some(dir) = &a.report {
+        let topology = super::load_topology(a.resources.as_deref())?;
+        written = eval_dataset::write_report(dir, &ev, &topology)?;
+    }
+    let p = &ev.problems;
+    if a.json {
+        let out = serde_json::json!({
+            "summary": ev.summary,
+            "problems": {
+                "unknown": p.unknown.len(),
+                "duplicates": p.duplicates.len(),
+                "missing": p.missing,
+                "unscored_masks": p.unscored_masks.len(),
+                "first_unknown": p.unknown.iter().take(10).map(|k| k.to_string()).collect::<Vec<_>>(),
+                "first_duplicates": p.duplicates.iter().take(10).map(|k| k.to_string()).collect::<Vec<_>>(),
+            },
+        });
+        println!("{}", serde_json::to_string_pretty(&out).expect("json"));
+    } else {
+        print!("{}", ev.summary.table());
+        for (what, keys) in [("unknown", &p.unknown), ("repeated", &p.duplicates)] {
+            if !keys.is_empty() {
+                eprintln!(
+                    "warning: {} predictions for {what} samples (first: {})",
+                    keys.len(),
+                    keys[0]
+                );
+            }
+        }
+        if p.missing > 0 {
+            eprintln!(
+                "warning: {} samples have no prediction; scored as PnP failures",
+                p.missing
+            );
+        }
+        if let Some((k, why)) = p.unscored_masks.first() {
+            eprintln!(
+                "warning: {} predicted masks not scored (first: {k}: {why})",
+                p.unscored_masks.len()
+            );
+        }
+        for w in &written {
+            println!("wrote {}", w.display());
+        }
+    }
+    if ev.summary.samples == 0 {
+        return Err(Error::invalid("eval", "nothing to evaluate"));
+    }
+    Ok(ExitCode::SUCCESS)
+}

@@ -1,0 +1,461 @@
+//! Scoring a predictions file against a converted dataset: matching rows to samples,
+//! the per-sample table, and the report folder (plots and the worst samples drawn).
+//!
+//! Every sample of the chosen split is scored: one with no prediction counts as a PnP
+//! failure (see [`crate::eval`]). Predictions for samples the dataset does not have (or
+//! not in the split) and repeated predictions are reported in [`MatchProblems`]; a
+//! repeated key keeps its first row.
+
+use crate::conventions::Pose;
+use crate::convert::read_manifest;
+use crate::error::{Error, Result};
+use crate::eval::{self, EulerDifference, PoseFailure, SampleErrors, Summary};
+use crate::overlay::{MeshStyle, draw_mesh};
+use crate::plot::{Bars, bars_panel};
+use crate::predictions_table::PredictionRecord;
+use crate::release::SampleKey;
+use crate::samples_table::{self, SampleRecord};
+use crate::targets_table;
+use crate::topology::FaceTopology;
+use image::{Rgb, RgbImage};
+use nalgebra::Point3;
+use polars::prelude::*;
+use serde::Serialize;
+use std::collections::{HashMap, HashSet};
+use std::path::{Path, PathBuf};
+
+/// What to evaluate and how.
+#[derive(Clone, Debug)]
+pub struct EvalOptions {
+    /// Only samples of this split (`None`: all). The split comes from
+    /// `DATASET/splits/splits.parquet` when `split` has written one, else from the
+    /// release lists recorded by `convert`.
+    pub split: Option<String>,
+    /// Euler difference rule.
+    pub euler: EulerDifference,
+    /// Folder holding `targets/part-*.parquet` (for mask scores); default the dataset.
+    pub targets: Option<PathBuf>,
+    /// How many of the worst samples to keep for drawing.
+    pub keep_worst: usize,
+}
+
+impl Default for EvalOptions {
+    fn default() -> Self {
+        EvalOptions {
+            split: None,
+            euler: EulerDifference::Official,
+            targets: None,
+            keep_worst: 8,
+        }
+    }
+}
+
+/// Prediction rows that do not match the dataset one to one.
+#[derive(Clone, Debug, Default, PartialEq, Serialize)]
+pub struct MatchProblems {
+    /// Keys predicted that are not samples of the evaluated split.
+    pub unknown: Vec<SampleKey>,
+    /// Keys predicted more than once (first row kept).
+    pub duplicates: Vec<SampleKey>,
+    /// Samples of the split with no prediction (scored as failures).
+    pub missing: usize,
+    /// Predicted masks that could not be scored, with the reason.
+    pub unscored_masks: Vec<(SampleKey, String)>,
+}
+
+/// One scored sample.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct ScoredSample {
+    /// The sample.
+    pub key: SampleKey,
+    /// Ground-truth yaw, pitch, roll (degrees) and distance `-tz` (metres).
+    pub gt_yaw_deg: f64,
+    /// Ground-truth pitch, degrees.
+    pub gt_pitch_deg: f64,
+    /// Ground-truth roll, degrees.
+    pub gt_roll_deg: f64,
+    /// Ground-truth camera distance `-tz`, metres.
+    pub gt_distance_m: f64,
+    /// The errors.
+    pub errors: SampleErrors,
+}
+
+/// The result of [`evaluate`].
+#[derive(Clone, Debug)]
+pub struct Evaluation {
+    /// Per sample, in dataset order.
+    pub samples: Vec<ScoredSample>,
+    /// The summary table.
+    pub summary: Summary,
+    /// Rows that did not match.
+    pub problems: MatchProblems,
+    /// The worst samples by geodesic rotation error (worst first), with their
+    /// predictions, for drawing.
+    pub worst: Vec<(SampleRecord, Option<PredictionRecord>, f64)>,
+    /// The dataset's input root (to find images that are not embedded).
+    pub input_root: PathBuf,
+}
+
+/// The split of each sample as `split` recorded it (`None` when it has not run).
+pub fn split_map(dataset: &Path) -> Result<Option<HashMap<SampleKey, String>>> {
+    let path = dataset.join("splits").join("splits.parquet");
+    if !path.exists() {
+        return Ok(None);
+    }
+    let names = ["subject_id", "facial_action", "img_id", "split"];
+    let df = samples_table::read_parquet_columns(&path, &names)?;
+    let cols: Vec<Vec<String>> = names
+        .iter()
+        .map(|c| samples_table::str_values(&df, c, &path))
+        .collect::<Result<_>>()?;
+    Ok(Some(
+        (0..cols[0].len())
+            .map(|i| {
+                (
+                    SampleKey {
+                        subject_id: cols[0][i].clone(),
+                        facial_action: cols[1][i].clone(),
+                        img_id: cols[2][i].clone(),
+                    },
+                    cols[3][i].clone(),
+                )
+            })
+            .collect(),
+    ))
+}
+
+fn target_masks(dir: &Path, wanted: &HashSet<&SampleKey>) -> Result<HashMap<SampleKey, Vec<bool>>> {
+    let mut out = HashMap::new();
+    let tdir = dir.join("targets");
+    let Ok(entries) = std::fs::read_dir(&tdir) else {
+        return Ok(out);
+    };
+    let mut files: Vec<PathBuf> = entries
+        .filter_map(|e| e.ok().map(|e| e.path()))
+        .filter(|p| p.extension().is_some_and(|e| e == "parquet"))
+        .collect();
+    files.sort();
+    for f in files {
+        for r in targets_table::read_targets(&f)? {
+            if wanted.contains(&r.key) {
+                let m = r.mask()?;
+                out.insert(r.key, m);
+            }
+        }
+    }
+    Ok(out)
+}
+
+/// Scores `predictions` against the samples of `dataset` (a `convert` output).
+pub fn evaluate(
+    dataset: &Path,
+    predictions: &[PredictionRecord],
+    options: &EvalOptions,
+) -> Result<Evaluation> {
+    let manifest = read_manifest(&dataset.join("dataset.json"))?;
+    let splits = split_map(dataset)?;
+    let mut problems = MatchProblems::default();
+    let mut by_key: HashMap<&SampleKey, &PredictionRecord> = HashMap::new();
+    for p in predictions {
+        if by_key.contains_key(&p.key) {
+            problems.duplicates.push(p.key.clone());
+        } else {
+            by_key.insert(&p.key, p);
+        }
+    }
+    let with_masks: HashSet<&SampleKey> = predictions
+        .iter()
+        .filter(|p| p.mask_rle.is_some())
+        .map(|p| &p.key)
+        .collect();
+    let masks = if with_masks.is_empty() {
+        HashMap::new()
+    } else {
+        target_masks(options.targets.as_deref().unwrap_or(dataset), &with_masks)?
+    };
+    let mut seen: HashSet<SampleKey> = HashSet::new();
+    let mut scored = Vec::new();
+    let mut worst: Vec<(SampleRecord, Option<PredictionRecord>, f64)> = Vec::new();
+    let mut splits_found: HashSet<String> = HashSet::new();
+    for shard in &manifest.shards {
+        let rows = samples_table::read_samples(&dataset.join(&shard.samples_file))?;
+        for r in rows {
+            let split = splits
+                .as_ref()
+                .and_then(|m| m.get(&r.key).cloned())
+                .unwrap_or_else(|| r.split.clone());
+            splits_found.insert(split.clone());
+            if options.split.as_ref().is_some_and(|s| *s != split) {
+                continue;
+            }
+            seen.insert(r.key.clone());
+            let pred = by_key.get(&r.key).copied();
+            let checked = match pred {
+                None => Err(PoseFailure::Missing),
+                Some(p) => eval::check_prediction(p.rt.as_ref()),
+            };
+            if pred.is_none() {
+                problems.missing += 1;
+            }
+            let pred_verts = pred.and_then(|p| p.verts.as_deref());
+            if let Some(v) = pred_verts
+                && v.len() != r.verts.len()
+            {
+                return Err(Error::invalid(
+                    "predictions",
+                    format!(
+                        "{}: verts has {} values, the sample has {}",
+                        r.key,
+                        v.len(),
+                        r.verts.len()
+                    ),
+                ));
+            }
+            let mut errors =
+                eval::sample_errors(&r.rt, checked, &r.verts, pred_verts, options.euler);
+            if let Some(rle) = pred.and_then(|p| p.mask_rle.as_ref()) {
+                match masks.get(&r.key) {
+                    None => problems
+                        .unscored_masks
+                        .push((r.key.clone(), "no target mask (run render)".into())),
+                    Some(target) => match targets_table::rle_decode(rle, target.len()) {
+                        Ok(m) => errors.mask = Some(eval::mask_scores(&m, target)),
+                        Err(e) => problems.unscored_masks.push((r.key.clone(), e.to_string())),
+                    },
+                }
+            }
+            let rot = errors.rotation_deg;
+            if options.keep_worst > 0 {
+                let keep =
+                    worst.len() < options.keep_worst || worst.last().is_some_and(|w| w.2 < rot);
+                if keep {
+                    let mut r2 = r.clone();
+                    r2.verts.shrink_to_fit();
+                    worst.push((r2, pred.cloned(), rot));
+                    worst.sort_by(|a, b| b.2.total_cmp(&a.2));
+                    worst.truncate(options.keep_worst);
+                }
+            }
+            scored.push(ScoredSample {
+                key: r.key.clone(),
+                gt_yaw_deg: r.yaw_deg,
+                gt_pitch_deg: r.pitch_deg,
+                gt_roll_deg: r.roll_deg,
+                gt_distance_m: -r.translation_m[2],
+                errors,
+            });
+        }
+    }
+    if scored.is_empty() {
+        let mut found: Vec<String> = splits_found.into_iter().collect();
+        found.sort();
+        return Err(Error::invalid(
+            "--split",
+            format!(
+                "no samples in split '{}' of {} (splits there: {})",
+                options.split.as_deref().unwrap_or("all"),
+                dataset.display(),
+                found.join(", ")
+            ),
+        ));
+    }
+    for p in predictions {
+        if !seen.contains(&p.key) {
+            problems.unknown.push(p.key.clone());
+        }
+    }
+    let errors: Vec<SampleErrors> = scored.iter().map(|s| s.errors.clone()).collect();
+    Ok(Evaluation {
+        summary: eval::summarize(&errors, options.euler),
+        samples: scored,
+        problems,
+        worst,
+        input_root: PathBuf::from(&manifest.input),
+    })
+}
+
+/// The per-sample table as a DataFrame (columns as `schemas/eval_samples.json`).
+pub fn per_sample_frame(samples: &[ScoredSample]) -> Result<DataFrame> {
+    let s = |n: &str, f: &dyn Fn(&ScoredSample) -> String| {
+        Column::new(n.into(), samples.iter().map(f).collect::<Vec<String>>())
+    };
+    let f = |n: &str, g: &dyn Fn(&ScoredSample) -> f64| {
+        Column::new(n.into(), samples.iter().map(g).collect::<Vec<f64>>())
+    };
+    let o = |n: &str, g: &dyn Fn(&ScoredSample) -> Option<f64>| {
+        Column::new(
+            n.into(),
+            samples.iter().map(g).collect::<Vec<Option<f64>>>(),
+        )
+    };
+    let columns = vec![
+        s("subject_id", &|r| r.key.subject_id.clone()),
+        s("facial_action", &|r| r.key.facial_action.clone()),
+        s("img_id", &|r| r.key.img_id.clone()),
+        s("failure", &|r| {
+            r.errors.failure.map(|f| f.name()).unwrap_or("").to_string()
+        }),
+        f("gt_yaw_deg", &|r| r.gt_yaw_deg),
+        f("gt_pitch_deg", &|r| r.gt_pitch_deg),
+        f("gt_roll_deg", &|r| r.gt_roll_deg),
+        f("gt_distance_m", &|r| r.gt_distance_m),
+        f("yaw_err_deg", &|r| r.errors.yaw_deg),
+        f("pitch_err_deg", &|r| r.errors.pitch_deg),
+        f("roll_err_deg", &|r| r.errors.roll_deg),
+        f("tx_err_mm", &|r| r.errors.tx_mm),
+        f("ty_err_mm", &|r| r.errors.ty_mm),
+        f("tz_err_mm", &|r| r.errors.tz_mm),
+        f("add_mm", &|r| r.errors.add_mm),
+        f("rotation_err_deg", &|r| r.errors.rotation_deg),
+        f("translation_err_mm", &|r| r.errors.translation_mm),
+        o("recon_mm", &|r| r.errors.recon_mm),
+        o("mask_iou", &|r| r.errors.mask.map(|m| m.iou)),
+    ];
+    DataFrame::new(samples.len(), columns)
+        .map_err(|e| Error::invalid("per-sample table", e.to_string()))
+}
+
+/// Column names of the per-sample table, in order.
+pub const PER_SAMPLE_COLUMNS: [&str; 19] = [
+    "subject_id",
+    "facial_action",
+    "img_id",
+    "failure",
+    "gt_yaw_deg",
+    "gt_pitch_deg",
+    "gt_roll_deg",
+    "gt_distance_m",
+    "yaw_err_deg",
+    "pitch_err_deg",
+    "roll_err_deg",
+    "tx_err_mm",
+    "ty_err_mm",
+    "tz_err_mm",
+    "add_mm",
+    "rotation_err_deg",
+    "translation_err_mm",
+    "recon_mm",
+    "mask_iou",
+];
+
+/// The image of a sample: embedded JPEG, else the file under the input root, else a
+/// grey canvas of the image's size.
+pub fn sample_image(sample: &SampleRecord, input_root: &Path) -> RgbImage {
+    let decoded = match &sample.jpeg {
+        Some(bytes) => image::load_from_memory(bytes).ok(),
+        None => image::open(input_root.join(&sample.image_path)).ok(),
+    };
+    decoded.map(|i| i.to_rgb8()).unwrap_or_else(|| {
+        RgbImage::from_pixel(sample.image_width, sample.image_height, Rgb([90, 90, 90]))
+    })
+}
+
+/// Writes the report folder: `errors_by_pose.png` (mean errors per |yaw|, |pitch| and
+/// distance bin), `worst.png` (the worst samples, true mesh green, predicted red) and
+/// `summary.txt`.
+pub fn write_report(dir: &Path, ev: &Evaluation, topology: &FaceTopology) -> Result<Vec<PathBuf>> {
+    std::fs::create_dir_all(dir).map_err(|e| Error::io(dir, e))?;
+    let rot = |f: &dyn Fn(&ScoredSample) -> f64| -> Vec<(f64, f64)> {
+        ev.samples
+            .iter()
+            .map(|s| (f(s), s.errors.rotation_deg))
+            .collect()
+    };
+    let (dmin, dmax) = ev.samples.iter().fold((f64::MAX, f64::MIN), |(a, b), s| {
+        (a.min(s.gt_distance_m), b.max(s.gt_distance_m))
+    });
+    let (dlo, dhi) = (
+        (dmin * 10.0).floor() / 10.0,
+        (dmax * 10.0).ceil() / 10.0 + 0.1,
+    );
+    let panels = [
+        Bars::binned_mean(
+            "rot err by |yaw|",
+            rot(&|s| s.gt_yaw_deg.abs()),
+            0.0,
+            90.0,
+            9,
+            "deg",
+        ),
+        Bars::binned_mean(
+            "rot err by |pitch|",
+            rot(&|s| s.gt_pitch_deg.abs()),
+            0.0,
+            90.0,
+            9,
+            "deg",
+        ),
+        Bars::binned_mean(
+            "trans err by dist",
+            ev.samples
+                .iter()
+                .map(|s| (s.gt_distance_m, s.errors.translation_mm)),
+            dlo,
+            dhi,
+            8,
+            "mm",
+        ),
+    ];
+    let mut written = Vec::new();
+    let plot_path = dir.join("errors_by_pose.png");
+    crate::atomic_file::write_bytes(&plot_path, &png_bytes(&bars_panel(&panels))?)?;
+    written.push(plot_path);
+    let mut cells = Vec::new();
+    for (sample, pred, err) in &ev.worst {
+        let mut img = sample_image(sample, &ev.input_root);
+        let gt_verts: Vec<Point3<f64>> = sample
+            .verts
+            .chunks_exact(3)
+            .map(|c| Point3::new(c[0] as f64, c[1] as f64, c[2] as f64))
+            .collect();
+        if let Ok(pose) = Pose::from_release_rt(&sample.rt) {
+            draw_mesh(
+                &mut img,
+                topology,
+                &gt_verts,
+                &pose,
+                &MeshStyle::outline(Rgb([40, 240, 90])),
+            )?;
+        }
+        if let Some(p) = pred
+            && let Some(rt) = p.rt
+            && let Ok(pose) = Pose::from_release_rt(&rt)
+        {
+            let pv: Vec<Point3<f64>> = match &p.verts {
+                Some(v) => v
+                    .chunks_exact(3)
+                    .map(|c| Point3::new(c[0] as f64, c[1] as f64, c[2] as f64))
+                    .collect(),
+                None => gt_verts.clone(),
+            };
+            draw_mesh(
+                &mut img,
+                topology,
+                &pv,
+                &pose,
+                &MeshStyle::outline(Rgb([250, 60, 60])),
+            )?;
+        }
+        let label = format!("{} {:.1} deg", sample.key.img_id, err);
+        crate::plot::draw_text(&mut img, 6, 6, &label, 2, Rgb([255, 255, 0]));
+        cells.push(img);
+    }
+    if !cells.is_empty() {
+        let sheet = crate::synth::contact_sheet(&cells, 4, 320);
+        let p = dir.join("worst.png");
+        crate::atomic_file::write_bytes(&p, &png_bytes(&sheet)?)?;
+        written.push(p);
+    }
+    let p = dir.join("summary.txt");
+    crate::atomic_file::write_bytes(&p, ev.summary.table().as_bytes())?;
+    written.push(p);
+    Ok(written)
+}
+
+/// PNG bytes of an image.
+pub fn png_bytes(img: &RgbImage) -> Result<Vec<u8>> {
+    let mut out = std::io::Cursor::new(Vec::new());
+    img.write_to(&mut out, image::ImageFormat::Png)
+        .map_err(|e| Error::invalid("png", e.to_string()))?;
+    Ok(out.into_inner())
+}

@@ -1,0 +1,262 @@
+//! From 2D-3D correspondences to a pose in the release's form, and the oracle
+//! predictor that checks the whole evaluation path.
+//!
+//! [`pose_from_correspondences`] is the one bridge between the network's output (crop
+//! pixels and the canonical points they show) and [`crate::pnp`]: crop pixels are
+//! mapped to full-image pixels through the stored crop transform, with pixel `(i, j)` at
+//! its centre `(i + 0.5, j + 0.5)` (at `(i, j)` for targets rendered with the official
+//! rules, which sample there), the release camera's pinhole intrinsics are used for
+//! the image's own size (the official evaluation hard-codes 800x800), and OpenCV's
+//! `(R, t)` becomes the release's `R_t` by [`Pose::from_opencv`].
+//!
+//! The **oracle** takes the ground-truth correspondences that `render` stored (the
+//! sampled face pixels and the canonical points under them), optionally adds Gaussian
+//! pixel noise and outliers, and runs the same PnP: with no noise every pose metric
+//! must be ~0, which checks render, the crop transform, PnP and eval together; with
+//! 1 px noise it gives the floor any model meets.
+
+use crate::conventions::{Camera, Pose};
+use crate::convert::read_manifest;
+use crate::error::{Error, Result};
+use crate::pnp::{self, Intrinsics, RansacParams};
+use crate::predictions_table::PredictionRecord;
+use crate::release::SampleKey;
+use crate::render::CropTransform;
+use crate::rng::Rng;
+use crate::samples_table;
+use crate::targets_table::{self, TargetsRecord};
+use nalgebra::{Point2, Point3};
+use rayon::prelude::*;
+use std::collections::HashMap;
+use std::path::Path;
+
+/// Where a crop pixel is sampled, in crop pixel units from its top-left corner.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum PixelSample {
+    /// At the centre, `+0.5` (ours).
+    Centre,
+    /// At the top-left corner (the official rules).
+    Corner,
+}
+
+impl PixelSample {
+    fn offset(self) -> f64 {
+        match self {
+            PixelSample::Centre => 0.5,
+            PixelSample::Corner => 0.0,
+        }
+    }
+}
+
+/// The image point of crop pixel index `pixel` (row-major in a `crop.size` square).
+pub fn crop_pixel_to_image(crop: &CropTransform, pixel: u32, at: PixelSample) -> Point2<f64> {
+    let (col, row) = (pixel % crop.size, pixel / crop.size);
+    let (u, v) = crop.to_image(col as f64 + at.offset(), row as f64 + at.offset());
+    Point2::new(u, v)
+}
+
+/// The intrinsics of the release camera for an image of `width` x `height`.
+pub fn intrinsics(width: u32, height: u32) -> Intrinsics {
+    let k = Camera::release(width, height).pinhole();
+    Intrinsics {
+        fx: k.fx,
+        fy: k.fy,
+        cx: k.cx,
+        cy: k.cy,
+    }
+}
+
+/// The pose of a face whose canonical points `object` are seen at image points `image`
+/// (RANSAC, then refinement on the inliers), with the inlier count.
+pub fn pose_from_correspondences(
+    object: &[Point3<f64>],
+    image: &[Point2<f64>],
+    k: &Intrinsics,
+    params: &RansacParams,
+) -> std::result::Result<(Pose, usize), pnp::PnpError> {
+    let s = pnp::solve_pnp_ransac(object, image, k, params)?;
+    Ok((
+        Pose::from_opencv(&s.rotation, &s.translation),
+        s.inliers.len(),
+    ))
+}
+
+/// Options of the oracle.
+#[derive(Clone, Debug)]
+pub struct OracleOptions {
+    /// Gaussian noise added to each image point, pixels (standard deviation).
+    pub noise_px: f64,
+    /// Share of points replaced by uniformly random image points.
+    pub outliers: f64,
+    /// Seed of the noise.
+    pub seed: u64,
+    /// Only samples of this split (`None`: all), as `eval` chooses them.
+    pub split: Option<String>,
+    /// PnP settings.
+    pub ransac: RansacParams,
+}
+
+/// What the oracle did.
+#[derive(Clone, Debug, Default, serde::Serialize)]
+pub struct OracleSummary {
+    /// Samples predicted.
+    pub samples: usize,
+    /// PnP failures (null `R_t` written).
+    pub failures: usize,
+    /// Samples of the split with no targets row (not predicted).
+    pub without_targets: usize,
+    /// Mean distinct points per sample.
+    pub mean_points: f64,
+}
+
+fn targets_pixel_sample(targets_dir: &Path) -> Result<PixelSample> {
+    let path = targets_dir.join("targets").join("render.json");
+    let text = std::fs::read_to_string(&path).map_err(|e| Error::io(&path, e))?;
+    let v: serde_json::Value =
+        serde_json::from_str(&text).map_err(|e| Error::format(&path, e.to_string()))?;
+    Ok(if v["mode"] == "official" {
+        PixelSample::Corner
+    } else {
+        PixelSample::Centre
+    })
+}
+
+/// Canonical points and the image points where they are seen.
+pub type Correspondences = (Vec<Point3<f64>>, Vec<Point2<f64>>);
+
+/// The correspondences of one stored targets row: distinct sampled pixels as image
+/// points, and the canonical points under them.
+pub fn stored_correspondences(
+    record: &TargetsRecord,
+    verts: &[Point3<f32>],
+    at: PixelSample,
+) -> Result<Correspondences> {
+    let d = targets_table::dense(record, verts)?;
+    let mut seen = std::collections::HashSet::new();
+    let (mut object, mut image) = (Vec::new(), Vec::new());
+    for (px, c) in d.chosen_pixels.iter().zip(&d.coords) {
+        if seen.insert(*px) {
+            object.push(Point3::new(c[0] as f64, c[1] as f64, c[2] as f64));
+            image.push(crop_pixel_to_image(&record.crop, *px, at));
+        }
+    }
+    Ok((object, image))
+}
+
+/// Runs the oracle over a rendered dataset (`targets_dir` holds `targets/`).
+pub fn oracle_predictions(
+    dataset: &Path,
+    targets_dir: &Path,
+    options: &OracleOptions,
+    progress: &(dyn Fn(usize) + Sync),
+) -> Result<(Vec<PredictionRecord>, OracleSummary)> {
+    let manifest = read_manifest(&dataset.join("dataset.json"))?;
+    let at = targets_pixel_sample(targets_dir)?;
+    let splits = crate::eval_dataset::split_map(dataset)?;
+    let mut out = Vec::new();
+    let mut summary = OracleSummary::default();
+    let mut points = 0usize;
+    for shard in &manifest.shards {
+        let rows = samples_table::read_samples(&dataset.join(&shard.samples_file))?;
+        let tpath = targets_dir
+            .join("targets")
+            .join(format!("part-{:05}.parquet", shard.index));
+        let targets: HashMap<SampleKey, TargetsRecord> = if tpath.exists() {
+            targets_table::read_targets(&tpath)?
+                .into_iter()
+                .map(|t| (t.key.clone(), t))
+                .collect()
+        } else {
+            HashMap::new()
+        };
+        let chosen: Vec<_> = rows
+            .iter()
+            .enumerate()
+            .filter(|(_, r)| {
+                let split = splits
+                    .as_ref()
+                    .and_then(|m| m.get(&r.key).cloned())
+                    .unwrap_or_else(|| r.split.clone());
+                options.split.as_ref().is_none_or(|s| *s == split)
+            })
+            .collect();
+        let results: Vec<Option<(PredictionRecord, usize)>> = chosen
+            .par_iter()
+            .map(|(i, r)| -> Result<Option<(PredictionRecord, usize)>> {
+                let Some(t) = targets.get(&r.key) else {
+                    progress(1);
+                    return Ok(None);
+                };
+                let verts: Vec<Point3<f32>> = r
+                    .verts
+                    .chunks_exact(3)
+                    .map(|c| Point3::new(c[0], c[1], c[2]))
+                    .collect();
+                let (object, mut image) = stored_correspondences(t, &verts, at)?;
+                let mut rng = Rng::for_stream(options.seed, (shard.index as u64) << 32 | *i as u64);
+                for p in &mut image {
+                    if rng.next_f64() < options.outliers {
+                        *p = Point2::new(
+                            rng.uniform(0.0, r.image_width as f64),
+                            rng.uniform(0.0, r.image_height as f64),
+                        );
+                    } else if options.noise_px > 0.0 {
+                        p.x += options.noise_px * rng.normal();
+                        p.y += options.noise_px * rng.normal();
+                    }
+                }
+                let k = intrinsics(r.image_width, r.image_height);
+                let params = RansacParams {
+                    seed: options.ransac.seed ^ *i as u64,
+                    ..options.ransac
+                };
+                let rt = pose_from_correspondences(&object, &image, &k, &params)
+                    .ok()
+                    .map(|(pose, _)| pose.to_release_rt());
+                progress(1);
+                Ok(Some((
+                    PredictionRecord {
+                        key: r.key.clone(),
+                        rt,
+                        verts: None,
+                        mask_rle: None,
+                    },
+                    object.len(),
+                )))
+            })
+            .collect::<Result<_>>()?;
+        for r in results {
+            match r {
+                None => summary.without_targets += 1,
+                Some((p, n)) => {
+                    summary.samples += 1;
+                    summary.failures += p.rt.is_none() as usize;
+                    points += n;
+                    out.push(p);
+                }
+            }
+        }
+    }
+    summary.mean_points = points as f64 / summary.samples.max(1) as f64;
+    Ok((out, summary))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn crop_pixels_map_to_their_centres_or_corners() {
+        let crop = CropTransform {
+            x0: 100.0,
+            y0: 50.0,
+            side: 96.0,
+            size: 192,
+        };
+        // Pixel (3, 2) of the crop: centre at (3.5, 2.5) crop px = half-size image px.
+        let p = crop_pixel_to_image(&crop, 2 * 192 + 3, PixelSample::Centre);
+        assert_eq!((p.x, p.y), (101.75, 51.25));
+        let q = crop_pixel_to_image(&crop, 2 * 192 + 3, PixelSample::Corner);
+        assert_eq!((q.x, q.y), (101.5, 51.0));
+    }
+}

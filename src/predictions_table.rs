@@ -1,0 +1,308 @@
+//! Pose predictions: the file `predict` writes and `eval` reads (Parquet or CSV).
+//!
+//! Schema (also `schemas/predictions.json`), keyed like `samples`:
+//! - `subject_id`, `facial_action`, `img_id`: strings.
+//! - `R_t`: the predicted pose in the release's row-vector form, 16 numbers row-major;
+//!   null when the predictor failed (counted as a PnP failure).
+//! - `verts` (optional column): predicted canonical vertices, 1220 x 3 row-major, metres.
+//! - `mask_rle` (optional column, Parquet only): the predicted face mask over the
+//!   `targets` crop, encoded as the `targets` table encodes its mask (u32 LE run
+//!   lengths, starting with a background run).
+//!
+//! In CSV, `R_t` and `verts` are single fields holding the numbers separated by spaces,
+//! and an empty field is null. A header line names the columns.
+
+use crate::error::{Error, Result};
+use crate::release::SampleKey;
+use crate::samples_table::{read_parquet, str_values, write_parquet};
+use polars::prelude::*;
+use std::path::Path;
+
+/// One prediction row.
+#[derive(Clone, Debug, PartialEq)]
+pub struct PredictionRecord {
+    /// The sample.
+    pub key: SampleKey,
+    /// Predicted `R_t` (row-vector form, row-major), `None` when the predictor failed.
+    pub rt: Option<[f64; 16]>,
+    /// Predicted canonical vertices, 1220 x 3 row-major, metres.
+    pub verts: Option<Vec<f32>>,
+    /// Predicted crop mask as run lengths (see the module docs).
+    pub mask_rle: Option<Vec<u32>>,
+}
+
+/// The rows as a DataFrame. Optional columns are written only when some row has them.
+pub fn predictions_frame(rows: &[PredictionRecord]) -> Result<DataFrame> {
+    let s = |name: &str, f: &dyn Fn(&PredictionRecord) -> &str| {
+        Column::new(name.into(), rows.iter().map(f).collect::<Vec<&str>>())
+    };
+    let mut columns = vec![
+        s("subject_id", &|r| &r.key.subject_id),
+        s("facial_action", &|r| &r.key.facial_action),
+        s("img_id", &|r| &r.key.img_id),
+    ];
+    let rt: Vec<Option<Series>> = rows
+        .iter()
+        .map(|r| r.rt.map(|m| Series::new("".into(), m.to_vec())))
+        .collect();
+    columns.push(list_column("R_t", rt, DataType::Float64));
+    if rows.iter().any(|r| r.verts.is_some()) {
+        let v: Vec<Option<Series>> = rows
+            .iter()
+            .map(|r| r.verts.as_ref().map(|v| Series::new("".into(), v.clone())))
+            .collect();
+        columns.push(list_column("verts", v, DataType::Float32));
+    }
+    if rows.iter().any(|r| r.mask_rle.is_some()) {
+        let blobs: Vec<Option<Vec<u8>>> = rows
+            .iter()
+            .map(|r| {
+                r.mask_rle
+                    .as_ref()
+                    .map(|m| m.iter().flat_map(|x| x.to_le_bytes()).collect())
+            })
+            .collect();
+        let refs: Vec<Option<&[u8]>> = blobs.iter().map(|b| b.as_deref()).collect();
+        columns.push(Column::new("mask_rle".into(), refs));
+    }
+    DataFrame::new(rows.len(), columns).map_err(|e| Error::invalid("predictions", e.to_string()))
+}
+
+fn list_column(name: &str, values: Vec<Option<Series>>, inner: DataType) -> Column {
+    let mut ca: ListChunked = values.into_iter().collect();
+    ca.rename(name.into());
+    let col = ca.into_series().into_column();
+    col.cast(&DataType::List(Box::new(inner)))
+        .expect("a list of numbers casts to its own type")
+}
+
+/// Writes predictions as Parquet (atomically).
+pub fn write_predictions(path: &Path, rows: &[PredictionRecord]) -> Result<()> {
+    let mut df = predictions_frame(rows)?;
+    write_parquet(path, &mut df)
+}
+
+/// Reads predictions from Parquet or, when the name ends in `.csv`, CSV.
+pub fn read_predictions(path: &Path) -> Result<Vec<PredictionRecord>> {
+    if path
+        .extension()
+        .is_some_and(|e| e.eq_ignore_ascii_case("csv"))
+    {
+        let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
+        parse_csv(&text, path)
+    } else {
+        read_parquet_predictions(path)
+    }
+}
+
+fn read_parquet_predictions(path: &Path) -> Result<Vec<PredictionRecord>> {
+    let df = read_parquet(path)?;
+    let subject = str_values(&df, "subject_id", path)?;
+    let action = str_values(&df, "facial_action", path)?;
+    let img = str_values(&df, "img_id", path)?;
+    let lists = |name: &str| -> Result<Option<Vec<Option<Vec<f64>>>>> {
+        let Ok(c) = df.column(name) else {
+            return Ok(None);
+        };
+        let bad = |e: PolarsError| Error::format(path, format!("column {name}: {e}"));
+        let c = c
+            .cast(&DataType::List(Box::new(DataType::Float64)))
+            .map_err(bad)?;
+        let ca = c.list().map_err(bad)?;
+        ca.series_iter()
+            .map(|s| match s {
+                None => Ok(None),
+                Some(s) => Ok(Some(
+                    s.f64()
+                        .map_err(bad)?
+                        .iter()
+                        .map(|v| v.unwrap_or(f64::NAN))
+                        .collect(),
+                )),
+            })
+            .collect::<Result<Vec<_>>>()
+            .map(Some)
+    };
+    let rt =
+        lists("R_t")?.ok_or_else(|| Error::format(path, "no column 'R_t' (the predicted pose)"))?;
+    let verts = lists("verts")?;
+    let masks: Option<Vec<Option<Vec<u32>>>> = match df.column("mask_rle") {
+        Err(_) => None,
+        Ok(c) => {
+            let ca = c
+                .binary()
+                .map_err(|e| Error::format(path, format!("column mask_rle: {e}")))?;
+            Some(
+                ca.iter()
+                    .map(|b| {
+                        b.map(|b| {
+                            b.chunks_exact(4)
+                                .map(|c| u32::from_le_bytes([c[0], c[1], c[2], c[3]]))
+                                .collect()
+                        })
+                    })
+                    .collect(),
+            )
+        }
+    };
+    let mut out = Vec::with_capacity(df.height());
+    for i in 0..df.height() {
+        out.push(PredictionRecord {
+            key: SampleKey {
+                subject_id: subject[i].clone(),
+                facial_action: action[i].clone(),
+                img_id: img[i].clone(),
+            },
+            rt: rt_of(rt[i].as_deref(), path, i)?,
+            verts: verts
+                .as_ref()
+                .and_then(|v| v[i].as_ref())
+                .map(|v| v.iter().map(|&x| x as f32).collect()),
+            mask_rle: masks.as_ref().and_then(|m| m[i].clone()),
+        });
+    }
+    Ok(out)
+}
+
+fn rt_of(values: Option<&[f64]>, path: &Path, row: usize) -> Result<Option<[f64; 16]>> {
+    match values {
+        None => Ok(None),
+        Some(v) if v.len() == 16 => {
+            let mut m = [0.0; 16];
+            m.copy_from_slice(v);
+            Ok(Some(m))
+        }
+        Some(v) => Err(Error::format(
+            path,
+            format!("row {row}: R_t has {} values, expected 16", v.len()),
+        )),
+    }
+}
+
+/// Parses the CSV form (see the module docs).
+pub fn parse_csv(text: &str, path: &Path) -> Result<Vec<PredictionRecord>> {
+    let mut lines = text
+        .lines()
+        .enumerate()
+        .filter(|(_, l)| !l.trim().is_empty());
+    let (_, header) = lines
+        .next()
+        .ok_or_else(|| Error::format(path, "empty file: expected a header line"))?;
+    let names: Vec<&str> = header.split(',').map(|h| h.trim()).collect();
+    let find = |n: &str| names.iter().position(|h| *h == n);
+    let need =
+        |n: &str| find(n).ok_or_else(|| Error::format(path, format!("header has no column '{n}'")));
+    let (si, fi, ii, ri) = (
+        need("subject_id")?,
+        need("facial_action")?,
+        need("img_id")?,
+        need("R_t")?,
+    );
+    let vi = find("verts");
+    let mut out = Vec::new();
+    for (n, line) in lines {
+        let fields: Vec<&str> = line
+            .split(',')
+            .map(|f| f.trim().trim_matches('"'))
+            .collect();
+        if fields.len() != names.len() {
+            return Err(Error::format(
+                path,
+                format!(
+                    "line {}: {} fields, the header has {}",
+                    n + 1,
+                    fields.len(),
+                    names.len()
+                ),
+            ));
+        }
+        let numbers = |f: &str| -> Result<Option<Vec<f64>>> {
+            if f.is_empty() {
+                return Ok(None);
+            }
+            f.split_whitespace()
+                .map(|x| {
+                    x.parse::<f64>().map_err(|_| {
+                        Error::format(path, format!("line {}: '{x}' is not a number", n + 1))
+                    })
+                })
+                .collect::<Result<Vec<f64>>>()
+                .map(Some)
+        };
+        out.push(PredictionRecord {
+            key: SampleKey {
+                subject_id: fields[si].to_string(),
+                facial_action: fields[fi].to_string(),
+                img_id: fields[ii].to_string(),
+            },
+            rt: rt_of(numbers(fields[ri])?.as_deref(), path, n + 1)?,
+            verts: match vi {
+                Some(v) => numbers(fields[v])?.map(|v| v.iter().map(|&x| x as f32).collect()),
+                None => None,
+            },
+            mask_rle: None,
+        });
+    }
+    Ok(out)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn key(i: usize) -> SampleKey {
+        SampleKey {
+            subject_id: format!("s{i}"),
+            facial_action: "a".into(),
+            img_id: format!("{i}"),
+        }
+    }
+
+    #[test]
+    fn parquet_round_trip_with_nulls() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("p.parquet");
+        let mut rt = [0.0; 16];
+        rt.iter_mut()
+            .enumerate()
+            .for_each(|(i, v)| *v = i as f64 * 0.25);
+        let rows = vec![
+            PredictionRecord {
+                key: key(0),
+                rt: Some(rt),
+                verts: Some(vec![0.5; 6]),
+                mask_rle: Some(vec![3, 4, 5]),
+            },
+            PredictionRecord {
+                key: key(1),
+                rt: None,
+                verts: None,
+                mask_rle: None,
+            },
+        ];
+        write_predictions(&path, &rows).unwrap();
+        assert_eq!(read_predictions(&path).unwrap(), rows);
+    }
+
+    #[test]
+    fn csv_reads_and_names_bad_lines() {
+        let p = Path::new("pred.csv");
+        let ok = "subject_id,facial_action,img_id,R_t\n1,a,2,1 0 0 0 0 1 0 0 0 0 1 0 0 0 -0.5 1\n1,a,3,\n";
+        let rows = parse_csv(ok, p).unwrap();
+        assert_eq!(rows.len(), 2);
+        assert_eq!(rows[0].rt.unwrap()[14], -0.5);
+        assert_eq!(rows[1].rt, None);
+        let short = "subject_id,facial_action,img_id,R_t\n1,a,2,1 0 0\n";
+        let e = parse_csv(short, p).unwrap_err().to_string();
+        assert!(e.contains("pred.csv") && e.contains("3 values"), "{e}");
+        let word = "subject_id,facial_action,img_id,R_t\n1,a,2,x\n";
+        assert!(
+            parse_csv(word, p)
+                .unwrap_err()
+                .to_string()
+                .contains("line 2")
+        );
+        let no_rt = "subject_id,facial_action,img_id\n";
+        assert!(parse_csv(no_rt, p).unwrap_err().to_string().contains("R_t"));
+    }
+}
