@@ -168,6 +168,20 @@ pub fn sample_bilinear(image: &RgbImage, u: f64, v: f64) -> [f32; 3] {
         [raw[o] as f32, raw[o + 1] as f32, raw[o + 2] as f32]
     };
     let (x0, y0) = (x0 as i64, y0 as i64);
+    if x0 >= 0 && y0 >= 0 && x0 + 1 < w && y0 + 1 < h {
+        // Inside: the four taps are two adjacent pairs, no clamping.
+        let o = ((y0 * w + x0) * 3) as usize;
+        let row = (w * 3) as usize;
+        let mut out = [0.0; 3];
+        for k in 0..3 {
+            let (a, b) = (raw[o + k] as f32, raw[o + 3 + k] as f32);
+            let (c, d) = (raw[o + row + k] as f32, raw[o + row + 3 + k] as f32);
+            let top = a + (b - a) * fx;
+            let bottom = c + (d - c) * fx;
+            out[k] = top + (bottom - top) * fy;
+        }
+        return out;
+    }
     let (a, b, c, d) = (
         tap(x0, y0),
         tap(x0 + 1, y0),
@@ -408,10 +422,13 @@ pub fn profile(
         .collect();
     dst.extend(geometry.anchors.iter().copied());
     src.extend(geometry.anchors.iter().copied());
-    debug_assert!(dst.len() == moving + geometry.anchors.len());
     let n = width as usize * height as usize;
     let mut source_at: Vec<[f32; 2]> = vec![[f32::NAN; 2]; n];
     for t in &geometry.band {
+        // Triangles of fixed anchors only map onto themselves: nothing to redraw.
+        if t.iter().all(|&i| i as usize >= moving) {
+            continue;
+        }
         let v = t.map(|i| ScreenVertex {
             x: dst[i as usize].x as f32,
             y: dst[i as usize].y as f32,
@@ -464,14 +481,11 @@ pub fn profile(
     }
 
     let mut image = input.image.clone();
+    let out = image.as_mut();
     for (idx, s) in source_at.iter().enumerate() {
         if s[0].is_finite() {
-            let (x, y) = ((idx % width as usize) as u32, (idx / width as usize) as u32);
-            image.put_pixel(
-                x,
-                y,
-                to_rgb(sample_bilinear(&input.image, s[0] as f64, s[1] as f64)),
-            );
+            let c = to_rgb(sample_bilinear(&input.image, s[0] as f64, s[1] as f64));
+            out[3 * idx..3 * idx + 3].copy_from_slice(&c.0);
         }
     }
     Ok(FaceImage {
@@ -490,18 +504,21 @@ pub fn roll(input: &FaceImage, delta_deg: f64) -> Result<FaceImage, Skip> {
     check_inside(&camera, &new_pose, &input.verts, 0.0, "after the roll")?;
     let k = camera.pinhole();
     let (s, c) = (-delta_deg.to_radians()).sin_cos();
-    let image = RgbImage::from_fn(width, height, |x, y| {
+    let mut image = RgbImage::new(width, height);
+    let out = image.as_mut();
+    for y in 0..height {
         // Normalised camera coordinates (y up) of the output pixel, turned back.
-        let a = (x as f64 + 0.5 - k.cx) / k.fx;
         let b = -(y as f64 + 0.5 - k.cy) / k.fy;
-        let (a0, b0) = (c * a - s * b, s * a + c * b);
-        let (u, v) = (k.cx + k.fx * a0, k.cy - k.fy * b0);
-        if u < 0.0 || v < 0.0 || u > width as f64 || v > height as f64 {
-            Rgb([0, 0, 0])
-        } else {
-            to_rgb(sample_bilinear(&input.image, u, v))
+        for x in 0..width {
+            let a = (x as f64 + 0.5 - k.cx) / k.fx;
+            let (a0, b0) = (c * a - s * b, s * a + c * b);
+            let (u, v) = (k.cx + k.fx * a0, k.cy - k.fy * b0);
+            if u >= 0.0 && v >= 0.0 && u <= width as f64 && v <= height as f64 {
+                let o = 3 * (y as usize * width as usize + x as usize);
+                out[o..o + 3].copy_from_slice(&to_rgb(sample_bilinear(&input.image, u, v)).0);
+            }
         }
-    });
+    }
     Ok(FaceImage {
         image,
         verts: input.verts.clone(),
