@@ -126,49 +126,93 @@ type Solver<'a> = &'a dyn Fn(
     &[bool],
 ) -> Result<PnpSolution, PnpError>;
 
+const K: Intrinsics = Intrinsics {
+    fx: 1.57443701 * 400.0,
+    fy: 1.57443701 * 400.0,
+    cx: 400.0,
+    cy: 400.0,
+};
+
+/// One scene: object points, image points, the true pose, which points are outliers.
+type Scene = (
+    Vec<Point3<f64>>,
+    Vec<Point2<f64>>,
+    Isometry3<f64>,
+    Vec<bool>,
+);
+
+fn scene(surface: &Surface, outlier_ratio: f64, rng: &mut Rng) -> Scene {
+    let k = K;
+    let obj: Vec<Vector3<f64>> = (0..1024).map(|_| surface.sample(rng)).collect();
+    let c = obj.iter().fold(Vector3::zeros(), |a, p| a + p) / obj.len() as f64;
+    let d = 60f64.to_radians();
+    // ARKit face frame (y up, z out of the face) to an OpenCV camera facing it.
+    let base = Rotation3::from_axis_angle(&Vector3::x_axis(), std::f64::consts::PI);
+    let rot = base
+        * Rotation3::from_euler_angles(
+            rng.uniform(-d, d),
+            rng.uniform(-d, d),
+            rng.uniform(-d / 2.0, d / 2.0),
+        );
+    let z = rng.uniform(0.3, 1.0);
+    let target = Vector3::new(rng.uniform(-0.1, 0.1) * z, rng.uniform(-0.1, 0.1) * z, z);
+    let t = target - rot * c * CENTROID_WEIGHT;
+    let iso = Isometry3::from_parts(
+        Translation3::from(t),
+        UnitQuaternion::from_rotation_matrix(&rot),
+    );
+    let objp: Vec<Point3<f64>> = obj.iter().map(|v| Point3::from(*v)).collect();
+    let mut is_out = Vec::with_capacity(objp.len());
+    let img: Vec<Point2<f64>> = objp
+        .iter()
+        .map(|p| {
+            is_out.push(rng.next_f64() < outlier_ratio);
+            if is_out[is_out.len() - 1] {
+                Point2::new(rng.uniform(0.0, 800.0), rng.uniform(0.0, 800.0))
+            } else {
+                let q = reproject(&k, &iso, p);
+                Point2::new(q.x + rng.normal(), q.y + rng.normal())
+            }
+        })
+        .collect();
+    (objp, img, iso, is_out)
+}
+
+/// With `PNP_BENCH_DUMP=DIR`, writes the scenes as .npy files (object and image points,
+/// true [R|t] in OpenCV form) so OpenCV can be run on exactly the same data
+/// (`benches/pnp_opencv.py`).
+fn dump(surface: &Surface, outlier_ratio: f64, dir: &std::path::Path) {
+    use arkit_tool::npy::{NpyArray, write_npy};
+    let mut rng = Rng::new(12345);
+    let (mut o, mut i, mut t) = (Vec::new(), Vec::new(), Vec::new());
+    for _ in 0..300 {
+        let (objp, img, iso, _) = scene(surface, outlier_ratio, &mut rng);
+        o.extend(objp.iter().flat_map(|p| [p.x, p.y, p.z]));
+        i.extend(img.iter().flat_map(|p| [p.x, p.y]));
+        let m = iso.to_homogeneous();
+        t.extend((0..3).flat_map(|r| (0..4).map(move |c| m[(r, c)])));
+    }
+    std::fs::create_dir_all(dir).unwrap();
+    let tag = (outlier_ratio * 100.0).round() as u32;
+    for (name, shape, data) in [
+        ("object", vec![300, 1024, 3], o),
+        ("image", vec![300, 1024, 2], i),
+        ("truth", vec![300, 3, 4], t),
+    ] {
+        let a = NpyArray::from_f64(shape, data).unwrap();
+        let mut f = std::fs::File::create(dir.join(format!("{name}_{tag}.npy"))).unwrap();
+        write_npy(&mut f, &a).unwrap();
+    }
+}
+
 fn run(surface: &Surface, outlier_ratio: f64, solver: Solver) -> Row {
-    let k = Intrinsics {
-        fx: 1.57443701 * 400.0,
-        fy: 1.57443701 * 400.0,
-        cx: 400.0,
-        cy: 400.0,
-    };
+    let k = K;
     let mut rng = Rng::new(12345);
     let (mut re, mut te, mut times) = (Vec::new(), Vec::new(), Vec::new());
     let mut failures = 0;
     for pose in 0..300u64 {
-        let obj: Vec<Vector3<f64>> = (0..1024).map(|_| surface.sample(&mut rng)).collect();
-        let c = obj.iter().fold(Vector3::zeros(), |a, p| a + p) / obj.len() as f64;
-        let d = 60f64.to_radians();
-        // ARKit face frame (y up, z out of the face) to an OpenCV camera facing it.
-        let base = Rotation3::from_axis_angle(&Vector3::x_axis(), std::f64::consts::PI);
-        let rot = base
-            * Rotation3::from_euler_angles(
-                rng.uniform(-d, d),
-                rng.uniform(-d, d),
-                rng.uniform(-d / 2.0, d / 2.0),
-            );
-        let z = rng.uniform(0.3, 1.0);
-        let target = Vector3::new(rng.uniform(-0.1, 0.1) * z, rng.uniform(-0.1, 0.1) * z, z);
-        let t = target - rot * c * CENTROID_WEIGHT;
-        let iso = Isometry3::from_parts(
-            Translation3::from(t),
-            UnitQuaternion::from_rotation_matrix(&rot),
-        );
-        let objp: Vec<Point3<f64>> = obj.iter().map(|v| Point3::from(*v)).collect();
-        let mut is_out = Vec::with_capacity(objp.len());
-        let img: Vec<Point2<f64>> = objp
-            .iter()
-            .map(|p| {
-                is_out.push(rng.next_f64() < outlier_ratio);
-                if is_out[is_out.len() - 1] {
-                    Point2::new(rng.uniform(0.0, 800.0), rng.uniform(0.0, 800.0))
-                } else {
-                    let q = reproject(&k, &iso, p);
-                    Point2::new(q.x + rng.normal(), q.y + rng.normal())
-                }
-            })
-            .collect();
+        let (objp, img, iso, is_out) = scene(surface, outlier_ratio, &mut rng);
+        let (rot, t) = (iso.rotation.to_rotation_matrix(), iso.translation.vector);
         // Minimum over REPEATS identical runs: robust to other load on the machine.
         let mut best_t = f64::INFINITY;
         let mut res = Err(PnpError::Degenerate("not run"));
@@ -200,6 +244,12 @@ fn run(surface: &Surface, outlier_ratio: f64, solver: Solver) -> Row {
 
 fn main() {
     let surface = Surface::load();
+    if let Some(dir) = std::env::var_os("PNP_BENCH_DUMP") {
+        let dir = std::path::PathBuf::from(dir);
+        dump(&surface, 0.0, &dir);
+        dump(&surface, 0.3, &dir);
+        println!("scenes written to {}", dir.display());
+    }
     let ransac = |o: &[Point3<f64>],
                   i: &[Point2<f64>],
                   k: &Intrinsics,

@@ -26,6 +26,8 @@
 //!   [`predict`]: crop pixels to a release pose, and the oracle predictor.
 //! - [`augment`]: face profiling, roll and mirroring of one sample;
 //!   [`augment_dataset`]: the rule, the release-layout output, previews.
+//! - [`perspnet`]: the reference PerspNet in candle (model, losses, config);
+//!   [`training`]: examples from storage, the training loop, checkpoints.
 //! - [`rng`]: the seeded random streams that make output reproducible.
 //! - [`atomic_file`]: writes that never leave a half-written file.
 
@@ -41,6 +43,7 @@ pub mod eval;
 pub mod eval_dataset;
 pub mod npy;
 pub mod overlay;
+pub mod perspnet;
 pub mod plot;
 pub mod pnp;
 pub mod predict;
@@ -56,6 +59,7 @@ pub mod synth;
 pub mod synthetic_face;
 pub mod targets_table;
 pub mod topology;
+pub mod training;
 
 pub use conventions::{Camera, EulerAngles, Pose};
 pub use error::{Error, Result};

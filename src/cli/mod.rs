@@ -11,6 +11,7 @@ mod render;
 mod split;
 mod synth;
 mod topology;
+mod train;
 
 use arkit_tool::Result;
 use clap::{Parser, Subcommand};
@@ -37,6 +38,7 @@ enum Command {
     Split(split::SplitArgs),
     Inspect(inspect::InspectArgs),
     Render(render::RenderArgs),
+    Train(train::TrainArgs),
     Predict(predict::PredictArgs),
     Eval(eval::EvalArgs),
     Augment(augment::AugmentArgs),
@@ -53,6 +55,7 @@ pub fn run(cli: Cli) -> Result<ExitCode> {
         Command::Split(a) => split::run(a),
         Command::Inspect(a) => inspect::run(a),
         Command::Render(a) => render::run(a),
+        Command::Train(a) => train::run(a),
         Command::Predict(a) => predict::run(a),
         Command::Eval(a) => eval::run(a),
         Command::Augment(a) => augment::run(a),

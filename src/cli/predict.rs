@@ -17,9 +17,16 @@ use std::process::ExitCode;
 /// metric is ~0: a check of render, crop transform, PnP and eval together; with
 /// --noise-px 1 it is the floor any model meets.
 ///
+/// --model DIR: a network trained by `train`: the crop box from the sample's
+/// landmarks (as the official evaluation does), the predicted face mask, --points
+/// pixels sampled from it, their predicted 3D points through the same PnP; the
+/// predictions also carry the predicted mesh and crop mask, for `eval`'s 3D
+/// reconstruction and mask scores.
+///
 /// Example: arkit-tool predict --oracle --dataset data/pq --noise-px 1 --output oracle.parquet
+///          arkit-tool predict --model model/ --dataset data/pq --output pred.parquet
 #[derive(Args, Debug)]
-#[command(group(ArgGroup::new("predictor").required(true).args(["oracle"])))]
+#[command(group(ArgGroup::new("predictor").required(true).args(["oracle", "model"])))]
 pub struct PredictArgs {
     /// A folder written by `convert` (and `render`).
     #[arg(long)]
@@ -27,6 +34,12 @@ pub struct PredictArgs {
     /// Use the stored ground-truth correspondences.
     #[arg(long)]
     oracle: bool,
+    /// Use a network trained by `train` (its checkpoint folder).
+    #[arg(long)]
+    model: Option<PathBuf>,
+    /// The release's resource folder (real topology), as given to `train`.
+    #[arg(long)]
+    resources: Option<PathBuf>,
     /// Where `render` wrote targets/ (default: the dataset).
     #[arg(long)]
     targets: Option<PathBuf>,
@@ -64,6 +77,39 @@ pub fn run(a: PredictArgs) -> Result<ExitCode> {
         ));
     }
     let manifest = arkit_tool::convert::read_manifest(&a.dataset.join("dataset.json"))?;
+    if let Some(dir) = &a.model {
+        let topology = super::load_topology(a.resources.as_deref())?;
+        let model = arkit_tool::training::load(dir, &topology)?;
+        let ransac = RansacParams {
+            reprojection_threshold_px: a.threshold_px,
+            seed: a.seed,
+            ..RansacParams::default()
+        };
+        let bar = super::progress_bar(manifest.converted as u64, "predict", "samples");
+        let split = (a.split != "all").then_some(a.split.as_str());
+        let (rows, summary) = arkit_tool::training::model_predictions(
+            &a.dataset,
+            &model,
+            split,
+            a.seed,
+            &ransac,
+            &|n| bar.inc(n as u64),
+        )?;
+        bar.finish_and_clear();
+        write_predictions(&a.output, &rows)?;
+        if a.json {
+            println!("{}", serde_json::to_string_pretty(&summary).expect("json"));
+        } else {
+            println!(
+                "model {}: {} samples, {} PnP failures -> {}",
+                dir.display(),
+                summary.samples,
+                summary.failures,
+                a.output.display()
+            );
+        }
+        return Ok(ExitCode::SUCCESS);
+    }
     let options = OracleOptions {
         noise_px: a.noise_px,
         outliers: a.outliers,

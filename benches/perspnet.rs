@@ -1,0 +1,112 @@
+//! Timing of forward (batch 1) and a full training step (batch 4) for the
+//! `tiny` and `paper` configurations. Run with
+//! `cargo bench --bench perspnet -- [tiny|paper|both] [reps]`.
+
+use std::time::Instant;
+
+use arkit_tool::perspnet::loss::{LossWeights, perspnet_loss};
+use arkit_tool::perspnet::model::{parameter_count, synthetic_vertex_uv, trainable_vars};
+use arkit_tool::perspnet::{CorrTarget, LossTargets, PerspNet, PerspNetConfig};
+use candle_core::{DType, Device, Result, Tensor};
+use candle_nn::{AdamW, Optimizer, ParamsAdamW, VarBuilder, VarMap};
+
+fn median(mut v: Vec<f64>) -> f64 {
+    v.sort_by(|a, b| a.partial_cmp(b).unwrap());
+    v[v.len() / 2]
+}
+
+fn run(name: &str, cfg: &PerspNetConfig, reps: usize) -> Result<()> {
+    let dev = Device::Cpu;
+    let varmap = VarMap::new();
+    let vb = VarBuilder::from_varmap(&varmap, DType::F32, &dev);
+    let uv = synthetic_vertex_uv(cfg.vertices, &dev)?;
+    let net = PerspNet::new(cfg, &uv, vb)?;
+    println!(
+        "{name}: {:.3} M parameters ({:.3} M encoder+decoders)",
+        parameter_count(&varmap, "") as f64 / 1e6,
+        parameter_count(&varmap, "cnn.") as f64 / 1e6
+    );
+    let (s, m, v) = (cfg.input_size, cfg.points, cfg.vertices);
+    let mk = |b: usize| -> Result<(Tensor, Tensor)> {
+        let img = Tensor::randn(0f32, 1., (b, 3, s, s), &dev)?;
+        let ch: Vec<u32> = (0..b * m).map(|i| ((i * 37) % (s * s)) as u32).collect();
+        Ok((img, Tensor::from_vec(ch, (b, m), &dev)?))
+    };
+
+    let (img1, ch1) = mk(1)?;
+    let _ = net.forward(&img1, &ch1, false)?; // warm-up
+    let mut fwd = Vec::new();
+    let mut dense = Vec::new();
+    for _ in 0..reps {
+        let t = Instant::now();
+        let _ = net.forward_dense(&img1, false)?;
+        dense.push(t.elapsed().as_secs_f64());
+        let t = Instant::now();
+        let _ = net.forward(&img1, &ch1, false)?;
+        fwd.push(t.elapsed().as_secs_f64());
+    }
+
+    let b = 4;
+    let (img, ch) = mk(b)?;
+    let ids: Vec<u32> = (0..b * m * 3).map(|i| (i % v) as u32).collect();
+    let ids = Tensor::from_vec(ids, (b, m, 3), &dev)?;
+    let wts = Tensor::full(1f32 / 3., (b, m, 3), &dev)?;
+    let corr = CorrTarget::Sparse { ids, weights: wts };
+    let nocs = Tensor::zeros((b, m, 3), DType::F32, &dev)?;
+    let model = Tensor::zeros((b, v, 3), DType::F32, &dev)?;
+    let mask = Tensor::zeros((b, s, s), DType::F32, &dev)?;
+    let targets = LossTargets {
+        nocs: &nocs,
+        model: &model,
+        seg_mask: &mask,
+        corr: &corr,
+        uv_map: None,
+    };
+    let mut opt = AdamW::new(
+        trainable_vars(&varmap),
+        ParamsAdamW {
+            lr: 1e-4,
+            ..Default::default()
+        },
+    )?;
+    let weights = LossWeights::default();
+    let mut steps = Vec::new();
+    let mut fwd_train = Vec::new();
+    let mut bwd = Vec::new();
+    for _ in 0..reps.max(2) {
+        let t = Instant::now();
+        let out = net.forward(&img, &ch, true)?;
+        let terms = perspnet_loss(&out, &targets, &weights)?;
+        fwd_train.push(t.elapsed().as_secs_f64());
+        let grads = terms.total.backward()?;
+        bwd.push(t.elapsed().as_secs_f64());
+        opt.step(&grads)?;
+        steps.push(t.elapsed().as_secs_f64());
+    }
+    println!(
+        "{name}: forward b=1 eval: full {:.1} ms, encoder+decoders {:.1} ms | train step b=4: {:.3} s (forward+loss {:.3} s, +backward {:.3} s)",
+        median(fwd) * 1e3,
+        median(dense) * 1e3,
+        median(steps),
+        median(fwd_train),
+        median(bwd)
+    );
+    Ok(())
+}
+
+fn main() -> Result<()> {
+    // `cargo bench` passes `--bench`: keep only our own arguments.
+    let args: Vec<String> = std::env::args()
+        .skip(1)
+        .filter(|a| !a.starts_with("--"))
+        .collect();
+    let which = args.first().map(String::as_str).unwrap_or("both");
+    let reps: usize = args.get(1).and_then(|s| s.parse().ok()).unwrap_or(5);
+    if which == "tiny" || which == "both" {
+        run("tiny", &PerspNetConfig::tiny(), reps)?;
+    }
+    if which == "paper" || which == "both" {
+        run("paper", &PerspNetConfig::paper(), reps)?;
+    }
+    Ok(())
+}

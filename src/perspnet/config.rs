@@ -1,0 +1,147 @@
+//! Serde-serialisable hyper-parameters of [`crate::perspnet::PerspNet`].
+
+use serde::{Deserialize, Serialize};
+
+/// Hyper-parameters of PerspNet. [`PerspNetConfig::paper`] reproduces the
+/// official shapes; [`PerspNetConfig::tiny`] is a scaled-down variant that
+/// trains in minutes on a CPU.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct PerspNetConfig {
+    /// Side of the square input crop in pixels (must be a multiple of 32).
+    pub input_size: usize,
+    /// Widths of the four ResNet-18 stages (the stem has `encoder_widths[0]` channels).
+    pub encoder_widths: [usize; 4],
+    /// Channels of the 3x3 conv + BN + ReLU after the encoder (`fcdim`).
+    pub fc_channels: usize,
+    /// Widths of the four decoder stages at strides 16, 8, 4, 2.
+    pub decoder_widths: [usize; 4],
+    /// Channels of the full-resolution image and UV feature maps (`raw_dim`).
+    pub feature_channels: usize,
+    /// Output channels of the 1x1 conv applied to the sampled image features.
+    pub color_channels: usize,
+    /// Channels of the 2D sine/cosine position encoding (multiple of 4).
+    pub pos_channels: usize,
+    /// Hidden width of the two global-feature MLPs (128 in the paper).
+    pub global_hidden: usize,
+    /// Width of the 2D and 3D global features (1024 in the paper).
+    pub global_channels: usize,
+    /// Hidden widths of the assignment MLP (512, 256 in the paper).
+    pub assign_hidden: [usize; 2],
+    /// Number of sampled pixels per image (`n_pts`, M).
+    pub points: usize,
+    /// Number of mesh vertices (1,220 for the ARKit face mesh).
+    pub vertices: usize,
+    /// Channel-wise (Dropout2d) probability used in training.
+    pub dropout: f64,
+    /// Standard deviation of the normal weight initialisation.
+    pub init_std: f64,
+    /// Batch-norm epsilon.
+    pub bn_eps: f64,
+    /// Batch-norm running-statistics momentum (PyTorch convention).
+    pub bn_momentum: f64,
+}
+
+impl PerspNetConfig {
+    /// The official configuration: 192x192 input, ResNet-18 widths
+    /// 64/128/256/512, decoder 256/128/64/32, 32 feature channels, M = 1024,
+    /// 1,220 vertices.
+    pub fn paper() -> Self {
+        Self {
+            input_size: 192,
+            encoder_widths: [64, 128, 256, 512],
+            fc_channels: 256,
+            decoder_widths: [256, 128, 64, 32],
+            feature_channels: 32,
+            color_channels: 64,
+            pos_channels: 64,
+            global_hidden: 128,
+            global_channels: 1024,
+            assign_hidden: [512, 256],
+            points: 1024,
+            vertices: 1220,
+            dropout: 0.15,
+            init_std: 0.02,
+            bn_eps: 1e-5,
+            bn_momentum: 0.1,
+        }
+    }
+
+    /// A small configuration for tests and quick CPU experiments:
+    /// 64x64 input, widths 16/32/64/128, decoder 64/32/16/16, 16 feature
+    /// channels, M = 256, heads scaled down by 4-8x.
+    pub fn tiny() -> Self {
+        Self {
+            input_size: 64,
+            encoder_widths: [16, 32, 64, 128],
+            fc_channels: 64,
+            decoder_widths: [64, 32, 16, 16],
+            feature_channels: 16,
+            color_channels: 16,
+            pos_channels: 16,
+            global_hidden: 32,
+            global_channels: 128,
+            assign_hidden: [128, 64],
+            points: 256,
+            vertices: 1220,
+            dropout: 0.15,
+            init_std: 0.02,
+            bn_eps: 1e-5,
+            bn_momentum: 0.1,
+        }
+    }
+
+    /// Channels of the per-point local feature (`color_channels + pos_channels`, 128 in the paper).
+    pub fn local_channels(&self) -> usize {
+        self.color_channels + self.pos_channels
+    }
+
+    /// Input channels of the assignment MLP (local + 2D global + 3D global, 2176 in the paper).
+    pub fn assign_in_channels(&self) -> usize {
+        self.local_channels() + 2 * self.global_channels
+    }
+
+    /// Checks the constraints the model relies on.
+    pub fn validate(&self) -> Result<(), String> {
+        if self.input_size == 0 || !self.input_size.is_multiple_of(32) {
+            return Err(format!(
+                "input_size {} must be a positive multiple of 32",
+                self.input_size
+            ));
+        }
+        if self.pos_channels == 0 || !self.pos_channels.is_multiple_of(4) {
+            return Err(format!(
+                "pos_channels {} must be a positive multiple of 4",
+                self.pos_channels
+            ));
+        }
+        if !(0.0..1.0).contains(&self.dropout) {
+            return Err(format!("dropout {} must be in [0, 1)", self.dropout));
+        }
+        if self.points == 0 || self.vertices == 0 {
+            return Err("points and vertices must be positive".into());
+        }
+        Ok(())
+    }
+}
+
+impl Default for PerspNetConfig {
+    fn default() -> Self {
+        Self::paper()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn json_round_trip() {
+        for c in [PerspNetConfig::paper(), PerspNetConfig::tiny()] {
+            c.validate().unwrap();
+            let s = serde_json::to_string(&c).unwrap();
+            let back: PerspNetConfig = serde_json::from_str(&s).unwrap();
+            assert_eq!(back, c);
+        }
+        assert_eq!(PerspNetConfig::paper().assign_in_channels(), 2176);
+    }
+}

@@ -1,0 +1,949 @@
+//! Building blocks that candle 0.11 does not provide in a differentiable form:
+//! bilinear x2 up-sampling with `align_corners=True`, grid-sample-style
+//! bilinear point reads (`align_corners=False`, zero padding), 3x3/2 max
+//! pooling with padding, channel-wise dropout, the official 2D sine/cosine
+//! position encoding, ImageNet normalisation, and conv / batch-norm layers
+//! initialised like the official `init_weights(init_type='normal', 0.02)`.
+
+use candle_core::{D, DType, Device, Module, ModuleT, Result, Tensor};
+use candle_nn::{BatchNorm, Init, Linear, VarBuilder};
+
+/// ImageNet channel means (RGB) used by [`imagenet_normalize`].
+pub const IMAGENET_MEAN: [f32; 3] = [0.485, 0.456, 0.406];
+/// ImageNet channel standard deviations (RGB) used by [`imagenet_normalize`].
+pub const IMAGENET_STD: [f32; 3] = [0.229, 0.224, 0.225];
+
+/// Normalises a `B x 3 x H x W` RGB batch with values in `[0, 1]` by the
+/// ImageNet mean and standard deviation.
+pub fn imagenet_normalize(img: &Tensor) -> Result<Tensor> {
+    let dev = img.device();
+    let mean = Tensor::new(&IMAGENET_MEAN, dev)?
+        .to_dtype(img.dtype())?
+        .reshape((1, 3, 1, 1))?;
+    let std = Tensor::new(&IMAGENET_STD, dev)?
+        .to_dtype(img.dtype())?
+        .reshape((1, 3, 1, 1))?;
+    img.broadcast_sub(&mean)?.broadcast_div(&std)
+}
+
+/// The `(out, n)` matrix of 1-D linear interpolation from `n` to `out`
+/// samples with `align_corners=True` (source position `i * (n-1)/(out-1)`).
+pub fn interp_matrix_align_corners(n: usize, out: usize) -> Vec<f32> {
+    let mut m = vec![0f32; out * n];
+    for i in 0..out {
+        let src = if out > 1 && n > 1 {
+            i as f64 * (n - 1) as f64 / (out - 1) as f64
+        } else {
+            0.0
+        };
+        let i0 = (src.floor() as usize).min(n - 1);
+        let i1 = (i0 + 1).min(n - 1);
+        let w1 = (src - i0 as f64) as f32;
+        m[i * n + i0] += 1.0 - w1;
+        m[i * n + i1] += w1;
+    }
+    m
+}
+
+/// Bilinear up-sampling of a `B x C x H x W` tensor by 2 with
+/// `align_corners=True` (PyTorch `nn.UpsamplingBilinear2d(scale_factor=2)`),
+/// written as two matmuls with fixed interpolation matrices so that it is
+/// differentiable.
+pub fn upsample2x_bilinear(x: &Tensor) -> Result<Tensor> {
+    let (_b, _c, h, w) = x.dims4()?;
+    upsample_bilinear_align_corners(x, 2 * h, 2 * w)
+}
+
+/// Bilinear resize of a `B x C x H x W` tensor to `out_h x out_w` with
+/// `align_corners=True`, differentiable (see [`upsample2x_bilinear`]).
+pub fn upsample_bilinear_align_corners(x: &Tensor, out_h: usize, out_w: usize) -> Result<Tensor> {
+    let (_b, _c, h, w) = x.dims4()?;
+    let dev = x.device();
+    // (W, out_w): x @ A_w^T resizes the last dimension.
+    let aw = Tensor::from_vec(interp_matrix_align_corners(w, out_w), (out_w, w), dev)?
+        .to_dtype(x.dtype())?
+        .t()?
+        .contiguous()?;
+    let ah = Tensor::from_vec(interp_matrix_align_corners(h, out_h), (out_h, h), dev)?
+        .to_dtype(x.dtype())?;
+    let y = x.contiguous()?.broadcast_matmul(&aw)?; // B x C x H x out_w
+    ah.broadcast_matmul(&y) // B x C x out_h x out_w
+}
+
+/// Pre-computed bilinear reads of a `B x C x H x W` map at fixed normalised
+/// coordinates, equal to `F.grid_sample(map, grid, mode='bilinear',
+/// padding_mode='zeros', align_corners=False)` with `grid = 2 * uv - 1`.
+///
+/// The reads are an `index_select` of the four neighbours followed by a
+/// weighted sum, so gradients flow to the map.
+#[derive(Debug, Clone)]
+pub struct PointSampler {
+    /// Flat neighbour indices `y * W + x`, laid out as 4 blocks of `P` (u32).
+    indices: Tensor,
+    /// Neighbour weights `4 x P` (zero for out-of-range neighbours).
+    weights: Tensor,
+    points: usize,
+    height: usize,
+    width: usize,
+}
+
+impl PointSampler {
+    /// Builds a sampler for `uv` (`P x 2`, columns `(u, v)` in `[0, 1]`, `u`
+    /// along the width) on an `height x width` map.
+    pub fn new(uv: &Tensor, height: usize, width: usize) -> Result<Self> {
+        let uv = uv.to_dtype(DType::F32)?.to_vec2::<f32>()?;
+        Self::from_uv(&uv, height, width, &Device::Cpu)
+    }
+
+    /// Builds a sampler from `(u, v)` pairs on `device` (see [`PointSampler::new`]).
+    pub fn from_uv(uv: &[Vec<f32>], height: usize, width: usize, device: &Device) -> Result<Self> {
+        let p = uv.len();
+        let mut idx = vec![0u32; 4 * p];
+        let mut wts = vec![0f32; 4 * p];
+        for (k, row) in uv.iter().enumerate() {
+            if row.len() < 2 {
+                candle_core::bail!("uv rows must have 2 entries");
+            }
+            // align_corners=False: pixel = ((g + 1) * size - 1) / 2 = uv * size - 0.5
+            let x = row[0] as f64 * width as f64 - 0.5;
+            let y = row[1] as f64 * height as f64 - 0.5;
+            let x0 = x.floor();
+            let y0 = y.floor();
+            let fx = x - x0;
+            let fy = y - y0;
+            let corners = [
+                (x0, y0, (1.0 - fx) * (1.0 - fy)),
+                (x0 + 1.0, y0, fx * (1.0 - fy)),
+                (x0, y0 + 1.0, (1.0 - fx) * fy),
+                (x0 + 1.0, y0 + 1.0, fx * fy),
+            ];
+            for (c, &(cx, cy, w)) in corners.iter().enumerate() {
+                let inside =
+                    cx >= 0.0 && cy >= 0.0 && cx <= (width - 1) as f64 && cy <= (height - 1) as f64;
+                if inside {
+                    idx[c * p + k] = (cy as usize * width + cx as usize) as u32;
+                    wts[c * p + k] = w as f32;
+                }
+            }
+        }
+        Ok(Self {
+            indices: Tensor::from_vec(idx, 4 * p, device)?,
+            weights: Tensor::from_vec(wts, (4, p), device)?,
+            points: p,
+            height,
+            width,
+        })
+    }
+
+    /// Number of sampled points `P`.
+    pub fn points(&self) -> usize {
+        self.points
+    }
+
+    /// Reads `map` (`B x C x H x W`) at the points: returns `B x C x P`.
+    pub fn sample(&self, map: &Tensor) -> Result<Tensor> {
+        let (b, c, h, w) = map.dims4()?;
+        if (h, w) != (self.height, self.width) {
+            candle_core::bail!(
+                "PointSampler built for {}x{}, got {h}x{w}",
+                self.height,
+                self.width
+            );
+        }
+        let flat = map.reshape((b, c, h * w))?;
+        let g = flat.index_select(&self.indices, 2)?; // B x C x 4P
+        let g = g.reshape((b, c, 4, self.points))?;
+        let wts = self
+            .weights
+            .to_dtype(map.dtype())?
+            .reshape((1, 1, 4, self.points))?;
+        g.broadcast_mul(&wts)?.sum(2)
+    }
+}
+
+/// Gathers per-batch pixels: `feat` is `B x C x H x W`, `choose` is `B x M`
+/// (u32 flat indices `y * W + x`); returns `B x M x C` (points-major, ready for
+/// the per-point linear layers).
+pub fn gather_pixels(feat: &Tensor, choose: &Tensor) -> Result<Tensor> {
+    let (b, c, h, w) = feat.dims4()?;
+    let (b2, m) = choose.dims2()?;
+    if b != b2 {
+        candle_core::bail!("gather_pixels: batch {b} vs choose batch {b2}");
+    }
+    // Flatten batch and pixels into one axis: (B*HW) x C.
+    let flat = feat
+        .reshape((b, c, h * w))?
+        .transpose(1, 2)?
+        .contiguous()?
+        .reshape((b * h * w, c))?;
+    let offs = Tensor::arange(0u32, b as u32, choose.device())?
+        .affine((h * w) as f64, 0.0)?
+        .reshape((b, 1))?;
+    let ids = choose
+        .to_dtype(DType::U32)?
+        .broadcast_add(&offs)?
+        .flatten_all()?;
+    flat.index_select(&ids, 0)?.reshape((b, m, c))
+}
+
+/// The official `positionalencoding2d(d_model, H, W)` evaluated at pixel
+/// `(x, y)`: channel `2k` / `2k+1` of the first half are `sin` / `cos` of
+/// `x * exp(-2k ln(10000) / (d/2))`, the second half the same with `y`.
+pub fn positional_encoding_at(d_model: usize, x: f64, y: f64) -> Vec<f32> {
+    let half = d_model / 2;
+    let mut pe = vec![0f32; d_model];
+    for (k, i) in (0..half).step_by(2).enumerate() {
+        let div = (i as f64 * -(10000f64.ln() / half as f64)).exp();
+        let _ = k;
+        pe[i] = (x * div).sin() as f32;
+        pe[i + 1] = (x * div).cos() as f32;
+        pe[half + i] = (y * div).sin() as f32;
+        pe[half + i + 1] = (y * div).cos() as f32;
+    }
+    pe
+}
+
+/// The full `d_model x H x W` position-encoding map (row-major), as the
+/// official code pre-computes it.
+pub fn positional_encoding_map(d_model: usize, height: usize, width: usize) -> Vec<f32> {
+    let mut out = vec![0f32; d_model * height * width];
+    for y in 0..height {
+        for x in 0..width {
+            let pe = positional_encoding_at(d_model, x as f64, y as f64);
+            for (c, v) in pe.into_iter().enumerate() {
+                out[(c * height + y) * width + x] = v;
+            }
+        }
+    }
+    out
+}
+
+/// Position encodings of the chosen pixels: `choose` is `B x M` (u32 flat
+/// indices in an image of width `width`); returns `B x M x d_model`.
+pub fn positional_encoding_points(
+    choose: &Tensor,
+    d_model: usize,
+    width: usize,
+    device: &Device,
+) -> Result<Tensor> {
+    let (b, m) = choose.dims2()?;
+    let ids = choose
+        .to_dtype(DType::U32)?
+        .flatten_all()?
+        .to_vec1::<u32>()?;
+    let mut out = Vec::with_capacity(b * m * d_model);
+    for id in ids {
+        let (x, y) = (id as usize % width, id as usize / width);
+        out.extend(positional_encoding_at(d_model, x as f64, y as f64));
+    }
+    Tensor::from_vec(out, (b, m, d_model), device)
+}
+
+/// Max pooling with kernel 3, stride 2, padding 1 (the ResNet stem), written
+/// with strided views and `maximum` so that it is differentiable.
+///
+/// Padding is with zeros, which equals PyTorch's `-inf` padding because the
+/// input is non-negative (it follows a ReLU).
+pub fn max_pool_3x3_s2_p1(x: &Tensor) -> Result<Tensor> {
+    let (_b, _c, h, w) = x.dims4()?;
+    let oh = (h + 2 - 3) / 2 + 1;
+    let ow = (w + 2 - 3) / 2 + 1;
+    // pad so that there are 2*o + 1 (+1 to make it even) rows/cols available
+    let xp = x.pad_with_zeros(2, 1, 2 * oh + 2 - (h + 1))?;
+    let xp = xp.pad_with_zeros(3, 1, 2 * ow + 2 - (w + 1))?;
+    let rows = |t: &Tensor, off: usize| -> Result<Tensor> {
+        let (b, c, _, ww) = t.dims4()?;
+        t.narrow(2, off, 2 * oh)?
+            .reshape((b, c, oh, 2, ww))?
+            .narrow(3, 0, 1)?
+            .squeeze(3)
+    };
+    let r = rows(&xp, 0)?
+        .maximum(&rows(&xp, 1)?)?
+        .maximum(&rows(&xp, 2)?)?;
+    let cols = |t: &Tensor, off: usize| -> Result<Tensor> {
+        let (b, c, hh, _) = t.dims4()?;
+        t.narrow(3, off, 2 * ow)?
+            .reshape((b, c, hh, ow, 2))?
+            .narrow(4, 0, 1)?
+            .squeeze(4)
+    };
+    cols(&r, 0)?.maximum(&cols(&r, 1)?)?.maximum(&cols(&r, 2)?)
+}
+
+/// Channel-wise dropout (PyTorch `nn.Dropout2d`): zeroes whole channels of a
+/// `B x C x H x W` tensor with probability `p` and rescales the rest by
+/// `1 / (1 - p)`. Identity when `train` is false or `p == 0`.
+pub fn dropout2d(x: &Tensor, p: f64, train: bool) -> Result<Tensor> {
+    if !train || p <= 0.0 {
+        return Ok(x.clone());
+    }
+    let (b, c, _, _) = x.dims4()?;
+    let keep = Tensor::rand(0f32, 1f32, (b, c, 1, 1), x.device())?
+        .ge(p)?
+        .to_dtype(x.dtype())?
+        .affine(1.0 / (1.0 - p), 0.0)?;
+    x.broadcast_mul(&keep)
+}
+
+/// LeakyReLU with negative slope `slope`.
+pub fn leaky_relu(x: &Tensor, slope: f64) -> Result<Tensor> {
+    // relu(x) (1 - s) + s x: cheaper to differentiate in candle than `maximum`.
+    x.relu()?.affine(1.0 - slope, 0.0)? + x.affine(slope, 0.0)?
+}
+
+/// A 2-D convolution (`weight`: `out x in x k x k`, optional bias).
+#[derive(Debug, Clone)]
+pub struct Conv2d {
+    weight: Tensor,
+    bias: Option<Tensor>,
+    stride: usize,
+    padding: usize,
+}
+
+impl Conv2d {
+    /// Creates a conv with weights `N(0, std)` and zero bias (if `bias`), named
+    /// `weight` / `bias` under `vb`.
+    #[allow(clippy::too_many_arguments)]
+    pub fn new(
+        vb: VarBuilder,
+        c_in: usize,
+        c_out: usize,
+        k: usize,
+        stride: usize,
+        padding: usize,
+        bias: bool,
+        std: f64,
+    ) -> Result<Self> {
+        let weight = vb.get_with_hints(
+            (c_out, c_in, k, k),
+            "weight",
+            Init::Randn {
+                mean: 0.0,
+                stdev: std,
+            },
+        )?;
+        let bias = if bias {
+            Some(vb.get_with_hints(c_out, "bias", Init::Const(0.0))?)
+        } else {
+            None
+        };
+        Ok(Self {
+            weight,
+            bias,
+            stride,
+            padding,
+        })
+    }
+}
+
+impl Conv2d {
+    /// The convolution through candle's built-in `conv2d` (fast forward, but its
+    /// CPU backward goes through a naive `conv_transpose2d` and a whole-image
+    /// kernel, which is very slow).
+    pub fn forward_builtin(&self, x: &Tensor) -> Result<Tensor> {
+        let y = x.conv2d(&self.weight, self.padding, self.stride, 1, 1)?;
+        self.add_bias(y)
+    }
+
+    fn add_bias(&self, y: Tensor) -> Result<Tensor> {
+        match &self.bias {
+            Some(b) => y.broadcast_add(&b.reshape((1, (), 1, 1))?),
+            None => Ok(y),
+        }
+    }
+}
+
+/// `t[..., start : start + len * stride : stride, ...]` along `dim` (the tensor
+/// must have at least `start + len * stride` entries there).
+fn strided_narrow(
+    t: &Tensor,
+    dim: usize,
+    start: usize,
+    len: usize,
+    stride: usize,
+) -> Result<Tensor> {
+    if stride == 1 {
+        return t.narrow(dim, start, len);
+    }
+    let y = t.narrow(dim, start, len * stride)?;
+    let mut dims = y.dims().to_vec();
+    dims[dim] = len;
+    dims.insert(dim + 1, stride);
+    y.reshape(dims)?.narrow(dim + 1, 0, 1)?.squeeze(dim + 1)
+}
+
+/// 2-D convolution as im2col (strided views stacked with tensor ops) plus one
+/// matmul, so that forward and backward are dominated by GEMMs.
+pub fn conv2d_im2col(x: &Tensor, weight: &Tensor, stride: usize, padding: usize) -> Result<Tensor> {
+    let (b, c, h, w) = x.dims4()?;
+    let (co, ci, kh, kw) = weight.dims4()?;
+    if ci != c {
+        candle_core::bail!("conv2d_im2col: input has {c} channels, kernel expects {ci}");
+    }
+    let ho = (h + 2 * padding - kh) / stride + 1;
+    let wo = (w + 2 * padding - kw) / stride + 1;
+    let wmat = weight.reshape((co, ci * kh * kw))?;
+    if kh == 1 && kw == 1 && padding == 0 {
+        let xs = strided_narrow(&strided_narrow(x, 2, 0, ho, stride)?, 3, 0, wo, stride)?;
+        let cols = xs.contiguous()?.reshape((b, c, ho * wo))?;
+        return wmat.broadcast_matmul(&cols)?.reshape((b, co, ho, wo));
+    }
+    // Pad so that every strided view fits: need (k - 1) + ho * stride rows.
+    let need_h = kh - 1 + ho * stride;
+    let need_w = kw - 1 + wo * stride;
+    let xp = x
+        .pad_with_zeros(2, padding, need_h.saturating_sub(h + padding))?
+        .pad_with_zeros(3, padding, need_w.saturating_sub(w + padding))?;
+    let mut views = Vec::with_capacity(kh * kw);
+    for di in 0..kh {
+        let rows = strided_narrow(&xp, 2, di, ho, stride)?;
+        for dj in 0..kw {
+            views.push(strided_narrow(&rows, 3, dj, wo, stride)?);
+        }
+    }
+    let cols = Tensor::stack(&views, 2)?.reshape((b, c * kh * kw, ho * wo))?;
+    wmat.broadcast_matmul(&cols)?.reshape((b, co, ho, wo))
+}
+
+/// Convolution whose forward is candle's tiled-im2col `conv2d` and whose
+/// backward is written with forward convolutions and GEMMs: the input gradient
+/// is a convolution of the (zero-dilated, padded) output gradient with the
+/// flipped, transposed kernel; the kernel gradient is `grad x im2col(x)^T`.
+/// This avoids candle's naive CPU `conv_transpose2d` and whole-image-kernel
+/// backward.
+#[derive(Debug, Clone, Copy)]
+struct FastConv2d {
+    stride: usize,
+    padding: usize,
+}
+
+impl candle_core::CustomOp2 for FastConv2d {
+    fn name(&self) -> &'static str {
+        "fast-conv2d"
+    }
+
+    fn cpu_fwd(
+        &self,
+        s1: &candle_core::CpuStorage,
+        l1: &candle_core::Layout,
+        s2: &candle_core::CpuStorage,
+        l2: &candle_core::Layout,
+    ) -> Result<(candle_core::CpuStorage, candle_core::Shape)> {
+        let view = |s: &candle_core::CpuStorage, l: &candle_core::Layout| -> Result<Tensor> {
+            let data = s.as_slice::<f32>()?;
+            match l.contiguous_offsets() {
+                Some((a, b)) => Tensor::from_slice(&data[a..b], l.shape(), &Device::Cpu),
+                None => candle_core::bail!("fast-conv2d expects contiguous inputs"),
+            }
+        };
+        let x = view(s1, l1)?;
+        let w = view(s2, l2)?;
+        let y = conv_raw(&x, &w, self.stride, self.padding)?;
+        let shape = y.shape().clone();
+        let v = y.flatten_all()?.to_vec1::<f32>()?;
+        Ok((candle_core::CpuStorage::F32(v), shape))
+    }
+
+    fn bwd(
+        &self,
+        x: &Tensor,
+        w: &Tensor,
+        _res: &Tensor,
+        grad: &Tensor,
+    ) -> Result<(Option<Tensor>, Option<Tensor>)> {
+        let (x, w, g) = (x.detach(), w.detach(), grad.detach().contiguous()?);
+        let (b, c, h, wd) = x.dims4()?;
+        let (co, ci, kh, kw) = w.dims4()?;
+        let (_, _, ho, wo) = g.dims4()?;
+        let (s, p) = (self.stride, self.padding);
+        // Input gradient.
+        let gd = if s == 1 {
+            g.clone()
+        } else {
+            // Insert s-1 zeros between entries along H and W.
+            let z = Tensor::zeros((b, co, ho, s - 1, wo), g.dtype(), g.device())?;
+            let gh = Tensor::cat(&[&g.unsqueeze(3)?, &z], 3)?.reshape((b, co, ho * s, wo))?;
+            let z = Tensor::zeros((b, co, ho * s, wo, s - 1), g.dtype(), g.device())?;
+            Tensor::cat(&[&gh.unsqueeze(4)?, &z], 4)?.reshape((b, co, ho * s, wo * s))?
+        };
+        let (ld_h, ld_w) = ((ho - 1) * s + 1, (wo - 1) * s + 1);
+        let gd = gd.narrow(2, 0, ld_h)?.narrow(3, 0, ld_w)?;
+        let (ph, pw) = (kh - 1 - p, kw - 1 - p);
+        let extra_h = h + kh - 1 - ld_h - 2 * ph;
+        let extra_w = wd + kw - 1 - ld_w - 2 * pw;
+        let gd = gd
+            .pad_with_zeros(2, ph, ph + extra_h)?
+            .pad_with_zeros(3, pw, pw + extra_w)?;
+        let rev =
+            |k: usize| Tensor::from_vec((0..k as u32).rev().collect::<Vec<_>>(), k, w.device());
+        let (rev_h, rev_w) = (rev(kh)?, rev(kw)?);
+        let wf = w
+            .index_select(&rev_h, 2)?
+            .index_select(&rev_w, 3)?
+            .transpose(0, 1)?
+            .contiguous()?; // ci x co x kh x kw
+        let gx = conv_raw(&gd, &wf, 1, 0)?;
+        debug_assert_eq!(gx.dims(), &[b, c, h, wd]);
+        // Kernel gradient: sum_b grad_b (co x N) @ cols_b^T (N x ci*kh*kw).
+        let cols = im2col_raw(&x, kh, kw, s, p)?; // b x K x N
+        let gw = g
+            .reshape((b, co, ho * wo))?
+            .matmul(&cols.transpose(1, 2)?)?
+            .sum(0)?
+            .reshape((co, ci, kh, kw))?;
+        Ok((Some(gx), Some(gw)))
+    }
+}
+
+/// The im2col matrix `B x (C*kh*kw) x (Ho*Wo)` of a (non-tracked) f32 CPU
+/// tensor, built with a plain loop (much faster than stacking strided views).
+pub fn im2col_raw(
+    x: &Tensor,
+    kh: usize,
+    kw: usize,
+    stride: usize,
+    padding: usize,
+) -> Result<Tensor> {
+    let (b, c, h, w) = x.dims4()?;
+    let ho = (h + 2 * padding - kh) / stride + 1;
+    let wo = (w + 2 * padding - kw) / stride + 1;
+    let xv = x.flatten_all()?.to_vec1::<f32>()?;
+    let n = ho * wo;
+    let k = c * kh * kw;
+    let mut cols = vec![0f32; b * k * n];
+    for bi in 0..b {
+        for ci in 0..c {
+            let src = &xv[(bi * c + ci) * h * w..(bi * c + ci + 1) * h * w];
+            for di in 0..kh {
+                for dj in 0..kw {
+                    let row = ((bi * c + ci) * kh + di) * kw + dj;
+                    let dst = &mut cols[row * n..(row + 1) * n];
+                    for oy in 0..ho {
+                        let iy = (oy * stride + di) as isize - padding as isize;
+                        if iy < 0 || iy >= h as isize {
+                            continue;
+                        }
+                        let srow = &src[iy as usize * w..(iy as usize + 1) * w];
+                        let drow = &mut dst[oy * wo..(oy + 1) * wo];
+                        for (ox, d) in drow.iter_mut().enumerate() {
+                            let ix = (ox * stride + dj) as isize - padding as isize;
+                            if ix >= 0 && ix < w as isize {
+                                *d = srow[ix as usize];
+                            }
+                        }
+                    }
+                }
+            }
+        }
+    }
+    Tensor::from_vec(cols, (b, k, n), x.device())
+}
+
+/// Forward-only convolution: [`im2col_raw`] followed by one batched GEMM.
+fn conv_raw(x: &Tensor, w: &Tensor, stride: usize, padding: usize) -> Result<Tensor> {
+    let (b, _c, h, wd) = x.dims4()?;
+    let (co, ci, kh, kw) = w.dims4()?;
+    let ho = (h + 2 * padding - kh) / stride + 1;
+    let wo = (wd + 2 * padding - kw) / stride + 1;
+    let cols = im2col_raw(x, kh, kw, stride, padding)?;
+    let wm = w.reshape((co, ci * kh * kw))?;
+    let mut outs = Vec::with_capacity(b);
+    for bi in 0..b {
+        // (N x K) @ (K x Co) is the GEMM orientation that runs fastest here.
+        let yt = cols.get(bi)?.t()?.matmul(&wm.t()?)?; // N x Co
+        outs.push(yt.t()?.contiguous()?);
+    }
+    Tensor::stack(&outs, 0)?.reshape((b, co, ho, wo))
+}
+
+/// `B x (C*kh*kw) x (Ho*Wo)` patches of `x` (the im2col matrix), built from
+/// strided views (differentiable).
+pub fn im2col(x: &Tensor, kh: usize, kw: usize, stride: usize, padding: usize) -> Result<Tensor> {
+    let (b, c, h, w) = x.dims4()?;
+    let ho = (h + 2 * padding - kh) / stride + 1;
+    let wo = (w + 2 * padding - kw) / stride + 1;
+    let need_h = kh - 1 + ho * stride;
+    let need_w = kw - 1 + wo * stride;
+    let xp = x
+        .pad_with_zeros(2, padding, need_h.saturating_sub(h + padding))?
+        .pad_with_zeros(3, padding, need_w.saturating_sub(w + padding))?;
+    let mut views = Vec::with_capacity(kh * kw);
+    for di in 0..kh {
+        let rows = strided_narrow(&xp, 2, di, ho, stride)?;
+        for dj in 0..kw {
+            views.push(strided_narrow(&rows, 3, dj, wo, stride)?);
+        }
+    }
+    Tensor::stack(&views, 2)?.reshape((b, c * kh * kw, ho * wo))
+}
+
+/// 2-D convolution (f32, CPU) with candle's fast forward and a GEMM-based
+/// backward (see the crate docs); numerically equal to `x.conv2d(w, padding, stride, 1, 1)`.
+pub fn conv2d_fast(x: &Tensor, weight: &Tensor, stride: usize, padding: usize) -> Result<Tensor> {
+    if x.dtype() != DType::F32 || !x.device().is_cpu() {
+        return x.conv2d(weight, padding, stride, 1, 1);
+    }
+    x.contiguous()?
+        .apply_op2(&weight.contiguous()?, FastConv2d { stride, padding })
+}
+
+/// Convolution back-end used by [`Conv2d`]; chosen once from the
+/// `PERSPNET_CONV` environment variable (`fast` (default), `builtin`, `im2col`).
+fn conv_backend() -> &'static str {
+    static B: std::sync::OnceLock<String> = std::sync::OnceLock::new();
+    B.get_or_init(|| std::env::var("PERSPNET_CONV").unwrap_or_else(|_| "fast".into()))
+}
+
+impl Module for Conv2d {
+    fn forward(&self, x: &Tensor) -> Result<Tensor> {
+        let y = match conv_backend() {
+            "builtin" => x.conv2d(&self.weight, self.padding, self.stride, 1, 1)?,
+            "im2col" => conv2d_im2col(x, &self.weight, self.stride, self.padding)?,
+            _ => conv2d_fast(x, &self.weight, self.stride, self.padding)?,
+        };
+        match &self.bias {
+            Some(b) => y.broadcast_add(&b.reshape((1, (), 1, 1))?),
+            None => Ok(y),
+        }
+    }
+}
+
+/// candle's own batch norm initialised like the official code (kept as the
+/// reference for [`BatchNorm2d`]): weight `N(1, std)`, bias 0,
+/// running mean 0, running variance 1.
+pub fn batch_norm(
+    vb: VarBuilder,
+    c: usize,
+    std: f64,
+    eps: f64,
+    momentum: f64,
+) -> Result<BatchNorm> {
+    let running_mean = vb.get_with_hints(c, "running_mean", Init::Const(0.0))?;
+    let running_var = vb.get_with_hints(c, "running_var", Init::Const(1.0))?;
+    let weight = vb.get_with_hints(
+        c,
+        "weight",
+        Init::Randn {
+            mean: 1.0,
+            stdev: std,
+        },
+    )?;
+    let bias = vb.get_with_hints(c, "bias", Init::Const(0.0))?;
+    BatchNorm::new_with_momentum(c, running_mean, running_var, weight, bias, eps, momentum)
+}
+
+/// A per-point linear layer (the official `Conv1d(c_in, c_out, 1)`) applied
+/// to `B x N x C` features; weight `N(0, std)`, bias 0.
+pub fn linear(vb: VarBuilder, c_in: usize, c_out: usize, std: f64) -> Result<Linear> {
+    let w = vb.get_with_hints(
+        (c_out, c_in),
+        "weight",
+        Init::Randn {
+            mean: 0.0,
+            stdev: std,
+        },
+    )?;
+    let b = vb.get_with_hints(c_out, "bias", Init::Const(0.0))?;
+    Ok(Linear::new(w, Some(b)))
+}
+
+/// Activation following a [`ConvBn`].
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Act {
+    /// No activation.
+    None,
+    /// ReLU.
+    Relu,
+    /// LeakyReLU with the given negative slope.
+    Leaky(f64),
+}
+
+/// Conv (no bias) + batch norm + activation.
+#[derive(Debug, Clone)]
+pub struct ConvBn {
+    conv: Conv2d,
+    bn: BatchNorm2d,
+    act: Act,
+}
+
+impl ConvBn {
+    /// Creates `conv` (named `{vb}.0`) and `bn` (named `{vb}.1`), mirroring an
+    /// `nn.Sequential(Conv2d, BatchNorm2d, act)`.
+    #[allow(clippy::too_many_arguments)]
+    pub fn new(
+        vb: VarBuilder,
+        c_in: usize,
+        c_out: usize,
+        k: usize,
+        stride: usize,
+        act: Act,
+        std: f64,
+        eps: f64,
+        momentum: f64,
+    ) -> Result<Self> {
+        let conv = Conv2d::new(vb.pp("0"), c_in, c_out, k, stride, k / 2, false, std)?;
+        let bn = BatchNorm2d::new(vb.pp("1"), c_out, std, eps, momentum)?;
+        Ok(Self { conv, bn, act })
+    }
+
+    /// Creates a conv + BN pair with explicit names (ResNet style).
+    #[allow(clippy::too_many_arguments)]
+    pub fn named(
+        vb_conv: VarBuilder,
+        vb_bn: VarBuilder,
+        c_in: usize,
+        c_out: usize,
+        k: usize,
+        stride: usize,
+        act: Act,
+        std: f64,
+        eps: f64,
+        momentum: f64,
+    ) -> Result<Self> {
+        let conv = Conv2d::new(vb_conv, c_in, c_out, k, stride, k / 2, false, std)?;
+        let bn = BatchNorm2d::new(vb_bn, c_out, std, eps, momentum)?;
+        Ok(Self { conv, bn, act })
+    }
+}
+
+impl ModuleT for ConvBn {
+    fn forward_t(&self, x: &Tensor, train: bool) -> Result<Tensor> {
+        let y = self.bn.forward_t(&self.conv.forward(x)?, train)?;
+        match self.act {
+            Act::None => Ok(y),
+            Act::Relu => y.relu(),
+            Act::Leaky(s) => leaky_relu(&y, s),
+        }
+    }
+}
+
+/// Mean over the points axis of `B x N x C` features, keeping `B x 1 x C`
+/// (the official `AdaptiveAvgPool1d(1)`).
+pub fn mean_points(x: &Tensor) -> Result<Tensor> {
+    x.mean_keepdim(1)
+}
+
+/// Softmax over the last dimension computed as `exp(log_softmax)`.
+pub fn softmax_last(x: &Tensor) -> Result<Tensor> {
+    candle_nn::ops::log_softmax(x, D::Minus1)?.exp()
+}
+
+/// Fused batch-norm kernel over `N x C x H x W` (f32, CPU), with the statistics
+/// computed beforehand. `batch_stats` selects the training-mode backward (the
+/// statistics depend on the batch) or the eval-mode one (constants).
+#[derive(Debug, Clone)]
+struct FusedBn {
+    mean: Vec<f32>,
+    invstd: Vec<f32>,
+    batch_stats: bool,
+}
+
+fn contiguous_f32<'a>(
+    s: &'a candle_core::CpuStorage,
+    l: &candle_core::Layout,
+) -> Result<&'a [f32]> {
+    let data = s.as_slice::<f32>()?;
+    match l.contiguous_offsets() {
+        Some((a, b)) => Ok(&data[a..b]),
+        None => candle_core::bail!("fused batch-norm expects contiguous inputs"),
+    }
+}
+
+impl candle_core::CustomOp3 for FusedBn {
+    fn name(&self) -> &'static str {
+        "fused-batch-norm"
+    }
+
+    fn cpu_fwd(
+        &self,
+        s1: &candle_core::CpuStorage,
+        l1: &candle_core::Layout,
+        s2: &candle_core::CpuStorage,
+        l2: &candle_core::Layout,
+        s3: &candle_core::CpuStorage,
+        l3: &candle_core::Layout,
+    ) -> Result<(candle_core::CpuStorage, candle_core::Shape)> {
+        let x = contiguous_f32(s1, l1)?;
+        let g = contiguous_f32(s2, l2)?;
+        let b = contiguous_f32(s3, l3)?;
+        let (n, c, h, w) = l1.shape().dims4()?;
+        let hw = h * w;
+        let mut y = vec![0f32; x.len()];
+        for ni in 0..n {
+            for ci in 0..c {
+                let a = g[ci] * self.invstd[ci];
+                let sh = b[ci] - self.mean[ci] * a;
+                let o = (ni * c + ci) * hw;
+                for (yv, xv) in y[o..o + hw].iter_mut().zip(&x[o..o + hw]) {
+                    *yv = xv * a + sh;
+                }
+            }
+        }
+        Ok((candle_core::CpuStorage::F32(y), l1.shape().clone()))
+    }
+
+    fn bwd(
+        &self,
+        x: &Tensor,
+        gamma: &Tensor,
+        _beta: &Tensor,
+        _res: &Tensor,
+        grad: &Tensor,
+    ) -> Result<(Option<Tensor>, Option<Tensor>, Option<Tensor>)> {
+        let (n, c, h, w) = x.dims4()?;
+        let hw = h * w;
+        let cnt = (n * hw) as f32;
+        let xv = x.flatten_all()?.to_vec1::<f32>()?;
+        let gv = grad.flatten_all()?.to_vec1::<f32>()?;
+        let gam = gamma.to_vec1::<f32>()?;
+        let mut sg = vec![0f32; c];
+        let mut sgx = vec![0f32; c];
+        for ni in 0..n {
+            for ci in 0..c {
+                let o = (ni * c + ci) * hw;
+                let (m, is) = (self.mean[ci], self.invstd[ci]);
+                let (mut a, mut bsum) = (0f32, 0f32);
+                for (g, xx) in gv[o..o + hw].iter().zip(&xv[o..o + hw]) {
+                    a += g;
+                    bsum += g * (xx - m) * is;
+                }
+                sg[ci] += a;
+                sgx[ci] += bsum;
+            }
+        }
+        let mut dx = vec![0f32; xv.len()];
+        for ni in 0..n {
+            for ci in 0..c {
+                let o = (ni * c + ci) * hw;
+                let (m, is) = (self.mean[ci], self.invstd[ci]);
+                let k = gam[ci] * is;
+                if self.batch_stats {
+                    let (mg, mgx) = (sg[ci] / cnt, sgx[ci] / cnt);
+                    for i in o..o + hw {
+                        let xh = (xv[i] - m) * is;
+                        dx[i] = k * (gv[i] - mg - xh * mgx);
+                    }
+                } else {
+                    for i in o..o + hw {
+                        dx[i] = k * gv[i];
+                    }
+                }
+            }
+        }
+        let dev = x.device();
+        Ok((
+            Some(Tensor::from_vec(dx, (n, c, h, w), dev)?),
+            Some(Tensor::from_vec(sgx, c, dev)?),
+            Some(Tensor::from_vec(sg, c, dev)?),
+        ))
+    }
+}
+
+/// 2-D batch norm (PyTorch `BatchNorm2d` semantics: biased batch variance for
+/// normalisation, unbiased for the running variance, momentum update) with a
+/// fused CPU kernel for forward and backward. Variables: `weight`, `bias`,
+/// `running_mean`, `running_var`.
+#[derive(Debug, Clone)]
+pub struct BatchNorm2d {
+    weight: Tensor,
+    bias: Tensor,
+    running_mean: candle_core::Var,
+    running_var: candle_core::Var,
+    eps: f64,
+    momentum: f64,
+}
+
+impl BatchNorm2d {
+    /// Creates the layer initialised like the official code (weight `N(1, std)`,
+    /// bias 0, running mean 0, running variance 1).
+    pub fn new(vb: VarBuilder, c: usize, std: f64, eps: f64, momentum: f64) -> Result<Self> {
+        let running_mean = vb.get_with_hints(c, "running_mean", Init::Const(0.0))?;
+        let running_var = vb.get_with_hints(c, "running_var", Init::Const(1.0))?;
+        let weight = vb.get_with_hints(
+            c,
+            "weight",
+            Init::Randn {
+                mean: 1.0,
+                stdev: std,
+            },
+        )?;
+        let bias = vb.get_with_hints(c, "bias", Init::Const(0.0))?;
+        Ok(Self {
+            weight,
+            bias,
+            running_mean: candle_core::Var::from_tensor(&running_mean)?,
+            running_var: candle_core::Var::from_tensor(&running_var)?,
+            eps,
+            momentum,
+        })
+    }
+}
+
+impl ModuleT for BatchNorm2d {
+    fn forward_t(&self, x: &Tensor, train: bool) -> Result<Tensor> {
+        if x.dtype() != DType::F32 || !x.device().is_cpu() {
+            candle_core::bail!("BatchNorm2d: f32 CPU tensors only");
+        }
+        let x = x.contiguous()?;
+        let (n, c, h, w) = x.dims4()?;
+        let (mean, invstd) = if train {
+            let xv = x.flatten_all()?.to_vec1::<f32>()?;
+            let hw = h * w;
+            let cnt = (n * hw) as f64;
+            let mut mean = vec![0f64; c];
+            let mut sq = vec![0f64; c];
+            for ni in 0..n {
+                for ci in 0..c {
+                    let o = (ni * c + ci) * hw;
+                    let (mut s, mut s2) = (0f64, 0f64);
+                    for &v in &xv[o..o + hw] {
+                        s += v as f64;
+                        s2 += (v as f64) * (v as f64);
+                    }
+                    mean[ci] += s;
+                    sq[ci] += s2;
+                }
+            }
+            let mut var = vec![0f64; c];
+            for ci in 0..c {
+                mean[ci] /= cnt;
+                var[ci] = (sq[ci] / cnt - mean[ci] * mean[ci]).max(0.0);
+            }
+            // Running statistics (unbiased variance), PyTorch momentum convention.
+            let mom = self.momentum;
+            let unbias = if cnt > 1.0 { cnt / (cnt - 1.0) } else { 1.0 };
+            let rm = self.running_mean.as_tensor().to_vec1::<f32>()?;
+            let rv = self.running_var.as_tensor().to_vec1::<f32>()?;
+            let nm: Vec<f32> = (0..c)
+                .map(|i| ((1.0 - mom) * rm[i] as f64 + mom * mean[i]) as f32)
+                .collect();
+            let nv: Vec<f32> = (0..c)
+                .map(|i| ((1.0 - mom) * rv[i] as f64 + mom * var[i] * unbias) as f32)
+                .collect();
+            self.running_mean
+                .set(&Tensor::from_vec(nm, c, x.device())?)?;
+            self.running_var
+                .set(&Tensor::from_vec(nv, c, x.device())?)?;
+            let invstd = var
+                .iter()
+                .map(|v| (1.0 / (v + self.eps).sqrt()) as f32)
+                .collect();
+            (mean.into_iter().map(|m| m as f32).collect(), invstd)
+        } else {
+            let rm = self.running_mean.as_tensor().to_vec1::<f32>()?;
+            let rv = self.running_var.as_tensor().to_vec1::<f32>()?;
+            let invstd = rv
+                .iter()
+                .map(|v| 1.0 / (*v as f64 + self.eps).sqrt() as f32)
+                .collect();
+            (rm, invstd)
+        };
+        let op = FusedBn {
+            mean,
+            invstd,
+            batch_stats: train,
+        };
+        x.apply_op3(&self.weight.contiguous()?, &self.bias.contiguous()?, op)
+    }
+}

@@ -1,0 +1,15 @@
+//! PerspNet: ResNet-18 encoder, a 2D decoder (segmentation + image features),
+//! a 3D decoder (UV position map), and the correspondence head that predicts a
+//! soft assignment of sampled pixels to the 1,220 ARKit face-mesh vertices.
+//!
+//! Shapes follow the official PyTorch code (`models/model_repository.py`
+//! `Resnet18_8s`, `models/network.py` `DeformNetUV2`, `models/loss.py` `Loss8`).
+
+pub mod config;
+pub mod layers;
+pub mod loss;
+pub mod model;
+
+pub use config::PerspNetConfig;
+pub use loss::{CorrTarget, LossTargets, LossTerms, LossWeights, PerspNetLoss};
+pub use model::{PerspNet, PerspNetOutput};

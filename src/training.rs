@@ -1,0 +1,664 @@
+//! Training the reference PerspNet on a rendered dataset: examples from the `samples`
+//! and `targets` tables, batches as candle tensors, the training loop, checkpoints.
+//!
+//! An example is what the official loader builds per sample, read from storage
+//! instead of re-rendered: the crop (ImageNet-normalised), the first M stored face
+//! pixels, the ground-truth coordinates under them (`4.5 x` canonical, the official
+//! scale), their barycentric correspondences (3 vertex ids and weights per pixel), the
+//! crop's face mask and the canonical mesh. The targets must have been rendered at the
+//! network's input size with at least M points (`render --size S --points M`); a
+//! mismatch is an error that says which `render` options to use.
+//!
+//! A checkpoint folder holds `perspnet.json` (the network config and how it was
+//! trained), `model.safetensors` (the weights, batch-norm statistics included) and
+//! `loss.csv` (one row per step). Files are written atomically.
+
+use crate::conventions::Pose;
+use crate::convert::read_manifest;
+use crate::error::{Error, Result};
+use crate::eval_dataset::split_map;
+use crate::perspnet::layers::{IMAGENET_MEAN, IMAGENET_STD};
+use crate::perspnet::loss::PerspNetLoss;
+use crate::perspnet::model::trainable_vars;
+use crate::perspnet::{CorrTarget, LossTargets, PerspNet, PerspNetConfig};
+use crate::render::CropTransform;
+use crate::rng::Rng;
+use crate::samples_table::{self, SampleRecord};
+use crate::targets_table::{self, TargetsRecord};
+use crate::topology::FaceTopology;
+use candle_core::{DType, Device, Tensor};
+use candle_nn::{AdamW, Optimizer, ParamsAdamW, VarBuilder, VarMap};
+use serde::{Deserialize, Serialize};
+use std::collections::HashMap;
+use std::path::{Path, PathBuf};
+
+/// Scale of the official coordinate targets: `nocs = 4.5 x` canonical position.
+pub const NOCS_SCALE: f32 = 4.5;
+
+fn candle_err(what: &str, e: candle_core::Error) -> Error {
+    Error::invalid(what, e.to_string())
+}
+
+/// One training example (see the module docs), flat row-major buffers.
+#[derive(Clone, Debug)]
+pub struct Example {
+    /// The sample.
+    pub sample: SampleRecord,
+    /// Crop transform of the targets.
+    pub crop: CropTransform,
+    /// `3 x S x S`, ImageNet-normalised.
+    pub image: Vec<f32>,
+    /// `M` chosen crop pixels (`y * S + x`).
+    pub choose: Vec<u32>,
+    /// `M x 3` ground-truth coordinates, `4.5 x` canonical.
+    pub nocs: Vec<f32>,
+    /// `M x 3` vertex ids of each chosen pixel's triangle.
+    pub ids: Vec<u32>,
+    /// `M x 3` barycentric weights.
+    pub weights: Vec<f32>,
+    /// `S x S` face mask (0 or 1).
+    pub mask: Vec<f32>,
+}
+
+/// The crop of a sample's image, as the network's input: `3 x S x S` floats,
+/// ImageNet-normalised.
+pub fn network_input(image: &image::RgbImage, crop: &CropTransform) -> Vec<f32> {
+    let c = crop.crop_image(image);
+    let s = (crop.size * crop.size) as usize;
+    let mut out = vec![0f32; 3 * s];
+    for (i, p) in c.pixels().enumerate() {
+        for k in 0..3 {
+            out[k * s + i] = (p[k] as f32 / 255.0 - IMAGENET_MEAN[k]) / IMAGENET_STD[k];
+        }
+    }
+    out
+}
+
+/// Builds an example from a sample and its targets row for a network of `cfg`.
+pub fn example(
+    sample: &SampleRecord,
+    targets: &TargetsRecord,
+    cfg: &PerspNetConfig,
+    input_root: &Path,
+) -> Result<Example> {
+    if targets.crop.size as usize != cfg.input_size {
+        return Err(Error::invalid(
+            "targets",
+            format!(
+                "rendered at {}x{} but the network takes {}x{}: run `arkit-tool render --size {} --points {}` (with --output to keep both)",
+                targets.crop.size,
+                targets.crop.size,
+                cfg.input_size,
+                cfg.input_size,
+                cfg.input_size,
+                cfg.points
+            ),
+        ));
+    }
+    if targets.points.len() < cfg.points {
+        return Err(Error::invalid(
+            "targets",
+            format!(
+                "{} stored points per sample, the network samples {}: run `arkit-tool render --points {}`",
+                targets.points.len(),
+                cfg.points,
+                cfg.points
+            ),
+        ));
+    }
+    let mask = targets.mask()?;
+    let pixels: Vec<u32> = mask
+        .iter()
+        .enumerate()
+        .filter(|(_, m)| **m)
+        .map(|(i, _)| i as u32)
+        .collect();
+    let weights = targets.weights();
+    let verts = &sample.verts;
+    let (mut choose, mut nocs, mut ids, mut ws) = (
+        Vec::with_capacity(cfg.points),
+        Vec::with_capacity(3 * cfg.points),
+        Vec::with_capacity(3 * cfg.points),
+        Vec::with_capacity(3 * cfg.points),
+    );
+    for &p in &targets.points[..cfg.points] {
+        let p = p as usize;
+        let (Some(&px), Some(tri)) = (pixels.get(p), targets.corr_vertices.get(p)) else {
+            return Err(Error::invalid(
+                "targets",
+                format!(
+                    "{}: point refers to mask pixel {p} of {}",
+                    sample.key,
+                    pixels.len()
+                ),
+            ));
+        };
+        choose.push(px);
+        let mut c = [0f32; 3];
+        for k in 0..3 {
+            let v = tri[k] as usize;
+            if 3 * v + 2 >= verts.len() {
+                return Err(Error::invalid(
+                    "targets",
+                    format!("vertex id {v} out of range"),
+                ));
+            }
+            for (a, ca) in c.iter_mut().enumerate() {
+                *ca += weights[p][k] * verts[3 * v + a];
+            }
+            ids.push(tri[k] as u32);
+            ws.push(weights[p][k]);
+        }
+        nocs.extend(c.map(|x| x * NOCS_SCALE));
+    }
+    let image = crate::eval_dataset::sample_image(sample, input_root);
+    Ok(Example {
+        sample: sample.clone(),
+        crop: targets.crop,
+        image: network_input(&image, &targets.crop),
+        choose,
+        nocs,
+        ids,
+        weights: ws,
+        mask: mask.iter().map(|&m| m as u8 as f32).collect(),
+    })
+}
+
+/// Reads the examples of one split (`None`: all) of a rendered dataset.
+pub fn read_examples(
+    dataset: &Path,
+    targets_dir: &Path,
+    cfg: &PerspNetConfig,
+    split: Option<&str>,
+) -> Result<Vec<Example>> {
+    let manifest = read_manifest(&dataset.join("dataset.json"))?;
+    let input_root = PathBuf::from(&manifest.input);
+    let splits = split_map(dataset)?;
+    let mut out = Vec::new();
+    for shard in &manifest.shards {
+        let tpath = targets_dir
+            .join("targets")
+            .join(format!("part-{:05}.parquet", shard.index));
+        if !tpath.exists() {
+            return Err(Error::format(
+                &tpath,
+                "no targets for this shard: run `arkit-tool render` first",
+            ));
+        }
+        let targets: HashMap<_, _> = targets_table::read_targets(&tpath)?
+            .into_iter()
+            .map(|t| (t.key.clone(), t))
+            .collect();
+        for r in samples_table::read_samples(&dataset.join(&shard.samples_file))? {
+            let s = splits
+                .as_ref()
+                .and_then(|m| m.get(&r.key).cloned())
+                .unwrap_or_else(|| r.split.clone());
+            if split.is_some_and(|want| want != s) {
+                continue;
+            }
+            let t = targets
+                .get(&r.key)
+                .ok_or_else(|| Error::format(&tpath, format!("no targets row for {}", r.key)))?;
+            out.push(example(&r, t, cfg, &input_root)?);
+        }
+    }
+    Ok(out)
+}
+
+/// A batch as tensors.
+pub struct Batch {
+    /// `B x 3 x S x S`.
+    pub image: Tensor,
+    /// `B x M` u32.
+    pub choose: Tensor,
+    /// `B x M x 3`.
+    pub nocs: Tensor,
+    /// `B x V x 3` canonical meshes.
+    pub model: Tensor,
+    /// `B x S x S`.
+    pub mask: Tensor,
+    /// Barycentric targets.
+    pub corr: CorrTarget,
+}
+
+/// Stacks examples into a batch.
+pub fn batch(examples: &[&Example], cfg: &PerspNetConfig, device: &Device) -> Result<Batch> {
+    let b = examples.len();
+    let (s, m, v) = (cfg.input_size, cfg.points, cfg.vertices);
+    let cat_f = |f: &dyn Fn(&Example) -> &[f32]| -> Vec<f32> {
+        examples.iter().flat_map(|e| f(e).iter().copied()).collect()
+    };
+    let cat_u = |f: &dyn Fn(&Example) -> &[u32]| -> Vec<u32> {
+        examples.iter().flat_map(|e| f(e).iter().copied()).collect()
+    };
+    let t = |data: Vec<f32>, shape: &[usize]| {
+        Tensor::from_vec(data, shape, device).map_err(|e| candle_err("batch", e))
+    };
+    let model: Vec<f32> = cat_f(&|e| &e.sample.verts);
+    if model.len() != b * v * 3 {
+        return Err(Error::invalid(
+            "batch",
+            format!(
+                "meshes have {} values, the network expects {v} vertices",
+                model.len() / b.max(1)
+            ),
+        ));
+    }
+    Ok(Batch {
+        image: t(cat_f(&|e| &e.image), &[b, 3, s, s])?,
+        choose: Tensor::from_vec(cat_u(&|e| &e.choose), (b, m), device)
+            .map_err(|e| candle_err("batch", e))?,
+        nocs: t(cat_f(&|e| &e.nocs), &[b, m, 3])?,
+        model: t(model, &[b, v, 3])?,
+        mask: t(cat_f(&|e| &e.mask), &[b, s, s])?,
+        corr: CorrTarget::Sparse {
+            ids: Tensor::from_vec(cat_u(&|e| &e.ids), (b, m, 3), device)
+                .map_err(|e| candle_err("batch", e))?,
+            weights: t(cat_f(&|e| &e.weights), &[b, m, 3])?,
+        },
+    })
+}
+
+/// The `V x 2` vertex UV table the network reads its UV map at.
+pub fn vertex_uv(topology: &FaceTopology, device: &Device) -> Result<Tensor> {
+    let v = topology.vertex_count;
+    let flat: Vec<f32> = topology.uv[..v].iter().flat_map(|t| [t[0], t[1]]).collect();
+    Tensor::from_vec(flat, (v, 2), device).map_err(|e| candle_err("vertex UVs", e))
+}
+
+/// How a checkpoint was made (`perspnet.json`).
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct Checkpoint {
+    /// The network.
+    pub config: PerspNetConfig,
+    /// Topology source (the vertex UVs come from it).
+    pub topology: String,
+    /// Epochs run.
+    pub epochs: usize,
+    /// Batch size.
+    pub batch: usize,
+    /// Learning rate.
+    pub learning_rate: f64,
+    /// Seed.
+    pub seed: u64,
+    /// Training examples.
+    pub examples: usize,
+    /// Steps run.
+    pub steps: usize,
+    /// Total loss of the first and last step.
+    pub first_loss: f32,
+    /// Total loss of the last step.
+    pub last_loss: f32,
+}
+
+/// Training options.
+#[derive(Clone, Debug)]
+pub struct TrainOptions {
+    /// Network.
+    pub config: PerspNetConfig,
+    /// Passes over the examples.
+    pub epochs: usize,
+    /// Examples per step.
+    pub batch: usize,
+    /// AdamW learning rate (the official Adam uses 1e-4 at batch 32 on GPUs; small
+    /// CPU runs learn faster with more).
+    pub learning_rate: f64,
+    /// Seed of the weights and the shuffling.
+    pub seed: u64,
+    /// Checkpoint folder.
+    pub output: PathBuf,
+}
+
+/// One step's losses (weighted, as summed into the total).
+#[derive(Clone, Copy, Debug, Serialize)]
+pub struct StepLoss {
+    /// Step number (0-based).
+    pub step: usize,
+    /// Epoch.
+    pub epoch: usize,
+    /// Total.
+    pub total: f32,
+    /// Correspondence smooth L1.
+    pub corr: f32,
+    /// Shape L1.
+    pub shape: f32,
+    /// KL to the barycentric targets.
+    pub kl: f32,
+    /// Entropy.
+    pub entropy: f32,
+    /// Segmentation.
+    pub seg: f32,
+}
+
+/// Trains a fresh network on `examples`; writes the checkpoint folder. `on_step` sees
+/// every step's losses (for progress).
+pub fn train(
+    examples: &[Example],
+    topology: &FaceTopology,
+    options: &TrainOptions,
+    on_step: &dyn Fn(&StepLoss),
+) -> Result<(Checkpoint, Vec<StepLoss>)> {
+    let cfg = &options.config;
+    if examples.is_empty() {
+        return Err(Error::invalid("train", "no training examples"));
+    }
+    let device = Device::Cpu;
+    let varmap = VarMap::new();
+    let vb = VarBuilder::from_varmap(&varmap, DType::F32, &device);
+    let net = PerspNet::new(cfg, &vertex_uv(topology, &device)?, vb)
+        .map_err(|e| candle_err("network", e))?;
+    reseed(&varmap, options.seed).map_err(|e| candle_err("initial weights", e))?;
+    let mut opt = AdamW::new(
+        trainable_vars(&varmap),
+        ParamsAdamW {
+            lr: options.learning_rate,
+            weight_decay: 0.0,
+            ..ParamsAdamW::default()
+        },
+    )
+    .map_err(|e| candle_err("optimizer", e))?;
+    let mut loss = PerspNetLoss::default();
+    let mut rng = Rng::new(options.seed);
+    let mut order: Vec<usize> = (0..examples.len()).collect();
+    let mut log = Vec::new();
+    for epoch in 0..options.epochs {
+        // Fisher-Yates with our own generator: the same order for a seed everywhere.
+        for i in (1..order.len()).rev() {
+            order.swap(i, rng.below(i as u64 + 1) as usize);
+        }
+        for chunk in order.chunks(options.batch.max(1)) {
+            let refs: Vec<&Example> = chunk.iter().map(|&i| &examples[i]).collect();
+            let b = batch(&refs, cfg, &device)?;
+            let step = (|| -> candle_core::Result<StepLoss> {
+                let out = net.forward(&b.image, &b.choose, true)?;
+                let terms = loss.compute(
+                    &out,
+                    &LossTargets {
+                        nocs: &b.nocs,
+                        model: &b.model,
+                        seg_mask: &b.mask,
+                        corr: &b.corr,
+                        uv_map: None,
+                    },
+                )?;
+                opt.backward_step(&terms.total)?;
+                let v = terms.values()?;
+                Ok(StepLoss {
+                    step: log.len(),
+                    epoch,
+                    total: v[0],
+                    corr: v[1],
+                    shape: v[2],
+                    kl: v[3],
+                    entropy: v[4],
+                    seg: v[5],
+                })
+            })()
+            .map_err(|e| candle_err("training step", e))?;
+            if !step.total.is_finite() {
+                return Err(Error::invalid(
+                    "train",
+                    format!(
+                        "the loss is {} at step {}: lower --lr",
+                        step.total, step.step
+                    ),
+                ));
+            }
+            on_step(&step);
+            log.push(step);
+        }
+    }
+    let checkpoint = Checkpoint {
+        config: cfg.clone(),
+        topology: topology.source.clone(),
+        epochs: options.epochs,
+        batch: options.batch,
+        learning_rate: options.learning_rate,
+        seed: options.seed,
+        examples: examples.len(),
+        steps: log.len(),
+        first_loss: log.first().map_or(f32::NAN, |s| s.total),
+        last_loss: log.last().map_or(f32::NAN, |s| s.total),
+    };
+    write_checkpoint(&options.output, &checkpoint, &varmap, &log)?;
+    Ok((checkpoint, log))
+}
+
+/// Redraws every trainable variable from our seeded generator with the mean and
+/// standard deviation its initialiser gave it (candle's CPU generator cannot be
+/// seeded), so the initial weights, and the whole run, follow from the seed.
+/// Constant variables (biases, batch-norm statistics) are left as they are.
+pub fn reseed(varmap: &VarMap, seed: u64) -> candle_core::Result<()> {
+    let data = varmap.data().lock().expect("varmap lock");
+    let mut named: Vec<(&String, &candle_core::Var)> = data
+        .iter()
+        .filter(|(k, _)| !k.contains("running_"))
+        .collect();
+    named.sort_by(|a, b| a.0.cmp(b.0));
+    for (i, (_, var)) in named.into_iter().enumerate() {
+        let values = var.as_tensor().flatten_all()?.to_vec1::<f32>()?;
+        let n = values.len() as f64;
+        let mean = values.iter().map(|&v| v as f64).sum::<f64>() / n;
+        let var_ = values
+            .iter()
+            .map(|&v| (v as f64 - mean).powi(2))
+            .sum::<f64>()
+            / n;
+        if var_ <= 0.0 {
+            continue;
+        }
+        let mut rng = Rng::for_stream(seed, i as u64);
+        let sd = var_.sqrt();
+        let fresh: Vec<f32> = (0..values.len())
+            .map(|_| (mean + sd * rng.normal()) as f32)
+            .collect();
+        var.set(&Tensor::from_vec(fresh, var.shape(), var.device())?)?;
+    }
+    Ok(())
+}
+
+fn write_checkpoint(dir: &Path, c: &Checkpoint, varmap: &VarMap, log: &[StepLoss]) -> Result<()> {
+    std::fs::create_dir_all(dir).map_err(|e| Error::io(dir, e))?;
+    let weights = dir.join("model.safetensors");
+    let tmp = dir.join(format!(".model.safetensors.tmp-{}", std::process::id()));
+    varmap
+        .save(&tmp)
+        .map_err(|e| Error::invalid("model.safetensors", e.to_string()))?;
+    std::fs::rename(&tmp, &weights).map_err(|e| Error::io(&weights, e))?;
+    let mut csv = String::from("step,epoch,total,corr,shape,kl,entropy,seg\n");
+    for s in log {
+        csv += &format!(
+            "{},{},{},{},{},{},{},{}\n",
+            s.step, s.epoch, s.total, s.corr, s.shape, s.kl, s.entropy, s.seg
+        );
+    }
+    crate::atomic_file::write_bytes(&dir.join("loss.csv"), csv.as_bytes())?;
+    let json = serde_json::to_string_pretty(c).expect("checkpoint json");
+    crate::atomic_file::write_bytes(&dir.join("perspnet.json"), json.as_bytes())
+}
+
+/// A trained network loaded from a checkpoint folder.
+pub struct TrainedModel {
+    /// How it was made.
+    pub checkpoint: Checkpoint,
+    /// The network.
+    pub net: PerspNet,
+    /// Its variables.
+    pub varmap: VarMap,
+}
+
+/// Loads a checkpoint folder written by [`train`].
+pub fn load(dir: &Path, topology: &FaceTopology) -> Result<TrainedModel> {
+    let p = dir.join("perspnet.json");
+    let text = std::fs::read_to_string(&p).map_err(|e| Error::io(&p, e))?;
+    let checkpoint: Checkpoint =
+        serde_json::from_str(&text).map_err(|e| Error::format(&p, e.to_string()))?;
+    if checkpoint.topology != topology.source {
+        return Err(Error::invalid(
+            "--resources",
+            format!(
+                "the model was trained with the topology '{}', not '{}'",
+                checkpoint.topology, topology.source
+            ),
+        ));
+    }
+    let device = Device::Cpu;
+    let mut varmap = VarMap::new();
+    let vb = VarBuilder::from_varmap(&varmap, DType::F32, &device);
+    let net = PerspNet::new(&checkpoint.config, &vertex_uv(topology, &device)?, vb)
+        .map_err(|e| candle_err("network", e))?;
+    let w = dir.join("model.safetensors");
+    varmap
+        .load(&w)
+        .map_err(|e| Error::format(&w, e.to_string()))?;
+    Ok(TrainedModel {
+        checkpoint,
+        net,
+        varmap,
+    })
+}
+
+/// What the network predicts for one crop.
+#[derive(Clone, Debug)]
+pub struct NetworkPrediction {
+    /// Predicted face mask over the crop.
+    pub mask: Vec<bool>,
+    /// The chosen crop pixels.
+    pub pixels: Vec<u32>,
+    /// The canonical point each chosen pixel shows (`M X / 9`), metres.
+    pub points: Vec<[f32; 3]>,
+    /// Predicted canonical vertices (`X / 9`), metres.
+    pub verts: Vec<f32>,
+}
+
+/// Runs the network on one crop (`3 x S x S` normalised): segments the face, samples M
+/// pixels from the predicted mask (with wrap-around, from `seed`; every pixel when the
+/// mask is empty), and reads the correspondences and the mesh.
+pub fn predict_crop(model: &TrainedModel, input: &[f32], seed: u64) -> Result<NetworkPrediction> {
+    let cfg = &model.checkpoint.config;
+    let s = cfg.input_size;
+    let device = Device::Cpu;
+    let run = || -> candle_core::Result<NetworkPrediction> {
+        let img = Tensor::from_slice(input, (1, 3, s, s), &device)?;
+        let dense = model.net.forward_dense(&img, false)?;
+        let logits = dense.seg_logits.squeeze(0)?; // 2 x S x S
+        let face = logits
+            .get(1)?
+            .ge(&logits.get(0)?)?
+            .flatten_all()?
+            .to_vec1::<u8>()?;
+        let mask: Vec<bool> = face.iter().map(|&v| v != 0).collect();
+        let mut candidates: Vec<u32> = (0..mask.len() as u32)
+            .filter(|&i| mask[i as usize])
+            .collect();
+        if candidates.is_empty() {
+            candidates = (0..mask.len() as u32).collect();
+        }
+        let picks = crate::render::sample_points(candidates.len(), cfg.points, seed);
+        let pixels: Vec<u32> = picks.iter().map(|&k| candidates[k as usize]).collect();
+        let choose = Tensor::from_slice(&pixels, (1, cfg.points), &device)?;
+        let out = model.net.forward(&img, &choose, false)?;
+        let corr = out
+            .correspondences()?
+            .affine(1.0 / crate::perspnet::model::UV_SCALE, 0.0)?
+            .squeeze(0)?
+            .to_vec2::<f32>()?;
+        let verts = out.vertices_canonical()?.flatten_all()?.to_vec1::<f32>()?;
+        Ok(NetworkPrediction {
+            mask,
+            pixels,
+            points: corr.iter().map(|p| [p[0], p[1], p[2]]).collect(),
+            verts,
+        })
+    };
+    run().map_err(|e| candle_err("network forward", e))
+}
+
+/// The pose of a sample predicted from the network's correspondences (crop pixel
+/// centres mapped to the image, our PnP), or `None` when PnP fails.
+pub fn pose_of(
+    prediction: &NetworkPrediction,
+    crop: &CropTransform,
+    width: u32,
+    height: u32,
+    ransac: &crate::pnp::RansacParams,
+) -> Option<Pose> {
+    use crate::predict::{PixelSample, crop_pixel_to_image};
+    let mut seen = std::collections::HashSet::new();
+    let (mut object, mut image) = (Vec::new(), Vec::new());
+    for (px, p) in prediction.pixels.iter().zip(&prediction.points) {
+        if seen.insert(*px) {
+            object.push(nalgebra::Point3::new(p[0] as f64, p[1] as f64, p[2] as f64));
+            image.push(crop_pixel_to_image(crop, *px, PixelSample::Centre));
+        }
+    }
+    let k = crate::predict::intrinsics(width, height);
+    crate::predict::pose_from_correspondences(&object, &image, &k, ransac)
+        .ok()
+        .map(|(p, _)| p)
+}
+
+/// What [`model_predictions`] did.
+#[derive(Clone, Debug, Default, Serialize)]
+pub struct ModelPredictSummary {
+    /// Samples predicted.
+    pub samples: usize,
+    /// PnP failures (null `R_t` written).
+    pub failures: usize,
+}
+
+/// Runs a trained network over the samples of `split` (`None`: all): the crop box from
+/// the sample's landmarks (as the official evaluation does), the network, our PnP; the
+/// predictions carry `R_t`, the predicted mesh and the predicted crop mask.
+pub fn model_predictions(
+    dataset: &Path,
+    model: &TrainedModel,
+    split: Option<&str>,
+    seed: u64,
+    ransac: &crate::pnp::RansacParams,
+    progress: &dyn Fn(usize),
+) -> Result<(
+    Vec<crate::predictions_table::PredictionRecord>,
+    ModelPredictSummary,
+)> {
+    let manifest = read_manifest(&dataset.join("dataset.json"))?;
+    let input_root = PathBuf::from(&manifest.input);
+    let splits = split_map(dataset)?;
+    let size = model.checkpoint.config.input_size as u32;
+    let mut out = Vec::new();
+    let mut summary = ModelPredictSummary::default();
+    for shard in &manifest.shards {
+        for (i, r) in samples_table::read_samples(&dataset.join(&shard.samples_file))?
+            .into_iter()
+            .enumerate()
+        {
+            let s = splits
+                .as_ref()
+                .and_then(|m| m.get(&r.key).cloned())
+                .unwrap_or_else(|| r.split.clone());
+            if split.is_some_and(|want| want != s) {
+                continue;
+            }
+            let crop = CropTransform::around_landmarks(&r.landmarks_2d, size);
+            let image = crate::eval_dataset::sample_image(&r, &input_root);
+            let input = network_input(&image, &crop);
+            let p = predict_crop(
+                model,
+                &input,
+                seed ^ ((shard.index as u64) << 32 | i as u64),
+            )?;
+            let pose = pose_of(&p, &crop, r.image_width, r.image_height, ransac);
+            summary.samples += 1;
+            summary.failures += pose.is_none() as usize;
+            out.push(crate::predictions_table::PredictionRecord {
+                key: r.key.clone(),
+                rt: pose.map(|p| p.to_release_rt()),
+                verts: Some(p.verts),
+                mask_rle: Some(targets_table::rle_encode(&p.mask)),
+            });
+            progress(1);
+        }
+    }
+    Ok((out, summary))
+}

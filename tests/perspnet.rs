@@ -1,0 +1,698 @@
+//! The reference PerspNet (`arkit_tool::perspnet`): layers against hand values and
+//! candle's own ops, the `paper` shapes and parameter counts, and `tiny` training.
+
+mod layers {
+    //! Hand-checked tests of the custom differentiable layers.
+
+    use arkit_tool::perspnet::layers::*;
+    use candle_core::{Device, Result, Tensor, Var};
+
+    fn close(a: &[f32], b: &[f32], tol: f32) {
+        assert_eq!(a.len(), b.len());
+        for (i, (x, y)) in a.iter().zip(b).enumerate() {
+            assert!((x - y).abs() <= tol, "index {i}: {x} vs {y}");
+        }
+    }
+
+    #[test]
+    fn upsample_matches_hand_values_and_candle() -> Result<()> {
+        let dev = Device::Cpu;
+        // 1 x 1 x 2 x 2 -> 4 x 4 with align_corners=True: source positions 0, 1/3, 2/3, 1.
+        let x = Tensor::new(&[[[[0f32, 3.], [6., 9.]]]], &dev)?;
+        let y = upsample2x_bilinear(&x)?;
+        let got: Vec<f32> = y.flatten_all()?.to_vec1()?;
+        let want = [
+            0., 1., 2., 3., 2., 3., 4., 5., 4., 5., 6., 7., 6., 7., 8., 9.,
+        ];
+        close(&got, &want, 1e-5);
+        // 1-D matrix for 3 -> 6: positions i * 2/5.
+        let m = interp_matrix_align_corners(3, 6);
+        close(&m[3..6], &[0.6, 0.4, 0.0], 1e-6);
+        close(&m[6..9], &[0.2, 0.8, 0.0], 1e-6);
+        close(&m[15..18], &[0.0, 0.0, 1.0], 1e-6);
+        // Against candle's (non-differentiable) kernel on a random tensor.
+        let x = Tensor::randn(0f32, 1., (2, 3, 5, 7), &dev)?;
+        let a: Vec<f32> = upsample2x_bilinear(&x)?.flatten_all()?.to_vec1()?;
+        let b: Vec<f32> = x
+            .upsample_bilinear2d(10, 14, true)?
+            .flatten_all()?
+            .to_vec1()?;
+        close(&a, &b, 1e-5);
+        // Gradient: sum of outputs -> each input's grad is the column sums of the matrices.
+        let v = Var::from_tensor(&Tensor::ones((1, 1, 2, 2), candle_core::DType::F32, &dev)?)?;
+        let g = upsample2x_bilinear(v.as_tensor())?.sum_all()?.backward()?;
+        let gv: Vec<f32> = g.get(v.as_tensor()).unwrap().flatten_all()?.to_vec1()?;
+        close(&gv, &[4., 4., 4., 4.], 1e-5);
+        Ok(())
+    }
+
+    #[test]
+    fn point_sampler_matches_grid_sample() -> Result<()> {
+        let dev = Device::Cpu;
+        // 4 x 4 map with value = 10 * y + x, two channels (second = -first).
+        let vals: Vec<f32> = (0..16).map(|i| (10 * (i / 4) + i % 4) as f32).collect();
+        let neg: Vec<f32> = vals.iter().map(|v| -v).collect();
+        let map = Tensor::from_vec([vals, neg].concat(), (1, 2, 4, 4), &dev)?;
+        // u = 0.5, v = 0.5 -> pixel (1.5, 1.5) -> 16.5.
+        // u = 0.375, v = 0.125 -> pixel (1.0, 0.0) -> 1.
+        // u = 0.0, v = 0.5 -> pixel (-0.5, 1.5): half weight on x=0 column (zeros padding) -> 0.5 * 15 = 7.5.
+        // u = 1.0, v = 1.0 -> pixel (3.5, 3.5): only (3,3) with weight 0.25 -> 8.25.
+        let uv = Tensor::new(
+            &[[0.5f32, 0.5], [0.375, 0.125], [0.0, 0.5], [1.0, 1.0]],
+            &dev,
+        )?;
+        let s = PointSampler::new(&uv, 4, 4)?;
+        let out = s.sample(&map)?; // 1 x 2 x 4
+        assert_eq!(out.dims(), &[1, 2, 4]);
+        let got: Vec<f32> = out.flatten_all()?.to_vec1()?;
+        close(
+            &got,
+            &[16.5, 1.0, 7.5, 8.25, -16.5, -1.0, -7.5, -8.25],
+            1e-5,
+        );
+        Ok(())
+    }
+
+    #[test]
+    fn gather_pixels_picks_per_batch() -> Result<()> {
+        let dev = Device::Cpu;
+        let x = Tensor::arange(0f32, 2. * 3. * 4., &dev)?.reshape((2, 3, 2, 2))?;
+        let choose = Tensor::new(&[[0u32, 3], [1, 1]], &dev)?;
+        let g = gather_pixels(&x, &choose)?; // 2 x 2 x 3
+        let got: Vec<f32> = g.flatten_all()?.to_vec1()?;
+        // batch 0, pixel 0: channels 0,4,8; pixel 3: 3,7,11; batch 1 pixel 1: 13,17,21.
+        close(
+            &got,
+            &[0., 4., 8., 3., 7., 11., 13., 17., 21., 13., 17., 21.],
+            0.0,
+        );
+        Ok(())
+    }
+
+    #[test]
+    fn positional_encoding_formula() {
+        let pe = positional_encoding_at(64, 3.0, 5.0);
+        let div1 = (-(2.0f64) * 10000f64.ln() / 32.0).exp();
+        close(
+            &pe[..4],
+            &[
+                3f32.sin(),
+                3f32.cos(),
+                (3.0 * div1).sin() as f32,
+                (3.0 * div1).cos() as f32,
+            ],
+            1e-6,
+        );
+        close(&pe[32..34], &[5f32.sin(), 5f32.cos()], 1e-6);
+        // The map layout matches the point evaluation.
+        let map = positional_encoding_map(8, 3, 4);
+        let p = positional_encoding_at(8, 2.0, 1.0);
+        for (c, v) in p.iter().enumerate() {
+            assert_eq!(map[(c * 3 + 1) * 4 + 2], *v);
+        }
+    }
+
+    #[test]
+    fn max_pool_matches_reference() -> Result<()> {
+        let dev = Device::Cpu;
+        for (h, w) in [(8, 8), (7, 9), (96, 96)] {
+            let x = Tensor::rand(0f32, 1., (2, 3, h, w), &dev)?;
+            let got = max_pool_3x3_s2_p1(&x)?;
+            // Reference: brute force.
+            let xv: Vec<f32> = x.flatten_all()?.to_vec1()?;
+            let (oh, ow) = ((h - 1) / 2 + 1, (w - 1) / 2 + 1);
+            assert_eq!(got.dims(), &[2, 3, oh, ow]);
+            let gv: Vec<f32> = got.flatten_all()?.to_vec1()?;
+            for bc in 0..6 {
+                for i in 0..oh {
+                    for j in 0..ow {
+                        let mut m = f32::MIN;
+                        for di in 0..3 {
+                            for dj in 0..3 {
+                                let (y, x) = (2 * i + di, 2 * j + dj);
+                                if y >= 1 && x >= 1 && y - 1 < h && x - 1 < w {
+                                    m = m.max(xv[bc * h * w + (y - 1) * w + (x - 1)]);
+                                }
+                            }
+                        }
+                        assert_eq!(gv[(bc * oh + i) * ow + j], m);
+                    }
+                }
+            }
+        }
+        Ok(())
+    }
+
+    #[test]
+    fn dropout2d_drops_whole_channels() -> Result<()> {
+        let dev = Device::Cpu;
+        let x = Tensor::ones((4, 64, 3, 3), candle_core::DType::F32, &dev)?;
+        let y = dropout2d(&x, 0.5, true)?;
+        let v: Vec<f32> = y.flatten_all()?.to_vec1()?;
+        for ch in v.chunks(9) {
+            assert!(ch.iter().all(|&a| a == ch[0]) && (ch[0] == 0.0 || (ch[0] - 2.0).abs() < 1e-6));
+        }
+        let same: Vec<f32> = dropout2d(&x, 0.5, false)?.flatten_all()?.to_vec1()?;
+        assert!(same.iter().all(|&a| a == 1.0));
+        Ok(())
+    }
+
+    #[test]
+    fn imagenet_normalisation() -> Result<()> {
+        let dev = Device::Cpu;
+        let x = Tensor::full(0.5f32, (1, 3, 1, 1), &dev)?;
+        let y: Vec<f32> = imagenet_normalize(&x)?.flatten_all()?.to_vec1()?;
+        close(
+            &y,
+            &[
+                (0.5 - 0.485) / 0.229,
+                (0.5 - 0.456) / 0.224,
+                (0.5 - 0.406) / 0.225,
+            ],
+            1e-6,
+        );
+        Ok(())
+    }
+
+    #[test]
+    fn im2col_conv_matches_candle_conv() -> Result<()> {
+        let dev = Device::Cpu;
+        for (k, stride, pad, h, w) in [
+            (3, 1, 1, 9, 7),
+            (3, 2, 1, 12, 12),
+            (7, 2, 3, 16, 16),
+            (1, 2, 0, 8, 8),
+            (1, 1, 0, 5, 6),
+            (3, 2, 1, 7, 9),
+        ] {
+            let x = Tensor::randn(0f32, 1., (2, 4, h, w), &dev)?;
+            let wt = Tensor::randn(0f32, 1., (5, 4, k, k), &dev)?;
+            let a = conv2d_im2col(&x, &wt, stride, pad)?;
+            let b = x.conv2d(&wt, pad, stride, 1, 1)?;
+            assert_eq!(a.dims(), b.dims());
+            let d: f32 = (a - b)?.abs()?.max_all()?.to_scalar()?;
+            assert!(d < 1e-4, "k{k} s{stride} p{pad}: {d}");
+        }
+        Ok(())
+    }
+
+    #[test]
+    fn fast_conv_gradients_match_builtin() -> Result<()> {
+        let dev = Device::Cpu;
+        for (k, stride, pad, h, w) in [
+            (3, 1, 1, 9, 7),
+            (3, 2, 1, 12, 12),
+            (7, 2, 3, 16, 16),
+            (1, 2, 0, 8, 8),
+            (1, 1, 0, 5, 6),
+            (3, 2, 1, 7, 9),
+        ] {
+            let x = Var::from_tensor(&Tensor::randn(0f32, 1., (2, 4, h, w), &dev)?)?;
+            let wt = Var::from_tensor(&Tensor::randn(0f32, 1., (5, 4, k, k), &dev)?)?;
+            let a = conv2d_fast(x.as_tensor(), wt.as_tensor(), stride, pad)?;
+            let b = x.as_tensor().conv2d(wt.as_tensor(), pad, stride, 1, 1)?;
+            let d: f32 = (&a - &b)?.abs()?.max_all()?.to_scalar()?;
+            assert!(d < 1e-4, "fwd k{k} s{stride}: {d}");
+            let r = Tensor::randn(0f32, 1., a.shape(), &dev)?;
+            let ga = (&a * &r)?.sum_all()?.backward()?;
+            let gb = (&b * &r)?.sum_all()?.backward()?;
+            for v in [&x, &wt] {
+                let d: f32 = (ga.get(v.as_tensor()).unwrap() - gb.get(v.as_tensor()).unwrap())?
+                    .abs()?
+                    .max_all()?
+                    .to_scalar()?;
+                assert!(d < 1e-3, "grad k{k} s{stride} p{pad} {h}x{w}: {d}");
+            }
+        }
+        Ok(())
+    }
+
+    #[test]
+    fn fused_batch_norm_matches_candle() -> Result<()> {
+        use candle_core::ModuleT;
+        use candle_nn::{VarBuilder, VarMap};
+        let dev = Device::Cpu;
+        for train in [true, false] {
+            let vm1 = VarMap::new();
+            let vm2 = VarMap::new();
+            let a = BatchNorm2d::new(
+                VarBuilder::from_varmap(&vm1, candle_core::DType::F32, &dev),
+                5,
+                0.3,
+                1e-5,
+                0.1,
+            )?;
+            let b = batch_norm(
+                VarBuilder::from_varmap(&vm2, candle_core::DType::F32, &dev),
+                5,
+                0.3,
+                1e-5,
+                0.1,
+            )?;
+            // Same parameters in both.
+            for (k, v) in vm2.data().lock().unwrap().iter() {
+                vm1.data().lock().unwrap()[k].set(v.as_tensor())?;
+            }
+            let x = Var::from_tensor(&Tensor::randn(0.5f32, 2., (3, 5, 4, 6), &dev)?)?;
+            let r = Tensor::randn(0f32, 1., (3, 5, 4, 6), &dev)?;
+            let ya = a.forward_t(x.as_tensor(), train)?;
+            let yb = b.forward_t(x.as_tensor(), train)?;
+            let d: f32 = (&ya - &yb)?.abs()?.max_all()?.to_scalar()?;
+            assert!(d < 1e-4, "fwd train={train}: {d}");
+            let ga = (&ya * &r)?.sum_all()?.backward()?;
+            let gb = (&yb * &r)?.sum_all()?.backward()?;
+            let d: f32 = (ga.get(x.as_tensor()).unwrap() - gb.get(x.as_tensor()).unwrap())?
+                .abs()?
+                .max_all()?
+                .to_scalar()?;
+            assert!(d < 1e-3, "dx train={train}: {d}");
+            for name in ["weight", "bias"] {
+                let ta = vm1.data().lock().unwrap()[name].as_tensor().clone();
+                let tb = vm2.data().lock().unwrap()[name].as_tensor().clone();
+                let d: f32 = (ga.get(&ta).unwrap() - gb.get(&tb).unwrap())?
+                    .abs()?
+                    .max_all()?
+                    .to_scalar()?;
+                assert!(d < 1e-3, "d{name} train={train}: {d}");
+            }
+            for name in ["running_mean", "running_var"] {
+                let ta = vm1.data().lock().unwrap()[name].as_tensor().clone();
+                let tb = vm2.data().lock().unwrap()[name].as_tensor().clone();
+                let d: f32 = (ta - tb)?.abs()?.max_all()?.to_scalar()?;
+                assert!(d < 1e-4, "{name} train={train}: {d}");
+            }
+        }
+        Ok(())
+    }
+
+    #[test]
+    fn leaky_relu_values() -> Result<()> {
+        let x = Tensor::new(&[-2f32, -0.5, 0.0, 3.0], &Device::Cpu)?;
+        let y: Vec<f32> = leaky_relu(&x, 0.1)?.to_vec1()?;
+        close(&y, &[-0.2, -0.05, 0.0, 3.0], 1e-6);
+        Ok(())
+    }
+}
+
+mod shapes {
+    //! One forward pass of the `paper` configuration: checks every intermediate
+    //! shape and reports the parameter count against the official numbers.
+
+    use arkit_tool::perspnet::model::{parameter_count, synthetic_vertex_uv};
+    use arkit_tool::perspnet::{PerspNet, PerspNetConfig};
+    use candle_core::{DType, Device, Result, Tensor};
+    use candle_nn::{VarBuilder, VarMap};
+
+    #[test]
+    fn paper_forward_shapes_and_parameter_count() -> Result<()> {
+        let dev = Device::Cpu;
+        let cfg = PerspNetConfig::paper();
+        let varmap = VarMap::new();
+        let vb = VarBuilder::from_varmap(&varmap, DType::F32, &dev);
+        let uv = synthetic_vertex_uv(cfg.vertices, &dev)?;
+        let net = PerspNet::new(&cfg, &uv, vb)?;
+
+        let total = parameter_count(&varmap, "");
+        let dense = parameter_count(&varmap, "cnn.");
+        println!(
+            "parameters: full {:.3} M (official 16.97 M), encoder+decoders {:.3} M (official 15.12 M), head {:.3} M",
+            total as f64 / 1e6,
+            dense as f64 / 1e6,
+            (total - dense) as f64 / 1e6
+        );
+        assert!((total as f64 / 1e6 - 16.97).abs() < 0.01, "total {total}");
+        assert!((dense as f64 / 1e6 - 15.12).abs() < 0.01, "dense {dense}");
+
+        let (b, s, m) = (1usize, 192usize, 1024usize);
+        let img = Tensor::randn(0f32, 1., (b, 3, s, s), &dev)?;
+        let choose: Vec<u32> = (0..m as u32).map(|i| (i * 37) % (s * s) as u32).collect();
+        let choose = Tensor::from_vec(choose, (b, m), &dev)?;
+        let t0 = std::time::Instant::now();
+        let out = net.forward(&img, &choose, false)?;
+        println!("paper forward (eval, batch 1): {:?}", t0.elapsed());
+
+        let e = &out.dense.encoder;
+        assert_eq!(e.x2s.dims(), &[b, 64, 96, 96]);
+        assert_eq!(e.x4s.dims(), &[b, 64, 48, 48]);
+        assert_eq!(e.x8s.dims(), &[b, 128, 24, 24]);
+        assert_eq!(e.x16s.dims(), &[b, 256, 12, 12]);
+        assert_eq!(e.x32s.dims(), &[b, 512, 6, 6]);
+        assert_eq!(e.fc.dims(), &[b, 256, 6, 6]);
+        let want = [
+            [b, 256, 12, 12],
+            [b, 128, 24, 24],
+            [b, 64, 48, 48],
+            [b, 32, 96, 96],
+        ];
+        for (t, w) in out.dense.decoder_2d.iter().zip(&want) {
+            assert_eq!(t.dims(), w);
+        }
+        for (t, w) in out.dense.decoder_uv.iter().zip(&want) {
+            assert_eq!(t.dims(), w);
+        }
+        assert_eq!(out.dense.image_features.dims(), &[b, 32, s, s]);
+        assert_eq!(out.dense.seg_logits.dims(), &[b, 2, s, s]);
+        assert_eq!(out.dense.uv_features.dims(), &[b, 32, s, s]);
+        assert_eq!(out.dense.uv_map.dims(), &[b, 3, s, s]);
+        assert_eq!(out.assign_logits.dims(), &[b, m, 1220]);
+        assert_eq!(out.vertices.dims(), &[b, 1220, 3]);
+        let a = out.assignment()?;
+        assert_eq!(a.dims(), &[b, m, 1220]);
+        let row_sum: f32 = a.sum(2)?.mean_all()?.to_scalar()?;
+        assert!((row_sum - 1.0).abs() < 1e-4);
+        assert_eq!(out.correspondences()?.dims(), &[b, m, 3]);
+        let uv_max: f32 = out.dense.uv_map.abs()?.max_all()?.to_scalar()?;
+        assert!(uv_max <= 1.0);
+        Ok(())
+    }
+}
+
+mod train {
+    //! `tiny` configuration: loss terms behave, a few AdamW steps on one fixed
+    //! batch reduce the total loss, and weights survive a safetensors round trip.
+
+    use arkit_tool::perspnet::loss::{
+        LossWeights, kl_loss, perspnet_loss, seg_cross_entropy, smooth_l1_sum_mean,
+    };
+    use arkit_tool::perspnet::model::{synthetic_vertex_uv, trainable_vars};
+    use arkit_tool::perspnet::{CorrTarget, LossTargets, PerspNet, PerspNetConfig, PerspNetLoss};
+    use candle_core::{DType, Device, Result, Tensor};
+    use candle_nn::{AdamW, Optimizer, ParamsAdamW, VarBuilder, VarMap};
+
+    struct Batch {
+        img: Tensor,
+        choose: Tensor,
+        nocs: Tensor,
+        model: Tensor,
+        mask: Tensor,
+        ids: Tensor,
+        weights: Tensor,
+    }
+
+    fn batch(cfg: &PerspNetConfig, b: usize, dev: &Device) -> Result<Batch> {
+        let s = cfg.input_size;
+        let m = cfg.points;
+        let v = cfg.vertices;
+        let img = Tensor::randn(0f32, 1., (b, 3, s, s), dev)?;
+        let mut choose = Vec::new();
+        let mut ids = Vec::new();
+        let mut wts = Vec::new();
+        for bi in 0..b {
+            for i in 0..m {
+                choose.push(((i * 13 + bi * 7) % (s * s)) as u32);
+                let base = (i * 5 + bi) % (v - 2);
+                ids.extend([base as u32, base as u32 + 1, base as u32 + 2]);
+                wts.extend([0.5f32, 0.3, 0.2]);
+            }
+        }
+        let choose = Tensor::from_vec(choose, (b, m), dev)?;
+        let ids = Tensor::from_vec(ids, (b, m, 3), dev)?;
+        let weights = Tensor::from_vec(wts, (b, m, 3), dev)?;
+        // A smooth canonical mesh (a function of the vertex UVs), as real faces are.
+        let uv = synthetic_vertex_uv(v, dev)?.to_vec2::<f32>()?;
+        let mut mv = Vec::with_capacity(b * v * 3);
+        for _ in 0..b {
+            for p in &uv {
+                mv.extend([
+                    0.1 * (p[0] - 0.5),
+                    0.1 * (p[1] - 0.5),
+                    0.05 * (p[0] * 3.0).sin(),
+                ]);
+            }
+        }
+        let model = Tensor::from_vec(mv, (b, v, 3), dev)?;
+        // Ground-truth coordinates consistent with the barycentric targets (official 4.5 scale).
+        let picked = model
+            .unsqueeze(1)?
+            .broadcast_as((b, m, v, 3))?
+            .contiguous()?
+            .gather(
+                &ids.unsqueeze(3)?.broadcast_as((b, m, 3, 3))?.contiguous()?,
+                2,
+            )?; // b m 3 3
+        let nocs = picked
+            .broadcast_mul(&weights.unsqueeze(3)?)?
+            .sum(2)?
+            .affine(4.5, 0.0)?;
+        let mask = Tensor::rand(0f32, 1., (b, s, s), dev)?
+            .ge(0.5)?
+            .to_dtype(DType::F32)?;
+        Ok(Batch {
+            img,
+            choose,
+            nocs,
+            model,
+            mask,
+            ids,
+            weights,
+        })
+    }
+
+    #[test]
+    fn loss_pieces_hand_values() -> Result<()> {
+        let dev = Device::Cpu;
+        // smooth L1: d = 0.005 -> 0.005^2 / 0.02 = 0.00125; d = 0.5 -> 0.495; summed over last axis.
+        let p = Tensor::new(&[[0.005f32, 0.5]], &dev)?;
+        let z = Tensor::zeros((1, 2), DType::F32, &dev)?;
+        let l: f32 = smooth_l1_sum_mean(&p, &z, 0.01)?.to_scalar()?;
+        assert!((l - 0.49625).abs() < 1e-6);
+        // KL: dense and sparse forms agree.
+        let logits = Tensor::randn(0f32, 1., (2, 3, 6), &dev)?;
+        let log_p = candle_nn::ops::log_softmax(&logits, 2)?;
+        let ids = Tensor::new(
+            &[
+                [[0u32, 1, 2], [3, 4, 5], [1, 3, 5]],
+                [[2u32, 0, 4], [5, 1, 3], [0, 2, 1]],
+            ],
+            &dev,
+        )?;
+        let w = Tensor::new(&[[[0.2f32, 0.3, 0.5]; 3]; 2], &dev)?;
+        let dense = Tensor::zeros((2, 3, 6), DType::F32, &dev)?.scatter_add(&ids, &w, 2)?;
+        let a: f32 = kl_loss(&log_p, &CorrTarget::Dense(dense))?.to_scalar()?;
+        let b: f32 = kl_loss(&log_p, &CorrTarget::Sparse { ids, weights: w })?.to_scalar()?;
+        assert!((a - b).abs() < 1e-4, "{a} vs {b}");
+        assert!(a > 0.0);
+        // Segmentation CE with equal logits is ln 2.
+        let lg = Tensor::zeros((1, 2, 2, 2), DType::F32, &dev)?;
+        let mk = Tensor::new(&[[[0u32, 1], [1, 0]]], &dev)?;
+        let ce: f32 = seg_cross_entropy(&lg, &mk)?.to_scalar()?;
+        assert!((ce - std::f32::consts::LN_2).abs() < 1e-6);
+        // Schedule.
+        let mut lw = LossWeights::default();
+        lw.update_schedule(0.05);
+        assert_eq!((lw.kl, lw.seg, lw.shape), (0.01, 0.01, 1.0));
+        lw.update_schedule(0.005);
+        assert_eq!((lw.kl, lw.seg, lw.shape, lw.uv), (0.001, 0.01, 0.5, 0.5));
+        Ok(())
+    }
+
+    #[test]
+    fn tiny_overfits_one_batch_and_round_trips() -> Result<()> {
+        let dev = Device::Cpu;
+        let cfg = PerspNetConfig::tiny();
+        let varmap = VarMap::new();
+        let vb = VarBuilder::from_varmap(&varmap, DType::F32, &dev);
+        let uv = synthetic_vertex_uv(cfg.vertices, &dev)?;
+        let net = PerspNet::new(&cfg, &uv, vb)?;
+        let bt = batch(&cfg, 2, &dev)?;
+        let corr = CorrTarget::Sparse {
+            ids: bt.ids.clone(),
+            weights: bt.weights.clone(),
+        };
+        let targets = LossTargets {
+            nocs: &bt.nocs,
+            model: &bt.model,
+            seg_mask: &bt.mask,
+            corr: &corr,
+            uv_map: None,
+        };
+        // Fixed weights so that the totals are comparable across steps.
+        let weights = LossWeights::default();
+        let mut opt = AdamW::new(
+            trainable_vars(&varmap),
+            ParamsAdamW {
+                lr: 1e-2,
+                weight_decay: 0.0,
+                ..Default::default()
+            },
+        )?;
+        let mut totals = Vec::new();
+        for step in 0..12 {
+            let out = net.forward(&bt.img, &bt.choose, true)?;
+            let terms = perspnet_loss(&out, &targets, &weights)?;
+            let v = terms.values()?;
+            println!(
+                "step {step}: total {:.4} corr {:.4} shape {:.4} kl {:.4} ent {:.5} seg {:.4}",
+                v[0], v[1], v[2], v[3], v[4], v[5]
+            );
+            assert!(v.iter().all(|x| x.is_finite()));
+            totals.push(v[0]);
+            opt.backward_step(&terms.total)?;
+        }
+        assert!(
+            totals[11] < 0.93 * totals[0],
+            "loss did not fall: {totals:?}"
+        );
+
+        // The stateful loss runs and reports every term.
+        let mut loss = PerspNetLoss::default();
+        let out = net.forward(&bt.img, &bt.choose, false)?;
+        let t = loss.compute(&out, &targets)?;
+        assert!(t.values()?.iter().all(|x| x.is_finite()));
+
+        // Save / load round trip (eval outputs identical).
+        let path =
+            std::env::temp_dir().join(format!("perspnet_tiny_{}.safetensors", std::process::id()));
+        varmap.save(&path)?;
+        let mut varmap2 = VarMap::new();
+        let vb2 = VarBuilder::from_varmap(&varmap2, DType::F32, &dev);
+        let net2 = PerspNet::new(&cfg, &uv, vb2)?;
+        varmap2.load(&path)?;
+        let a = net.forward(&bt.img, &bt.choose, false)?;
+        let b = net2.forward(&bt.img, &bt.choose, false)?;
+        let d1: f32 = (&a.assign_logits - &b.assign_logits)?
+            .abs()?
+            .max_all()?
+            .to_scalar()?;
+        let d2: f32 = (&a.dense.uv_map - &b.dense.uv_map)?
+            .abs()?
+            .max_all()?
+            .to_scalar()?;
+        assert_eq!((d1, d2), (0.0, 0.0));
+        std::fs::remove_file(&path).ok();
+        Ok(())
+    }
+}
+
+mod pipeline {
+    //! synth -> convert -> render (64x64, 256 points) -> train (tiny) -> predict
+    //! --model -> eval, on a few samples.
+
+    use arkit_tool::conventions::Camera;
+    use arkit_tool::convert::{self, ConvertOptions, ValidationContext};
+    use arkit_tool::eval_dataset::{self, EvalOptions};
+    use arkit_tool::perspnet::PerspNetConfig;
+    use arkit_tool::pnp::RansacParams;
+    use arkit_tool::render::FaceRenderer;
+    use arkit_tool::render_dataset::{self, RenderOptions};
+    use arkit_tool::synth::{self, FaceSource, SynthOptions};
+    use arkit_tool::training::{self, TrainOptions};
+
+    #[test]
+    fn train_tiny_then_predict_and_evaluate() {
+        let release = tempfile::tempdir().unwrap();
+        let options = SynthOptions {
+            subjects: 2,
+            images_per_subject: 3,
+            width: 256,
+            height: 256,
+            seed: 8,
+            ..SynthOptions::default()
+        };
+        synth::generate(&FaceSource::builtin(), &options, release.path(), &|| {}).unwrap();
+        let topology = arkit_tool::synthetic_face::builtin().topology.clone();
+        let dir = tempfile::tempdir().unwrap();
+        let ctx = ValidationContext {
+            projection: Camera::release_projection(),
+            topology: topology.clone(),
+            embed_images: false,
+        };
+        let copts = ConvertOptions {
+            input: release.path().to_path_buf(),
+            output: dir.path().to_path_buf(),
+            resources: None,
+            rows_per_shard: 100,
+            embed_images: false,
+            shard_index: 0,
+            shard_count: 1,
+        };
+        convert::convert(&copts, &ctx, &|_| {}).unwrap();
+        let cfg = PerspNetConfig::tiny();
+        // Targets at the wrong size are refused with the render options to use.
+        let renderer = FaceRenderer::new(topology.clone(), Camera::release_projection()).unwrap();
+        let wrong = tempfile::tempdir().unwrap();
+        let ro = |size: u32, out: &std::path::Path| RenderOptions {
+            size,
+            uv_size: 16,
+            points: 256,
+            seed: 1,
+            output: out.to_path_buf(),
+        };
+        render_dataset::render_dataset(dir.path(), &renderer, &ro(96, wrong.path()), &|_| {})
+            .unwrap();
+        let e = match training::read_examples(dir.path(), wrong.path(), &cfg, None) {
+            Err(e) => e.to_string(),
+            Ok(_) => panic!("targets at 96 accepted for a 64 network"),
+        };
+        assert!(e.contains("--size 64"), "{e}");
+        render_dataset::render_dataset(dir.path(), &renderer, &ro(64, dir.path()), &|_| {})
+            .unwrap();
+        let examples = training::read_examples(dir.path(), dir.path(), &cfg, None).unwrap();
+        assert_eq!(examples.len(), 6);
+        // The stored coordinates are the official 4.5x scale of the mesh at the weights.
+        let e0 = &examples[0];
+        let mut c = [0f32; 3];
+        for k in 0..3 {
+            let v = e0.ids[k] as usize;
+            for (a, ca) in c.iter_mut().enumerate() {
+                *ca += e0.weights[k] * e0.sample.verts[3 * v + a];
+            }
+        }
+        for (n, ca) in e0.nocs.iter().zip(c) {
+            assert!((n - 4.5 * ca).abs() < 1e-5);
+        }
+        // Overfit four samples: the loss falls.
+        let model_dir = tempfile::tempdir().unwrap();
+        let topts = TrainOptions {
+            config: cfg.clone(),
+            epochs: 8,
+            batch: 4,
+            learning_rate: 5e-3,
+            seed: 3,
+            output: model_dir.path().to_path_buf(),
+        };
+        let (ck, log) = training::train(&examples[..4], &topology, &topts, &|_| {}).unwrap();
+        assert_eq!(ck.steps, 8);
+        let first = log[0].total;
+        let last = log
+            .iter()
+            .rev()
+            .take(2)
+            .map(|s| s.total)
+            .fold(f32::MAX, f32::min);
+        assert!(last < first, "loss {first} -> {last}");
+        for f in ["perspnet.json", "model.safetensors", "loss.csv"] {
+            assert!(model_dir.path().join(f).exists(), "{f}");
+        }
+        // Load, predict (deterministic), evaluate.
+        let model = training::load(model_dir.path(), &topology).unwrap();
+        let run = || {
+            training::model_predictions(
+                dir.path(),
+                &model,
+                None,
+                5,
+                &RansacParams::default(),
+                &|_| {},
+            )
+            .unwrap()
+        };
+        let (a, sa) = run();
+        let (b, _) = run();
+        assert_eq!(a, b);
+        assert_eq!(sa.samples, 6);
+        assert!(a.iter().all(|p| p.verts.as_ref().unwrap().len() == 3660));
+        let options = EvalOptions {
+            split: None,
+            ..EvalOptions::default()
+        };
+        let ev = eval_dataset::evaluate(dir.path(), &a, &options).unwrap();
+        assert_eq!(ev.summary.samples, 6);
+        assert!(ev.summary.recon_mean_mm.unwrap().is_finite());
+        assert!(
+            ev.summary.mask.is_some(),
+            "{:?}",
+            ev.problems.unscored_masks
+        );
+    }
+}
