@@ -96,8 +96,32 @@ pub struct Evaluation {
     pub input_root: PathBuf,
 }
 
-/// The split of each sample as `split` recorded it (`None` when it has not run).
-pub fn split_map(dataset: &Path) -> Result<Option<HashMap<SampleKey, String>>> {
+/// Which split each sample of a dataset is in: `split`'s assignment
+/// (`splits/splits.parquet`) when it has run, else the release lists `convert` read.
+#[derive(Clone, Debug)]
+pub struct SplitLookup(Option<HashMap<SampleKey, String>>);
+
+impl SplitLookup {
+    /// Reads the assignment of `dataset`, if any.
+    pub fn read(dataset: &Path) -> Result<Self> {
+        split_map(dataset).map(SplitLookup)
+    }
+
+    /// The split of a sample.
+    pub fn of(&self, r: &SampleRecord) -> String {
+        self.0
+            .as_ref()
+            .and_then(|m| m.get(&r.key).cloned())
+            .unwrap_or_else(|| r.split.clone())
+    }
+
+    /// Whether a sample is in `want` (`None`: every split).
+    pub fn keeps(&self, r: &SampleRecord, want: Option<&str>) -> bool {
+        want.is_none_or(|w| self.of(r) == w)
+    }
+}
+
+fn split_map(dataset: &Path) -> Result<Option<HashMap<SampleKey, String>>> {
     let path = dataset.join("splits").join("splits.parquet");
     if !path.exists() {
         return Ok(None);
@@ -153,7 +177,7 @@ pub fn evaluate(
     options: &EvalOptions,
 ) -> Result<Evaluation> {
     let manifest = read_manifest(&dataset.join("dataset.json"))?;
-    let splits = split_map(dataset)?;
+    let splits = SplitLookup::read(dataset)?;
     let mut problems = MatchProblems::default();
     let mut by_key: HashMap<&SampleKey, &PredictionRecord> = HashMap::new();
     for p in predictions {
@@ -180,10 +204,7 @@ pub fn evaluate(
     for shard in &manifest.shards {
         let rows = samples_table::read_samples(&dataset.join(&shard.samples_file))?;
         for r in rows {
-            let split = splits
-                .as_ref()
-                .and_then(|m| m.get(&r.key).cloned())
-                .unwrap_or_else(|| r.split.clone());
+            let split = splits.of(&r);
             splits_found.insert(split.clone());
             if options.split.as_ref().is_some_and(|s| *s != split) {
                 continue;

@@ -152,7 +152,7 @@ pub fn oracle_predictions(
 ) -> Result<(Vec<PredictionRecord>, OracleSummary)> {
     let manifest = read_manifest(&dataset.join("dataset.json"))?;
     let at = targets_pixel_sample(targets_dir)?;
-    let splits = crate::eval_dataset::split_map(dataset)?;
+    let splits = crate::eval_dataset::SplitLookup::read(dataset)?;
     let mut out = Vec::new();
     let mut summary = OracleSummary::default();
     let mut points = 0usize;
@@ -172,13 +172,7 @@ pub fn oracle_predictions(
         let chosen: Vec<_> = rows
             .iter()
             .enumerate()
-            .filter(|(_, r)| {
-                let split = splits
-                    .as_ref()
-                    .and_then(|m| m.get(&r.key).cloned())
-                    .unwrap_or_else(|| r.split.clone());
-                options.split.as_ref().is_none_or(|s| *s == split)
-            })
+            .filter(|(_, r)| splits.keeps(r, options.split.as_deref()))
             .collect();
         let results: Vec<Option<(PredictionRecord, usize)>> = chosen
             .par_iter()

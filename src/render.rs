@@ -168,12 +168,7 @@ pub struct FaceTargets {
 impl FaceTargets {
     /// Row-major indices of the mask pixels (the rows of the correspondence matrix).
     pub fn mask_pixels(&self) -> Vec<u32> {
-        self.mask
-            .iter()
-            .enumerate()
-            .filter(|(_, m)| **m)
-            .map(|(i, _)| i as u32)
-            .collect()
+        crate::targets_table::mask_pixel_indices(&self.mask)
     }
 
     /// The coordinate map at the mask pixels: the canonical position under each pixel,

@@ -269,6 +269,16 @@ pub fn read_targets(path: &Path) -> Result<Vec<TargetsRecord>> {
     Ok(out)
 }
 
+/// The row-major indices of a mask's set pixels, in order (the rows of the stored
+/// correspondences follow this order).
+pub fn mask_pixel_indices(mask: &[bool]) -> Vec<u32> {
+    mask.iter()
+        .enumerate()
+        .filter(|(_, m)| **m)
+        .map(|(i, _)| i as u32)
+        .collect()
+}
+
 /// Dense tensors for one sample, ready for the network.
 #[derive(Clone, Debug, PartialEq)]
 pub struct DenseTargets {
@@ -293,12 +303,7 @@ pub struct DenseTargets {
 /// canonical vertices `verts`.
 pub fn dense(record: &TargetsRecord, verts: &[nalgebra::Point3<f32>]) -> Result<DenseTargets> {
     let mask = record.mask()?;
-    let pixels: Vec<u32> = mask
-        .iter()
-        .enumerate()
-        .filter(|(_, m)| **m)
-        .map(|(i, _)| i as u32)
-        .collect();
+    let pixels = mask_pixel_indices(&mask);
     if pixels.len() != record.corr_vertices.len() {
         return Err(Error::invalid(
             "targets",

@@ -16,7 +16,7 @@
 use crate::conventions::Pose;
 use crate::convert::read_manifest;
 use crate::error::{Error, Result};
-use crate::eval_dataset::split_map;
+use crate::eval_dataset::SplitLookup;
 use crate::perspnet::layers::{IMAGENET_MEAN, IMAGENET_STD};
 use crate::perspnet::loss::PerspNetLoss;
 use crate::perspnet::model::trainable_vars;
@@ -107,12 +107,7 @@ pub fn example(
         ));
     }
     let mask = targets.mask()?;
-    let pixels: Vec<u32> = mask
-        .iter()
-        .enumerate()
-        .filter(|(_, m)| **m)
-        .map(|(i, _)| i as u32)
-        .collect();
+    let pixels = targets_table::mask_pixel_indices(&mask);
     let weights = targets.weights();
     let verts = &sample.verts;
     let (mut choose, mut nocs, mut ids, mut ws) = (
@@ -173,7 +168,7 @@ pub fn read_examples(
 ) -> Result<Vec<Example>> {
     let manifest = read_manifest(&dataset.join("dataset.json"))?;
     let input_root = PathBuf::from(&manifest.input);
-    let splits = split_map(dataset)?;
+    let splits = SplitLookup::read(dataset)?;
     let mut out = Vec::new();
     for shard in &manifest.shards {
         let tpath = targets_dir
@@ -190,11 +185,7 @@ pub fn read_examples(
             .map(|t| (t.key.clone(), t))
             .collect();
         for r in samples_table::read_samples(&dataset.join(&shard.samples_file))? {
-            let s = splits
-                .as_ref()
-                .and_then(|m| m.get(&r.key).cloned())
-                .unwrap_or_else(|| r.split.clone());
-            if split.is_some_and(|want| want != s) {
+            if !splits.keeps(&r, split) {
                 continue;
             }
             let t = targets
@@ -624,7 +615,7 @@ pub fn model_predictions(
 )> {
     let manifest = read_manifest(&dataset.join("dataset.json"))?;
     let input_root = PathBuf::from(&manifest.input);
-    let splits = split_map(dataset)?;
+    let splits = SplitLookup::read(dataset)?;
     let size = model.checkpoint.config.input_size as u32;
     let mut out = Vec::new();
     let mut summary = ModelPredictSummary::default();
@@ -633,11 +624,7 @@ pub fn model_predictions(
             .into_iter()
             .enumerate()
         {
-            let s = splits
-                .as_ref()
-                .and_then(|m| m.get(&r.key).cloned())
-                .unwrap_or_else(|| r.split.clone());
-            if split.is_some_and(|want| want != s) {
+            if !splits.keeps(&r, split) {
                 continue;
             }
             let crop = CropTransform::around_landmarks(&r.landmarks_2d, size);

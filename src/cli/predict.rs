@@ -77,14 +77,14 @@ pub fn run(a: PredictArgs) -> Result<ExitCode> {
         ));
     }
     let manifest = arkit_tool::convert::read_manifest(&a.dataset.join("dataset.json"))?;
+    let ransac = RansacParams {
+        reprojection_threshold_px: a.threshold_px,
+        seed: a.seed,
+        ..RansacParams::default()
+    };
     if let Some(dir) = &a.model {
         let topology = super::load_topology(a.resources.as_deref())?;
         let model = arkit_tool::training::load(dir, &topology)?;
-        let ransac = RansacParams {
-            reprojection_threshold_px: a.threshold_px,
-            seed: a.seed,
-            ..RansacParams::default()
-        };
         let bar = super::progress_bar(manifest.converted as u64, "predict", "samples");
         let split = (a.split != "all").then_some(a.split.as_str());
         let (rows, summary) = arkit_tool::training::model_predictions(
@@ -115,11 +115,7 @@ pub fn run(a: PredictArgs) -> Result<ExitCode> {
         outliers: a.outliers,
         seed: a.seed,
         split: (a.split != "all").then(|| a.split.clone()),
-        ransac: RansacParams {
-            reprojection_threshold_px: a.threshold_px,
-            seed: a.seed,
-            ..RansacParams::default()
-        },
+        ransac,
     };
     let bar = super::progress_bar(manifest.converted as u64, "predict", "samples");
     let pool = super::thread_pool(a.jobs)?;
