@@ -39,7 +39,9 @@ fn candle_err(what: &str, e: candle_core::Error) -> Error {
     Error::invalid(what, e.to_string())
 }
 
-/// One training example (see the module docs), flat row-major buffers.
+/// One training example (see the module docs), flat row-major buffers. Every face pixel
+/// of the crop is kept with its targets, so that training can draw fresh pixels each
+/// time it sees the example (as the official loader does) and shift the crop.
 #[derive(Clone, Debug)]
 pub struct Example {
     /// The sample.
@@ -48,16 +50,202 @@ pub struct Example {
     pub crop: CropTransform,
     /// `3 x S x S`, ImageNet-normalised.
     pub image: Vec<f32>,
+    /// `S x S` face mask (0 or 1).
+    pub mask: Vec<f32>,
+    /// Every face pixel of the crop (`y * S + x`), in mask order.
+    pub pixels: Vec<u32>,
+    /// `P x 3` ground-truth coordinates under each face pixel, `4.5 x` canonical.
+    pub nocs: Vec<f32>,
+    /// `P x 3` vertex ids of each face pixel's triangle.
+    pub ids: Vec<u32>,
+    /// `P x 3` barycentric weights.
+    pub weights: Vec<f32>,
+    /// The `M` points `render` stored (indices into `pixels`): the view without
+    /// augmentation.
+    pub points: Vec<u32>,
+}
+
+/// What the network sees of one example in one step.
+#[derive(Clone, Debug, PartialEq)]
+pub struct View {
+    /// `3 x S x S`, ImageNet-normalised.
+    pub image: Vec<f32>,
+    /// `S x S` face mask.
+    pub mask: Vec<f32>,
     /// `M` chosen crop pixels (`y * S + x`).
     pub choose: Vec<u32>,
-    /// `M x 3` ground-truth coordinates, `4.5 x` canonical.
+    /// `M x 3` coordinates, `4.5 x` canonical.
     pub nocs: Vec<f32>,
-    /// `M x 3` vertex ids of each chosen pixel's triangle.
+    /// `M x 3` vertex ids.
     pub ids: Vec<u32>,
     /// `M x 3` barycentric weights.
     pub weights: Vec<f32>,
-    /// `S x S` face mask (0 or 1).
-    pub mask: Vec<f32>,
+}
+
+/// Training-time augmentation, drawn per example and step from the run's seed.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Augmentation {
+    /// Colour jitter strength `c`: brightness and contrast factors in `[1-c, 1+c]`,
+    /// each channel's gain in `[1-c/2, 1+c/2]` (0: off).
+    pub colour: f32,
+    /// Crop jitter: the crop is shifted by up to this many pixels on each axis
+    /// (the image, the mask and the face pixels move together; pixels shifted out
+    /// are dropped, uncovered ones are the mean colour).
+    pub shift_px: u32,
+    /// Draw fresh face pixels each step instead of the `M` stored ones.
+    pub resample_points: bool,
+}
+
+impl Augmentation {
+    /// No augmentation: the stored view.
+    pub const NONE: Augmentation = Augmentation {
+        colour: 0.0,
+        shift_px: 0,
+        resample_points: false,
+    };
+    /// The default for training: colour 0.2, shift 2 px, fresh points.
+    pub const DEFAULT: Augmentation = Augmentation {
+        colour: 0.2,
+        shift_px: 2,
+        resample_points: true,
+    };
+}
+
+impl Default for Augmentation {
+    fn default() -> Self {
+        Augmentation::DEFAULT
+    }
+}
+
+impl Example {
+    /// The view `render` stored: the crop as is and the stored points.
+    pub fn stored_view(&self) -> View {
+        self.view_of(self.image.clone(), self.mask.clone(), &self.points, (0, 0))
+    }
+
+    /// An augmented view, drawn from `rng`.
+    pub fn augmented_view(&self, m: usize, aug: &Augmentation, rng: &mut Rng) -> View {
+        let s = self.crop.size as usize;
+        let k = aug.shift_px as i64;
+        let (dx, dy) = if k > 0 {
+            (
+                rng.below(2 * k as u64 + 1) as i64 - k,
+                rng.below(2 * k as u64 + 1) as i64 - k,
+            )
+        } else {
+            (0, 0)
+        };
+        let image = jitter_colour(
+            &shift_planes(&self.image, s, 3, dx, dy),
+            s * s,
+            aug.colour,
+            rng,
+        );
+        let mask = shift_planes(&self.mask, s, 1, dx, dy);
+        let inside = |p: u32| {
+            let (x, y) = ((p as usize % s) as i64 + dx, (p as usize / s) as i64 + dy);
+            x >= 0 && y >= 0 && x < s as i64 && y < s as i64
+        };
+        let kept: Vec<u32> = (0..self.pixels.len() as u32)
+            .filter(|&i| inside(self.pixels[i as usize]))
+            .collect();
+        if kept.is_empty() {
+            return self.stored_view();
+        }
+        let points: Vec<u32> = if aug.resample_points {
+            crate::render::sample_points(kept.len(), m, rng.next_u64())
+                .into_iter()
+                .map(|i| kept[i as usize])
+                .collect()
+        } else {
+            let stored: Vec<u32> = self
+                .points
+                .iter()
+                .copied()
+                .filter(|&i| inside(self.pixels[i as usize]))
+                .collect();
+            if stored.is_empty() {
+                return self.stored_view();
+            }
+            (0..m).map(|i| stored[i % stored.len()]).collect()
+        };
+        self.view_of(image, mask, &points, (dx, dy))
+    }
+
+    fn view_of(
+        &self,
+        image: Vec<f32>,
+        mask: Vec<f32>,
+        points: &[u32],
+        (dx, dy): (i64, i64),
+    ) -> View {
+        let s = self.crop.size as i64;
+        let mut v = View {
+            image,
+            mask,
+            choose: Vec::with_capacity(points.len()),
+            nocs: Vec::with_capacity(3 * points.len()),
+            ids: Vec::with_capacity(3 * points.len()),
+            weights: Vec::with_capacity(3 * points.len()),
+        };
+        for &i in points {
+            let i = i as usize;
+            let p = self.pixels[i] as i64;
+            v.choose.push(((p / s + dy) * s + p % s + dx) as u32);
+            v.nocs.extend_from_slice(&self.nocs[3 * i..3 * i + 3]);
+            v.ids.extend_from_slice(&self.ids[3 * i..3 * i + 3]);
+            v.weights.extend_from_slice(&self.weights[3 * i..3 * i + 3]);
+        }
+        v
+    }
+}
+
+/// Shifts `planes` planes of `s x s` by `(dx, dy)` pixels; uncovered pixels are 0 (the
+/// mean colour after normalisation, background in a mask).
+fn shift_planes(data: &[f32], s: usize, planes: usize, dx: i64, dy: i64) -> Vec<f32> {
+    if dx == 0 && dy == 0 {
+        return data.to_vec();
+    }
+    let mut out = vec![0f32; data.len()];
+    for c in 0..planes {
+        for y in 0..s as i64 {
+            let sy = y - dy;
+            if sy < 0 || sy >= s as i64 {
+                continue;
+            }
+            for x in 0..s as i64 {
+                let sx = x - dx;
+                if sx >= 0 && sx < s as i64 {
+                    out[c * s * s + (y as usize) * s + x as usize] =
+                        data[c * s * s + (sy as usize) * s + sx as usize];
+                }
+            }
+        }
+    }
+    out
+}
+
+/// Brightness, contrast and per-channel gain on a normalised `3 x n` image, in pixel
+/// values (`[0, 1]`, clamped), renormalised.
+fn jitter_colour(image: &[f32], n: usize, c: f32, rng: &mut Rng) -> Vec<f32> {
+    if c <= 0.0 {
+        return image.to_vec();
+    }
+    let c = c as f64;
+    let brightness = rng.uniform(1.0 - c, 1.0 + c) as f32;
+    let contrast = rng.uniform(1.0 - c, 1.0 + c) as f32;
+    let gain: [f32; 3] = std::array::from_fn(|_| rng.uniform(1.0 - c / 2.0, 1.0 + c / 2.0) as f32);
+    let mut out = image.to_vec();
+    for k in 0..3 {
+        let plane = &mut out[k * n..(k + 1) * n];
+        let raw = |v: f32| v * IMAGENET_STD[k] + IMAGENET_MEAN[k];
+        let mean = plane.iter().map(|&v| raw(v)).sum::<f32>() / n as f32;
+        for v in plane.iter_mut() {
+            let x = ((raw(*v) - mean) * contrast + mean) * brightness * gain[k];
+            *v = (x.clamp(0.0, 1.0) - IMAGENET_MEAN[k]) / IMAGENET_STD[k];
+        }
+    }
+    out
 }
 
 /// The crop of a sample's image, as the network's input: `3 x S x S` floats,
@@ -110,32 +298,31 @@ pub fn example(
     let pixels = targets_table::mask_pixel_indices(&mask);
     let weights = targets.weights();
     let verts = &sample.verts;
-    let (mut choose, mut nocs, mut ids, mut ws) = (
-        Vec::with_capacity(cfg.points),
-        Vec::with_capacity(3 * cfg.points),
-        Vec::with_capacity(3 * cfg.points),
-        Vec::with_capacity(3 * cfg.points),
+    if pixels.len() != targets.corr_vertices.len() {
+        return Err(Error::invalid(
+            "targets",
+            format!(
+                "{}: {} mask pixels but {} correspondence rows",
+                sample.key,
+                pixels.len(),
+                targets.corr_vertices.len()
+            ),
+        ));
+    }
+    let n = pixels.len();
+    let (mut nocs, mut ids, mut ws) = (
+        Vec::with_capacity(3 * n),
+        Vec::with_capacity(3 * n),
+        Vec::with_capacity(3 * n),
     );
-    for &p in &targets.points[..cfg.points] {
-        let p = p as usize;
-        let (Some(&px), Some(tri)) = (pixels.get(p), targets.corr_vertices.get(p)) else {
-            return Err(Error::invalid(
-                "targets",
-                format!(
-                    "{}: point refers to mask pixel {p} of {}",
-                    sample.key,
-                    pixels.len()
-                ),
-            ));
-        };
-        choose.push(px);
+    for (p, tri) in targets.corr_vertices.iter().enumerate() {
         let mut c = [0f32; 3];
         for k in 0..3 {
             let v = tri[k] as usize;
             if 3 * v + 2 >= verts.len() {
                 return Err(Error::invalid(
                     "targets",
-                    format!("vertex id {v} out of range"),
+                    format!("{}: vertex id {v} out of range", sample.key),
                 ));
             }
             for (a, ca) in c.iter_mut().enumerate() {
@@ -146,16 +333,24 @@ pub fn example(
         }
         nocs.extend(c.map(|x| x * NOCS_SCALE));
     }
+    let points = targets.points[..cfg.points].to_vec();
+    if let Some(&p) = points.iter().find(|&&p| p as usize >= n) {
+        return Err(Error::invalid(
+            "targets",
+            format!("{}: point refers to mask pixel {p} of {n}", sample.key),
+        ));
+    }
     let image = crate::eval_dataset::sample_image(sample, input_root);
     Ok(Example {
         sample: sample.clone(),
         crop: targets.crop,
         image: network_input(&image, &targets.crop),
-        choose,
+        mask: mask.iter().map(|&m| m as u8 as f32).collect(),
+        pixels,
         nocs,
         ids,
         weights: ws,
-        mask: mask.iter().map(|&m| m as u8 as f32).collect(),
+        points,
     })
 }
 
@@ -213,20 +408,28 @@ pub struct Batch {
     pub corr: CorrTarget,
 }
 
-/// Stacks examples into a batch.
-pub fn batch(examples: &[&Example], cfg: &PerspNetConfig, device: &Device) -> Result<Batch> {
+/// Stacks examples' views into a batch (`views[i]` is a view of `examples[i]`).
+pub fn batch(
+    examples: &[&Example],
+    views: &[View],
+    cfg: &PerspNetConfig,
+    device: &Device,
+) -> Result<Batch> {
     let b = examples.len();
     let (s, m, v) = (cfg.input_size, cfg.points, cfg.vertices);
-    let cat_f = |f: &dyn Fn(&Example) -> &[f32]| -> Vec<f32> {
-        examples.iter().flat_map(|e| f(e).iter().copied()).collect()
+    let cat_f = |f: &dyn Fn(&View) -> &[f32]| -> Vec<f32> {
+        views.iter().flat_map(|e| f(e).iter().copied()).collect()
     };
-    let cat_u = |f: &dyn Fn(&Example) -> &[u32]| -> Vec<u32> {
-        examples.iter().flat_map(|e| f(e).iter().copied()).collect()
+    let cat_u = |f: &dyn Fn(&View) -> &[u32]| -> Vec<u32> {
+        views.iter().flat_map(|e| f(e).iter().copied()).collect()
     };
     let t = |data: Vec<f32>, shape: &[usize]| {
         Tensor::from_vec(data, shape, device).map_err(|e| candle_err("batch", e))
     };
-    let model: Vec<f32> = cat_f(&|e| &e.sample.verts);
+    let model: Vec<f32> = examples
+        .iter()
+        .flat_map(|e| e.sample.verts.iter().copied())
+        .collect();
     if model.len() != b * v * 3 {
         return Err(Error::invalid(
             "batch",
@@ -234,6 +437,12 @@ pub fn batch(examples: &[&Example], cfg: &PerspNetConfig, device: &Device) -> Re
                 "meshes have {} values, the network expects {v} vertices",
                 model.len() / b.max(1)
             ),
+        ));
+    }
+    if views.len() != b || views.iter().any(|w| w.choose.len() != m) {
+        return Err(Error::invalid(
+            "batch",
+            format!("each of the {b} views needs {m} points"),
         ));
     }
     Ok(Batch {
@@ -249,6 +458,18 @@ pub fn batch(examples: &[&Example], cfg: &PerspNetConfig, device: &Device) -> Re
             weights: t(cat_f(&|e| &e.weights), &[b, m, 3])?,
         },
     })
+}
+
+/// The learning rate of `step` of `total`: `base` for the first `hold` share of the
+/// run, then falling linearly to zero at the end (the paper's schedule, scaled to the
+/// run's length).
+pub fn learning_rate_at(step: usize, total: usize, base: f64, hold: f64) -> f64 {
+    let hold_steps = (hold.clamp(0.0, 1.0) * total as f64).round() as usize;
+    if step < hold_steps || total <= hold_steps {
+        base
+    } else {
+        base * (total - step) as f64 / (total - hold_steps) as f64
+    }
 }
 
 /// The `V x 2` vertex UV table the network reads its UV map at.
@@ -271,6 +492,13 @@ pub struct Checkpoint {
     pub batch: usize,
     /// Learning rate.
     pub learning_rate: f64,
+    /// Share of the steps at the full learning rate before the linear decay (older
+    /// checkpoints: 1, a constant rate).
+    #[serde(default = "constant_rate")]
+    pub lr_hold: f64,
+    /// Training-time augmentation (older checkpoints: none).
+    #[serde(default = "no_augmentation")]
+    pub augmentation: Augmentation,
     /// Seed.
     pub seed: u64,
     /// Training examples.
@@ -281,6 +509,14 @@ pub struct Checkpoint {
     pub first_loss: f32,
     /// Total loss of the last step.
     pub last_loss: f32,
+}
+
+fn constant_rate() -> f64 {
+    1.0
+}
+
+fn no_augmentation() -> Augmentation {
+    Augmentation::NONE
 }
 
 /// Training options.
@@ -295,6 +531,11 @@ pub struct TrainOptions {
     /// AdamW learning rate (the official Adam uses 1e-4 at batch 32 on GPUs; small
     /// CPU runs learn faster with more).
     pub learning_rate: f64,
+    /// Share of the steps at the full rate; the rate then falls linearly to zero
+    /// ([`learning_rate_at`]).
+    pub lr_hold: f64,
+    /// Augmentation drawn per example and step.
+    pub augmentation: Augmentation,
     /// Seed of the weights and the shuffling.
     pub seed: u64,
     /// Checkpoint folder.
@@ -353,6 +594,7 @@ pub fn train(
     let mut rng = Rng::new(options.seed);
     let mut order: Vec<usize> = (0..examples.len()).collect();
     let mut log = Vec::new();
+    let total_steps = options.epochs * examples.len().div_ceil(options.batch.max(1));
     for epoch in 0..options.epochs {
         // Fisher-Yates with our own generator: the same order for a seed everywhere.
         for i in (1..order.len()).rev() {
@@ -360,7 +602,20 @@ pub fn train(
         }
         for chunk in order.chunks(options.batch.max(1)) {
             let refs: Vec<&Example> = chunk.iter().map(|&i| &examples[i]).collect();
-            let b = batch(&refs, cfg, &device)?;
+            // Each step's augmentation has its own stream: the same views for a seed
+            // whatever else changes.
+            let mut aug_rng = Rng::for_stream(options.seed, 1 << 40 | log.len() as u64);
+            let views: Vec<View> = refs
+                .iter()
+                .map(|e| e.augmented_view(cfg.points, &options.augmentation, &mut aug_rng))
+                .collect();
+            let b = batch(&refs, &views, cfg, &device)?;
+            opt.set_learning_rate(learning_rate_at(
+                log.len(),
+                total_steps,
+                options.learning_rate,
+                options.lr_hold,
+            ));
             let step = (|| -> candle_core::Result<StepLoss> {
                 let out = net.forward(&b.image, &b.choose, true)?;
                 let terms = loss.compute(
@@ -406,6 +661,8 @@ pub fn train(
         epochs: options.epochs,
         batch: options.batch,
         learning_rate: options.learning_rate,
+        lr_hold: options.lr_hold,
+        augmentation: options.augmentation,
         seed: options.seed,
         examples: examples.len(),
         steps: log.len(),
@@ -648,4 +905,149 @@ pub fn model_predictions(
         }
     }
     Ok((out, summary))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A 4x4 crop with face pixels 5, 6, 9 (a small L), coordinates that encode the
+    /// pixel, and stored points [0, 2].
+    fn toy() -> Example {
+        let s = 4usize;
+        let pixels = vec![5u32, 6, 9];
+        let mut mask = vec![0f32; s * s];
+        for &p in &pixels {
+            mask[p as usize] = 1.0;
+        }
+        let nocs: Vec<f32> = pixels.iter().flat_map(|&p| [p as f32, 0.0, 1.0]).collect();
+        let ids: Vec<u32> = pixels.iter().flat_map(|&p| [p, p + 1, p + 2]).collect();
+        let weights: Vec<f32> = pixels.iter().flat_map(|_| [0.5, 0.25, 0.25]).collect();
+        let sample = SampleRecord {
+            key: crate::release::SampleKey {
+                subject_id: "1".into(),
+                facial_action: "01_Neutral".into(),
+                img_id: "1".into(),
+            },
+            split: "train".into(),
+            image_path: String::new(),
+            image_width: 8,
+            image_height: 8,
+            jpeg: None,
+            verts: Vec::new(),
+            rt: [0.0; 16],
+            yaw_deg: 0.0,
+            pitch_deg: 0.0,
+            roll_deg: 0.0,
+            translation_m: [0.0; 3],
+            landmarks_2d: Vec::new(),
+            face_box: [0.0; 4],
+        };
+        Example {
+            sample,
+            crop: CropTransform::around_landmarks(&[0.0, 0.0, 10.0, 10.0], s as u32),
+            image: (0..3 * s * s).map(|i| (i % 7) as f32 * 0.1 - 0.3).collect(),
+            mask,
+            pixels,
+            nocs,
+            ids,
+            weights,
+            points: vec![0, 2],
+        }
+    }
+
+    #[test]
+    fn stored_view_is_the_stored_points() {
+        let e = toy();
+        let v = e.stored_view();
+        assert_eq!(v.choose, vec![5, 9]);
+        assert_eq!(v.nocs, vec![5.0, 0.0, 1.0, 9.0, 0.0, 1.0]);
+        assert_eq!(v.ids, vec![5, 6, 7, 9, 10, 11]);
+        assert_eq!(v.image, e.image);
+        // No augmentation at all gives the stored points, cycled to M.
+        let mut rng = Rng::new(1);
+        let n = e.augmented_view(4, &Augmentation::NONE, &mut rng);
+        assert_eq!(n.choose, vec![5, 9, 5, 9]);
+        assert_eq!(n.image, e.image);
+    }
+
+    #[test]
+    fn shifted_views_keep_pixels_and_targets_together() {
+        let e = toy();
+        let aug = Augmentation {
+            colour: 0.0,
+            shift_px: 1,
+            resample_points: true,
+        };
+        let mut seen_shift = false;
+        for seed in 0..40 {
+            let v = e.augmented_view(6, &aug, &mut Rng::new(seed));
+            assert_eq!(v.choose.len(), 6);
+            for (k, &c) in v.choose.iter().enumerate() {
+                // Every chosen pixel is a face pixel of the shifted mask, and its
+                // coordinates are those of the pixel it came from, moved by the shift.
+                assert_eq!(v.mask[c as usize], 1.0, "seed {seed}");
+                let from = v.nocs[3 * k] as u32;
+                assert!(e.pixels.contains(&from));
+                assert_eq!(v.ids[3 * k], from);
+                let (dx, dy) = (
+                    (c % 4) as i64 - (from % 4) as i64,
+                    (c / 4) as i64 - (from / 4) as i64,
+                );
+                assert!(dx.abs() <= 1 && dy.abs() <= 1);
+                seen_shift |= dx != 0 || dy != 0;
+                // The image moved with the mask: the channel-0 value under the chosen
+                // pixel is the original value under the source pixel.
+                assert_eq!(v.image[c as usize], e.image[from as usize]);
+            }
+            // The shifted mask holds exactly the face pixels that stayed inside.
+            let from = v.nocs[0] as i64;
+            let (dx, dy) = (
+                v.choose[0] as i64 % 4 - from % 4,
+                v.choose[0] as i64 / 4 - from / 4,
+            );
+            let inside = e
+                .pixels
+                .iter()
+                .filter(|&&p| {
+                    let (x, y) = ((p % 4) as i64 + dx, (p / 4) as i64 + dy);
+                    (0..4).contains(&x) && (0..4).contains(&y)
+                })
+                .count();
+            assert_eq!(v.mask.iter().sum::<f32>() as usize, inside);
+        }
+        assert!(seen_shift, "40 draws never shifted");
+        // Same generator state, same view.
+        assert_eq!(
+            e.augmented_view(6, &aug, &mut Rng::new(7)),
+            e.augmented_view(6, &aug, &mut Rng::new(7))
+        );
+    }
+
+    #[test]
+    fn colour_jitter_stays_in_range_and_zero_is_identity() {
+        let e = toy();
+        let n = 16;
+        assert_eq!(jitter_colour(&e.image, n, 0.0, &mut Rng::new(1)), e.image);
+        let j = jitter_colour(&e.image, n, 0.5, &mut Rng::new(2));
+        assert_ne!(j, e.image);
+        for k in 0..3 {
+            for &v in &j[k * n..(k + 1) * n] {
+                let raw = v * IMAGENET_STD[k] + IMAGENET_MEAN[k];
+                assert!((-1e-5..=1.0 + 1e-5).contains(&raw), "{raw}");
+            }
+        }
+    }
+
+    #[test]
+    fn learning_rate_holds_then_falls_to_zero() {
+        // 10 steps, half held: 1 for steps 0-4, then 5/5, 4/5, ... 1/5.
+        let lr: Vec<f64> = (0..10).map(|s| learning_rate_at(s, 10, 1.0, 0.5)).collect();
+        assert_eq!(&lr[..6], &[1.0; 6]);
+        for (s, v) in lr.iter().enumerate().skip(5) {
+            assert!((v - (10 - s) as f64 / 5.0).abs() < 1e-12, "{s}: {v}");
+        }
+        assert_eq!(learning_rate_at(9, 10, 2.0, 1.0), 2.0);
+        assert!((learning_rate_at(9, 10, 2.0, 0.0) - 0.2).abs() < 1e-12);
+    }
 }

@@ -648,6 +648,8 @@ mod pipeline {
             epochs: 8,
             batch: 4,
             learning_rate: 5e-3,
+            lr_hold: 0.5,
+            augmentation: training::Augmentation::DEFAULT,
             seed: 3,
             output: model_dir.path().to_path_buf(),
         };

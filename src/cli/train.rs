@@ -45,6 +45,20 @@ pub struct TrainArgs {
     /// AdamW learning rate.
     #[arg(long, default_value_t = 1e-3)]
     lr: f64,
+    /// Share of the steps at --lr; the rate then falls linearly to zero at the last
+    /// step (the paper's schedule). 1 keeps it constant.
+    #[arg(long, default_value_t = 0.5)]
+    lr_hold: f64,
+    /// Colour jitter strength (brightness and contrast in [1-c, 1+c], channel gains
+    /// in [1-c/2, 1+c/2]); 0 turns it off.
+    #[arg(long, default_value_t = 0.2)]
+    colour_jitter: f32,
+    /// Crop jitter: shift each crop by up to this many pixels per axis.
+    #[arg(long, default_value_t = 2)]
+    shift_px: u32,
+    /// Train on the M points `render` stored instead of fresh face pixels each step.
+    #[arg(long)]
+    stored_points: bool,
     /// Seed of the initial weights and the sample order.
     #[arg(long, default_value_t = 0)]
     seed: u64,
@@ -88,6 +102,12 @@ pub fn run(a: TrainArgs) -> Result<ExitCode> {
         epochs: a.epochs,
         batch: a.batch,
         learning_rate: a.lr,
+        lr_hold: a.lr_hold,
+        augmentation: training::Augmentation {
+            colour: a.colour_jitter,
+            shift_px: a.shift_px,
+            resample_points: !a.stored_points,
+        },
         seed: a.seed,
         output: a.output.clone(),
     };
