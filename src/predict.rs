@@ -235,6 +235,89 @@ pub fn oracle_predictions(
     Ok((out, summary))
 }
 
+/// The trivial baseline: one pose for every sample, the mean of a set of poses (the
+/// training split's). The rotation is the chordal L2 mean (the rotation nearest, in
+/// Frobenius norm, to the average of the rotation matrices: SVD projection onto
+/// SO(3)); the translation is the arithmetic mean.
+pub fn mean_pose(poses: &[Pose]) -> Result<Pose> {
+    if poses.is_empty() {
+        return Err(Error::invalid("mean pose", "no poses to average"));
+    }
+    let n = poses.len() as f64;
+    let mut m = nalgebra::Matrix3::zeros();
+    let mut t = nalgebra::Vector3::zeros();
+    for p in poses {
+        m += p.rotation().matrix();
+        t += p.translation_m();
+    }
+    let svd = (m / n).svd(true, true);
+    let (u, v_t) = (svd.u.expect("u"), svd.v_t.expect("v_t"));
+    // det(U V^T) = -1 would give a reflection: flip the last singular direction.
+    let d = (u * v_t).determinant().signum();
+    let r = u * nalgebra::Matrix3::from_diagonal(&nalgebra::Vector3::new(1.0, 1.0, d)) * v_t;
+    Ok(Pose::new(
+        nalgebra::Rotation3::from_matrix_unchecked(r),
+        t / n,
+    ))
+}
+
+/// What [`mean_pose_predictions`] did.
+#[derive(Clone, Debug, serde::Serialize)]
+pub struct MeanPoseSummary {
+    /// Poses averaged (the `fit` split).
+    pub fitted_on: usize,
+    /// Samples predicted.
+    pub samples: usize,
+    /// The mean pose as the release's row-vector `R_t`.
+    pub rt: [f64; 16],
+    /// Its Euler angles (yaw, pitch, roll), degrees.
+    pub euler_deg: [f64; 3],
+}
+
+/// Predicts the mean pose of the `fit` split (`None`: all samples) for every sample of
+/// `split`: the baseline a trained model must beat.
+pub fn mean_pose_predictions(
+    dataset: &Path,
+    fit: Option<&str>,
+    split: Option<&str>,
+) -> Result<(Vec<PredictionRecord>, MeanPoseSummary)> {
+    let manifest = read_manifest(&dataset.join("dataset.json"))?;
+    let splits = crate::eval_dataset::SplitLookup::read(dataset)?;
+    let mut fitted = Vec::new();
+    let mut keys = Vec::new();
+    for shard in &manifest.shards {
+        for r in samples_table::read_samples(&dataset.join(&shard.samples_file))? {
+            if splits.keeps(&r, fit) {
+                fitted.push(Pose::from_release_rt(&r.rt)?);
+            }
+            if splits.keeps(&r, split) {
+                keys.push(r.key);
+            }
+        }
+    }
+    let mean = mean_pose(&fitted)?;
+    let rt = mean.to_release_rt();
+    let e = mean.euler();
+    let rows = keys
+        .into_iter()
+        .map(|key| PredictionRecord {
+            key,
+            rt: Some(rt),
+            verts: None,
+            mask_rle: None,
+        })
+        .collect::<Vec<_>>();
+    Ok((
+        rows.clone(),
+        MeanPoseSummary {
+            fitted_on: fitted.len(),
+            samples: rows.len(),
+            rt,
+            euler_deg: [e.yaw_deg, e.pitch_deg, e.roll_deg],
+        },
+    ))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -252,5 +335,30 @@ mod tests {
         assert_eq!((p.x, p.y), (101.75, 51.25));
         let q = crop_pixel_to_image(&crop, 2 * 192 + 3, PixelSample::Corner);
         assert_eq!((q.x, q.y), (101.5, 51.0));
+    }
+
+    #[test]
+    fn mean_pose_of_symmetric_poses_is_the_middle() {
+        use crate::conventions::EulerAngles;
+        use nalgebra::Vector3;
+        let p = |yaw: f64, pitch: f64, tz: f64| {
+            Pose::from_euler(
+                EulerAngles::new(yaw, pitch, 0.0),
+                Vector3::new(0.01, 0.0, tz),
+            )
+        };
+        // One pose: itself.
+        let one = mean_pose(&[p(20.0, 5.0, -0.4)]).unwrap();
+        assert!(one.rotation_angle_to_deg(&p(20.0, 5.0, -0.4)) < 1e-9);
+        // Yaw +-30 about the same pitch: the mean has yaw 0 and that pitch, and the
+        // translation is the average by hand.
+        let m = mean_pose(&[p(30.0, 10.0, -0.3), p(-30.0, 10.0, -0.5)]).unwrap();
+        let e = m.euler();
+        assert!(e.yaw_deg.abs() < 1e-9, "{e:?}");
+        assert!((e.pitch_deg - 10.0).abs() < 1e-9, "{e:?}");
+        assert!((m.translation_m() - Vector3::new(0.01, 0.0, -0.4)).norm() < 1e-12);
+        // A proper rotation.
+        assert!((m.rotation().matrix().determinant() - 1.0).abs() < 1e-12);
+        assert!(mean_pose(&[]).is_err());
     }
 }

@@ -23,10 +23,14 @@ use std::process::ExitCode;
 /// predictions also carry the predicted mesh and crop mask, for `eval`'s 3D
 /// reconstruction and mask scores.
 ///
+/// --mean-pose: the training split's mean pose for every sample, the baseline a model
+/// must beat (no mesh or mask, so `eval` scores the pose only).
+///
 /// Example: arkit-tool predict --oracle --dataset data/pq --noise-px 1 --output oracle.parquet
 ///          arkit-tool predict --model model/ --dataset data/pq --output pred.parquet
+///          arkit-tool predict --mean-pose --dataset data/pq --output baseline.parquet
 #[derive(Args, Debug)]
-#[command(group(ArgGroup::new("predictor").required(true).args(["oracle", "model"])))]
+#[command(group(ArgGroup::new("predictor").required(true).args(["oracle", "model", "mean_pose"])))]
 pub struct PredictArgs {
     /// A folder written by `convert` (and `render`).
     #[arg(long)]
@@ -37,6 +41,10 @@ pub struct PredictArgs {
     /// Use a network trained by `train` (its checkpoint folder).
     #[arg(long)]
     model: Option<PathBuf>,
+    /// The trivial baseline: the training split's mean pose (chordal mean rotation,
+    /// mean translation) for every sample.
+    #[arg(long)]
+    mean_pose: bool,
     /// The release's resource folder (real topology), as given to `train`.
     #[arg(long)]
     resources: Option<PathBuf>,
@@ -82,11 +90,33 @@ pub fn run(a: PredictArgs) -> Result<ExitCode> {
         seed: a.seed,
         ..RansacParams::default()
     };
+    let split = (a.split != "all").then_some(a.split.as_str());
+    if a.mean_pose {
+        let (rows, summary) = predict::mean_pose_predictions(&a.dataset, Some("train"), split)?;
+        write_predictions(&a.output, &rows)?;
+        if a.json {
+            println!("{}", serde_json::to_string_pretty(&summary).expect("json"));
+        } else {
+            let e = summary.euler_deg;
+            println!(
+                "mean pose of {} training samples (yaw {:.2}, pitch {:.2}, roll {:.2} deg; t {:.1}, {:.1}, {:.1} mm) for {} samples -> {}",
+                summary.fitted_on,
+                e[0],
+                e[1],
+                e[2],
+                summary.rt[12] * 1e3,
+                summary.rt[13] * 1e3,
+                summary.rt[14] * 1e3,
+                summary.samples,
+                a.output.display()
+            );
+        }
+        return Ok(ExitCode::SUCCESS);
+    }
     if let Some(dir) = &a.model {
         let topology = super::load_topology(a.resources.as_deref())?;
         let model = arkit_tool::training::load(dir, &topology)?;
         let bar = super::progress_bar(manifest.converted as u64, "predict", "samples");
-        let split = (a.split != "all").then_some(a.split.as_str());
         let (rows, summary) = arkit_tool::training::model_predictions(
             &a.dataset,
             &model,
