@@ -361,10 +361,9 @@ pub fn summarize(errors: &[SampleErrors], euler: EulerDifference) -> Summary {
 }
 
 impl Summary {
-    /// The paper's table as aligned text: one header line, one value line, then the
-    /// extra figures.
-    pub fn table(&self) -> String {
-        let cols: [(&str, String); 12] = [
+    /// The table's columns: header and formatted value (the paper's order).
+    pub fn columns(&self) -> [(&'static str, String); 12] {
+        [
             ("yaw", format!("{:.2}", self.yaw_mae_deg)),
             ("pitch", format!("{:.2}", self.pitch_mae_deg)),
             ("roll", format!("{:.2}", self.roll_mae_deg)),
@@ -381,7 +380,13 @@ impl Summary {
                 self.recon_mean_mm
                     .map_or("-".to_string(), |v| format!("{v:.2}")),
             ),
-        ];
+        ]
+    }
+
+    /// The paper's table as aligned text: one header line, one value line, then the
+    /// extra figures.
+    pub fn table(&self) -> String {
+        let cols = self.columns();
         let widths: Vec<usize> = cols.iter().map(|(h, v)| h.len().max(v.len())).collect();
         let line = |f: &dyn Fn(&(&str, String)) -> String| {
             cols.iter()

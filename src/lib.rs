@@ -29,6 +29,8 @@
 //! - [`perspnet`]: the reference PerspNet in candle (model, losses, config);
 //!   [`training`]: examples from storage, the training loop, checkpoints.
 //! - [`rng`]: the seeded random streams that make output reproducible.
+//! - [`report`]: pictures of each stage and a self-contained `index.html`;
+//!   [`demo`]: the whole pipeline on synthetic data, with that report.
 //! - [`atomic_file`]: writes that never leave a half-written file.
 
 #![warn(missing_docs)]
@@ -38,6 +40,7 @@ pub mod augment;
 pub mod augment_dataset;
 pub mod conventions;
 pub mod convert;
+pub mod demo;
 pub mod error;
 pub mod eval;
 pub mod eval_dataset;
@@ -52,6 +55,7 @@ pub mod raster;
 pub mod release;
 pub mod render;
 pub mod render_dataset;
+pub mod report;
 pub mod rng;
 pub mod samples_table;
 pub mod split;

@@ -261,6 +261,80 @@ pub fn bars_panel(panels: &[Bars]) -> RgbImage {
     img
 }
 
+/// One named series of a line chart.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Series {
+    /// Legend name.
+    pub name: String,
+    /// `y` per step (`x` is the index); non-finite or non-positive values (on a log
+    /// scale) are skipped.
+    pub values: Vec<f64>,
+    /// Line colour.
+    pub colour: Rgb<u8>,
+}
+
+/// A line chart of `series` against their index on a log-10 `y` scale (losses span
+/// decades), with a legend and the decade grid labelled.
+pub fn log_line_chart(title: &str, x_label: &str, series: &[Series]) -> RgbImage {
+    let (w, h) = (720i64, 320i64);
+    let mut img = RgbImage::from_pixel(w as u32, h as u32, Rgb([255, 255, 255]));
+    let ink = Rgb([30, 30, 30]);
+    draw_text(&mut img, 20, 10, title, 2, ink);
+    let (x0, x1, y0, y1) = (70i64, w - 150, 40i64, h - 40);
+    let positive = series
+        .iter()
+        .flat_map(|s| s.values.iter().copied())
+        .filter(|v| v.is_finite() && *v > 0.0);
+    let (lo, hi) = positive.fold((f64::MAX, f64::MIN), |(a, b), v| (a.min(v), b.max(v)));
+    let (dlo, dhi) = if lo <= hi {
+        (
+            lo.log10().floor(),
+            hi.log10().ceil().max(lo.log10().floor() + 1.0),
+        )
+    } else {
+        (0.0, 1.0)
+    };
+    let n = series
+        .iter()
+        .map(|s| s.values.len())
+        .max()
+        .unwrap_or(0)
+        .max(2);
+    let px = |i: usize| x0 as f64 + (x1 - x0) as f64 * i as f64 / (n - 1) as f64;
+    let py = |v: f64| y1 as f64 - (y1 - y0) as f64 * (v.log10() - dlo) / (dhi - dlo);
+    let grid = Rgb([225, 225, 225]);
+    let mut d = dlo;
+    while d <= dhi + 1e-9 {
+        let y = py(10f64.powf(d)).round() as i64;
+        fill(&mut img, x0, y, x1, y + 1, grid);
+        draw_text(&mut img, 8, y - 3, &format!("1e{}", d as i64), 1, ink);
+        d += 1.0;
+    }
+    fill(&mut img, x0, y1, x1, y1 + 1, ink);
+    fill(&mut img, x0, y0, x0 + 1, y1, ink);
+    draw_text(&mut img, x0, y1 + 8, "0", 1, ink);
+    let last = format!("{} {x_label}", n - 1);
+    draw_text(&mut img, x1 - 6 * last.len() as i64, y1 + 8, &last, 1, ink);
+    for (k, s) in series.iter().enumerate() {
+        let mut prev: Option<(f64, f64)> = None;
+        for (i, &v) in s.values.iter().enumerate() {
+            if !(v.is_finite() && v > 0.0) {
+                prev = None;
+                continue;
+            }
+            let p = (px(i), py(v));
+            if let Some(q) = prev {
+                crate::overlay::draw_line(&mut img, q, p, s.colour);
+            }
+            prev = Some(p);
+        }
+        let ly = y0 + 14 * k as i64;
+        fill(&mut img, x1 + 15, ly + 2, x1 + 35, ly + 5, s.colour);
+        draw_text(&mut img, x1 + 42, ly, &s.name, 1, ink);
+    }
+    img
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -301,5 +375,25 @@ mod tests {
         assert!(lit > 20);
         // Drawing past the edge does not panic.
         draw_text(&mut img, 55, 5, "long text", 2, Rgb([255, 255, 255]));
+    }
+
+    #[test]
+    fn log_line_chart_puts_values_on_the_decade_scale() {
+        // Values 1, 10, 100 over 3 steps: decades 1e0..1e2 span y 280..40, steps span
+        // x 70..570, so 10 at step 1 is at (320, 160) by hand.
+        let red = Rgb([200, 0, 0]);
+        let img = log_line_chart(
+            "loss",
+            "steps",
+            &[Series {
+                name: "total".into(),
+                values: vec![1.0, 10.0, 100.0],
+                colour: red,
+            }],
+        );
+        assert_eq!(*img.get_pixel(320, 160), red);
+        // A straight line on the log scale: the point between steps 0 and 1 at 10^0.5.
+        assert_eq!(*img.get_pixel(195, 220), red);
+        assert_ne!(*img.get_pixel(320, 100), red);
     }
 }

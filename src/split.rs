@@ -8,9 +8,11 @@
 //! swap brings the image count closer to `N / subjects` of all images. No subject is
 //! ever in two splits.
 
+use crate::convert::read_manifest;
 use crate::error::{Error, Result};
 use crate::release::SampleKey;
 use crate::rng::Rng;
+use polars::prelude::*;
 use std::collections::BTreeMap;
 
 /// How many subjects, or what share of images, to hold out.
@@ -178,6 +180,100 @@ pub fn assign(
         subject_split.insert(s, "val".to_string());
     }
     Ok(SplitAssignment { subject_split })
+}
+
+/// Subjects and images in one split.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize)]
+pub struct SplitCount {
+    /// Distinct subjects.
+    pub subjects: usize,
+    /// Images.
+    pub images: usize,
+}
+
+/// Splits the converted dataset in `dataset` (`how`: hold out subjects or a share of
+/// images; `None` keeps the release's own lists, refusing a subject listed in two)
+/// and writes `out/splits.parquet` and the release-format list CSVs
+/// (`out/ARKitFace_list/list/ARKitFace_{split}.csv`). Returns the counts per split.
+pub fn split_dataset(
+    dataset: &std::path::Path,
+    how: Option<HoldOut>,
+    val_subjects: usize,
+    seed: u64,
+    out: &std::path::Path,
+) -> Result<BTreeMap<String, SplitCount>> {
+    let manifest = read_manifest(&dataset.join("dataset.json"))?;
+    let mut keys: Vec<(SampleKey, String)> = Vec::new();
+    for s in &manifest.shards {
+        let path = dataset.join(&s.samples_file);
+        keys.extend(crate::samples_table::read_sample_keys(&path)?);
+    }
+    let mut per_subject: BTreeMap<String, usize> = BTreeMap::new();
+    for (k, _) in &keys {
+        *per_subject.entry(k.subject_id.clone()).or_default() += 1;
+    }
+    let assigned: Vec<String> = if let Some(how) = how {
+        let assignment = assign(&per_subject, how, val_subjects, seed)?;
+        keys.iter()
+            .map(|(k, _)| assignment.split_of(k).to_string())
+            .collect()
+    } else {
+        keys.iter().map(|(_, s)| s.clone()).collect()
+    };
+    // A subject must not straddle splits (possible only with --keep-release on odd data).
+    let mut subject_split: BTreeMap<&str, &str> = BTreeMap::new();
+    for ((k, _), s) in keys.iter().zip(&assigned) {
+        if let Some(prev) = subject_split.insert(&k.subject_id, s)
+            && prev != s
+        {
+            return Err(Error::invalid(
+                "split",
+                format!(
+                    "subject {} is in both {prev} and {s} in the release lists",
+                    k.subject_id
+                ),
+            ));
+        }
+    }
+    let mut by_split: BTreeMap<String, Vec<SampleKey>> = BTreeMap::new();
+    for ((k, _), s) in keys.iter().zip(&assigned) {
+        by_split.entry(s.clone()).or_default().push(k.clone());
+    }
+    for (s, ks) in &by_split {
+        crate::release::write_list(
+            &out.join("ARKitFace_list")
+                .join("list")
+                .join(format!("ARKitFace_{s}.csv")),
+            ks,
+        )?;
+    }
+    let col = |name: &str, f: &dyn Fn(usize) -> String| {
+        Column::new(name.into(), (0..keys.len()).map(f).collect::<Vec<String>>())
+    };
+    let mut df = DataFrame::new(
+        keys.len(),
+        vec![
+            col("subject_id", &|i| keys[i].0.subject_id.clone()),
+            col("facial_action", &|i| keys[i].0.facial_action.clone()),
+            col("img_id", &|i| keys[i].0.img_id.clone()),
+            col("split", &|i| assigned[i].clone()),
+        ],
+    )
+    .map_err(|e| Error::invalid("splits table", e.to_string()))?;
+    crate::samples_table::write_parquet(&out.join("splits.parquet"), &mut df)?;
+    let mut counts: BTreeMap<String, SplitCount> = BTreeMap::new();
+    for (s, ks) in &by_split {
+        let subjects: std::collections::BTreeSet<&str> =
+            ks.iter().map(|k| k.subject_id.as_str()).collect();
+        counts.insert(
+            s.clone(),
+            SplitCount {
+                subjects: subjects.len(),
+                images: ks.len(),
+            },
+        );
+    }
+    Ok(counts)
 }
 
 #[cfg(test)]

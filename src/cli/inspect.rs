@@ -50,24 +50,7 @@ pub fn run(a: InspectArgs) -> Result<ExitCode> {
         roll.extend(f64_values(&df, "roll_deg", &path)?);
         dist.extend(f64_values(&df, "tz_m", &path)?.into_iter().map(|z| -z));
     }
-    let hists = [
-        (
-            "yaw (deg)",
-            Histogram::new(yaw.iter().copied(), -90.0, 90.0, 18),
-        ),
-        (
-            "pitch (deg)",
-            Histogram::new(pitch.iter().copied(), -90.0, 90.0, 18),
-        ),
-        (
-            "roll (deg)",
-            Histogram::new(roll.iter().copied(), -90.0, 90.0, 18),
-        ),
-        (
-            "distance (m)",
-            Histogram::new(dist.iter().copied(), 0.0, 1.2, 12),
-        ),
-    ];
+    let hists = arkit_tool::report::pose_histograms(&yaw, &pitch, &roll, &dist);
     if a.json {
         let h: Vec<serde_json::Value> = hists
             .iter()

@@ -3,6 +3,7 @@
 
 mod augment;
 mod convert;
+mod demo;
 mod eval;
 mod info;
 mod inspect;
@@ -32,6 +33,7 @@ pub struct Cli {
 
 #[derive(Subcommand, Debug)]
 enum Command {
+    Demo(demo::DemoArgs),
     Synth(synth::SynthArgs),
     Convert(convert::ConvertArgs),
     Merge(convert::MergeArgs),
@@ -49,6 +51,7 @@ enum Command {
 /// Runs a parsed command line.
 pub fn run(cli: Cli) -> Result<ExitCode> {
     match cli.command {
+        Command::Demo(a) => demo::run(a),
         Command::Synth(a) => synth::run(a),
         Command::Convert(a) => convert::run(a),
         Command::Merge(a) => convert::run_merge(a),

@@ -1,0 +1,560 @@
+//! The whole pipeline on data it makes itself: synth -> convert -> split -> render ->
+//! augment -> train -> predict (the model and the mean-pose baseline) -> eval ->
+//! report. Each stage calls the same library function as its command, so the demo
+//! checks the commands' code, not a copy of it.
+//!
+//! Output folder layout:
+//! - `release/`: the synthetic release (download layout, `_info.npz`, list CSVs);
+//! - `dataset/`: `convert`'s Parquet, `split`'s lists, `render`'s targets;
+//! - `augmented/`: profiled samples in the release layout;
+//! - `model/`: the checkpoint (`perspnet.json`, `model.safetensors`, `loss.csv`);
+//! - `predictions.parquet`, `baseline.parquet`: model and mean-pose predictions;
+//! - `report/index.html` and its pictures; `demo.json`: timings and eval summaries.
+
+use crate::augment_dataset::{self, AugmentOptions, AxisChoice, ProfilingRule};
+use crate::conventions::Camera;
+use crate::convert::{self, ConvertOptions, ValidationContext};
+use crate::error::{Error, Result};
+use crate::eval::Summary;
+use crate::eval_dataset::{self, EvalOptions};
+use crate::perspnet::PerspNetConfig;
+use crate::pnp::RansacParams;
+use crate::predictions_table::write_predictions;
+use crate::render::FaceRenderer;
+use crate::render_dataset::{self, RenderOptions};
+use crate::report::{self, Figure, Page, StageTiming};
+use crate::split::{self, HoldOut};
+use crate::synth::{self, FaceSource, SynthOptions};
+use crate::topology::FaceTopology;
+use crate::training::{self, Augmentation, TrainOptions};
+use image::RgbImage;
+use serde::Serialize;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+/// Sizes of a demo run.
+#[derive(Clone, Debug, Serialize)]
+pub struct DemoPlan {
+    /// Synthetic subjects.
+    pub subjects: usize,
+    /// Images per subject.
+    pub images_per_subject: usize,
+    /// Image side in pixels (square images).
+    pub image_size: u32,
+    /// Subjects held out for test.
+    pub test_subjects: usize,
+    /// Network input (crop) side.
+    pub crop: u32,
+    /// Points per sample.
+    pub points: usize,
+    /// UV map side.
+    pub uv_size: u32,
+    /// Training epochs (the `tiny` network).
+    pub epochs: usize,
+    /// Batch size.
+    pub batch: usize,
+    /// Learning rate.
+    pub learning_rate: f64,
+    /// Seed of everything.
+    pub seed: u64,
+}
+
+impl DemoPlan {
+    /// `demo --quick`: 192 images, a short training run; about two minutes on two
+    /// cores.
+    pub fn quick(seed: u64) -> Self {
+        DemoPlan {
+            subjects: 16,
+            images_per_subject: 12,
+            image_size: 256,
+            test_subjects: 4,
+            crop: 64,
+            points: 256,
+            uv_size: 32,
+            epochs: 4,
+            batch: 8,
+            learning_rate: 2e-3,
+            seed,
+        }
+    }
+
+    /// `demo`: 960 images and a longer training run (about ten minutes on two cores).
+    pub fn full(seed: u64) -> Self {
+        DemoPlan {
+            subjects: 40,
+            images_per_subject: 24,
+            test_subjects: 8,
+            epochs: 8,
+            ..DemoPlan::quick(seed)
+        }
+    }
+
+    /// The smallest run that still exercises every stage (tests).
+    pub fn smoke(seed: u64) -> Self {
+        DemoPlan {
+            subjects: 4,
+            images_per_subject: 4,
+            image_size: 160,
+            test_subjects: 1,
+            epochs: 1,
+            batch: 4,
+            ..DemoPlan::quick(seed)
+        }
+    }
+
+    /// Images in all.
+    pub fn images(&self) -> usize {
+        self.subjects * self.images_per_subject
+    }
+
+    /// Training steps.
+    pub fn train_steps(&self) -> usize {
+        let train = (self.subjects - self.test_subjects) * self.images_per_subject;
+        self.epochs * train.div_ceil(self.batch.max(1))
+    }
+
+    /// Work units of the whole run for one progress display: a sample per stage that
+    /// goes through samples, a step per training step, one for each small stage.
+    pub fn units(&self) -> u64 {
+        let n = self.images() as u64;
+        let test = (self.test_subjects * self.images_per_subject) as u64;
+        // synth, convert, render, augment; split; train; predict; eval, report.
+        4 * n + 1 + self.train_steps() as u64 + test + 2
+    }
+
+    fn check(&self) -> Result<()> {
+        if self.subjects < 2 || self.test_subjects == 0 || self.test_subjects >= self.subjects {
+            return Err(Error::invalid(
+                "demo",
+                "needs at least two subjects and 1..subjects-1 held out",
+            ));
+        }
+        if self.images_per_subject == 0 || self.epochs == 0 || self.batch == 0 {
+            return Err(Error::invalid(
+                "demo",
+                "images per subject, epochs and batch must be positive",
+            ));
+        }
+        Ok(())
+    }
+}
+
+/// Progress of a demo run: stage changes and work done (see [`DemoPlan::units`]).
+pub trait DemoProgress: Sync {
+    /// Stage `index` (1-based) of [`STAGES`] starts.
+    fn stage(&self, index: usize, name: &str);
+    /// `units` of work are done.
+    fn advance(&self, units: u64);
+}
+
+/// The stages, in order.
+pub const STAGES: [&str; 9] = [
+    "synth", "convert", "split", "render", "augment", "train", "predict", "eval", "report",
+];
+
+/// What a demo run did.
+#[derive(Clone, Debug, Serialize)]
+pub struct DemoSummary {
+    /// The sizes used.
+    pub plan: DemoPlan,
+    /// Wall time per stage.
+    pub stages: Vec<StageTiming>,
+    /// The trained model on the held-out subjects.
+    pub model: Summary,
+    /// The mean-pose baseline on the same samples.
+    pub baseline: Summary,
+    /// Training loss of the first and last step.
+    pub loss: [f32; 2],
+    /// The report page.
+    pub report: PathBuf,
+}
+
+struct Clock<'a> {
+    progress: &'a dyn DemoProgress,
+    stages: Vec<StageTiming>,
+    started: Instant,
+}
+
+impl<'a> Clock<'a> {
+    fn start(&mut self, name: &str) {
+        let index = STAGES.iter().position(|s| *s == name).map_or(0, |i| i + 1);
+        self.progress.stage(index, name);
+        self.started = Instant::now();
+    }
+
+    fn done(&mut self, name: &str, detail: String) {
+        self.stages.push(StageTiming {
+            stage: name.to_string(),
+            seconds: self.started.elapsed().as_secs_f64(),
+            detail,
+        });
+    }
+}
+
+/// Runs the whole pipeline into `output` (which must be absent or empty) with the
+/// built-in face or the given topology.
+pub fn run_demo(
+    output: &Path,
+    plan: &DemoPlan,
+    topology: &FaceTopology,
+    progress: &dyn DemoProgress,
+) -> Result<DemoSummary> {
+    plan.check()?;
+    if output.exists()
+        && std::fs::read_dir(output)
+            .map_err(|e| Error::io(output, e))?
+            .next()
+            .is_some()
+    {
+        return Err(Error::invalid(
+            "--output",
+            format!(
+                "{} is not empty: the demo writes a fresh folder (remove it or choose another)",
+                output.display()
+            ),
+        ));
+    }
+    let (release, dataset) = (output.join("release"), output.join("dataset"));
+    let (augmented, model_dir) = (output.join("augmented"), output.join("model"));
+    let report_dir = output.join("report");
+    std::fs::create_dir_all(&report_dir).map_err(|e| Error::io(&report_dir, e))?;
+    let mut clock = Clock {
+        progress,
+        stages: Vec::new(),
+        started: Instant::now(),
+    };
+    let tick = |n: usize| progress.advance(n as u64);
+
+    clock.start("synth");
+    let source = FaceSource::new(topology.clone())?;
+    let synth_options = SynthOptions {
+        subjects: plan.subjects,
+        images_per_subject: plan.images_per_subject,
+        width: plan.image_size,
+        height: plan.image_size,
+        seed: plan.seed,
+        ..SynthOptions::default()
+    };
+    synth_options.check()?;
+    let made = synth::generate(&source, &synth_options, &release, &|| tick(1))?;
+    clock.done(
+        "synth",
+        format!(
+            "{} images of {} subjects, {}x{}, release layout",
+            made.train_samples + made.test_samples,
+            made.subjects,
+            plan.image_size,
+            plan.image_size
+        ),
+    );
+
+    clock.start("convert");
+    let convert_options = ConvertOptions {
+        input: release.clone(),
+        output: dataset.clone(),
+        resources: None,
+        rows_per_shard: 64,
+        embed_images: false,
+        shard_index: 0,
+        shard_count: 1,
+    };
+    let ctx = ValidationContext {
+        projection: Camera::release_projection(),
+        topology: topology.clone(),
+        embed_images: false,
+    };
+    let manifest = convert::convert(&convert_options, &ctx, &tick)?;
+    clock.done(
+        "convert",
+        format!(
+            "{} samples validated into {} Parquet shards, {} skipped",
+            manifest.converted,
+            manifest.shards.len(),
+            manifest.skipped
+        ),
+    );
+
+    clock.start("split");
+    let counts = split::split_dataset(
+        &dataset,
+        Some(HoldOut::Subjects(plan.test_subjects)),
+        0,
+        plan.seed,
+        &dataset.join("splits"),
+    )?;
+    tick(1);
+    let count = |s: &str| {
+        counts.get(s).copied().unwrap_or(split::SplitCount {
+            subjects: 0,
+            images: 0,
+        })
+    };
+    clock.done(
+        "split",
+        format!(
+            "subject-disjoint: train {} subjects / {} images, test {} / {}",
+            count("train").subjects,
+            count("train").images,
+            count("test").subjects,
+            count("test").images
+        ),
+    );
+
+    clock.start("render");
+    let renderer = FaceRenderer::new(topology.clone(), Camera::release_projection())?;
+    let rendered = render_dataset::render_dataset(
+        &dataset,
+        &renderer,
+        &RenderOptions {
+            size: plan.crop,
+            uv_size: plan.uv_size,
+            points: plan.points,
+            seed: plan.seed,
+            output: dataset.clone(),
+        },
+        &tick,
+    )?;
+    clock.done(
+        "render",
+        format!(
+            "{}x{} crops, masks, correspondences, {}x{} UV maps, {} points: {:.1} KiB per sample",
+            plan.crop,
+            plan.crop,
+            plan.uv_size,
+            plan.uv_size,
+            plan.points,
+            rendered.bytes_per_sample / 1024.0
+        ),
+    );
+
+    clock.start("augment");
+    let (aug, previews) = augment_dataset::augment_dataset(
+        &dataset,
+        topology,
+        &AugmentOptions {
+            output: augmented.clone(),
+            axis: AxisChoice::Auto,
+            rule: ProfilingRule::default(),
+            per_sample: 1,
+            flip: false,
+            with_originals: false,
+            seed: plan.seed,
+            jpeg_quality: 90,
+            preview_pairs: 6,
+        },
+        &tick,
+    )?;
+    clock.done(
+        "augment",
+        format!(
+            "{} profiled or rolled samples written in the release layout ({} skipped, {} left alone by the official rule)",
+            aug.written.len(),
+            aug.skipped.len(),
+            aug.not_chosen
+        ),
+    );
+
+    clock.start("train");
+    let config = PerspNetConfig {
+        input_size: plan.crop as usize,
+        points: plan.points,
+        ..PerspNetConfig::tiny()
+    };
+    let examples = training::read_examples(&dataset, &dataset, &config, Some("train"))?;
+    let (checkpoint, log) = training::train(
+        &examples,
+        topology,
+        &TrainOptions {
+            config,
+            epochs: plan.epochs,
+            batch: plan.batch,
+            learning_rate: plan.learning_rate,
+            lr_hold: 0.5,
+            augmentation: Augmentation::DEFAULT,
+            seed: plan.seed,
+            output: model_dir.clone(),
+        },
+        &|_| tick(1),
+    )?;
+    drop(examples);
+    clock.done(
+        "train",
+        format!(
+            "tiny PerspNet, {} steps of {} on {} samples: loss {:.3} -> {:.3}",
+            checkpoint.steps,
+            plan.batch,
+            checkpoint.examples,
+            checkpoint.first_loss,
+            checkpoint.last_loss
+        ),
+    );
+
+    clock.start("predict");
+    let model = training::load(&model_dir, topology)?;
+    let (rows, predicted) = training::model_predictions(
+        &dataset,
+        &model,
+        Some("test"),
+        plan.seed,
+        &RansacParams::default(),
+        &tick,
+    )?;
+    write_predictions(&output.join("predictions.parquet"), &rows)?;
+    let (baseline_rows, mean) =
+        crate::predict::mean_pose_predictions(&dataset, Some("train"), Some("test"))?;
+    write_predictions(&output.join("baseline.parquet"), &baseline_rows)?;
+    clock.done(
+        "predict",
+        format!(
+            "{} test samples: network + PnP ({} failures); mean pose of {} training samples",
+            predicted.samples, predicted.failures, mean.fitted_on
+        ),
+    );
+
+    clock.start("eval");
+    let options = EvalOptions {
+        split: Some("test".into()),
+        targets: Some(dataset.clone()),
+        keep_worst: 8,
+        ..EvalOptions::default()
+    };
+    let ev = eval_dataset::evaluate(&dataset, &rows, &options)?;
+    let base = eval_dataset::evaluate(&dataset, &baseline_rows, &options)?;
+    eval_dataset::write_report(&report_dir, &ev, topology)?;
+    tick(1);
+    clock.done(
+        "eval",
+        format!(
+            "MAE_r {:.2} deg, ADD {:.1} mm (mean pose: {:.2} deg, {:.1} mm)",
+            ev.summary.mae_r_deg, ev.summary.add_mm, base.summary.mae_r_deg, base.summary.add_mm
+        ),
+    );
+
+    clock.start("report");
+    let mut figures = Vec::new();
+    let samples =
+        crate::samples_table::read_samples(&dataset.join(&manifest.shards[0].samples_file))?;
+    figures.push(report::write_figure(
+        &report_dir,
+        "poses.png",
+        &report::pose_picture(&samples),
+        "Poses of the synthetic dataset",
+        "Histograms of yaw, pitch and roll (degrees) and camera distance (metres) of the \
+         first shard's samples, as `arkit-tool inspect --plot` draws them.",
+    )?);
+    figures.push(report::write_figure(
+        &report_dir,
+        "targets.png",
+        &targets_sheet(&dataset, &samples, &manifest.input)?,
+        "What render stores for each sample",
+        "Per row, one sample: the network's input crop; the face mask (green; eye and mouth \
+         openings are not face); each face pixel coloured by the canonical 3D point it shows \
+         (x, y, z as red, green, blue: the correspondences); the UV position map coloured \
+         the same way.",
+    )?);
+    if !previews.is_empty() {
+        let cells: Vec<RgbImage> = previews.into_iter().flat_map(|(o, n)| [o, n]).collect();
+        figures.push(report::write_figure(
+            &report_dir,
+            "augmented.png",
+            &synth::contact_sheet(&cells, 4, 240),
+            "Face profiling",
+            "Pairs of original and augmented images: the face turned out of plane through its \
+             mesh (yaw or pitch) or rotated about the camera axis (roll), as `augment` writes \
+             them.",
+        )?);
+    }
+    figures.push(report::write_figure(
+        &report_dir,
+        "loss.png",
+        &report::loss_picture(&log),
+        "Training loss",
+        "The weighted loss terms per step (log scale): correspondence smooth L1, shape L1, \
+         KL to the barycentric rows, segmentation cross-entropy, and their total.",
+    )?);
+    figures.push(Figure {
+        file: "errors_by_pose.png".into(),
+        title: "Errors by pose".into(),
+        caption: "Mean geodesic rotation error per |yaw|, |pitch| and distance bin on the \
+                  held-out subjects."
+            .into(),
+    });
+    figures.push(Figure {
+        file: "worst.png".into(),
+        title: "The worst predictions".into(),
+        caption: "The held-out samples with the largest rotation errors: true mesh in green, \
+                  predicted pose in red."
+            .into(),
+    });
+    let title = "arkit-tool demo";
+    let intro = format!(
+        "The whole pipeline on {} synthetic images of {} subjects ({} held out), made by \
+         `arkit-tool synth` with seed {}: convert, a subject-disjoint split, render, \
+         augment, a tiny PerspNet trained for {} steps on the CPU, predict with PnP, \
+         and eval against the mean-pose baseline.",
+        plan.images(),
+        plan.subjects,
+        plan.test_subjects,
+        plan.seed,
+        checkpoint.steps
+    );
+    clock.done("report", "this page and its pictures".into());
+    let page_path = report::write_page(
+        &report_dir,
+        &Page {
+            title,
+            intro: &intro,
+            stages: &clock.stages,
+            results: &[("tiny PerspNet", &ev.summary), ("mean pose", &base.summary)],
+            figures: &figures,
+        },
+    )?;
+    tick(1);
+    let summary = DemoSummary {
+        plan: plan.clone(),
+        stages: clock.stages,
+        model: ev.summary,
+        baseline: base.summary,
+        loss: [checkpoint.first_loss, checkpoint.last_loss],
+        report: page_path,
+    };
+    crate::atomic_file::write_bytes(
+        &output.join("demo.json"),
+        serde_json::to_string_pretty(&summary)
+            .expect("json")
+            .as_bytes(),
+    )?;
+    Ok(summary)
+}
+
+/// Four test samples' targets as rows of four panels.
+fn targets_sheet(
+    dataset: &Path,
+    samples: &[crate::samples_table::SampleRecord],
+    input: &str,
+) -> Result<RgbImage> {
+    let manifest = convert::read_manifest(&dataset.join("dataset.json"))?;
+    let shard = &manifest.shards[0];
+    let targets = crate::targets_table::read_targets(
+        &dataset
+            .join("targets")
+            .join(format!("part-{:05}.parquet", shard.index)),
+    )?;
+    let cell = 192;
+    let up = |img: &RgbImage| {
+        image::imageops::resize(img, cell, cell, image::imageops::FilterType::Nearest)
+    };
+    let mut cells = Vec::new();
+    let step = (samples.len() / 4).max(1);
+    for (s, t) in samples.iter().zip(&targets).step_by(step).take(4) {
+        let image = eval_dataset::sample_image(s, Path::new(input));
+        let p = report::target_panels(s, t, &image)?;
+        cells.extend([
+            up(&p.crop),
+            up(&p.mask),
+            up(&p.correspondences),
+            up(&p.uv_map),
+        ]);
+    }
+    Ok(synth::contact_sheet(&cells, 4, cell))
+}
