@@ -310,6 +310,7 @@ pub fn run_demo(
             uv_size: plan.uv_size,
             points: plan.points,
             seed: plan.seed,
+            shard: (0, 1),
             output: dataset.clone(),
         },
         &tick,

@@ -28,6 +28,11 @@ pub struct RenderOptions {
     pub seed: u64,
     /// Output folder (`targets/part-K.parquet`).
     pub output: PathBuf,
+    /// `(I, N)`: render only the shards `k` with `k % N == I` (job arrays; `(0, 1)`:
+    /// all). Parts write disjoint files into the same folder and need no merge: the
+    /// sampling seed of each sample follows from its position in the whole dataset, so
+    /// the files are those of a single run.
+    pub shard: (usize, usize),
 }
 
 /// What a run wrote.
@@ -35,7 +40,7 @@ pub struct RenderOptions {
 pub struct RenderSummary {
     /// Samples rendered (or kept from an earlier run).
     pub samples: usize,
-    /// Shards written.
+    /// Shards this run is responsible for (all of them without `--shard`).
     pub shards: usize,
     /// Bytes of the targets files.
     pub bytes: u64,
@@ -59,6 +64,13 @@ pub fn render_dataset(
     progress: &(dyn Fn(usize) + Sync),
 ) -> Result<RenderSummary> {
     let manifest = read_manifest(&dataset.join("dataset.json"))?;
+    let (part, parts) = options.shard;
+    if parts == 0 || part >= parts {
+        return Err(Error::invalid(
+            "--shard",
+            format!("{part}/{parts}: need 0 <= I < N"),
+        ));
+    }
     let uv = UvMapper::derive(renderer.topology())?;
     std::fs::create_dir_all(options.output.join("targets"))
         .map_err(|e| Error::io(&options.output, e))?;
@@ -92,6 +104,10 @@ pub fn render_dataset(
     std::thread::scope(|scope| -> Result<()> {
         let mut pending: Option<std::thread::ScopedJoinHandle<'_, Result<()>>> = None;
         for shard in &manifest.shards {
+            if shard.index % parts != part {
+                offset += shard.rows as u64;
+                continue;
+            }
             let out = options
                 .output
                 .join("targets")
@@ -182,7 +198,7 @@ pub fn render_dataset(
     }
     Ok(RenderSummary {
         samples,
-        shards: manifest.shards.len(),
+        shards: outputs.len(),
         bytes,
         bytes_per_sample: bytes as f64 / samples.max(1) as f64,
         distinct_meshes: distinct,

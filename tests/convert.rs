@@ -425,6 +425,7 @@ fn rendered_targets_read_back_dense_equal_the_rasterizer() {
         uv_size: 64,
         points: 256,
         seed: 3,
+        shard: (0, 1),
         output: out.path().to_path_buf(),
     };
     let summary = render_dataset::render_dataset(out.path(), &renderer, &ro, &|_| {}).unwrap();

@@ -48,6 +48,7 @@ fn rendered(dir: &Path) {
         uv_size: 32,
         points: 1024,
         seed: 2,
+        shard: (0, 1),
         output: dir.to_path_buf(),
     };
     render_dataset::render_dataset(dir, &renderer, &ro, &|_| {}).unwrap();

@@ -616,6 +616,7 @@ mod pipeline {
             uv_size: 16,
             points: 256,
             seed: 1,
+            shard: (0, 1),
             output: out.to_path_buf(),
         };
         render_dataset::render_dataset(dir.path(), &renderer, &ro(96, wrong.path()), &|_| {})

@@ -42,7 +42,7 @@ pub struct ConvertArgs {
     #[arg(long)]
     embed_images: bool,
     /// Convert only part I of N (shards k with k % N == I), for job arrays.
-    #[arg(long, value_name = "I/N", value_parser = parse_shard)]
+    #[arg(long, value_name = "I/N", value_parser = super::parse_shard)]
     shard: Option<(usize, usize)>,
     /// Exit with status 1 if any sample was skipped (after converting everything else).
     #[arg(long)]
@@ -50,24 +50,6 @@ pub struct ConvertArgs {
     /// Print the manifest as JSON.
     #[arg(long)]
     json: bool,
-}
-
-fn parse_shard(s: &str) -> std::result::Result<(usize, usize), String> {
-    let (i, n) = s
-        .split_once('/')
-        .ok_or_else(|| format!("'{s}' is not I/N (for example 0/8)"))?;
-    let (i, n): (usize, usize) = (
-        i.trim()
-            .parse()
-            .map_err(|_| format!("'{i}' is not a number"))?,
-        n.trim()
-            .parse()
-            .map_err(|_| format!("'{n}' is not a number"))?,
-    );
-    if n == 0 || i >= n {
-        return Err(format!("shard {i}/{n}: need 0 <= I < N"));
-    }
-    Ok((i, n))
 }
 
 pub fn run(a: ConvertArgs) -> Result<ExitCode> {

@@ -80,6 +80,25 @@ pub fn parse_size(s: &str) -> std::result::Result<(u32, u32), String> {
     Ok((parse(w)?, parse(h)?))
 }
 
+/// Parses `--shard I/N` (0 <= I < N).
+pub fn parse_shard(s: &str) -> std::result::Result<(usize, usize), String> {
+    let (i, n) = s
+        .split_once('/')
+        .ok_or_else(|| format!("'{s}' is not I/N (for example 0/8)"))?;
+    let (i, n): (usize, usize) = (
+        i.trim()
+            .parse()
+            .map_err(|_| format!("'{i}' is not a number"))?,
+        n.trim()
+            .parse()
+            .map_err(|_| format!("'{n}' is not a number"))?,
+    );
+    if n == 0 || i >= n {
+        return Err(format!("shard {i}/{n}: need 0 <= I < N"));
+    }
+    Ok((i, n))
+}
+
 /// Reads the topology named by `--resources` (or the built-in face without it).
 pub fn load_topology(resources: Option<&std::path::Path>) -> Result<arkit_tool::FaceTopology> {
     match resources {

@@ -18,6 +18,7 @@ use std::process::ExitCode;
 /// (schemas/targets.json), row for row with samples/part-K.parquet.
 ///
 /// Example: arkit-tool render --dataset data/pq
+///          arkit-tool render --dataset data/pq --shard 3/50   (one task of a job array)
 #[derive(Args, Debug)]
 pub struct RenderArgs {
     /// A folder written by `convert`.
@@ -41,6 +42,10 @@ pub struct RenderArgs {
     /// The release's resource folder (real topology); the built-in face without it.
     #[arg(long)]
     resources: Option<PathBuf>,
+    /// Render only part I of N (shards k with k % N == I), for job arrays: run I =
+    /// 0..N with the same --output (no merge needed; the files equal a single run's).
+    #[arg(long, value_name = "I/N", value_parser = super::parse_shard)]
+    shard: Option<(usize, usize)>,
     /// Worker threads (default: all cores).
     #[arg(long)]
     jobs: Option<usize>,
@@ -75,8 +80,16 @@ pub fn run(a: RenderArgs) -> Result<ExitCode> {
         points: a.points,
         seed: a.seed,
         output: a.output.clone().unwrap_or_else(|| a.dataset.clone()),
+        shard: a.shard.unwrap_or((0, 1)),
     };
-    let bar = super::progress_bar(manifest.converted as u64, "render", "samples");
+    let (part, parts) = options.shard;
+    let mine: usize = manifest
+        .shards
+        .iter()
+        .filter(|s| s.index % parts == part)
+        .map(|s| s.rows)
+        .sum();
+    let bar = super::progress_bar(mine as u64, "render", "samples");
     let pool = super::thread_pool(a.jobs)?;
     let summary = pool.install(|| {
         render_dataset::render_dataset(&a.dataset, &renderer, &options, &|n| bar.inc(n as u64))

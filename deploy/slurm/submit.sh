@@ -1,0 +1,29 @@
+#!/usr/bin/env bash
+# Convert and render the ARKitFace release on a Slurm cluster: an array of N convert
+# tasks, one merge, an array of N render tasks, chained with afterok dependencies.
+#
+#   deploy/slurm/submit.sh RELEASE_DIR OUTPUT_DIR RESOURCES_DIR [N]
+#
+# RELEASE_DIR is the download as published (ARKitFace_image_*, ARKitFace_info_*,
+# ARKitFace_list); OUTPUT_DIR must be on a file system every node sees. N defaults to
+# 50. Per-task resources: CPUS (8), MEM (16G), TIME (04:00:00); ARKIT_TOOL names the
+# binary on the nodes. Each task uses all the CPUs it is given (rayon).
+set -euo pipefail
+if [ $# -lt 3 ]; then
+  sed -n '2,11p' "$0" >&2
+  exit 2
+fi
+here=$(cd "$(dirname "$0")/.." && pwd)
+release=$1 output=$2 resources=$3 n=${4:-50}
+bin=${ARKIT_TOOL:-arkit-tool}
+task=(--cpus-per-task="${CPUS:-8}" --mem="${MEM:-16G}" --time="${TIME:-04:00:00}")
+convert=$(sbatch --parsable "${task[@]}" --array="0-$((n - 1))" --job-name=arkit-convert \
+  --export=ALL,ARKIT_TOOL="$bin" \
+  "$here/shard-task.sh" convert "$release" "$output" --resources "$resources")
+merge=$(sbatch --parsable --dependency="afterok:$convert" --job-name=arkit-merge \
+  --wrap "$bin merge --dataset '$output'")
+render=$(sbatch --parsable "${task[@]}" --dependency="afterok:$merge" --array="0-$((n - 1))" \
+  --job-name=arkit-render --export=ALL,ARKIT_TOOL="$bin" \
+  "$here/shard-task.sh" render "$output" --resources "$resources")
+echo "submitted: convert array $convert -> merge $merge -> render array $render"
+echo "watch: squeue -j $convert,$merge,$render; then: $bin inspect --dataset $output"
