@@ -25,7 +25,7 @@ fn spawn_task(i: usize, n: usize, args: &[String]) -> Child {
     let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("deploy/shard-task.sh");
     let mut c = Command::new("bash");
     c.arg(script).args(args).env("ARKIT_TOOL", BIN);
-    if i % 2 == 0 {
+    if i.is_multiple_of(2) {
         c.env("SLURM_ARRAY_TASK_ID", i.to_string())
             .env("SLURM_ARRAY_TASK_COUNT", n.to_string());
     } else {
