@@ -106,4 +106,8 @@ fn main() {
         "triangulation"
     };
     println!("largest share: {largest}");
+    println!(
+        "ratio: augment per sample / its JPEG encoding alone (the output's floor) = {:.2}x",
+        total / jpeg
+    );
 }

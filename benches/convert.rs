@@ -142,6 +142,11 @@ fn main() {
     );
     println!("scaling 1 -> 2 threads: {:.2}x", t1 / t2);
     println!(
+        "ratio: convert / JPEG decode alone (the floor) = {:.2}x on 1 thread, {:.2}x on 2",
+        t1 / decode1,
+        t2 / decode2
+    );
+    println!(
         "peak memory: {:.0} MiB for {} samples, {:.0} MiB for {} samples ({:.2}x for {:.0}x the input)",
         small_rss as f64 / 1024.0,
         n_small,

@@ -83,6 +83,7 @@ fn run(name: &str, cfg: &PerspNetConfig, reps: usize) -> Result<()> {
         opt.step(&grads)?;
         steps.push(t.elapsed().as_secs_f64());
     }
+    let (fwd_s, step_s) = (median(fwd.clone()), median(steps.clone()));
     println!(
         "{name}: forward b=1 eval: full {:.1} ms, encoder+decoders {:.1} ms | train step b=4: {:.3} s (forward+loss {:.3} s, +backward {:.3} s)",
         median(fwd) * 1e3,
@@ -90,6 +91,16 @@ fn run(name: &str, cfg: &PerspNetConfig, reps: usize) -> Result<()> {
         median(steps),
         median(fwd_train),
         median(bwd)
+    );
+    // The official PyTorch model on this machine's CPU (../shared/measurements.md).
+    let (torch_fwd_ms, torch_step_s) = match name {
+        "paper" => (81.0, 1.0),
+        _ => (f64::NAN, 0.036),
+    };
+    println!(
+        "ratio: perspnet {name}: candle / PyTorch = {:.1}x forward, {:.1}x training step",
+        fwd_s * 1e3 / torch_fwd_ms,
+        step_s / torch_step_s
     );
     Ok(())
 }

@@ -105,6 +105,11 @@ fn main() {
         OFFICIAL_MS / (per_sample + uv_map)
     );
     println!("visibility stage / floor: {:.1}x", visibility / floor);
+    println!(
+        "ratio: render per sample: official loader / ours = {:.1}x; visibility stage / touched-pixel floor = {:.1}x",
+        OFFICIAL_MS / per_sample,
+        visibility / floor
+    );
     // How far the official loader's rasterization differs from ours, full 800x800 image.
     for (yaw, pitch) in [(0.0, 0.0), (30.0, -10.0), (70.0, 10.0)] {
         let p = Pose::from_euler(

@@ -373,6 +373,7 @@ pub fn run_demo(
             lr_hold: 0.5,
             augmentation: Augmentation::DEFAULT,
             seed: plan.seed,
+            resume: false,
             output: model_dir.clone(),
         },
         &|_| tick(1),

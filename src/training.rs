@@ -501,6 +501,10 @@ pub struct Checkpoint {
     pub augmentation: Augmentation,
     /// Seed.
     pub seed: u64,
+    /// Epochs finished when this checkpoint was written (`epochs` once training is
+    /// done; a checkpoint is written after every epoch).
+    #[serde(default)]
+    pub epochs_done: usize,
     /// Training examples.
     pub examples: usize,
     /// Steps run.
@@ -540,6 +544,11 @@ pub struct TrainOptions {
     pub seed: u64,
     /// Checkpoint folder.
     pub output: PathBuf,
+    /// Continue from the checkpoint in `output` (written after each epoch) when there is
+    /// one made with the same settings: its weights, its loss log, the same sample order
+    /// and learning-rate schedule from the next epoch on. Adam's moment estimates are not
+    /// stored, so they restart from zero.
+    pub resume: bool,
 }
 
 /// One step's losses (weighted, as summed into the total).
@@ -580,7 +589,34 @@ pub fn train(
     let vb = VarBuilder::from_varmap(&varmap, DType::F32, &device);
     let net = PerspNet::new(cfg, &vertex_uv(topology, &device)?, vb)
         .map_err(|e| candle_err("network", e))?;
-    reseed(&varmap, options.seed).map_err(|e| candle_err("initial weights", e))?;
+    reseed(&varmap, options.seed, cfg.init_std).map_err(|e| candle_err("initial weights", e))?;
+    let total_steps = options.epochs * examples.len().div_ceil(options.batch.max(1));
+    let mut checkpoint = Checkpoint {
+        config: cfg.clone(),
+        topology: topology.source.clone(),
+        epochs: options.epochs,
+        batch: options.batch,
+        learning_rate: options.learning_rate,
+        lr_hold: options.lr_hold,
+        augmentation: options.augmentation,
+        seed: options.seed,
+        epochs_done: 0,
+        examples: examples.len(),
+        steps: 0,
+        first_loss: f32::NAN,
+        last_loss: f32::NAN,
+    };
+    let mut log = Vec::new();
+    let mut start_epoch = 0;
+    if options.resume && options.output.join("perspnet.json").exists() {
+        let (done, old_log) = resume_from(&options.output, &checkpoint, &varmap)?;
+        start_epoch = done;
+        log = old_log;
+        checkpoint.epochs_done = done;
+        checkpoint.steps = log.len();
+        checkpoint.first_loss = log.first().map_or(f32::NAN, |s| s.total);
+        checkpoint.last_loss = log.last().map_or(f32::NAN, |s| s.total);
+    }
     let mut opt = AdamW::new(
         trainable_vars(&varmap),
         ParamsAdamW {
@@ -593,12 +629,14 @@ pub fn train(
     let mut loss = PerspNetLoss::default();
     let mut rng = Rng::new(options.seed);
     let mut order: Vec<usize> = (0..examples.len()).collect();
-    let mut log = Vec::new();
-    let total_steps = options.epochs * examples.len().div_ceil(options.batch.max(1));
     for epoch in 0..options.epochs {
-        // Fisher-Yates with our own generator: the same order for a seed everywhere.
+        // Fisher-Yates with our own generator: the same order for a seed everywhere
+        // (replayed for the epochs a resumed run skips).
         for i in (1..order.len()).rev() {
             order.swap(i, rng.below(i as u64 + 1) as usize);
+        }
+        if epoch < start_epoch {
+            continue;
         }
         for chunk in order.chunks(options.batch.max(1)) {
             let refs: Vec<&Example> = chunk.iter().map(|&i| &examples[i]).collect();
@@ -610,6 +648,7 @@ pub fn train(
                 .map(|e| e.augmented_view(cfg.points, &options.augmentation, &mut aug_rng))
                 .collect();
             let b = batch(&refs, &views, cfg, &device)?;
+            net.seed_dropout(Rng::for_stream(options.seed, 2 << 40 | log.len() as u64).next_u64());
             opt.set_learning_rate(learning_rate_at(
                 log.len(),
                 total_steps,
@@ -654,30 +693,83 @@ pub fn train(
             on_step(&step);
             log.push(step);
         }
+        checkpoint.epochs_done = epoch + 1;
+        checkpoint.steps = log.len();
+        checkpoint.first_loss = log.first().map_or(f32::NAN, |s| s.total);
+        checkpoint.last_loss = log.last().map_or(f32::NAN, |s| s.total);
+        write_checkpoint(&options.output, &checkpoint, &varmap, &log)?;
     }
-    let checkpoint = Checkpoint {
-        config: cfg.clone(),
-        topology: topology.source.clone(),
-        epochs: options.epochs,
-        batch: options.batch,
-        learning_rate: options.learning_rate,
-        lr_hold: options.lr_hold,
-        augmentation: options.augmentation,
-        seed: options.seed,
-        examples: examples.len(),
-        steps: log.len(),
-        first_loss: log.first().map_or(f32::NAN, |s| s.total),
-        last_loss: log.last().map_or(f32::NAN, |s| s.total),
-    };
-    write_checkpoint(&options.output, &checkpoint, &varmap, &log)?;
     Ok((checkpoint, log))
 }
 
-/// Redraws every trainable variable from our seeded generator with the mean and
-/// standard deviation its initialiser gave it (candle's CPU generator cannot be
-/// seeded), so the initial weights, and the whole run, follow from the seed.
-/// Constant variables (biases, batch-norm statistics) are left as they are.
-pub fn reseed(varmap: &VarMap, seed: u64) -> candle_core::Result<()> {
+/// Loads the checkpoint in `dir` into `varmap` for a resumed run with the settings of
+/// `wanted`; returns the epochs it finished and its loss log.
+fn resume_from(dir: &Path, wanted: &Checkpoint, varmap: &VarMap) -> Result<(usize, Vec<StepLoss>)> {
+    let p = dir.join("perspnet.json");
+    let text = std::fs::read_to_string(&p).map_err(|e| Error::io(&p, e))?;
+    let old: Checkpoint =
+        serde_json::from_str(&text).map_err(|e| Error::format(&p, e.to_string()))?;
+    let same = |a: &Checkpoint| {
+        let mut a = a.clone();
+        a.epochs_done = 0;
+        a.steps = 0;
+        a.first_loss = f32::NAN;
+        a.last_loss = f32::NAN;
+        serde_json::to_value(&a).ok()
+    };
+    if same(&old) != same(wanted) {
+        return Err(Error::format(
+            &p,
+            "made with other settings (config, data, epochs, batch, rate, augmentation or seed): resume only with the same options, or choose another --output",
+        ));
+    }
+    let w = dir.join("model.safetensors");
+    let mut varmap = varmap.clone();
+    varmap
+        .load(&w)
+        .map_err(|e| Error::format(&w, e.to_string()))?;
+    let csv = dir.join("loss.csv");
+    let text = std::fs::read_to_string(&csv).map_err(|e| Error::io(&csv, e))?;
+    let mut log = Vec::new();
+    for (n, line) in text.lines().enumerate().skip(1) {
+        let f: Vec<&str> = line.split(',').collect();
+        let num = |i: usize| -> Result<f32> {
+            f.get(i)
+                .and_then(|v| v.parse().ok())
+                .ok_or_else(|| Error::format(&csv, format!("line {}: bad field {i}", n + 1)))
+        };
+        log.push(StepLoss {
+            step: num(0)? as usize,
+            epoch: num(1)? as usize,
+            total: num(2)?,
+            corr: num(3)?,
+            shape: num(4)?,
+            kl: num(5)?,
+            entropy: num(6)?,
+            seg: num(7)?,
+        });
+    }
+    if log.len() != old.steps {
+        return Err(Error::format(
+            &csv,
+            format!(
+                "{} rows but the checkpoint ran {} steps",
+                log.len(),
+                old.steps
+            ),
+        ));
+    }
+    Ok((old.epochs_done, log))
+}
+
+/// Redraws every randomly initialised variable from our seeded generator (candle's
+/// CPU generator cannot be seeded), so the initial weights, and the whole run, follow
+/// from the seed: N(0, `init_std`) for convolution and linear weights, N(1, `init_std`)
+/// for batch-norm weights (the official `init_weights`). Which of the two a variable
+/// is comes from the mean candle's draw gave it (rounded to 0 or 1); the draw's own
+/// spread is not used, as it varies from run to run. Constant variables (biases,
+/// batch-norm statistics) are left as they are.
+pub fn reseed(varmap: &VarMap, seed: u64, init_std: f64) -> candle_core::Result<()> {
     let data = varmap.data().lock().expect("varmap lock");
     let mut named: Vec<(&String, &candle_core::Var)> = data
         .iter()
@@ -697,7 +789,7 @@ pub fn reseed(varmap: &VarMap, seed: u64) -> candle_core::Result<()> {
             continue;
         }
         let mut rng = Rng::for_stream(seed, i as u64);
-        let sd = var_.sqrt();
+        let (mean, sd) = (mean.round(), init_std);
         let fresh: Vec<f32> = (0..values.len())
             .map(|_| (mean + sd * rng.normal()) as f32)
             .collect();

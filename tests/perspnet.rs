@@ -147,12 +147,20 @@ mod layers {
     fn dropout2d_drops_whole_channels() -> Result<()> {
         let dev = Device::Cpu;
         let x = Tensor::ones((4, 64, 3, 3), candle_core::DType::F32, &dev)?;
-        let y = dropout2d(&x, 0.5, true)?;
+        let mut rng = arkit_tool::rng::Rng::new(1);
+        let y = dropout2d(&x, 0.5, Some(&mut rng))?;
         let v: Vec<f32> = y.flatten_all()?.to_vec1()?;
         for ch in v.chunks(9) {
             assert!(ch.iter().all(|&a| a == ch[0]) && (ch[0] == 0.0 || (ch[0] - 2.0).abs() < 1e-6));
         }
-        let same: Vec<f32> = dropout2d(&x, 0.5, false)?.flatten_all()?.to_vec1()?;
+        // About half of the 256 channels dropped, and the same seed drops the same.
+        let dropped = v.chunks(9).filter(|ch| ch[0] == 0.0).count();
+        assert!((96..160).contains(&dropped), "{dropped}");
+        let again: Vec<f32> = dropout2d(&x, 0.5, Some(&mut arkit_tool::rng::Rng::new(1)))?
+            .flatten_all()?
+            .to_vec1()?;
+        assert_eq!(v, again);
+        let same: Vec<f32> = dropout2d(&x, 0.5, None)?.flatten_all()?.to_vec1()?;
         assert!(same.iter().all(|&a| a == 1.0));
         Ok(())
     }
@@ -652,6 +660,7 @@ mod pipeline {
             lr_hold: 0.5,
             augmentation: training::Augmentation::DEFAULT,
             seed: 3,
+            resume: false,
             output: model_dir.path().to_path_buf(),
         };
         let (ck, log) = training::train(&examples[..4], &topology, &topts, &|_| {}).unwrap();
@@ -667,6 +676,43 @@ mod pipeline {
         for f in ["perspnet.json", "model.safetensors", "loss.csv"] {
             assert!(model_dir.path().join(f).exists(), "{f}");
         }
+        // Interrupted after epoch 4 (a panic in the progress callback at step 5), then
+        // resumed: the checkpoint written after epoch 4 carries the run on, the log
+        // keeps the first four steps, and step 4's loss (the weights after epoch 4 on
+        // the same batch and augmentation) equals the uninterrupted run's exactly.
+        let cut = tempfile::tempdir().unwrap();
+        let cut_opts = TrainOptions {
+            output: cut.path().to_path_buf(),
+            ..topts.clone()
+        };
+        let interrupted = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+            training::train(&examples[..4], &topology, &cut_opts, &|s| {
+                assert!(s.step < 4, "interrupted");
+            })
+        }));
+        assert!(interrupted.is_err());
+        let resumed_opts = TrainOptions {
+            resume: true,
+            ..cut_opts.clone()
+        };
+        let (rck, rlog) =
+            training::train(&examples[..4], &topology, &resumed_opts, &|_| {}).unwrap();
+        assert_eq!((rck.steps, rck.epochs_done), (8, 8));
+        assert_eq!(rlog.len(), 8);
+        for k in 0..4 {
+            assert_eq!(rlog[k].total, log[k].total, "step {k}");
+        }
+        assert_eq!(rlog[4].total, log[4].total);
+        // Other settings are refused rather than mixed in.
+        let other = TrainOptions {
+            learning_rate: 1e-3,
+            ..resumed_opts
+        };
+        let e = match training::train(&examples[..4], &topology, &other, &|_| {}) {
+            Err(e) => e.to_string(),
+            Ok(_) => panic!("resumed with another learning rate"),
+        };
+        assert!(e.contains("other settings"), "{e}");
         // Load, predict (deterministic), evaluate.
         let model = training::load(model_dir.path(), &topology).unwrap();
         let run = || {

@@ -15,7 +15,10 @@ use std::process::ExitCode;
 /// official losses (smooth-L1 correspondence, shape L1 against 9x the mesh, KL to the
 /// barycentric rows with the entropy term, segmentation cross-entropy, and the official
 /// schedule that lowers the weights as the correspondence loss falls) and AdamW, and
-/// writes DIR/perspnet.json, DIR/model.safetensors and DIR/loss.csv.
+/// writes DIR/perspnet.json, DIR/model.safetensors and DIR/loss.csv after every epoch
+/// (--resume continues from them). The learning rate is held for --lr-hold of the steps,
+/// then falls linearly to zero; each step sees colour- and crop-jittered crops and fresh
+/// face pixels, all drawn from --seed.
 ///
 /// `tiny` trains in minutes on two CPU cores; `paper` has the official shapes (16.97 M
 /// parameters) and is for GPUs or patience.
@@ -59,6 +62,10 @@ pub struct TrainArgs {
     /// Train on the M points `render` stored instead of fresh face pixels each step.
     #[arg(long)]
     stored_points: bool,
+    /// Continue an interrupted run from the checkpoint in --output (one is written after
+    /// every epoch), given the same options; Adam's moments restart from zero.
+    #[arg(long)]
+    resume: bool,
     /// Seed of the initial weights and the sample order.
     #[arg(long, default_value_t = 0)]
     seed: u64,
@@ -110,6 +117,7 @@ pub fn run(a: TrainArgs) -> Result<ExitCode> {
         },
         seed: a.seed,
         output: a.output.clone(),
+        resume: a.resume,
     };
     let (checkpoint, _) = training::train(&examples, &topology, &options, &|s| {
         bar.set_message(format!("loss {:.4}", s.total));

@@ -273,16 +273,21 @@ pub fn max_pool_3x3_s2_p1(x: &Tensor) -> Result<Tensor> {
 
 /// Channel-wise dropout (PyTorch `nn.Dropout2d`): zeroes whole channels of a
 /// `B x C x H x W` tensor with probability `p` and rescales the rest by
-/// `1 / (1 - p)`. Identity when `train` is false or `p == 0`.
-pub fn dropout2d(x: &Tensor, p: f64, train: bool) -> Result<Tensor> {
-    if !train || p <= 0.0 {
+/// `1 / (1 - p)`, the channels drawn from `rng` (ours, seeded: candle's CPU generator
+/// cannot be). Identity without a generator (evaluation) or when `p == 0`.
+pub fn dropout2d(x: &Tensor, p: f64, rng: Option<&mut crate::rng::Rng>) -> Result<Tensor> {
+    let Some(rng) = rng else {
+        return Ok(x.clone());
+    };
+    if p <= 0.0 {
         return Ok(x.clone());
     }
     let (b, c, _, _) = x.dims4()?;
-    let keep = Tensor::rand(0f32, 1f32, (b, c, 1, 1), x.device())?
-        .ge(p)?
-        .to_dtype(x.dtype())?
-        .affine(1.0 / (1.0 - p), 0.0)?;
+    let scale = (1.0 / (1.0 - p)) as f32;
+    let keep: Vec<f32> = (0..b * c)
+        .map(|_| if rng.next_f64() >= p { scale } else { 0.0 })
+        .collect();
+    let keep = Tensor::from_vec(keep, (b, c, 1, 1), x.device())?.to_dtype(x.dtype())?;
     x.broadcast_mul(&keep)
 }
 

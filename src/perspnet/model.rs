@@ -182,6 +182,7 @@ pub struct PerspNet {
     category_global: [Linear; 2],
     assignment: [Linear; 3],
     sampler: PointSampler,
+    dropout_rng: std::sync::Arc<std::sync::Mutex<crate::rng::Rng>>,
 }
 
 impl PerspNet {
@@ -263,6 +264,7 @@ impl PerspNet {
             PointSampler::from_uv(&uv, cfg.input_size, cfg.input_size, vb.device())?
         };
         Ok(Self {
+            dropout_rng: std::sync::Arc::new(std::sync::Mutex::new(crate::rng::Rng::new(0))),
             cfg: cfg.clone(),
             conv1,
             bn1,
@@ -317,10 +319,17 @@ impl PerspNet {
         })
     }
 
+    /// Restarts the dropout generator from `seed` (training calls it every step, so a
+    /// run, and a resumed run, follow from its seed).
+    pub fn seed_dropout(&self, seed: u64) {
+        *self.dropout_rng.lock().expect("dropout generator") = crate::rng::Rng::new(seed);
+    }
+
     /// Runs the encoder and both decoders (the official `Resnet18_8s.forward`).
     pub fn forward_dense(&self, img: &Tensor, train: bool) -> Result<DenseOutput> {
         let enc = self.encode(img, train)?;
         let p = self.cfg.dropout;
+        let mut rng = self.dropout_rng.lock().expect("dropout generator");
         let x16 = upsample2x_bilinear(&enc.fc)?;
 
         // 2D decoder with skips; dropout after the stride-4 and stride-2 up-samplings.
@@ -332,7 +341,7 @@ impl PerspNet {
             decoder_2d.push(y.clone());
             fm = upsample2x_bilinear(&y)?;
             if i == 1 || i == 2 {
-                fm = dropout2d(&fm, p, train)?;
+                fm = dropout2d(&fm, p, train.then_some(&mut *rng))?;
             }
         }
         let image_features = self
@@ -348,7 +357,7 @@ impl PerspNet {
             decoder_uv.push(y.clone());
             fm = upsample2x_bilinear(&y)?;
             if i == 1 || i == 2 {
-                fm = dropout2d(&fm, p, train)?;
+                fm = dropout2d(&fm, p, train.then_some(&mut *rng))?;
             }
         }
         let uv_features = self.final_uv.forward_t(&fm, train)?;
