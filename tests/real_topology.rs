@@ -346,3 +346,68 @@ fn uv_map_matches_one_drawn_from_the_release_files() {
     // The ring quads may be split along the other diagonal: differences stay within the ring.
     assert!(worst < 0.01, "{worst}");
 }
+
+/// Mean and largest error (mm) of the vertices read back from a UV position map of
+/// `size`, read as our network reads it (bilinear, texel centres at `(i + 0.5) / S`, as
+/// `grid_sample(align_corners=False)`), when the map was drawn with texel `i` at
+/// `u = (i + 0.5) / S` (ours) or at `u = i / (S - 1)` (the official loader's
+/// `u * (S - 1)`).
+///
+/// Returns (mean, max, unreadable) per layout; unreadable vertices (whose bilinear
+/// footprint touches a texel no triangle covers) are left out of the mean and max.
+fn uv_read_errors(topo: &FaceTopology, verts: &[Point3<f32>], size: u32) -> [(f64, f64, usize); 2] {
+    use arkit_tool::render::UvMapper;
+    let s = size as f32;
+    let official_layout = {
+        // Texel i holds u = i / (S - 1): draw with UVs moved so that our texel centre
+        // (i + 0.5) / S lands on it.
+        let mut t = topo.clone();
+        for uv in &mut t.uv {
+            *uv = uv.map(|u| (u * (s - 1.0) + 0.5) / s);
+        }
+        t
+    };
+    [topo, &official_layout].map(|layout| {
+        let map = UvMapper::derive(layout).unwrap().position_map(verts, size);
+        let errs: Vec<f64> = verts
+            .iter()
+            .zip(&topo.uv)
+            .map(|(v, &uv)| {
+                let p = UvMapper::sample(&map, size, uv);
+                ((p[0] - v.x).powi(2) + (p[1] - v.y).powi(2) + (p[2] - v.z).powi(2)).sqrt() as f64
+                    * 1e3
+            })
+            .collect();
+        let ok: Vec<f64> = errs.iter().copied().filter(|e| e.is_finite()).collect();
+        (
+            ok.iter().sum::<f64>() / ok.len() as f64,
+            ok.iter().copied().fold(0.0, f64::max),
+            errs.len() - ok.len(),
+        )
+    })
+}
+
+#[test]
+fn the_official_half_texel_uv_offset_costs_more_than_our_one_convention() {
+    let builtin = arkit_tool::synthetic_face::builtin().topology.clone();
+    let bverts: Vec<Point3<f32>> = builtin.template.clone().expect("built-in template");
+    let mut cases = vec![("built-in", builtin, bverts)];
+    if let Some(dir) = resources() {
+        let topo = FaceTopology::from_resources(&dir).unwrap();
+        if let Some(t) = topo.template.clone() {
+            cases.push(("real", topo, t));
+        }
+    }
+    for (name, topo, verts) in &cases {
+        for size in [32, 192] {
+            let [
+                (ours_mean, ours_max, ours_bad),
+                (off_mean, off_max, off_bad),
+            ] = uv_read_errors(topo, verts, size);
+            eprintln!(
+                "{name} face, {size}x{size} UV map: ours mean {ours_mean:.3} mm, max {ours_max:.3} mm, {ours_bad} unreadable; official mean {off_mean:.3} mm, max {off_max:.3} mm, {off_bad} unreadable"
+            );
+            assert!(ours_mean < off_mean && ours_bad <= off_bad, "{name} {size}");
+        }
+    }
+}
