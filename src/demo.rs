@@ -397,6 +397,7 @@ pub fn run_demo(
         &dataset,
         &model,
         Some("test"),
+        None,
         plan.seed,
         &RansacParams::default(),
         &tick,

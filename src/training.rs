@@ -873,9 +873,15 @@ pub struct NetworkPrediction {
 }
 
 /// Runs the network on one crop (`3 x S x S` normalised): segments the face, samples M
-/// pixels from the predicted mask (with wrap-around, from `seed`; every pixel when the
-/// mask is empty), and reads the correspondences and the mesh.
-pub fn predict_crop(model: &TrainedModel, input: &[f32], seed: u64) -> Result<NetworkPrediction> {
+/// pixels from the predicted mask, or from `truth` when given (with wrap-around, from
+/// `seed`; every pixel when the mask is empty), and reads the correspondences and the
+/// mesh. The returned mask is the predicted one either way.
+pub fn predict_crop(
+    model: &TrainedModel,
+    input: &[f32],
+    seed: u64,
+    truth: Option<&[bool]>,
+) -> Result<NetworkPrediction> {
     let cfg = &model.checkpoint.config;
     let s = cfg.input_size;
     let device = Device::Cpu;
@@ -889,8 +895,9 @@ pub fn predict_crop(model: &TrainedModel, input: &[f32], seed: u64) -> Result<Ne
             .flatten_all()?
             .to_vec1::<u8>()?;
         let mask: Vec<bool> = face.iter().map(|&v| v != 0).collect();
-        let mut candidates: Vec<u32> = (0..mask.len() as u32)
-            .filter(|&i| mask[i as usize])
+        let sample_from = truth.unwrap_or(&mask);
+        let mut candidates: Vec<u32> = (0..sample_from.len() as u32)
+            .filter(|&i| sample_from[i as usize])
             .collect();
         if candidates.is_empty() {
             candidates = (0..mask.len() as u32).collect();
@@ -950,11 +957,15 @@ pub struct ModelPredictSummary {
 
 /// Runs a trained network over the samples of `split` (`None`: all): the crop box from
 /// the sample's landmarks (as the official evaluation does), the network, our PnP; the
-/// predictions carry `R_t`, the predicted mesh and the predicted crop mask.
+/// predictions carry `R_t`, the predicted mesh and the predicted crop mask. With
+/// `true_masks` (a folder with `render`'s targets at the network's input size), the
+/// points are sampled from the true face mask instead of the predicted one, which
+/// separates segmentation errors from correspondence errors.
 pub fn model_predictions(
     dataset: &Path,
     model: &TrainedModel,
     split: Option<&str>,
+    true_masks: Option<&Path>,
     seed: u64,
     ransac: &crate::pnp::RansacParams,
     progress: &dyn Fn(usize),
@@ -969,6 +980,18 @@ pub fn model_predictions(
     let mut out = Vec::new();
     let mut summary = ModelPredictSummary::default();
     for shard in &manifest.shards {
+        let truth: HashMap<crate::release::SampleKey, TargetsRecord> = match true_masks {
+            Some(dir) => {
+                let t = dir
+                    .join("targets")
+                    .join(format!("part-{:05}.parquet", shard.index));
+                targets_table::read_targets(&t)?
+                    .into_iter()
+                    .map(|t| (t.key.clone(), t))
+                    .collect()
+            }
+            None => HashMap::new(),
+        };
         for (i, r) in samples_table::read_samples(&dataset.join(&shard.samples_file))?
             .into_iter()
             .enumerate()
@@ -977,12 +1000,33 @@ pub fn model_predictions(
                 continue;
             }
             let crop = CropTransform::around_landmarks(&r.landmarks_2d, size);
+            let true_mask = match true_masks {
+                None => None,
+                Some(dir) => {
+                    let t = truth.get(&r.key).ok_or_else(|| {
+                        Error::format(dir, format!("no targets row for {}", r.key))
+                    })?;
+                    if t.crop != crop {
+                        return Err(Error::invalid(
+                            "--mask truth",
+                            format!(
+                                "targets in {} were rendered at {}x{}, the network takes {size}x{size}",
+                                dir.display(),
+                                t.crop.size,
+                                t.crop.size
+                            ),
+                        ));
+                    }
+                    Some(t.mask()?)
+                }
+            };
             let image = crate::eval_dataset::sample_image(&r, &input_root);
             let input = network_input(&image, &crop);
             let p = predict_crop(
                 model,
                 &input,
                 seed ^ ((shard.index as u64) << 32 | i as u64),
+                true_mask.as_deref(),
             )?;
             let pose = pose_of(&p, &crop, r.image_width, r.image_height, ransac);
             summary.samples += 1;

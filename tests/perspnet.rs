@@ -720,6 +720,7 @@ mod pipeline {
                 dir.path(),
                 &model,
                 None,
+                None,
                 5,
                 &RansacParams::default(),
                 &|_| {},

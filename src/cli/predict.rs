@@ -72,9 +72,21 @@ pub struct PredictArgs {
     /// Worker threads (default: all cores).
     #[arg(long)]
     jobs: Option<usize>,
+    /// With --model: sample the points from the `predicted` face mask, or from the
+    /// `truth` that `render` stored (at the network's input size, in --targets), to
+    /// tell segmentation errors from correspondence errors.
+    #[arg(long, value_enum, default_value = "predicted")]
+    mask: MaskSource,
     /// Print the summary as JSON.
     #[arg(long)]
     json: bool,
+}
+
+/// `--mask` values.
+#[derive(Clone, Copy, Debug, clap::ValueEnum)]
+enum MaskSource {
+    Predicted,
+    Truth,
 }
 
 pub fn run(a: PredictArgs) -> Result<ExitCode> {
@@ -117,10 +129,12 @@ pub fn run(a: PredictArgs) -> Result<ExitCode> {
         let topology = super::load_topology(a.resources.as_deref())?;
         let model = arkit_tool::training::load(dir, &topology)?;
         let bar = super::progress_bar(manifest.converted as u64, "predict", "samples");
+        let targets = a.targets.clone().unwrap_or_else(|| a.dataset.clone());
         let (rows, summary) = arkit_tool::training::model_predictions(
             &a.dataset,
             &model,
             split,
+            matches!(a.mask, MaskSource::Truth).then_some(targets.as_path()),
             a.seed,
             &ransac,
             &|n| bar.inc(n as u64),
