@@ -374,6 +374,7 @@ pub fn run_demo(
             augmentation: Augmentation::DEFAULT,
             seed: plan.seed,
             resume: false,
+            lowered_start: false,
             output: model_dir.clone(),
         },
         &|_| tick(1),

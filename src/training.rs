@@ -499,6 +499,9 @@ pub struct Checkpoint {
     /// Training-time augmentation (older checkpoints: none).
     #[serde(default = "no_augmentation")]
     pub augmentation: Augmentation,
+    /// Whether the loss started at the lowered weights.
+    #[serde(default)]
+    pub lowered_start: bool,
     /// Seed.
     pub seed: u64,
     /// Epochs finished when this checkpoint was written (`epochs` once training is
@@ -540,6 +543,10 @@ pub struct TrainOptions {
     pub lr_hold: f64,
     /// Augmentation drawn per example and step.
     pub augmentation: Augmentation,
+    /// Start the loss at the weights the official schedule lowers to once `L_corr`
+    /// falls below 0.1 (KL and segmentation 0.01) instead of waiting for a batch to get
+    /// there: short CPU runs otherwise spend most steps with the KL term dominating.
+    pub lowered_start: bool,
     /// Seed of the weights and the shuffling.
     pub seed: u64,
     /// Checkpoint folder.
@@ -599,6 +606,7 @@ pub fn train(
         learning_rate: options.learning_rate,
         lr_hold: options.lr_hold,
         augmentation: options.augmentation,
+        lowered_start: options.lowered_start,
         seed: options.seed,
         epochs_done: 0,
         examples: examples.len(),
@@ -627,6 +635,10 @@ pub fn train(
     )
     .map_err(|e| candle_err("optimizer", e))?;
     let mut loss = PerspNetLoss::default();
+    if options.lowered_start {
+        // The weights the official schedule reaches once L_corr < 0.1.
+        loss.weights.update_schedule(0.05);
+    }
     let mut rng = Rng::new(options.seed);
     let mut order: Vec<usize> = (0..examples.len()).collect();
     for epoch in 0..options.epochs {

@@ -661,6 +661,7 @@ mod pipeline {
             augmentation: training::Augmentation::DEFAULT,
             seed: 3,
             resume: false,
+            lowered_start: false,
             output: model_dir.path().to_path_buf(),
         };
         let (ck, log) = training::train(&examples[..4], &topology, &topts, &|_| {}).unwrap();

@@ -62,6 +62,11 @@ pub struct TrainArgs {
     /// Train on the M points `render` stored instead of fresh face pixels each step.
     #[arg(long)]
     stored_points: bool,
+    /// Start the loss at the weights the official schedule lowers to once the
+    /// correspondence loss falls below 0.1 (KL and segmentation 0.01), instead of
+    /// waiting for one batch to get there (the official, sticky trigger).
+    #[arg(long)]
+    lowered_start: bool,
     /// Continue an interrupted run from the checkpoint in --output (one is written after
     /// every epoch), given the same options; Adam's moments restart from zero.
     #[arg(long)]
@@ -118,6 +123,7 @@ pub fn run(a: TrainArgs) -> Result<ExitCode> {
         seed: a.seed,
         output: a.output.clone(),
         resume: a.resume,
+        lowered_start: a.lowered_start,
     };
     let (checkpoint, _) = training::train(&examples, &topology, &options, &|s| {
         bar.set_message(format!("loss {:.4}", s.total));
