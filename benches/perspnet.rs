@@ -97,9 +97,13 @@ fn run(name: &str, cfg: &PerspNetConfig, reps: usize) -> Result<()> {
         "paper" => (81.0, 1.0),
         _ => (f64::NAN, 0.036),
     };
+    let forward = if torch_fwd_ms.is_finite() {
+        format!("{:.1}x forward", fwd_s * 1e3 / torch_fwd_ms)
+    } else {
+        "forward: no PyTorch figure".to_string()
+    };
     println!(
-        "ratio: perspnet {name}: candle / PyTorch = {:.1}x forward, {:.1}x training step",
-        fwd_s * 1e3 / torch_fwd_ms,
+        "ratio: perspnet {name}: candle / PyTorch = {forward}, {:.1}x training step",
         step_s / torch_step_s
     );
     Ok(())
