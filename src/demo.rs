@@ -449,7 +449,12 @@ pub fn run_demo(
     figures.push(report::write_figure(
         &report_dir,
         "targets.png",
-        &targets_sheet(&dataset, &samples, &manifest.input)?,
+        &targets_sheet(
+            &dataset,
+            manifest.shards[0].index,
+            &samples,
+            &manifest.input,
+        )?,
         "What render stores for each sample",
         "Per row, one sample: the network's input crop; the face mask (green; eye and mouth \
          openings are not face); each face pixel coloured by the canonical 3D point it shows \
@@ -531,18 +536,18 @@ pub fn run_demo(
     Ok(summary)
 }
 
-/// Four test samples' targets as rows of four panels.
+/// The targets of four samples of shard `shard` (whose `samples` rows are given) as
+/// rows of four panels.
 fn targets_sheet(
     dataset: &Path,
+    shard: usize,
     samples: &[crate::samples_table::SampleRecord],
     input: &str,
 ) -> Result<RgbImage> {
-    let manifest = convert::read_manifest(&dataset.join("dataset.json"))?;
-    let shard = &manifest.shards[0];
     let targets = crate::targets_table::read_targets(
         &dataset
             .join("targets")
-            .join(format!("part-{:05}.parquet", shard.index)),
+            .join(format!("part-{shard:05}.parquet")),
     )?;
     let cell = 192;
     let up = |img: &RgbImage| {
