@@ -46,7 +46,9 @@ fn main() {
     let crop = CropTransform::around_landmarks(&lm, 192);
     let image = RgbImage::from_fn(800, 800, |x, y| Rgb([(x % 256) as u8, (y % 256) as u8, 90]));
     let mut vb = VisibilityBuffer::new(192, 192);
-    let n = 200;
+    // `cargo bench --bench render -- stages`: the per-sample stages only, more repeats.
+    let stages_only = std::env::args().any(|a| a == "stages");
+    let n = if stages_only { 1000 } else { 200 };
     let mut faces = 0;
     let visibility = median_ms(
         || {
@@ -111,6 +113,9 @@ fn main() {
         visibility / floor
     );
     // How far the official loader's rasterization differs from ours, full 800x800 image.
+    if stages_only {
+        return;
+    }
     for (yaw, pitch) in [(0.0, 0.0), (30.0, -10.0), (70.0, 10.0)] {
         let p = Pose::from_euler(
             EulerAngles::new(yaw, pitch, 0.0),
