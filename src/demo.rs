@@ -311,6 +311,7 @@ pub fn run_demo(
             points: plan.points,
             seed: plan.seed,
             shard: (0, 1),
+            full_mask: false,
             output: dataset.clone(),
         },
         &tick,

@@ -95,7 +95,7 @@ impl CropTransform {
     /// column and row ([`Taps`]), a tap outside the image getting weight 0, and the inner
     /// loop is branch-free over the raw buffer. Per-pixel lookups with bounds checks were
     /// about 6x slower, and the same tables with a branch per tap for the image border
-    /// 1.6x slower (`cargo bench --bench render`).
+    /// about 1.2x slower (`cargo bench --bench render -- stages`).
     pub fn crop_image(&self, image: &RgbImage) -> RgbImage {
         let n = self.size as usize;
         let mut out = vec![0u8; n * n * 3];
@@ -263,42 +263,7 @@ impl FaceRenderer {
         crop: &CropTransform,
         buffer: &mut VisibilityBuffer,
     ) -> Result<FaceTargets> {
-        if verts.len() != self.topology.vertex_count {
-            return Err(Error::invalid(
-                "verts",
-                format!(
-                    "{} vertices, the topology has {}",
-                    verts.len(),
-                    self.topology.vertex_count
-                ),
-            ));
-        }
-        let camera = Camera::new(self.camera_projection, width, height)?;
-        let mut all = verts.to_vec();
-        all.extend(self.hole_fill.centroid_positions(verts));
-        let s = crop.scale() as f32;
-        let (x0, y0) = (crop.x0 as f32, crop.y0 as f32);
-        let screen: Vec<ScreenVertex> = camera
-            .project_to_screen(pose, &all)
-            .into_iter()
-            .map(|p| ScreenVertex {
-                x: (p.x - x0) * s,
-                y: (p.y - y0) * s,
-                inv_w: p.inv_w,
-            })
-            .collect();
-        if buffer.width != crop.size || buffer.height != crop.size {
-            *buffer = VisibilityBuffer::new(crop.size, crop.size);
-        } else {
-            buffer.clear();
-        }
-        match self.mode {
-            RasterMode::Exact => buffer.rasterize_mesh(&screen, &self.triangles),
-            RasterMode::Official => {
-                crate::raster::rasterize_mesh_official(buffer, &screen, &self.triangles)
-            }
-        }
-        .map_err(|e| Error::invalid("mesh", e.to_string()))?;
+        self.rasterize(verts, pose, width, height, Some(crop), buffer)?;
         let n_mesh = self.topology.triangles.len() as u32;
         let mut mask = vec![false; buffer.triangle.len()];
         // Sized up front: growing them by doubling copied up to 160 KiB per sample.
@@ -319,6 +284,73 @@ impl FaceRenderer {
             corr_vertices,
             corr_weights,
         })
+    }
+
+    /// The face mask of `verts` at `pose` over the whole `width x height` image (row-major),
+    /// with the same rules as [`FaceRenderer::render`]'s crop mask (the hole fans hide
+    /// but are not face). `buffer` is reused between calls.
+    pub fn render_full_mask(
+        &self,
+        verts: &[Point3<f32>],
+        pose: &Pose,
+        width: u32,
+        height: u32,
+        buffer: &mut VisibilityBuffer,
+    ) -> Result<Vec<bool>> {
+        self.rasterize(verts, pose, width, height, None, buffer)?;
+        let n_mesh = self.topology.triangles.len() as u32;
+        Ok(buffer.triangle.iter().map(|&t| t < n_mesh).collect())
+    }
+
+    /// Projects the mesh and its hole fans and rasterizes them into `buffer` (resized to
+    /// the crop, or to the whole image when `crop` is `None`) with the renderer's rules.
+    fn rasterize(
+        &self,
+        verts: &[Point3<f32>],
+        pose: &Pose,
+        width: u32,
+        height: u32,
+        crop: Option<&CropTransform>,
+        buffer: &mut VisibilityBuffer,
+    ) -> Result<()> {
+        if verts.len() != self.topology.vertex_count {
+            return Err(Error::invalid(
+                "verts",
+                format!(
+                    "{} vertices, the topology has {}",
+                    verts.len(),
+                    self.topology.vertex_count
+                ),
+            ));
+        }
+        let camera = Camera::new(self.camera_projection, width, height)?;
+        let mut all = verts.to_vec();
+        all.extend(self.hole_fill.centroid_positions(verts));
+        let mut screen = camera.project_to_screen(pose, &all);
+        let (bw, bh) = match crop {
+            Some(crop) => {
+                let s = crop.scale() as f32;
+                let (x0, y0) = (crop.x0 as f32, crop.y0 as f32);
+                for p in &mut screen {
+                    p.x = (p.x - x0) * s;
+                    p.y = (p.y - y0) * s;
+                }
+                (crop.size, crop.size)
+            }
+            None => (width, height),
+        };
+        if buffer.width != bw || buffer.height != bh {
+            *buffer = VisibilityBuffer::new(bw, bh);
+        } else {
+            buffer.clear();
+        }
+        match self.mode {
+            RasterMode::Exact => buffer.rasterize_mesh(&screen, &self.triangles),
+            RasterMode::Official => {
+                crate::raster::rasterize_mesh_official(buffer, &screen, &self.triangles)
+            }
+        }
+        .map_err(|e| Error::invalid("mesh", e.to_string()))
     }
 }
 

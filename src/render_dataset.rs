@@ -33,6 +33,8 @@ pub struct RenderOptions {
     /// sampling seed of each sample follows from its position in the whole dataset, so
     /// the files are those of a single run.
     pub shard: (usize, usize),
+    /// Also render the face mask over the whole image (`full_mask_rle`).
+    pub full_mask: bool,
 }
 
 /// What a run wrote.
@@ -77,7 +79,7 @@ pub fn render_dataset(
     // Shards are kept on a rerun only if they were made with the same options.
     let settings = serde_json::json!({
         "size": options.size, "uv_size": options.uv_size, "points": options.points, "seed": options.seed,
-        "mode": renderer.mode, "topology": renderer.topology().source,
+        "mode": renderer.mode, "topology": renderer.topology().source, "full_mask": options.full_mask,
     });
     let settings_path = options.output.join("targets").join("render.json");
     if settings_path.exists() {
@@ -141,8 +143,11 @@ pub fn render_dataset(
                     .par_iter()
                     .enumerate()
                     .map_init(
-                        || VisibilityBuffer::new(options.size, options.size),
-                        |buffer, (i, r)| -> Result<TargetsRecord> {
+                        || {
+                            let crop = VisibilityBuffer::new(options.size, options.size);
+                            (crop, VisibilityBuffer::new(1, 1))
+                        },
+                        |(buffer, full), (i, r)| -> Result<TargetsRecord> {
                             let verts: Vec<Point3<f32>> = r
                                 .verts
                                 .chunks(3)
@@ -162,6 +167,17 @@ pub fn render_dataset(
                             let seed = options.seed
                                 ^ (offset + i as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15);
                             let points = sample_points(t.corr_vertices.len(), options.points, seed);
+                            let full_mask = if options.full_mask {
+                                Some(renderer.render_full_mask(
+                                    &verts,
+                                    &pose,
+                                    r.image_width,
+                                    r.image_height,
+                                    full,
+                                )?)
+                            } else {
+                                None
+                            };
                             progress(1);
                             Ok(TargetsRecord::new(
                                 r.key.clone(),
@@ -169,6 +185,11 @@ pub fn render_dataset(
                                 points,
                                 options.uv_size,
                                 &maps[index[i]],
+                            )
+                            .with_image(
+                                r.image_width,
+                                r.image_height,
+                                full_mask.as_deref(),
                             ))
                         },
                     )

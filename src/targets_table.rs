@@ -10,6 +10,8 @@
 //!   most `0.5 / 65535 = 7.6e-6` on `w0`, `w1` and `1.5e-5` on `w2`
 //!   ([`WEIGHT_QUANTUM`]); a test checks it.
 //! - `points`: the sampled rows (u32 LE indices into the mask pixels).
+//! - `full_mask_rle`: with `render --full-mask`, the face mask over the whole
+//!   `image_width x image_height` image, run lengths as `mask_rle`; empty otherwise.
 //! - `uv_map_delta`: the `uv_size^2 x 3` canonical positions in metres as IEEE float16
 //!   (NaN where no UV triangle covers a texel), stored losslessly in a form zstd
 //!   compresses well ([`encode_uv_map`]): per channel, each row's first texel and then
@@ -49,6 +51,12 @@ pub struct TargetsRecord {
     pub uv_size: u32,
     /// UV map as float16 bits.
     pub uv_map: Vec<u16>,
+    /// Width of the sample's full image.
+    pub image_width: u32,
+    /// Height of the sample's full image.
+    pub image_height: u32,
+    /// Run lengths of the full-image mask, or empty when it was not rendered.
+    pub full_mask_rle: Vec<u32>,
 }
 
 /// Run-length encodes a mask (first run is background, possibly empty).
@@ -113,7 +121,28 @@ impl TargetsRecord {
                 .iter()
                 .flat_map(|p| p.map(|c| f16::from_f32(c).to_bits()))
                 .collect(),
+            image_width: 0,
+            image_height: 0,
+            full_mask_rle: Vec::new(),
         }
+    }
+
+    /// Records the sample's image size and, when rendered, its full-image mask.
+    pub fn with_image(mut self, width: u32, height: u32, full_mask: Option<&[bool]>) -> Self {
+        self.image_width = width;
+        self.image_height = height;
+        self.full_mask_rle = full_mask.map(rle_encode).unwrap_or_default();
+        self
+    }
+
+    /// The full-image mask (`image_width * image_height`, row-major), or `None` when
+    /// `render` was not asked for it.
+    pub fn full_mask(&self) -> Result<Option<Vec<bool>>> {
+        if self.full_mask_rle.is_empty() {
+            return Ok(None);
+        }
+        let len = self.image_width as usize * self.image_height as usize;
+        rle_decode(&self.full_mask_rle, len).map(Some)
     }
 
     /// The stored weights, third recovered as `1 - w0 - w1`.
@@ -147,6 +176,7 @@ impl TargetsRecord {
             + self.corr_weights_q.len() * 4
             + self.points.len() * 4
             + self.uv_map.len() * 2
+            + self.full_mask_rle.len() * 4
     }
 }
 
@@ -248,6 +278,9 @@ pub fn targets_frame(rows: &[TargetsRecord]) -> Result<DataFrame> {
         b("points", &|r| le_u32(&r.points)),
         u("uv_size", &|r| r.uv_size),
         b("uv_map_delta", &|r| encode_uv_map(&r.uv_map, r.uv_size)),
+        u("image_width", &|r| r.image_width),
+        u("image_height", &|r| r.image_height),
+        b("full_mask_rle", &|r| le_u32(&r.full_mask_rle)),
     ];
     DataFrame::new(rows.len(), columns).map_err(|e| Error::invalid("targets table", e.to_string()))
 }
@@ -277,6 +310,8 @@ pub fn read_targets(path: &Path) -> Result<Vec<TargetsRecord>> {
     let (subj, act, img) = (st("subject_id")?, st("facial_action")?, st("img_id")?);
     let (x0, y0, side) = (fl("crop_x0")?, fl("crop_y0")?, fl("crop_side")?);
     let (size, uv_size) = (u32s("crop_size")?, u32s("uv_size")?);
+    let (image_width, image_height) = (u32s("image_width")?, u32s("image_height")?);
+    let full_mask = bins("full_mask_rle")?;
     let (mask, cv, cw, pts, uv) = (
         bins("mask_rle")?,
         bins("corr_vertices")?,
@@ -323,6 +358,9 @@ pub fn read_targets(path: &Path) -> Result<Vec<TargetsRecord>> {
             uv_size: uv_size[i],
             uv_map: decode_uv_map(&uv[i], uv_size[i])
                 .map_err(|e| Error::format(path, format!("row {i}: {e}")))?,
+            image_width: image_width[i],
+            image_height: image_height[i],
+            full_mask_rle: u32v(&full_mask[i]),
         });
     }
     Ok(out)

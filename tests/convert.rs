@@ -426,6 +426,7 @@ fn rendered_targets_read_back_dense_equal_the_rasterizer() {
         points: 256,
         seed: 3,
         shard: (0, 1),
+        full_mask: true,
         output: out.path().to_path_buf(),
     };
     let summary = render_dataset::render_dataset(out.path(), &renderer, &ro, &|_| {}).unwrap();
@@ -439,6 +440,33 @@ fn rendered_targets_read_back_dense_equal_the_rasterizer() {
         );
     }
     assert_eq!(targets.len(), 6);
+    // The written table has exactly the columns and types of schemas/targets.json.
+    let schema: serde_json::Value = serde_json::from_str(
+        &std::fs::read_to_string(
+            PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("schemas/targets.json"),
+        )
+        .unwrap(),
+    )
+    .unwrap();
+    let want: Vec<(String, String)> = schema["columns"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|c| {
+            let name = c["name"].as_str().unwrap().to_string();
+            (name, c["type"].as_str().unwrap().to_lowercase())
+        })
+        .collect();
+    let df = samples_table::read_parquet(&out.path().join("targets/part-00000.parquet")).unwrap();
+    let got: Vec<(String, String)> = df
+        .schema()
+        .iter()
+        .map(|(n, t)| (n.to_string(), format!("{t:?}").to_lowercase()))
+        .collect();
+    assert_eq!(
+        got, want,
+        "schemas/targets.json and the written table disagree"
+    );
     let mut vb = arkit_tool::raster::VisibilityBuffer::new(96, 96);
     for (s, t) in samples.iter().zip(&targets) {
         assert_eq!(s.key, t.key);
@@ -482,6 +510,42 @@ fn rendered_targets_read_back_dense_equal_the_rasterizer() {
                     < 1e-5
             );
         }
+        // The full-image mask is the rasterizer's over the whole image, and it agrees
+        // with the crop mask: the crop's face pixels look at face pixels of the image,
+        // and the areas scale with the crop (both within the pixels along the outline).
+        let mut full_vb = arkit_tool::raster::VisibilityBuffer::new(1, 1);
+        let full = t.full_mask().unwrap().expect("rendered with full_mask");
+        assert_eq!(
+            full,
+            renderer
+                .render_full_mask(&verts, &pose, s.image_width, s.image_height, &mut full_vb)
+                .unwrap()
+        );
+        let (w, h) = (s.image_width as usize, s.image_height as usize);
+        assert_eq!(full.len(), w * h);
+        // Every crop face pixel looks at a face pixel of the image or at one next to
+        // it (they differ only along the outline, where the two grids sample it apart).
+        let near_face = |u: f64, v: f64| {
+            let (x, y) = (u as i64, v as i64);
+            (-1..=1).any(|dy| {
+                (-1..=1).any(|dx| {
+                    let (xx, yy) = (x + dx, y + dy);
+                    (0..w as i64).contains(&xx)
+                        && (0..h as i64).contains(&yy)
+                        && full[yy as usize * w + xx as usize]
+                })
+            })
+        };
+        for &p in &pixels {
+            let (u, v) = crop.to_image((p % 96) as f64 + 0.5, (p / 96) as f64 + 0.5);
+            assert!(near_face(u, v), "crop pixel {p} at ({u}, {v})");
+        }
+        let full_area = full.iter().filter(|&&m| m).count() as f64;
+        let scaled = pixels.len() as f64 * (crop.side / 96.0).powi(2);
+        assert!(
+            (full_area / scaled - 1.0).abs() < 0.03,
+            "{full_area} vs {scaled}"
+        );
         // UV map: float16 of the direct map.
         let uv = arkit_tool::render::UvMapper::derive(renderer.topology())
             .unwrap()

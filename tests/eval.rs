@@ -49,6 +49,7 @@ fn rendered(dir: &Path) {
         points: 1024,
         seed: 2,
         shard: (0, 1),
+        full_mask: false,
         output: dir.to_path_buf(),
     };
     render_dataset::render_dataset(dir, &renderer, &ro, &|_| {}).unwrap();

@@ -625,6 +625,7 @@ mod pipeline {
             points: 256,
             seed: 1,
             shard: (0, 1),
+            full_mask: false,
             output: out.to_path_buf(),
         };
         render_dataset::render_dataset(dir.path(), &renderer, &ro(96, wrong.path()), &|_| {})
