@@ -110,7 +110,7 @@ impl DemoPlan {
     /// Training steps.
     pub fn train_steps(&self) -> usize {
         let train = (self.subjects - self.test_subjects) * self.images_per_subject;
-        self.epochs * train.div_ceil(self.batch.max(1))
+        crate::training::total_steps(train, self.epochs, self.batch)
     }
 
     /// Work units of the whole run for one progress display: a sample per stage that

@@ -158,14 +158,9 @@ pub fn oracle_predictions(
     let mut points = 0usize;
     for shard in &manifest.shards {
         let rows = samples_table::read_samples(&dataset.join(&shard.samples_file))?;
-        let tpath = targets_dir
-            .join("targets")
-            .join(format!("part-{:05}.parquet", shard.index));
+        let tpath = crate::targets_table::shard_path(targets_dir, shard.index);
         let targets: HashMap<SampleKey, TargetsRecord> = if tpath.exists() {
-            targets_table::read_targets(&tpath)?
-                .into_iter()
-                .map(|t| (t.key.clone(), t))
-                .collect()
+            targets_table::read_targets_by_key(&tpath)?
         } else {
             HashMap::new()
         };

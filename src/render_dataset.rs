@@ -110,10 +110,7 @@ pub fn render_dataset(
                 offset += shard.rows as u64;
                 continue;
             }
-            let out = options
-                .output
-                .join("targets")
-                .join(format!("part-{:05}.parquet", shard.index));
+            let out = targets_table::shard_path(&options.output, shard.index);
             if out.exists() && samples_table::parquet_row_count(&out)? == shard.rows {
                 progress(shard.rows);
             } else {

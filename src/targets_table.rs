@@ -366,6 +366,21 @@ pub fn read_targets(path: &Path) -> Result<Vec<TargetsRecord>> {
     Ok(out)
 }
 
+/// Reads a `targets` Parquet file into a map from sample key to its row.
+pub fn read_targets_by_key(
+    path: &Path,
+) -> Result<std::collections::HashMap<SampleKey, TargetsRecord>> {
+    Ok(read_targets(path)?
+        .into_iter()
+        .map(|t| (t.key.clone(), t))
+        .collect())
+}
+
+/// The targets file of shard `index` under `dir` (`dir/targets/part-KKKKK.parquet`).
+pub fn shard_path(dir: &Path, index: usize) -> std::path::PathBuf {
+    dir.join("targets").join(format!("part-{index:05}.parquet"))
+}
+
 /// The row-major indices of a mask's set pixels, in order (the rows of the stored
 /// correspondences follow this order).
 pub fn mask_pixel_indices(mask: &[bool]) -> Vec<u32> {

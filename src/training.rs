@@ -366,19 +366,14 @@ pub fn read_examples(
     let splits = SplitLookup::read(dataset)?;
     let mut out = Vec::new();
     for shard in &manifest.shards {
-        let tpath = targets_dir
-            .join("targets")
-            .join(format!("part-{:05}.parquet", shard.index));
+        let tpath = targets_table::shard_path(targets_dir, shard.index);
         if !tpath.exists() {
             return Err(Error::format(
                 &tpath,
                 "no targets for this shard: run `arkit-tool render` first",
             ));
         }
-        let targets: HashMap<_, _> = targets_table::read_targets(&tpath)?
-            .into_iter()
-            .map(|t| (t.key.clone(), t))
-            .collect();
+        let targets = targets_table::read_targets_by_key(&tpath)?;
         for r in samples_table::read_samples(&dataset.join(&shard.samples_file))? {
             if !splits.keeps(&r, split) {
                 continue;
@@ -579,6 +574,12 @@ pub struct StepLoss {
     pub seg: f32,
 }
 
+/// Optimiser steps of a run: `epochs` passes over `examples` in batches of `batch`
+/// (the last batch of an epoch may be short).
+pub fn total_steps(examples: usize, epochs: usize, batch: usize) -> usize {
+    epochs * examples.div_ceil(batch.max(1))
+}
+
 /// Trains a fresh network on `examples`; writes the checkpoint folder. `on_step` sees
 /// every step's losses (for progress).
 pub fn train(
@@ -597,7 +598,7 @@ pub fn train(
     let net = PerspNet::new(cfg, &vertex_uv(topology, &device)?, vb)
         .map_err(|e| candle_err("network", e))?;
     reseed(&varmap, options.seed, cfg.init_std).map_err(|e| candle_err("initial weights", e))?;
-    let total_steps = options.epochs * examples.len().div_ceil(options.batch.max(1));
+    let total_steps = total_steps(examples.len(), options.epochs, options.batch);
     let mut checkpoint = Checkpoint {
         config: cfg.clone(),
         topology: topology.source.clone(),
@@ -994,13 +995,7 @@ pub fn model_predictions(
     for shard in &manifest.shards {
         let truth: HashMap<crate::release::SampleKey, TargetsRecord> = match true_masks {
             Some(dir) => {
-                let t = dir
-                    .join("targets")
-                    .join(format!("part-{:05}.parquet", shard.index));
-                targets_table::read_targets(&t)?
-                    .into_iter()
-                    .map(|t| (t.key.clone(), t))
-                    .collect()
+                targets_table::read_targets_by_key(&targets_table::shard_path(dir, shard.index))?
             }
             None => HashMap::new(),
         };

@@ -107,7 +107,7 @@ pub fn run(a: TrainArgs) -> Result<ExitCode> {
     let targets = a.targets.clone().unwrap_or_else(|| a.dataset.clone());
     let split = (a.split != "all").then_some(a.split.as_str());
     let examples = training::read_examples(&a.dataset, &targets, &config, split)?;
-    let steps = a.epochs * examples.len().div_ceil(a.batch.max(1));
+    let steps = training::total_steps(examples.len(), a.epochs, a.batch);
     let bar = super::progress_bar(steps as u64, "train", "steps");
     let options = TrainOptions {
         config,
