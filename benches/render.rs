@@ -47,7 +47,7 @@ fn main() {
     let image = RgbImage::from_fn(800, 800, |x, y| Rgb([(x % 256) as u8, (y % 256) as u8, 90]));
     let mut vb = VisibilityBuffer::new(192, 192);
     // `cargo bench --bench render -- stages`: the per-sample stages only, more repeats.
-    let stages_only = std::env::args().any(|a| a == "stages");
+    let stages_only = std::env::args().any(|a| a == "stages" || a == "visibility");
     let n = if stages_only { 1000 } else { 200 };
     let mut faces = 0;
     let visibility = median_ms(
@@ -59,6 +59,11 @@ fn main() {
         },
         n,
     );
+    // `-- visibility`: that stage alone (for a profiler).
+    if std::env::args().any(|a| a == "visibility") {
+        println!("visibility stage: {visibility:.3} ms");
+        return;
+    }
     let uv_map = median_ms(|| drop(uv.position_map(&verts, 192)), n);
     let crop_ms = median_ms(|| drop(crop.crop_image(&image)), n);
     let points = median_ms(|| drop(sample_points(faces, 1024, 7)), n);

@@ -261,12 +261,17 @@ impl TriangleSetup {
         ];
         let inv_w = pw[0] + pw[1] + pw[2];
         let r = 1.0 / inv_w;
-        let mut bary = [0f32; 3];
-        let mut screen_bary = [0f32; 3];
-        for k in 0..3 {
-            bary[self.order[k]] = (pw[k] * r) as f32;
-            screen_bary[self.order[k]] = l[k] as f32;
-        }
+        let b = [(pw[0] * r) as f32, (pw[1] * r) as f32, (pw[2] * r) as f32];
+        let s = [l[0] as f32, l[1] as f32, l[2] as f32];
+        // Back to the caller's vertex order. Two literal arrays chosen per triangle, not
+        // stores through `order[k]`: those went through the stack and stalled the
+        // store-to-load forwarding of the whole fragment (a quarter of the visibility
+        // stage's time in `perf annotate`).
+        let (bary, screen_bary) = if self.order[1] == 2 {
+            ([b[0], b[2], b[1]], [s[0], s[2], s[1]])
+        } else {
+            (b, s)
+        };
         Fragment {
             x,
             y,
@@ -353,7 +358,8 @@ pub struct VisibilityBuffer {
     pub height: u32,
     /// Nearest triangle's index, or [`VisibilityBuffer::EMPTY`].
     pub triangle: Vec<u32>,
-    /// Perspective-correct barycentrics in the nearest triangle.
+    /// Perspective-correct barycentrics in the nearest triangle; meaningful only where
+    /// `triangle` is set (not reset by [`VisibilityBuffer::clear`]).
     pub bary: Vec<[f32; 3]>,
     /// Depth key (`1/w`, larger is nearer); 0 where empty.
     pub inv_w: Vec<f32>,
@@ -383,10 +389,11 @@ impl VisibilityBuffer {
         }
     }
 
-    /// Empties the buffer for reuse.
+    /// Empties the buffer for reuse. The barycentrics are left as they are: they mean
+    /// something only where `triangle` is set (not clearing them saves 60% of the bytes a
+    /// clear writes, a tenth of a 192x192 crop's visibility stage).
     pub fn clear(&mut self) {
         self.triangle.fill(Self::EMPTY);
-        self.bary.fill([0.0; 3]);
         self.inv_w.fill(0.0);
     }
 
