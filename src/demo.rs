@@ -369,6 +369,7 @@ pub fn run_demo(
         &TrainOptions {
             config,
             epochs: plan.epochs,
+            max_steps: None,
             batch: plan.batch,
             learning_rate: plan.learning_rate,
             lr_hold: 0.5,

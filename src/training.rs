@@ -497,6 +497,9 @@ pub struct Checkpoint {
     /// Whether the loss started at the lowered weights.
     #[serde(default)]
     pub lowered_start: bool,
+    /// The step budget, when the run had one (`train --steps`).
+    #[serde(default)]
+    pub max_steps: Option<usize>,
     /// Seed.
     pub seed: u64,
     /// Epochs finished when this checkpoint was written (`epochs` once training is
@@ -528,6 +531,9 @@ pub struct TrainOptions {
     pub config: PerspNetConfig,
     /// Passes over the examples.
     pub epochs: usize,
+    /// A step budget instead: stop after this many steps (the last epoch may end part
+    /// way; the schedule is scaled to the budget). `epochs` must cover it.
+    pub max_steps: Option<usize>,
     /// Examples per step.
     pub batch: usize,
     /// AdamW learning rate (the official Adam uses 1e-4 at batch 32 on GPUs; small
@@ -598,7 +604,17 @@ pub fn train(
     let net = PerspNet::new(cfg, &vertex_uv(topology, &device)?, vb)
         .map_err(|e| candle_err("network", e))?;
     reseed(&varmap, options.seed, cfg.init_std).map_err(|e| candle_err("initial weights", e))?;
-    let total_steps = total_steps(examples.len(), options.epochs, options.batch);
+    let epoch_steps = total_steps(examples.len(), options.epochs, options.batch);
+    let total_steps = match options.max_steps {
+        Some(n) if n > epoch_steps => {
+            return Err(Error::invalid(
+                "train",
+                format!("{n} steps need more than {} epochs", options.epochs),
+            ));
+        }
+        Some(n) => n,
+        None => epoch_steps,
+    };
     let mut checkpoint = Checkpoint {
         config: cfg.clone(),
         topology: topology.source.clone(),
@@ -608,6 +624,7 @@ pub fn train(
         lr_hold: options.lr_hold,
         augmentation: options.augmentation,
         lowered_start: options.lowered_start,
+        max_steps: options.max_steps,
         seed: options.seed,
         epochs_done: 0,
         examples: examples.len(),
@@ -652,6 +669,9 @@ pub fn train(
             continue;
         }
         for chunk in order.chunks(options.batch.max(1)) {
+            if log.len() >= total_steps {
+                break;
+            }
             let refs: Vec<&Example> = chunk.iter().map(|&i| &examples[i]).collect();
             // Each step's augmentation has its own stream: the same views for a seed
             // whatever else changes.

@@ -656,6 +656,7 @@ mod pipeline {
         let topts = TrainOptions {
             config: cfg.clone(),
             epochs: 8,
+            max_steps: None,
             batch: 4,
             learning_rate: 5e-3,
             lr_hold: 0.5,
@@ -705,6 +706,23 @@ mod pipeline {
             assert_eq!(rlog[k].total, log[k].total, "step {k}");
         }
         assert_eq!(rlog[4].total, log[4].total);
+        // A step budget stops part way through an epoch; until then it is the same
+        // run (the rate is still held), and a budget the epochs cannot cover is refused.
+        let budget = tempfile::tempdir().unwrap();
+        let budget_opts = TrainOptions {
+            output: budget.path().to_path_buf(),
+            max_steps: Some(3),
+            ..topts.clone()
+        };
+        let (bck, blog) =
+            training::train(&examples[..4], &topology, &budget_opts, &|_| {}).unwrap();
+        assert_eq!((bck.steps, blog.len(), bck.max_steps), (3, 3, Some(3)));
+        assert_eq!(blog[0].total, log[0].total);
+        let too_many = TrainOptions {
+            max_steps: Some(1000),
+            ..budget_opts
+        };
+        assert!(training::train(&examples[..4], &topology, &too_many, &|_| {}).is_err());
         // Other settings are refused rather than mixed in.
         let other = TrainOptions {
             learning_rate: 1e-3,

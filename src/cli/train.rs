@@ -42,6 +42,10 @@ pub struct TrainArgs {
     /// Passes over the training samples.
     #[arg(long, default_value_t = 5)]
     epochs: usize,
+    /// A step budget instead of --epochs: stop after N steps (the learning-rate
+    /// schedule is scaled to N; the last pass over the samples may end part way).
+    #[arg(long, value_name = "N", conflicts_with = "epochs")]
+    steps: Option<usize>,
     /// Samples per step.
     #[arg(long, default_value_t = 4)]
     batch: usize,
@@ -107,11 +111,16 @@ pub fn run(a: TrainArgs) -> Result<ExitCode> {
     let targets = a.targets.clone().unwrap_or_else(|| a.dataset.clone());
     let split = (a.split != "all").then_some(a.split.as_str());
     let examples = training::read_examples(&a.dataset, &targets, &config, split)?;
-    let steps = training::total_steps(examples.len(), a.epochs, a.batch);
+    let per_epoch = training::total_steps(examples.len(), 1, a.batch).max(1);
+    let (epochs, steps) = match a.steps {
+        Some(n) => (n.div_ceil(per_epoch), n),
+        None => (a.epochs, a.epochs * per_epoch),
+    };
     let bar = super::progress_bar(steps as u64, "train", "steps");
     let options = TrainOptions {
         config,
-        epochs: a.epochs,
+        epochs,
+        max_steps: a.steps,
         batch: a.batch,
         learning_rate: a.lr,
         lr_hold: a.lr_hold,
