@@ -35,15 +35,18 @@ fn main() {
         Vector3::new(0.01, 0.0, -0.5),
     );
     let cam = Camera::release(800, 800);
-    let lm: Vec<f32> = topo
-        .landmarks
-        .iter()
-        .flat_map(|&i| {
-            let p = cam.project(&pose, &verts[i as usize].cast());
-            [p.u as f32, p.v as f32]
-        })
-        .collect();
-    let crop = CropTransform::around_landmarks(&lm, 192);
+    let crop_at = |pose: &Pose| {
+        let lm: Vec<f32> = topo
+            .landmarks
+            .iter()
+            .flat_map(|&i| {
+                let p = cam.project(pose, &verts[i as usize].cast());
+                [p.u as f32, p.v as f32]
+            })
+            .collect();
+        CropTransform::around_landmarks(&lm, 192)
+    };
+    let crop = crop_at(&pose);
     let image = RgbImage::from_fn(800, 800, |x, y| Rgb([(x % 256) as u8, (y % 256) as u8, 90]));
     let mut vb = VisibilityBuffer::new(192, 192);
     // `cargo bench --bench render -- stages`: the per-sample stages only, more repeats.
@@ -116,6 +119,62 @@ fn main() {
         "ratio: render per sample: official loader / ours = {:.1}x; visibility stage / touched-pixel floor = {:.1}x",
         OFFICIAL_MS / per_sample,
         visibility / floor
+    );
+    // Scaling with threads: the whole per-sample job (visibility, crop, points; UV map
+    // cached) over 400 samples of varied poses, on a pool of 1 and of all cores.
+    let poses: Vec<Pose> = (0..400)
+        .map(|k| {
+            let t = k as f64;
+            Pose::from_euler(
+                EulerAngles::new(
+                    60.0 * (t * 0.37).sin(),
+                    25.0 * (t * 0.91).cos(),
+                    15.0 * (t * 0.23).sin(),
+                ),
+                Vector3::new(
+                    0.03 * (t * 0.5).sin(),
+                    0.02 * (t * 0.7).cos(),
+                    -0.45 - 0.1 * (t * 0.3).sin(),
+                ),
+            )
+        })
+        .collect();
+    let job = |pool: &rayon::ThreadPool| -> f64 {
+        use rayon::prelude::*;
+        let start = Instant::now();
+        pool.install(|| {
+            poses.par_iter().enumerate().for_each_init(
+                || VisibilityBuffer::new(192, 192),
+                |vb, (k, pose)| {
+                    let crop = crop_at(pose);
+                    let t = renderer.render(&verts, pose, 800, 800, &crop, vb).unwrap();
+                    std::hint::black_box(crop.crop_image(&image));
+                    std::hint::black_box(sample_points(t.corr_vertices.len(), 1024, k as u64));
+                },
+            )
+        });
+        poses.len() as f64 / start.elapsed().as_secs_f64()
+    };
+    let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
+    let pool = |n: usize| {
+        rayon::ThreadPoolBuilder::new()
+            .num_threads(n)
+            .build()
+            .unwrap()
+    };
+    let (one, all) = (pool(1), pool(cores));
+    // Best of 5 for each (the machine is shared), alternating.
+    let (mut r1, mut rn) = (0f64, 0f64);
+    for _ in 0..5 {
+        r1 = r1.max(job(&one));
+        rn = rn.max(job(&all));
+    }
+    println!(
+        "per-sample job, 400 poses: {r1:.0} samples/s on 1 thread, {rn:.0} on {cores} threads"
+    );
+    println!(
+        "ratio: render per-sample job, {cores} threads / 1 thread = {:.2}x (linear: {cores}x)",
+        rn / r1
     );
     // How far the official loader's rasterization differs from ours, full 800x800 image.
     if stages_only {
