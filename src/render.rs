@@ -309,17 +309,15 @@ impl FaceRenderer {
         Ok(buffer.triangle.iter().map(|&t| t < n_mesh).collect())
     }
 
-    /// Projects the mesh and its hole fans and rasterizes them into `buffer` (resized to
-    /// the crop, or to the whole image when `crop` is `None`) with the renderer's rules.
-    fn rasterize(
+    /// The mesh's vertices and its hole centroids projected to image pixels with the
+    /// release camera for a `width x height` image.
+    fn project(
         &self,
         verts: &[Point3<f32>],
         pose: &Pose,
         width: u32,
         height: u32,
-        crop: Option<&CropTransform>,
-        buffer: &mut VisibilityBuffer,
-    ) -> Result<()> {
+    ) -> Result<Vec<ScreenVertex>> {
         if verts.len() != self.topology.vertex_count {
             return Err(Error::invalid(
                 "verts",
@@ -333,7 +331,21 @@ impl FaceRenderer {
         let camera = Camera::new(self.camera_projection, width, height)?;
         let mut all = verts.to_vec();
         all.extend(self.hole_fill.centroid_positions(verts));
-        let mut screen = camera.project_to_screen(pose, &all);
+        Ok(camera.project_to_screen(pose, &all))
+    }
+
+    /// Projects the mesh and its hole fans and rasterizes them into `buffer` (resized to
+    /// the crop, or to the whole image when `crop` is `None`) with the renderer's rules.
+    fn rasterize(
+        &self,
+        verts: &[Point3<f32>],
+        pose: &Pose,
+        width: u32,
+        height: u32,
+        crop: Option<&CropTransform>,
+        buffer: &mut VisibilityBuffer,
+    ) -> Result<()> {
+        let mut screen = self.project(verts, pose, width, height)?;
         let (bw, bh) = match crop {
             Some(crop) => {
                 let s = crop.scale() as f32;
@@ -389,10 +401,7 @@ impl FaceRenderer {
         height: u32,
         aligned: bool,
     ) -> Result<ModeDifference> {
-        let camera = Camera::new(self.camera_projection, width, height)?;
-        let mut all = verts.to_vec();
-        all.extend(self.hole_fill.centroid_positions(verts));
-        let screen = camera.project_to_screen(pose, &all);
+        let screen = self.project(verts, pose, width, height)?;
         let mut ours = VisibilityBuffer::new(width, height);
         ours.rasterize_mesh(&screen, &self.triangles)
             .map_err(|e| Error::invalid("mesh", e.to_string()))?;
