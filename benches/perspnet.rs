@@ -4,8 +4,11 @@
 
 use std::time::Instant;
 
+use arkit_tool::perspnet::Adam;
 use arkit_tool::perspnet::loss::{LossWeights, perspnet_loss};
-use arkit_tool::perspnet::model::{parameter_count, synthetic_vertex_uv, trainable_vars};
+use arkit_tool::perspnet::model::{
+    named_trainable_vars, parameter_count, synthetic_vertex_uv, trainable_vars,
+};
 use arkit_tool::perspnet::{CorrTarget, LossTargets, PerspNet, PerspNetConfig};
 use candle_core::{DType, Device, Result, Tensor};
 use candle_nn::{AdamW, Optimizer, ParamsAdamW, VarBuilder, VarMap};
@@ -62,13 +65,7 @@ fn run(name: &str, cfg: &PerspNetConfig, reps: usize) -> Result<()> {
         corr: &corr,
         uv_map: None,
     };
-    let mut opt = AdamW::new(
-        trainable_vars(&varmap),
-        ParamsAdamW {
-            lr: 1e-4,
-            ..Default::default()
-        },
-    )?;
+    let mut opt = Adam::new(named_trainable_vars(&varmap), 1e-4)?;
     let weights = LossWeights::default();
     let mut steps = Vec::new();
     let mut fwd_train = Vec::new();
@@ -83,6 +80,33 @@ fn run(name: &str, cfg: &PerspNetConfig, reps: usize) -> Result<()> {
         opt.step(&grads)?;
         steps.push(t.elapsed().as_secs_f64());
     }
+    // The optimiser step alone, ours against candle's AdamW on the same gradients.
+    let grads = perspnet_loss(&net.forward(&img, &ch, true)?, &targets, &weights)?
+        .total
+        .backward()?;
+    let mut candle_opt = AdamW::new(
+        trainable_vars(&varmap),
+        ParamsAdamW {
+            lr: 1e-4,
+            weight_decay: 0.0,
+            ..Default::default()
+        },
+    )?;
+    let (mut ours_s, mut candle_s) = (Vec::new(), Vec::new());
+    for _ in 0..reps.max(3) {
+        let t = Instant::now();
+        opt.step(&grads)?;
+        ours_s.push(t.elapsed().as_secs_f64());
+        let t = Instant::now();
+        candle_opt.step(&grads)?;
+        candle_s.push(t.elapsed().as_secs_f64());
+    }
+    let (ours_ms, candle_ms) = (median(ours_s) * 1e3, median(candle_s) * 1e3);
+    println!("{name}: optimiser step: ours {ours_ms:.2} ms, candle AdamW {candle_ms:.2} ms");
+    println!(
+        "ratio: adam {name}: ours / candle AdamW = {:.2}x",
+        ours_ms / candle_ms
+    );
     let (fwd_s, step_s) = (median(fwd.clone()), median(steps.clone()));
     println!(
         "{name}: forward b=1 eval: full {:.1} ms, encoder+decoders {:.1} ms | train step b=4: {:.3} s (forward+loss {:.3} s, +backward {:.3} s)",

@@ -19,15 +19,15 @@ use crate::error::{Error, Result};
 use crate::eval_dataset::SplitLookup;
 use crate::perspnet::layers::{IMAGENET_MEAN, IMAGENET_STD};
 use crate::perspnet::loss::PerspNetLoss;
-use crate::perspnet::model::trainable_vars;
-use crate::perspnet::{CorrTarget, LossTargets, PerspNet, PerspNetConfig};
+use crate::perspnet::model::named_trainable_vars;
+use crate::perspnet::{Adam, CorrTarget, LossTargets, LossWeights, PerspNet, PerspNetConfig};
 use crate::render::CropTransform;
 use crate::rng::Rng;
 use crate::samples_table::{self, SampleRecord};
 use crate::targets_table::{self, TargetsRecord};
 use crate::topology::FaceTopology;
 use candle_core::{DType, Device, Tensor};
-use candle_nn::{AdamW, Optimizer, ParamsAdamW, VarBuilder, VarMap};
+use candle_nn::{VarBuilder, VarMap};
 use serde::{Deserialize, Serialize};
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
@@ -502,6 +502,11 @@ pub struct Checkpoint {
     pub max_steps: Option<usize>,
     /// Seed.
     pub seed: u64,
+    /// The loss weights when this checkpoint was written (the official schedule lowers
+    /// them as `L_corr` falls; a resumed run goes on from these). Older checkpoints:
+    /// none, the run's starting weights.
+    #[serde(default)]
+    pub loss_weights: Option<LossWeights>,
     /// Epochs finished when this checkpoint was written (`epochs` once training is
     /// done; a checkpoint is written after every epoch).
     #[serde(default)]
@@ -553,9 +558,11 @@ pub struct TrainOptions {
     /// Checkpoint folder.
     pub output: PathBuf,
     /// Continue from the checkpoint in `output` (written after each epoch) when there is
-    /// one made with the same settings: its weights, its loss log, the same sample order
-    /// and learning-rate schedule from the next epoch on. Adam's moment estimates are not
-    /// stored, so they restart from zero.
+    /// one made with the same settings: its weights, Adam's moments (`adam.safetensors`),
+    /// the loss weights, its loss log, the same sample order, augmentation and
+    /// learning-rate schedule from the next epoch on, so the resumed run is step for
+    /// step the uninterrupted one. (A checkpoint written before the optimiser state
+    /// was stored has no `adam.safetensors`: its moments restart from zero.)
     pub resume: bool,
 }
 
@@ -626,6 +633,7 @@ pub fn train(
         lowered_start: options.lowered_start,
         max_steps: options.max_steps,
         seed: options.seed,
+        loss_weights: None,
         epochs_done: 0,
         examples: examples.len(),
         steps: 0,
@@ -634,28 +642,24 @@ pub fn train(
     };
     let mut log = Vec::new();
     let mut start_epoch = 0;
-    if options.resume && options.output.join("perspnet.json").exists() {
-        let (done, old_log) = resume_from(&options.output, &checkpoint, &varmap)?;
-        start_epoch = done;
-        log = old_log;
-        checkpoint.epochs_done = done;
-        checkpoint.steps = log.len();
-        checkpoint.first_loss = log.first().map_or(f32::NAN, |s| s.total);
-        checkpoint.last_loss = log.last().map_or(f32::NAN, |s| s.total);
-    }
-    let mut opt = AdamW::new(
-        trainable_vars(&varmap),
-        ParamsAdamW {
-            lr: options.learning_rate,
-            weight_decay: 0.0,
-            ..ParamsAdamW::default()
-        },
-    )
-    .map_err(|e| candle_err("optimizer", e))?;
+    let mut opt = Adam::new(named_trainable_vars(&varmap), options.learning_rate)
+        .map_err(|e| candle_err("optimizer", e))?;
     let mut loss = PerspNetLoss::default();
     if options.lowered_start {
         // The weights the official schedule reaches once L_corr < 0.1.
         loss.weights.update_schedule(0.05);
+    }
+    if options.resume && options.output.join("perspnet.json").exists() {
+        let resumed = resume_from(&options.output, &checkpoint, &varmap, &mut opt)?;
+        start_epoch = resumed.checkpoint.epochs_done;
+        log = resumed.log;
+        if let Some(w) = resumed.checkpoint.loss_weights {
+            loss.weights = w;
+        }
+        checkpoint.epochs_done = start_epoch;
+        checkpoint.steps = log.len();
+        checkpoint.first_loss = log.first().map_or(f32::NAN, |s| s.total);
+        checkpoint.last_loss = log.last().map_or(f32::NAN, |s| s.total);
     }
     let mut rng = Rng::new(options.seed);
     let mut order: Vec<usize> = (0..examples.len()).collect();
@@ -667,6 +671,10 @@ pub fn train(
         }
         if epoch < start_epoch {
             continue;
+        }
+        if log.len() >= total_steps {
+            // A step budget spent before the last epoch: nothing more to write.
+            break;
         }
         for chunk in order.chunks(options.batch.max(1)) {
             if log.len() >= total_steps {
@@ -682,12 +690,12 @@ pub fn train(
                 .collect();
             let b = batch(&refs, &views, cfg, &device)?;
             net.seed_dropout(Rng::for_stream(options.seed, 2 << 40 | log.len() as u64).next_u64());
-            opt.set_learning_rate(learning_rate_at(
+            opt.learning_rate = learning_rate_at(
                 log.len(),
                 total_steps,
                 options.learning_rate,
                 options.lr_hold,
-            ));
+            );
             let step = (|| -> candle_core::Result<StepLoss> {
                 let out = net.forward(&b.image, &b.choose, true)?;
                 let terms = loss.compute(
@@ -730,14 +738,26 @@ pub fn train(
         checkpoint.steps = log.len();
         checkpoint.first_loss = log.first().map_or(f32::NAN, |s| s.total);
         checkpoint.last_loss = log.last().map_or(f32::NAN, |s| s.total);
-        write_checkpoint(&options.output, &checkpoint, &varmap, &log)?;
+        checkpoint.loss_weights = Some(loss.weights);
+        write_checkpoint(&options.output, &checkpoint, &varmap, &opt, &log)?;
     }
     Ok((checkpoint, log))
 }
 
-/// Loads the checkpoint in `dir` into `varmap` for a resumed run with the settings of
-/// `wanted`; returns the epochs it finished and its loss log.
-fn resume_from(dir: &Path, wanted: &Checkpoint, varmap: &VarMap) -> Result<(usize, Vec<StepLoss>)> {
+/// What a resumed run picks up besides the weights.
+struct Resumed {
+    checkpoint: Checkpoint,
+    log: Vec<StepLoss>,
+}
+
+/// Loads the checkpoint in `dir` into `varmap` and `opt` for a resumed run with the
+/// settings of `wanted`; returns it with its loss log.
+fn resume_from(
+    dir: &Path,
+    wanted: &Checkpoint,
+    varmap: &VarMap,
+    opt: &mut Adam,
+) -> Result<Resumed> {
     let p = dir.join("perspnet.json");
     let text = std::fs::read_to_string(&p).map_err(|e| Error::io(&p, e))?;
     let old: Checkpoint =
@@ -748,6 +768,7 @@ fn resume_from(dir: &Path, wanted: &Checkpoint, varmap: &VarMap) -> Result<(usiz
         a.steps = 0;
         a.first_loss = f32::NAN;
         a.last_loss = f32::NAN;
+        a.loss_weights = None;
         serde_json::to_value(&a).ok()
     };
     if same(&old) != same(wanted) {
@@ -761,6 +782,21 @@ fn resume_from(dir: &Path, wanted: &Checkpoint, varmap: &VarMap) -> Result<(usiz
     varmap
         .load(&w)
         .map_err(|e| Error::format(&w, e.to_string()))?;
+    let adam = dir.join(ADAM_FILE);
+    if adam.exists() {
+        opt.load(&adam)
+            .map_err(|e| Error::format(&adam, e.to_string()))?;
+        if opt.steps() != old.steps {
+            return Err(Error::format(
+                &adam,
+                format!(
+                    "{} optimiser steps but the checkpoint ran {}",
+                    opt.steps(),
+                    old.steps
+                ),
+            ));
+        }
+    }
     let csv = dir.join("loss.csv");
     let text = std::fs::read_to_string(&csv).map_err(|e| Error::io(&csv, e))?;
     let mut log = Vec::new();
@@ -792,7 +828,10 @@ fn resume_from(dir: &Path, wanted: &Checkpoint, varmap: &VarMap) -> Result<(usiz
             ),
         ));
     }
-    Ok((old.epochs_done, log))
+    Ok(Resumed {
+        checkpoint: old,
+        log,
+    })
 }
 
 /// Redraws every randomly initialised variable from our seeded generator (candle's
@@ -831,14 +870,34 @@ pub fn reseed(varmap: &VarMap, seed: u64, init_std: f64) -> candle_core::Result<
     Ok(())
 }
 
-fn write_checkpoint(dir: &Path, c: &Checkpoint, varmap: &VarMap, log: &[StepLoss]) -> Result<()> {
+/// Writes `path` through `save` under a temporary name in the same folder, then renames.
+fn save_renamed(path: &Path, save: &dyn Fn(&Path) -> candle_core::Result<()>) -> Result<()> {
+    let name = path
+        .file_name()
+        .map_or_else(String::new, |n| n.to_string_lossy().into_owned());
+    let tmp = path.with_file_name(format!(".{name}.tmp-{}", std::process::id()));
+    if let Err(e) = save(&tmp) {
+        let _ = std::fs::remove_file(&tmp);
+        return Err(Error::format(path, e.to_string()));
+    }
+    std::fs::rename(&tmp, path).map_err(|e| Error::io(path, e))
+}
+
+/// The optimiser's state in a checkpoint folder ([`Adam::save`]).
+pub const ADAM_FILE: &str = "adam.safetensors";
+
+fn write_checkpoint(
+    dir: &Path,
+    c: &Checkpoint,
+    varmap: &VarMap,
+    opt: &Adam,
+    log: &[StepLoss],
+) -> Result<()> {
     std::fs::create_dir_all(dir).map_err(|e| Error::io(dir, e))?;
-    let weights = dir.join("model.safetensors");
-    let tmp = dir.join(format!(".model.safetensors.tmp-{}", std::process::id()));
-    varmap
-        .save(&tmp)
-        .map_err(|e| Error::invalid("model.safetensors", e.to_string()))?;
-    std::fs::rename(&tmp, &weights).map_err(|e| Error::io(&weights, e))?;
+    // Weights and optimiser state first, each under a temporary name then renamed;
+    // perspnet.json last, so a folder whose json says N steps has both files of step N.
+    save_renamed(&dir.join("model.safetensors"), &|p| varmap.save(p))?;
+    save_renamed(&dir.join(ADAM_FILE), &|p| opt.save(p))?;
     let mut csv = String::from("step,epoch,total,corr,shape,kl,entropy,seg\n");
     for s in log {
         csv += &format!(

@@ -585,6 +585,7 @@ mod pipeline {
     use arkit_tool::render_dataset::{self, RenderOptions};
     use arkit_tool::synth::{self, FaceSource, SynthOptions};
     use arkit_tool::training::{self, TrainOptions};
+    use candle_core::Device;
 
     #[test]
     fn train_tiny_then_predict_and_evaluate() {
@@ -680,9 +681,10 @@ mod pipeline {
             assert!(model_dir.path().join(f).exists(), "{f}");
         }
         // Interrupted after epoch 4 (a panic in the progress callback at step 5), then
-        // resumed: the checkpoint written after epoch 4 carries the run on, the log
-        // keeps the first four steps, and step 4's loss (the weights after epoch 4 on
-        // the same batch and augmentation) equals the uninterrupted run's exactly.
+        // resumed: the checkpoint written after epoch 4 (weights, Adam's moments, loss
+        // weights) carries the run on, so every step's loss and the final weights equal
+        // the uninterrupted run's exactly (with the moments restarted at zero, steps
+        // 5-7 and the weights differ).
         let cut = tempfile::tempdir().unwrap();
         let cut_opts = TrainOptions {
             output: cut.path().to_path_buf(),
@@ -702,10 +704,21 @@ mod pipeline {
             training::train(&examples[..4], &topology, &resumed_opts, &|_| {}).unwrap();
         assert_eq!((rck.steps, rck.epochs_done), (8, 8));
         assert_eq!(rlog.len(), 8);
-        for k in 0..4 {
+        for k in 0..8 {
             assert_eq!(rlog[k].total, log[k].total, "step {k}");
         }
-        assert_eq!(rlog[4].total, log[4].total);
+        let weights = |d: &std::path::Path| {
+            let mut t: Vec<(String, Vec<f32>)> =
+                candle_core::safetensors::load(d.join("model.safetensors"), &Device::Cpu)
+                    .unwrap()
+                    .into_iter()
+                    .map(|(k, v)| (k, v.flatten_all().unwrap().to_vec1::<f32>().unwrap()))
+                    .collect();
+            t.sort_by(|a, b| a.0.cmp(&b.0));
+            t
+        };
+        assert_eq!(weights(cut.path()), weights(model_dir.path()));
+        assert!(cut.path().join(training::ADAM_FILE).exists());
         // A step budget stops part way through an epoch; until then it is the same
         // run (the rate is still held), and a budget the epochs cannot cover is refused.
         let budget = tempfile::tempdir().unwrap();

@@ -72,7 +72,8 @@ pub struct TrainArgs {
     #[arg(long)]
     lowered_start: bool,
     /// Continue an interrupted run from the checkpoint in --output (one is written after
-    /// every epoch), given the same options; Adam's moments restart from zero.
+    /// every epoch), given the same options: weights, Adam's moments and the loss
+    /// weights are restored, so the resumed run is step for step the uninterrupted one.
     #[arg(long)]
     resume: bool,
     /// Seed of the initial weights and the sample order.

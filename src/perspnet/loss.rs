@@ -16,6 +16,7 @@
 //! lowers the weights once `L_corr` falls below 0.1 and 0.01 (the change is sticky).
 
 use candle_core::{D, DType, Result, Tensor};
+use serde::{Deserialize, Serialize};
 
 use super::model::{PerspNetOutput, UV_SCALE};
 
@@ -55,7 +56,7 @@ pub struct LossTargets<'a> {
 }
 
 /// Loss weights. [`LossWeights::default`] gives the official initial values.
-#[derive(Debug, Clone, Copy, PartialEq)]
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct LossWeights {
     /// Weight of `L_corr` (1.0).
     pub corr: f64,

@@ -5,11 +5,13 @@
 //! Shapes follow the official PyTorch code (`models/model_repository.py`
 //! `Resnet18_8s`, `models/network.py` `DeformNetUV2`, `models/loss.py` `Loss8`).
 
+pub mod adam;
 pub mod config;
 pub mod layers;
 pub mod loss;
 pub mod model;
 
+pub use adam::Adam;
 pub use config::PerspNetConfig;
 pub use loss::{CorrTarget, LossTargets, LossTerms, LossWeights, PerspNetLoss};
 pub use model::{PerspNet, PerspNetOutput};

@@ -434,13 +434,22 @@ fn mlp_global(layers: &[Linear; 2], x: &Tensor) -> Result<Tensor> {
 
 /// Trainable variables of a [`VarMap`]: everything except batch-norm running statistics.
 pub fn trainable_vars(varmap: &VarMap) -> Vec<Var> {
+    named_trainable_vars(varmap)
+        .into_iter()
+        .map(|(_, v)| v)
+        .collect()
+}
+
+/// [`trainable_vars`] with their names (the checkpoint keys), sorted by name.
+pub fn named_trainable_vars(varmap: &VarMap) -> Vec<(String, Var)> {
     let data = varmap.data().lock().expect("varmap lock");
-    let mut named: Vec<(&String, &Var)> = data
+    let mut named: Vec<(String, Var)> = data
         .iter()
         .filter(|(k, _)| !k.contains("running_"))
+        .map(|(k, v)| (k.clone(), v.clone()))
         .collect();
-    named.sort_by(|a, b| a.0.cmp(b.0));
-    named.into_iter().map(|(_, v)| v.clone()).collect()
+    named.sort_by(|a, b| a.0.cmp(&b.0));
+    named
 }
 
 /// Number of trainable scalars whose variable name starts with `prefix` (`""` for all).
