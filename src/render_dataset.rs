@@ -2,13 +2,20 @@
 //! `samples/part-K.parquet`, `targets/part-K.parquet` with one row per sample, in the
 //! same order. Parallel over samples; deterministic (each sample's points are drawn
 //! from `seed` and its position in the dataset); shards already written are kept.
+//!
+//! A sample that cannot be rendered (a pose the projection cannot use, a mesh of the
+//! wrong size, a vertex behind the camera) never stops the run: it gets no targets row,
+//! and a row in `targets/errors/part-K.parquet` (the `errors` table of `convert`, with
+//! the samples file and the reason), which is written before the shard's targets file,
+//! so a shard is finished when both files account for all of its samples. Readers
+//! ([`crate::targets_table::read_skipped_keys`]) skip those samples.
 
 use crate::conventions::Pose;
 use crate::convert::read_manifest;
 use crate::error::{Error, Result};
 use crate::raster::VisibilityBuffer;
 use crate::render::{CropTransform, FaceRenderer, RasterMode, UvMapper, sample_points};
-use crate::samples_table;
+use crate::samples_table::{self, ErrorRecord};
 use crate::targets_table::{self, TargetsRecord};
 use nalgebra::Point3;
 use rayon::prelude::*;
@@ -40,16 +47,21 @@ pub struct RenderOptions {
 /// What a run wrote.
 #[derive(Clone, Debug, serde::Serialize)]
 pub struct RenderSummary {
-    /// Samples rendered (or kept from an earlier run).
+    /// Samples of the shards this run is responsible for: rendered, kept from an
+    /// earlier run, or skipped.
     pub samples: usize,
     /// Shards this run is responsible for (all of them without `--shard`).
     pub shards: usize,
     /// Bytes of the targets files.
     pub bytes: u64,
-    /// Bytes per sample.
+    /// Bytes per rendered sample.
     pub bytes_per_sample: f64,
     /// Distinct meshes whose UV map was computed.
     pub distinct_meshes: usize,
+    /// Samples that could not be rendered (counted in `samples`; no targets row).
+    pub skipped: usize,
+    /// The first few of them, `key: reason` (all are in `targets/errors/`).
+    pub skipped_examples: Vec<String>,
     /// The rasterization rules used.
     pub mode: RasterMode,
 }
@@ -98,7 +110,10 @@ pub fn render_dataset(
     } else {
         crate::atomic_file::write_bytes(&settings_path, format!("{settings:#}\n").as_bytes())?;
     }
+    std::fs::create_dir_all(options.output.join("targets").join("errors"))
+        .map_err(|e| Error::io(&options.output, e))?;
     let (mut samples, mut bytes, mut distinct) = (0usize, 0u64, 0usize);
+    let mut skipped: Vec<ErrorRecord> = Vec::new();
     let mut offset = 0u64;
     // Encoding and writing shard k (one thread) overlaps reading and rendering shard
     // k+1 (rayon), so the sequential Parquet work does not leave a core idle.
@@ -111,7 +126,14 @@ pub fn render_dataset(
                 continue;
             }
             let out = targets_table::shard_path(&options.output, shard.index);
-            if out.exists() && samples_table::parquet_row_count(&out)? == shard.rows {
+            let errors_path = targets_table::errors_path(&options.output, shard.index);
+            if out.exists()
+                && errors_path.exists()
+                && samples_table::parquet_row_count(&out)?
+                    + samples_table::parquet_row_count(&errors_path)?
+                    == shard.rows
+            {
+                skipped.extend(samples_table::read_errors(&errors_path)?);
                 progress(shard.rows);
             } else {
                 let rows = samples_table::read_samples(&dataset.join(&shard.samples_file))?;
@@ -136,7 +158,7 @@ pub fn render_dataset(
                         uv.position_map(&pts, options.uv_size)
                     })
                     .collect();
-                let records: Vec<TargetsRecord> = rows
+                let results: Vec<Result<TargetsRecord>> = rows
                     .par_iter()
                     .enumerate()
                     .map_init(
@@ -145,6 +167,7 @@ pub fn render_dataset(
                             (crop, VisibilityBuffer::new(1, 1))
                         },
                         |(buffer, full), (i, r)| -> Result<TargetsRecord> {
+                            progress(1);
                             let verts: Vec<Point3<f32>> = r
                                 .verts
                                 .chunks(3)
@@ -175,7 +198,6 @@ pub fn render_dataset(
                             } else {
                                 None
                             };
-                            progress(1);
                             Ok(TargetsRecord::new(
                                 r.key.clone(),
                                 &t,
@@ -190,10 +212,30 @@ pub fn render_dataset(
                             ))
                         },
                     )
-                    .collect::<Result<_>>()?;
+                    .collect();
+                let mut records = Vec::with_capacity(rows.len());
+                let mut bad = Vec::new();
+                for (r, result) in rows.iter().zip(results) {
+                    match result {
+                        Ok(t) => records.push(t),
+                        Err(e) => bad.push(ErrorRecord {
+                            key: r.key.clone(),
+                            split: r.split.clone(),
+                            file: shard.samples_file.clone(),
+                            reason: e.to_string(),
+                        }),
+                    }
+                }
                 if let Some(h) = pending.take() {
                     h.join().expect("writer thread")?;
                 }
+                // Errors first: a targets file without its errors file is never
+                // "finished".
+                samples_table::write_parquet(
+                    &errors_path,
+                    &mut samples_table::errors_frame(&bad)?,
+                )?;
+                skipped.extend(bad);
                 let path = out.clone();
                 pending = Some(scope.spawn(move || {
                     samples_table::write_parquet(
@@ -218,8 +260,14 @@ pub fn render_dataset(
         samples,
         shards: outputs.len(),
         bytes,
-        bytes_per_sample: bytes as f64 / samples.max(1) as f64,
+        bytes_per_sample: bytes as f64 / (samples - skipped.len()).max(1) as f64,
         distinct_meshes: distinct,
         mode: renderer.mode,
+        skipped: skipped.len(),
+        skipped_examples: skipped
+            .iter()
+            .take(10)
+            .map(|e| format!("{}: {}", e.key, e.reason))
+            .collect(),
     })
 }

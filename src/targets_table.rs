@@ -381,6 +381,27 @@ pub fn shard_path(dir: &Path, index: usize) -> std::path::PathBuf {
     dir.join("targets").join(format!("part-{index:05}.parquet"))
 }
 
+/// The errors file of shard `index` under `dir`: the samples `render` could not render
+/// (`dir/targets/errors/part-KKKKK.parquet`, the `errors` table of `convert`).
+pub fn errors_path(dir: &Path, index: usize) -> std::path::PathBuf {
+    dir.join("targets")
+        .join("errors")
+        .join(format!("part-{index:05}.parquet"))
+}
+
+/// The keys of the samples `render` skipped in shard `index` under `dir` (none when
+/// the errors file is absent, as in targets written before it existed).
+pub fn read_skipped_keys(dir: &Path, index: usize) -> Result<std::collections::HashSet<SampleKey>> {
+    let p = errors_path(dir, index);
+    if !p.exists() {
+        return Ok(Default::default());
+    }
+    Ok(crate::samples_table::read_errors(&p)?
+        .into_iter()
+        .map(|e| e.key)
+        .collect())
+}
+
 /// The row-major indices of a mask's set pixels, in order (the rows of the stored
 /// correspondences follow this order).
 pub fn mask_pixel_indices(mask: &[bool]) -> Vec<u32> {

@@ -374,8 +374,10 @@ pub fn read_examples(
             ));
         }
         let targets = targets_table::read_targets_by_key(&tpath)?;
+        // Samples `render` reported it could not render have no row: leave them out.
+        let skipped = targets_table::read_skipped_keys(targets_dir, shard.index)?;
         for r in samples_table::read_samples(&dataset.join(&shard.samples_file))? {
-            if !splits.keeps(&r, split) {
+            if !splits.keeps(&r, split) || skipped.contains(&r.key) {
                 continue;
             }
             let t = targets
@@ -644,7 +646,7 @@ pub fn train(
     let mut start_epoch = 0;
     let mut opt = Adam::new(named_trainable_vars(&varmap), options.learning_rate)
         .map_err(|e| candle_err("optimizer", e))?;
-    let mut loss = PerspNetLoss::default();
+    let mut loss = PerspNetLoss::new(cfg.loss);
     if options.lowered_start {
         // The weights the official schedule reaches once L_corr < 0.1.
         loss.weights.update_schedule(0.05);
@@ -1045,6 +1047,9 @@ pub struct ModelPredictSummary {
     pub samples: usize,
     /// PnP failures (null `R_t` written).
     pub failures: usize,
+    /// Samples left out with `--mask truth` because `render` could not render them
+    /// (no true mask; listed in the targets' `errors/`).
+    pub without_true_mask: usize,
 }
 
 /// Runs a trained network over the samples of `split` (`None`: all): the crop box from
@@ -1078,11 +1083,20 @@ pub fn model_predictions(
             }
             None => HashMap::new(),
         };
+        let skipped = match true_masks {
+            Some(dir) => targets_table::read_skipped_keys(dir, shard.index)?,
+            None => Default::default(),
+        };
         for (i, r) in samples_table::read_samples(&dataset.join(&shard.samples_file))?
             .into_iter()
             .enumerate()
         {
             if !splits.keeps(&r, split) {
+                continue;
+            }
+            if skipped.contains(&r.key) {
+                summary.without_true_mask += 1;
+                progress(1);
                 continue;
             }
             let crop = CropTransform::around_landmarks(&r.landmarks_2d, size);

@@ -565,3 +565,88 @@ fn rendered_targets_read_back_dense_equal_the_rasterizer() {
     let again = render_dataset::render_dataset(out.path(), &renderer, &ro, &|_| {}).unwrap();
     assert_eq!(again.bytes, summary.bytes);
 }
+
+#[test]
+fn render_reports_and_skips_a_sample_it_cannot_render() {
+    use arkit_tool::render::FaceRenderer;
+    use arkit_tool::render_dataset::{self, RenderOptions};
+    use arkit_tool::samples_table;
+    use arkit_tool::targets_table;
+    let input = tempfile::tempdir().unwrap();
+    make_release(input.path(), 2, 3);
+    let out = tempfile::tempdir().unwrap();
+    let manifest = run(&options(input.path(), out.path(), 4), 2);
+    // Break one converted sample after the fact: a rotation scaled by 2 (convert would
+    // have refused it), in the first shard.
+    let shard0 = out.path().join(&manifest.shards[0].samples_file);
+    let mut rows = samples_table::read_samples(&shard0).unwrap();
+    let broken = rows[1].key.clone();
+    for i in [0, 1, 2, 4, 5, 6, 8, 9, 10] {
+        rows[1].rt[i] *= 2.0;
+    }
+    samples_table::write_parquet(&shard0, &mut samples_table::samples_frame(&rows).unwrap())
+        .unwrap();
+    let renderer = FaceRenderer::new(
+        arkit_tool::synthetic_face::builtin().topology.clone(),
+        Camera::release_projection(),
+    )
+    .unwrap();
+    let ro = RenderOptions {
+        size: 64,
+        uv_size: 32,
+        points: 64,
+        seed: 3,
+        shard: (0, 1),
+        full_mask: false,
+        output: out.path().to_path_buf(),
+    };
+    let summary = render_dataset::render_dataset(out.path(), &renderer, &ro, &|_| {}).unwrap();
+    // The run finished: the other five samples have targets, the broken one a reason.
+    assert_eq!((summary.samples, summary.skipped), (6, 1));
+    assert!(
+        summary.skipped_examples[0].contains("R_t"),
+        "{:?}",
+        summary.skipped_examples
+    );
+    let t0 = targets_table::read_targets_by_key(&targets_table::shard_path(out.path(), 0)).unwrap();
+    assert_eq!(t0.len(), rows.len() - 1);
+    assert!(!t0.contains_key(&broken));
+    let errors = samples_table::read_errors(&targets_table::errors_path(out.path(), 0)).unwrap();
+    assert_eq!(errors.len(), 1);
+    assert_eq!(errors[0].key, broken);
+    assert_eq!(errors[0].file, manifest.shards[0].samples_file);
+    assert!(errors[0].reason.contains("R_t"), "{}", errors[0].reason);
+    let skipped = targets_table::read_skipped_keys(out.path(), 0).unwrap();
+    assert_eq!(
+        skipped.into_iter().collect::<Vec<_>>(),
+        vec![broken.clone()]
+    );
+    // Training reads the other five and leaves the skipped one out (without the
+    // errors file it would stop at the missing row).
+    let cfg = arkit_tool::perspnet::PerspNetConfig {
+        points: 64,
+        ..arkit_tool::perspnet::PerspNetConfig::tiny()
+    };
+    let examples = arkit_tool::training::read_examples(out.path(), out.path(), &cfg, None).unwrap();
+    assert_eq!(examples.len(), 5);
+    assert!(examples.iter().all(|e| e.sample.key != broken));
+    // The second shard's errors file is there and empty.
+    let e1 = samples_table::read_errors(&targets_table::errors_path(out.path(), 1)).unwrap();
+    assert!(e1.is_empty());
+    // A rerun counts the shard as finished (targets + errors = its rows) and keeps it.
+    let before = std::fs::read(targets_table::shard_path(out.path(), 0)).unwrap();
+    let again = render_dataset::render_dataset(out.path(), &renderer, &ro, &|_| {}).unwrap();
+    assert_eq!((again.skipped, again.bytes), (1, summary.bytes));
+    assert_eq!(
+        std::fs::read(targets_table::shard_path(out.path(), 0)).unwrap(),
+        before
+    );
+    // Without its errors file the shard is not finished: rendered again, same bytes.
+    std::fs::remove_file(targets_table::errors_path(out.path(), 0)).unwrap();
+    let third = render_dataset::render_dataset(out.path(), &renderer, &ro, &|_| {}).unwrap();
+    assert_eq!(third.skipped, 1);
+    assert_eq!(
+        std::fs::read(targets_table::shard_path(out.path(), 0)).unwrap(),
+        before
+    );
+}

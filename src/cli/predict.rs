@@ -151,6 +151,12 @@ pub fn run(a: PredictArgs) -> Result<ExitCode> {
                 summary.failures,
                 a.output.display()
             );
+            if summary.without_true_mask > 0 {
+                eprintln!(
+                    "left out {} samples that render could not render (no true mask; see the targets' errors/)",
+                    summary.without_true_mask
+                );
+            }
         }
         return Ok(ExitCode::SUCCESS);
     }

@@ -105,13 +105,23 @@ pub fn run(a: RenderArgs) -> Result<ExitCode> {
     } else {
         println!(
             "rendered {} samples ({:?} rules) in {} shards: {:.1} KiB per sample ({} distinct meshes) -> {}",
-            summary.samples,
+            summary.samples - summary.skipped,
             summary.mode,
             summary.shards,
             summary.bytes_per_sample / 1024.0,
             summary.distinct_meshes,
             options.output.join("targets").display()
         );
+    }
+    if summary.skipped > 0 {
+        eprintln!(
+            "skipped {} samples that could not be rendered (all listed in {}):",
+            summary.skipped,
+            options.output.join("targets").join("errors").display()
+        );
+        for line in &summary.skipped_examples {
+            eprintln!("  {line}");
+        }
     }
     Ok(ExitCode::SUCCESS)
 }

@@ -1,6 +1,6 @@
 //! `arkit-tool train`.
 
-use arkit_tool::perspnet::PerspNetConfig;
+use arkit_tool::perspnet::{LossVariant, PerspNetConfig};
 use arkit_tool::training::{self, TrainOptions};
 use arkit_tool::{Error, Result};
 use clap::Args;
@@ -36,6 +36,11 @@ pub struct TrainArgs {
     /// `tiny`, `paper`, or a JSON file of the network's settings.
     #[arg(long, default_value = "tiny")]
     config: String,
+    /// The loss: `official` (models/loss.py: smooth-L1 correspondences, weights lowered
+    /// as the correspondence loss falls) or `paper` (the paper's text: plain L1, fixed
+    /// weights). Overrides the config file's `loss`.
+    #[arg(long, value_name = "official|paper")]
+    loss: Option<LossVariant>,
     /// Train on this split (`all` for every sample).
     #[arg(long, default_value = "train")]
     split: String,
@@ -108,7 +113,10 @@ pub fn config_named(name: &str) -> Result<PerspNetConfig> {
 
 pub fn run(a: TrainArgs) -> Result<ExitCode> {
     let topology = super::load_topology(a.resources.as_deref())?;
-    let config = config_named(&a.config)?;
+    let mut config = config_named(&a.config)?;
+    if let Some(loss) = a.loss {
+        config.loss = loss;
+    }
     let targets = a.targets.clone().unwrap_or_else(|| a.dataset.clone());
     let split = (a.split != "all").then_some(a.split.as_str());
     let examples = training::read_examples(&a.dataset, &targets, &config, split)?;

@@ -39,6 +39,35 @@ pub struct PerspNetConfig {
     pub bn_eps: f64,
     /// Batch-norm running-statistics momentum (PyTorch convention).
     pub bn_momentum: f64,
+    /// Which reading of the loss to train with (older configs: the official code's).
+    #[serde(default)]
+    pub loss: LossVariant,
+}
+
+/// The two readings of PerspNet's loss: the official code's (the default) and the
+/// paper's text. Both have the same five terms (correspondence, shape, KL with entropy,
+/// segmentation); see [`crate::perspnet::loss`] for each.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum LossVariant {
+    /// `models/loss.py`: smooth L1 (threshold 0.01) on the correspondences, and the
+    /// weights lowered as `L_corr` falls below 0.1 and 0.01.
+    #[default]
+    Official,
+    /// The paper's text: a plain L1 on the correspondences and fixed weights.
+    Paper,
+}
+
+impl std::str::FromStr for LossVariant {
+    type Err = String;
+
+    fn from_str(s: &str) -> Result<Self, String> {
+        match s {
+            "official" => Ok(Self::Official),
+            "paper" => Ok(Self::Paper),
+            other => Err(format!("unknown loss '{other}': official or paper")),
+        }
+    }
 }
 
 impl PerspNetConfig {
@@ -63,6 +92,7 @@ impl PerspNetConfig {
             init_std: 0.02,
             bn_eps: 1e-5,
             bn_momentum: 0.1,
+            loss: LossVariant::Official,
         }
     }
 
@@ -87,6 +117,7 @@ impl PerspNetConfig {
             init_std: 0.02,
             bn_eps: 1e-5,
             bn_momentum: 0.1,
+            loss: LossVariant::Official,
         }
     }
 

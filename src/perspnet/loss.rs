@@ -14,10 +14,16 @@
 //! `total = corr + shape + kl + seg + entropy`. Each returned term already
 //! includes its weight. [`PerspNetLoss`] also reproduces the official schedule that
 //! lowers the weights once `L_corr` falls below 0.1 and 0.01 (the change is sticky).
+//!
+//! [`LossVariant::Paper`] is the paper's description instead, where it departs from
+//! the code in a way that has one clear reading: `L_corr` a plain L1 on `X_corr`
+//! (summed over xyz, mean over points; no quadratic zone below 0.01) and the weights
+//! held at their starting values (no schedule). The other terms are the same in both.
 
 use candle_core::{D, DType, Result, Tensor};
 use serde::{Deserialize, Serialize};
 
+use super::config::LossVariant;
 use super::model::{PerspNetOutput, UV_SCALE};
 
 /// Factor between canonical units and the ground-truth coordinate map in the
@@ -141,7 +147,7 @@ impl LossTerms {
 pub struct PerspNetLoss {
     /// Current weights (updated by the schedule when `schedule` is true).
     pub weights: LossWeights,
-    /// Smooth-L1 threshold (0.01).
+    /// Smooth-L1 threshold (0.01; 0 makes `L_corr` a plain L1, as the paper's).
     pub threshold: f64,
     /// Whether to apply [`LossWeights::update_schedule`] on every call.
     pub schedule: bool,
@@ -149,15 +155,21 @@ pub struct PerspNetLoss {
 
 impl Default for PerspNetLoss {
     fn default() -> Self {
-        Self {
-            weights: LossWeights::default(),
-            threshold: 0.01,
-            schedule: true,
-        }
+        Self::new(LossVariant::Official)
     }
 }
 
 impl PerspNetLoss {
+    /// The loss of `variant` at its starting weights.
+    pub fn new(variant: LossVariant) -> Self {
+        let official = variant == LossVariant::Official;
+        Self {
+            weights: LossWeights::default(),
+            threshold: if official { 0.01 } else { 0.0 },
+            schedule: official,
+        }
+    }
+
     /// Computes the loss terms, first updating the weights from `L_corr` when the
     /// schedule is on (as the official code does before weighting the other terms).
     pub fn compute(&mut self, out: &PerspNetOutput, t: &LossTargets) -> Result<LossTerms> {
@@ -234,8 +246,12 @@ pub fn corr_loss(out: &PerspNetOutput, nocs: &Tensor, threshold: f64) -> Result<
 
 /// Smooth L1 with the official parametrisation (`d^2 / (2 th)` below `th`,
 /// `d - th / 2` above), summed over the last axis and averaged over the rest.
+/// `threshold = 0` is the plain L1 `d`.
 pub fn smooth_l1_sum_mean(pred: &Tensor, target: &Tensor, threshold: f64) -> Result<Tensor> {
     let diff = (pred - target.to_dtype(pred.dtype())?)?.abs()?;
+    if threshold <= 0.0 {
+        return diff.sum(D::Minus1)?.mean_all();
+    }
     // q = min(d, th): q^2 / (2 th) + (d - q) equals both branches.
     let q = diff.clamp(0.0, threshold)?;
     let l = (q.sqr()?.affine(1.0 / (2.0 * threshold), 0.0)? + (&diff - &q)?)?;

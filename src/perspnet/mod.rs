@@ -12,6 +12,6 @@ pub mod loss;
 pub mod model;
 
 pub use adam::Adam;
-pub use config::PerspNetConfig;
+pub use config::{LossVariant, PerspNetConfig};
 pub use loss::{CorrTarget, LossTargets, LossTerms, LossWeights, PerspNetLoss};
 pub use model::{PerspNet, PerspNetOutput};
