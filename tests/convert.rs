@@ -64,6 +64,15 @@ fn files(root: &Path, sub: &str) -> BTreeMap<String, Vec<u8>> {
     out
 }
 
+/// A renderer for the built-in synthetic face with the release camera.
+fn builtin_renderer() -> arkit_tool::render::FaceRenderer {
+    arkit_tool::render::FaceRenderer::new(
+        arkit_tool::synthetic_face::builtin().topology.clone(),
+        Camera::release_projection(),
+    )
+    .unwrap()
+}
+
 fn keys_of(dir: &Path, split: Split) -> Vec<SampleKey> {
     release::read_list(&ReleaseLayout::new(dir).list_path(split))
         .unwrap()
@@ -408,18 +417,14 @@ fn split_is_subject_disjoint_and_reproducible() {
 
 #[test]
 fn rendered_targets_read_back_dense_equal_the_rasterizer() {
-    use arkit_tool::render::{CropTransform, FaceRenderer};
+    use arkit_tool::render::CropTransform;
     use arkit_tool::render_dataset::{self, RenderOptions};
     use arkit_tool::targets_table;
     let input = tempfile::tempdir().unwrap();
     make_release(input.path(), 2, 3);
     let out = tempfile::tempdir().unwrap();
     run(&options(input.path(), out.path(), 4), 2);
-    let renderer = FaceRenderer::new(
-        arkit_tool::synthetic_face::builtin().topology.clone(),
-        Camera::release_projection(),
-    )
-    .unwrap();
+    let renderer = builtin_renderer();
     let ro = RenderOptions {
         size: 96,
         uv_size: 64,
@@ -568,7 +573,6 @@ fn rendered_targets_read_back_dense_equal_the_rasterizer() {
 
 #[test]
 fn render_reports_and_skips_a_sample_it_cannot_render() {
-    use arkit_tool::render::FaceRenderer;
     use arkit_tool::render_dataset::{self, RenderOptions};
     use arkit_tool::samples_table;
     use arkit_tool::targets_table;
@@ -586,11 +590,7 @@ fn render_reports_and_skips_a_sample_it_cannot_render() {
     }
     samples_table::write_parquet(&shard0, &mut samples_table::samples_frame(&rows).unwrap())
         .unwrap();
-    let renderer = FaceRenderer::new(
-        arkit_tool::synthetic_face::builtin().topology.clone(),
-        Camera::release_projection(),
-    )
-    .unwrap();
+    let renderer = builtin_renderer();
     let ro = RenderOptions {
         size: 64,
         uv_size: 32,
