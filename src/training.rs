@@ -65,6 +65,20 @@ pub struct Example {
     pub points: Vec<u32>,
 }
 
+impl Example {
+    /// Bytes this example holds in memory (its buffers; `train` keeps every example).
+    pub fn memory_bytes(&self) -> usize {
+        4 * (self.image.len()
+            + self.mask.len()
+            + self.pixels.len()
+            + self.nocs.len()
+            + self.ids.len()
+            + self.weights.len()
+            + self.points.len())
+            + self.sample.verts.len() * 4
+    }
+}
+
 /// What the network sees of one example in one step.
 #[derive(Clone, Debug, PartialEq)]
 pub struct View {

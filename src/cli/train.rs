@@ -120,6 +120,15 @@ pub fn run(a: TrainArgs) -> Result<ExitCode> {
     let targets = a.targets.clone().unwrap_or_else(|| a.dataset.clone());
     let split = (a.split != "all").then_some(a.split.as_str());
     let examples = training::read_examples(&a.dataset, &targets, &config, split)?;
+    let memory: usize = examples.iter().map(|e| e.memory_bytes()).sum();
+    if !a.json {
+        eprintln!(
+            "read {} training samples: {:.1} MiB in memory ({:.1} KiB each; train keeps them all)",
+            examples.len(),
+            memory as f64 / (1 << 20) as f64,
+            memory as f64 / 1024.0 / examples.len().max(1) as f64
+        );
+    }
     let per_epoch = training::total_steps(examples.len(), 1, a.batch).max(1);
     let (epochs, steps) = match a.steps {
         Some(n) => (n.div_ceil(per_epoch), n),
