@@ -10,6 +10,10 @@
 //! `train --config tiny --epochs 10 --batch 8` on 30 samples (40 steps) took 30.2 s
 //! wall before and 26.7 s after (0.87x), system time 5.3 s -> 1.0 s, user time the
 //! same, peak memory 416 -> 489 MiB. Elsewhere (other C libraries) it does nothing.
+//!
+//! mimalloc as the global allocator instead was measured the same way (3 paired runs,
+//! one thread, 40 tiny steps on 16 samples): 1.04x the wall time of glibc with these
+//! settings and 21% more peak memory (337 vs 278 MiB), so it was not adopted.
 
 /// Blocks up to this size come from the heap instead of their own mapping (glibc's
 /// largest allowed value on 64-bit targets).
