@@ -175,4 +175,26 @@ mod tests {
         }
         assert_eq!(PerspNetConfig::paper().assign_in_channels(), 2176);
     }
+
+    /// A config file from before the `loss` field reads as the official loss; `"paper"`
+    /// and the `--loss` spelling select the paper's; anything else is refused by name.
+    #[test]
+    fn loss_variant_from_json_and_flag() {
+        let mut v = serde_json::to_value(PerspNetConfig::tiny()).unwrap();
+        v.as_object_mut().unwrap().remove("loss");
+        let old: PerspNetConfig = serde_json::from_value(v.clone()).unwrap();
+        assert_eq!(old.loss, LossVariant::Official);
+        v["loss"] = "paper".into();
+        let paper: PerspNetConfig = serde_json::from_value(v.clone()).unwrap();
+        assert_eq!(paper.loss, LossVariant::Paper);
+        v["loss"] = "smooth".into();
+        assert!(serde_json::from_value::<PerspNetConfig>(v).is_err());
+        assert_eq!("paper".parse::<LossVariant>(), Ok(LossVariant::Paper));
+        assert!(
+            "Paper"
+                .parse::<LossVariant>()
+                .unwrap_err()
+                .contains("official or paper")
+        );
+    }
 }
