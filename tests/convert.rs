@@ -630,6 +630,37 @@ fn render_reports_and_skips_a_sample_it_cannot_render() {
     let examples = arkit_tool::training::read_examples(out.path(), out.path(), &cfg, None).unwrap();
     assert_eq!(examples.len(), 5);
     assert!(examples.iter().all(|e| e.sample.key != broken));
+    // predict --mask truth leaves it out too (a one-step model is enough to run it).
+    let model_dir = tempfile::tempdir().unwrap();
+    let topts = arkit_tool::training::TrainOptions {
+        config: cfg,
+        epochs: 1,
+        max_steps: Some(1),
+        batch: 5,
+        learning_rate: 1e-3,
+        lr_hold: 1.0,
+        augmentation: arkit_tool::training::Augmentation::NONE,
+        lowered_start: false,
+        seed: 1,
+        output: model_dir.path().to_path_buf(),
+        resume: false,
+    };
+    let topology = arkit_tool::synthetic_face::builtin().topology.clone();
+    arkit_tool::training::train(&examples, &topology, &topts, &|_| {}).unwrap();
+    let model = arkit_tool::training::load(model_dir.path(), &topology).unwrap();
+    let (preds, ps) = arkit_tool::training::model_predictions(
+        out.path(),
+        &model,
+        None,
+        Some(out.path()),
+        1,
+        &arkit_tool::pnp::RansacParams::default(),
+        &|_| {},
+    )
+    .unwrap();
+    assert_eq!((ps.samples, ps.without_true_mask), (5, 1));
+    assert_eq!(preds.len(), 5);
+    assert!(preds.iter().all(|p| p.key != broken));
     // The second shard's errors file is there and empty.
     let e1 = samples_table::read_errors(&targets_table::errors_path(out.path(), 1)).unwrap();
     assert!(e1.is_empty());
