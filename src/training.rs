@@ -368,39 +368,151 @@ pub fn example(
     })
 }
 
-/// Reads the examples of one split (`None`: all) of a rendered dataset.
+/// Reads the examples of one split (`None`: all) of a rendered dataset, all of them
+/// into memory ([`ShardedExamples`] reads one shard at a time).
 pub fn read_examples(
     dataset: &Path,
     targets_dir: &Path,
     cfg: &PerspNetConfig,
     split: Option<&str>,
 ) -> Result<Vec<Example>> {
-    let manifest = read_manifest(&dataset.join("dataset.json"))?;
-    let input_root = PathBuf::from(&manifest.input);
-    let splits = SplitLookup::read(dataset)?;
-    let mut out = Vec::new();
-    for shard in &manifest.shards {
-        let tpath = targets_table::shard_path(targets_dir, shard.index);
-        if !tpath.exists() {
-            return Err(Error::format(
-                &tpath,
-                "no targets for this shard: run `arkit-tool render` first",
-            ));
+    let source = ShardedExamples::open(dataset, targets_dir, cfg, split)?;
+    let mut out = Vec::with_capacity(source.total());
+    for k in 0..source.shards() {
+        out.extend(source.load(k)?.into_owned());
+    }
+    Ok(out)
+}
+
+/// Where [`train`] takes its examples from, one shard at a time: it loads a shard, runs
+/// the batches of its examples, and drops it before loading the next.
+pub trait ExampleShards {
+    /// Number of shards.
+    fn shards(&self) -> usize;
+    /// Examples in shard `k`, known without loading it.
+    fn shard_len(&self, k: usize) -> usize;
+    /// The examples of shard `k`.
+    fn load(&self, k: usize) -> Result<std::borrow::Cow<'_, [Example]>>;
+    /// Examples in all shards.
+    fn total(&self) -> usize {
+        (0..self.shards()).map(|k| self.shard_len(k)).sum()
+    }
+}
+
+/// Examples already in memory: one shard.
+impl ExampleShards for [Example] {
+    fn shards(&self) -> usize {
+        1
+    }
+    fn shard_len(&self, _k: usize) -> usize {
+        self.len()
+    }
+    fn load(&self, _k: usize) -> Result<std::borrow::Cow<'_, [Example]>> {
+        Ok(std::borrow::Cow::Borrowed(self))
+    }
+}
+
+impl ExampleShards for Vec<Example> {
+    fn shards(&self) -> usize {
+        1
+    }
+    fn shard_len(&self, _k: usize) -> usize {
+        self.len()
+    }
+    fn load(&self, _k: usize) -> Result<std::borrow::Cow<'_, [Example]>> {
+        Ok(std::borrow::Cow::Borrowed(self))
+    }
+}
+
+/// The examples of one split of a rendered dataset, read shard by shard from the
+/// `samples` and `targets` tables and the images when [`train`] reaches the shard
+/// (`train --stream`), so memory holds one shard's examples instead of the whole
+/// split's. Shards without an example of the split are left out.
+pub struct ShardedExamples {
+    dataset: PathBuf,
+    targets_dir: PathBuf,
+    cfg: PerspNetConfig,
+    split: Option<String>,
+    input_root: PathBuf,
+    splits: SplitLookup,
+    /// `(shard index, samples file, examples in the split)`.
+    shards: Vec<(usize, String, usize)>,
+}
+
+impl ShardedExamples {
+    /// Opens a rendered dataset: checks every shard has its targets and counts the
+    /// examples of `split` in each (reads the samples tables, not the images).
+    pub fn open(
+        dataset: &Path,
+        targets_dir: &Path,
+        cfg: &PerspNetConfig,
+        split: Option<&str>,
+    ) -> Result<Self> {
+        let manifest = read_manifest(&dataset.join("dataset.json"))?;
+        let splits = SplitLookup::read(dataset)?;
+        let mut shards = Vec::new();
+        for shard in &manifest.shards {
+            let tpath = targets_table::shard_path(targets_dir, shard.index);
+            if !tpath.exists() {
+                return Err(Error::format(
+                    &tpath,
+                    "no targets for this shard: run `arkit-tool render` first",
+                ));
+            }
+            let skipped = targets_table::read_skipped_keys(targets_dir, shard.index)?;
+            let n = samples_table::read_samples(&dataset.join(&shard.samples_file))?
+                .iter()
+                .filter(|r| splits.keeps(r, split) && !skipped.contains(&r.key))
+                .count();
+            if n > 0 {
+                shards.push((shard.index, shard.samples_file.clone(), n));
+            }
         }
+        Ok(Self {
+            dataset: dataset.to_path_buf(),
+            targets_dir: targets_dir.to_path_buf(),
+            cfg: cfg.clone(),
+            split: split.map(str::to_string),
+            input_root: PathBuf::from(&manifest.input),
+            splits,
+            shards,
+        })
+    }
+}
+
+impl ExampleShards for ShardedExamples {
+    fn shards(&self) -> usize {
+        self.shards.len()
+    }
+
+    fn shard_len(&self, k: usize) -> usize {
+        self.shards[k].2
+    }
+
+    fn load(&self, k: usize) -> Result<std::borrow::Cow<'_, [Example]>> {
+        let (index, samples_file, n) = &self.shards[k];
+        let tpath = targets_table::shard_path(&self.targets_dir, *index);
         let targets = targets_table::read_targets_by_key(&tpath)?;
         // Samples `render` reported it could not render have no row: leave them out.
-        let skipped = targets_table::read_skipped_keys(targets_dir, shard.index)?;
-        for r in samples_table::read_samples(&dataset.join(&shard.samples_file))? {
-            if !splits.keeps(&r, split) || skipped.contains(&r.key) {
+        let skipped = targets_table::read_skipped_keys(&self.targets_dir, *index)?;
+        let mut out = Vec::with_capacity(*n);
+        for r in samples_table::read_samples(&self.dataset.join(samples_file))? {
+            if !self.splits.keeps(&r, self.split.as_deref()) || skipped.contains(&r.key) {
                 continue;
             }
             let t = targets
                 .get(&r.key)
                 .ok_or_else(|| Error::format(&tpath, format!("no targets row for {}", r.key)))?;
-            out.push(example(&r, t, cfg, &input_root)?);
+            out.push(example(&r, t, &self.cfg, &self.input_root)?);
         }
+        if out.len() != *n {
+            return Err(Error::format(
+                self.dataset.join(samples_file),
+                format!("{} examples now, {n} when the run started", out.len()),
+            ));
+        }
+        Ok(std::borrow::Cow::Owned(out))
     }
-    Ok(out)
 }
 
 /// A batch as tensors.
@@ -529,12 +641,21 @@ pub struct Checkpoint {
     pub epochs_done: usize,
     /// Training examples.
     pub examples: usize,
+    /// Shards the examples were taken from, one at a time (1: all in memory; `train
+    /// --stream`: the dataset's shards with examples of the split). The sample order
+    /// depends on it, so a resumed run must match.
+    #[serde(default = "one_shard")]
+    pub example_shards: usize,
     /// Steps run.
     pub steps: usize,
     /// Total loss of the first and last step.
     pub first_loss: f32,
     /// Total loss of the last step.
     pub last_loss: f32,
+}
+
+fn one_shard() -> usize {
+    1
 }
 
 fn constant_rate() -> f64 {
@@ -609,16 +730,34 @@ pub fn total_steps(examples: usize, epochs: usize, batch: usize) -> usize {
     epochs * examples.div_ceil(batch.max(1))
 }
 
-/// Trains a fresh network on `examples`; writes the checkpoint folder. `on_step` sees
-/// every step's losses (for progress).
-pub fn train(
-    examples: &[Example],
+/// Optimiser steps of one pass over `source`: its shards' examples in batches of
+/// `batch`, a shard's last batch possibly short (for one shard, [`total_steps`] of one
+/// epoch).
+pub fn steps_per_epoch<S: ExampleShards + ?Sized>(source: &S, batch: usize) -> usize {
+    (0..source.shards())
+        .map(|k| source.shard_len(k).div_ceil(batch.max(1)))
+        .sum()
+}
+
+/// Fisher-Yates with our own generator: the same order for a seed everywhere.
+fn shuffle(order: &mut [usize], rng: &mut Rng) {
+    for i in (1..order.len()).rev() {
+        order.swap(i, rng.below(i as u64 + 1) as usize);
+    }
+}
+
+/// Trains a fresh network on `examples` (in memory, or [`ShardedExamples`] loaded one
+/// shard at a time: each epoch visits the shards in a shuffled order and each shard's
+/// examples in a shuffled order); writes the checkpoint folder. `on_step` sees every
+/// step's losses (for progress).
+pub fn train<S: ExampleShards + ?Sized>(
+    examples: &S,
     topology: &FaceTopology,
     options: &TrainOptions,
     on_step: &dyn Fn(&StepLoss),
 ) -> Result<(Checkpoint, Vec<StepLoss>)> {
     let cfg = &options.config;
-    if examples.is_empty() {
+    if examples.total() == 0 {
         return Err(Error::invalid("train", "no training examples"));
     }
     let device = Device::Cpu;
@@ -627,7 +766,7 @@ pub fn train(
     let net = PerspNet::new(cfg, &vertex_uv(topology, &device)?, vb)
         .map_err(|e| candle_err("network", e))?;
     reseed(&varmap, options.seed, cfg.init_std).map_err(|e| candle_err("initial weights", e))?;
-    let epoch_steps = total_steps(examples.len(), options.epochs, options.batch);
+    let epoch_steps = options.epochs * steps_per_epoch(examples, options.batch);
     let total_steps = match options.max_steps {
         Some(n) if n > epoch_steps => {
             return Err(Error::invalid(
@@ -651,7 +790,8 @@ pub fn train(
         seed: options.seed,
         loss_weights: None,
         epochs_done: 0,
-        examples: examples.len(),
+        examples: examples.total(),
+        example_shards: examples.shards(),
         steps: 0,
         first_loss: f32::NAN,
         last_loss: f32::NAN,
@@ -678,12 +818,17 @@ pub fn train(
         checkpoint.last_loss = log.last().map_or(f32::NAN, |s| s.total);
     }
     let mut rng = Rng::new(options.seed);
-    let mut order: Vec<usize> = (0..examples.len()).collect();
+    let mut shard_order: Vec<usize> = (0..examples.shards()).collect();
+    let mut orders: Vec<Vec<usize>> = (0..examples.shards())
+        .map(|k| (0..examples.shard_len(k)).collect())
+        .collect();
     for epoch in 0..options.epochs {
-        // Fisher-Yates with our own generator: the same order for a seed everywhere
-        // (replayed for the epochs a resumed run skips).
-        for i in (1..order.len()).rev() {
-            order.swap(i, rng.below(i as u64 + 1) as usize);
+        // The shards' order, then each shard's samples, from our generator (replayed for
+        // the epochs a resumed run skips). With one shard this draws exactly what a
+        // single shuffle of all examples does.
+        shuffle(&mut shard_order, &mut rng);
+        for &k in &shard_order {
+            shuffle(&mut orders[k], &mut rng);
         }
         if epoch < start_epoch {
             continue;
@@ -692,63 +837,71 @@ pub fn train(
             // A step budget spent before the last epoch: nothing more to write.
             break;
         }
-        for chunk in order.chunks(options.batch.max(1)) {
+        for &k in &shard_order {
             if log.len() >= total_steps {
                 break;
             }
-            let refs: Vec<&Example> = chunk.iter().map(|&i| &examples[i]).collect();
-            // Each step's augmentation has its own stream: the same views for a seed
-            // whatever else changes.
-            let mut aug_rng = Rng::for_stream(options.seed, 1 << 40 | log.len() as u64);
-            let views: Vec<View> = refs
-                .iter()
-                .map(|e| e.augmented_view(cfg.points, &options.augmentation, &mut aug_rng))
-                .collect();
-            let b = batch(&refs, &views, cfg, &device)?;
-            net.seed_dropout(Rng::for_stream(options.seed, 2 << 40 | log.len() as u64).next_u64());
-            opt.learning_rate = learning_rate_at(
-                log.len(),
-                total_steps,
-                options.learning_rate,
-                options.lr_hold,
-            );
-            let step = (|| -> candle_core::Result<StepLoss> {
-                let out = net.forward(&b.image, &b.choose, true)?;
-                let terms = loss.compute(
-                    &out,
-                    &LossTargets {
-                        nocs: &b.nocs,
-                        model: &b.model,
-                        seg_mask: &b.mask,
-                        corr: &b.corr,
-                        uv_map: None,
-                    },
-                )?;
-                opt.backward_step(&terms.total)?;
-                let v = terms.values()?;
-                Ok(StepLoss {
-                    step: log.len(),
-                    epoch,
-                    total: v[0],
-                    corr: v[1],
-                    shape: v[2],
-                    kl: v[3],
-                    entropy: v[4],
-                    seg: v[5],
-                })
-            })()
-            .map_err(|e| candle_err("training step", e))?;
-            if !step.total.is_finite() {
-                return Err(Error::invalid(
-                    "train",
-                    format!(
-                        "the loss is {} at step {}: lower --lr",
-                        step.total, step.step
-                    ),
-                ));
+            let shard = examples.load(k)?;
+            for chunk in orders[k].chunks(options.batch.max(1)) {
+                if log.len() >= total_steps {
+                    break;
+                }
+                let refs: Vec<&Example> = chunk.iter().map(|&i| &shard[i]).collect();
+                // Each step's augmentation has its own stream: the same views for a seed
+                // whatever else changes.
+                let mut aug_rng = Rng::for_stream(options.seed, 1 << 40 | log.len() as u64);
+                let views: Vec<View> = refs
+                    .iter()
+                    .map(|e| e.augmented_view(cfg.points, &options.augmentation, &mut aug_rng))
+                    .collect();
+                let b = batch(&refs, &views, cfg, &device)?;
+                net.seed_dropout(
+                    Rng::for_stream(options.seed, 2 << 40 | log.len() as u64).next_u64(),
+                );
+                opt.learning_rate = learning_rate_at(
+                    log.len(),
+                    total_steps,
+                    options.learning_rate,
+                    options.lr_hold,
+                );
+                let step = (|| -> candle_core::Result<StepLoss> {
+                    let out = net.forward(&b.image, &b.choose, true)?;
+                    let terms = loss.compute(
+                        &out,
+                        &LossTargets {
+                            nocs: &b.nocs,
+                            model: &b.model,
+                            seg_mask: &b.mask,
+                            corr: &b.corr,
+                            uv_map: None,
+                        },
+                    )?;
+                    opt.backward_step(&terms.total)?;
+                    let v = terms.values()?;
+                    Ok(StepLoss {
+                        step: log.len(),
+                        epoch,
+                        total: v[0],
+                        corr: v[1],
+                        shape: v[2],
+                        kl: v[3],
+                        entropy: v[4],
+                        seg: v[5],
+                    })
+                })()
+                .map_err(|e| candle_err("training step", e))?;
+                if !step.total.is_finite() {
+                    return Err(Error::invalid(
+                        "train",
+                        format!(
+                            "the loss is {} at step {}: lower --lr",
+                            step.total, step.step
+                        ),
+                    ));
+                }
+                on_step(&step);
+                log.push(step);
             }
-            on_step(&step);
-            log.push(step);
         }
         checkpoint.epochs_done = epoch + 1;
         checkpoint.steps = log.len();

@@ -681,3 +681,102 @@ fn render_reports_and_skips_a_sample_it_cannot_render() {
         before
     );
 }
+
+#[test]
+fn training_streams_shard_by_shard() {
+    use arkit_tool::perspnet::PerspNetConfig;
+    use arkit_tool::render_dataset::{self, RenderOptions};
+    use arkit_tool::training::{self, ExampleShards, ShardedExamples, TrainOptions};
+    let input = tempfile::tempdir().unwrap();
+    make_release(input.path(), 2, 3);
+    let topology = arkit_tool::synthetic_face::builtin().topology.clone();
+    let cfg = PerspNetConfig {
+        points: 32,
+        ..PerspNetConfig::tiny()
+    };
+    // The same six samples in two shards (4 + 2) and in one.
+    let dataset = |rows: usize| {
+        let out = tempfile::tempdir().unwrap();
+        run(&options(input.path(), out.path(), rows), 1);
+        let ro = RenderOptions {
+            size: 64,
+            uv_size: 32,
+            points: 32,
+            seed: 3,
+            shard: (0, 1),
+            full_mask: false,
+            output: out.path().to_path_buf(),
+        };
+        render_dataset::render_dataset(out.path(), &builtin_renderer(), &ro, &|_| {}).unwrap();
+        out
+    };
+    let (two, one) = (dataset(4), dataset(100));
+    let source = ShardedExamples::open(two.path(), two.path(), &cfg, None).unwrap();
+    assert_eq!(
+        (source.shards(), source.shard_len(0), source.shard_len(1)),
+        (2, 4, 2)
+    );
+    // read_examples is the shards' examples one after the other.
+    let all = training::read_examples(two.path(), two.path(), &cfg, None).unwrap();
+    let keys = |e: &[training::Example]| e.iter().map(|e| e.sample.key.clone()).collect::<Vec<_>>();
+    let mut loaded = keys(&source.load(0).unwrap());
+    loaded.extend(keys(&source.load(1).unwrap()));
+    assert_eq!(loaded, keys(&all));
+    let out = tempfile::tempdir().unwrap();
+    let topts = TrainOptions {
+        config: cfg.clone(),
+        epochs: 2,
+        max_steps: None,
+        batch: 3,
+        learning_rate: 1e-3,
+        lr_hold: 0.5,
+        augmentation: training::Augmentation::NONE,
+        lowered_start: false,
+        seed: 4,
+        output: out.path().to_path_buf(),
+        resume: false,
+    };
+    // Per epoch: ceil(4 / 3) + ceil(2 / 3) = 3 steps (a batch never spans two shards).
+    let (ck, log) = training::train(&source, &topology, &topts, &|_| {}).unwrap();
+    assert_eq!((ck.steps, ck.example_shards, ck.examples), (6, 2, 6));
+    assert_eq!(training::steps_per_epoch(&source, 3), 3);
+    // Interrupted after the first epoch and resumed: the replayed shard and sample
+    // orders give the uninterrupted run's losses.
+    let cut = tempfile::tempdir().unwrap();
+    let cut_opts = TrainOptions {
+        output: cut.path().to_path_buf(),
+        ..topts.clone()
+    };
+    let stopped = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+        training::train(&source, &topology, &cut_opts, &|s| {
+            assert!(s.step < 3, "stop")
+        })
+    }));
+    assert!(stopped.is_err());
+    let resumed = TrainOptions {
+        resume: true,
+        ..cut_opts
+    };
+    let (_, rlog) = training::train(&source, &topology, &resumed, &|_| {}).unwrap();
+    let totals = |l: &[training::StepLoss]| l.iter().map(|s| s.total).collect::<Vec<_>>();
+    assert_eq!(totals(&rlog), totals(&log));
+    // Resuming that checkpoint with all examples in memory (another order) is refused.
+    let e = match training::train(&all, &topology, &resumed, &|_| {}) {
+        Err(e) => e.to_string(),
+        Ok(_) => panic!("resumed a streamed run in memory"),
+    };
+    assert!(e.contains("other settings"), "{e}");
+    // With one shard, streaming is the in-memory run exactly.
+    let single = ShardedExamples::open(one.path(), one.path(), &cfg, None).unwrap();
+    assert_eq!(single.shards(), 1);
+    let in_memory = training::read_examples(one.path(), one.path(), &cfg, None).unwrap();
+    let run_on = |s: &dyn ExampleShards| {
+        let o = tempfile::tempdir().unwrap();
+        let opts = TrainOptions {
+            output: o.path().to_path_buf(),
+            ..topts.clone()
+        };
+        totals(&training::train(s, &topology, &opts, &|_| {}).unwrap().1)
+    };
+    assert_eq!(run_on(&single), run_on(&in_memory));
+}

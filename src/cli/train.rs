@@ -1,7 +1,7 @@
 //! `arkit-tool train`.
 
 use arkit_tool::perspnet::{LossVariant, PerspNetConfig};
-use arkit_tool::training::{self, TrainOptions};
+use arkit_tool::training::{self, ExampleShards, ShardedExamples, TrainOptions};
 use arkit_tool::{Error, Result};
 use clap::Args;
 use std::path::PathBuf;
@@ -71,6 +71,12 @@ pub struct TrainArgs {
     /// Train on the M points `render` stored instead of fresh face pixels each step.
     #[arg(long)]
     stored_points: bool,
+    /// Hold one shard's samples in memory at a time instead of all of them (for
+    /// datasets larger than memory: each epoch then visits the shards in a shuffled
+    /// order and each shard's samples in a shuffled order, re-reading a shard's images
+    /// and targets when it comes round).
+    #[arg(long)]
+    stream: bool,
     /// Start the loss at the weights the official schedule lowers to once the
     /// correspondence loss falls below 0.1 (KL and segmentation 0.01), instead of
     /// waiting for one batch to get there (the official, sticky trigger).
@@ -119,17 +125,30 @@ pub fn run(a: TrainArgs) -> Result<ExitCode> {
     }
     let targets = a.targets.clone().unwrap_or_else(|| a.dataset.clone());
     let split = (a.split != "all").then_some(a.split.as_str());
-    let examples = training::read_examples(&a.dataset, &targets, &config, split)?;
-    let memory: usize = examples.iter().map(|e| e.memory_bytes()).sum();
-    if !a.json {
-        eprintln!(
-            "read {} training samples: {:.1} MiB in memory ({:.1} KiB each; train keeps them all)",
-            examples.len(),
-            memory as f64 / (1 << 20) as f64,
-            memory as f64 / 1024.0 / examples.len().max(1) as f64
-        );
-    }
-    let per_epoch = training::total_steps(examples.len(), 1, a.batch).max(1);
+    let source: Box<dyn ExampleShards> = if a.stream {
+        let source = ShardedExamples::open(&a.dataset, &targets, &config, split)?;
+        if !a.json {
+            eprintln!(
+                "streaming {} training samples from {} shards, one shard in memory at a time",
+                source.total(),
+                source.shards()
+            );
+        }
+        Box::new(source)
+    } else {
+        let examples = training::read_examples(&a.dataset, &targets, &config, split)?;
+        let memory: usize = examples.iter().map(|e| e.memory_bytes()).sum();
+        if !a.json {
+            eprintln!(
+                "read {} training samples: {:.1} MiB in memory ({:.1} KiB each; --stream holds one shard at a time)",
+                examples.len(),
+                memory as f64 / (1 << 20) as f64,
+                memory as f64 / 1024.0 / examples.len().max(1) as f64
+            );
+        }
+        Box::new(examples)
+    };
+    let per_epoch = training::steps_per_epoch(source.as_ref(), a.batch).max(1);
     let (epochs, steps) = match a.steps {
         Some(n) => (n.div_ceil(per_epoch), n),
         None => (a.epochs, a.epochs * per_epoch),
@@ -152,10 +171,11 @@ pub fn run(a: TrainArgs) -> Result<ExitCode> {
         resume: a.resume,
         lowered_start: a.lowered_start,
     };
-    let (checkpoint, _) = training::train(&examples, &topology, &options, &|s| {
+    let on_step = |s: &training::StepLoss| {
         bar.set_message(format!("loss {:.4}", s.total));
         bar.inc(1);
-    })?;
+    };
+    let (checkpoint, _) = training::train(source.as_ref(), &topology, &options, &on_step)?;
     bar.finish_and_clear();
     if a.json {
         println!(
