@@ -386,7 +386,7 @@ pub fn read_examples(
 
 /// Where [`train`] takes its examples from, one shard at a time: it loads a shard, runs
 /// the batches of its examples, and drops it before loading the next.
-pub trait ExampleShards {
+pub trait ExampleShards: Sync {
     /// Number of shards.
     fn shards(&self) -> usize;
     /// Examples in shard `k`, known without loading it.
@@ -837,72 +837,83 @@ pub fn train<S: ExampleShards + ?Sized>(
             // A step budget spent before the last epoch: nothing more to write.
             break;
         }
-        for &k in &shard_order {
-            if log.len() >= total_steps {
-                break;
-            }
-            let shard = examples.load(k)?;
-            for chunk in orders[k].chunks(options.batch.max(1)) {
+        // The next shard is read on its own thread while this one trains.
+        std::thread::scope(|scope| -> Result<()> {
+            let mut next = None;
+            for (pos, &k) in shard_order.iter().enumerate() {
                 if log.len() >= total_steps {
                     break;
                 }
-                let refs: Vec<&Example> = chunk.iter().map(|&i| &shard[i]).collect();
-                // Each step's augmentation has its own stream: the same views for a seed
-                // whatever else changes.
-                let mut aug_rng = Rng::for_stream(options.seed, 1 << 40 | log.len() as u64);
-                let views: Vec<View> = refs
-                    .iter()
-                    .map(|e| e.augmented_view(cfg.points, &options.augmentation, &mut aug_rng))
-                    .collect();
-                let b = batch(&refs, &views, cfg, &device)?;
-                net.seed_dropout(
-                    Rng::for_stream(options.seed, 2 << 40 | log.len() as u64).next_u64(),
-                );
-                opt.learning_rate = learning_rate_at(
-                    log.len(),
-                    total_steps,
-                    options.learning_rate,
-                    options.lr_hold,
-                );
-                let step = (|| -> candle_core::Result<StepLoss> {
-                    let out = net.forward(&b.image, &b.choose, true)?;
-                    let terms = loss.compute(
-                        &out,
-                        &LossTargets {
-                            nocs: &b.nocs,
-                            model: &b.model,
-                            seg_mask: &b.mask,
-                            corr: &b.corr,
-                            uv_map: None,
-                        },
-                    )?;
-                    opt.backward_step(&terms.total)?;
-                    let v = terms.values()?;
-                    Ok(StepLoss {
-                        step: log.len(),
-                        epoch,
-                        total: v[0],
-                        corr: v[1],
-                        shape: v[2],
-                        kl: v[3],
-                        entropy: v[4],
-                        seg: v[5],
-                    })
-                })()
-                .map_err(|e| candle_err("training step", e))?;
-                if !step.total.is_finite() {
-                    return Err(Error::invalid(
-                        "train",
-                        format!(
-                            "the loss is {} at step {}: lower --lr",
-                            step.total, step.step
-                        ),
-                    ));
+                let shard = match next.take() {
+                    Some(h) => std::thread::ScopedJoinHandle::join(h).expect("shard reader")?,
+                    None => examples.load(k)?,
+                };
+                if let Some(&after) = shard_order.get(pos + 1) {
+                    next = Some(scope.spawn(move || examples.load(after)));
                 }
-                on_step(&step);
-                log.push(step);
+                for chunk in orders[k].chunks(options.batch.max(1)) {
+                    if log.len() >= total_steps {
+                        break;
+                    }
+                    let refs: Vec<&Example> = chunk.iter().map(|&i| &shard[i]).collect();
+                    // Each step's augmentation has its own stream: the same views for a seed
+                    // whatever else changes.
+                    let mut aug_rng = Rng::for_stream(options.seed, 1 << 40 | log.len() as u64);
+                    let views: Vec<View> = refs
+                        .iter()
+                        .map(|e| e.augmented_view(cfg.points, &options.augmentation, &mut aug_rng))
+                        .collect();
+                    let b = batch(&refs, &views, cfg, &device)?;
+                    net.seed_dropout(
+                        Rng::for_stream(options.seed, 2 << 40 | log.len() as u64).next_u64(),
+                    );
+                    opt.learning_rate = learning_rate_at(
+                        log.len(),
+                        total_steps,
+                        options.learning_rate,
+                        options.lr_hold,
+                    );
+                    let step = (|| -> candle_core::Result<StepLoss> {
+                        let out = net.forward(&b.image, &b.choose, true)?;
+                        let terms = loss.compute(
+                            &out,
+                            &LossTargets {
+                                nocs: &b.nocs,
+                                model: &b.model,
+                                seg_mask: &b.mask,
+                                corr: &b.corr,
+                                uv_map: None,
+                            },
+                        )?;
+                        opt.backward_step(&terms.total)?;
+                        let v = terms.values()?;
+                        Ok(StepLoss {
+                            step: log.len(),
+                            epoch,
+                            total: v[0],
+                            corr: v[1],
+                            shape: v[2],
+                            kl: v[3],
+                            entropy: v[4],
+                            seg: v[5],
+                        })
+                    })()
+                    .map_err(|e| candle_err("training step", e))?;
+                    if !step.total.is_finite() {
+                        return Err(Error::invalid(
+                            "train",
+                            format!(
+                                "the loss is {} at step {}: lower --lr",
+                                step.total, step.step
+                            ),
+                        ));
+                    }
+                    on_step(&step);
+                    log.push(step);
+                }
             }
-        }
+            Ok(())
+        })?;
         checkpoint.epochs_done = epoch + 1;
         checkpoint.steps = log.len();
         checkpoint.first_loss = log.first().map_or(f32::NAN, |s| s.total);
