@@ -14,17 +14,20 @@ use std::process::ExitCode;
 /// `--size 64 --points 256` for `tiny`, the defaults for `paper`), trains with the
 /// official losses (smooth-L1 correspondence, shape L1 against 9x the mesh, KL to the
 /// barycentric rows with the entropy term, segmentation cross-entropy, and the official
-/// schedule that lowers the weights as the correspondence loss falls) and AdamW, and
-/// writes DIR/perspnet.json, DIR/model.safetensors and DIR/loss.csv after every epoch
-/// (--resume continues from them). The learning rate is held for --lr-hold of the steps,
-/// then falls linearly to zero; each step sees colour- and crop-jittered crops and fresh
-/// face pixels, all drawn from --seed.
+/// schedule that lowers the weights as the correspondence loss falls; `--loss paper`:
+/// plain L1 and fixed weights, which trains better on short CPU runs) and Adam, and
+/// writes DIR/perspnet.json, DIR/model.safetensors, DIR/adam.safetensors and
+/// DIR/loss.csv after every epoch (--resume continues from them exactly). The learning
+/// rate is held for --lr-hold of the steps, then falls linearly to zero; each step sees
+/// colour- and crop-jittered crops and fresh face pixels, all drawn from --seed. All
+/// training samples are read into memory first (the size is printed); --stream holds
+/// one shard at a time instead.
 ///
 /// `tiny` trains in minutes on two CPU cores; `paper` has the official shapes (16.97 M
 /// parameters) and is for GPUs or patience.
 ///
 /// Example: arkit-tool render --dataset data/pq --size 64 --points 256 --output data/t64
-///          arkit-tool train --dataset data/pq --targets data/t64 --config tiny --epochs 5 --output model/
+///          arkit-tool train --dataset data/pq --targets data/t64 --config tiny --loss paper --epochs 5 --output model/
 #[derive(Args, Debug)]
 pub struct TrainArgs {
     /// A folder written by `convert`.
