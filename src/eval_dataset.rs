@@ -109,15 +109,26 @@ impl SplitLookup {
 
     /// The split of a sample.
     pub fn of(&self, r: &SampleRecord) -> String {
+        self.of_key(&r.key, &r.split)
+    }
+
+    /// The split of the sample `key` that the release listed in `listed`.
+    pub fn of_key(&self, key: &SampleKey, listed: &str) -> String {
         self.0
             .as_ref()
-            .and_then(|m| m.get(&r.key).cloned())
-            .unwrap_or_else(|| r.split.clone())
+            .and_then(|m| m.get(key).cloned())
+            .unwrap_or_else(|| listed.to_string())
     }
 
     /// Whether a sample is in `want` (`None`: every split).
     pub fn keeps(&self, r: &SampleRecord, want: Option<&str>) -> bool {
-        want.is_none_or(|w| self.of(r) == w)
+        self.keeps_key(&r.key, &r.split, want)
+    }
+
+    /// [`SplitLookup::keeps`] from a sample's key and listed split only (as
+    /// [`samples_table::read_sample_keys`] gives them, without the meshes).
+    pub fn keeps_key(&self, key: &SampleKey, listed: &str, want: Option<&str>) -> bool {
+        want.is_none_or(|w| self.of_key(key, listed) == w)
     }
 }
 

@@ -414,13 +414,13 @@ impl ExampleShards for [Example] {
 
 impl ExampleShards for Vec<Example> {
     fn shards(&self) -> usize {
-        1
+        self.as_slice().shards()
     }
-    fn shard_len(&self, _k: usize) -> usize {
-        self.len()
+    fn shard_len(&self, k: usize) -> usize {
+        self.as_slice().shard_len(k)
     }
-    fn load(&self, _k: usize) -> Result<std::borrow::Cow<'_, [Example]>> {
-        Ok(std::borrow::Cow::Borrowed(self))
+    fn load(&self, k: usize) -> Result<std::borrow::Cow<'_, [Example]>> {
+        self.as_slice().load(k)
     }
 }
 
@@ -460,9 +460,12 @@ impl ShardedExamples {
                 ));
             }
             let skipped = targets_table::read_skipped_keys(targets_dir, shard.index)?;
-            let n = samples_table::read_samples(&dataset.join(&shard.samples_file))?
+            // Keys and splits only: the meshes are read when the shard is loaded.
+            let n = samples_table::read_sample_keys(&dataset.join(&shard.samples_file))?
                 .iter()
-                .filter(|r| splits.keeps(r, split) && !skipped.contains(&r.key))
+                .filter(|(key, listed)| {
+                    splits.keeps_key(key, listed, split) && !skipped.contains(key)
+                })
                 .count();
             if n > 0 {
                 shards.push((shard.index, shard.samples_file.clone(), n));

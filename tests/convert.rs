@@ -722,6 +722,14 @@ fn training_streams_shard_by_shard() {
     let mut loaded = keys(&source.load(0).unwrap());
     loaded.extend(keys(&source.load(1).unwrap()));
     assert_eq!(loaded, keys(&all));
+    // A split's counts (from the keys alone) agree with what loading gives.
+    for split in ["train", "test"] {
+        let part = ShardedExamples::open(two.path(), two.path(), &cfg, Some(split)).unwrap();
+        let read = training::read_examples(two.path(), two.path(), &cfg, Some(split)).unwrap();
+        assert_eq!(part.total(), read.len(), "{split}");
+        assert!((1..6).contains(&read.len()), "{split}: {}", read.len());
+        assert!(read.iter().all(|e| e.sample.split == split));
+    }
     let out = tempfile::tempdir().unwrap();
     let topts = TrainOptions {
         config: cfg.clone(),
