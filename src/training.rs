@@ -851,7 +851,12 @@ pub fn train<S: ExampleShards + ?Sized>(
                     Some(h) => std::thread::ScopedJoinHandle::join(h).expect("shard reader")?,
                     None => examples.load(k)?,
                 };
-                if let Some(&after) = shard_order.get(pos + 1) {
+                // Read ahead only when the budget reaches past this shard (no read of
+                // a shard the run will not train on).
+                let this_shard_steps = orders[k].len().div_ceil(options.batch.max(1));
+                if let Some(&after) = shard_order.get(pos + 1)
+                    && log.len() + this_shard_steps < total_steps
+                {
                     next = Some(scope.spawn(move || examples.load(after)));
                 }
                 for chunk in orders[k].chunks(options.batch.max(1)) {
