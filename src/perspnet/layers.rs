@@ -5,6 +5,7 @@
 //! position encoding, ImageNet normalisation, and conv / batch-norm layers
 //! initialised like the official `init_weights(init_type='normal', 0.02)`.
 
+use super::conv::{self, ConvShape};
 use candle_core::{D, DType, Device, Module, ModuleT, Result, Tensor};
 use candle_nn::{BatchNorm, Init, Linear, VarBuilder};
 
@@ -411,16 +412,59 @@ pub fn conv2d_im2col(x: &Tensor, weight: &Tensor, stride: usize, padding: usize)
     wmat.broadcast_matmul(&cols)?.reshape((b, co, ho, wo))
 }
 
-/// Convolution whose forward is candle's tiled-im2col `conv2d` and whose
-/// backward is written with forward convolutions and GEMMs: the input gradient
-/// is a convolution of the (zero-dilated, padded) output gradient with the
-/// flipped, transposed kernel; the kernel gradient is `grad x im2col(x)^T`.
-/// This avoids candle's naive CPU `conv_transpose2d` and whole-image-kernel
-/// backward.
+/// Convolution with its own CPU kernels for the forward pass and both
+/// gradients ([`super::conv`]: im2col + GEMM over cache-sized blocks, col2im
+/// for the input gradient). The input gradient is computed only when the input
+/// is tracked (not for the network's input image).
 #[derive(Debug, Clone, Copy)]
 struct FastConv2d {
     stride: usize,
     padding: usize,
+}
+
+impl FastConv2d {
+    fn shape(&self, x: &[usize], w: &[usize]) -> Result<ConvShape> {
+        let (&[b, c, h, wd], &[co, ci, kh, kw]) = (x, w) else {
+            candle_core::bail!("fast-conv2d: 4-D input and kernel expected, got {x:?} and {w:?}");
+        };
+        if ci != c || h + 2 * self.padding < kh || wd + 2 * self.padding < kw {
+            candle_core::bail!("fast-conv2d: input {x:?} does not fit kernel {w:?}");
+        }
+        Ok(ConvShape {
+            b,
+            c,
+            h,
+            w: wd,
+            co,
+            kh,
+            kw,
+            stride: self.stride,
+            pad: self.padding,
+        })
+    }
+}
+
+/// The contiguous f32 values of a CPU storage.
+fn contiguous_f32<'a>(
+    s: &'a candle_core::CpuStorage,
+    l: &candle_core::Layout,
+) -> Result<&'a [f32]> {
+    let data = s.as_slice::<f32>()?;
+    match l.contiguous_offsets() {
+        Some((a, b)) => Ok(&data[a..b]),
+        None => candle_core::bail!("expected a contiguous f32 tensor"),
+    }
+}
+
+/// Runs `f` on the contiguous f32 values of a CPU tensor (copying only when the
+/// tensor is not contiguous).
+fn with_f32<R>(t: &Tensor, f: impl FnOnce(&[f32]) -> R) -> Result<R> {
+    let t = t.contiguous()?;
+    let (storage, layout) = t.storage_and_layout();
+    match &*storage {
+        candle_core::Storage::Cpu(cpu) => Ok(f(contiguous_f32(cpu, layout)?)),
+        _ => candle_core::bail!("expected a CPU tensor"),
+    }
 }
 
 impl candle_core::CustomOp2 for FastConv2d {
@@ -435,19 +479,10 @@ impl candle_core::CustomOp2 for FastConv2d {
         s2: &candle_core::CpuStorage,
         l2: &candle_core::Layout,
     ) -> Result<(candle_core::CpuStorage, candle_core::Shape)> {
-        let view = |s: &candle_core::CpuStorage, l: &candle_core::Layout| -> Result<Tensor> {
-            let data = s.as_slice::<f32>()?;
-            match l.contiguous_offsets() {
-                Some((a, b)) => Tensor::from_slice(&data[a..b], l.shape(), &Device::Cpu),
-                None => candle_core::bail!("fast-conv2d expects contiguous inputs"),
-            }
-        };
-        let x = view(s1, l1)?;
-        let w = view(s2, l2)?;
-        let y = conv_raw(&x, &w, self.stride, self.padding)?;
-        let shape = y.shape().clone();
-        let v = y.flatten_all()?.to_vec1::<f32>()?;
-        Ok((candle_core::CpuStorage::F32(v), shape))
+        let s = self.shape(l1.dims(), l2.dims())?;
+        let y = conv::forward(contiguous_f32(s1, l1)?, contiguous_f32(s2, l2)?, &s);
+        let shape = candle_core::Shape::from((s.b, s.co, s.ho(), s.wo()));
+        Ok((candle_core::CpuStorage::F32(y), shape))
     }
 
     fn bwd(
@@ -457,109 +492,22 @@ impl candle_core::CustomOp2 for FastConv2d {
         _res: &Tensor,
         grad: &Tensor,
     ) -> Result<(Option<Tensor>, Option<Tensor>)> {
-        let (x, w, g) = (x.detach(), w.detach(), grad.detach().contiguous()?);
-        let (b, c, h, wd) = x.dims4()?;
-        let (co, ci, kh, kw) = w.dims4()?;
-        let (_, _, ho, wo) = g.dims4()?;
-        let (s, p) = (self.stride, self.padding);
-        // Input gradient.
-        let gd = if s == 1 {
-            g.clone()
+        let s = self.shape(x.dims(), w.dims())?;
+        let dev = x.device();
+        let gx = if x.track_op() {
+            let v = with_f32(grad, |g| with_f32(w, |wv| conv::input_grad(g, wv, &s)))??;
+            Some(Tensor::from_vec(v, x.shape(), dev)?)
         } else {
-            // Insert s-1 zeros between entries along H and W.
-            let z = Tensor::zeros((b, co, ho, s - 1, wo), g.dtype(), g.device())?;
-            let gh = Tensor::cat(&[&g.unsqueeze(3)?, &z], 3)?.reshape((b, co, ho * s, wo))?;
-            let z = Tensor::zeros((b, co, ho * s, wo, s - 1), g.dtype(), g.device())?;
-            Tensor::cat(&[&gh.unsqueeze(4)?, &z], 4)?.reshape((b, co, ho * s, wo * s))?
+            None
         };
-        let (ld_h, ld_w) = ((ho - 1) * s + 1, (wo - 1) * s + 1);
-        let gd = gd.narrow(2, 0, ld_h)?.narrow(3, 0, ld_w)?;
-        let (ph, pw) = (kh - 1 - p, kw - 1 - p);
-        let extra_h = h + kh - 1 - ld_h - 2 * ph;
-        let extra_w = wd + kw - 1 - ld_w - 2 * pw;
-        let gd = gd
-            .pad_with_zeros(2, ph, ph + extra_h)?
-            .pad_with_zeros(3, pw, pw + extra_w)?;
-        let rev =
-            |k: usize| Tensor::from_vec((0..k as u32).rev().collect::<Vec<_>>(), k, w.device());
-        let (rev_h, rev_w) = (rev(kh)?, rev(kw)?);
-        let wf = w
-            .index_select(&rev_h, 2)?
-            .index_select(&rev_w, 3)?
-            .transpose(0, 1)?
-            .contiguous()?; // ci x co x kh x kw
-        let gx = conv_raw(&gd, &wf, 1, 0)?;
-        debug_assert_eq!(gx.dims(), &[b, c, h, wd]);
-        // Kernel gradient: sum_b grad_b (co x N) @ cols_b^T (N x ci*kh*kw).
-        let cols = im2col_raw(&x, kh, kw, s, p)?; // b x K x N
-        let gw = g
-            .reshape((b, co, ho * wo))?
-            .matmul(&cols.transpose(1, 2)?)?
-            .sum(0)?
-            .reshape((co, ci, kh, kw))?;
-        Ok((Some(gx), Some(gw)))
+        let gw = if w.track_op() {
+            let v = with_f32(x, |xv| with_f32(grad, |g| conv::kernel_grad(xv, g, &s)))??;
+            Some(Tensor::from_vec(v, w.shape(), dev)?)
+        } else {
+            None
+        };
+        Ok((gx, gw))
     }
-}
-
-/// The im2col matrix `B x (C*kh*kw) x (Ho*Wo)` of a (non-tracked) f32 CPU
-/// tensor, built with a plain loop (much faster than stacking strided views).
-pub fn im2col_raw(
-    x: &Tensor,
-    kh: usize,
-    kw: usize,
-    stride: usize,
-    padding: usize,
-) -> Result<Tensor> {
-    let (b, c, h, w) = x.dims4()?;
-    let ho = (h + 2 * padding - kh) / stride + 1;
-    let wo = (w + 2 * padding - kw) / stride + 1;
-    let xv = x.flatten_all()?.to_vec1::<f32>()?;
-    let n = ho * wo;
-    let k = c * kh * kw;
-    let mut cols = vec![0f32; b * k * n];
-    for bi in 0..b {
-        for ci in 0..c {
-            let src = &xv[(bi * c + ci) * h * w..(bi * c + ci + 1) * h * w];
-            for di in 0..kh {
-                for dj in 0..kw {
-                    let row = ((bi * c + ci) * kh + di) * kw + dj;
-                    let dst = &mut cols[row * n..(row + 1) * n];
-                    for oy in 0..ho {
-                        let iy = (oy * stride + di) as isize - padding as isize;
-                        if iy < 0 || iy >= h as isize {
-                            continue;
-                        }
-                        let srow = &src[iy as usize * w..(iy as usize + 1) * w];
-                        let drow = &mut dst[oy * wo..(oy + 1) * wo];
-                        for (ox, d) in drow.iter_mut().enumerate() {
-                            let ix = (ox * stride + dj) as isize - padding as isize;
-                            if ix >= 0 && ix < w as isize {
-                                *d = srow[ix as usize];
-                            }
-                        }
-                    }
-                }
-            }
-        }
-    }
-    Tensor::from_vec(cols, (b, k, n), x.device())
-}
-
-/// Forward-only convolution: [`im2col_raw`] followed by one batched GEMM.
-fn conv_raw(x: &Tensor, w: &Tensor, stride: usize, padding: usize) -> Result<Tensor> {
-    let (b, _c, h, wd) = x.dims4()?;
-    let (co, ci, kh, kw) = w.dims4()?;
-    let ho = (h + 2 * padding - kh) / stride + 1;
-    let wo = (wd + 2 * padding - kw) / stride + 1;
-    let cols = im2col_raw(x, kh, kw, stride, padding)?;
-    let wm = w.reshape((co, ci * kh * kw))?;
-    let mut outs = Vec::with_capacity(b);
-    for bi in 0..b {
-        // (N x K) @ (K x Co) is the GEMM orientation that runs fastest here.
-        let yt = cols.get(bi)?.t()?.matmul(&wm.t()?)?; // N x Co
-        outs.push(yt.t()?.contiguous()?);
-    }
-    Tensor::stack(&outs, 0)?.reshape((b, co, ho, wo))
 }
 
 /// `B x (C*kh*kw) x (Ho*Wo)` patches of `x` (the im2col matrix), built from
@@ -742,17 +690,6 @@ struct FusedBn {
     mean: Vec<f32>,
     invstd: Vec<f32>,
     batch_stats: bool,
-}
-
-fn contiguous_f32<'a>(
-    s: &'a candle_core::CpuStorage,
-    l: &candle_core::Layout,
-) -> Result<&'a [f32]> {
-    let data = s.as_slice::<f32>()?;
-    match l.contiguous_offsets() {
-        Some((a, b)) => Ok(&data[a..b]),
-        None => candle_core::bail!("fused batch-norm expects contiguous inputs"),
-    }
 }
 
 impl candle_core::CustomOp3 for FusedBn {

@@ -7,6 +7,7 @@
 
 pub mod adam;
 pub mod config;
+pub mod conv;
 pub mod layers;
 pub mod loss;
 pub mod model;
