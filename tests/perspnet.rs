@@ -240,7 +240,8 @@ mod layers {
         use candle_core::ModuleT;
         use candle_nn::{VarBuilder, VarMap};
         let dev = Device::Cpu;
-        for train in [true, false] {
+        let acts = [Act::None, Act::Relu, Act::Leaky(0.1)];
+        for (train, act) in [true, false].into_iter().flat_map(|t| acts.map(|a| (t, a))) {
             let vm1 = VarMap::new();
             let vm2 = VarMap::new();
             let a = BatchNorm2d::new(
@@ -263,17 +264,23 @@ mod layers {
             }
             let x = Var::from_tensor(&Tensor::randn(0.5f32, 2., (3, 5, 4, 6), &dev)?)?;
             let r = Tensor::randn(0f32, 1., (3, 5, 4, 6), &dev)?;
-            let ya = a.forward_t(x.as_tensor(), train)?;
+            // Ours fused with the activation; candle's followed by candle's ops.
+            let ya = a.forward_act(x.as_tensor(), train, act)?;
             let yb = b.forward_t(x.as_tensor(), train)?;
+            let yb = match act {
+                Act::None => yb,
+                Act::Relu => yb.relu()?,
+                Act::Leaky(s) => (yb.relu()?.affine(1.0 - s, 0.0)? + yb.affine(s, 0.0)?)?,
+            };
             let d: f32 = (&ya - &yb)?.abs()?.max_all()?.to_scalar()?;
-            assert!(d < 1e-4, "fwd train={train}: {d}");
+            assert!(d < 1e-4, "fwd train={train} {act:?}: {d}");
             let ga = (&ya * &r)?.sum_all()?.backward()?;
             let gb = (&yb * &r)?.sum_all()?.backward()?;
             let d: f32 = (ga.get(x.as_tensor()).unwrap() - gb.get(x.as_tensor()).unwrap())?
                 .abs()?
                 .max_all()?
                 .to_scalar()?;
-            assert!(d < 1e-3, "dx train={train}: {d}");
+            assert!(d < 1e-3, "dx train={train} {act:?}: {d}");
             for name in ["weight", "bias"] {
                 let ta = vm1.data().lock().unwrap()[name].as_tensor().clone();
                 let tb = vm2.data().lock().unwrap()[name].as_tensor().clone();
@@ -281,7 +288,7 @@ mod layers {
                     .abs()?
                     .max_all()?
                     .to_scalar()?;
-                assert!(d < 1e-3, "d{name} train={train}: {d}");
+                assert!(d < 1e-3, "d{name} train={train} {act:?}: {d}");
             }
             for name in ["running_mean", "running_var"] {
                 let ta = vm1.data().lock().unwrap()[name].as_tensor().clone();
@@ -294,10 +301,94 @@ mod layers {
     }
 
     #[test]
-    fn leaky_relu_values() -> Result<()> {
-        let x = Tensor::new(&[-2f32, -0.5, 0.0, 3.0], &Device::Cpu)?;
-        let y: Vec<f32> = leaky_relu(&x, 0.1)?.to_vec1()?;
-        close(&y, &[-0.2, -0.05, 0.0, 3.0], 1e-6);
+    fn two_tap_resize_equals_the_interpolation_matmuls_forward_and_backward() -> Result<()> {
+        let dev = Device::Cpu;
+        for (h, w, oh, ow) in [
+            (3, 4, 6, 8),
+            (6, 6, 12, 12),
+            (5, 3, 7, 4),
+            (1, 4, 2, 8),
+            (4, 5, 2, 3),
+        ] {
+            let x = Var::from_tensor(&Tensor::randn(0f32, 1., (2, 3, h, w), &dev)?)?;
+            let a = upsample_bilinear_align_corners(x.as_tensor(), oh, ow)?;
+            let b = upsample_bilinear_matmul(x.as_tensor(), oh, ow)?;
+            assert_eq!(a.dims(), &[2, 3, oh, ow]);
+            let d: f32 = (&a - &b)?.abs()?.max_all()?.to_scalar()?;
+            assert!(d < 1e-5, "forward {h}x{w} -> {oh}x{ow}: {d}");
+            let r = Tensor::randn(0f32, 1., a.shape(), &dev)?;
+            let ga = (&a * &r)?.sum_all()?.backward()?;
+            let gb = (&b * &r)?.sum_all()?.backward()?;
+            let d: f32 = (ga.get(x.as_tensor()).unwrap() - gb.get(x.as_tensor()).unwrap())?
+                .abs()?
+                .max_all()?
+                .to_scalar()?;
+            assert!(d < 1e-5, "backward {h}x{w} -> {oh}x{ow}: {d}");
+        }
+        Ok(())
+    }
+
+    #[test]
+    fn fused_log_softmax_matches_candle_forward_and_backward() -> Result<()> {
+        let dev = Device::Cpu;
+        // Rows with large offsets check the max shift.
+        let x = (Tensor::randn(0f32, 3., (2, 5, 17), &dev)?
+            + Tensor::new(&[0f32, 80.0], &dev)?
+                .reshape((2, 1, 1))?
+                .broadcast_as((2, 5, 17))?)?;
+        let x = Var::from_tensor(&x)?;
+        let a = log_softmax_last(x.as_tensor())?;
+        let b = candle_nn::ops::log_softmax(x.as_tensor(), candle_core::D::Minus1)?;
+        let d: f32 = (&a - &b)?.abs()?.max_all()?.to_scalar()?;
+        assert!(d < 1e-5, "forward: {d}");
+        // Rows of the softmax sum to 1.
+        let sums: Vec<f32> = a.exp()?.sum(2)?.flatten_all()?.to_vec1()?;
+        close(&sums, &[1.0; 10], 1e-5);
+        let r = Tensor::randn(0f32, 1., a.shape(), &dev)?;
+        let ga = (&a * &r)?.sum_all()?.backward()?;
+        let gb = (&b * &r)?.sum_all()?.backward()?;
+        let d: f32 = (ga.get(x.as_tensor()).unwrap() - gb.get(x.as_tensor()).unwrap())?
+            .abs()?
+            .max_all()?
+            .to_scalar()?;
+        assert!(d < 1e-4, "backward: {d}");
+        Ok(())
+    }
+
+    #[test]
+    fn fused_activations_match_hand_values_and_gradients() -> Result<()> {
+        let dev = Device::Cpu;
+        let x = Var::new(&[-2f32, -0.5, 0.0, 3.0], &dev)?;
+        let w = Tensor::new(&[1f32, 2.0, 3.0, 4.0], &dev)?;
+        let y = leaky_relu(x.as_tensor(), 0.1)?;
+        close(&y.to_vec1()?, &[-0.2, -0.05, 0.0, 3.0], 1e-6);
+        // d/dx sum(w * act(x)): w * slope, PyTorch's convention at 0 (the slope).
+        let g = (&y * &w)?.sum_all()?.backward()?;
+        close(
+            &g.get(x.as_tensor()).unwrap().to_vec1()?,
+            &[0.1, 0.2, 0.3, 4.0],
+            1e-6,
+        );
+        let y = relu(x.as_tensor())?;
+        close(&y.to_vec1()?, &[0.0, 0.0, 0.0, 3.0], 0.0);
+        let g = (&y * &w)?.sum_all()?.backward()?;
+        close(
+            &g.get(x.as_tensor()).unwrap().to_vec1()?,
+            &[0.0, 0.0, 0.0, 4.0],
+            0.0,
+        );
+        // relu(a + b): both inputs get the gradient where the sum is positive.
+        let b = Var::new(&[1f32, 1.0, -1.0, -4.0], &dev)?;
+        let y = add_relu(x.as_tensor(), b.as_tensor())?;
+        close(&y.to_vec1()?, &[0.0, 0.5, 0.0, 0.0], 0.0);
+        let g = (&y * &w)?.sum_all()?.backward()?;
+        for v in [&x, &b] {
+            close(
+                &g.get(v.as_tensor()).unwrap().to_vec1()?,
+                &[0.0, 2.0, 0.0, 0.0],
+                0.0,
+            );
+        }
         Ok(())
     }
 }

@@ -8,6 +8,7 @@
 use super::conv::{self, ConvShape};
 use candle_core::{D, DType, Device, Module, ModuleT, Result, Tensor};
 use candle_nn::{BatchNorm, Init, Linear, VarBuilder};
+use rayon::prelude::*;
 
 /// ImageNet channel means (RGB) used by [`imagenet_normalize`].
 pub const IMAGENET_MEAN: [f32; 3] = [0.485, 0.456, 0.406];
@@ -56,8 +57,156 @@ pub fn upsample2x_bilinear(x: &Tensor) -> Result<Tensor> {
 }
 
 /// Bilinear resize of a `B x C x H x W` tensor to `out_h x out_w` with
-/// `align_corners=True`, differentiable (see [`upsample2x_bilinear`]).
+/// `align_corners=True`, differentiable. On f32 CPU tensors one op with two
+/// taps per output per axis, forward and backward ([`ResizeAlignCorners`]);
+/// elsewhere [`upsample_bilinear_matmul`].
 pub fn upsample_bilinear_align_corners(x: &Tensor, out_h: usize, out_w: usize) -> Result<Tensor> {
+    if x.dtype() != DType::F32 || !x.device().is_cpu() {
+        return upsample_bilinear_matmul(x, out_h, out_w);
+    }
+    let (_b, _c, h, w) = x.dims4()?;
+    x.contiguous()?.apply_op1(ResizeAlignCorners {
+        rows: Taps::new(h, out_h),
+        cols: Taps::new(w, out_w),
+    })
+}
+
+/// The two source samples and weights of each output sample of a 1-D linear
+/// resize with `align_corners=True` (the rows of
+/// [`interp_matrix_align_corners`]).
+#[derive(Debug, Clone)]
+struct Taps {
+    n: usize,
+    taps: Vec<(usize, usize, f32, f32)>,
+}
+
+impl Taps {
+    fn new(n: usize, out: usize) -> Self {
+        let m = interp_matrix_align_corners(n, out);
+        let taps = (0..out)
+            .map(|i| {
+                let row = &m[i * n..(i + 1) * n];
+                let i0 = row.iter().position(|v| *v != 0.0).unwrap_or(0);
+                let i1 = (i0 + 1).min(n - 1);
+                if i1 == i0 {
+                    (i0, i1, row[i0], 0.0)
+                } else {
+                    (i0, i1, row[i0], row[i1])
+                }
+            })
+            .collect();
+        Self { n, taps }
+    }
+
+    fn out(&self) -> usize {
+        self.taps.len()
+    }
+
+    /// `dst[o] = w0 src[i0] + w1 src[i1]`.
+    fn resize_line(&self, src: &[f32], dst: &mut [f32]) {
+        for (d, &(i0, i1, w0, w1)) in dst.iter_mut().zip(&self.taps) {
+            *d = w0 * src[i0] + w1 * src[i1];
+        }
+    }
+
+    /// The adjoint of [`Self::resize_line`]: `dst[i] = sum over o of w(o, i) src[o]`.
+    fn scatter_line(&self, src: &[f32], dst: &mut [f32]) {
+        dst.fill(0.0);
+        for (g, &(i0, i1, w0, w1)) in src.iter().zip(&self.taps) {
+            dst[i0] += w0 * g;
+            dst[i1] += w1 * g;
+        }
+    }
+}
+
+/// Separable bilinear resize with `align_corners=True` on `B x C x H x W`
+/// (f32, CPU): along the width, then along the height, each output from two
+/// inputs; the backward pass is the adjoint, in the reverse order. Replaces
+/// two dense matmuls with the interpolation matrices, which cost `H` (resp.
+/// `W`) multiply-adds per output instead of two.
+#[derive(Debug, Clone)]
+struct ResizeAlignCorners {
+    rows: Taps,
+    cols: Taps,
+}
+
+impl ResizeAlignCorners {
+    /// Resizes each `h x w` plane of `x` to `oh x ow` (`forward`), or maps each
+    /// `oh x ow` plane of a gradient back to `h x w` (the adjoint).
+    fn run(&self, x: &[f32], forward: bool) -> Vec<f32> {
+        let (h, w, oh, ow) = (self.rows.n, self.cols.n, self.rows.out(), self.cols.out());
+        let (src_plane, dst_plane) = if forward {
+            (h * w, oh * ow)
+        } else {
+            (oh * ow, h * w)
+        };
+        let planes = x.len() / src_plane;
+        let mut y = vec![0f32; planes * dst_plane];
+        y.par_chunks_mut(dst_plane)
+            .zip(x.par_chunks(src_plane))
+            .for_each(|(dst, src)| {
+                if forward {
+                    // Width first (h x ow), then each output row from two rows.
+                    let mut mid = vec![0f32; h * ow];
+                    for (s, d) in src.chunks(w).zip(mid.chunks_mut(ow)) {
+                        self.cols.resize_line(s, d);
+                    }
+                    for (d, &(i0, i1, w0, w1)) in dst.chunks_mut(ow).zip(&self.rows.taps) {
+                        let (r0, r1) = (&mid[i0 * ow..(i0 + 1) * ow], &mid[i1 * ow..(i1 + 1) * ow]);
+                        for ((d, a), b) in d.iter_mut().zip(r0).zip(r1) {
+                            *d = w0 * a + w1 * b;
+                        }
+                    }
+                } else {
+                    // Adjoint of the height pass (oh x ow -> h x ow), then of the width pass.
+                    let mut mid = vec![0f32; h * ow];
+                    for (g, &(i0, i1, w0, w1)) in src.chunks(ow).zip(&self.rows.taps) {
+                        for (j, gv) in g.iter().enumerate() {
+                            mid[i0 * ow + j] += w0 * gv;
+                            mid[i1 * ow + j] += w1 * gv;
+                        }
+                    }
+                    for (s, d) in mid.chunks(ow).zip(dst.chunks_mut(w)) {
+                        self.cols.scatter_line(s, d);
+                    }
+                }
+            });
+        y
+    }
+}
+
+impl candle_core::CustomOp1 for ResizeAlignCorners {
+    fn name(&self) -> &'static str {
+        "resize-align-corners"
+    }
+
+    fn cpu_fwd(
+        &self,
+        s: &candle_core::CpuStorage,
+        l: &candle_core::Layout,
+    ) -> Result<(candle_core::CpuStorage, candle_core::Shape)> {
+        let (b, c, h, w) = l.shape().dims4()?;
+        if (h, w) != (self.rows.n, self.cols.n) {
+            candle_core::bail!(
+                "resize: input {h}x{w}, op built for {}x{}",
+                self.rows.n,
+                self.cols.n
+            );
+        }
+        let y = self.run(contiguous_f32(s, l)?, true);
+        let shape = candle_core::Shape::from((b, c, self.rows.out(), self.cols.out()));
+        Ok((candle_core::CpuStorage::F32(y), shape))
+    }
+
+    fn bwd(&self, x: &Tensor, _res: &Tensor, grad: &Tensor) -> Result<Option<Tensor>> {
+        let v = with_f32(grad, |g| self.run(g, false))?;
+        Ok(Some(Tensor::from_vec(v, x.shape(), x.device())?))
+    }
+}
+
+/// [`upsample_bilinear_align_corners`] as two matmuls with the fixed
+/// interpolation matrices (any device and dtype; candle differentiates it).
+pub fn upsample_bilinear_matmul(x: &Tensor, out_h: usize, out_w: usize) -> Result<Tensor> {
     let (_b, _c, h, w) = x.dims4()?;
     let dev = x.device();
     // (W, out_w): x @ A_w^T resizes the last dimension.
@@ -292,10 +441,111 @@ pub fn dropout2d(x: &Tensor, p: f64, rng: Option<&mut crate::rng::Rng>) -> Resul
     x.broadcast_mul(&keep)
 }
 
-/// LeakyReLU with negative slope `slope`.
+/// LeakyReLU with negative slope `slope` (one fused op, see [`activate`]).
 pub fn leaky_relu(x: &Tensor, slope: f64) -> Result<Tensor> {
-    // relu(x) (1 - s) + s x: cheaper to differentiate in candle than `maximum`.
-    x.relu()?.affine(1.0 - slope, 0.0)? + x.affine(slope, 0.0)?
+    activate(x, Act::Leaky(slope))
+}
+
+/// ReLU as one fused op (see [`activate`]).
+pub fn relu(x: &Tensor) -> Result<Tensor> {
+    activate(x, Act::Relu)
+}
+
+/// An activation as one op whose backward is one pass, `grad * act'(y)` read
+/// from the output `y` (ReLU and LeakyReLU keep the sign), instead of candle's
+/// five tensors for `relu`'s backward (compare, convert, multiply, ...).
+/// f32 CPU tensors; other devices fall back to candle's ops.
+pub fn activate(x: &Tensor, act: Act) -> Result<Tensor> {
+    if x.dtype() != DType::F32 || !x.device().is_cpu() {
+        return match act {
+            Act::None => Ok(x.clone()),
+            Act::Relu => x.relu(),
+            Act::Leaky(s) => x.relu()?.affine(1.0 - s, 0.0)? + x.affine(s, 0.0)?,
+        };
+    }
+    x.apply_op1(Activation(act))
+}
+
+/// `relu(a + b)` as one op (the ResNet block's residual join); its backward
+/// hands the same masked gradient to both inputs.
+pub fn add_relu(a: &Tensor, b: &Tensor) -> Result<Tensor> {
+    if a.dtype() != DType::F32 || !a.device().is_cpu() || a.shape() != b.shape() {
+        return (a + b)?.relu();
+    }
+    a.apply_op2(b, AddRelu)
+}
+
+/// The fused op behind [`activate`].
+#[derive(Debug, Clone, Copy)]
+struct Activation(Act);
+
+/// The masked gradient `grad * act'(y)` from the output `y`.
+fn activation_grad(act: Act, res: &Tensor, grad: &Tensor) -> Result<Tensor> {
+    let v = with_f32(res, |y| {
+        with_f32(grad, |g| {
+            g.iter()
+                .zip(y)
+                .map(|(g, y)| g * act.slope(*y))
+                .collect::<Vec<f32>>()
+        })
+    })??;
+    Tensor::from_vec(v, res.shape(), res.device())
+}
+
+impl candle_core::CustomOp1 for Activation {
+    fn name(&self) -> &'static str {
+        "activation"
+    }
+
+    fn cpu_fwd(
+        &self,
+        s: &candle_core::CpuStorage,
+        l: &candle_core::Layout,
+    ) -> Result<(candle_core::CpuStorage, candle_core::Shape)> {
+        let x = contiguous_f32(s, l)?;
+        let y = x.iter().map(|v| self.0.apply(*v)).collect();
+        Ok((candle_core::CpuStorage::F32(y), l.shape().clone()))
+    }
+
+    fn bwd(&self, _x: &Tensor, res: &Tensor, grad: &Tensor) -> Result<Option<Tensor>> {
+        Ok(Some(activation_grad(self.0, res, grad)?))
+    }
+}
+
+/// The fused op behind [`add_relu`].
+#[derive(Debug, Clone, Copy)]
+struct AddRelu;
+
+impl candle_core::CustomOp2 for AddRelu {
+    fn name(&self) -> &'static str {
+        "add-relu"
+    }
+
+    fn cpu_fwd(
+        &self,
+        s1: &candle_core::CpuStorage,
+        l1: &candle_core::Layout,
+        s2: &candle_core::CpuStorage,
+        l2: &candle_core::Layout,
+    ) -> Result<(candle_core::CpuStorage, candle_core::Shape)> {
+        let (a, b) = (contiguous_f32(s1, l1)?, contiguous_f32(s2, l2)?);
+        if a.len() != b.len() {
+            candle_core::bail!("add-relu: {:?} and {:?} differ", l1.shape(), l2.shape());
+        }
+        let y = a.iter().zip(b).map(|(a, b)| (a + b).max(0.0)).collect();
+        Ok((candle_core::CpuStorage::F32(y), l1.shape().clone()))
+    }
+
+    fn bwd(
+        &self,
+        a: &Tensor,
+        b: &Tensor,
+        res: &Tensor,
+        grad: &Tensor,
+    ) -> Result<(Option<Tensor>, Option<Tensor>)> {
+        let g = activation_grad(Act::Relu, res, grad)?;
+        Ok((a.track_op().then(|| g.clone()), b.track_op().then_some(g)))
+    }
 }
 
 /// A 2-D convolution (`weight`: `out x in x k x k`, optional bias).
@@ -662,12 +912,7 @@ impl ConvBn {
 
 impl ModuleT for ConvBn {
     fn forward_t(&self, x: &Tensor, train: bool) -> Result<Tensor> {
-        let y = self.bn.forward_t(&self.conv.forward(x)?, train)?;
-        match self.act {
-            Act::None => Ok(y),
-            Act::Relu => y.relu(),
-            Act::Leaky(s) => leaky_relu(&y, s),
-        }
+        self.bn.forward_act(&self.conv.forward(x)?, train, self.act)
     }
 }
 
@@ -679,7 +924,66 @@ pub fn mean_points(x: &Tensor) -> Result<Tensor> {
 
 /// Softmax over the last dimension computed as `exp(log_softmax)`.
 pub fn softmax_last(x: &Tensor) -> Result<Tensor> {
-    candle_nn::ops::log_softmax(x, D::Minus1)?.exp()
+    log_softmax_last(x)?.exp()
+}
+
+/// Log-softmax over the last dimension. On f32 CPU tensors one op, one pass
+/// per row forward and one backward (`dx = g - softmax(x) sum(g)`, the softmax
+/// read from the output), instead of candle's six ops and their backward
+/// (the assignment logits are `B x M x 1,220`, the largest tensors of a step).
+pub fn log_softmax_last(x: &Tensor) -> Result<Tensor> {
+    if x.dtype() != DType::F32 || !x.device().is_cpu() || x.rank() == 0 {
+        return candle_nn::ops::log_softmax(x, D::Minus1);
+    }
+    x.contiguous()?.apply_op1(LogSoftmaxLast)
+}
+
+/// The fused op behind [`log_softmax_last`].
+#[derive(Debug, Clone, Copy)]
+struct LogSoftmaxLast;
+
+impl candle_core::CustomOp1 for LogSoftmaxLast {
+    fn name(&self) -> &'static str {
+        "log-softmax-last"
+    }
+
+    fn cpu_fwd(
+        &self,
+        s: &candle_core::CpuStorage,
+        l: &candle_core::Layout,
+    ) -> Result<(candle_core::CpuStorage, candle_core::Shape)> {
+        let x = contiguous_f32(s, l)?;
+        let n = l.dims().last().copied().unwrap_or(1).max(1);
+        let mut y = vec![0f32; x.len()];
+        y.par_chunks_mut(n).zip(x.par_chunks(n)).for_each(|(y, x)| {
+            let max = x.iter().copied().fold(f32::NEG_INFINITY, f32::max);
+            let sum: f32 = x.iter().map(|v| (v - max).exp()).sum();
+            let shift = max + sum.ln();
+            for (y, x) in y.iter_mut().zip(x) {
+                *y = x - shift;
+            }
+        });
+        Ok((candle_core::CpuStorage::F32(y), l.shape().clone()))
+    }
+
+    fn bwd(&self, _x: &Tensor, res: &Tensor, grad: &Tensor) -> Result<Option<Tensor>> {
+        let n = res.dims().last().copied().unwrap_or(1).max(1);
+        let v = with_f32(res, |y| {
+            with_f32(grad, |g| {
+                let mut dx = vec![0f32; g.len()];
+                dx.par_chunks_mut(n)
+                    .zip(y.par_chunks(n).zip(g.par_chunks(n)))
+                    .for_each(|(dx, (y, g))| {
+                        let total: f32 = g.iter().sum();
+                        for ((d, y), g) in dx.iter_mut().zip(y).zip(g) {
+                            *d = g - y.exp() * total;
+                        }
+                    });
+                dx
+            })
+        })??;
+        Ok(Some(Tensor::from_vec(v, res.shape(), res.device())?))
+    }
 }
 
 /// Fused batch-norm kernel over `N x C x H x W` (f32, CPU), with the statistics
@@ -690,6 +994,47 @@ struct FusedBn {
     mean: Vec<f32>,
     invstd: Vec<f32>,
     batch_stats: bool,
+    act: Act,
+}
+
+impl Act {
+    /// The activation of one value.
+    #[inline]
+    fn apply(self, z: f32) -> f32 {
+        match self {
+            Act::None => z,
+            Act::Relu => z.max(0.0),
+            Act::Leaky(s) => {
+                if z > 0.0 {
+                    z
+                } else {
+                    z * s as f32
+                }
+            }
+        }
+    }
+
+    /// Its derivative at `z` (PyTorch's: 0, or the slope, at `z = 0`).
+    #[inline]
+    fn slope(self, z: f32) -> f32 {
+        match self {
+            Act::None => 1.0,
+            Act::Relu => {
+                if z > 0.0 {
+                    1.0
+                } else {
+                    0.0
+                }
+            }
+            Act::Leaky(s) => {
+                if z > 0.0 {
+                    1.0
+                } else {
+                    s as f32
+                }
+            }
+        }
+    }
 }
 
 impl candle_core::CustomOp3 for FusedBn {
@@ -717,8 +1062,9 @@ impl candle_core::CustomOp3 for FusedBn {
                 let a = g[ci] * self.invstd[ci];
                 let sh = b[ci] - self.mean[ci] * a;
                 let o = (ni * c + ci) * hw;
+                let act = self.act;
                 for (yv, xv) in y[o..o + hw].iter_mut().zip(&x[o..o + hw]) {
-                    *yv = xv * a + sh;
+                    *yv = act.apply(xv * a + sh);
                 }
             }
         }
@@ -729,7 +1075,7 @@ impl candle_core::CustomOp3 for FusedBn {
         &self,
         x: &Tensor,
         gamma: &Tensor,
-        _beta: &Tensor,
+        beta: &Tensor,
         _res: &Tensor,
         grad: &Tensor,
     ) -> Result<(Option<Tensor>, Option<Tensor>, Option<Tensor>)> {
@@ -737,8 +1083,22 @@ impl candle_core::CustomOp3 for FusedBn {
         let hw = h * w;
         let cnt = (n * hw) as f32;
         let xv = x.flatten_all()?.to_vec1::<f32>()?;
-        let gv = grad.flatten_all()?.to_vec1::<f32>()?;
+        let mut gv = grad.flatten_all()?.to_vec1::<f32>()?;
         let gam = gamma.to_vec1::<f32>()?;
+        if self.act != Act::None {
+            // Through the activation first: the pre-activation is recomputed.
+            let beta = beta.to_vec1::<f32>()?;
+            for ni in 0..n {
+                for ci in 0..c {
+                    let o = (ni * c + ci) * hw;
+                    let a = gam[ci] * self.invstd[ci];
+                    let sh = beta[ci] - self.mean[ci] * a;
+                    for (g, xx) in gv[o..o + hw].iter_mut().zip(&xv[o..o + hw]) {
+                        *g *= self.act.slope(xx * a + sh);
+                    }
+                }
+            }
+        }
         let mut sg = vec![0f32; c];
         let mut sgx = vec![0f32; c];
         for ni in 0..n {
@@ -824,6 +1184,15 @@ impl BatchNorm2d {
 
 impl ModuleT for BatchNorm2d {
     fn forward_t(&self, x: &Tensor, train: bool) -> Result<Tensor> {
+        self.forward_act(x, train, Act::None)
+    }
+}
+
+impl BatchNorm2d {
+    /// Batch norm followed by `act`, in one kernel forward and backward (the
+    /// activation's own tensors and backward ops are skipped; measured with
+    /// `cargo bench --bench perspnet`, see the README).
+    pub fn forward_act(&self, x: &Tensor, train: bool, act: Act) -> Result<Tensor> {
         if x.dtype() != DType::F32 || !x.device().is_cpu() {
             candle_core::bail!("BatchNorm2d: f32 CPU tensors only");
         }
@@ -885,6 +1254,7 @@ impl ModuleT for BatchNorm2d {
             mean,
             invstd,
             batch_stats: train,
+            act,
         };
         x.apply_op3(&self.weight.contiguous()?, &self.bias.contiguous()?, op)
     }

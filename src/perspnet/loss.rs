@@ -199,7 +199,7 @@ fn perspnet_loss_with_corr(
     corr: Tensor,
 ) -> Result<LossTerms> {
     let (b, m, _v) = out.assign_logits.dims3()?;
-    let log_p = candle_nn::ops::log_softmax(&out.assign_logits, D::Minus1)?;
+    let log_p = super::layers::log_softmax_last(&out.assign_logits)?;
     let p = log_p.exp()?;
 
     let kl = kl_loss(&log_p, t.corr)?.affine(w.kl / (b * m) as f64, 0.0)?;

@@ -5,13 +5,14 @@
 //! `cnn.conv16s.0.weight`, `assignment.4.bias`, ...). The per-point `Conv1d(c_in, c_out, 1)`
 //! layers are stored as `c_out x c_in` linear weights (PyTorch: `c_out x c_in x 1`).
 
-use candle_core::{D, DType, Device, Module, ModuleT, Result, Tensor, Var};
+use candle_core::{DType, Device, Module, ModuleT, Result, Tensor, Var};
 use candle_nn::{Linear, VarBuilder, VarMap};
 
 use super::config::PerspNetConfig;
 use super::layers::{
-    Act, BatchNorm2d, Conv2d, ConvBn, PointSampler, dropout2d, gather_pixels, linear,
-    max_pool_3x3_s2_p1, mean_points, positional_encoding_points, softmax_last, upsample2x_bilinear,
+    Act, BatchNorm2d, Conv2d, ConvBn, PointSampler, add_relu, dropout2d, gather_pixels, linear,
+    max_pool_3x3_s2_p1, mean_points, positional_encoding_points, relu, softmax_last,
+    upsample2x_bilinear,
 };
 
 /// Scale between the UV-map values and canonical mesh units in the official
@@ -90,7 +91,7 @@ impl BasicBlock {
             Some(d) => d.forward_t(x, train)?,
             None => x.clone(),
         };
-        (y + id)?.relu()
+        add_relu(&y, &id)
     }
 }
 
@@ -292,7 +293,7 @@ impl PerspNet {
     /// Runs the encoder on a normalised `B x 3 x H x W` image.
     pub fn encode(&self, x: &Tensor, train: bool) -> Result<EncoderFeatures> {
         let x2s = self.conv1.forward(x)?;
-        let y = self.bn1.forward_t(&x2s, train)?.relu()?;
+        let y = self.bn1.forward_act(&x2s, train, Act::Relu)?;
         let mut y = max_pool_3x3_s2_p1(&y)?;
         let mut outs = Vec::with_capacity(4);
         for layer in &self.layers {
@@ -385,7 +386,7 @@ impl PerspNet {
 
         // Local 2D features: sampled image features (1x1 conv + ReLU) ++ position encoding.
         let emb = gather_pixels(&dense.image_features, choose)?; // B x M x F
-        let color = self.instance_color.forward(&emb)?.relu()?;
+        let color = relu(&self.instance_color.forward(&emb)?)?;
         let pos = positional_encoding_points(choose, self.cfg.pos_channels, w, img.device())?
             .to_dtype(color.dtype())?;
         let local = Tensor::cat(&[&color, &pos], 2)?; // B x M x 128
@@ -408,8 +409,8 @@ impl PerspNet {
         if let Some(bias) = a0.bias() {
             h = h.broadcast_add(bias)?;
         }
-        let h = h.relu()?;
-        let h = self.assignment[1].forward(&h)?.relu()?;
+        let h = relu(&h)?;
+        let h = relu(&self.assignment[1].forward(&h)?)?;
         let assign_logits = self.assignment[2].forward(&h)?; // B x M x V
         debug_assert_eq!(assign_logits.dims(), &[b, m, self.cfg.vertices]);
 
@@ -427,8 +428,8 @@ impl PerspNet {
 }
 
 fn mlp_global(layers: &[Linear; 2], x: &Tensor) -> Result<Tensor> {
-    let h = layers[0].forward(x)?.relu()?;
-    let h = layers[1].forward(&h)?.relu()?;
+    let h = relu(&layers[0].forward(x)?)?;
+    let h = relu(&layers[1].forward(&h)?)?;
     mean_points(&h)
 }
 
@@ -477,5 +478,5 @@ pub fn synthetic_vertex_uv(vertices: usize, device: &Device) -> Result<Tensor> {
 
 /// Helper: the last-axis softmax of a `B x M x V` logits tensor.
 pub fn assignment_softmax(logits: &Tensor) -> Result<Tensor> {
-    candle_nn::ops::log_softmax(logits, D::Minus1)?.exp()
+    softmax_last(logits)
 }
