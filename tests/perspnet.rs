@@ -356,6 +356,46 @@ mod layers {
     }
 
     #[test]
+    fn point_linear_matches_candle_linear_forward_and_backward() -> Result<()> {
+        use candle_core::Module;
+        use candle_nn::{VarBuilder, VarMap};
+        let dev = Device::Cpu;
+        let vm = VarMap::new();
+        let layer = PointLinear::new(
+            VarBuilder::from_varmap(&vm, candle_core::DType::F32, &dev),
+            6,
+            5,
+            0.5,
+        )?;
+        // A non-zero bias, so that its gradient and broadcast are tested.
+        for (k, v) in vm.data().lock().unwrap().iter() {
+            if k == "bias" {
+                v.set(&Tensor::new(&[0.5f32, -1.0, 2.0, 0.0, 0.25], &dev)?)?;
+            }
+        }
+        let reference = candle_nn::Linear::new(layer.weight().clone(), Some(layer.bias().clone()));
+        for dims in [vec![7, 6], vec![3, 4, 6]] {
+            let x = Var::from_tensor(&Tensor::randn(0f32, 1., dims.as_slice(), &dev)?)?;
+            let a = layer.forward(x.as_tensor())?;
+            let b = reference.forward(x.as_tensor())?;
+            assert_eq!(a.dims(), b.dims());
+            let d: f32 = (&a - &b)?.abs()?.max_all()?.to_scalar()?;
+            assert!(d < 1e-5, "forward {dims:?}: {d}");
+            let r = Tensor::randn(0f32, 1., a.shape(), &dev)?;
+            let ga = (&a * &r)?.sum_all()?.backward()?;
+            let gb = (&b * &r)?.sum_all()?.backward()?;
+            for t in [x.as_tensor(), layer.weight(), layer.bias()] {
+                let d: f32 = (ga.get(t).unwrap() - gb.get(t).unwrap())?
+                    .abs()?
+                    .max_all()?
+                    .to_scalar()?;
+                assert!(d < 1e-4, "gradient {dims:?} {:?}: {d}", t.dims());
+            }
+        }
+        Ok(())
+    }
+
+    #[test]
     fn fused_activations_match_hand_values_and_gradients() -> Result<()> {
         let dev = Device::Cpu;
         let x = Var::new(&[-2f32, -0.5, 0.0, 3.0], &dev)?;

@@ -30,6 +30,8 @@
 
 use rayon::prelude::*;
 
+use super::blas::{Mat, gemm, gemm_raw};
+
 /// Target size of one block of the patch matrix, in floats (1 MiB).
 pub const BLOCK_FLOATS: usize = 1 << 18;
 
@@ -189,111 +191,6 @@ fn col2im_block(cols: &[f32], s: &ConvShape, oy0: usize, oy1: usize, dx: &mut [f
                 }
             }
         }
-    }
-}
-
-/// A strided view of a row-major matrix for [`gemm`].
-#[derive(Clone, Copy)]
-struct Mat {
-    rows: usize,
-    cols: usize,
-    row_stride: usize,
-    col_stride: usize,
-}
-
-impl Mat {
-    fn row_major(rows: usize, cols: usize, row_stride: usize) -> Self {
-        Self {
-            rows,
-            cols,
-            row_stride,
-            col_stride: 1,
-        }
-    }
-
-    fn transposed(self) -> Self {
-        Self {
-            rows: self.cols,
-            cols: self.rows,
-            row_stride: self.col_stride,
-            col_stride: self.row_stride,
-        }
-    }
-
-    /// One past the largest index the view touches.
-    fn extent(&self) -> usize {
-        if self.rows == 0 || self.cols == 0 {
-            return 0;
-        }
-        (self.rows - 1) * self.row_stride + (self.cols - 1) * self.col_stride + 1
-    }
-}
-
-/// `dst = lhs rhs`, or `dst += lhs rhs` with `accumulate`, on one thread.
-fn gemm(dst: &mut [f32], d: Mat, lhs: &[f32], l: Mat, rhs: &[f32], r: Mat, accumulate: bool) {
-    // SAFETY: `dst` is borrowed mutably for the call: nothing else reads or
-    // writes it, and it overlaps neither operand.
-    unsafe { gemm_raw((dst.as_mut_ptr(), dst.len()), d, lhs, l, rhs, r, accumulate) }
-}
-
-/// [`gemm`] into `len` values at a raw pointer.
-///
-/// # Safety
-/// The elements the view `d` describes must be valid for writes and touched by
-/// no one else during the call, and must not overlap `lhs` or `rhs`.
-unsafe fn gemm_raw(
-    (dst, len): (*mut f32, usize),
-    d: Mat,
-    lhs: &[f32],
-    l: Mat,
-    rhs: &[f32],
-    r: Mat,
-    accumulate: bool,
-) {
-    assert!(
-        l.rows == d.rows && r.cols == d.cols && l.cols == r.rows,
-        "gemm shapes"
-    );
-    assert!(
-        d.extent() <= len && l.extent() <= lhs.len() && r.extent() <= rhs.len(),
-        "gemm bounds"
-    );
-    if d.rows == 0 || d.cols == 0 || (l.cols == 0 && accumulate) {
-        return;
-    }
-    if l.cols == 0 {
-        for i in 0..d.rows {
-            for j in 0..d.cols {
-                // SAFETY: inside the view (extent checked); exclusive (caller).
-                unsafe { *dst.add(i * d.row_stride + j * d.col_stride) = 0.0 };
-            }
-        }
-        return;
-    }
-    // SAFETY: the asserts above keep every index the views describe inside their
-    // buffers; exclusivity and no overlap are the caller's promise.
-    unsafe {
-        gemm::gemm(
-            d.rows,
-            d.cols,
-            l.cols,
-            dst,
-            d.col_stride as isize,
-            d.row_stride as isize,
-            accumulate,
-            lhs.as_ptr(),
-            l.col_stride as isize,
-            l.row_stride as isize,
-            rhs.as_ptr(),
-            r.col_stride as isize,
-            r.row_stride as isize,
-            1.0,
-            1.0,
-            false,
-            false,
-            false,
-            gemm::Parallelism::None,
-        );
     }
 }
 

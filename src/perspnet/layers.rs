@@ -5,6 +5,7 @@
 //! position encoding, ImageNet normalisation, and conv / batch-norm layers
 //! initialised like the official `init_weights(init_type='normal', 0.02)`.
 
+use super::blas::{self, Mat};
 use super::conv::{self, ConvShape};
 use candle_core::{D, DType, Device, Module, ModuleT, Result, Tensor};
 use candle_nn::{BatchNorm, Init, Linear, VarBuilder};
@@ -836,8 +837,177 @@ pub fn batch_norm(
     BatchNorm::new_with_momentum(c, running_mean, running_var, weight, bias, eps, momentum)
 }
 
+/// A per-point linear layer (the official `Conv1d(c_in, c_out, 1)`) applied to
+/// `... x C` features (any leading dimensions): `y = x Wᵀ + b`, variables
+/// `weight` (`c_out x c_in`) and `bias`. On f32 CPU tensors it is one op whose
+/// backward is three products over all points at once (`dx = g W`,
+/// `dW = gᵀ x`, `db` the column sums of `g`), instead of candle's `Linear`,
+/// which broadcasts the weight over the batch and sums the per-batch weight
+/// and bias gradients back with strided reductions.
+#[derive(Debug, Clone)]
+pub struct PointLinear {
+    weight: Tensor,
+    bias: Tensor,
+}
+
+impl PointLinear {
+    /// The layer with initialisation like the official code: weight
+    /// `N(0, std)`, bias 0.
+    pub fn new(vb: VarBuilder, c_in: usize, c_out: usize, std: f64) -> Result<Self> {
+        let l = linear(vb, c_in, c_out, std)?;
+        let bias = l.bias().cloned().expect("linear() makes a bias");
+        Ok(Self {
+            weight: l.weight().clone(),
+            bias,
+        })
+    }
+
+    /// The `c_out x c_in` weight.
+    pub fn weight(&self) -> &Tensor {
+        &self.weight
+    }
+
+    /// The bias (`c_out`).
+    pub fn bias(&self) -> &Tensor {
+        &self.bias
+    }
+}
+
+impl Module for PointLinear {
+    fn forward(&self, x: &Tensor) -> Result<Tensor> {
+        if x.dtype() != DType::F32 || !x.device().is_cpu() {
+            return Linear::new(self.weight.clone(), Some(self.bias.clone())).forward(x);
+        }
+        x.contiguous()?.apply_op3(
+            &self.weight.contiguous()?,
+            &self.bias.contiguous()?,
+            PointLinearOp,
+        )
+    }
+}
+
+/// The fused op behind [`PointLinear`]: `x` is `R x c_in` (any leading shape).
+#[derive(Debug, Clone, Copy)]
+struct PointLinearOp;
+
+impl candle_core::CustomOp3 for PointLinearOp {
+    fn name(&self) -> &'static str {
+        "point-linear"
+    }
+
+    fn cpu_fwd(
+        &self,
+        s1: &candle_core::CpuStorage,
+        l1: &candle_core::Layout,
+        s2: &candle_core::CpuStorage,
+        l2: &candle_core::Layout,
+        s3: &candle_core::CpuStorage,
+        l3: &candle_core::Layout,
+    ) -> Result<(candle_core::CpuStorage, candle_core::Shape)> {
+        let (x, w, b) = (
+            contiguous_f32(s1, l1)?,
+            contiguous_f32(s2, l2)?,
+            contiguous_f32(s3, l3)?,
+        );
+        let (co, ci) = l2.shape().dims2()?;
+        let dims = l1.dims();
+        if dims.last() != Some(&ci) || b.len() != co {
+            candle_core::bail!(
+                "point-linear: input {dims:?}, weight {co}x{ci}, bias {}",
+                b.len()
+            );
+        }
+        let r = x.len() / ci.max(1);
+        let mut y: Vec<f32> = b.iter().copied().cycle().take(r * co).collect();
+        blas::gemm_par(
+            &mut y,
+            Mat::row_major(r, co, co),
+            x,
+            Mat::row_major(r, ci, ci),
+            w,
+            Mat::row_major(co, ci, ci).transposed(),
+            true,
+        );
+        let mut out = dims.to_vec();
+        *out.last_mut().expect("rank >= 1") = co;
+        Ok((
+            candle_core::CpuStorage::F32(y),
+            candle_core::Shape::from(out),
+        ))
+    }
+
+    fn bwd(
+        &self,
+        x: &Tensor,
+        w: &Tensor,
+        b: &Tensor,
+        _res: &Tensor,
+        grad: &Tensor,
+    ) -> Result<(Option<Tensor>, Option<Tensor>, Option<Tensor>)> {
+        let (co, ci) = w.dims2()?;
+        let r = x.elem_count() / ci.max(1);
+        let dev = x.device();
+        let dx = if x.track_op() {
+            let v = with_f32(grad, |g| {
+                with_f32(w, |wv| {
+                    let mut dx = vec![0f32; r * ci];
+                    blas::gemm_par(
+                        &mut dx,
+                        Mat::row_major(r, ci, ci),
+                        g,
+                        Mat::row_major(r, co, co),
+                        wv,
+                        Mat::row_major(co, ci, ci),
+                        false,
+                    );
+                    dx
+                })
+            })??;
+            Some(Tensor::from_vec(v, x.shape(), dev)?)
+        } else {
+            None
+        };
+        let dw = if w.track_op() {
+            let v = with_f32(grad, |g| {
+                with_f32(x, |xv| {
+                    let mut dw = vec![0f32; co * ci];
+                    blas::gemm_par(
+                        &mut dw,
+                        Mat::row_major(co, ci, ci),
+                        g,
+                        Mat::row_major(r, co, co).transposed(),
+                        xv,
+                        Mat::row_major(r, ci, ci),
+                        false,
+                    );
+                    dw
+                })
+            })??;
+            Some(Tensor::from_vec(v, w.shape(), dev)?)
+        } else {
+            None
+        };
+        let db = if b.track_op() {
+            let v = with_f32(grad, |g| {
+                let mut db = vec![0f32; co];
+                for row in g.chunks(co) {
+                    for (d, v) in db.iter_mut().zip(row) {
+                        *d += v;
+                    }
+                }
+                db
+            })?;
+            Some(Tensor::from_vec(v, co, dev)?)
+        } else {
+            None
+        };
+        Ok((dx, dw, db))
+    }
+}
+
 /// A per-point linear layer (the official `Conv1d(c_in, c_out, 1)`) applied
-/// to `B x N x C` features; weight `N(0, std)`, bias 0.
+/// to `B x N x C` features; weight `N(0, std)`, bias 0 (candle's `Linear`;
+/// [`PointLinear`] is the layer the model uses).
 pub fn linear(vb: VarBuilder, c_in: usize, c_out: usize, std: f64) -> Result<Linear> {
     let w = vb.get_with_hints(
         (c_out, c_in),

@@ -6,6 +6,7 @@
 //! `Resnet18_8s`, `models/network.py` `DeformNetUV2`, `models/loss.py` `Loss8`).
 
 pub mod adam;
+mod blas;
 pub mod config;
 pub mod conv;
 pub mod layers;

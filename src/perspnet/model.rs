@@ -6,12 +6,12 @@
 //! layers are stored as `c_out x c_in` linear weights (PyTorch: `c_out x c_in x 1`).
 
 use candle_core::{DType, Device, Module, ModuleT, Result, Tensor, Var};
-use candle_nn::{Linear, VarBuilder, VarMap};
+use candle_nn::{VarBuilder, VarMap};
 
 use super::config::PerspNetConfig;
 use super::layers::{
-    Act, BatchNorm2d, Conv2d, ConvBn, PointSampler, add_relu, dropout2d, gather_pixels, linear,
-    max_pool_3x3_s2_p1, mean_points, positional_encoding_points, relu, softmax_last,
+    Act, BatchNorm2d, Conv2d, ConvBn, PointLinear, PointSampler, add_relu, dropout2d,
+    gather_pixels, max_pool_3x3_s2_p1, mean_points, positional_encoding_points, relu, softmax_last,
     upsample2x_bilinear,
 };
 
@@ -178,10 +178,10 @@ pub struct PerspNet {
     dec_uv: Vec<ConvBn>,
     final_uv: ConvBn,
     uv: Conv2d,
-    instance_color: Linear,
-    instance_global: [Linear; 2],
-    category_global: [Linear; 2],
-    assignment: [Linear; 3],
+    instance_color: PointLinear,
+    instance_global: [PointLinear; 2],
+    category_global: [PointLinear; 2],
+    assignment: [PointLinear; 3],
     sampler: PointSampler,
     dropout_rng: std::sync::Arc<std::sync::Mutex<crate::rng::Rng>>,
 }
@@ -243,22 +243,22 @@ impl PerspNet {
         let final_uv = cb("final_uv", d3, f)?;
         let uv = Conv2d::new(cnn.pp("uv"), f, 3, 1, 1, 0, true, s)?;
 
-        let instance_color = linear(vb.pp("instance_color.0"), f, cfg.color_channels, s)?;
+        let instance_color = PointLinear::new(vb.pp("instance_color.0"), f, cfg.color_channels, s)?;
         let lc = cfg.local_channels();
         let (gh, gc) = (cfg.global_hidden, cfg.global_channels);
         let instance_global = [
-            linear(vb.pp("instance_global.0"), lc, gh, s)?,
-            linear(vb.pp("instance_global.2"), gh, gc, s)?,
+            PointLinear::new(vb.pp("instance_global.0"), lc, gh, s)?,
+            PointLinear::new(vb.pp("instance_global.2"), gh, gc, s)?,
         ];
         let category_global = [
-            linear(vb.pp("category_global.0"), f, gh, s)?,
-            linear(vb.pp("category_global.2"), gh, gc, s)?,
+            PointLinear::new(vb.pp("category_global.0"), f, gh, s)?,
+            PointLinear::new(vb.pp("category_global.2"), gh, gc, s)?,
         ];
         let [a0, a1] = cfg.assign_hidden;
         let assignment = [
-            linear(vb.pp("assignment.0"), cfg.assign_in_channels(), a0, s)?,
-            linear(vb.pp("assignment.2"), a0, a1, s)?,
-            linear(vb.pp("assignment.4"), a1, cfg.vertices, s)?,
+            PointLinear::new(vb.pp("assignment.0"), cfg.assign_in_channels(), a0, s)?,
+            PointLinear::new(vb.pp("assignment.2"), a0, a1, s)?,
+            PointLinear::new(vb.pp("assignment.4"), a1, cfg.vertices, s)?,
         ];
         let sampler = {
             let uv = vertex_uv.to_dtype(DType::F32)?.to_vec2::<f32>()?;
@@ -406,9 +406,7 @@ impl PerspNet {
         let h_g2 = g2.broadcast_matmul(&wt.narrow(1, lc, gc)?.t()?)?;
         let h_g3 = g3.broadcast_matmul(&wt.narrow(1, lc + gc, gc)?.t()?)?;
         let mut h = h_local.broadcast_add(&(h_g2 + h_g3)?)?;
-        if let Some(bias) = a0.bias() {
-            h = h.broadcast_add(bias)?;
-        }
+        h = h.broadcast_add(a0.bias())?;
         let h = relu(&h)?;
         let h = relu(&self.assignment[1].forward(&h)?)?;
         let assign_logits = self.assignment[2].forward(&h)?; // B x M x V
@@ -427,7 +425,7 @@ impl PerspNet {
     }
 }
 
-fn mlp_global(layers: &[Linear; 2], x: &Tensor) -> Result<Tensor> {
+fn mlp_global(layers: &[PointLinear; 2], x: &Tensor) -> Result<Tensor> {
     let h = relu(&layers[0].forward(x)?)?;
     let h = relu(&layers[1].forward(&h)?)?;
     mean_points(&h)
