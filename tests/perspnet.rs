@@ -395,6 +395,71 @@ mod layers {
         Ok(())
     }
 
+    /// `f` and `g` agree forward and in the gradient of every input.
+    fn same_forward_and_gradients(
+        f: impl Fn(&[Tensor]) -> Result<Tensor>,
+        g: impl Fn(&[Tensor]) -> Result<Tensor>,
+        inputs: &[Var],
+        tol: f32,
+    ) -> Result<()> {
+        let ts: Vec<Tensor> = inputs.iter().map(|v| v.as_tensor().clone()).collect();
+        let (a, b) = (f(&ts)?, g(&ts)?);
+        assert_eq!(a.dims(), b.dims());
+        let d: f32 = (&a - &b)?.abs()?.flatten_all()?.max(0)?.to_scalar()?;
+        assert!(d < tol, "forward: {d}");
+        let r = Tensor::randn(0f32, 1., a.shape(), &Device::Cpu)?;
+        let ga = (&a * &r)?.sum_all()?.backward()?;
+        let gb = (&b * &r)?.sum_all()?.backward()?;
+        for (i, t) in ts.iter().enumerate() {
+            let d: f32 = (ga.get(t).unwrap() - gb.get(t).unwrap())?
+                .abs()?
+                .flatten_all()?
+                .max(0)?
+                .to_scalar()?;
+            assert!(d < tol, "gradient of input {i}: {d}");
+        }
+        Ok(())
+    }
+
+    #[test]
+    fn row_ops_match_candle_forward_and_backward() -> Result<()> {
+        let dev = Device::Cpu;
+        let h = Var::from_tensor(&Tensor::randn(0f32, 1., (3, 5, 4), &dev)?)?;
+        let r = Var::from_tensor(&Tensor::randn(0f32, 1., (3, 1, 4), &dev)?)?;
+        same_forward_and_gradients(
+            |t| add_rows_relu(&t[0], &t[1]),
+            |t| t[0].broadcast_add(&t[1])?.relu(),
+            &[h.clone(), r],
+            1e-5,
+        )?;
+        same_forward_and_gradients(
+            |t| mean_points(&t[0]),
+            |t| t[0].mean_keepdim(1),
+            std::slice::from_ref(&h),
+            1e-5,
+        )?;
+        let logits = Tensor::randn(0f32, 2., (3, 5, 9), &dev)?;
+        let log_p = Var::from_tensor(&candle_nn::ops::log_softmax(&logits, 2)?)?;
+        same_forward_and_gradients(
+            |t| row_entropy(&t[0]),
+            |t| (t[0].exp()? * &t[0])?.sum(2)?.neg(),
+            &[log_p],
+            1e-5,
+        )?;
+        // Hand value: the uniform distribution over 4 has entropy ln 4.
+        let uniform = Tensor::new(&[[0.25f32; 4]], &dev)?.log()?;
+        close(&row_entropy(&uniform)?.to_vec1()?, &[4f32.ln()], 1e-6);
+        // point_linear without a bias is the plain product.
+        let x = Var::from_tensor(&Tensor::randn(0f32, 1., (2, 3, 4), &dev)?)?;
+        let w = Var::from_tensor(&Tensor::randn(0f32, 1., (5, 4), &dev)?)?;
+        same_forward_and_gradients(
+            |t| point_linear(&t[0], &t[1], None),
+            |t| t[0].broadcast_matmul(&t[1].t()?),
+            &[x, w],
+            1e-4,
+        )
+    }
+
     #[test]
     fn fused_activations_match_hand_values_and_gradients() -> Result<()> {
         let dev = Device::Cpu;

@@ -875,14 +875,97 @@ impl PointLinear {
 
 impl Module for PointLinear {
     fn forward(&self, x: &Tensor) -> Result<Tensor> {
-        if x.dtype() != DType::F32 || !x.device().is_cpu() {
-            return Linear::new(self.weight.clone(), Some(self.bias.clone())).forward(x);
+        point_linear(x, &self.weight, Some(&self.bias))
+    }
+}
+
+/// `x Wᵀ (+ b)` over the last dimension of `x` (any leading shape), one op on
+/// f32 CPU tensors (see [`PointLinear`]); `weight` is `c_out x c_in`.
+pub fn point_linear(x: &Tensor, weight: &Tensor, bias: Option<&Tensor>) -> Result<Tensor> {
+    if x.dtype() != DType::F32 || !x.device().is_cpu() {
+        return Linear::new(weight.clone(), bias.cloned()).forward(x);
+    }
+    // Without a bias, a constant zero one (not tracked: no gradient is formed).
+    let bias = match bias {
+        Some(b) => b.contiguous()?,
+        None => Tensor::zeros(weight.dim(0)?, DType::F32, x.device())?,
+    };
+    x.contiguous()?
+        .apply_op3(&weight.contiguous()?, &bias, PointLinearOp)
+}
+
+/// `relu(h + r)` where `h` is `B x M x C` and `r` (`B x 1 x C`) is added to
+/// every row of its batch: one op; the backward hands `h` the masked gradient
+/// and `r` its sum over the `M` rows (candle's broadcast would add a strided
+/// reduction and three more tensors).
+pub fn add_rows_relu(h: &Tensor, r: &Tensor) -> Result<Tensor> {
+    let (b, _m, c) = h.dims3()?;
+    if h.dtype() != DType::F32 || !h.device().is_cpu() || r.dims() != [b, 1, c] {
+        return relu(&h.broadcast_add(r)?);
+    }
+    h.contiguous()?.apply_op2(&r.contiguous()?, AddRowsRelu)
+}
+
+/// The fused op behind [`add_rows_relu`].
+#[derive(Debug, Clone, Copy)]
+struct AddRowsRelu;
+
+impl candle_core::CustomOp2 for AddRowsRelu {
+    fn name(&self) -> &'static str {
+        "add-rows-relu"
+    }
+
+    fn cpu_fwd(
+        &self,
+        s1: &candle_core::CpuStorage,
+        l1: &candle_core::Layout,
+        s2: &candle_core::CpuStorage,
+        l2: &candle_core::Layout,
+    ) -> Result<(candle_core::CpuStorage, candle_core::Shape)> {
+        let (h, r) = (contiguous_f32(s1, l1)?, contiguous_f32(s2, l2)?);
+        let (b, m, c) = l1.shape().dims3()?;
+        if r.len() != b * c {
+            candle_core::bail!("add-rows-relu: {:?} and {:?}", l1.shape(), l2.shape());
         }
-        x.contiguous()?.apply_op3(
-            &self.weight.contiguous()?,
-            &self.bias.contiguous()?,
-            PointLinearOp,
-        )
+        let mut y = vec![0f32; h.len()];
+        y.par_chunks_mut(m * c)
+            .zip(h.par_chunks(m * c).zip(r.par_chunks(c)))
+            .for_each(|(y, (h, r))| {
+                for (yr, hr) in y.chunks_mut(c).zip(h.chunks(c)) {
+                    for ((y, h), r) in yr.iter_mut().zip(hr).zip(r) {
+                        *y = (h + r).max(0.0);
+                    }
+                }
+            });
+        Ok((candle_core::CpuStorage::F32(y), l1.shape().clone()))
+    }
+
+    fn bwd(
+        &self,
+        h: &Tensor,
+        r: &Tensor,
+        res: &Tensor,
+        grad: &Tensor,
+    ) -> Result<(Option<Tensor>, Option<Tensor>)> {
+        let (b, m, c) = h.dims3()?;
+        let gh = activation_grad(Act::Relu, res, grad)?;
+        let gr = if r.track_op() {
+            let v = with_f32(&gh, |g| {
+                let mut sums = vec![0f32; b * c];
+                for (s, gb) in sums.chunks_mut(c).zip(g.chunks(m * c)) {
+                    for row in gb.chunks(c) {
+                        for (s, v) in s.iter_mut().zip(row) {
+                            *s += v;
+                        }
+                    }
+                }
+                sums
+            })?;
+            Some(Tensor::from_vec(v, (b, 1, c), h.device())?)
+        } else {
+            None
+        };
+        Ok((h.track_op().then_some(gh), gr))
     }
 }
 
@@ -1089,7 +1172,115 @@ impl ModuleT for ConvBn {
 /// Mean over the points axis of `B x N x C` features, keeping `B x 1 x C`
 /// (the official `AdaptiveAvgPool1d(1)`).
 pub fn mean_points(x: &Tensor) -> Result<Tensor> {
-    x.mean_keepdim(1)
+    if x.dtype() != DType::F32 || !x.device().is_cpu() || x.rank() != 3 {
+        return x.mean_keepdim(1);
+    }
+    x.contiguous()?.apply_op1(MeanPoints)
+}
+
+/// The op behind [`mean_points`] on f32 CPU tensors: contiguous row sums
+/// forward, the gradient over `N` copied to every row backward (candle's
+/// `mean_keepdim(1)` reduces with a strided walk).
+#[derive(Debug, Clone, Copy)]
+struct MeanPoints;
+
+impl candle_core::CustomOp1 for MeanPoints {
+    fn name(&self) -> &'static str {
+        "mean-points"
+    }
+
+    fn cpu_fwd(
+        &self,
+        s: &candle_core::CpuStorage,
+        l: &candle_core::Layout,
+    ) -> Result<(candle_core::CpuStorage, candle_core::Shape)> {
+        let x = contiguous_f32(s, l)?;
+        let (b, n, c) = l.shape().dims3()?;
+        let mut y = vec![0f64; b * c];
+        for (yb, xb) in y.chunks_mut(c).zip(x.chunks(n * c.max(1))) {
+            for row in xb.chunks(c) {
+                for (s, v) in yb.iter_mut().zip(row) {
+                    *s += *v as f64;
+                }
+            }
+        }
+        let y = y
+            .into_iter()
+            .map(|v| (v / n.max(1) as f64) as f32)
+            .collect();
+        Ok((candle_core::CpuStorage::F32(y), (b, 1, c).into()))
+    }
+
+    fn bwd(&self, x: &Tensor, _res: &Tensor, grad: &Tensor) -> Result<Option<Tensor>> {
+        let (b, n, c) = x.dims3()?;
+        let v = with_f32(grad, |g| {
+            let scale = 1.0 / n.max(1) as f32;
+            let mut dx = Vec::with_capacity(b * n * c);
+            for gb in g.chunks(c) {
+                for _ in 0..n {
+                    dx.extend(gb.iter().map(|v| v * scale));
+                }
+            }
+            dx
+        })?;
+        Ok(Some(Tensor::from_vec(v, (b, n, c), x.device())?))
+    }
+}
+
+/// The entropy `-sum(exp(l) l)` of each row of log-probabilities `l` (last
+/// dimension), one op on f32 CPU tensors with a one-pass backward
+/// (`dl = -g exp(l) (1 + l)`); the result drops the last dimension.
+pub fn row_entropy(log_p: &Tensor) -> Result<Tensor> {
+    if log_p.dtype() != DType::F32 || !log_p.device().is_cpu() || log_p.rank() == 0 {
+        return (log_p.exp()? * log_p)?.sum(D::Minus1)?.neg();
+    }
+    log_p.contiguous()?.apply_op1(RowEntropy)
+}
+
+/// The op behind [`row_entropy`].
+#[derive(Debug, Clone, Copy)]
+struct RowEntropy;
+
+impl candle_core::CustomOp1 for RowEntropy {
+    fn name(&self) -> &'static str {
+        "row-entropy"
+    }
+
+    fn cpu_fwd(
+        &self,
+        s: &candle_core::CpuStorage,
+        l: &candle_core::Layout,
+    ) -> Result<(candle_core::CpuStorage, candle_core::Shape)> {
+        let x = contiguous_f32(s, l)?;
+        let dims = l.dims();
+        let n = dims[dims.len() - 1].max(1);
+        let y: Vec<f32> = x
+            .par_chunks(n)
+            .map(|row| -row.iter().map(|l| l.exp() * l).sum::<f32>())
+            .collect();
+        Ok((
+            candle_core::CpuStorage::F32(y),
+            candle_core::Shape::from(&dims[..dims.len() - 1]),
+        ))
+    }
+
+    fn bwd(&self, x: &Tensor, _res: &Tensor, grad: &Tensor) -> Result<Option<Tensor>> {
+        let n = x.dims().last().copied().unwrap_or(1).max(1);
+        let v = with_f32(x, |l| {
+            with_f32(grad, |g| {
+                let mut dx = vec![0f32; l.len()];
+                dx.par_chunks_mut(n)
+                    .zip(l.par_chunks(n).zip(g.par_chunks(1)))
+                    .for_each(|(dx, (l, g))| {
+                        for (d, l) in dx.iter_mut().zip(l) {
+                            *d = -g[0] * l.exp() * (1.0 + l);
+                        }
+                    });
+                dx
+            })
+        })??;
+        Ok(Some(Tensor::from_vec(v, x.shape(), x.device())?))
+    }
 }
 
 /// Softmax over the last dimension computed as `exp(log_softmax)`.

@@ -200,12 +200,9 @@ fn perspnet_loss_with_corr(
 ) -> Result<LossTerms> {
     let (b, m, _v) = out.assign_logits.dims3()?;
     let log_p = super::layers::log_softmax_last(&out.assign_logits)?;
-    let p = log_p.exp()?;
 
     let kl = kl_loss(&log_p, t.corr)?.affine(w.kl / (b * m) as f64, 0.0)?;
-    let entropy = (p * &log_p)?
-        .sum(D::Minus1)?
-        .neg()?
+    let entropy = super::layers::row_entropy(&log_p)?
         .mean_all()?
         .affine(w.entropy, 0.0)?;
     let model = t

@@ -10,9 +10,9 @@ use candle_nn::{VarBuilder, VarMap};
 
 use super::config::PerspNetConfig;
 use super::layers::{
-    Act, BatchNorm2d, Conv2d, ConvBn, PointLinear, PointSampler, add_relu, dropout2d,
-    gather_pixels, max_pool_3x3_s2_p1, mean_points, positional_encoding_points, relu, softmax_last,
-    upsample2x_bilinear,
+    Act, BatchNorm2d, Conv2d, ConvBn, PointLinear, PointSampler, add_relu, add_rows_relu,
+    dropout2d, gather_pixels, max_pool_3x3_s2_p1, mean_points, point_linear,
+    positional_encoding_points, relu, softmax_last, upsample2x_bilinear,
 };
 
 /// Scale between the UV-map values and canonical mesh units in the official
@@ -398,16 +398,15 @@ impl PerspNet {
 
         // Assignment MLP on [local, g2, g3]; the first layer is applied to the three
         // parts separately (identical result, avoids materialising B x M x 2176).
+        // The global part and the bias are one row per batch, added to every point.
         let a0 = &self.assignment[0];
         let wt = a0.weight();
         let lc = self.cfg.local_channels();
         let gc = self.cfg.global_channels;
-        let h_local = local.broadcast_matmul(&wt.narrow(1, 0, lc)?.t()?)?;
-        let h_g2 = g2.broadcast_matmul(&wt.narrow(1, lc, gc)?.t()?)?;
-        let h_g3 = g3.broadcast_matmul(&wt.narrow(1, lc + gc, gc)?.t()?)?;
-        let mut h = h_local.broadcast_add(&(h_g2 + h_g3)?)?;
-        h = h.broadcast_add(a0.bias())?;
-        let h = relu(&h)?;
+        let h_local = point_linear(&local, &wt.narrow(1, 0, lc)?, None)?; // B x M x A0
+        let global = Tensor::cat(&[&g2, &g3], 2)?; // B x 1 x 2 gc
+        let h_global = point_linear(&global, &wt.narrow(1, lc, 2 * gc)?, Some(a0.bias()))?;
+        let h = add_rows_relu(&h_local, &h_global)?;
         let h = relu(&self.assignment[1].forward(&h)?)?;
         let assign_logits = self.assignment[2].forward(&h)?; // B x M x V
         debug_assert_eq!(assign_logits.dims(), &[b, m, self.cfg.vertices]);
