@@ -1398,6 +1398,14 @@ impl Act {
     }
 }
 
+impl FusedBn {
+    /// Scale and shift of channel `ci`: `y = act(x a + sh)`.
+    fn affine(&self, gamma: &[f32], beta: &[f32], ci: usize) -> (f32, f32) {
+        let a = gamma[ci] * self.invstd[ci];
+        (a, beta[ci] - self.mean[ci] * a)
+    }
+}
+
 impl candle_core::CustomOp3 for FusedBn {
     fn name(&self) -> &'static str {
         "fused-batch-norm"
@@ -1415,20 +1423,19 @@ impl candle_core::CustomOp3 for FusedBn {
         let x = contiguous_f32(s1, l1)?;
         let g = contiguous_f32(s2, l2)?;
         let b = contiguous_f32(s3, l3)?;
-        let (n, c, h, w) = l1.shape().dims4()?;
-        let hw = h * w;
+        let (_n, c, h, w) = l1.shape().dims4()?;
+        let hw = (h * w).max(1);
         let mut y = vec![0f32; x.len()];
-        for ni in 0..n {
-            for ci in 0..c {
-                let a = g[ci] * self.invstd[ci];
-                let sh = b[ci] - self.mean[ci] * a;
-                let o = (ni * c + ci) * hw;
-                let act = self.act;
-                for (yv, xv) in y[o..o + hw].iter_mut().zip(&x[o..o + hw]) {
+        let act = self.act;
+        y.par_chunks_mut(hw)
+            .zip(x.par_chunks(hw))
+            .enumerate()
+            .for_each(|(plane, (y, x))| {
+                let (a, sh) = self.affine(g, b, plane % c);
+                for (yv, xv) in y.iter_mut().zip(x) {
                     *yv = act.apply(xv * a + sh);
                 }
-            }
-        }
+            });
         Ok((candle_core::CpuStorage::F32(y), l1.shape().clone()))
     }
 
@@ -1441,59 +1448,60 @@ impl candle_core::CustomOp3 for FusedBn {
         grad: &Tensor,
     ) -> Result<(Option<Tensor>, Option<Tensor>, Option<Tensor>)> {
         let (n, c, h, w) = x.dims4()?;
-        let hw = h * w;
+        let hw = (h * w).max(1);
         let cnt = (n * hw) as f32;
-        let xv = x.flatten_all()?.to_vec1::<f32>()?;
-        let mut gv = grad.flatten_all()?.to_vec1::<f32>()?;
         let gam = gamma.to_vec1::<f32>()?;
-        if self.act != Act::None {
-            // Through the activation first: the pre-activation is recomputed.
-            let beta = beta.to_vec1::<f32>()?;
-            for ni in 0..n {
-                for ci in 0..c {
-                    let o = (ni * c + ci) * hw;
-                    let a = gam[ci] * self.invstd[ci];
-                    let sh = beta[ci] - self.mean[ci] * a;
-                    for (g, xx) in gv[o..o + hw].iter_mut().zip(&xv[o..o + hw]) {
-                        *g *= self.act.slope(xx * a + sh);
-                    }
-                }
-            }
-        }
-        let mut sg = vec![0f32; c];
-        let mut sgx = vec![0f32; c];
-        for ni in 0..n {
-            for ci in 0..c {
-                let o = (ni * c + ci) * hw;
-                let (m, is) = (self.mean[ci], self.invstd[ci]);
-                let (mut a, mut bsum) = (0f32, 0f32);
-                for (g, xx) in gv[o..o + hw].iter().zip(&xv[o..o + hw]) {
-                    a += g;
-                    bsum += g * (xx - m) * is;
-                }
-                sg[ci] += a;
-                sgx[ci] += bsum;
-            }
-        }
-        let mut dx = vec![0f32; xv.len()];
-        for ni in 0..n {
-            for ci in 0..c {
-                let o = (ni * c + ci) * hw;
-                let (m, is) = (self.mean[ci], self.invstd[ci]);
-                let k = gam[ci] * is;
-                if self.batch_stats {
-                    let (mg, mgx) = (sg[ci] / cnt, sgx[ci] / cnt);
-                    for i in o..o + hw {
-                        let xh = (xv[i] - m) * is;
-                        dx[i] = k * (gv[i] - mg - xh * mgx);
-                    }
-                } else {
-                    for i in o..o + hw {
-                        dx[i] = k * gv[i];
-                    }
-                }
-            }
-        }
+        let bet = beta.to_vec1::<f32>()?;
+        let act = self.act;
+        // The gradient through the activation (pre-activation recomputed from x).
+        let gz = |g: f32, x: f32, a: f32, sh: f32| g * act.slope(x * a + sh);
+        let (dx, sg, sgx) = with_f32(x, |xv| {
+            with_f32(grad, |gv| {
+                // Per channel: sum of gz and of gz * x_hat, planes in batch order.
+                let (sg, sgx): (Vec<f32>, Vec<f32>) = (0..c)
+                    .into_par_iter()
+                    .map(|ci| {
+                        let (a, sh) = self.affine(&gam, &bet, ci);
+                        let (m, is) = (self.mean[ci], self.invstd[ci]);
+                        let (mut s, mut sx) = (0f32, 0f32);
+                        for ni in 0..n {
+                            let o = (ni * c + ci) * hw;
+                            let (mut ps, mut psx) = (0f32, 0f32);
+                            for (g, xx) in gv[o..o + hw].iter().zip(&xv[o..o + hw]) {
+                                let g = gz(*g, *xx, a, sh);
+                                ps += g;
+                                psx += g * (xx - m) * is;
+                            }
+                            s += ps;
+                            sx += psx;
+                        }
+                        (s, sx)
+                    })
+                    .unzip();
+                let mut dx = vec![0f32; xv.len()];
+                dx.par_chunks_mut(hw)
+                    .zip(xv.par_chunks(hw).zip(gv.par_chunks(hw)))
+                    .enumerate()
+                    .for_each(|(plane, (dx, (xv, gv)))| {
+                        let ci = plane % c;
+                        let (a, sh) = self.affine(&gam, &bet, ci);
+                        let (m, is) = (self.mean[ci], self.invstd[ci]);
+                        let k = gam[ci] * is;
+                        if self.batch_stats {
+                            let (mg, mgx) = (sg[ci] / cnt, sgx[ci] / cnt);
+                            for ((d, x), g) in dx.iter_mut().zip(xv).zip(gv) {
+                                let xh = (x - m) * is;
+                                *d = k * (gz(*g, *x, a, sh) - mg - xh * mgx);
+                            }
+                        } else {
+                            for ((d, x), g) in dx.iter_mut().zip(xv).zip(gv) {
+                                *d = k * gz(*g, *x, a, sh);
+                            }
+                        }
+                    });
+                (dx, sg, sgx)
+            })
+        })??;
         let dev = x.device();
         Ok((
             Some(Tensor::from_vec(dx, (n, c, h, w), dev)?),
@@ -1560,23 +1568,25 @@ impl BatchNorm2d {
         let x = x.contiguous()?;
         let (n, c, h, w) = x.dims4()?;
         let (mean, invstd) = if train {
-            let xv = x.flatten_all()?.to_vec1::<f32>()?;
             let hw = h * w;
             let cnt = (n * hw) as f64;
-            let mut mean = vec![0f64; c];
-            let mut sq = vec![0f64; c];
-            for ni in 0..n {
-                for ci in 0..c {
-                    let o = (ni * c + ci) * hw;
-                    let (mut s, mut s2) = (0f64, 0f64);
-                    for &v in &xv[o..o + hw] {
-                        s += v as f64;
-                        s2 += (v as f64) * (v as f64);
-                    }
-                    mean[ci] += s;
-                    sq[ci] += s2;
-                }
-            }
+            // Per channel, planes in batch order (deterministic).
+            let (mut mean, sq): (Vec<f64>, Vec<f64>) = with_f32(&x, |xv| {
+                (0..c)
+                    .into_par_iter()
+                    .map(|ci| {
+                        let (mut s, mut s2) = (0f64, 0f64);
+                        for ni in 0..n {
+                            let o = (ni * c + ci) * hw;
+                            for &v in &xv[o..o + hw] {
+                                s += v as f64;
+                                s2 += (v as f64) * (v as f64);
+                            }
+                        }
+                        (s, s2)
+                    })
+                    .unzip()
+            })?;
             let mut var = vec![0f64; c];
             for ci in 0..c {
                 mean[ci] /= cnt;
