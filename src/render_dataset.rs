@@ -113,7 +113,7 @@ pub fn render_dataset(
     std::fs::create_dir_all(options.output.join("targets").join("errors"))
         .map_err(|e| Error::io(&options.output, e))?;
     let (mut samples, mut bytes, mut distinct) = (0usize, 0u64, 0usize);
-    let mut skipped: Vec<ErrorRecord> = Vec::new();
+    let mut skipped = SkipTally::default();
     let mut offset = 0u64;
     // Encoding and writing shard k (one thread) overlaps reading and rendering shard
     // k+1 (rayon), so the sequential Parquet work does not leave a core idle.
@@ -133,7 +133,12 @@ pub fn render_dataset(
                     + samples_table::parquet_row_count(&errors_path)?
                     == shard.rows
             {
-                skipped.extend(samples_table::read_errors(&errors_path)?);
+                let n = samples_table::parquet_row_count(&errors_path)?;
+                if n > 0 && skipped.examples.len() < SkipTally::EXAMPLES {
+                    skipped.add(&samples_table::read_errors(&errors_path)?);
+                } else {
+                    skipped.count += n;
+                }
                 progress(shard.rows);
             } else {
                 let rows = samples_table::read_samples(&dataset.join(&shard.samples_file))?;
@@ -235,7 +240,7 @@ pub fn render_dataset(
                     &errors_path,
                     &mut samples_table::errors_frame(&bad)?,
                 )?;
-                skipped.extend(bad);
+                skipped.add(&bad);
                 let path = out.clone();
                 pending = Some(scope.spawn(move || {
                     samples_table::write_parquet(
@@ -260,14 +265,67 @@ pub fn render_dataset(
         samples,
         shards: outputs.len(),
         bytes,
-        bytes_per_sample: bytes as f64 / (samples - skipped.len()).max(1) as f64,
+        bytes_per_sample: bytes as f64 / (samples - skipped.count).max(1) as f64,
         distinct_meshes: distinct,
         mode: renderer.mode,
-        skipped: skipped.len(),
-        skipped_examples: skipped
-            .iter()
-            .take(10)
-            .map(|e| format!("{}: {}", e.key, e.reason))
-            .collect(),
+        skipped: skipped.count,
+        skipped_examples: skipped.examples,
     })
+}
+
+/// The samples a run skipped: how many, and the first few reasons (the full list
+/// is in the errors files; a run over millions of samples keeps only these).
+#[derive(Debug, Default)]
+struct SkipTally {
+    count: usize,
+    examples: Vec<String>,
+}
+
+impl SkipTally {
+    /// Reasons kept for the summary.
+    const EXAMPLES: usize = 10;
+
+    fn add(&mut self, records: &[ErrorRecord]) {
+        self.count += records.len();
+        let room = Self::EXAMPLES.saturating_sub(self.examples.len());
+        self.examples.extend(
+            records
+                .iter()
+                .take(room)
+                .map(|e| format!("{}: {}", e.key, e.reason)),
+        );
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::release::SampleKey;
+
+    fn records(range: std::ops::Range<usize>) -> Vec<ErrorRecord> {
+        range
+            .map(|i| ErrorRecord {
+                key: SampleKey {
+                    subject_id: "1".into(),
+                    facial_action: "a".into(),
+                    img_id: i.to_string(),
+                },
+                split: "train".into(),
+                file: "f".into(),
+                reason: format!("reason {i}"),
+            })
+            .collect()
+    }
+
+    #[test]
+    fn skip_tally_counts_everything_and_keeps_the_first_ten_reasons() {
+        let mut tally = SkipTally::default();
+        tally.add(&records(0..7));
+        tally.add(&[]);
+        tally.add(&records(7..15));
+        assert_eq!(tally.count, 15);
+        assert_eq!(tally.examples.len(), SkipTally::EXAMPLES);
+        assert!(tally.examples[0].ends_with(": reason 0"));
+        assert!(tally.examples[9].ends_with(": reason 9"));
+    }
 }
