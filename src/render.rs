@@ -92,7 +92,7 @@ impl CropTransform {
     ///
     /// The map is an axis-aligned scale, so the bilinear taps and weights of a column
     /// depend only on its x and those of a row only on its y: they are computed once per
-    /// column and row ([`Taps`]), a tap outside the image getting weight 0. Each crop row
+    /// column and row (`Taps`), a tap outside the image getting weight 0. Each crop row
     /// then blends its two source rows over the span the columns read (contiguous, so
     /// the compiler vectorises it) and reads its pixels from that blend with two taps
     /// each. Measured with `cargo bench --bench render -- stages`: per-pixel lookups with

@@ -20,7 +20,11 @@
 //! Measured reason (`cargo bench --bench perspnet -- paper`): the previous
 //! back end built each batch's full patch matrix as a fresh tensor (up to 340 MB
 //! for a batch of 4 at 192x192), and the page faults of zero-filling it were
-//! 18% of a training step's profile, building it another 11%.
+//! 18% of a training step's profile, building it another 11%. With these kernels
+//! (and the `gemm` crate's AVX-512 kernels) the `paper` training step went from
+//! 12.5 s to 3.35 s and the forward pass from 484 to 183 ms on this machine's two
+//! cores; the blocks are sized so that a block of the patch matrix stays in the
+//! L2 cache while the GEMM reads it.
 //!
 //! # Threads and determinism
 //! Work is split by batch element (and, in the forward pass, by block) with
