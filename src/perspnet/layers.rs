@@ -494,7 +494,7 @@ struct Activation(Act);
 fn activation_grad(act: Act, res: &Tensor, grad: &Tensor) -> Result<Tensor> {
     let v = with_f32(res, |y| {
         with_f32(grad, |g| {
-            g.iter()
+            g.par_iter()
                 .zip(y)
                 .map(|(g, y)| g * act.slope(*y))
                 .collect::<Vec<f32>>()
@@ -514,7 +514,7 @@ impl candle_core::CustomOp1 for Activation {
         l: &candle_core::Layout,
     ) -> Result<(candle_core::CpuStorage, candle_core::Shape)> {
         let x = contiguous_f32(s, l)?;
-        let y = x.iter().map(|v| self.0.apply(*v)).collect();
+        let y = x.par_iter().map(|v| self.0.apply(*v)).collect();
         Ok((candle_core::CpuStorage::F32(y), l.shape().clone()))
     }
 
@@ -543,7 +543,7 @@ impl candle_core::CustomOp2 for AddRelu {
         if a.len() != b.len() {
             candle_core::bail!("add-relu: {:?} and {:?} differ", l1.shape(), l2.shape());
         }
-        let y = a.iter().zip(b).map(|(a, b)| (a + b).max(0.0)).collect();
+        let y = a.par_iter().zip(b).map(|(a, b)| (a + b).max(0.0)).collect();
         Ok((candle_core::CpuStorage::F32(y), l1.shape().clone()))
     }
 
