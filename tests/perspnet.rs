@@ -113,6 +113,29 @@ mod layers {
     }
 
     #[test]
+    fn max_pool_op_matches_the_view_composition_forward_and_backward() -> Result<()> {
+        // Distinct values (no ties), so both send each gradient to the same input;
+        // non-negative, where the views' zero padding equals PyTorch's.
+        for (h, w) in [(8, 8), (7, 9), (5, 4)] {
+            let x = Var::from_tensor(&Tensor::rand(0f32, 1., (2, 3, h, w), &Device::Cpu)?)?;
+            same_forward_and_gradients(
+                |t| max_pool_3x3_s2_p1(&t[0]),
+                |t| max_pool_3x3_s2_p1_views(&t[0]),
+                std::slice::from_ref(&x),
+                1e-6,
+            )?;
+        }
+        // Negative inputs: padding never wins (PyTorch's -inf padding).
+        let x = Tensor::new(&[-3f32, -1.0, -2.0, -4.0], &Device::Cpu)?.reshape((1, 1, 2, 2))?;
+        close(
+            &max_pool_3x3_s2_p1(&x)?.flatten_all()?.to_vec1()?,
+            &[-1.0],
+            0.0,
+        );
+        Ok(())
+    }
+
+    #[test]
     fn max_pool_matches_reference() -> Result<()> {
         let dev = Device::Cpu;
         for (h, w) in [(8, 8), (7, 9), (96, 96)] {

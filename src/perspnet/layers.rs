@@ -400,12 +400,91 @@ pub fn positional_encoding_points(
     Tensor::from_vec(out, (b, m, d_model), device)
 }
 
-/// Max pooling with kernel 3, stride 2, padding 1 (the ResNet stem), written
-/// with strided views and `maximum` so that it is differentiable.
-///
-/// Padding is with zeros, which equals PyTorch's `-inf` padding because the
-/// input is non-negative (it follows a ReLU).
+/// Max pooling with kernel 3, stride 2, padding 1 (the ResNet stem), PyTorch's
+/// `MaxPool2d(3, 2, 1)`: padding never wins, and the gradient goes to the first
+/// maximum of each window in row-major order. On f32 CPU tensors one op
+/// (forward one pass, backward the same scan scattering each output's gradient);
+/// elsewhere [`max_pool_3x3_s2_p1_views`].
 pub fn max_pool_3x3_s2_p1(x: &Tensor) -> Result<Tensor> {
+    if x.dtype() != DType::F32 || !x.device().is_cpu() {
+        return max_pool_3x3_s2_p1_views(x);
+    }
+    x.contiguous()?.apply_op1(MaxPool3x3S2)
+}
+
+/// The op behind [`max_pool_3x3_s2_p1`].
+#[derive(Debug, Clone, Copy)]
+struct MaxPool3x3S2;
+
+impl MaxPool3x3S2 {
+    /// For each output of one `h x w` plane, the flat index of its window's
+    /// first maximum, passed to `out(output index, input index)`.
+    fn scan(x: &[f32], h: usize, w: usize, mut out: impl FnMut(usize, usize)) {
+        let (oh, ow) = ((h + 1) / 2, (w + 1) / 2);
+        for oy in 0..oh {
+            let rows = (2 * oy).saturating_sub(1)..(2 * oy + 2).min(h);
+            for ox in 0..ow {
+                let cols = (2 * ox).saturating_sub(1)..(2 * ox + 2).min(w);
+                let mut best = rows.start * w + cols.start;
+                for iy in rows.clone() {
+                    for ix in cols.clone() {
+                        let i = iy * w + ix;
+                        if x[i] > x[best] {
+                            best = i;
+                        }
+                    }
+                }
+                out(oy * ow + ox, best);
+            }
+        }
+    }
+}
+
+impl candle_core::CustomOp1 for MaxPool3x3S2 {
+    fn name(&self) -> &'static str {
+        "max-pool-3x3-s2-p1"
+    }
+
+    fn cpu_fwd(
+        &self,
+        s: &candle_core::CpuStorage,
+        l: &candle_core::Layout,
+    ) -> Result<(candle_core::CpuStorage, candle_core::Shape)> {
+        let x = contiguous_f32(s, l)?;
+        let (b, c, h, w) = l.shape().dims4()?;
+        let (oh, ow) = ((h + 1) / 2, (w + 1) / 2);
+        let mut y = vec![0f32; b * c * oh * ow];
+        if h * w > 0 {
+            y.par_chunks_mut(oh * ow)
+                .zip(x.par_chunks(h * w))
+                .for_each(|(y, x)| Self::scan(x, h, w, |o, i| y[o] = x[i]));
+        }
+        Ok((candle_core::CpuStorage::F32(y), (b, c, oh, ow).into()))
+    }
+
+    fn bwd(&self, x: &Tensor, _res: &Tensor, grad: &Tensor) -> Result<Option<Tensor>> {
+        let (b, c, h, w) = x.dims4()?;
+        let (oh, ow) = ((h + 1) / 2, (w + 1) / 2);
+        let v = with_f32(x, |xv| {
+            with_f32(grad, |g| {
+                let mut dx = vec![0f32; b * c * h * w];
+                if h * w > 0 {
+                    dx.par_chunks_mut(h * w)
+                        .zip(xv.par_chunks(h * w).zip(g.par_chunks(oh * ow)))
+                        .for_each(|(dx, (x, g))| Self::scan(x, h, w, |o, i| dx[i] += g[o]));
+                }
+                dx
+            })
+        })??;
+        Ok(Some(Tensor::from_vec(v, x.shape(), x.device())?))
+    }
+}
+
+/// [`max_pool_3x3_s2_p1`] written with strided views and `maximum` (candle
+/// differentiates it; any device). Padding is with zeros, which equals
+/// PyTorch's `-inf` padding only because the stem's input is non-negative
+/// (it follows a ReLU).
+pub fn max_pool_3x3_s2_p1_views(x: &Tensor) -> Result<Tensor> {
     let (_b, _c, h, w) = x.dims4()?;
     let oh = (h + 2 - 3) / 2 + 1;
     let ow = (w + 2 - 3) / 2 + 1;
