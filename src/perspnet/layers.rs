@@ -420,7 +420,7 @@ impl MaxPool3x3S2 {
     /// For each output of one `h x w` plane, the flat index of its window's
     /// first maximum, passed to `out(output index, input index)`.
     fn scan(x: &[f32], h: usize, w: usize, mut out: impl FnMut(usize, usize)) {
-        let (oh, ow) = ((h + 1) / 2, (w + 1) / 2);
+        let (oh, ow) = (h.div_ceil(2), w.div_ceil(2));
         for oy in 0..oh {
             let rows = (2 * oy).saturating_sub(1)..(2 * oy + 2).min(h);
             for ox in 0..ow {
@@ -452,7 +452,7 @@ impl candle_core::CustomOp1 for MaxPool3x3S2 {
     ) -> Result<(candle_core::CpuStorage, candle_core::Shape)> {
         let x = contiguous_f32(s, l)?;
         let (b, c, h, w) = l.shape().dims4()?;
-        let (oh, ow) = ((h + 1) / 2, (w + 1) / 2);
+        let (oh, ow) = (h.div_ceil(2), w.div_ceil(2));
         let mut y = vec![0f32; b * c * oh * ow];
         if h * w > 0 {
             y.par_chunks_mut(oh * ow)
@@ -464,7 +464,7 @@ impl candle_core::CustomOp1 for MaxPool3x3S2 {
 
     fn bwd(&self, x: &Tensor, _res: &Tensor, grad: &Tensor) -> Result<Option<Tensor>> {
         let (b, c, h, w) = x.dims4()?;
-        let (oh, ow) = ((h + 1) / 2, (w + 1) / 2);
+        let (oh, ow) = (h.div_ceil(2), w.div_ceil(2));
         let v = with_f32(x, |xv| {
             with_f32(grad, |g| {
                 let mut dx = vec![0f32; b * c * h * w];
