@@ -113,6 +113,44 @@ mod layers {
     }
 
     #[test]
+    fn point_reads_match_the_candle_compositions_forward_and_backward() -> Result<()> {
+        // The f64 path is candle's composition (index_select, weighted sum); the f32
+        // path is the CPU op.
+        let dev = Device::Cpu;
+        let f64_path = |f: &dyn Fn(&Tensor) -> Result<Tensor>, t: &Tensor| -> Result<Tensor> {
+            f(&t.to_dtype(candle_core::DType::F64)?)?.to_dtype(candle_core::DType::F32)
+        };
+        let uv = Tensor::new(
+            &[
+                [0.1f32, 0.2],
+                [0.0, 1.0],
+                [0.5, 0.5],
+                [0.97, 0.33],
+                [0.26, 0.74],
+            ],
+            &dev,
+        )?;
+        let sampler = PointSampler::new(&uv, 5, 7)?;
+        let map = Var::from_tensor(&Tensor::randn(0f32, 1., (2, 3, 5, 7), &dev)?)?;
+        same_forward_and_gradients(
+            |t| sampler.sample(&t[0]),
+            |t| f64_path(&|x| sampler.sample(x), &t[0]),
+            std::slice::from_ref(&map),
+            1e-5,
+        )?;
+        // Repeated pixels accumulate their gradients.
+        let choose = Tensor::new(&[[3u32, 0, 34, 3], [7, 7, 12, 1]], &dev)?;
+        same_forward_and_gradients(
+            |t| gather_pixels(&t[0], &choose),
+            |t| f64_path(&|x| gather_pixels(x, &choose), &t[0]),
+            std::slice::from_ref(&map),
+            1e-5,
+        )?;
+        assert!(gather_pixels(map.as_tensor(), &Tensor::new(&[[35u32], [0]], &dev)?).is_err());
+        Ok(())
+    }
+
+    #[test]
     fn max_pool_op_matches_the_view_composition_forward_and_backward() -> Result<()> {
         // Distinct values (no ties), so both send each gradient to the same input;
         // non-negative, where the views' zero padding equals PyTorch's.

@@ -243,6 +243,8 @@ pub struct PointSampler {
     indices: Tensor,
     /// Neighbour weights `4 x P` (zero for out-of-range neighbours).
     weights: Tensor,
+    /// The same indices and weights on the host, for the CPU op.
+    taps: std::sync::Arc<(Vec<u32>, Vec<f32>)>,
     points: usize,
     height: usize,
     width: usize,
@@ -288,8 +290,9 @@ impl PointSampler {
             }
         }
         Ok(Self {
-            indices: Tensor::from_vec(idx, 4 * p, device)?,
-            weights: Tensor::from_vec(wts, (4, p), device)?,
+            indices: Tensor::from_vec(idx.clone(), 4 * p, device)?,
+            weights: Tensor::from_vec(wts.clone(), (4, p), device)?,
+            taps: std::sync::Arc::new((idx, wts)),
             points: p,
             height,
             width,
@@ -311,6 +314,12 @@ impl PointSampler {
                 self.width
             );
         }
+        if map.dtype() == DType::F32 && map.device().is_cpu() {
+            return map.contiguous()?.apply_op1(SamplePoints {
+                taps: self.taps.clone(),
+                points: self.points,
+            });
+        }
         let flat = map.reshape((b, c, h * w))?;
         let g = flat.index_select(&self.indices, 2)?; // B x C x 4P
         let g = g.reshape((b, c, 4, self.points))?;
@@ -322,14 +331,83 @@ impl PointSampler {
     }
 }
 
+/// The CPU op behind [`PointSampler::sample`]: each output is the weighted sum
+/// of its four texels; the backward scatters each output's gradient onto them
+/// (one zeroed map and `4 P` additions per channel, instead of candle's
+/// `index_select` backward, broadcast and strided sum).
+#[derive(Debug, Clone)]
+struct SamplePoints {
+    taps: std::sync::Arc<(Vec<u32>, Vec<f32>)>,
+    points: usize,
+}
+
+impl candle_core::CustomOp1 for SamplePoints {
+    fn name(&self) -> &'static str {
+        "sample-points"
+    }
+
+    fn cpu_fwd(
+        &self,
+        s: &candle_core::CpuStorage,
+        l: &candle_core::Layout,
+    ) -> Result<(candle_core::CpuStorage, candle_core::Shape)> {
+        let x = contiguous_f32(s, l)?;
+        let (b, c, h, w) = l.shape().dims4()?;
+        let (idx, wts) = &*self.taps;
+        let p = self.points;
+        let mut y = vec![0f32; b * c * p];
+        y.par_chunks_mut(p.max(1))
+            .zip(x.par_chunks((h * w).max(1)))
+            .for_each(|(y, plane)| {
+                for (k, y) in y.iter_mut().enumerate() {
+                    *y = (0..4)
+                        .map(|n| wts[n * p + k] * plane[idx[n * p + k] as usize])
+                        .sum();
+                }
+            });
+        Ok((candle_core::CpuStorage::F32(y), (b, c, p).into()))
+    }
+
+    fn bwd(&self, x: &Tensor, _res: &Tensor, grad: &Tensor) -> Result<Option<Tensor>> {
+        let (b, c, h, w) = x.dims4()?;
+        let (idx, wts) = &*self.taps;
+        let p = self.points;
+        let v = with_f32(grad, |g| {
+            let mut dx = vec![0f32; b * c * h * w];
+            dx.par_chunks_mut((h * w).max(1))
+                .zip(g.par_chunks(p.max(1)))
+                .for_each(|(dx, g)| {
+                    for n in 0..4 {
+                        for (k, g) in g.iter().enumerate() {
+                            dx[idx[n * p + k] as usize] += wts[n * p + k] * g;
+                        }
+                    }
+                });
+            dx
+        })?;
+        Ok(Some(Tensor::from_vec(v, x.shape(), x.device())?))
+    }
+}
+
 /// Gathers per-batch pixels: `feat` is `B x C x H x W`, `choose` is `B x M`
 /// (u32 flat indices `y * W + x`); returns `B x M x C` (points-major, ready for
-/// the per-point linear layers).
+/// the per-point linear layers). On f32 CPU tensors one op (no transposed copy of
+/// the map; the backward scatters into one zeroed map).
 pub fn gather_pixels(feat: &Tensor, choose: &Tensor) -> Result<Tensor> {
     let (b, c, h, w) = feat.dims4()?;
     let (b2, m) = choose.dims2()?;
     if b != b2 {
         candle_core::bail!("gather_pixels: batch {b} vs choose batch {b2}");
+    }
+    if feat.dtype() == DType::F32 && feat.device().is_cpu() {
+        let ids: Vec<u32> = choose.to_dtype(DType::U32)?.flatten_all()?.to_vec1()?;
+        if let Some(bad) = ids.iter().find(|i| **i as usize >= h * w) {
+            candle_core::bail!("gather_pixels: pixel {bad} outside a {h}x{w} map");
+        }
+        return feat.contiguous()?.apply_op1(GatherPixels {
+            ids: std::sync::Arc::new(ids),
+            m,
+        });
     }
     // Flatten batch and pixels into one axis: (B*HW) x C.
     let flat = feat
@@ -345,6 +423,57 @@ pub fn gather_pixels(feat: &Tensor, choose: &Tensor) -> Result<Tensor> {
         .broadcast_add(&offs)?
         .flatten_all()?;
     flat.index_select(&ids, 0)?.reshape((b, m, c))
+}
+
+/// The CPU op behind [`gather_pixels`] (`ids`: `B x M` flat pixel indices).
+#[derive(Debug, Clone)]
+struct GatherPixels {
+    ids: std::sync::Arc<Vec<u32>>,
+    m: usize,
+}
+
+impl candle_core::CustomOp1 for GatherPixels {
+    fn name(&self) -> &'static str {
+        "gather-pixels"
+    }
+
+    fn cpu_fwd(
+        &self,
+        s: &candle_core::CpuStorage,
+        l: &candle_core::Layout,
+    ) -> Result<(candle_core::CpuStorage, candle_core::Shape)> {
+        let x = contiguous_f32(s, l)?;
+        let (b, c, h, w) = l.shape().dims4()?;
+        let (m, hw) = (self.m, h * w);
+        let mut y = vec![0f32; b * m * c];
+        for bi in 0..b {
+            for (k, &id) in self.ids[bi * m..(bi + 1) * m].iter().enumerate() {
+                let row = &mut y[(bi * m + k) * c..(bi * m + k + 1) * c];
+                for (ci, v) in row.iter_mut().enumerate() {
+                    *v = x[(bi * c + ci) * hw + id as usize];
+                }
+            }
+        }
+        Ok((candle_core::CpuStorage::F32(y), (b, m, c).into()))
+    }
+
+    fn bwd(&self, x: &Tensor, _res: &Tensor, grad: &Tensor) -> Result<Option<Tensor>> {
+        let (b, c, h, w) = x.dims4()?;
+        let (m, hw) = (self.m, h * w);
+        let v = with_f32(grad, |g| {
+            let mut dx = vec![0f32; b * c * hw];
+            for bi in 0..b {
+                for (k, &id) in self.ids[bi * m..(bi + 1) * m].iter().enumerate() {
+                    let row = &g[(bi * m + k) * c..(bi * m + k + 1) * c];
+                    for (ci, v) in row.iter().enumerate() {
+                        dx[(bi * c + ci) * hw + id as usize] += v;
+                    }
+                }
+            }
+            dx
+        })?;
+        Ok(Some(Tensor::from_vec(v, x.shape(), x.device())?))
+    }
 }
 
 /// The official `positionalencoding2d(d_model, H, W)` evaluated at pixel
