@@ -219,51 +219,68 @@ impl SharedOut {
 /// returns `b x co x ho x wo`.
 pub fn forward(x: &[f32], w: &[f32], s: &ConvShape) -> Vec<f32> {
     let (k, n, co, wo) = (s.k(), s.n(), s.co, s.wo());
-    let mut y = vec![0f32; s.b * co * n];
-    s.check(x.len(), w.len(), y.len());
+    let len = s.b * co * n;
+    s.check(x.len(), w.len(), len);
+    // Zero-filled although every value is written below: the GEMM may load (and
+    // then discard) parts of its destination, which must not be uninitialised.
+    let mut y = vec![0f32; len];
     let img = s.c * s.h * s.w;
     let wm = Mat::row_major(co, k, k);
-    if s.is_pointwise() {
-        y.par_chunks_mut(co * n)
-            .zip(x.par_chunks(img))
-            .for_each(|(yb, xb)| {
-                gemm(
-                    yb,
-                    Mat::row_major(co, n, n),
-                    w,
-                    wm,
-                    xb,
-                    Mat::row_major(k, n, n),
-                    false,
-                )
-            });
-        return y;
-    }
-    let blocks = s.blocks();
-    let tasks: Vec<(usize, usize, usize)> = (0..s.b)
-        .flat_map(|bi| blocks.iter().map(move |&(a, e)| (bi, a, e)))
-        .collect();
-    let out = SharedOut(y.as_mut_ptr(), y.len());
+    let out = SharedOut(y.as_mut_ptr(), len);
+    let tasks: Vec<(usize, usize, usize)> = if s.is_pointwise() {
+        (0..s.b).map(|bi| (bi, 0, s.ho())).collect()
+    } else {
+        let blocks = s.blocks();
+        (0..s.b)
+            .flat_map(|bi| blocks.iter().map(move |&(a, e)| (bi, a, e)))
+            .collect()
+    };
     tasks.par_iter().for_each(|&(bi, oy0, oy1)| {
         let nb = (oy1 - oy0) * wo;
-        let mut cols = vec![0f32; k * nb];
-        im2col_block(&x[bi * img..(bi + 1) * img], s, oy0, oy1, &mut cols);
-        // SAFETY: task (bi, block) writes only columns [oy0 wo, oy1 wo) of image
-        // bi's rows; no two tasks share a (bi, block) pair, `y` outlives the
-        // parallel loop and is not otherwise touched during it.
-        unsafe {
-            gemm_raw(
-                out.at(bi * co * n + oy0 * wo),
-                Mat::row_major(co, nb, n),
-                w,
-                wm,
-                &cols,
-                Mat::row_major(k, nb, nb),
-                false,
-            )
+        let xb = &x[bi * img..(bi + 1) * img];
+        let product = |cols: &[f32]| {
+            // SAFETY: task (bi, block) writes only columns [oy0 wo, oy1 wo) of
+            // image bi's rows, each once; no two tasks share a (bi, block) pair;
+            // `y` outlives the parallel loop and nothing else touches it during it.
+            unsafe {
+                gemm_raw(
+                    out.at(bi * co * n + oy0 * wo),
+                    Mat::row_major(co, nb, n),
+                    w,
+                    wm,
+                    cols,
+                    Mat::row_major(k, nb, nb),
+                    false,
+                )
+            }
         };
+        if s.is_pointwise() {
+            product(xb);
+        } else {
+            with_scratch(k * nb, |cols| {
+                im2col_block(xb, s, oy0, oy1, cols);
+                product(cols);
+            });
+        }
     });
     y
+}
+
+thread_local! {
+    /// Per-thread buffer for blocks of the patch matrix, reused across calls.
+    static SCRATCH: std::cell::RefCell<Vec<f32>> = const { std::cell::RefCell::new(Vec::new()) };
+}
+
+/// Runs `f` on this thread's scratch buffer of at least `len` values (contents
+/// unspecified: `f` must write before it reads). `f` must not call back here.
+fn with_scratch<R>(len: usize, f: impl FnOnce(&mut [f32]) -> R) -> R {
+    SCRATCH.with(|cell| {
+        let mut buf = cell.borrow_mut();
+        if buf.len() < len {
+            buf.resize(len, 0.0);
+        }
+        f(&mut buf[..len])
+    })
 }
 
 /// Input gradient: `g` is the output gradient (`b x co x ho x wo`), `w` the
@@ -290,21 +307,22 @@ pub fn input_grad(g: &[f32], w: &[f32], s: &ConvShape) -> Vec<f32> {
                 );
                 return;
             }
-            let mut cols = Vec::new();
-            for &(oy0, oy1) in &blocks {
-                let nb = (oy1 - oy0) * wo;
-                cols.resize(k * nb, 0.0);
-                gemm(
-                    &mut cols,
-                    Mat::row_major(k, nb, nb),
-                    w,
-                    wt,
-                    &gb[oy0 * wo..],
-                    Mat::row_major(co, nb, n),
-                    false,
-                );
-                col2im_block(&cols, s, oy0, oy1, dxb);
-            }
+            with_scratch(k * s.rows_per_block() * wo, |buf| {
+                for &(oy0, oy1) in &blocks {
+                    let nb = (oy1 - oy0) * wo;
+                    let cols = &mut buf[..k * nb];
+                    gemm(
+                        cols,
+                        Mat::row_major(k, nb, nb),
+                        w,
+                        wt,
+                        &gb[oy0 * wo..],
+                        Mat::row_major(co, nb, n),
+                        false,
+                    );
+                    col2im_block(cols, s, oy0, oy1, dxb);
+                }
+            });
         });
     dx
 }
@@ -321,26 +339,31 @@ pub fn kernel_grad(x: &[f32], g: &[f32], s: &ConvShape) -> Vec<f32> {
         .zip(g.par_chunks(co * n))
         .map(|(xb, gb)| {
             let mut dw = vec![0f32; co * k];
-            let mut cols = Vec::new();
-            for (i, &(oy0, oy1)) in blocks.iter().enumerate() {
-                let nb = (oy1 - oy0) * wo;
-                let patches: &[f32] = if s.is_pointwise() {
-                    xb
-                } else {
-                    cols.resize(k * nb, 0.0);
-                    im2col_block(xb, s, oy0, oy1, &mut cols);
-                    &cols
-                };
-                gemm(
-                    &mut dw,
-                    Mat::row_major(co, k, k),
-                    &gb[oy0 * wo..],
-                    Mat::row_major(co, nb, n),
-                    patches,
-                    Mat::row_major(k, nb, nb).transposed(),
-                    i > 0,
-                );
-            }
+            let scratch = if s.is_pointwise() {
+                0
+            } else {
+                k * s.rows_per_block() * wo
+            };
+            with_scratch(scratch, |buf| {
+                for (i, &(oy0, oy1)) in blocks.iter().enumerate() {
+                    let nb = (oy1 - oy0) * wo;
+                    let patches: &[f32] = if s.is_pointwise() {
+                        xb
+                    } else {
+                        im2col_block(xb, s, oy0, oy1, &mut buf[..k * nb]);
+                        &buf[..k * nb]
+                    };
+                    gemm(
+                        &mut dw,
+                        Mat::row_major(co, k, k),
+                        &gb[oy0 * wo..],
+                        Mat::row_major(co, nb, n),
+                        patches,
+                        Mat::row_major(k, nb, nb).transposed(),
+                        i > 0,
+                    );
+                }
+            });
             dw
         })
         .collect();
