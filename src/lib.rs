@@ -46,6 +46,7 @@ pub mod error;
 pub mod eval;
 pub mod eval_dataset;
 pub mod npy;
+pub mod official_crop;
 pub mod overlay;
 pub mod perspnet;
 pub mod plot;

@@ -30,28 +30,10 @@ use rayon::prelude::*;
 use std::collections::HashMap;
 use std::path::Path;
 
-/// Where a crop pixel is sampled, in crop pixel units from its top-left corner.
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub enum PixelSample {
-    /// At the centre, `+0.5` (ours).
-    Centre,
-    /// At the top-left corner (the official rules).
-    Corner,
-}
-
-impl PixelSample {
-    fn offset(self) -> f64 {
-        match self {
-            PixelSample::Centre => 0.5,
-            PixelSample::Corner => 0.0,
-        }
-    }
-}
-
-/// The image point of crop pixel index `pixel` (row-major in a `crop.size` square).
-pub fn crop_pixel_to_image(crop: &CropTransform, pixel: u32, at: PixelSample) -> Point2<f64> {
-    let (col, row) = (pixel % crop.size, pixel / crop.size);
-    let (u, v) = crop.to_image(col as f64 + at.offset(), row as f64 + at.offset());
+/// The image point of crop pixel index `pixel` (row-major in a `crop.size` square): its
+/// centre or its corner, as the crop's [`crate::render::CropSampling`] says.
+pub fn crop_pixel_to_image(crop: &CropTransform, pixel: u32) -> Point2<f64> {
+    let (u, v) = crop.pixel_to_image(pixel % crop.size, pixel / crop.size);
     Point2::new(u, v)
 }
 
@@ -109,18 +91,6 @@ pub struct OracleSummary {
     pub mean_points: f64,
 }
 
-fn targets_pixel_sample(targets_dir: &Path) -> Result<PixelSample> {
-    let path = targets_dir.join("targets").join("render.json");
-    let text = std::fs::read_to_string(&path).map_err(|e| Error::io(&path, e))?;
-    let v: serde_json::Value =
-        serde_json::from_str(&text).map_err(|e| Error::format(&path, e.to_string()))?;
-    Ok(if v["mode"] == "official" {
-        PixelSample::Corner
-    } else {
-        PixelSample::Centre
-    })
-}
-
 /// Canonical points and the image points where they are seen.
 pub type Correspondences = (Vec<Point3<f64>>, Vec<Point2<f64>>);
 
@@ -129,7 +99,6 @@ pub type Correspondences = (Vec<Point3<f64>>, Vec<Point2<f64>>);
 pub fn stored_correspondences(
     record: &TargetsRecord,
     verts: &[Point3<f32>],
-    at: PixelSample,
 ) -> Result<Correspondences> {
     let d = targets_table::dense(record, verts)?;
     let mut seen = std::collections::HashSet::new();
@@ -137,7 +106,7 @@ pub fn stored_correspondences(
     for (px, c) in d.chosen_pixels.iter().zip(&d.coords) {
         if seen.insert(*px) {
             object.push(Point3::new(c[0] as f64, c[1] as f64, c[2] as f64));
-            image.push(crop_pixel_to_image(&record.crop, *px, at));
+            image.push(crop_pixel_to_image(&record.crop, *px));
         }
     }
     Ok((object, image))
@@ -151,7 +120,6 @@ pub fn oracle_predictions(
     progress: &(dyn Fn(usize) + Sync),
 ) -> Result<(Vec<PredictionRecord>, OracleSummary)> {
     let manifest = read_manifest(&dataset.join("dataset.json"))?;
-    let at = targets_pixel_sample(targets_dir)?;
     let splits = crate::eval_dataset::SplitLookup::read(dataset)?;
     let mut out = Vec::new();
     let mut summary = OracleSummary::default();
@@ -181,7 +149,7 @@ pub fn oracle_predictions(
                     .chunks_exact(3)
                     .map(|c| Point3::new(c[0], c[1], c[2]))
                     .collect();
-                let (object, mut image) = stored_correspondences(t, &verts, at)?;
+                let (object, mut image) = stored_correspondences(t, &verts)?;
                 let mut rng = Rng::for_stream(options.seed, (shard.index as u64) << 32 | *i as u64);
                 for p in &mut image {
                     if rng.next_f64() < options.outliers {
@@ -319,17 +287,24 @@ mod tests {
 
     #[test]
     fn crop_pixels_map_to_their_centres_or_corners() {
-        let crop = CropTransform {
+        let mut crop = CropTransform {
             x0: 100.0,
             y0: 50.0,
             side: 96.0,
+            side_y: 96.0,
             size: 192,
+            sampling: crate::render::CropSampling::Centres,
         };
         // Pixel (3, 2) of the crop: centre at (3.5, 2.5) crop px = half-size image px.
-        let p = crop_pixel_to_image(&crop, 2 * 192 + 3, PixelSample::Centre);
+        let p = crop_pixel_to_image(&crop, 2 * 192 + 3);
         assert_eq!((p.x, p.y), (101.75, 51.25));
-        let q = crop_pixel_to_image(&crop, 2 * 192 + 3, PixelSample::Corner);
+        crop.sampling = crate::render::CropSampling::Corners;
+        let q = crop_pixel_to_image(&crop, 2 * 192 + 3);
         assert_eq!((q.x, q.y), (101.5, 51.0));
+        // A taller box scales rows by its own height.
+        crop.side_y = 192.0;
+        let r = crop_pixel_to_image(&crop, 2 * 192 + 3);
+        assert_eq!((r.x, r.y), (101.5, 52.0));
     }
 
     #[test]

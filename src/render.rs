@@ -38,10 +38,46 @@ pub struct CropTransform {
     pub x0: f64,
     /// Top edge of the box in image pixels.
     pub y0: f64,
-    /// Side of the box in image pixels.
+    /// Width of the box in image pixels.
     pub side: f64,
+    /// Height of the box in image pixels: `side` for our square box; the official box
+    /// ([`crate::official_crop`]) can be a pixel taller or wider.
+    pub side_y: f64,
     /// Side of the crop in pixels.
     pub size: u32,
+    /// Where a crop pixel samples the box.
+    pub sampling: CropSampling,
+}
+
+/// Where crop pixel `(i, j)` sits in the crop's continuous coordinates.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum CropSampling {
+    /// At its centre `(i + 0.5, j + 0.5)`: the crate's pixel-centre rule (`render`'s
+    /// default).
+    #[default]
+    Centres,
+    /// At the integer point `(i, j)`, as OpenCV and the official loader put it
+    /// (`render --compat official`).
+    Corners,
+}
+
+impl CropSampling {
+    /// The offset of a pixel's sample point from its index.
+    pub fn offset(self) -> f64 {
+        match self {
+            CropSampling::Centres => 0.5,
+            CropSampling::Corners => 0.0,
+        }
+    }
+
+    /// The name stored in the `crop_sampling` column.
+    pub fn name(self) -> &'static str {
+        match self {
+            CropSampling::Centres => "centre",
+            CropSampling::Corners => "corner",
+        }
+    }
 }
 
 impl CropTransform {
@@ -61,30 +97,41 @@ impl CropTransform {
             x0: cx - half,
             y0: cy - half,
             side: 2.0 * half,
+            side_y: 2.0 * half,
             size,
+            sampling: CropSampling::Centres,
         }
     }
 
-    /// Crop scale: crop pixels per image pixel.
-    pub fn scale(&self) -> f64 {
-        self.size as f64 / self.side
+    /// Crop scales: crop pixels per image pixel, horizontally and vertically.
+    pub fn scales(&self) -> (f64, f64) {
+        (self.size as f64 / self.side, self.size as f64 / self.side_y)
     }
 
     /// Image point to crop point.
     pub fn to_crop(&self, u: f64, v: f64) -> (f64, f64) {
-        ((u - self.x0) * self.scale(), (v - self.y0) * self.scale())
+        let (sx, sy) = self.scales();
+        ((u - self.x0) * sx, (v - self.y0) * sy)
     }
 
     /// Crop point to image point.
     pub fn to_image(&self, cu: f64, cv: f64) -> (f64, f64) {
-        (self.x0 + cu / self.scale(), self.y0 + cv / self.scale())
+        let (sx, sy) = self.scales();
+        (self.x0 + cu / sx, self.y0 + cv / sy)
+    }
+
+    /// The image point crop pixel `(i, j)` samples (its centre or its corner, by
+    /// [`CropTransform::sampling`]).
+    pub fn pixel_to_image(&self, i: u32, j: u32) -> (f64, f64) {
+        let o = self.sampling.offset();
+        self.to_image(i as f64 + o, j as f64 + o)
     }
 
     /// The map as a 2x3 row-major affine matrix, image to crop: `[a, b, c, d, e, f]` with
     /// `cu = a u + b v + c`, `cv = d u + e v + f`.
     pub fn affine(&self) -> [f64; 6] {
-        let s = self.scale();
-        [s, 0.0, -self.x0 * s, 0.0, s, -self.y0 * s]
+        let (sx, sy) = self.scales();
+        [sx, 0.0, -self.x0 * sx, 0.0, sy, -self.y0 * sy]
     }
 
     /// Resamples `image` into the crop (bilinear, each crop pixel centre mapped to the
@@ -98,15 +145,24 @@ impl CropTransform {
     /// each. Measured with `cargo bench --bench render -- stages`: per-pixel lookups with
     /// bounds checks were about 6x slower than four taps per pixel from the tables, and
     /// four taps with a branch per tap for the image border 1.2x slower than without.
+    ///
+    /// A crop with [`CropSampling::Corners`] is resampled as `cv2.warpAffine` does
+    /// instead ([`crate::official_crop::warp_affine`]).
     pub fn crop_image(&self, image: &RgbImage) -> RgbImage {
+        if self.sampling == CropSampling::Corners {
+            let (w, h) = image.dimensions();
+            let out = crate::official_crop::warp_affine(image.as_raw(), w, h, 3, self);
+            return RgbImage::from_raw(self.size, self.size, out).expect("size matches");
+        }
         let n = self.size as usize;
         let mut out = vec![0u8; n * n * 3];
         if image.width() == 0 || image.height() == 0 || n == 0 {
             return RgbImage::from_raw(self.size, self.size, out).expect("size matches");
         }
         let stride = image.width() as usize * 3;
-        let cols = Taps::new(n, self.x0, self.scale(), image.width(), 3);
-        let rows = Taps::new(n, self.y0, self.scale(), image.height(), stride);
+        let (sx, sy) = self.scales();
+        let cols = Taps::new(n, self.x0, sx, image.width(), 3);
+        let rows = Taps::new(n, self.y0, sy, image.height(), stride);
         // The bytes of a source row the columns read.
         let lo = cols.0.iter().map(|c| c.a.min(c.b)).min().unwrap_or(0);
         let hi = cols.0.iter().map(|c| c.a.max(c.b)).max().unwrap_or(0) + 3;
@@ -225,11 +281,12 @@ pub enum RasterMode {
     /// Ours: pixel centres, the top-left fill rule, perspective-correct weights.
     #[default]
     Exact,
-    /// The official loader's rules ([`crate::raster::rasterize_mesh_official`]):
-    /// integer sample points, its inside test, screen-space weights, earlier triangle on
-    /// ties, applied at the crop's resolution. (The official loader renders at full
-    /// resolution and then warps the mask into the crop; this mode reproduces its
-    /// rasterization rules, not that resampling.)
+    /// The official loader's pipeline ([`crate::official_crop`]): its crop box and
+    /// `cv2` affine map (corner sampling), its rasterizer over the whole image
+    /// ([`crate::raster::rasterize_mesh_official`]: integer sample points, its inside
+    /// test, screen-space weights, earlier triangle on ties), its mask warped into the
+    /// crop as `cv2.warpAffine` does, and each crop mask pixel's correspondence from
+    /// the full-resolution buffer at its heaviest face tap.
     Official,
 }
 
@@ -270,6 +327,9 @@ impl FaceRenderer {
         crop: &CropTransform,
         buffer: &mut VisibilityBuffer,
     ) -> Result<FaceTargets> {
+        if self.mode == RasterMode::Official {
+            return self.render_official(verts, pose, width, height, crop, buffer);
+        }
         self.rasterize(verts, pose, width, height, Some(crop), buffer)?;
         let n_mesh = self.topology.triangles.len() as u32;
         let mut mask = vec![false; buffer.triangle.len()];
@@ -284,6 +344,67 @@ impl FaceRenderer {
                 corr_vertices.push([tri[0] as u16, tri[1] as u16, tri[2] as u16]);
                 corr_weights.push(buffer.bary[i]);
             }
+        }
+        Ok(FaceTargets {
+            crop: *crop,
+            mask,
+            corr_vertices,
+            corr_weights,
+        })
+    }
+
+    /// [`FaceRenderer::render`] in [`RasterMode::Official`]: the official loader's
+    /// pipeline ([`crate::official_crop`]): rasterize over the whole image with its
+    /// rules, warp the mask into the crop as `cv2.warpAffine` does, and take each crop
+    /// mask pixel's correspondence from the heaviest face pixel among its bilinear taps.
+    fn render_official(
+        &self,
+        verts: &[Point3<f32>],
+        pose: &Pose,
+        width: u32,
+        height: u32,
+        crop: &CropTransform,
+        buffer: &mut VisibilityBuffer,
+    ) -> Result<FaceTargets> {
+        if crop.sampling != CropSampling::Corners {
+            return Err(Error::invalid(
+                "crop",
+                "the official pipeline needs the official crop (corner sampling)",
+            ));
+        }
+        self.rasterize(verts, pose, width, height, None, buffer)?;
+        let n_mesh = self.topology.triangles.len() as u32;
+        let (w, h) = (width as i64, height as i64);
+        let face_at = |x: i64, y: i64| -> Option<usize> {
+            let inside = (0..w).contains(&x) && (0..h).contains(&y);
+            let i = (y * w + x) as usize;
+            (inside && buffer.triangle[i] < n_mesh).then_some(i)
+        };
+        let taps = crate::official_crop::warp_taps(crop);
+        let mut mask = vec![false; taps.len()];
+        let mut corr_vertices = Vec::new();
+        let mut corr_weights = Vec::new();
+        for (m, t) in mask.iter_mut().zip(&taps) {
+            let (x, y) = (t.x as i64, t.y as i64);
+            let corners = [(x, y), (x + 1, y), (x, y + 1), (x + 1, y + 1)];
+            let face_weight: u32 = corners
+                .iter()
+                .zip(t.weights())
+                .filter(|&(&(cx, cy), _)| face_at(cx, cy).is_some())
+                .map(|(_, wt)| wt)
+                .sum();
+            // cv2's rounding of the warped 0/1 mask: face from one half up.
+            if face_weight < crate::official_crop::HALF_WEIGHT {
+                continue;
+            }
+            let (cx, cy) =
+                crate::official_crop::nearest_face_tap(*t, |cx, cy| face_at(cx, cy).is_some())
+                    .expect("a tap weighs at least one half");
+            let i = face_at(cx, cy).expect("a face pixel");
+            let tri = self.triangles[buffer.triangle[i] as usize];
+            *m = true;
+            corr_vertices.push([tri[0] as u16, tri[1] as u16, tri[2] as u16]);
+            corr_weights.push(buffer.bary[i]);
         }
         Ok(FaceTargets {
             crop: *crop,
@@ -348,11 +469,15 @@ impl FaceRenderer {
         let mut screen = self.project(verts, pose, width, height)?;
         let (bw, bh) = match crop {
             Some(crop) => {
-                let s = crop.scale() as f32;
+                let (sx, sy) = crop.scales();
+                let (sx, sy) = (sx as f32, sy as f32);
                 let (x0, y0) = (crop.x0 as f32, crop.y0 as f32);
+                // A corner-sampled crop's pixel i sits at i, where our rules sample
+                // i + 0.5: shift the mesh by half a crop pixel to sample there.
+                let o = 0.5 - crop.sampling.offset() as f32;
                 for p in &mut screen {
-                    p.x = (p.x - x0) * s;
-                    p.y = (p.y - y0) * s;
+                    p.x = (p.x - x0) * sx + o;
+                    p.y = (p.y - y0) * sy + o;
                 }
                 (crop.size, crop.size)
             }
@@ -660,7 +785,9 @@ mod tests {
             x0: 100.0,
             y0: 50.0,
             side: 300.0,
+            side_y: 300.0,
             size: 192,
+            sampling: crate::render::CropSampling::Centres,
         };
         let (cu, cv) = c.to_crop(250.0, 200.0);
         assert!((cu - 96.0).abs() < 1e-12 && (cv - 96.0).abs() < 1e-12);
@@ -695,7 +822,9 @@ mod tests {
             x0: -13.3,
             y0: -7.9,
             side: 83.7,
+            side_y: 83.7,
             size: 50,
+            sampling: crate::render::CropSampling::Centres,
         };
         let out = c.crop_image(&img);
         let texel = |x: i64, y: i64, k: usize| -> f32 {
@@ -778,7 +907,9 @@ mod tests {
             x0: 400.0 - 150.0,
             y0: 400.0 - 150.0,
             side: 300.0,
+            side_y: 300.0,
             size: 128,
+            sampling: crate::render::CropSampling::Centres,
         };
         let a = r
             .render(&verts, &base, 800, 800, &crop, &mut vb)
@@ -854,42 +985,54 @@ mod tests {
     }
 
     #[test]
-    fn official_mode_targets_are_shifted_by_half_a_pixel() {
+    fn official_mode_follows_the_official_crop_pipeline() {
         let (mut r, verts) = face();
         let pose = Pose::from_euler(
             EulerAngles::new(10.0, 5.0, 0.0),
             Vector3::new(0.0, 0.0, -0.5),
         );
-        let crop = CropTransform::around_landmarks(&landmarks(&r, &verts, &pose, 800, 800), 192);
+        let lm = landmarks(&r, &verts, &pose, 800, 800);
+        let ours = CropTransform::around_landmarks(&lm, 192);
+        let crop = crate::official_crop::official_crop(&lm, 192).unwrap();
         let mut vb = VisibilityBuffer::new(192, 192);
-        let exact = r.render(&verts, &pose, 800, 800, &crop, &mut vb).unwrap();
+        let exact = r.render(&verts, &pose, 800, 800, &ours, &mut vb).unwrap();
         r.mode = RasterMode::Official;
+        // The official pipeline needs the official (corner-sampled) crop.
+        assert!(r.render(&verts, &pose, 800, 800, &ours, &mut vb).is_err());
         let official = r.render(&verts, &pose, 800, 800, &crop, &mut vb).unwrap();
-        // Each official correspondence, pushed through the camera, lands on its pixel's
-        // corner (the official sample point), not its centre.
+        // Two paths to the crop mask: the render's fused loop, and the full-resolution
+        // official mask through the cv2.warpAffine reproduction.
+        let full = r
+            .render_full_mask(&verts, &pose, 800, 800, &mut vb)
+            .unwrap();
+        assert_eq!(
+            official.mask,
+            crate::official_crop::warp_mask(&full, 800, 800, &crop)
+        );
+        // Each correspondence, pushed through the camera, lands within a pixel of the
+        // image point its crop pixel samples (the heaviest face tap is at most one
+        // pixel away; the screen-space weights add a few hundredths).
         let cam = Camera::release(800, 800);
         let pixels = official.mask_pixels();
-        for (k, p) in official
-            .coordinate_map(&verts)
-            .iter()
-            .enumerate()
-            .step_by(7)
-        {
+        let coords = official.coordinate_map(&verts);
+        for (k, p) in coords.iter().enumerate() {
             let q = cam.project(&pose, &p.cast());
-            let (cu, cv) = crop.to_crop(q.u, q.v);
-            let (i, j) = (pixels[k] % 192, pixels[k] / 192);
-            // Screen-space weights: off by the missing perspective correction only
-            // (measured up to about 0.06 px here).
+            let (u, v) = crop.pixel_to_image(pixels[k] % 192, pixels[k] / 192);
             assert!(
-                (cu - i as f64).abs() < 0.1 && (cv - j as f64).abs() < 0.1,
-                "({i}, {j}) -> ({cu}, {cv})"
+                (q.u - u).abs() < 1.1 && (q.v - v).abs() < 1.1,
+                "pixel {} samples ({u}, {v}), its correspondence is at ({}, {})",
+                pixels[k],
+                q.u,
+                q.v
             );
         }
-        let (a, b) = (
-            exact.mask.iter().filter(|&&m| m).count(),
-            official.mask.iter().filter(|&&m| m).count(),
-        );
-        assert!((a as f64 - b as f64).abs() < 0.03 * a as f64, "{a} vs {b}");
+        // The two modes see the same face: mask areas in image pixels agree.
+        let area = |t: &FaceTargets| {
+            let (sx, sy) = t.crop.scales();
+            t.mask.iter().filter(|&&m| m).count() as f64 / (sx * sy)
+        };
+        let (a, b) = (area(&exact), area(&official));
+        assert!((a - b).abs() < 0.03 * a, "{a} vs {b}");
     }
 
     #[test]

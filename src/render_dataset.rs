@@ -13,6 +13,7 @@
 use crate::conventions::Pose;
 use crate::convert::read_manifest;
 use crate::error::{Error, Result};
+use crate::official_crop::official_crop;
 use crate::raster::VisibilityBuffer;
 use crate::render::{CropTransform, FaceRenderer, RasterMode, UvMapper, sample_points};
 use crate::samples_table::{self, ErrorRecord};
@@ -179,8 +180,18 @@ pub fn render_dataset(
                                 .map(|c| Point3::new(c[0], c[1], c[2]))
                                 .collect();
                             let pose = Pose::from_release_rt(&r.rt)?;
-                            let crop =
-                                CropTransform::around_landmarks(&r.landmarks_2d, options.size);
+                            let crop = match renderer.mode {
+                                RasterMode::Exact => {
+                                    CropTransform::around_landmarks(&r.landmarks_2d, options.size)
+                                }
+                                RasterMode::Official => official_crop(
+                                    &r.landmarks_2d,
+                                    options.size,
+                                )
+                                .ok_or_else(|| {
+                                    Error::invalid("landmarks", "the official crop box is empty")
+                                })?,
+                            };
                             let t = renderer.render(
                                 &verts,
                                 &pose,

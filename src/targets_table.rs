@@ -24,7 +24,7 @@
 
 use crate::error::{Error, Result};
 use crate::release::SampleKey;
-use crate::render::{CropTransform, FaceTargets};
+use crate::render::{CropSampling, CropTransform, FaceTargets};
 use half::f16;
 use polars::prelude::*;
 use std::path::Path;
@@ -267,7 +267,9 @@ pub fn targets_frame(rows: &[TargetsRecord]) -> Result<DataFrame> {
         f("crop_x0", &|r| r.crop.x0),
         f("crop_y0", &|r| r.crop.y0),
         f("crop_side", &|r| r.crop.side),
+        f("crop_side_y", &|r| r.crop.side_y),
         u("crop_size", &|r| r.crop.size),
+        s("crop_sampling", &|r| r.crop.sampling.name().to_string()),
         b("mask_rle", &|r| le_u32(&r.mask_rle)),
         b("corr_vertices", &|r| {
             le_u16(r.corr_vertices.iter().flatten().copied())
@@ -309,6 +311,29 @@ pub fn read_targets(path: &Path) -> Result<Vec<TargetsRecord>> {
     };
     let (subj, act, img) = (st("subject_id")?, st("facial_action")?, st("img_id")?);
     let (x0, y0, side) = (fl("crop_x0")?, fl("crop_y0")?, fl("crop_side")?);
+    // Files written before the official crop (2026-11-30) have a square box sampled
+    // at pixel centres.
+    let has = |n: &str| df.get_column_names().iter().any(|c| c.as_str() == n);
+    let side_y = if has("crop_side_y") {
+        fl("crop_side_y")?
+    } else {
+        side.clone()
+    };
+    let sampling = if has("crop_sampling") {
+        st("crop_sampling")?
+            .iter()
+            .map(|name| match name.as_str() {
+                "centre" => Ok(CropSampling::Centres),
+                "corner" => Ok(CropSampling::Corners),
+                other => Err(Error::format(
+                    path,
+                    format!("crop_sampling {other:?} is neither \"centre\" nor \"corner\""),
+                )),
+            })
+            .collect::<Result<Vec<_>>>()?
+    } else {
+        vec![CropSampling::Centres; df.height()]
+    };
     let (size, uv_size) = (u32s("crop_size")?, u32s("uv_size")?);
     let (image_width, image_height) = (u32s("image_width")?, u32s("image_height")?);
     let full_mask = bins("full_mask_rle")?;
@@ -349,7 +374,9 @@ pub fn read_targets(path: &Path) -> Result<Vec<TargetsRecord>> {
                 x0: x0[i],
                 y0: y0[i],
                 side: side[i],
+                side_y: side_y[i],
                 size: size[i],
+                sampling: sampling[i],
             },
             mask_rle: u32v(&mask[i]),
             corr_vertices: ids.chunks(3).map(|c| [c[0], c[1], c[2]]).collect(),

@@ -1202,8 +1202,8 @@ pub fn predict_crop(
     run().map_err(|e| candle_err("network forward", e))
 }
 
-/// The pose of a sample predicted from the network's correspondences (crop pixel
-/// centres mapped to the image, our PnP), or `None` when PnP fails.
+/// The pose of a sample predicted from the network's correspondences (crop pixels
+/// mapped to the image by the crop's sampling rule, our PnP), or `None` when PnP fails.
 pub fn pose_of(
     prediction: &NetworkPrediction,
     crop: &CropTransform,
@@ -1211,13 +1211,13 @@ pub fn pose_of(
     height: u32,
     ransac: &crate::pnp::RansacParams,
 ) -> Option<Pose> {
-    use crate::predict::{PixelSample, crop_pixel_to_image};
+    use crate::predict::crop_pixel_to_image;
     let mut seen = std::collections::HashSet::new();
     let (mut object, mut image) = (Vec::new(), Vec::new());
     for (px, p) in prediction.pixels.iter().zip(&prediction.points) {
         if seen.insert(*px) {
             object.push(nalgebra::Point3::new(p[0] as f64, p[1] as f64, p[2] as f64));
-            image.push(crop_pixel_to_image(crop, *px, PixelSample::Centre));
+            image.push(crop_pixel_to_image(crop, *px));
         }
     }
     let k = crate::predict::intrinsics(width, height);
@@ -1285,14 +1285,16 @@ pub fn model_predictions(
                 progress(1);
                 continue;
             }
-            let crop = CropTransform::around_landmarks(&r.landmarks_2d, size);
+            let mut crop = CropTransform::around_landmarks(&r.landmarks_2d, size);
             let true_mask = match true_masks {
                 None => None,
                 Some(dir) => {
                     let t = truth.get(&r.key).ok_or_else(|| {
                         Error::format(dir, format!("no targets row for {}", r.key))
                     })?;
-                    if t.crop != crop {
+                    // The true mask is in the targets' crop (ours or the official one).
+                    crop = t.crop;
+                    if t.crop.size != size {
                         return Err(Error::invalid(
                             "--mask truth",
                             format!(

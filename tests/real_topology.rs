@@ -221,7 +221,9 @@ fn real_mask_area_agrees_with_the_projected_contour() {
         x0: 200.0,
         y0: 200.0,
         side: 400.0,
+        side_y: 400.0,
         size: 400,
+        sampling: arkit_tool::render::CropSampling::Centres,
     };
     let mut vb = VisibilityBuffer::new(400, 400);
     let t = renderer

@@ -1,0 +1,305 @@
+//! The official loader's crop pipeline, reproduced for `render --compat official`.
+//!
+//! The release's training loader (`data/arkit_dataset.py` of the official code) does not
+//! rasterize at crop resolution. It renders the face mask and the correspondence buffer
+//! over the whole image (`raster::rasterize_mesh_official`), then:
+//! 1. **Box** ([`official_crop`]): centre `c` and larger side `s` of the 68 projected
+//!    landmarks' bounding box, then `left = int(c_x - 0.75 s)`, `right = int(c_x +
+//!    0.75 s)`, and the same for `top`/`bottom` (Python's `int`, which truncates toward
+//!    zero). The box is not square in general: `right - left` and `bottom - top` can
+//!    differ by one.
+//! 2. **Affine map**: `cv2.getAffineTransform` of the corners `(left, top)`, `(left,
+//!    bottom)`, `(right, top)` onto `(0, 0)`, `(0, S - 1)`, `(S - 1, 0)`: image pixel
+//!    `left` lands on crop pixel `0` and `right` on `S - 1`. OpenCV puts pixel `i` at
+//!    the integer coordinate `i`, as the official rasterizer samples it, so this
+//!    [`CropTransform`] has [`CropSampling::Corners`], `x0 = left`, `y0 = top`, and box
+//!    sides `S (right - left) / (S - 1)` and `S (bottom - top) / (S - 1)`.
+//! 3. **Resampling** ([`warp_affine`]): `cv2.warpAffine` with its defaults (bilinear,
+//!    black outside), for the image crop and for the full-resolution 0/1 mask, which
+//!    is then thresholded `> 0`. OpenCV 4 (the official code's era) computes it in fixed
+//!    point, which we reproduce bit for bit: the inverse map's coefficients are rounded
+//!    to 1/1024 pixel per row and column (`round(A x 1024)`, ties to even), the source
+//!    position to 1/32 pixel, the four weights are `(32 - f_x)(32 - f_y)` ... in units
+//!    of 2^-10 (exact), and a pixel is `(sum w p + 2^14) >> 15` in units of 2^-15. For a
+//!    0/1 mask that makes a crop pixel face when the face taps' weights sum to at least
+//!    one half. (OpenCV 4.11 and later compute the coordinates in float; they differ
+//!    from this only on a few boundary pixels.)
+//!
+//! The correspondences of a crop mask pixel are the official full-resolution buffer's
+//! (triangle, screen-space weights) at the face pixel among its four bilinear taps with
+//! the largest weight (the first in the order top-left, top-right, bottom-left,
+//! bottom-right on a tie): every stored row is one the official loader computes, at the
+//! image pixel nearest to where the crop pixel looks.
+
+use crate::render::{CropSampling, CropTransform};
+
+/// The official crop box and its affine map (module docs, steps 1-2), or `None` when
+/// the box is empty (the official loader then fails on the sample and draws another).
+pub fn official_crop(landmarks_2d: &[f32], size: u32) -> Option<CropTransform> {
+    let (mut x0, mut y0, mut x1, mut y1) = (f64::MAX, f64::MAX, f64::MIN, f64::MIN);
+    for p in landmarks_2d.chunks_exact(2) {
+        let (u, v) = (p[0] as f64, p[1] as f64);
+        x0 = x0.min(u);
+        x1 = x1.max(u);
+        y0 = y0.min(v);
+        y1 = y1.max(v);
+    }
+    let side = (x1 - x0).max(y1 - y0);
+    let (cx, cy) = (0.5 * (x0 + x1), 0.5 * (y0 + y1));
+    // Python's int(): truncation toward zero.
+    let left = (cx - 0.75 * side).trunc();
+    let right = (cx + 0.75 * side).trunc();
+    let top = (cy - 0.75 * side).trunc();
+    let bottom = (cy + 0.75 * side).trunc();
+    if !(right > left && bottom > top) || size < 2 {
+        return None;
+    }
+    let s = size as f64;
+    Some(CropTransform {
+        x0: left,
+        y0: top,
+        side: s * (right - left) / (s - 1.0),
+        side_y: s * (bottom - top) / (s - 1.0),
+        size,
+        sampling: CropSampling::Corners,
+    })
+}
+
+/// Fractional bits of OpenCV's source positions (`INTER_BITS`).
+const INTER_BITS: u32 = 5;
+/// Fractional bits of the inverse map's per-row and per-column terms (`AB_BITS`).
+const AB_BITS: u32 = 10;
+/// Fractional bits of the bilinear weights (`INTER_REMAP_COEF_BITS`).
+const COEF_BITS: u32 = 15;
+
+/// Half of the weights' sum: the warped 0/1 mask rounds to 1 from this face weight up.
+pub const HALF_WEIGHT: u32 = 1 << (COEF_BITS - 1);
+
+/// Where one crop pixel reads: the top-left tap `(x, y)` and the position's fraction in
+/// 1/32 pixel.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct WarpTap {
+    /// Column of the top-left tap (may be outside the image).
+    pub x: i32,
+    /// Row of the top-left tap.
+    pub y: i32,
+    /// Horizontal fraction, 0..32.
+    pub fx: u32,
+    /// Vertical fraction, 0..32.
+    pub fy: u32,
+}
+
+impl WarpTap {
+    /// The four bilinear weights of taps `(x, y)`, `(x + 1, y)`, `(x, y + 1)`,
+    /// `(x + 1, y + 1)`, in units of 2^-15 (they sum to 2^15).
+    pub fn weights(self) -> [u32; 4] {
+        let (fx, fy) = (self.fx, self.fy);
+        let scale = 1 << (COEF_BITS - 2 * INTER_BITS);
+        [
+            (32 - fx) * (32 - fy) * scale,
+            fx * (32 - fy) * scale,
+            (32 - fx) * fy * scale,
+            fx * fy * scale,
+        ]
+    }
+}
+
+/// OpenCV's `cvRound` for the values here: nearest, ties to even.
+fn cv_round(v: f64) -> i64 {
+    v.round_ties_even() as i64
+}
+
+/// The taps of every crop pixel, row-major, as `cv2.warpAffine` computes them for
+/// `crop` (which should have [`CropSampling::Corners`]).
+pub fn warp_taps(crop: &CropTransform) -> Vec<WarpTap> {
+    let n = crop.size as usize;
+    // The forward map as cv2.getAffineTransform gives it, then its inverse as
+    // cv2.invertAffineTransform computes it (the map is axis-aligned).
+    let (a, e) = crop.scales();
+    let (c, f) = (-crop.x0 * a, -crop.y0 * e);
+    let d = 1.0 / (a * e);
+    let (ia, ie) = (e * d, a * d);
+    let (ic, if_) = (-ia * c, -ie * f);
+    let one = (1i64 << AB_BITS) as f64;
+    let round_delta = 1i64 << (AB_BITS - INTER_BITS - 1);
+    let adelta: Vec<i64> = (0..n).map(|x| cv_round(ia * x as f64 * one)).collect();
+    let mut taps = Vec::with_capacity(n * n);
+    for y in 0..n {
+        let x0 = cv_round(ic * one) + round_delta;
+        let y0 = cv_round((ie * y as f64 + if_) * one) + round_delta;
+        let yy = y0 >> (AB_BITS - INTER_BITS);
+        for &ad in &adelta {
+            let xx = (x0 + ad) >> (AB_BITS - INTER_BITS);
+            taps.push(WarpTap {
+                x: (xx >> INTER_BITS) as i32,
+                y: (yy >> INTER_BITS) as i32,
+                fx: (xx & 31) as u32,
+                fy: (yy & 31) as u32,
+            });
+        }
+    }
+    taps
+}
+
+/// `cv2.warpAffine(src, M, (S, S))` with its defaults (bilinear, black outside) for an
+/// interleaved 8-bit image of `channels` channels, `width x height`, into the crop.
+pub fn warp_affine(
+    src: &[u8],
+    width: u32,
+    height: u32,
+    channels: usize,
+    crop: &CropTransform,
+) -> Vec<u8> {
+    let (w, h) = (width as i64, height as i64);
+    let stride = w as usize * channels;
+    let taps = warp_taps(crop);
+    let mut out = vec![0u8; taps.len() * channels];
+    for (o, t) in out.chunks_exact_mut(channels).zip(&taps) {
+        let wts = t.weights();
+        let (x, y) = (t.x as i64, t.y as i64);
+        let corners = [(x, y), (x + 1, y), (x, y + 1), (x + 1, y + 1)];
+        for (k, o) in o.iter_mut().enumerate() {
+            let mut sum = 0u32;
+            for (&(cx, cy), &wt) in corners.iter().zip(&wts) {
+                if (0..w).contains(&cx) && (0..h).contains(&cy) {
+                    sum += wt * src[cy as usize * stride + cx as usize * channels + k] as u32;
+                }
+            }
+            *o = ((sum + (1 << (COEF_BITS - 1))) >> COEF_BITS).min(255) as u8;
+        }
+    }
+    out
+}
+
+/// The official crop mask: the full-resolution mask (row-major `width x height`)
+/// warped into the crop as a 0/1 image and thresholded `> 0`.
+pub fn warp_mask(full_mask: &[bool], width: u32, height: u32, crop: &CropTransform) -> Vec<bool> {
+    let bytes: Vec<u8> = full_mask.iter().map(|&m| m as u8).collect();
+    warp_affine(&bytes, width, height, 1, crop)
+        .into_iter()
+        .map(|v| v > 0)
+        .collect()
+}
+
+/// For crop pixel tap `t`, the image pixel (row-major index) the official correspondence
+/// is taken from: the face pixel among the four taps with the largest weight, the
+/// first on a tie; `None` when no tap is a face pixel.
+pub fn nearest_face_tap(t: WarpTap, is_face: impl Fn(i64, i64) -> bool) -> Option<(i64, i64)> {
+    let (x, y) = (t.x as i64, t.y as i64);
+    let corners = [(x, y), (x + 1, y), (x, y + 1), (x + 1, y + 1)];
+    let mut best: Option<((i64, i64), u32)> = None;
+    for (&(cx, cy), &wt) in corners.iter().zip(&t.weights()) {
+        if wt > 0 && is_face(cx, cy) && best.is_none_or(|(_, b)| wt > b) {
+            best = Some(((cx, cy), wt));
+        }
+    }
+    best.map(|(p, _)| p)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn crop(left: f64, top: f64, right: f64, bottom: f64, size: u32) -> CropTransform {
+        let s = size as f64;
+        CropTransform {
+            x0: left,
+            y0: top,
+            side: s * (right - left) / (s - 1.0),
+            side_y: s * (bottom - top) / (s - 1.0),
+            size,
+            sampling: CropSampling::Corners,
+        }
+    }
+
+    #[test]
+    fn box_truncates_toward_zero_like_python_int() {
+        // Landmarks spanning x 10..30 (side 20, centre 20) and y -5..5 (centre 0).
+        let c = official_crop(&[10.0, -5.0, 30.0, 5.0], 192).unwrap();
+        // left = int(20 - 15) = 5, right = int(35) = 35; top = int(-15) = -15.
+        assert_eq!((c.x0, c.y0), (5.0, -15.0));
+        let (a, e) = c.scales();
+        assert!((a - 191.0 / 30.0).abs() < 1e-12 && (e - 191.0 / 30.0).abs() < 1e-12);
+        // int(-1.5) is -1, not floor's -2: a box edge left of 0 truncates up.
+        let d = official_crop(&[-1.0, 0.0, 1.0, 0.0], 8).unwrap();
+        assert_eq!((d.x0, d.y0), (-1.0, -1.0));
+        // The corners land on the first and last crop pixels.
+        let (u, v) = c.to_crop(35.0, 15.0);
+        assert!(
+            (u - 191.0).abs() < 1e-9 && (v - 191.0).abs() < 1e-9,
+            "{u} {v}"
+        );
+        assert!(official_crop(&[3.0, 3.0, 3.0, 3.0], 192).is_none());
+    }
+
+    #[test]
+    fn taps_of_an_integer_scale_are_exact() {
+        // Box 0..30 into 16 pixels: crop pixel i looks at image x = 2 i exactly.
+        let c = crop(0.0, 0.0, 30.0, 15.0, 16);
+        let taps = warp_taps(&c);
+        for (k, t) in taps.iter().enumerate() {
+            let (i, j) = (k % 16, k / 16);
+            assert_eq!((t.x, t.fx), (2 * i as i32, 0), "column {i}");
+            assert_eq!((t.y, t.fy), (j as i32, 0), "row {j}");
+        }
+        // Half-pixel steps: box 0..7.5 -> fractions of 16/32 on odd columns.
+        let h = crop(0.0, 0.0, 15.0, 15.0, 31);
+        let t = warp_taps(&h)[1];
+        assert_eq!((t.x, t.fx), (0, 16));
+    }
+
+    #[test]
+    fn weights_sum_to_one_and_match_the_fraction() {
+        for fx in 0..32 {
+            for fy in 0..32 {
+                let w = WarpTap { x: 0, y: 0, fx, fy }.weights();
+                assert_eq!(w.iter().sum::<u32>(), 1 << COEF_BITS);
+                let t = (fx as f64 / 32.0, fy as f64 / 32.0);
+                assert_eq!(w[3] as f64 / 32768.0, t.0 * t.1);
+            }
+        }
+    }
+
+    #[test]
+    fn warp_reproduces_a_hand_computed_bilinear_value() {
+        // A 2x2 image, crop pixel (1, 0) looking at x = 0.5: (10 + 20) / 2 = 15; crop
+        // pixel (1, 1) at (0.5, 0.5): (10 + 20 + 30 + 41) / 4 = 25.25 -> 25.
+        let src = [10u8, 20, 30, 41];
+        let c = crop(0.0, 0.0, 1.0, 1.0, 3);
+        let out = warp_affine(&src, 2, 2, 1, &c);
+        assert_eq!(out[1], 15);
+        assert_eq!(out[4], 25);
+        // (2, 2) looks at (1, 1): the bottom-right pixel, its right and lower taps
+        // outside the image with weight 0.
+        assert_eq!(out[8], 41);
+        // A 0/1 mask is face where the face taps weigh at least one half: pixel (1, 0)
+        // sees (1, 0) half and (0, 0) half.
+        let m = warp_mask(&[false, true, false, false], 2, 2, &c);
+        assert_eq!(&m[..3], &[false, true, true]);
+        assert!(!m[3] && !m[6]);
+        assert!(!m[4], "a quarter is not enough");
+    }
+
+    #[test]
+    fn nearest_face_tap_prefers_the_heaviest_face_tap() {
+        let t = WarpTap {
+            x: 4,
+            y: 7,
+            fx: 20,
+            fy: 8,
+        };
+        // Weights: (12*24, 20*24, 12*8, 20*8) -> top-right is heaviest.
+        assert_eq!(nearest_face_tap(t, |_, _| true), Some((5, 7)));
+        assert_eq!(nearest_face_tap(t, |x, _| x == 4), Some((4, 7)));
+        assert_eq!(nearest_face_tap(t, |_, y| y == 8), Some((5, 8)));
+        assert_eq!(nearest_face_tap(t, |_, _| false), None);
+        // A zero-weight tap is never chosen.
+        let z = WarpTap {
+            x: 0,
+            y: 0,
+            fx: 0,
+            fy: 0,
+        };
+        assert_eq!(nearest_face_tap(z, |x, _| x == 1), None);
+    }
+}
