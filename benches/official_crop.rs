@@ -2,18 +2,10 @@
 //! reproduction of OpenCV 4's fixed-point `cv2.warpAffine`) against our own crop
 //! (`CropTransform::crop_image`) on an 800x800 image into 192x192, one thread.
 //!
-//! With `OFFICIAL_CROP_DUMP=DIR` it also writes 300 random crops of a random image and a
-//! random 0/1 mask (boxes inside, across and beyond the image edges, down- and
-//! up-scaling, boxes a pixel taller or wider, sides 192, 64 and 33) with our outputs,
-//! for `python3 benches/official_crop_opencv.py DIR` to compare with `cv2.warpAffine`
-//! itself:
-//!
-//! ```text
-//! OFFICIAL_CROP_DUMP=/tmp/oc cargo bench --bench official_crop
-//! python3 benches/official_crop_opencv.py /tmp/oc
-//! ```
+//! Run: `cargo bench --bench official_crop`. Its exactness against OpenCV itself is
+//! `tests/official_crop.rs`.
 
-use arkit_tool::official_crop::{warp_affine, warp_mask};
+use arkit_tool::official_crop::warp_mask;
 use arkit_tool::render::{CropSampling, CropTransform};
 use arkit_tool::rng::Rng;
 use image::RgbImage;
@@ -83,35 +75,4 @@ fn main() {
         "ratio: official warp / our crop = {:.2}x",
         t_official / t_ours
     );
-    let Some(dir) = std::env::var_os("OFFICIAL_CROP_DUMP") else {
-        return;
-    };
-    let dir = std::path::PathBuf::from(dir);
-    std::fs::create_dir_all(&dir).expect("dump folder");
-    std::fs::write(dir.join("image.bin"), image.as_raw()).expect("write");
-    let mask_bytes: Vec<u8> = mask.iter().map(|&m| m as u8).collect();
-    std::fs::write(dir.join("mask.bin"), &mask_bytes).expect("write");
-    let mut cases = Vec::new();
-    for k in 0..300 {
-        let size = [192u32, 64, 33][k % 3];
-        let side = 20 + rng.below(880) as i64;
-        let left = rng.below(1100) as i64 - 300;
-        let top = rng.below(1100) as i64 - 300;
-        let right = left + side;
-        let bottom = top + side + rng.below(3) as i64 - 1;
-        let c = official(left, top, right, bottom, size);
-        let rgb = warp_affine(image.as_raw(), w, h, 3, &c);
-        let m: Vec<u8> = warp_mask(&mask, w, h, &c)
-            .into_iter()
-            .map(|b| b as u8)
-            .collect();
-        std::fs::write(dir.join(format!("rgb_{k}.bin")), rgb).expect("write");
-        std::fs::write(dir.join(format!("mask_{k}.bin")), m).expect("write");
-        cases.push(serde_json::json!({
-            "left": left, "top": top, "right": right, "bottom": bottom, "size": size
-        }));
-    }
-    let manifest = serde_json::json!({ "width": w, "height": h, "cases": cases });
-    std::fs::write(dir.join("cases.json"), manifest.to_string()).expect("write");
-    println!("wrote {} cases to {}", cases.len(), dir.display());
 }

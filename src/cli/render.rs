@@ -49,9 +49,11 @@ pub struct RenderArgs {
     /// Worker threads (default: all cores).
     #[arg(long)]
     jobs: Option<usize>,
-    /// Rasterization rules: `exact` (ours: pixel centres, top-left rule,
-    /// perspective-correct weights) or `official` (the official loader's: integer sample
-    /// points, screen-space weights, earlier triangle on ties), at the crop's resolution.
+    /// Whose targets: `exact` (ours: the box around the landmarks, pixel centres, the
+    /// top-left rule, perspective-correct weights, rendered at the crop's resolution) or
+    /// `official` (the official loader's pipeline: its integer box and cv2 affine map,
+    /// pixel corners, its rasterizer over the whole image, the mask and image warped into
+    /// the crop as cv2.warpAffine does, screen-space weights).
     #[arg(long, value_enum, default_value = "exact")]
     compat: Compat,
     /// Also render the face mask over the whole image (`full_mask_rle`, run lengths;

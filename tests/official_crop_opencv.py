@@ -1,13 +1,16 @@
-"""cv2.warpAffine on exactly the crops of `cargo bench --bench official_crop`.
+"""cv2.warpAffine on exactly the crops `tests/official_crop.rs` writes.
 
-    OFFICIAL_CROP_DUMP=/tmp/oc cargo bench --bench official_crop
-    python3 benches/official_crop_opencv.py /tmp/oc
+    ARKIT_OPENCV_PYTHON=/path/to/python cargo test --release --test official_crop
+
+(the test runs `$ARKIT_OPENCV_PYTHON tests/official_crop_opencv.py DIR`), or by hand on
+a folder it wrote: `python3 tests/official_crop_opencv.py DIR`.
 
 For each dumped case, builds the official loader's transform (cv2.getAffineTransform of
 the box corners (left, top), (left, bottom), (right, top) onto (0, 0), (0, S - 1),
 (S - 1, 0)), warps the image and the 0/1 mask with cv2.warpAffine's defaults, and counts
 the bytes and mask pixels where ours differ. Needs numpy and opencv-python-headless;
-not part of CI. Our reproduction follows OpenCV 4's fixed point (the official code's
+CI installs OpenCV 4.6 in a virtual environment for it. Exits with status 1 when any
+byte or mask pixel differs. Our reproduction follows OpenCV 4's fixed point (the official code's
 era); OpenCV 4.11 and later compute coordinates in float and differ on a few pixels.
 """
 import json
@@ -43,7 +46,8 @@ def main(folder):
     print(f"OpenCV {cv2.__version__}: {len(meta['cases'])} crops, {cases_bad} with any difference")
     print(f"  image bytes differing: {rgb_bad} of {rgb_total} (largest difference {worst})")
     print(f"  mask pixels differing: {mask_bad} of {mask_total}")
+    return cases_bad
 
 
 if __name__ == "__main__":
-    main(sys.argv[1])
+    sys.exit(1 if main(sys.argv[1]) else 0)
