@@ -33,12 +33,17 @@
 
 use crate::render::{CropSampling, CropTransform};
 
-/// The official crop box and its affine map (module docs, steps 1-2), or `None` when
-/// the box is empty (the official loader then fails on the sample and draws another).
-pub fn official_crop(landmarks_2d: &[f32], size: u32) -> Option<CropTransform> {
+/// The official crop box and its affine map (module docs, steps 1-2) around the
+/// projected landmarks `(u, v)`, or `None` when the box is empty (the official loader
+/// then fails on the sample and draws another). Give the landmarks in `f64`, as the
+/// official loader computes them: `int()` of a box edge within float32 rounding of an
+/// integer could go either way (`FaceRenderer::official_crop` projects them so).
+pub fn official_crop(
+    landmarks: impl IntoIterator<Item = (f64, f64)>,
+    size: u32,
+) -> Option<CropTransform> {
     let (mut x0, mut y0, mut x1, mut y1) = (f64::MAX, f64::MAX, f64::MIN, f64::MIN);
-    for p in landmarks_2d.chunks_exact(2) {
-        let (u, v) = (p[0] as f64, p[1] as f64);
+    for (u, v) in landmarks {
         x0 = x0.min(u);
         x1 = x1.max(u);
         y0 = y0.min(v);
@@ -215,13 +220,13 @@ mod tests {
     #[test]
     fn box_truncates_toward_zero_like_python_int() {
         // Landmarks spanning x 10..30 (side 20, centre 20) and y -5..5 (centre 0).
-        let c = official_crop(&[10.0, -5.0, 30.0, 5.0], 192).unwrap();
+        let c = official_crop([(10.0, -5.0), (30.0, 5.0)], 192).unwrap();
         // left = int(20 - 15) = 5, right = int(35) = 35; top = int(-15) = -15.
         assert_eq!((c.x0, c.y0), (5.0, -15.0));
         let (a, e) = c.scales();
         assert!((a - 191.0 / 30.0).abs() < 1e-12 && (e - 191.0 / 30.0).abs() < 1e-12);
         // int(-1.5) is -1, not floor's -2: a box edge left of 0 truncates up.
-        let d = official_crop(&[-1.0, 0.0, 1.0, 0.0], 8).unwrap();
+        let d = official_crop([(-1.0, 0.0), (1.0, 0.0)], 8).unwrap();
         assert_eq!((d.x0, d.y0), (-1.0, -1.0));
         // The corners land on the first and last crop pixels.
         let (u, v) = c.to_crop(35.0, 15.0);
@@ -229,7 +234,7 @@ mod tests {
             (u - 191.0).abs() < 1e-9 && (v - 191.0).abs() < 1e-9,
             "{u} {v}"
         );
-        assert!(official_crop(&[3.0, 3.0, 3.0, 3.0], 192).is_none());
+        assert!(official_crop([(3.0, 3.0), (3.0, 3.0)], 192).is_none());
     }
 
     #[test]

@@ -353,6 +353,34 @@ impl FaceRenderer {
         })
     }
 
+    /// The official loader's crop ([`crate::official_crop::official_crop`]) of `verts`
+    /// at `pose` in a `width x height` image: its box around the landmarks projected in
+    /// `f64`, as the official loader projects them.
+    pub fn official_crop(
+        &self,
+        verts: &[Point3<f32>],
+        pose: &Pose,
+        width: u32,
+        height: u32,
+        size: u32,
+    ) -> Result<CropTransform> {
+        let camera = Camera::new(self.camera_projection, width, height)?;
+        let points: Vec<Point3<f64>> = self
+            .topology
+            .landmarks
+            .iter()
+            .map(|&i| {
+                verts
+                    .get(i as usize)
+                    .map(|p| p.cast())
+                    .ok_or_else(|| Error::invalid("verts", format!("no landmark vertex {i}")))
+            })
+            .collect::<Result<_>>()?;
+        let projected = camera.project_all(pose, &points);
+        crate::official_crop::official_crop(projected.iter().map(|p| (p.u, p.v)), size)
+            .ok_or_else(|| Error::invalid("landmarks", "the official crop box is empty"))
+    }
+
     /// [`FaceRenderer::render`] in [`RasterMode::Official`]: the official loader's
     /// pipeline ([`crate::official_crop`]): rasterize over the whole image with its
     /// rules, warp the mask into the crop as `cv2.warpAffine` does, and take each crop
@@ -993,7 +1021,13 @@ mod tests {
         );
         let lm = landmarks(&r, &verts, &pose, 800, 800);
         let ours = CropTransform::around_landmarks(&lm, 192);
-        let crop = crate::official_crop::official_crop(&lm, 192).unwrap();
+        let crop = r.official_crop(&verts, &pose, 800, 800, 192).unwrap();
+        let from_f32 = lm.chunks(2).map(|p| (p[0] as f64, p[1] as f64));
+        assert_eq!(
+            Some(crop),
+            crate::official_crop::official_crop(from_f32, 192),
+            "float32 landmarks give the same box here"
+        );
         let mut vb = VisibilityBuffer::new(192, 192);
         let exact = r.render(&verts, &pose, 800, 800, &ours, &mut vb).unwrap();
         r.mode = RasterMode::Official;

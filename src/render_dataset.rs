@@ -13,7 +13,6 @@
 use crate::conventions::Pose;
 use crate::convert::read_manifest;
 use crate::error::{Error, Result};
-use crate::official_crop::official_crop;
 use crate::raster::VisibilityBuffer;
 use crate::render::{CropTransform, FaceRenderer, RasterMode, UvMapper, sample_points};
 use crate::samples_table::{self, ErrorRecord};
@@ -184,13 +183,13 @@ pub fn render_dataset(
                                 RasterMode::Exact => {
                                     CropTransform::around_landmarks(&r.landmarks_2d, options.size)
                                 }
-                                RasterMode::Official => official_crop(
-                                    &r.landmarks_2d,
+                                RasterMode::Official => renderer.official_crop(
+                                    &verts,
+                                    &pose,
+                                    r.image_width,
+                                    r.image_height,
                                     options.size,
-                                )
-                                .ok_or_else(|| {
-                                    Error::invalid("landmarks", "the official crop box is empty")
-                                })?,
+                                )?,
                             };
                             let t = renderer.render(
                                 &verts,
