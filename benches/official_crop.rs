@@ -6,7 +6,7 @@
 //! `tests/official_crop.rs`.
 
 use arkit_tool::conventions::{Camera, EulerAngles, Pose};
-use arkit_tool::official_crop::warp_mask;
+use arkit_tool::official_crop::{box_crop, warp_mask};
 use arkit_tool::raster::VisibilityBuffer;
 use arkit_tool::render::{CropSampling, CropTransform, FaceRenderer, RasterMode};
 use arkit_tool::rng::Rng;
@@ -26,19 +26,6 @@ fn median_ms(mut f: impl FnMut(), n: usize) -> f64 {
     t[n / 2]
 }
 
-/// The official crop of the integer box `left..right` x `top..bottom`.
-fn official(left: i64, top: i64, right: i64, bottom: i64, size: u32) -> CropTransform {
-    let s = size as f64;
-    CropTransform {
-        x0: left as f64,
-        y0: top as f64,
-        side: s * (right - left) as f64 / (s - 1.0),
-        side_y: s * (bottom - top) as f64 / (s - 1.0),
-        size,
-        sampling: CropSampling::Corners,
-    }
-}
-
 fn main() {
     let (w, h) = (800u32, 800u32);
     let mut rng = Rng::new(11);
@@ -51,7 +38,7 @@ fn main() {
             (x * x + y * y).sqrt() < 250.0 + 8.0 * rng.next_f64()
         })
         .collect();
-    let crop = official(230, 210, 570, 550, 192);
+    let crop = box_crop(230.0, 210.0, 570.0, 550.0, 192);
     let ours = CropTransform {
         sampling: CropSampling::Centres,
         side_y: crop.side,

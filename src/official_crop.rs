@@ -59,15 +59,21 @@ pub fn official_crop(
     if !(right > left && bottom > top) || size < 2 {
         return None;
     }
+    Some(box_crop(left, top, right, bottom, size))
+}
+
+/// The crop `cv2.getAffineTransform` makes of the box `left..right` x `top..bottom`
+/// (integers in the official loader): the corners onto crop pixels `0` and `size - 1`.
+pub fn box_crop(left: f64, top: f64, right: f64, bottom: f64, size: u32) -> CropTransform {
     let s = size as f64;
-    Some(CropTransform {
+    CropTransform {
         x0: left,
         y0: top,
         side: s * (right - left) / (s - 1.0),
         side_y: s * (bottom - top) / (s - 1.0),
         size,
         sampling: CropSampling::Corners,
-    })
+    }
 }
 
 /// Fractional bits of OpenCV's source positions (`INTER_BITS`).
@@ -206,15 +212,7 @@ mod tests {
     use super::*;
 
     fn crop(left: f64, top: f64, right: f64, bottom: f64, size: u32) -> CropTransform {
-        let s = size as f64;
-        CropTransform {
-            x0: left,
-            y0: top,
-            side: s * (right - left) / (s - 1.0),
-            side_y: s * (bottom - top) / (s - 1.0),
-            size,
-            sampling: CropSampling::Corners,
-        }
+        box_crop(left, top, right, bottom, size)
     }
 
     #[test]

@@ -6,24 +6,10 @@
 //! code's era; CI installs 4.6.0.66 in a virtual environment). Skips with a message
 //! without it.
 
-use arkit_tool::official_crop::{warp_affine, warp_mask};
-use arkit_tool::render::{CropSampling, CropTransform};
+use arkit_tool::official_crop::{box_crop, warp_affine, warp_mask};
 use arkit_tool::rng::Rng;
 use std::path::Path;
 use std::process::Command;
-
-/// The official crop of the integer box `left..right` x `top..bottom`.
-fn official(left: i64, top: i64, right: i64, bottom: i64, size: u32) -> CropTransform {
-    let s = size as f64;
-    CropTransform {
-        x0: left as f64,
-        y0: top as f64,
-        side: s * (right - left) as f64 / (s - 1.0),
-        side_y: s * (bottom - top) as f64 / (s - 1.0),
-        size,
-        sampling: CropSampling::Corners,
-    }
-}
 
 /// Writes the image, the mask, the cases and our outputs for the script.
 fn write_cases(dir: &Path) -> usize {
@@ -47,7 +33,7 @@ fn write_cases(dir: &Path) -> usize {
         let left = rng.below(1100) as i64 - 300;
         let top = rng.below(1100) as i64 - 300;
         let (right, bottom) = (left + side, top + side + rng.below(3) as i64 - 1);
-        let c = official(left, top, right, bottom, size);
+        let c = box_crop(left as f64, top as f64, right as f64, bottom as f64, size);
         let rgb = warp_affine(&image, w, h, 3, &c);
         let m: Vec<u8> = warp_mask(&mask, w, h, &c)
             .into_iter()
