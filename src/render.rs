@@ -332,19 +332,8 @@ impl FaceRenderer {
         }
         self.rasterize(verts, pose, width, height, Some(crop), buffer)?;
         let n_mesh = self.topology.triangles.len() as u32;
-        let mut mask = vec![false; buffer.triangle.len()];
-        // Sized up front: growing them by doubling copied up to 160 KiB per sample.
-        let faces = buffer.triangle.iter().filter(|&&t| t < n_mesh).count();
-        let mut corr_vertices = Vec::with_capacity(faces);
-        let mut corr_weights = Vec::with_capacity(faces);
-        for (i, &t) in buffer.triangle.iter().enumerate() {
-            if t < n_mesh {
-                mask[i] = true;
-                let tri = self.triangles[t as usize];
-                corr_vertices.push([tri[0] as u16, tri[1] as u16, tri[2] as u16]);
-                corr_weights.push(buffer.bary[i]);
-            }
-        }
+        let mask = face_mask(&buffer.triangle, n_mesh);
+        let (corr_vertices, corr_weights) = self.correspondences(buffer, &mask);
         Ok(FaceTargets {
             crop: *crop,
             mask,
@@ -442,6 +431,46 @@ impl FaceRenderer {
         })
     }
 
+    /// Per mask pixel, in row-major order: the visible triangle's vertex ids and the
+    /// barycentrics from `buffer`. Blocks of 16 pixels without a face pixel are
+    /// skipped (about 60% of a crop is background), the mesh triangle is looked up with
+    /// `get` (which is also the mask test), and the outputs are sized up front: growing
+    /// them by doubling copied up to 160 KiB per sample. The earlier loop over every
+    /// pixel index (bounds checks, values spilled to the stack: 55 instructions per face
+    /// pixel) was a fifth of the visibility stage's instructions.
+    #[inline(never)]
+    fn correspondences(
+        &self,
+        buffer: &VisibilityBuffer,
+        mask: &[bool],
+    ) -> (Vec<[u16; 3]>, Vec<[f32; 3]>) {
+        const BLOCK: usize = 16;
+        let mesh = &self.triangles[..self.topology.triangles.len()];
+        // Counted in u8 per block, which vectorises (a `usize` count per pixel did not).
+        let block_count = |m: &[bool]| m.iter().map(|&m| m as u8).sum::<u8>();
+        let faces: usize = mask.chunks(BLOCK).map(|m| block_count(m) as usize).sum();
+        let mut vertices = vec![[0u16; 3]; faces];
+        let mut weights = vec![[0f32; 3]; faces];
+        let mut k = 0;
+        let blocks = mask
+            .chunks(BLOCK)
+            .zip(buffer.triangle.chunks(BLOCK))
+            .zip(buffer.bary.chunks(BLOCK));
+        for ((m, triangle), bary) in blocks {
+            if block_count(m) == 0 {
+                continue;
+            }
+            for (&t, &b) in triangle.iter().zip(bary) {
+                if let Some(v) = mesh.get(t as usize) {
+                    vertices[k] = [v[0] as u16, v[1] as u16, v[2] as u16];
+                    weights[k] = b;
+                    k += 1;
+                }
+            }
+        }
+        (vertices, weights)
+    }
+
     /// The face mask of `verts` at `pose` over the whole `width x height` image (row-major),
     /// with the same rules as [`FaceRenderer::render`]'s crop mask (the hole fans hide
     /// but are not face). `buffer` is reused between calls.
@@ -454,8 +483,10 @@ impl FaceRenderer {
         buffer: &mut VisibilityBuffer,
     ) -> Result<Vec<bool>> {
         self.rasterize(verts, pose, width, height, None, buffer)?;
-        let n_mesh = self.topology.triangles.len() as u32;
-        Ok(buffer.triangle.iter().map(|&t| t < n_mesh).collect())
+        Ok(face_mask(
+            &buffer.triangle,
+            self.topology.triangles.len() as u32,
+        ))
     }
 
     /// The mesh's vertices and its hole centroids projected to image pixels with the
@@ -524,6 +555,12 @@ impl FaceRenderer {
         }
         .map_err(|e| Error::invalid("mesh", e.to_string()))
     }
+}
+
+/// Which pixels of a visibility buffer's `triangle` array show one of the first
+/// `n_mesh` triangles (the mesh, not the hole fans, and not empty).
+fn face_mask(triangle: &[u32], n_mesh: u32) -> Vec<bool> {
+    triangle.iter().map(|&t| t < n_mesh).collect()
 }
 
 /// How far the official loader's rasterizer (corner sampling, screen-space weights,
