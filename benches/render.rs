@@ -50,8 +50,14 @@ fn main() {
     let image = RgbImage::from_fn(800, 800, |x, y| Rgb([(x % 256) as u8, (y % 256) as u8, 90]));
     let mut vb = VisibilityBuffer::new(192, 192);
     // `cargo bench --bench render -- stages`: the per-sample stages only, more repeats.
-    let stages_only = std::env::args().any(|a| a == "stages" || a == "visibility");
+    let stages_only = std::env::args().any(|a| a == "stages" || a == "visibility" || a == "crop");
     let n = if stages_only { 1000 } else { 200 };
+    // `-- crop`: the crop stage alone (for a profiler).
+    if std::env::args().any(|a| a == "crop") {
+        let crop_ms = median_ms(|| drop(crop.crop_image(&image)), n);
+        println!("crop stage: {crop_ms:.3} ms");
+        return;
+    }
     let mut faces = 0;
     let visibility = median_ms(
         || {

@@ -145,6 +145,9 @@ impl CropTransform {
     /// each. Measured with `cargo bench --bench render -- stages`: per-pixel lookups with
     /// bounds checks were about 6x slower than four taps per pixel from the tables, and
     /// four taps with a branch per tap for the image border 1.2x slower than without.
+    /// The two taps write a float row and a second loop rounds it to bytes
+    /// ([`round_to_u8`], vectorised): 2.66 -> 2.37 M instructions, 0.21 -> 0.18 ms,
+    /// the same bytes.
     ///
     /// A crop with [`CropSampling::Corners`] is resampled as `cv2.warpAffine` does
     /// instead ([`crate::official_crop::warp_affine`]).
@@ -167,25 +170,43 @@ impl CropTransform {
         let lo = cols.0.iter().map(|c| c.a.min(c.b)).min().unwrap_or(0);
         let hi = cols.0.iter().map(|c| c.a.max(c.b)).max().unwrap_or(0) + 3;
         let mut blend = vec![0f32; hi - lo];
+        let mut row = vec![0f32; n * 3];
         let src = image.as_raw();
         for (dst, r) in out.chunks_exact_mut(n * 3).zip(&rows.0) {
             let (ra, rb) = (&src[r.a + lo..r.a + hi], &src[r.b + lo..r.b + hi]);
             for ((o, &a), &b) in blend.iter_mut().zip(ra).zip(rb) {
                 *o = a as f32 * r.wa + b as f32 * r.wb;
             }
-            for (d, c) in dst.chunks_exact_mut(3).zip(&cols.0) {
+            for (d, c) in row.chunks_exact_mut(3).zip(&cols.0) {
                 let (p, q) = (
                     &blend[c.a - lo..c.a - lo + 3],
                     &blend[c.b - lo..c.b - lo + 3],
                 );
                 for k in 0..3 {
-                    // Non-negative: adding 0.5 and truncating rounds, without a libm call.
-                    d[k] = (p[k] * c.wa + q[k] * c.wb + 0.5).min(255.0) as u8;
+                    d[k] = p[k] * c.wa + q[k] * c.wb;
                 }
+            }
+            for (d, &v) in dst.iter_mut().zip(&row) {
+                *d = round_to_u8(v);
             }
         }
         RgbImage::from_raw(self.size, self.size, out).expect("size matches")
     }
+}
+
+/// `floor(v + 0.5)` clamped to 255, for a non-negative `v`: the value rounded half
+/// up, as truncating `(v + 0.5).min(255.0) as u8` does. Float arithmetic only, so a
+/// loop over a row vectorises with plain SSE2: adding 2^23 leaves the integer nearest
+/// `y` (ties to even) in the low mantissa bits, and one is taken off when that rounded
+/// up. The saturating `as u8` (or `as i32`) cast compiled to scalar code with a branch
+/// per value, a third of the crop's instructions.
+#[inline]
+fn round_to_u8(v: f32) -> u8 {
+    const MAGIC: f32 = 8_388_608.0; // 2^23
+    let y = (v + 0.5).min(255.0);
+    let t = y + MAGIC;
+    let t = if t - MAGIC > y { t - 1.0 } else { t };
+    t.to_bits() as u8
 }
 
 /// The two bilinear taps of one crop column (or row): byte offsets into the source row
@@ -870,6 +891,23 @@ mod tests {
         let (u, _) = c.to_image(10.5, 10.5);
         let expected = (u - 0.5) / 3.0;
         assert!((out.get_pixel(10, 10).0[0] as f64 - expected).abs() <= 1.0);
+    }
+
+    #[test]
+    fn round_to_u8_equals_the_saturating_cast() {
+        // Every 61st float in [0, 300], plus the halves and their neighbours, where
+        // rounding ties would show.
+        let mut values: Vec<f32> = (0..=300.0f32.to_bits())
+            .step_by(61)
+            .map(f32::from_bits)
+            .collect();
+        for k in 0..=600 {
+            let h = k as f32 * 0.5;
+            values.extend([h, h.next_down(), h.next_up()]);
+        }
+        for v in values.into_iter().filter(|v| *v >= 0.0) {
+            assert_eq!(round_to_u8(v), (v + 0.5).min(255.0) as u8, "{v}");
+        }
     }
 
     #[test]
