@@ -147,7 +147,9 @@ impl CropTransform {
     /// four taps with a branch per tap for the image border 1.2x slower than without.
     /// The two taps write a float row and a second loop rounds it to bytes
     /// ([`round_to_u8`], vectorised): 2.66 -> 2.37 M instructions, 0.21 -> 0.18 ms,
-    /// the same bytes.
+    /// the same bytes. Reading the blended row as `[f32; 3]` pixels by precomputed
+    /// index (one bounds check per tap, not two per byte range): 2.37 -> 2.15 M,
+    /// 0.17 -> 0.165 ms.
     ///
     /// A crop with [`CropSampling::Corners`] is resampled as `cv2.warpAffine` does
     /// instead ([`crate::official_crop::warp_affine`]).
@@ -171,19 +173,24 @@ impl CropTransform {
         let hi = cols.0.iter().map(|c| c.a.max(c.b)).max().unwrap_or(0) + 3;
         let mut blend = vec![0f32; hi - lo];
         let mut row = vec![0f32; n * 3];
+        // Column taps as pixel indices into the blended span: one bounds check per tap
+        // instead of two per byte range.
+        let col_taps: Vec<(usize, usize, f32, f32)> = cols
+            .0
+            .iter()
+            .map(|c| ((c.a - lo) / 3, (c.b - lo) / 3, c.wa, c.wb))
+            .collect();
         let src = image.as_raw();
         for (dst, r) in out.chunks_exact_mut(n * 3).zip(&rows.0) {
             let (ra, rb) = (&src[r.a + lo..r.a + hi], &src[r.b + lo..r.b + hi]);
             for ((o, &a), &b) in blend.iter_mut().zip(ra).zip(rb) {
                 *o = a as f32 * r.wa + b as f32 * r.wb;
             }
-            for (d, c) in row.chunks_exact_mut(3).zip(&cols.0) {
-                let (p, q) = (
-                    &blend[c.a - lo..c.a - lo + 3],
-                    &blend[c.b - lo..c.b - lo + 3],
-                );
+            let pixels = blend.as_chunks::<3>().0;
+            for (d, &(a, b, wa, wb)) in row.as_chunks_mut::<3>().0.iter_mut().zip(&col_taps) {
+                let (p, q) = (pixels[a], pixels[b]);
                 for k in 0..3 {
-                    d[k] = p[k] * c.wa + q[k] * c.wb;
+                    d[k] = p[k] * wa + q[k] * wb;
                 }
             }
             for (d, &v) in dst.iter_mut().zip(&row) {
