@@ -12,19 +12,9 @@ use arkit_tool::render::{CropSampling, CropTransform, FaceRenderer, RasterMode};
 use arkit_tool::rng::Rng;
 use image::RgbImage;
 use nalgebra::Vector3;
-use std::time::Instant;
 
-fn median_ms(mut f: impl FnMut(), n: usize) -> f64 {
-    let mut t: Vec<f64> = (0..n)
-        .map(|_| {
-            let s = Instant::now();
-            f();
-            s.elapsed().as_secs_f64() * 1e3
-        })
-        .collect();
-    t.sort_by(f64::total_cmp);
-    t[n / 2]
-}
+mod timing;
+use timing::median_ms;
 
 fn main() {
     let (w, h) = (800u32, 800u32);

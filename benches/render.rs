@@ -9,21 +9,12 @@ use arkit_tool::raster::VisibilityBuffer;
 use arkit_tool::render::{CropTransform, FaceRenderer, UvMapper, sample_points};
 use image::{Rgb, RgbImage};
 use nalgebra::Vector3;
+
+mod timing;
 use std::time::Instant;
+use timing::median_ms;
 
 const OFFICIAL_MS: f64 = 12.8;
-
-fn median_ms(mut f: impl FnMut(), n: usize) -> f64 {
-    let mut t: Vec<f64> = (0..n)
-        .map(|_| {
-            let s = Instant::now();
-            f();
-            s.elapsed().as_secs_f64() * 1e3
-        })
-        .collect();
-    t.sort_by(f64::total_cmp);
-    t[n / 2]
-}
 
 fn main() {
     let topo = arkit_tool::synthetic_face::builtin().topology.clone();
