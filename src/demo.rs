@@ -400,6 +400,7 @@ pub fn run_demo(
         &dataset,
         &model,
         Some("test"),
+        crate::render::CropRule::Ours,
         None,
         plan.seed,
         &RansacParams::default(),

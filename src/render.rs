@@ -62,6 +62,34 @@ pub enum CropSampling {
     Corners,
 }
 
+/// Whose crop box is cut around a face: ours ([`CropTransform::around_landmarks`]) or
+/// the official loader's ([`crate::official_crop::official_crop`]).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum CropRule {
+    /// Ours: the square box, pixel centres, our bilinear crop.
+    #[default]
+    Ours,
+    /// The official loader's: integer box, pixel corners, `cv2.warpAffine`.
+    Official,
+}
+
+impl CropRule {
+    /// The crop of this rule around projected landmarks `[u0, v0, u1, v1, ...]`;
+    /// `None` when the official box is empty.
+    pub fn around_landmarks(self, landmarks_2d: &[f32], size: u32) -> Option<CropTransform> {
+        match self {
+            CropRule::Ours => Some(CropTransform::around_landmarks(landmarks_2d, size)),
+            CropRule::Official => crate::official_crop::official_crop(
+                landmarks_2d
+                    .chunks_exact(2)
+                    .map(|p| (p[0] as f64, p[1] as f64)),
+                size,
+            ),
+        }
+    }
+}
+
 impl CropSampling {
     /// The offset of a pixel's sample point from its index.
     pub fn offset(self) -> f64 {
@@ -1149,6 +1177,25 @@ mod tests {
         };
         let (a, b) = (area(&exact), area(&official));
         assert!((a - b).abs() < 0.03 * a, "{a} vs {b}");
+    }
+
+    #[test]
+    fn crop_rules_cut_our_box_or_the_official_one() {
+        let lm = [10.0f32, -5.0, 30.0, 5.0];
+        let ours = CropRule::Ours.around_landmarks(&lm, 192).unwrap();
+        assert_eq!(ours, CropTransform::around_landmarks(&lm, 192));
+        let official = CropRule::Official.around_landmarks(&lm, 192).unwrap();
+        assert_eq!(official.sampling, CropSampling::Corners);
+        // int(20 - 15) = 5 and int(0 - 15) = -15; ours starts at 20 - 15 = 5 and -15
+        // too, but its box is 30 wide where the official one maps 30 pixels onto 191.
+        assert_eq!((official.x0, official.y0), (5.0, -15.0));
+        assert_eq!((ours.x0, ours.side), (5.0, 30.0));
+        assert!((official.side - 30.0 * 192.0 / 191.0).abs() < 1e-12);
+        assert!(
+            CropRule::Official
+                .around_landmarks(&[3.0, 3.0, 3.0, 3.0], 192)
+                .is_none()
+        );
     }
 
     #[test]

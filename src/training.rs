@@ -1238,16 +1238,19 @@ pub struct ModelPredictSummary {
     pub without_true_mask: usize,
 }
 
-/// Runs a trained network over the samples of `split` (`None`: all): the crop box from
-/// the sample's landmarks (as the official evaluation does), the network, our PnP; the
-/// predictions carry `R_t`, the predicted mesh and the predicted crop mask. With
-/// `true_masks` (a folder with `render`'s targets at the network's input size), the
-/// points are sampled from the true face mask instead of the predicted one, which
-/// separates segmentation errors from correspondence errors.
+/// Runs a trained network over the samples of `split` (`None`: all): the crop box of
+/// `crop_rule` from the sample's landmarks (as the official evaluation does), the
+/// network, our PnP; the predictions carry `R_t`, the predicted mesh and the predicted
+/// crop mask. With `true_masks` (a folder with `render`'s targets at the network's
+/// input size), the points are sampled from the true face mask instead of the
+/// predicted one, which separates segmentation errors from correspondence errors; the
+/// crop is then the targets' own.
+#[allow(clippy::too_many_arguments)]
 pub fn model_predictions(
     dataset: &Path,
     model: &TrainedModel,
     split: Option<&str>,
+    crop_rule: crate::render::CropRule,
     true_masks: Option<&Path>,
     seed: u64,
     ransac: &crate::pnp::RansacParams,
@@ -1285,7 +1288,12 @@ pub fn model_predictions(
                 progress(1);
                 continue;
             }
-            let mut crop = CropTransform::around_landmarks(&r.landmarks_2d, size);
+            let Some(mut crop) = crop_rule.around_landmarks(&r.landmarks_2d, size) else {
+                return Err(Error::invalid(
+                    "landmarks",
+                    format!("{}: the official crop box is empty", r.key),
+                ));
+            };
             let true_mask = match true_masks {
                 None => None,
                 Some(dir) => {

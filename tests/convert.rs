@@ -652,6 +652,7 @@ fn render_reports_and_skips_a_sample_it_cannot_render() {
         out.path(),
         &model,
         None,
+        arkit_tool::render::CropRule::Ours,
         Some(out.path()),
         1,
         &arkit_tool::pnp::RansacParams::default(),

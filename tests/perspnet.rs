@@ -1048,11 +1048,12 @@ mod pipeline {
         assert!(e.contains("other settings"), "{e}");
         // Load, predict (deterministic), evaluate.
         let model = training::load(model_dir.path(), &topology).unwrap();
-        let run = || {
+        let run_with = |rule| {
             training::model_predictions(
                 dir.path(),
                 &model,
                 None,
+                rule,
                 None,
                 5,
                 &RansacParams::default(),
@@ -1060,9 +1061,15 @@ mod pipeline {
             )
             .unwrap()
         };
+        let run = || run_with(arkit_tool::render::CropRule::Ours);
         let (a, sa) = run();
         let (b, _) = run();
         assert_eq!(a, b);
+        // The official crop is another input: the same samples, other predictions.
+        let (c, sc) = run_with(arkit_tool::render::CropRule::Official);
+        assert_eq!(sc.samples, 6);
+        assert!(a.iter().zip(&c).all(|(p, q)| p.key == q.key));
+        assert_ne!(a, c);
         assert_eq!(sa.samples, 6);
         assert!(a.iter().all(|p| p.verts.as_ref().unwrap().len() == 3660));
         let options = EvalOptions {

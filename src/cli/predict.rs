@@ -4,6 +4,7 @@ use arkit_tool::Result;
 use arkit_tool::pnp::RansacParams;
 use arkit_tool::predict::{self, OracleOptions};
 use arkit_tool::predictions_table::write_predictions;
+use arkit_tool::render::CropRule;
 use clap::{ArgGroup, Args};
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -77,9 +78,22 @@ pub struct PredictArgs {
     /// tell segmentation errors from correspondence errors.
     #[arg(long, value_enum, default_value = "predicted")]
     mask: MaskSource,
+    /// With --model: whose crop box the network sees: `ours` (the square box, pixel
+    /// centres) or `official` (the official loader's integer box through
+    /// cv2.warpAffine), as the model was trained (`render --compat official` targets
+    /// train on the official crop). With --mask truth, the targets' own crop is used.
+    #[arg(long, value_enum, default_value = "ours")]
+    crop: CropChoice,
     /// Print the summary as JSON.
     #[arg(long)]
     json: bool,
+}
+
+/// `--crop` values.
+#[derive(Clone, Copy, Debug, clap::ValueEnum)]
+enum CropChoice {
+    Ours,
+    Official,
 }
 
 /// `--mask` values.
@@ -134,6 +148,10 @@ pub fn run(a: PredictArgs) -> Result<ExitCode> {
             &a.dataset,
             &model,
             split,
+            match a.crop {
+                CropChoice::Ours => CropRule::Ours,
+                CropChoice::Official => CropRule::Official,
+            },
             matches!(a.mask, MaskSource::Truth).then_some(targets.as_path()),
             a.seed,
             &ransac,
