@@ -539,10 +539,15 @@ impl FaceRenderer {
         buffer: &mut VisibilityBuffer,
     ) -> Result<Vec<bool>> {
         self.rasterize(verts, pose, width, height, None, buffer)?;
-        Ok(face_mask(
-            &buffer.triangle,
-            self.topology.triangles.len() as u32,
-        ))
+        Ok(self.face_pixels(buffer))
+    }
+
+    /// The face mask of a buffer this renderer filled (row-major): pixels whose
+    /// visible triangle is a mesh triangle, not a hole fan. After
+    /// [`FaceRenderer::render`] in [`RasterMode::Official`] the buffer holds the whole
+    /// image, so this is the full-image mask without rendering it again.
+    pub fn face_pixels(&self, buffer: &VisibilityBuffer) -> Vec<bool> {
+        face_mask(&buffer.triangle, self.topology.triangles.len() as u32)
     }
 
     /// The mesh's vertices and its hole centroids projected to image pixels with the
@@ -1144,6 +1149,7 @@ mod tests {
         // The official pipeline needs the official (corner-sampled) crop.
         assert!(r.render(&verts, &pose, 800, 800, &ours, &mut vb).is_err());
         let official = r.render(&verts, &pose, 800, 800, &crop, &mut vb).unwrap();
+        let kept = r.face_pixels(&vb);
         // Two paths to the crop mask: the render's fused loop, and the full-resolution
         // official mask through the cv2.warpAffine reproduction.
         let full = r
@@ -1153,6 +1159,8 @@ mod tests {
             official.mask,
             crate::official_crop::warp_mask(&full, 800, 800, &crop)
         );
+        // The official render leaves the full-image raster in the buffer.
+        assert_eq!(kept, full);
         // Each correspondence, pushed through the camera, lands within a pixel of the
         // image point its crop pixel samples (the heaviest face tap is at most one
         // pixel away; the screen-space weights add a few hundredths).

@@ -202,17 +202,21 @@ pub fn render_dataset(
                             let seed = options.seed
                                 ^ (offset + i as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15);
                             let points = sample_points(t.corr_vertices.len(), options.points, seed);
-                            let full_mask = if options.full_mask {
-                                Some(renderer.render_full_mask(
-                                    &verts,
-                                    &pose,
-                                    r.image_width,
-                                    r.image_height,
-                                    full,
-                                )?)
-                            } else {
-                                None
-                            };
+                            let full_mask =
+                                if options.full_mask && renderer.mode == RasterMode::Official {
+                                    // The official pipeline rendered the whole image already.
+                                    Some(renderer.face_pixels(buffer))
+                                } else if options.full_mask {
+                                    Some(renderer.render_full_mask(
+                                        &verts,
+                                        &pose,
+                                        r.image_width,
+                                        r.image_height,
+                                        full,
+                                    )?)
+                                } else {
+                                    None
+                                };
                             Ok(TargetsRecord::new(
                                 r.key.clone(),
                                 &t,
