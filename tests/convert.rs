@@ -472,6 +472,18 @@ fn rendered_targets_read_back_dense_equal_the_rasterizer() {
         got, want,
         "schemas/targets.json and the written table disagree"
     );
+    // A file written before the crop_side_y and crop_sampling columns (2026-11-30)
+    // reads as a square box sampled at pixel centres: the same records.
+    let mut old = df
+        .drop("crop_side_y")
+        .unwrap()
+        .drop("crop_sampling")
+        .unwrap();
+    let old_path = out.path().join("old-targets.parquet");
+    samples_table::write_parquet(&old_path, &mut old).unwrap();
+    let first =
+        targets_table::read_targets(&out.path().join("targets/part-00000.parquet")).unwrap();
+    assert_eq!(targets_table::read_targets(&old_path).unwrap(), first);
     let mut vb = arkit_tool::raster::VisibilityBuffer::new(96, 96);
     for (s, t) in samples.iter().zip(&targets) {
         assert_eq!(s.key, t.key);
