@@ -41,8 +41,19 @@ fn main() {
     let image = RgbImage::from_fn(800, 800, |x, y| Rgb([(x % 256) as u8, (y % 256) as u8, 90]));
     let mut vb = VisibilityBuffer::new(192, 192);
     // `cargo bench --bench render -- stages`: the per-sample stages only, more repeats.
-    let stages_only = std::env::args().any(|a| a == "stages" || a == "visibility" || a == "crop");
+    let stages_only =
+        std::env::args().any(|a| a == "stages" || a == "visibility" || a == "crop" || a == "uv");
     let n = if stages_only { 1000 } else { 200 };
+    // `-- uv`: the UV position map alone (for a profiler).
+    if std::env::args().any(|a| a == "uv") {
+        let texels = uv.texels(192);
+        let uv_ms = median_ms(
+            || drop(texels.position_map(&uv.extended_positions(&verts))),
+            n,
+        );
+        println!("UV map stage: {uv_ms:.3} ms");
+        return;
+    }
     // `-- crop`: the crop stage alone (for a profiler).
     if std::env::args().any(|a| a == "crop") {
         let crop_ms = median_ms(|| drop(crop.crop_image(&image)), n);
@@ -64,7 +75,13 @@ fn main() {
         println!("visibility stage: {visibility:.3} ms");
         return;
     }
-    let uv_map = median_ms(|| drop(uv.position_map(&verts, 192)), n);
+    // The layout is rasterized once per map size; each mesh is then a weighted sum.
+    let uv_layout = median_ms(|| drop(uv.texels(192)), n);
+    let texels = uv.texels(192);
+    let uv_map = median_ms(
+        || drop(texels.position_map(&uv.extended_positions(&verts))),
+        n,
+    );
     let crop_ms = median_ms(|| drop(crop.crop_image(&image)), n);
     let points = median_ms(|| drop(sample_points(faces, 1024, 7)), n);
     // Floor: clear the buffers and touch each covered pixel once.
@@ -96,6 +113,10 @@ fn main() {
     println!(
         "{:<48} {:>9.3}",
         "UV position map (once per distinct mesh)", uv_map
+    );
+    println!(
+        "{:<48} {:>9.3}",
+        "UV layout rasterized (once per map size)", uv_layout
     );
     println!(
         "{:<48} {:>9.3}",

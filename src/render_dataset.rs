@@ -86,6 +86,9 @@ pub fn render_dataset(
         ));
     }
     let uv = UvMapper::derive(renderer.topology())?;
+    // The layout's rasterization, once: a mesh's map is then three weighted positions
+    // per texel.
+    let uv_texels = uv.texels(options.uv_size);
     std::fs::create_dir_all(options.output.join("targets"))
         .map_err(|e| Error::io(&options.output, e))?;
     // Shards are kept on a rerun only if they were made with the same options.
@@ -160,7 +163,7 @@ pub fn render_dataset(
                     .map(|v| {
                         let pts: Vec<Point3<f32>> =
                             v.chunks(3).map(|c| Point3::new(c[0], c[1], c[2])).collect();
-                        uv.position_map(&pts, options.uv_size)
+                        uv_texels.position_map(&uv.extended_positions(&pts))
                     })
                     .collect();
                 let results: Vec<Result<TargetsRecord>> = rows
