@@ -8,12 +8,20 @@
 //!    the bounding box clipped to the viewport. A mesh
 //!    ([`VisibilityBuffer::rasterize_mesh`]) checks and snaps each vertex once, not once
 //!    per triangle using it: the setup's instructions fell from 1.10 M to 0.46 M per
-//!    192x192 face crop (0.42 -> 0.39 ms for the whole visibility stage, best of 8). Folding the top-left bias into the
+//!    192x192 face crop (0.42 -> 0.39 ms for the whole visibility stage, best of 8);
+//!    inlining the setup into the mesh loop, rather than returning it through memory,
+//!    saved another 0.18 M. Folding the top-left bias into the
 //!    stepped edge values (three additions less per box pixel) made no measurable
 //!    difference (1.820 -> 1.817 M instructions in the walk), so the walk keeps them.
 //! 2. **Coverage** ([`TriangleSetup::for_each_covered`]): walk the box, stepping the
 //!    three edge functions by integer increments; a pixel centre is inside when every
 //!    edge function is positive, or zero on a *top* or *left* edge (the top-left rule).
+//!    A row of a triangle is covered on one run of pixels, so for boxes up to 64 pixels
+//!    wide (a face crop's triangles are 3.6 pixels wide on average) each row's
+//!    coverage is taken as a bit mask, two pixels at a time in SSE2 lanes, and the run
+//!    between its first and last set bits is visited: no branch per pixel. That costs
+//!    14% more instructions than three tests per pixel and saves 12% of the time (the
+//!    branches on the edge tests were mispredicted at every run boundary).
 //! 3. **Interpolation**: screen-space barycentrics from the edge functions, then
 //!    perspective-correct barycentrics `b_i = l_i w_i^-1 / sum_j l_j w_j^-1` and the
 //!    depth key `sum_i l_i w_i^-1` (1/w, larger is nearer), one division per pixel.
@@ -166,7 +174,7 @@ impl TriangleSetup {
     /// vertices are snapped and checked once ([`VisibilityBuffer::rasterize_mesh_with`])
     /// instead of once per triangle using them (about six): the checks and the snapping
     /// were a third of the setup's instructions.
-    #[inline]
+    #[inline(always)]
     fn from_fixed(v: [FixedVertex; 3], width: u32, height: u32, culling: Culling) -> Option<Self> {
         // Twice the signed area, cross(v1 - v0, v2 - v0). With y down, a negative value
         // is counter-clockwise as displayed; the setup orients every triangle that way,
@@ -237,8 +245,60 @@ impl TriangleSetup {
 
     /// The coverage stage: visits every covered pixel in row-major order with its three
     /// edge-function values, stepping them incrementally.
+    ///
+    /// A row of a triangle is covered on one run of pixels (each edge's test is a half
+    /// line along the row). For boxes up to 64 pixels wide (all but the largest
+    /// triangles at crop resolution) the row's coverage is first gathered as a bit mask
+    /// without a branch per pixel, and the run between its first and last set bits is
+    /// visited; wider boxes are walked pixel by pixel, where long runs keep the branches
+    /// predictable.
     #[inline]
-    fn walk(&self, mut visit: impl FnMut(u32, u32, [i64; 3])) {
+    fn walk(&self, visit: impl FnMut(u32, u32, [i64; 3])) {
+        if self.x1 - self.x0 < 64 {
+            self.walk_rows(visit)
+        } else {
+            self.walk_pixels(visit)
+        }
+    }
+
+    /// [`TriangleSetup::walk`] for a box up to 64 pixels wide: each row's coverage as a
+    /// bit mask ([`RowCoverage`]), then the run between its first and last set bits.
+    /// Against [`TriangleSetup::walk_pixels`] on a 192x192 face crop (boxes 3.6 pixels
+    /// wide on average, 42% of box pixels inside): 14% more instructions but 12% less
+    /// time (0.378 -> 0.330 ms for the visibility stage, best of 8 alternated runs), from
+    /// fewer mispredicted branches (callgrind's branch model: 23.4 k -> 14.7 k per
+    /// sample in the walk).
+    #[inline(always)]
+    fn walk_rows(&self, mut visit: impl FnMut(u32, u32, [i64; 3])) {
+        let mut row = self.e0;
+        let width = self.x1 - self.x0 + 1;
+        let mut coverage = RowCoverage::new(row, self.dx, self.dy, self.bias, width);
+        for y in self.y0..=self.y1 {
+            let bits = coverage.next_row();
+            if bits != 0 {
+                let (first, last) = (bits.trailing_zeros(), 63 - bits.leading_zeros());
+                let f = first as i64;
+                let mut e = [
+                    row[0] + self.dx[0] * f,
+                    row[1] + self.dx[1] * f,
+                    row[2] + self.dx[2] * f,
+                ];
+                for x in self.x0 + first..=self.x0 + last {
+                    visit(x, y, e);
+                    e[0] += self.dx[0];
+                    e[1] += self.dx[1];
+                    e[2] += self.dx[2];
+                }
+            }
+            row[0] += self.dy[0];
+            row[1] += self.dy[1];
+            row[2] += self.dy[2];
+        }
+    }
+
+    /// [`TriangleSetup::walk`] pixel by pixel, for any box: three edge tests per pixel.
+    #[inline]
+    fn walk_pixels(&self, mut visit: impl FnMut(u32, u32, [i64; 3])) {
         let mut row = self.e0;
         for y in self.y0..=self.y1 {
             let mut e = row;
@@ -328,6 +388,106 @@ impl TriangleSetup {
         (self.x0, self.y0, self.x1, self.y1)
     }
 }
+
+/// The coverage of a box's rows as bit masks, row after row, for boxes up to 64 pixels
+/// wide: bit `i` of a row's mask is set when pixel `i` of the row is inside, that is
+/// when no biased edge value is negative, so when the sign bit of their OR is clear.
+/// On x86-64 two pixels at a time in SSE2 lanes (part of the x86-64 baseline; the sign
+/// bits come out with one `movmskpd`), elsewhere one at a time
+/// ([`ScalarRowCoverage`]); the two agree (tested).
+#[cfg(target_arch = "x86_64")]
+struct RowCoverage {
+    /// Biased edge values at pixels `(0, 1)` of the current row, per edge.
+    lanes: [std::arch::x86_64::__m128i; 3],
+    /// Two pixels' step along a row, per edge.
+    step: [std::arch::x86_64::__m128i; 3],
+    /// One row's step, per edge.
+    down: [std::arch::x86_64::__m128i; 3],
+    width: u32,
+}
+
+#[cfg(target_arch = "x86_64")]
+impl RowCoverage {
+    /// For edge values `e` at the box's first pixel, steps `dx` along a row and `dy`
+    /// down, top-left `bias`, and a box `width` (1 to 64) pixels wide.
+    #[inline(always)]
+    fn new(e: [i64; 3], dx: [i64; 3], dy: [i64; 3], bias: [i64; 3], width: u32) -> Self {
+        use std::arch::x86_64::*;
+        // SAFETY (this and `next_row`): SSE2 is part of the x86-64 baseline, so every
+        // x86-64 CPU has it; the intrinsics take no pointers.
+        unsafe {
+            RowCoverage {
+                lanes: [0, 1, 2].map(|k| _mm_set_epi64x(e[k] + bias[k] + dx[k], e[k] + bias[k])),
+                step: dx.map(|d| _mm_set1_epi64x(2 * d)),
+                down: dy.map(|d| _mm_set1_epi64x(d)),
+                width,
+            }
+        }
+    }
+
+    /// The current row's mask; moves to the next row.
+    #[inline(always)]
+    fn next_row(&mut self) -> u64 {
+        use std::arch::x86_64::*;
+        // SAFETY: see `new`.
+        unsafe {
+            let mut lanes = self.lanes;
+            let mut outside = 0u64;
+            let mut i = 0;
+            while i < self.width {
+                let any = _mm_or_si128(_mm_or_si128(lanes[0], lanes[1]), lanes[2]);
+                outside |= (_mm_movemask_pd(_mm_castsi128_pd(any)) as u64) << i;
+                for (lane, step) in lanes.iter_mut().zip(&self.step) {
+                    *lane = _mm_add_epi64(*lane, *step);
+                }
+                i += 2;
+            }
+            for (lane, down) in self.lanes.iter_mut().zip(&self.down) {
+                *lane = _mm_add_epi64(*lane, *down);
+            }
+            !outside & (u64::MAX >> (64 - self.width))
+        }
+    }
+}
+
+/// [`RowCoverage`] one pixel at a time (the walk's own on targets other than x86-64).
+#[cfg_attr(target_arch = "x86_64", allow(dead_code))]
+struct ScalarRowCoverage {
+    row: [i64; 3],
+    dx: [i64; 3],
+    dy: [i64; 3],
+    width: u32,
+}
+
+#[cfg_attr(target_arch = "x86_64", allow(dead_code))]
+impl ScalarRowCoverage {
+    fn new(e: [i64; 3], dx: [i64; 3], dy: [i64; 3], bias: [i64; 3], width: u32) -> Self {
+        ScalarRowCoverage {
+            row: [0, 1, 2].map(|k| e[k] + bias[k]),
+            dx,
+            dy,
+            width,
+        }
+    }
+
+    fn next_row(&mut self) -> u64 {
+        let (mut e, mut bits) = (self.row, 0u64);
+        for i in 0..self.width {
+            let any = e[0] | e[1] | e[2];
+            bits |= (((any >> 63) + 1) as u64) << i;
+            for (e, dx) in e.iter_mut().zip(&self.dx) {
+                *e += dx;
+            }
+        }
+        for (row, dy) in self.row.iter_mut().zip(&self.dy) {
+            *row += dy;
+        }
+        bits
+    }
+}
+
+#[cfg(not(target_arch = "x86_64"))]
+use ScalarRowCoverage as RowCoverage;
 
 /// Whether the directed edge `a -> b` of an oriented triangle (interior where
 /// `E > 0`, y down) is a *top* or a *left* edge. For a horizontal edge (`ay == by`),
@@ -636,6 +796,57 @@ mod tests {
         let both: Vec<u32> = cov.iter().zip(&cov2).map(|(a, b)| a + b).collect();
         assert!(both.iter().all(|&c| c <= 1));
         assert_eq!(both.iter().sum::<u32>(), 16);
+    }
+
+    #[test]
+    fn row_coverage_equals_the_scalar_reference() {
+        // The SSE2 masks (on x86-64) against one pixel at a time, for random edge
+        // values around zero (where the signs change), steps, biases and widths 1-64.
+        let mut r = Rng::new(11);
+        for _ in 0..2000 {
+            let width = 1 + r.below(64) as u32;
+            let scale = 1i64 << r.below(40);
+            let mut rand = |s: i64| (r.uniform(-1.0, 1.0) * s as f64) as i64;
+            let dx = [rand(scale), rand(scale), rand(scale)];
+            let dy = [rand(scale), rand(scale), rand(scale)];
+            let e = [0, 1, 2].map(|k| rand(scale) - dx[k] * (width as i64 / 2));
+            let bias = [0, 1, 2].map(|k| -((e[k] ^ dx[k]) & 1));
+            let mut fast = RowCoverage::new(e, dx, dy, bias, width);
+            let mut slow = ScalarRowCoverage::new(e, dx, dy, bias, width);
+            for _ in 0..4 {
+                assert_eq!(fast.next_row(), slow.next_row(), "{e:?} {dx:?} {width}");
+            }
+        }
+    }
+
+    #[test]
+    fn row_walk_visits_what_the_pixel_walk_visits() {
+        // Random triangles with boxes up to 64 pixels wide, some with vertices off the
+        // viewport: the same pixels, in the same order, with the same edge values.
+        let mut r = Rng::new(12);
+        let mut narrow = 0;
+        for _ in 0..3000 {
+            let size = r.uniform(0.5, 70.0);
+            let (cx, cy) = (r.uniform(-20.0, 120.0), r.uniform(-20.0, 120.0));
+            let mut v = || {
+                sv(
+                    (cx + r.uniform(0.0, size)) as f32,
+                    (cy + r.uniform(0.0, size)) as f32,
+                )
+            };
+            let Some(t) = TriangleSetup::new([v(), v(), v()], 100, 100, Culling::None) else {
+                continue;
+            };
+            if t.x1 - t.x0 >= 64 {
+                continue;
+            }
+            narrow += 1;
+            let (mut rows, mut pixels) = (Vec::new(), Vec::new());
+            t.walk_rows(|x, y, e| rows.push((x, y, e)));
+            t.walk_pixels(|x, y, e| pixels.push((x, y, e)));
+            assert_eq!(rows, pixels);
+        }
+        assert!(narrow > 1500, "{narrow} triangles tested");
     }
 
     #[test]
