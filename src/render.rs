@@ -177,7 +177,11 @@ impl CropTransform {
     /// ([`round_to_u8`], vectorised): 2.66 -> 2.37 M instructions, 0.21 -> 0.18 ms,
     /// the same bytes. Reading the blended row as `[f32; 3]` pixels by precomputed
     /// index (one bounds check per tap, not two per byte range): 2.37 -> 2.15 M,
-    /// 0.17 -> 0.165 ms.
+    /// 0.17 -> 0.165 ms. Rounding sixteen floats at a time with SSE2 truncation and
+    /// saturating packs ([`round_row_to_u8`]): 2.15 -> 1.73 M, 0.149-0.155 -> 0.113-0.117
+    /// ms (best of 8 alternated runs). Tried and slower: the horizontal taps as one
+    /// four-float SSE2 operation per pixel (the same instruction count, 0.149 -> 0.166
+    /// ms).
     ///
     /// A crop with [`CropSampling::Corners`] is resampled as `cv2.warpAffine` does
     /// instead ([`crate::official_crop::warp_affine`]).
@@ -221,9 +225,7 @@ impl CropTransform {
                     d[k] = p[k] * wa + q[k] * wb;
                 }
             }
-            for (d, &v) in dst.iter_mut().zip(&row) {
-                *d = round_to_u8(v);
-            }
+            round_row_to_u8(&row, dst);
         }
         RgbImage::from_raw(self.size, self.size, out).expect("size matches")
     }
@@ -242,6 +244,41 @@ fn round_to_u8(v: f32) -> u8 {
     let t = y + MAGIC;
     let t = if t - MAGIC > y { t - 1.0 } else { t };
     t.to_bits() as u8
+}
+
+/// [`round_to_u8`] over a row: `dst[i]` from `src[i]`, for the shorter of the two. On
+/// x86-64, sixteen values at a time in SSE2 (part of the x86-64 baseline): truncating
+/// `fl(v + 0.5)` (`cvttps2dq`) is its floor, the same number `round_to_u8` finds, and
+/// the saturating packs clamp to 255. 18 instructions per four values in
+/// `round_to_u8`'s vectorised loop, 17 per sixteen here; the same bytes (tested).
+#[inline]
+fn round_row_to_u8(src: &[f32], dst: &mut [u8]) {
+    let n = src.len().min(dst.len());
+    let (src, dst) = (&src[..n], &mut dst[..n]);
+    // Values before `done` are written by the vector loop.
+    #[cfg(not(target_arch = "x86_64"))]
+    let done = 0;
+    #[cfg(target_arch = "x86_64")]
+    let done = {
+        use std::arch::x86_64::*;
+        for (s, d) in src.chunks_exact(16).zip(dst.chunks_exact_mut(16)) {
+            // SAFETY: SSE2 is part of the x86-64 baseline; the loads read 16 floats of
+            // `s` and the store writes 16 bytes of `d`, both exactly 16 long.
+            unsafe {
+                let half = _mm_set1_ps(0.5);
+                let q = |k: usize| {
+                    _mm_cvttps_epi32(_mm_add_ps(_mm_loadu_ps(s.as_ptr().add(4 * k)), half))
+                };
+                let lo = _mm_packs_epi32(q(0), q(1));
+                let hi = _mm_packs_epi32(q(2), q(3));
+                _mm_storeu_si128(d.as_mut_ptr().cast(), _mm_packus_epi16(lo, hi));
+            }
+        }
+        n - n % 16
+    };
+    for (d, &v) in dst[done..].iter_mut().zip(&src[done..]) {
+        *d = round_to_u8(v);
+    }
 }
 
 /// The two bilinear taps of one crop column (or row): byte offsets into the source row
@@ -1008,8 +1045,15 @@ mod tests {
             let h = k as f32 * 0.5;
             values.extend([h, h.next_down(), h.next_up()]);
         }
-        for v in values.into_iter().filter(|v| *v >= 0.0) {
+        values.retain(|v| *v >= 0.0);
+        for &v in &values {
             assert_eq!(round_to_u8(v), (v + 0.5).min(255.0) as u8, "{v}");
+        }
+        // The row version (sixteen at a time on x86-64, then a tail) gives the same.
+        let mut row = vec![0u8; values.len()];
+        round_row_to_u8(&values, &mut row);
+        for (&v, &r) in values.iter().zip(&row) {
+            assert_eq!(r, round_to_u8(v), "{v}");
         }
     }
 
