@@ -894,6 +894,14 @@ impl UvMapper {
             vertices.push(self.triangles[t as usize]);
             weights.push(vb.bary[i]);
         }
+        // `position_map` relies on these (its unchecked reads).
+        assert!(
+            vertices
+                .iter()
+                .flatten()
+                .all(|&v| (v as usize) < self.uv.len()),
+            "UV triangles index the extended vertices"
+        );
         UvTexels {
             size,
             extended_vertices: self.uv.len(),
@@ -960,12 +968,53 @@ impl UvTexels {
     /// ([`UvMapper::extended_positions`]): row-major `size x size`, NaN where no
     /// triangle covers the texel. Panics if `extended` has not one position per UV
     /// vertex of the layout.
+    ///
+    /// Each covered texel is `(p0 * w0 + p1 * w1) + p2 * w2`, per coordinate. On x86-64
+    /// that is one four-float SSE2 operation per texel (43 -> 26 instructions per
+    /// texel), with the positions padded to four floats, the padding NaN: the fourth
+    /// lane, stored over the next texel's x, is then NaN, which is right if that texel
+    /// is not covered and is overwritten if it is (texels go in ascending order; the
+    /// last one writes a spare element). The same bits either way (tested).
     pub fn position_map(&self, extended: &[Point3<f32>]) -> Vec<[f32; 3]> {
         assert_eq!(
             extended.len(),
             self.extended_vertices,
             "one position per UV vertex"
         );
+        let n = self.size as usize * self.size as usize;
+        #[cfg(target_arch = "x86_64")]
+        {
+            use std::arch::x86_64::*;
+            let padded: Vec<[f32; 4]> =
+                extended.iter().map(|p| [p.x, p.y, p.z, f32::NAN]).collect();
+            let mut out = vec![[f32::NAN; 3]; n + 1];
+            let (pos, dst) = (padded.as_ptr(), out.as_mut_ptr().cast::<f32>());
+            for ((&i, v), b) in self.index.iter().zip(&self.vertices).zip(&self.weights) {
+                // SAFETY: SSE2 is part of the x86-64 baseline. `texels` made every
+                // vertex id below `extended_vertices`, which is `padded.len()` (asserted
+                // above), and every index below `n`; the four floats stored at texel `i`
+                // end within `out`'s spare element.
+                unsafe {
+                    let term = |k: usize| {
+                        _mm_mul_ps(
+                            _mm_loadu_ps(pos.add(v[k] as usize).cast()),
+                            _mm_set1_ps(b[k]),
+                        )
+                    };
+                    let p = _mm_add_ps(_mm_add_ps(term(0), term(1)), term(2));
+                    _mm_storeu_ps(dst.add(i as usize * 3), p);
+                }
+            }
+            out.truncate(n);
+            out
+        }
+        #[cfg(not(target_arch = "x86_64"))]
+        self.position_map_scalar(extended)
+    }
+
+    /// [`UvTexels::position_map`] one coordinate at a time.
+    #[cfg_attr(target_arch = "x86_64", allow(dead_code))]
+    fn position_map_scalar(&self, extended: &[Point3<f32>]) -> Vec<[f32; 3]> {
         let mut out = vec![[f32::NAN; 3]; self.size as usize * self.size as usize];
         for ((&i, v), b) in self.index.iter().zip(&self.vertices).zip(&self.weights) {
             let p = extended[v[0] as usize].coords * b[0]
@@ -1185,6 +1234,30 @@ mod tests {
         // Only pixel centres exactly on an edge can differ (the fill rule is not
         // rotation-invariant there).
         assert!(differ * 200 < area, "{differ} of {area}");
+    }
+
+    #[test]
+    fn uv_position_map_equals_the_scalar_sum() {
+        // The SSE2 texel loop (on x86-64) against one coordinate at a time, bit for
+        // bit, NaN where uncovered, on a non-square-friendly size and a bent face.
+        let (r, verts) = face();
+        let uv = UvMapper::derive(r.topology()).unwrap();
+        let bent: Vec<Point3<f32>> = verts
+            .iter()
+            .map(|p| Point3::new(p.x * 1.1, p.y - 0.3 * p.x * p.x, p.z + 0.01))
+            .collect();
+        let ext = uv.extended_positions(&bent);
+        for size in [17, 64, 193] {
+            let t = uv.texels(size);
+            let (fast, slow) = (t.position_map(&ext), t.position_map_scalar(&ext));
+            assert_eq!(fast.len(), (size * size) as usize);
+            let bits =
+                |m: &[[f32; 3]]| -> Vec<u32> { m.iter().flatten().map(|v| v.to_bits()).collect() };
+            assert_eq!(bits(&fast), bits(&slow), "size {size}");
+            let covered = fast.iter().filter(|p| !p[0].is_nan()).count();
+            assert_eq!(covered, t.covered());
+            assert!(covered > (size * size) as usize / 3, "{covered}");
+        }
     }
 
     #[test]
