@@ -647,7 +647,14 @@ impl VisibilityBuffer {
             else {
                 continue;
             };
-            let (depth, triangle, bary) = (&mut self.inv_w, &mut self.triangle, &mut self.bary);
+            // All three cut to the same length, so that the depth test's bounds check
+            // covers the two stores (LLVM drops theirs).
+            let n = self.triangle.len();
+            let (depth, triangle, bary) = (
+                &mut self.inv_w[..n],
+                &mut self.triangle[..n],
+                &mut self.bary[..n],
+            );
             setup.for_each_nearer(depth, width, |idx, f| {
                 triangle[idx] = ti as u32;
                 bary[idx] = f.bary;
