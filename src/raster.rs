@@ -285,14 +285,10 @@ impl TriangleSetup {
                 ];
                 for x in self.x0 + first..=self.x0 + last {
                     visit(x, y, e);
-                    e[0] += self.dx[0];
-                    e[1] += self.dx[1];
-                    e[2] += self.dx[2];
+                    step(&mut e, self.dx);
                 }
             }
-            row[0] += self.dy[0];
-            row[1] += self.dy[1];
-            row[2] += self.dy[2];
+            step(&mut row, self.dy);
         }
     }
 
@@ -307,13 +303,9 @@ impl TriangleSetup {
                 {
                     visit(x, y, e);
                 }
-                e[0] += self.dx[0];
-                e[1] += self.dx[1];
-                e[2] += self.dx[2];
+                step(&mut e, self.dx);
             }
-            row[0] += self.dy[0];
-            row[1] += self.dy[1];
-            row[2] += self.dy[2];
+            step(&mut row, self.dy);
         }
     }
 
@@ -488,6 +480,14 @@ impl ScalarRowCoverage {
 
 #[cfg(not(target_arch = "x86_64"))]
 use ScalarRowCoverage as RowCoverage;
+
+/// Steps three edge values by their increments.
+#[inline(always)]
+fn step(e: &mut [i64; 3], by: [i64; 3]) {
+    e[0] += by[0];
+    e[1] += by[1];
+    e[2] += by[2];
+}
 
 /// Whether the directed edge `a -> b` of an oriented triangle (interior where
 /// `E > 0`, y down) is a *top* or a *left* edge. For a horizontal edge (`ay == by`),
