@@ -467,13 +467,9 @@ impl ScalarRowCoverage {
         for i in 0..self.width {
             let any = e[0] | e[1] | e[2];
             bits |= (((any >> 63) + 1) as u64) << i;
-            for (e, dx) in e.iter_mut().zip(&self.dx) {
-                *e += dx;
-            }
+            step(&mut e, self.dx);
         }
-        for (row, dy) in self.row.iter_mut().zip(&self.dy) {
-            *row += dy;
-        }
+        step(&mut self.row, self.dy);
         bits
     }
 }
