@@ -167,9 +167,9 @@ impl CropTransform {
     ///
     /// The map is an axis-aligned scale, so the bilinear taps and weights of a column
     /// depend only on its x and those of a row only on its y: they are computed once per
-    /// column and row (`Taps`), a tap outside the image getting weight 0. Each crop row
-    /// then blends its two source rows over the span the columns read (contiguous, so
-    /// the compiler vectorises it) and reads its pixels from that blend with two taps
+    /// column and row (`Taps`, [`ColumnTaps`]), a tap outside the image getting weight 0.
+    /// Each crop row then blends its two source rows over the span the columns read
+    /// (contiguous, so it vectorises) and reads its pixels from that blend with two taps
     /// each. Measured with `cargo bench --bench render -- stages`: per-pixel lookups with
     /// bounds checks were about 6x slower than four taps per pixel from the tables, and
     /// four taps with a branch per tap for the image border 1.2x slower than without.
@@ -181,9 +181,12 @@ impl CropTransform {
     /// saturating packs ([`round_row_to_u8`]): 2.15 -> 1.73 M, 0.149-0.155 -> 0.113-0.117
     /// ms (best of 8 alternated runs). Blending the two source rows sixteen bytes at a
     /// time ([`blend_rows`]): 1.73 -> 1.65 M, 6% less time in alternated runs on a busy
-    /// machine. Tried and slower: the horizontal taps as one
-    /// four-float SSE2 operation per pixel (the same instruction count, 0.149 -> 0.166
-    /// ms).
+    /// machine. The horizontal taps as one four-float SSE2 operation per pixel on an
+    /// adjacent pair, the blended span padded with a zero pixel on each side so that no
+    /// tap is tested for the border ([`ColumnTaps`]): 1.65 -> 1.01 M, 0.114-0.119 ->
+    /// 0.089-0.093 ms (8 alternated runs), the same bytes. (The same SSE2 operation with
+    /// two independent taps per pixel, a bounds check each and weights broadcast per
+    /// pixel, had been slower: 0.149 -> 0.166 ms.)
     ///
     /// A crop with [`CropSampling::Corners`] is resampled as `cv2.warpAffine` does
     /// instead ([`crate::official_crop::warp_affine`]).
@@ -200,31 +203,21 @@ impl CropTransform {
         }
         let stride = image.width() as usize * 3;
         let (sx, sy) = self.scales();
-        let cols = Taps::new(n, self.x0, sx, image.width(), 3);
+        let cols = ColumnTaps::new(n, self.x0, sx, image.width());
         let rows = Taps::new(n, self.y0, sy, image.height(), stride);
-        // The bytes of a source row the columns read.
-        let lo = cols.0.iter().map(|c| c.a.min(c.b)).min().unwrap_or(0);
-        let hi = cols.0.iter().map(|c| c.a.max(c.b)).max().unwrap_or(0) + 3;
-        let mut blend = vec![0f32; hi - lo];
-        let mut row = vec![0f32; n * 3];
-        // Column taps as pixel indices into the blended span: one bounds check per tap
-        // instead of two per byte range.
-        let col_taps: Vec<(usize, usize, f32, f32)> = cols
-            .0
-            .iter()
-            .map(|c| ((c.a - lo) / 3, (c.b - lo) / 3, c.wa, c.wb))
-            .collect();
+        // The blended span: pixels `cols.first..=cols.last` of the two source rows, one
+        // float more for the last four-float read, and zero where a pixel is off the
+        // image (at most the pads at -1 and `width`).
+        let mut blend = vec![0f32; cols.span_floats()];
+        let (real_lo, real_hi) = cols.on_image(image.width());
+        let real_at = 3 * (real_lo - cols.first) as usize;
+        let (lo, hi) = (3 * real_lo as usize, 3 * (real_hi as usize + 1));
+        let mut row = vec![0f32; n * 3 + 1];
         let src = image.as_raw();
         for (dst, r) in out.chunks_exact_mut(n * 3).zip(&rows.0) {
             let (ra, rb) = (&src[r.a + lo..r.a + hi], &src[r.b + lo..r.b + hi]);
-            blend_rows(ra, rb, r.wa, r.wb, &mut blend);
-            let pixels = blend.as_chunks::<3>().0;
-            for (d, &(a, b, wa, wb)) in row.as_chunks_mut::<3>().0.iter_mut().zip(&col_taps) {
-                let (p, q) = (pixels[a], pixels[b]);
-                for k in 0..3 {
-                    d[k] = p[k] * wa + q[k] * wb;
-                }
-            }
+            blend_rows(ra, rb, r.wa, r.wb, &mut blend[real_at..]);
+            cols.blend_columns(&blend, &mut row);
             round_row_to_u8(&row, dst);
         }
         RgbImage::from_raw(self.size, self.size, out).expect("size matches")
@@ -348,9 +341,7 @@ impl Taps {
         Taps(
             (0..n)
                 .map(|i| {
-                    let f = origin + (i as f64 + 0.5) / scale - 0.5;
-                    let x = f.floor() as i64;
-                    let t = (f - x as f64) as f32;
+                    let (x, t) = bilinear_position(i, origin, scale);
                     let tap = |x: i64, w: f32| {
                         if (0..count as i64).contains(&x) {
                             (x as usize * step, w)
@@ -363,6 +354,122 @@ impl Taps {
                 })
                 .collect(),
         )
+    }
+}
+
+/// Crop pixel `i`'s centre along an image axis, `origin + (i + 0.5) / scale`, as the
+/// pixel `x` left of (or above) it and the fraction `t` past that pixel's centre: the
+/// bilinear weights are `1 - t` for `x` and `t` for `x + 1`.
+fn bilinear_position(i: usize, origin: f64, scale: f64) -> (i64, f32) {
+    let f = origin + (i as f64 + 0.5) / scale - 0.5;
+    let x = f.floor() as i64;
+    (x, (f - x as f64) as f32)
+}
+
+/// The horizontal taps of every crop column, read from a row of blended pixels (the
+/// vertical pass's output, three floats per pixel) that covers image pixels `first` to
+/// `last` and reads as zero off the image: column `i` is `pixel(x) * (1 - t) +
+/// pixel(x + 1) * t`, and a pair wholly off the image has weights 0. As the pair is
+/// adjacent, one column is two four-float reads (the pair's pixels and the next
+/// float), two products and a sum in SSE2 on x86-64, whose fourth lane is junk that
+/// the next column's store overwrites; the same products and sums as
+/// [`ColumnTaps::blend_columns_scalar`], so the same bits (tested).
+struct ColumnTaps {
+    /// The span's first pixel: -1 when a column reads the zero left of the image.
+    first: i64,
+    /// The span's last pixel: the image width when a column reads the zero right of it.
+    last: i64,
+    /// Per column, the float offset of its pair's first pixel in the span.
+    starts: Vec<usize>,
+    /// Per column, the pair's two weights, each in four lanes.
+    weights: Vec<PairWeights>,
+}
+
+/// The two weights of a column's pixel pair, each repeated for a four-float operation.
+#[derive(Clone, Copy, Debug)]
+#[repr(C, align(16))]
+struct PairWeights {
+    a: [f32; 4],
+    b: [f32; 4],
+}
+
+impl ColumnTaps {
+    /// For `n` crop columns whose centres look at `origin + (i + 0.5) / scale` along an
+    /// image row of `width` (at least 1) pixels.
+    fn new(n: usize, origin: f64, scale: f64, width: u32) -> Self {
+        let w = width as i64;
+        let pairs: Vec<(i64, f32, f32)> = (0..n)
+            .map(|i| {
+                let (x, t) = bilinear_position(i, origin, scale);
+                if (-1..w).contains(&x) {
+                    (x, 1.0 - t, t)
+                } else {
+                    (x.clamp(-1, w - 1), 0.0, 0.0)
+                }
+            })
+            .collect();
+        let first = pairs.iter().map(|p| p.0).min().unwrap_or(0);
+        let last = pairs.iter().map(|p| p.0 + 1).max().unwrap_or(1);
+        ColumnTaps {
+            first,
+            last,
+            starts: pairs.iter().map(|p| 3 * (p.0 - first) as usize).collect(),
+            weights: pairs
+                .iter()
+                .map(|&(_, a, b)| PairWeights {
+                    a: [a; 4],
+                    b: [b; 4],
+                })
+                .collect(),
+        }
+    }
+
+    /// Floats in the blended span: three per pixel and one for the last column's read.
+    fn span_floats(&self) -> usize {
+        3 * (self.last - self.first + 1) as usize + 1
+    }
+
+    /// The span's pixels on an image `width` pixels wide (never empty: each pair has
+    /// at least one).
+    fn on_image(&self, width: u32) -> (i64, i64) {
+        (self.first.max(0), self.last.min(width as i64 - 1))
+    }
+
+    /// Fills `row` (three floats per column and one spare) from the blended span.
+    #[inline]
+    fn blend_columns(&self, blend: &[f32], row: &mut [f32]) {
+        assert!(blend.len() >= self.span_floats() && row.len() > 3 * self.starts.len());
+        #[cfg(not(target_arch = "x86_64"))]
+        self.blend_columns_scalar(blend, row);
+        #[cfg(target_arch = "x86_64")]
+        {
+            use std::arch::x86_64::*;
+            let (blend, out) = (blend.as_ptr(), row.as_mut_ptr());
+            for (i, (&s, w)) in self.starts.iter().zip(&self.weights).enumerate() {
+                // SAFETY: SSE2 is part of the x86-64 baseline. A start is at most
+                // `3 * (last - 1 - first)`, so the reads end by `span_floats()` floats,
+                // within `blend` (asserted); the store writes floats `3i..3i + 4` of
+                // `row`, which has `3n + 1` (asserted); `w` is 16-byte aligned.
+                unsafe {
+                    let p = blend.add(s);
+                    let v = _mm_add_ps(
+                        _mm_mul_ps(_mm_loadu_ps(p), _mm_load_ps(w.a.as_ptr())),
+                        _mm_mul_ps(_mm_loadu_ps(p.add(3)), _mm_load_ps(w.b.as_ptr())),
+                    );
+                    _mm_storeu_ps(out.add(3 * i), v);
+                }
+            }
+        }
+    }
+
+    /// [`ColumnTaps::blend_columns`] one float at a time.
+    #[cfg_attr(target_arch = "x86_64", allow(dead_code))]
+    fn blend_columns_scalar(&self, blend: &[f32], row: &mut [f32]) {
+        for ((d, &s), w) in row.chunks_exact_mut(3).zip(&self.starts).zip(&self.weights) {
+            for (k, d) in d.iter_mut().enumerate() {
+                *d = blend[s + k] * w.a[0] + blend[s + 3 + k] * w.b[0];
+            }
+        }
     }
 }
 
@@ -1178,6 +1285,25 @@ mod tests {
                 ((x ^ y) * 5) as u8,
             ])
         });
+        // Over the top-left corner, over the bottom-right one (reading the zero pads on
+        // both sides of the blended span), inside and downscaled, wholly off the image.
+        for (x0, y0, side) in [
+            (-13.3, -7.9, 83.7),
+            (41.6, 20.2, 70.1),
+            (3.2, 4.9, 91.0),
+            (120.0, -90.0, 40.0),
+        ] {
+            let c = CropTransform {
+                x0,
+                y0,
+                side,
+                side_y: side,
+                size: 50,
+                sampling: crate::render::CropSampling::Centres,
+            };
+            assert_crop_is_bilinear(&img, &c);
+        }
+        // An empty image crops to black.
         let c = CropTransform {
             x0: -13.3,
             y0: -7.9,
@@ -1186,9 +1312,20 @@ mod tests {
             size: 50,
             sampling: crate::render::CropSampling::Centres,
         };
-        let out = c.crop_image(&img);
+        assert!(
+            c.crop_image(&RgbImage::new(0, 0))
+                .pixels()
+                .all(|p| p.0 == [0; 3])
+        );
+    }
+
+    /// Asserts `c.crop_image(img)` is, byte for byte, plain per-pixel bilinear sampling
+    /// (black off the image) rounded.
+    fn assert_crop_is_bilinear(img: &RgbImage, c: &CropTransform) {
+        let out = c.crop_image(img);
+        let (w, h) = (img.width() as i64, img.height() as i64);
         let texel = |x: i64, y: i64, k: usize| -> f32 {
-            if (0..97).contains(&x) && (0..61).contains(&y) {
+            if (0..w).contains(&x) && (0..h).contains(&y) {
                 img.get_pixel(x as u32, y as u32).0[k] as f32
             } else {
                 0.0
@@ -1208,17 +1345,28 @@ mod tests {
                     let got = out.get_pixel(i, j).0[k] as f32;
                     assert!(
                         (got - v).abs() <= 0.5 + 1e-3,
-                        "({i}, {j}, {k}): {got} vs {v}"
+                        "{c:?} ({i}, {j}, {k}): {got} vs {v}"
                     );
                 }
             }
         }
-        // An empty image crops to black.
-        assert!(
-            c.crop_image(&RgbImage::new(0, 0))
-                .pixels()
-                .all(|p| p.0 == [0; 3])
-        );
+    }
+
+    #[test]
+    fn column_taps_equal_the_scalar_taps() {
+        // The four-float SSE2 columns (on x86-64) against one float at a time, for a
+        // downscale, an upscale and columns reading both pads and beyond.
+        for (origin, scale, width) in [(10.3, 0.51, 400u32), (-3.7, 2.3, 20), (-30.0, 0.8, 45)] {
+            let cols = ColumnTaps::new(64, origin, scale, width);
+            let blend: Vec<f32> = (0..cols.span_floats())
+                .map(|i| (i * 37 % 255) as f32 * 0.731)
+                .collect();
+            let (mut fast, mut slow) = (vec![0f32; 64 * 3 + 1], vec![0f32; 64 * 3 + 1]);
+            cols.blend_columns(&blend, &mut fast);
+            cols.blend_columns_scalar(&blend, &mut slow);
+            let bits = |v: &[f32]| v[..64 * 3].iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+            assert_eq!(bits(&fast), bits(&slow), "{origin} {scale} {width}");
+        }
     }
 
     #[test]
