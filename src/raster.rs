@@ -46,7 +46,7 @@
 //! - Fill rule, for y down and counter-clockwise-on-screen orientation (as displayed):
 //!   a *top* edge is horizontal with the triangle below it; a *left* edge is one the
 //!   triangle lies to the right of, going down. Both windings are accepted (the
-//!   setup reorders the vertices) unless back faces are culled.
+//!   setup takes a clockwise triangle's edges reversed) unless back faces are culled.
 //! - Depth test: the fragment with the larger `inv_w` wins; on an exact tie the
 //!   earlier triangle keeps the pixel.
 
@@ -101,10 +101,8 @@ pub enum Culling {
 /// A triangle prepared for coverage: fixed-point vertices, edge functions, box.
 #[derive(Clone, Debug)]
 pub struct TriangleSetup {
-    /// Permutation applied to make the triangle counter-clockwise on screen:
-    /// internal vertex `k` is caller vertex `order[k]`.
-    order: [usize; 3],
-    /// Per edge `k` (opposite internal vertex `k`): value at the first pixel centre of
+    /// Per edge `k` (opposite the caller's vertex `k`, oriented so that it is positive
+    /// inside): value at the first pixel centre of
     /// the box, step per pixel in x, step per row in y, and the top-left bias.
     e0: [i64; 3],
     dx: [i64; 3],
@@ -177,21 +175,20 @@ impl TriangleSetup {
     #[inline(always)]
     fn from_fixed(v: [FixedVertex; 3], width: u32, height: u32, culling: Culling) -> Option<Self> {
         // Twice the signed area, cross(v1 - v0, v2 - v0). With y down, a negative value
-        // is counter-clockwise as displayed; the setup orients every triangle that way,
-        // which makes the edge functions below positive inside.
+        // is counter-clockwise as displayed: the edges below run that way round, which
+        // makes their functions positive inside. For a clockwise triangle each edge is
+        // taken reversed instead (its function negated), so edge `k` stays opposite
+        // the caller's vertex `k` and no pixel needs its weights permuted back (a
+        // permutation chosen per pixel had been 4 of the ~50 instructions of a pixel
+        // that passes the depth test).
         let area = (v[1].x - v[0].x) * (v[2].y - v[0].y) - (v[2].x - v[0].x) * (v[1].y - v[0].y);
         if area == 0 {
             return None;
         }
-        // Two literal orders rather than `order.map(..)`, which was not inlined.
-        let (order, v) = if area < 0 {
-            ([0, 1, 2], v)
-        } else {
-            if culling == Culling::BackFaces {
-                return None;
-            }
-            ([0, 2, 1], [v[0], v[2], v[1]])
-        };
+        let clockwise = area > 0;
+        if clockwise && culling == Culling::BackFaces {
+            return None;
+        }
         let px = [v[0].x, v[1].x, v[2].x];
         let py = [v[0].y, v[1].y, v[2].y];
         // Bounding box of pixel centres inside the triangle's box, clipped.
@@ -219,6 +216,7 @@ impl TriangleSetup {
         let (cx, cy) = (x0 * ONE + HALF, y0 * ONE + HALF);
         for k in 0..3 {
             let (a, b) = ((k + 1) % 3, (k + 2) % 3);
+            let (a, b) = if clockwise { (b, a) } else { (a, b) };
             let (ax, ay, bx, by) = (px[a], py[a], px[b], py[b]);
             // E(p) = (px - ax) * (by - ay) - (py - ay) * (bx - ax)
             e0[k] = (cx - ax) * (by - ay) - (cy - ay) * (bx - ax);
@@ -229,7 +227,6 @@ impl TriangleSetup {
             bias[k] = if top_left_edge(ax, ay, bx, by) { 0 } else { -1 };
         }
         Some(TriangleSetup {
-            order,
             e0,
             dx,
             dy,
@@ -267,7 +264,9 @@ impl TriangleSetup {
     /// wide on average, 42% of box pixels inside): 14% more instructions but 12% less
     /// time (0.378 -> 0.330 ms for the visibility stage, best of 8 alternated runs), from
     /// fewer mispredicted branches (callgrind's branch model: 23.4 k -> 14.7 k per
-    /// sample in the walk).
+    /// sample in the walk). Stepping the run's edge values as `f64` (exact: integers
+    /// below 2^53) instead of converting them at each pixel ran 4% fewer instructions
+    /// in the mesh loop but took 2% longer (the `f64` additions chain along the run).
     #[inline(always)]
     fn walk_rows(&self, mut visit: impl FnMut(u32, u32, [i64; 3])) {
         let mut row = self.e0;
@@ -355,22 +354,11 @@ impl TriangleSetup {
         ];
         let inv_w = pw[0] + pw[1] + pw[2];
         let r = 1.0 / inv_w;
-        let b = [(pw[0] * r) as f32, (pw[1] * r) as f32, (pw[2] * r) as f32];
-        let s = [l[0] as f32, l[1] as f32, l[2] as f32];
-        // Back to the caller's vertex order. Two literal arrays chosen per triangle, not
-        // stores through `order[k]`: those went through the stack and stalled the
-        // store-to-load forwarding of the whole fragment (a quarter of the visibility
-        // stage's time in `perf annotate`).
-        let (bary, screen_bary) = if self.order[1] == 2 {
-            ([b[0], b[2], b[1]], [s[0], s[2], s[1]])
-        } else {
-            (b, s)
-        };
         Fragment {
             x,
             y,
-            bary,
-            screen_bary,
+            bary: [(pw[0] * r) as f32, (pw[1] * r) as f32, (pw[2] * r) as f32],
+            screen_bary: [l[0] as f32, l[1] as f32, l[2] as f32],
             inv_w: inv_w as f32,
         }
     }
