@@ -393,8 +393,8 @@ impl RowCoverage {
     #[inline(always)]
     fn new(e: [i64; 3], dx: [i64; 3], dy: [i64; 3], bias: [i64; 3], width: u32) -> Self {
         use std::arch::x86_64::*;
-        // SAFETY (this and `next_row`): SSE2 is part of the x86-64 baseline, so every
-        // x86-64 CPU has it; the intrinsics take no pointers.
+        // SAFETY (this and the methods below): SSE2 is part of the x86-64 baseline, so
+        // every x86-64 CPU has it; the intrinsics take no pointers.
         unsafe {
             RowCoverage {
                 lanes: [0, 1, 2].map(|k| _mm_set_epi64x(e[k] + bias[k] + dx[k], e[k] + bias[k])),
@@ -406,26 +406,67 @@ impl RowCoverage {
     }
 
     /// The current row's mask; moves to the next row.
+    ///
+    /// A box up to four or up to eight pixels wide (most of a face crop's) takes two or
+    /// four pairs of pixels in straight-line code, the pixels past the box masked off:
+    /// the pair loop's trip count changes from triangle to triangle and its exit was
+    /// mispredicted about once per triangle. Over 400 varied poses: 2.28 -> 2.07 M
+    /// instructions and 12.5 k -> 11.1 k mispredicted branches per sample in the mesh
+    /// loop (callgrind's and cachegrind's models), about 3% less time (0.305-0.325 ->
+    /// 0.293-0.313 ms, alternated runs); with the four-pixel case alone, 2.12 M and about
+    /// 1%. Eight pixels per trip for every box was slower (0.308 -> 0.332 ms): most
+    /// boxes need two pairs.
     #[inline(always)]
     fn next_row(&mut self) -> u64 {
+        let outside = match self.width {
+            0..=4 => self.pairs::<2>(),
+            5..=8 => self.pairs::<4>(),
+            _ => {
+                let (mut lanes, mut outside, mut i) = (self.lanes, 0, 0);
+                while i < self.width {
+                    outside |= Self::any_outside(&lanes) << i;
+                    Self::step_lanes(&mut lanes, &self.step);
+                    i += 2;
+                }
+                outside
+            }
+        };
+        let down = self.down;
+        Self::step_lanes(&mut self.lanes, &down);
+        !outside & (u64::MAX >> (64 - self.width))
+    }
+
+    /// The outside bits of the current row's first `2 * N` pixels, unrolled.
+    #[inline(always)]
+    fn pairs<const N: usize>(&self) -> u64 {
+        let (mut lanes, mut outside) = (self.lanes, 0);
+        for j in 0..N {
+            outside |= Self::any_outside(&lanes) << (2 * j);
+            Self::step_lanes(&mut lanes, &self.step);
+        }
+        outside
+    }
+
+    /// Bit `k` set when pixel `k` of the two in `lanes` has a negative biased edge value.
+    #[inline(always)]
+    fn any_outside(lanes: &[std::arch::x86_64::__m128i; 3]) -> u64 {
         use std::arch::x86_64::*;
         // SAFETY: see `new`.
         unsafe {
-            let mut lanes = self.lanes;
-            let mut outside = 0u64;
-            let mut i = 0;
-            while i < self.width {
-                let any = _mm_or_si128(_mm_or_si128(lanes[0], lanes[1]), lanes[2]);
-                outside |= (_mm_movemask_pd(_mm_castsi128_pd(any)) as u64) << i;
-                for (lane, step) in lanes.iter_mut().zip(&self.step) {
-                    *lane = _mm_add_epi64(*lane, *step);
-                }
-                i += 2;
-            }
-            for (lane, down) in self.lanes.iter_mut().zip(&self.down) {
-                *lane = _mm_add_epi64(*lane, *down);
-            }
-            !outside & (u64::MAX >> (64 - self.width))
+            let any = _mm_or_si128(_mm_or_si128(lanes[0], lanes[1]), lanes[2]);
+            _mm_movemask_pd(_mm_castsi128_pd(any)) as u64
+        }
+    }
+
+    /// Adds `by` to each edge's lanes.
+    #[inline(always)]
+    fn step_lanes(
+        lanes: &mut [std::arch::x86_64::__m128i; 3],
+        by: &[std::arch::x86_64::__m128i; 3],
+    ) {
+        for (lane, by) in lanes.iter_mut().zip(by) {
+            // SAFETY: see `new`.
+            *lane = unsafe { std::arch::x86_64::_mm_add_epi64(*lane, *by) };
         }
     }
 }
