@@ -1022,15 +1022,9 @@ impl UvMapper {
             .position_map(&self.extended_positions(verts))
     }
 
-    /// Which UV triangle covers each texel of a `size x size` map and with which
-    /// weights: the rasterization of the layout, which depends on the layout and the
-    /// size only, never on a face's positions. Texels are sampled at their centres
-    /// with the rasterizer's rules (top-left fill, the earlier triangle keeps a texel
-    /// two overlapping triangles reach at equal depth).
-    pub fn texels(&self, size: u32) -> UvTexels {
-        let screen: Vec<ScreenVertex> = self
-            .uv
-            .iter()
+    /// The UV layout rasterized at `size x size` (the UV square scaled to the map).
+    fn rasterize_layout(&self, size: u32) -> VisibilityBuffer {
+        let screen: Vec<ScreenVertex> = (self.uv.iter())
             .map(|t| ScreenVertex {
                 x: t[0] * size as f32,
                 y: t[1] * size as f32,
@@ -1040,6 +1034,16 @@ impl UvMapper {
         let mut vb = VisibilityBuffer::new(size, size);
         vb.rasterize_mesh(&screen, &self.triangles)
             .expect("UV triangles index the extended vertices");
+        vb
+    }
+
+    /// Which UV triangle covers each texel of a `size x size` map and with which
+    /// weights: the rasterization of the layout, which depends on the layout and the
+    /// size only, never on a face's positions. Texels are sampled at their centres
+    /// with the rasterizer's rules (top-left fill, the earlier triangle keeps a texel
+    /// two overlapping triangles reach at equal depth).
+    pub fn texels(&self, size: u32) -> UvTexels {
+        let vb = self.rasterize_layout(size);
         // Covered texels grouped by triangle, row-major within a triangle.
         let mut covered: Vec<(u32, u32)> = (vb.triangle.iter().enumerate())
             .filter(|&(_, &t)| t != VisibilityBuffer::EMPTY)
@@ -1502,17 +1506,9 @@ mod tests {
             let covered = fast.iter().filter(|p| !p[0].is_nan()).count();
             assert_eq!(covered, t.covered());
             assert!(covered > (size * size) as usize / 3, "{covered}");
-            // And against the layout rasterized here, texel by texel, without the
-            // texel table's grouping by triangle.
-            let screen: Vec<ScreenVertex> = (uv.uv.iter())
-                .map(|t| ScreenVertex {
-                    x: t[0] * size as f32,
-                    y: t[1] * size as f32,
-                    inv_w: 1.0,
-                })
-                .collect();
-            let mut vb = VisibilityBuffer::new(size, size);
-            vb.rasterize_mesh(&screen, &uv.triangles).unwrap();
+            // And against the layout's buffer, texel by texel, without the texel
+            // table's grouping by triangle.
+            let vb = uv.rasterize_layout(size);
             for (i, &tri) in vb.triangle.iter().enumerate() {
                 let want = match uv.triangles.get(tri as usize) {
                     None => [f32::NAN; 3],
