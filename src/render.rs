@@ -320,9 +320,9 @@ fn round_row_to_u8(src: &[f32], dst: &mut [u8]) {
     }
 }
 
-/// The two bilinear taps of one crop column (or row): byte offsets into the source row
-/// (or image) and their weights; a tap outside the image has weight 0 and offset 0, so
-/// reading it is always in bounds and adds nothing.
+/// The two bilinear taps of one crop row (columns have [`ColumnTaps`]): byte offsets of
+/// the source rows in the image and their weights; a tap outside the image has weight 0
+/// and offset 0, so reading it is always in bounds and adds nothing.
 #[derive(Clone, Copy, Debug)]
 struct Tap {
     a: usize,
@@ -331,7 +331,7 @@ struct Tap {
     wb: f32,
 }
 
-/// The taps of every crop column (or row).
+/// The taps of every crop row.
 struct Taps(Vec<Tap>);
 
 impl Taps {
