@@ -5,9 +5,9 @@
 //! and writing each covered pixel once. Run: `cargo bench --bench render`.
 //!
 //! Every stage is timed over 400 varied poses (yaw to +/-60 degrees, 0.35-0.55 m), one
-//! pose per call: one pose repeated flatters the rasterizer by about a quarter (the
-//! branch predictor learns its loops' trip counts), which the line "visibility, one
-//! pose repeated" shows.
+//! pose per call: one pose repeated flatters the rasterizer by about a quarter (most
+//! likely the branch predictor learning its loops' trip counts), which the line
+//! "visibility, one pose repeated" shows.
 
 use arkit_tool::conventions::{Camera, EulerAngles, Pose};
 use arkit_tool::raster::VisibilityBuffer;
