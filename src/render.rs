@@ -1058,15 +1058,14 @@ impl UvMapper {
             index: Vec::with_capacity(covered.len()),
             weights: Vec::with_capacity(covered.len()),
         };
-        for (k, &(t, i)) in covered.iter().enumerate() {
-            if k == 0 || covered[k - 1].0 != t {
-                texels.triangles.push(self.triangles[t as usize]);
-                texels.ends.push(k as u32);
+        for group in covered.chunk_by(|a, b| a.0 == b.0) {
+            texels.triangles.push(self.triangles[group[0].0 as usize]);
+            for &(_, i) in group {
+                texels.index.push(i);
+                let b = vb.bary[i as usize];
+                texels.weights.push(TexelWeights([b[0], b[1], b[2], 0.0]));
             }
-            *texels.ends.last_mut().expect("a group") += 1;
-            texels.index.push(i);
-            let b = vb.bary[i as usize];
-            texels.weights.push(TexelWeights([b[0], b[1], b[2], 0.0]));
+            texels.ends.push(texels.index.len() as u32);
         }
         // `position_map` relies on these (its unchecked reads).
         assert!(
