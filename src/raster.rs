@@ -21,7 +21,12 @@
 //!    coverage is taken as a bit mask, two pixels at a time in SSE2 lanes, and the run
 //!    between its first and last set bits is visited: no branch per pixel. That costs
 //!    14% more instructions than three tests per pixel and saves 12% of the time (the
-//!    branches on the edge tests were mispredicted at every run boundary).
+//!    branches on the edge tests were mispredicted at every run boundary). A small
+//!    triangle's box up to 8x8 pixels (96% of a face crop's) is taken whole: its
+//!    edge values as `i32` in SSE2 lanes, one bit per pixel ([`BoxCoverage`]), then
+//!    one loop over the set bits, with no branch per row or run: over 400 varied
+//!    poses 11.1 k -> 4.2 k mispredicted branches per sample (valgrind's model),
+//!    2.07 -> 1.94 M instructions, visibility 0.31-0.32 -> 0.27-0.28 ms.
 //! 3. **Interpolation**: screen-space barycentrics from the edge functions, then
 //!    perspective-correct barycentrics `b_i = l_i w_i^-1 / sum_j l_j w_j^-1` and the
 //!    depth key `sum_i l_i w_i^-1` (1/w, larger is nearer), one division per pixel.
@@ -114,7 +119,17 @@ pub struct TriangleSetup {
     x1: u32,
     y0: u32,
     y1: u32,
+    /// Whether the vertices span less than [`BOX_SPAN`] pixels on both axes, so that
+    /// every edge value over the box widened to [`BoxCoverage`]'s 8x8 pixels fits an
+    /// `i32`.
+    small: bool,
 }
+
+/// Largest vertex span (pixels, exclusive, per axis) of a triangle whose box is walked
+/// with `i32` edge values ([`BoxCoverage`]). A pixel centre of the box is within the
+/// vertices' span, and the widened box adds at most 7 pixels, so each product of an
+/// edge function is below `(64 + 8) * 256 * 64 * 256`, and `E` below `2^30`.
+const BOX_SPAN: i64 = 64 * ONE;
 
 fn snap(v: f32) -> i64 {
     // Round half away from zero without a libm call (|v| is bounded by the guard band).
@@ -237,6 +252,7 @@ impl TriangleSetup {
             x1: x1 as u32,
             y0: y0 as u32,
             y1: y1 as u32,
+            small: max_x - min_x < BOX_SPAN && max_y - min_y < BOX_SPAN,
         })
     }
 
@@ -250,7 +266,30 @@ impl TriangleSetup {
     /// visited; wider boxes are walked pixel by pixel, where long runs keep the branches
     /// predictable.
     #[inline]
-    fn walk(&self, visit: impl FnMut(u32, u32, [i64; 3])) {
+    fn walk(&self, mut visit: impl FnMut(u32, u32, [i64; 3])) {
+        #[cfg(target_arch = "x86_64")]
+        if self.small {
+            // A box up to 8x8 pixels: its coverage at once, then its covered pixels in
+            // one loop ([`BoxCoverage`]).
+            let mut cover = BoxCoverage::new();
+            let inside = match (self.x1 - self.x0, self.y1 - self.y0) {
+                (0..=3, 0..=3) => cover.fill::<1, 4>(self),
+                (0..=3, 4..=7) => cover.fill::<1, 8>(self),
+                (4..=7, 0..=7) => cover.fill::<2, 8>(self),
+                _ => None,
+            };
+            if let Some((mut bits, shift)) = inside {
+                while bits != 0 {
+                    let b = bits.trailing_zeros();
+                    bits &= bits - 1;
+                    let (row, col) = (b >> shift, b & ((1 << shift) - 1));
+                    // SAFETY: `fill` set only bits of the groups it wrote.
+                    let e = unsafe { cover.edges(b as usize) };
+                    visit(self.x0 + col, self.y0 + row, e);
+                }
+                return;
+            }
+        }
         if self.x1 - self.x0 < 64 {
             self.walk_rows(visit)
         } else {
@@ -467,6 +506,91 @@ impl RowCoverage {
         for (lane, by) in lanes.iter_mut().zip(by) {
             // SAFETY: see `new`.
             *lane = unsafe { std::arch::x86_64::_mm_add_epi64(*lane, *by) };
+        }
+    }
+}
+
+/// The coverage of a small triangle's whole box at once (in [`TriangleSetup::walk`]):
+/// the box widened to `Q` groups of four pixels by `R` rows, each group's three edge
+/// values as `i32` in SSE2 lanes (exact for a triangle marked `small`), and one bit per
+/// pixel, row-major, set when the pixel is inside both the box and the triangle. The
+/// walk then visits the set bits in one loop. Three quarters of a 192x192 face crop's
+/// triangles have boxes up to 4x4 or 4x8 pixels and 96% up to 8x8; walking them row by
+/// row and run by run ([`TriangleSetup::walk_rows`]) cost a mispredicted branch at the
+/// end of most runs and rows, about five per triangle.
+#[cfg(target_arch = "x86_64")]
+struct BoxCoverage {
+    /// Per edge, the unbiased edge values of up to 16 groups of four pixels; only the
+    /// groups `fill` wrote are initialised.
+    lanes: std::mem::MaybeUninit<[[[i32; 4]; 16]; 3]>,
+}
+
+#[cfg(target_arch = "x86_64")]
+impl BoxCoverage {
+    #[inline(always)]
+    fn new() -> Self {
+        BoxCoverage {
+            lanes: std::mem::MaybeUninit::uninit(),
+        }
+    }
+
+    /// Fills the lanes for the box of `t`, which is `small` and at most `4 * Q` pixels
+    /// wide and `R` tall (`Q * R <= 16`); returns the covered pixels' bits (bit
+    /// `row << shift | col`) and `shift`.
+    #[inline(always)]
+    fn fill<const Q: usize, const R: usize>(&mut self, t: &TriangleSetup) -> Option<(u64, u32)> {
+        use std::arch::x86_64::*;
+        debug_assert!(Q * R <= 16 && (Q == 1 || Q == 2) && t.small);
+        debug_assert!(((t.x1 - t.x0) as usize) < 4 * Q && ((t.y1 - t.y0) as usize) < R);
+        let lanes = self.lanes.as_mut_ptr().cast::<[i32; 4]>();
+        let mut outside = 0u64;
+        // SAFETY: SSE2 is part of the x86-64 baseline; group `g = r * Q + q` is below
+        // 16, so each store writes one `[i32; 4]` of edge `k`'s 16 within `lanes`.
+        unsafe {
+            let quad = |k: usize, q: usize| {
+                let (e, d) = (t.e0[k] as i32, t.dx[k] as i32);
+                let x = 4 * q as i32;
+                _mm_setr_epi32(e + x * d, e + (x + 1) * d, e + (x + 2) * d, e + (x + 3) * d)
+            };
+            let down = t.dy.map(|d| _mm_set1_epi32(d as i32));
+            let bias = t.bias.map(|b| _mm_set1_epi32(b as i32));
+            for q in 0..Q {
+                let mut e = [quad(0, q), quad(1, q), quad(2, q)];
+                for r in 0..R {
+                    let g = r * Q + q;
+                    let mut any = _mm_setzero_si128();
+                    for k in 0..3 {
+                        _mm_storeu_si128(lanes.add(16 * k + g).cast(), e[k]);
+                        any = _mm_or_si128(any, _mm_add_epi32(e[k], bias[k]));
+                        e[k] = _mm_add_epi32(e[k], down[k]);
+                    }
+                    outside |= (_mm_movemask_ps(_mm_castsi128_ps(any)) as u64) << (4 * g);
+                }
+            }
+        }
+        // Pixels of the widened box outside the real one.
+        let (w, h) = ((t.x1 - t.x0 + 1) as usize, (t.y1 - t.y0 + 1) as usize);
+        let row = (1u64 << w) - 1;
+        let rows = (0..R).fold(0u64, |m, r| m | (row << (4 * Q * r)));
+        let real = rows & (u64::MAX >> (64 - 4 * Q * h));
+        Some((!outside & real, Q.trailing_zeros() + 2))
+    }
+
+    /// The three edge values of the pixel of bit `b`.
+    ///
+    /// # Safety
+    /// `b` is a bit `fill` returned set, so its group was written.
+    #[inline(always)]
+    unsafe fn edges(&self, b: usize) -> [i64; 3] {
+        let lanes = self.lanes.as_ptr().cast::<i32>();
+        // SAFETY: the caller's bit lies in a group `fill` wrote (group `b / 4` of each
+        // edge's 16, at `i32` offset `64 * k + b`).
+        unsafe {
+            [
+                *lanes.add(b) as i64,
+                *lanes.add(64 + b) as i64,
+                *lanes.add(128 + b) as i64,
+            ]
         }
     }
 }
@@ -879,6 +1003,46 @@ mod tests {
             assert_eq!(rows, pixels);
         }
         assert!(narrow > 1500, "{narrow} triangles tested");
+    }
+
+    #[test]
+    fn box_walk_visits_what_the_pixel_walk_visits() {
+        // Small triangles (boxes up to 8x8 and a little beyond), half of them with
+        // vertices on the half-pixel grid so that edges pass through pixel centres
+        // (where the top-left bias decides), some cut by the viewport's border: the
+        // box walk (`walk` for a small triangle) gives the same pixels, in the same
+        // order, with the same edge values as the pixel walk.
+        let mut r = Rng::new(13);
+        let mut boxes = [0usize; 3];
+        for i in 0..6000 {
+            let size = r.uniform(0.3, 10.0);
+            let (cx, cy) = (r.uniform(-6.0, 40.0), r.uniform(-6.0, 40.0));
+            let mut v = || {
+                let (mut x, mut y) = (cx + r.uniform(0.0, size), cy + r.uniform(0.0, size));
+                if i % 2 == 0 {
+                    (x, y) = ((x * 2.0).round() / 2.0, (y * 2.0).round() / 2.0);
+                }
+                sv(x as f32, y as f32)
+            };
+            let Some(t) = TriangleSetup::new([v(), v(), v()], 36, 36, Culling::None) else {
+                continue;
+            };
+            assert!(t.small);
+            match (t.x1 - t.x0, t.y1 - t.y0) {
+                (0..=3, 0..=3) => boxes[0] += 1,
+                (0..=3, 4..=7) => boxes[1] += 1,
+                (4..=7, 0..=7) => boxes[2] += 1,
+                _ => {}
+            }
+            let (mut walked, mut pixels) = (Vec::new(), Vec::new());
+            t.walk(|x, y, e| walked.push((x, y, e)));
+            t.walk_pixels(|x, y, e| pixels.push((x, y, e)));
+            assert_eq!(walked, pixels);
+        }
+        assert!(
+            boxes.iter().all(|&n| n > 300),
+            "boxes of each kind: {boxes:?}"
+        );
     }
 
     #[test]
