@@ -270,7 +270,8 @@ impl TriangleSetup {
     /// triangles at crop resolution) the row's coverage is first gathered as a bit mask
     /// without a branch per pixel, and the run between its first and last set bits is
     /// visited; wider boxes are walked pixel by pixel, where long runs keep the branches
-    /// predictable.
+    /// predictable. On x86-64 a small triangle's box up to 8x8 pixels is taken whole
+    /// instead ([`BoxCoverage`]): one mask for the box, one loop over its set bits.
     #[inline]
     fn walk(&self, mut visit: impl FnMut(u32, u32, [i64; 3])) {
         #[cfg(target_arch = "x86_64")]
@@ -279,9 +280,9 @@ impl TriangleSetup {
             // one loop ([`BoxCoverage`]).
             let mut cover = BoxCoverage::new();
             let inside = match (self.x1 - self.x0, self.y1 - self.y0) {
-                (0..=3, 0..=3) => cover.fill::<1, 4>(self),
-                (0..=3, 4..=7) => cover.fill::<1, 8>(self),
-                (4..=7, 0..=7) => cover.fill::<2, 8>(self),
+                (0..=3, 0..=3) => Some(cover.fill::<1, 4>(self)),
+                (0..=3, 4..=7) => Some(cover.fill::<1, 8>(self)),
+                (4..=7, 0..=7) => Some(cover.fill::<2, 8>(self)),
                 _ => None,
             };
             if let Some((mut bits, shift)) = inside {
@@ -533,6 +534,7 @@ struct BoxCoverage {
 
 #[cfg(target_arch = "x86_64")]
 impl BoxCoverage {
+    /// Lanes to be filled.
     #[inline(always)]
     fn new() -> Self {
         BoxCoverage {
@@ -544,7 +546,7 @@ impl BoxCoverage {
     /// wide and `R` tall (`Q * R <= 16`); returns the covered pixels' bits (bit
     /// `row << shift | col`) and `shift`.
     #[inline(always)]
-    fn fill<const Q: usize, const R: usize>(&mut self, t: &TriangleSetup) -> Option<(u64, u32)> {
+    fn fill<const Q: usize, const R: usize>(&mut self, t: &TriangleSetup) -> (u64, u32) {
         use std::arch::x86_64::*;
         debug_assert!(Q * R <= 16 && (Q == 1 || Q == 2) && t.small);
         debug_assert!(((t.x1 - t.x0) as usize) < 4 * Q && ((t.y1 - t.y0) as usize) < R);
@@ -582,7 +584,7 @@ impl BoxCoverage {
         let row = (1u64 << w) - 1;
         let repeat = (0..R).fold(0u64, |m, r| m | (1 << (4 * Q * r)));
         let real = (row * repeat) & (u64::MAX >> (64 - 4 * Q * h));
-        Some((!outside & real, Q.trailing_zeros() + 2))
+        (!outside & real, Q.trailing_zeros() + 2)
     }
 
     /// The three edge values of the pixel of bit `b`.

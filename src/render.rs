@@ -1218,7 +1218,7 @@ impl UvTexels {
         );
         #[cfg(target_arch = "x86_64")]
         {
-            let padded: Vec<[f32; 4]> = extended.iter().map(|p| [p.x, p.y, p.z, 0.0]).collect();
+            let padded = padded_positions(extended);
             let n = self.size as usize * self.size as usize;
             let mut out = vec![[f32::NAN; 3]; n];
             if std::arch::is_x86_feature_detected!("avx") {
@@ -1336,6 +1336,12 @@ impl UvTexels {
         }
         out
     }
+}
+
+/// Positions padded to four floats, for one four-float load each.
+#[cfg(target_arch = "x86_64")]
+fn padded_positions(extended: &[Point3<f32>]) -> Vec<[f32; 4]> {
+    extended.iter().map(|p| [p.x, p.y, p.z, 0.0]).collect()
 }
 
 /// One texel's position from its triangle's three positions and its weights (lanes
@@ -1679,7 +1685,7 @@ mod tests {
             // Each vector path alone (`position_map` takes AVX where the CPU has it).
             #[cfg(target_arch = "x86_64")]
             {
-                let padded: Vec<[f32; 4]> = ext.iter().map(|p| [p.x, p.y, p.z, 0.0]).collect();
+                let padded = padded_positions(&ext);
                 let mut sse2 = vec![[f32::NAN; 3]; slow.len()];
                 t.fill_sse2(&padded, &mut sse2);
                 assert_eq!(bits(&sse2), bits(&slow), "SSE2, size {size}");
