@@ -36,16 +36,12 @@
 #![warn(missing_docs)]
 
 pub mod allocator;
-pub mod atomic_file;
 pub mod augment;
 pub mod augment_dataset;
-pub mod conventions;
 pub mod convert;
 pub mod demo;
-pub mod error;
 pub mod eval;
 pub mod eval_dataset;
-pub mod npy;
 pub mod official_crop;
 pub mod overlay;
 pub mod perspnet;
@@ -53,12 +49,9 @@ pub mod plot;
 pub mod pnp;
 pub mod predict;
 pub mod predictions_table;
-pub mod raster;
-pub mod release;
 pub mod render;
 pub mod render_dataset;
 pub mod report;
-pub mod rng;
 pub mod samples_table;
 pub mod split;
 pub mod synth;
@@ -67,6 +60,7 @@ pub mod targets_table;
 pub mod topology;
 pub mod training;
 
+pub use arkit_core::{atomic_file, conventions, error, npy, raster, release, rng};
 pub use conventions::{Camera, EulerAngles, Pose};
 pub use error::{Error, Result};
 pub use topology::FaceTopology;

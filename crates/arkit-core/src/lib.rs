@@ -1,0 +1,25 @@
+//! `arkit_core`: the parts of `arkit-tool` that need neither polars nor candle, and that
+//! every reader of untrusted files goes through.
+//!
+//! - [`conventions`]: [`Pose`] (the release's `R_t`) and [`Camera`] (its projection).
+//! - [`npy`]: NumPy `.npy` / `.npz` reading (bounded, see [`limits`]) and writing.
+//! - [`release`]: the release's files: `_info.npz` annotations, list CSVs, layout.
+//! - [`raster`]: the CPU triangle rasterizer core.
+//! - [`rng`]: the seeded random streams that make output reproducible.
+//! - [`atomic_file`]: writes that never leave a half-written file.
+//! - [`error`]: the one error type, naming the file and the problem.
+//!
+//! The fuzz targets in `fuzz/` link this crate alone, so they build in seconds.
+
+#![warn(missing_docs)]
+
+pub mod atomic_file;
+pub mod conventions;
+pub mod error;
+pub mod npy;
+pub mod raster;
+pub mod release;
+pub mod rng;
+
+pub use conventions::{Camera, EulerAngles, Pose};
+pub use error::{Error, Result};
