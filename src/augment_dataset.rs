@@ -21,14 +21,13 @@
 
 use crate::augment::{self, Axis, FaceImage, Skip};
 use crate::conventions::{Camera, EulerAngles, Pose};
-use crate::convert::read_manifest;
+use crate::dataset::Dataset;
 use crate::error::{Error, Result};
-use crate::eval_dataset::sample_image;
 use crate::npy::NpzCompression;
 use crate::overlay::{MeshStyle, draw_mesh};
 use crate::release::{self, InfoAnnotation, ReleaseLayout, SampleKey, Split};
 use crate::rng::Rng;
-use crate::samples_table::{self, SampleRecord};
+use crate::samples_table::SampleRecord;
 use crate::topology::FaceTopology;
 use image::RgbImage;
 use nalgebra::{Matrix4, Point3};
@@ -193,6 +192,9 @@ pub struct AugmentSummary {
     pub skipped: Vec<(SampleKey, String)>,
     /// Augmentations the rule chose not to make.
     pub not_chosen: usize,
+    /// Source samples whose image or annotation could not be read (file and reason):
+    /// nothing was written for them.
+    pub unreadable: Vec<(SampleKey, String)>,
 }
 
 fn split_of(s: &str) -> Split {
@@ -203,8 +205,8 @@ fn split_of(s: &str) -> Split {
     }
 }
 
-fn face_of(r: &SampleRecord, input_root: &Path) -> Result<FaceImage> {
-    let image = sample_image(r, input_root);
+fn face_of(r: &SampleRecord, dataset: &Dataset) -> Result<FaceImage> {
+    let image = dataset.image(r)?;
     Ok(FaceImage {
         image,
         verts: r
@@ -245,12 +247,12 @@ fn write_original(
     split: Split,
     r: &SampleRecord,
     face: &FaceImage,
-    input_root: &Path,
+    dataset: &Dataset,
 ) -> Result<()> {
     let bytes = match &r.jpeg {
         Some(b) => b.clone(),
         None => {
-            let p = input_root.join(&r.image_path);
+            let p = dataset.image_root().join(&r.image_path);
             std::fs::read(&p).map_err(|e| Error::io(&p, e))?
         }
     };
@@ -287,9 +289,9 @@ pub fn augment_dataset(
     options: &AugmentOptions,
     progress: &(dyn Fn(usize) + Sync),
 ) -> Result<(AugmentSummary, Vec<(RgbImage, RgbImage)>)> {
-    let manifest = read_manifest(&dataset.join("dataset.json"))?;
-    let input_root = PathBuf::from(&manifest.input);
+    let data = Dataset::open(dataset)?;
     let layout = ReleaseLayout::new(&options.output);
+    crate::atomic_file::remove_stale_temporaries(&options.output, true)?;
     let mirror_map = if options.flip {
         Some(topology.mirror_map()?)
     } else {
@@ -298,8 +300,8 @@ pub fn augment_dataset(
     let summary = Mutex::new(AugmentSummary::default());
     let previews: Mutex<Vec<(usize, RgbImage, RgbImage)>> = Mutex::new(Vec::new());
     let mut row_offset = 0u64;
-    for shard in &manifest.shards {
-        let rows = samples_table::read_samples(&dataset.join(&shard.samples_file))?;
+    for shard in data.shards() {
+        let rows = data.read_samples(shard)?;
         let base = row_offset;
         row_offset += rows.len() as u64;
         rows.par_iter()
@@ -307,12 +309,24 @@ pub fn augment_dataset(
             .try_for_each(|(i, r)| -> Result<()> {
                 let row = base + i as u64;
                 let split = split_of(&r.split);
-                let face = face_of(r, &input_root)?;
+                // A sample whose image cannot be read is reported and skipped, never
+                // replaced by a placeholder.
+                let face = match face_of(r, &data) {
+                    Ok(f) => f,
+                    Err(e) => {
+                        let mut s = summary.lock().expect("summary lock");
+                        s.sources += 1;
+                        s.unreadable.push((r.key.clone(), e.to_string()));
+                        drop(s);
+                        progress(1);
+                        return Ok(());
+                    }
+                };
                 let mut written = Vec::new();
                 let mut skipped = Vec::new();
                 let mut not_chosen = 0;
                 if options.with_originals {
-                    write_original(&layout, split, r, &face, &input_root)?;
+                    write_original(&layout, split, r, &face, &data)?;
                     written.push(AugmentedRecord {
                         source: r.key.clone(),
                         key: r.key.clone(),
@@ -399,6 +413,7 @@ pub fn augment_dataset(
     let mut summary = summary.into_inner().expect("summary lock");
     summary.written.sort_by(|a, b| a.key.cmp(&b.key));
     summary.skipped.sort();
+    summary.unreadable.sort();
     // The list CSVs: every written sample, by its source's split.
     for split in [Split::Train, Split::Test] {
         let keys: Vec<SampleKey> = summary
@@ -415,10 +430,16 @@ pub fn augment_dataset(
         return Err(Error::invalid(
             "augment",
             format!(
-                "nothing was written ({} sources, {} skipped, {} not chosen by the rule)",
+                "nothing was written ({} sources, {} unreadable, {} skipped, {} not chosen by the rule){}",
                 summary.sources,
+                summary.unreadable.len(),
                 summary.skipped.len(),
-                summary.not_chosen
+                summary.not_chosen,
+                summary
+                    .unreadable
+                    .first()
+                    .map(|(_, why)| format!("; first unreadable: {why}"))
+                    .unwrap_or_default()
             ),
         ));
     }

@@ -4,10 +4,24 @@
 //! train before test); cut the rows into shards of `rows_per_shard`; for each shard
 //! this process owns (`--shard I/N`: shards `k` with `k % N == I`), validate every
 //! sample in parallel ([`validate_sample`]) and write `errors/part-K.parquet` then
-//! `samples/part-K.parquet`, each to a temporary name renamed into place. A shard whose
-//! two files exist is finished and is kept on a rerun, so an interrupted conversion
-//! resumes. Rows keep list order within and across shards, so the output is
-//! byte-identical whatever the number of threads. Memory is bounded by one shard.
+//! `samples/part-K.parquet`, each to a temporary name renamed into place, then the
+//! shard's record `samples/part-K.json` (its [`ShardEntry`]). Rows keep list order
+//! within and across shards, so the output is byte-identical whatever the number of
+//! threads. Memory is bounded by one shard.
+//!
+//! Output is what it says. `conversion.json` in the output folder records the
+//! conversion's fingerprint ([`ConversionFingerprint`]: the input root, the list files'
+//! contents, the layout, the topology and projection, the shard size, whether images
+//! are embedded); a later `convert` into the same folder with another fingerprint is
+//! refused (or, with `--overwrite`, replaces the old output). A shard is kept on a
+//! rerun, so an interrupted conversion resumes, only when its record exists, its
+//! fingerprint (the conversion's, its rows and the size and modification time of each
+//! row's files) is the one this run computes, and its files still hash to the record's
+//! SHA-256. Each writer holds a lock on its part (`.convert-part-I-of-N.lock`), so a
+//! second `convert` of the same part waits for nothing and is refused; stale temporaries
+//! of killed runs are removed at the start. Readers ([`crate::dataset::Dataset`]) check
+//! each shard's size and the SHA-256 of its last 64 KiB (the Parquet footer) against the
+//! manifest before using it; [`verify_dataset`] checks the full SHA-256.
 //!
 //! A bad sample never stops the run: it becomes a row of the `errors` table with the
 //! file at fault and the reason. Files on disk that no list names, and list rows that
@@ -252,18 +266,77 @@ pub struct ValidationContext {
     pub embed_images: bool,
 }
 
-/// Checks that `bytes` look like a complete JPEG: the start-of-image marker, and an
-/// end-of-image marker near the end (inside entropy-coded data 0xFF is always
-/// followed by 0x00 or a restart marker, so `FF D9` there is a real end marker).
-pub fn check_jpeg_framing(bytes: &[u8]) -> std::result::Result<(), String> {
+/// Checks that `bytes` are a complete JPEG: the start-of-image marker, then marker
+/// segments (each within the file) and entropy-coded scans up to an end-of-image marker.
+/// Bytes after the end-of-image marker (camera padding, appended data) are allowed and
+/// ignored, as decoders ignore them. Returns the offset just past the end marker.
+pub fn check_jpeg_framing(bytes: &[u8]) -> std::result::Result<usize, String> {
     if bytes.len() < 4 || bytes[..3] != [0xFF, 0xD8, 0xFF] {
         return Err("not a JPEG file (no start-of-image marker)".into());
     }
-    let tail = &bytes[bytes.len().saturating_sub(64)..];
-    if !tail.windows(2).any(|w| w == [0xFF, 0xD9]) {
-        return Err("truncated JPEG (no end-of-image marker)".into());
+    let truncated = |at: usize| {
+        format!(
+            "truncated JPEG (the data ends at byte {at} of {} before the end-of-image marker)",
+            bytes.len()
+        )
+    };
+    let mut pos = 2;
+    loop {
+        if pos >= bytes.len() {
+            return Err(truncated(bytes.len()));
+        }
+        if bytes[pos] != 0xFF {
+            return Err(format!(
+                "corrupt JPEG: byte {pos} should start a marker (0xFF), found {:#04x}",
+                bytes[pos]
+            ));
+        }
+        while pos < bytes.len() && bytes[pos] == 0xFF {
+            pos += 1;
+        }
+        let Some(&marker) = bytes.get(pos) else {
+            return Err(truncated(bytes.len()));
+        };
+        pos += 1;
+        match marker {
+            0xD9 => return Ok(pos),
+            0x01 | 0xD0..=0xD7 => continue,
+            0x00 => return Err(format!("corrupt JPEG: stray 0xFF00 at byte {}", pos - 2)),
+            _ => {}
+        }
+        let Some(len) = bytes
+            .get(pos..pos + 2)
+            .map(|b| u16::from_be_bytes([b[0], b[1]]) as usize)
+        else {
+            return Err(truncated(bytes.len()));
+        };
+        if len < 2 {
+            return Err(format!(
+                "corrupt JPEG: marker {marker:#04x} at byte {} has length {len}",
+                pos - 2
+            ));
+        }
+        pos += len;
+        if pos > bytes.len() {
+            return Err(truncated(bytes.len()));
+        }
+        if marker == 0xDA {
+            // Entropy-coded data: 0xFF is followed by 0x00 (a stuffed byte), a restart
+            // marker, or fill; anything else is the next marker.
+            loop {
+                match bytes[pos..].iter().position(|&b| b == 0xFF) {
+                    None => return Err(truncated(bytes.len())),
+                    Some(k) => pos += k,
+                }
+                match bytes.get(pos + 1) {
+                    None => return Err(truncated(bytes.len())),
+                    Some(0x00 | 0xD0..=0xD7) => pos += 2,
+                    Some(0xFF) => pos += 1,
+                    Some(_) => break,
+                }
+            }
+        }
     }
-    Ok(())
 }
 
 /// Validates one sample and builds its row, or says what is wrong with which file.
@@ -301,12 +374,32 @@ pub fn validate_sample(
     }
     let pose = Pose::from_release_rt(&info.rt).map_err(|e| fail(&row.info, strip(e)))?;
     let image_path = root.join(&row.image);
+    let size = std::fs::metadata(&image_path)
+        .map_err(|e| fail(&row.image, e.to_string()))?
+        .len();
+    if size > MAX_IMAGE_FILE_BYTES {
+        return Err(fail(
+            &row.image,
+            format!(
+                "{size} bytes, more than the {} an image may have",
+                MAX_IMAGE_FILE_BYTES
+            ),
+        ));
+    }
     let bytes = std::fs::read(&image_path).map_err(|e| fail(&row.image, e.to_string()))?;
     check_jpeg_framing(&bytes).map_err(|m| fail(&row.image, m))?;
     let image = image::load_from_memory_with_format(&bytes, image::ImageFormat::Jpeg)
         .map_err(|e| fail(&row.image, format!("JPEG does not decode: {e}")))?;
     let (width, height) = (image.width(), image.height());
     drop(image);
+    if width < MIN_IMAGE_SIDE || height < MIN_IMAGE_SIDE {
+        return Err(fail(
+            &row.image,
+            format!(
+                "the image is {width}x{height}: too small for a face crop (at least {MIN_IMAGE_SIDE}x{MIN_IMAGE_SIDE})"
+            ),
+        ));
+    }
     let camera =
         Camera::new(ctx.projection, width, height).map_err(|e| fail(&row.info, strip(e)))?;
     let verts64: Vec<Point3<f64>> = info.verts.iter().map(|p| p.cast()).collect();
@@ -331,6 +424,38 @@ pub fn validate_sample(
         y0 = y0.min(p.v);
         x1 = x1.max(p.u);
         y1 = y1.max(p.v);
+    }
+    if x1 - x0 < MIN_FACE_SPAN_PX || y1 - y0 < MIN_FACE_SPAN_PX {
+        return Err(fail(
+            &row.info,
+            format!(
+                "the 68 landmarks span {:.1}x{:.1} pixels (at least {MIN_FACE_SPAN_PX} each way): a collapsed or all-zero mesh",
+                x1 - x0,
+                y1 - y0
+            ),
+        ));
+    }
+    if let Some(points2d) = &info.points2d {
+        let mut off: Vec<f64> = verts64
+            .iter()
+            .zip(points2d)
+            .map(|(v, q)| {
+                let p = camera.project(&pose, v);
+                (p.u - q[0]).hypot(p.v - q[1])
+            })
+            .collect();
+        off.sort_by(f64::total_cmp);
+        let median = off[off.len() / 2];
+        let tolerance =
+            POINTS2D_TOLERANCE_PX.max(POINTS2D_TOLERANCE_FRACTION * width.max(height) as f64);
+        if median > tolerance {
+            return Err(fail(
+                &row.image,
+                format!(
+                    "the annotation's points2d lie a median {median:.1} px from its verts at R_t projected into this {width}x{height} image (tolerance {tolerance:.1} px): the image is not the one the annotation was made for (resized or another sample's)"
+                ),
+            ));
+        }
     }
     let (cx, cy) = ((x0 + x1) / 2.0, (y0 + y1) / 2.0);
     let half = 0.75 * (x1 - x0).max(y1 - y0);
@@ -371,6 +496,10 @@ pub struct ConvertOptions {
     pub shard_index: usize,
     /// Number of processes sharing the conversion.
     pub shard_count: usize,
+    /// Replace the output of another conversion found in the output folder instead of
+    /// refusing.
+    #[serde(default)]
+    pub overwrite: bool,
 }
 
 /// One finished shard in the manifest.
@@ -390,7 +519,41 @@ pub struct ShardEntry {
     pub error_rows: usize,
     /// SHA-256 of the errors file.
     pub errors_sha256: String,
+    /// Size of the samples file in bytes (checked by every reader).
+    #[serde(default)]
+    pub bytes: u64,
+    /// SHA-256 of the samples file's last [`TAIL_BYTES`] (the Parquet footer; checked by
+    /// every reader).
+    #[serde(default)]
+    pub tail_sha256: String,
+    /// What the shard was made from: the conversion's fingerprint, the shard's rows and
+    /// the size and modification time of their files.
+    #[serde(default)]
+    pub fingerprint: String,
 }
+
+/// How many bytes at a file's end [`tail_sha256`] hashes.
+pub const TAIL_BYTES: u64 = 64 * 1024;
+
+/// A release image larger than this (bytes) is refused before it is read (the release's
+/// 800x800 JPEGs are about 100 KiB).
+pub const MAX_IMAGE_FILE_BYTES: u64 = 64 << 20;
+
+/// Images smaller than this (either side, pixels) are refused: no face crop can be
+/// taken from them.
+pub const MIN_IMAGE_SIDE: u32 = 32;
+
+/// A face whose 68 landmarks span fewer pixels than this (both sides) is refused as
+/// degenerate (an all-zero or collapsed mesh).
+pub const MIN_FACE_SPAN_PX: f64 = 8.0;
+
+/// The annotation's own `points2d`, when present, must lie within this many pixels
+/// (median over the vertices) of `verts` at `R_t` projected into the image, or this
+/// fraction of the image's larger side, whichever is larger; further, the image is not
+/// the one the annotation was made for (another size, another sample).
+pub const POINTS2D_TOLERANCE_PX: f64 = 8.0;
+/// See [`POINTS2D_TOLERANCE_PX`].
+pub const POINTS2D_TOLERANCE_FRACTION: f64 = 0.02;
 
 /// `dataset.json` (or one part of it for `--shard I/N`).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -401,6 +564,17 @@ pub struct Manifest {
     pub version: String,
     /// Input root as given.
     pub input: String,
+    /// Input root as an absolute path (what later commands read images from; empty in
+    /// manifests written before it was recorded).
+    #[serde(default)]
+    pub input_root: String,
+    /// The conversion's fingerprint ([`ConversionFingerprint::digest`]).
+    #[serde(default)]
+    pub fingerprint: String,
+    /// [`topology_digest`] of the topology it was converted with (empty in manifests
+    /// written before it was recorded).
+    #[serde(default)]
+    pub topology_sha256: String,
     /// Layout found.
     pub layout: LayoutKind,
     /// The lists read.
@@ -428,12 +602,290 @@ pub struct Manifest {
 /// Progress callback: called with the number of samples just finished.
 pub type Progress<'a> = &'a (dyn Fn(usize) + Sync);
 
-fn sha256_file(path: &Path) -> Result<String> {
-    let bytes = std::fs::read(path).map_err(|e| Error::io(path, e))?;
-    Ok(Sha256::digest(&bytes)
+fn hex(digest: &[u8]) -> String {
+    digest.iter().map(|b| format!("{b:02x}")).collect()
+}
+
+/// SHA-256 of a whole file, hex.
+pub fn sha256_file(path: &Path) -> Result<String> {
+    let mut file = std::fs::File::open(path).map_err(|e| Error::io(path, e))?;
+    let mut hasher = Sha256::new();
+    let mut buf = vec![0u8; 1 << 16];
+    loop {
+        let n = std::io::Read::read(&mut file, &mut buf).map_err(|e| Error::io(path, e))?;
+        if n == 0 {
+            break;
+        }
+        hasher.update(&buf[..n]);
+    }
+    Ok(hex(&hasher.finalize()))
+}
+
+/// SHA-256 of a file's last [`TAIL_BYTES`] bytes (all of a smaller file), hex.
+pub fn tail_sha256(path: &Path) -> Result<String> {
+    use std::io::{Read, Seek, SeekFrom};
+    let mut file = std::fs::File::open(path).map_err(|e| Error::io(path, e))?;
+    let len = file.metadata().map_err(|e| Error::io(path, e))?.len();
+    let start = len.saturating_sub(TAIL_BYTES);
+    file.seek(SeekFrom::Start(start))
+        .map_err(|e| Error::io(path, e))?;
+    let mut tail = Vec::with_capacity((len - start) as usize);
+    file.read_to_end(&mut tail)
+        .map_err(|e| Error::io(path, e))?;
+    Ok(hex(&Sha256::digest(&tail)))
+}
+
+/// Checks a shard file against its manifest entry the cheap way: its size, and the
+/// SHA-256 of its last [`TAIL_BYTES`]. Entries written before sizes were recorded
+/// (`bytes == 0`) are not checked.
+pub fn check_shard_file(path: &Path, bytes: u64, tail: &str) -> Result<()> {
+    if bytes == 0 {
+        return Ok(());
+    }
+    let len = std::fs::metadata(path)
+        .map_err(|e| Error::io(path, e))?
+        .len();
+    if len != bytes {
+        return Err(Error::format(
+            path,
+            format!(
+                "{len} bytes, the manifest says {bytes}: the file changed after convert wrote it; rerun `arkit-tool convert`"
+            ),
+        ));
+    }
+    if tail_sha256(path)? != tail {
+        return Err(Error::format(
+            path,
+            "its footer does not match the manifest's checksum: the file changed after convert wrote it; rerun `arkit-tool convert`",
+        ));
+    }
+    Ok(())
+}
+
+/// What a conversion is made from; two runs with the same fingerprint write the same
+/// bytes. The shard count (`--shard I/N`) is not part of it: parts of one conversion
+/// share it.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ConversionFingerprint {
+    /// The input root, absolute.
+    pub input_root: String,
+    /// The layout found.
+    pub layout: LayoutKind,
+    /// `(list file relative to the root, SHA-256 of its bytes)`.
+    pub lists: Vec<(String, String)>,
+    /// Where the topology came from.
+    pub topology: String,
+    /// [`topology_digest`] of the topology.
+    pub topology_sha256: String,
+    /// The projection matrix, row-major.
+    pub projection: Vec<f64>,
+    /// Rows per shard.
+    pub rows_per_shard: usize,
+    /// Whether JPEG bytes are embedded.
+    pub embed_images: bool,
+    /// The tool's version.
+    pub version: String,
+}
+
+impl ConversionFingerprint {
+    /// The fingerprint of converting `input` with `options` and `ctx`.
+    pub fn new(
+        input: &DiscoveredInput,
+        options: &ConvertOptions,
+        ctx: &ValidationContext,
+    ) -> Result<Self> {
+        let input_root = absolute_root(&input.root)?;
+        let mut lists = Vec::new();
+        for (_, p) in &input.lists {
+            lists.push((relative(&input.root, p), sha256_file(p)?));
+        }
+        Ok(Self {
+            input_root: input_root.display().to_string(),
+            layout: input.kind,
+            lists,
+            topology: ctx.topology.source.clone(),
+            topology_sha256: topology_digest(&ctx.topology),
+            projection: ctx.projection.transpose().iter().copied().collect(),
+            rows_per_shard: options.rows_per_shard,
+            embed_images: options.embed_images,
+            version: env!("CARGO_PKG_VERSION").into(),
+        })
+    }
+
+    /// SHA-256 of the fingerprint's JSON, hex.
+    pub fn digest(&self) -> String {
+        hex(&Sha256::digest(
+            serde_json::to_vec(self).unwrap_or_default().as_slice(),
+        ))
+    }
+}
+
+/// SHA-256 of a topology's vertex count, triangles and landmark indices, hex: what
+/// decides whether a dataset's meshes and a command's topology agree.
+pub fn topology_digest(topology: &FaceTopology) -> String {
+    let mut h = Sha256::new();
+    h.update((topology.vertex_count as u64).to_le_bytes());
+    for t in &topology.triangles {
+        for v in t {
+            h.update(v.to_le_bytes());
+        }
+    }
+    h.update(b"landmarks");
+    for l in &topology.landmarks {
+        h.update(l.to_le_bytes());
+    }
+    hex(&h.finalize())
+}
+
+/// Checks that `topology` (what a command was given: `--resources`, or the built-in
+/// face) is the one `dataset` was converted with, so no stage renders or trains a
+/// dataset of the real ARKit mesh with the built-in stand-in (or the reverse).
+/// Manifests written before the digest was recorded are compared by vertex count.
+pub fn check_topology(manifest: &Manifest, topology: &FaceTopology, dataset: &Path) -> Result<()> {
+    let same = if manifest.topology_sha256.is_empty() {
+        true
+    } else {
+        manifest.topology_sha256 == topology_digest(topology)
+    };
+    if !same {
+        return Err(Error::format(
+            dataset.join("dataset.json"),
+            format!(
+                "the dataset was converted with the topology of {}, this command was given {}: pass the same --resources as to convert",
+                manifest.topology, topology.source
+            ),
+        ));
+    }
+    Ok(())
+}
+
+/// `root` as an absolute, canonical path (symbolic links resolved).
+fn absolute_root(root: &Path) -> Result<PathBuf> {
+    std::fs::canonicalize(root).map_err(|e| Error::io(root, e))
+}
+
+/// The fingerprint of one shard: the conversion's, then each row's key, split and files
+/// with their size and modification time (a file changed in place changes it).
+fn shard_fingerprint(conversion: &str, root: &Path, rows: &[PlannedRow]) -> String {
+    let mut h = Sha256::new();
+    h.update(conversion.as_bytes());
+    for r in rows {
+        h.update(format!("\n{}\t{}", r.key, r.split).as_bytes());
+        for f in [&r.image, &r.info] {
+            h.update(b"\t");
+            h.update(f.to_string_lossy().as_bytes());
+            match std::fs::metadata(root.join(f)) {
+                Ok(m) => {
+                    h.update(m.len().to_le_bytes());
+                    let t = m
+                        .modified()
+                        .ok()
+                        .and_then(|t| t.duration_since(std::time::UNIX_EPOCH).ok())
+                        .map_or(0, |d| d.as_nanos());
+                    h.update(t.to_le_bytes());
+                }
+                Err(_) => h.update(b"missing"),
+            }
+        }
+    }
+    hex(&h.finalize())
+}
+
+/// The name of the conversion record in an output folder.
+pub const CONVERSION_FILE: &str = "conversion.json";
+
+/// The record of a finished shard, beside its samples file.
+pub fn shard_record_name(index: usize) -> String {
+    format!("samples/part-{index:05}.json")
+}
+
+/// Reads the conversion record of `output`, takes the folder for this conversion and
+/// removes stale temporaries. Refuses a folder that holds another conversion (or
+/// samples without a record) unless `overwrite`, which removes that output first.
+fn claim_output(output: &Path, fingerprint: &ConversionFingerprint, overwrite: bool) -> Result<()> {
+    // Parts of one conversion starting together take this in turn (it is held for
+    // the check and the record only).
+    let _guard = crate::atomic_file::FolderLock::wait(output, "conversion")?;
+    let record = output.join(CONVERSION_FILE);
+    let existing: Option<ConversionFingerprint> = match std::fs::read_to_string(&record) {
+        Ok(text) => Some(
+            serde_json::from_str(&text)
+                .map_err(|e| Error::format(&record, format!("not a conversion record: {e}")))?,
+        ),
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => None,
+        Err(e) => return Err(Error::io(&record, e)),
+    };
+    let has_output = ["samples", "errors", "manifest"]
         .iter()
-        .map(|b| format!("{b:02x}"))
-        .collect())
+        .any(|d| std::fs::read_dir(output.join(d)).is_ok_and(|mut r| r.next().is_some()))
+        || output.join("dataset.json").exists();
+    let conflict = match &existing {
+        Some(e) => e != fingerprint,
+        None => has_output,
+    };
+    if conflict {
+        if !overwrite {
+            let what = match &existing {
+                Some(e) if e.input_root != fingerprint.input_root => {
+                    format!("a conversion of {}", e.input_root)
+                }
+                Some(e) if e.lists != fingerprint.lists => {
+                    "a conversion of other list files".to_string()
+                }
+                Some(e) if e.topology_sha256 != fingerprint.topology_sha256 => {
+                    format!("a conversion with another topology ({})", e.topology)
+                }
+                Some(_) => "a conversion with other options or another version".to_string(),
+                None => "samples without a conversion record".to_string(),
+            };
+            return Err(Error::format(
+                output,
+                format!(
+                    "holds {what}: made from other input or options; choose another --output, remove the folder, or pass --overwrite"
+                ),
+            ));
+        }
+        for d in ["samples", "errors", "manifest", "splits", "targets"] {
+            let p = output.join(d);
+            if p.exists() {
+                std::fs::remove_dir_all(&p).map_err(|e| Error::io(&p, e))?;
+            }
+        }
+        let p = output.join("dataset.json");
+        if p.exists() {
+            std::fs::remove_file(&p).map_err(|e| Error::io(&p, e))?;
+        }
+    }
+    if existing.as_ref() != Some(fingerprint) {
+        let text = serde_json::to_string_pretty(fingerprint)
+            .map_err(|e| Error::invalid("conversion record", e.to_string()))?;
+        crate::atomic_file::write_bytes(&record, format!("{text}\n").as_bytes())?;
+    }
+    crate::atomic_file::remove_stale_temporaries(output, true)?;
+    Ok(())
+}
+
+/// A finished shard from an earlier run, if it was made from exactly these rows of this
+/// conversion and its files still hash to its record.
+fn finished_shard(out: &Path, index: usize, fingerprint: &str) -> Result<Option<ShardEntry>> {
+    let record = out.join(shard_record_name(index));
+    let Ok(text) = std::fs::read_to_string(&record) else {
+        return Ok(None);
+    };
+    let Ok(entry) = serde_json::from_str::<ShardEntry>(&text) else {
+        return Ok(None);
+    };
+    if entry.index != index || entry.fingerprint != fingerprint {
+        return Ok(None);
+    }
+    let (samples, errors) = (out.join(&entry.samples_file), out.join(&entry.errors_file));
+    if !samples.exists() || !errors.exists() {
+        return Ok(None);
+    }
+    if sha256_file(&samples)? != entry.sha256 || sha256_file(&errors)? != entry.errors_sha256 {
+        return Ok(None);
+    }
+    Ok(Some(entry))
 }
 
 /// The manifest's file name for a part.
@@ -479,6 +931,17 @@ pub fn convert_planned(
     }
     let (rows, mut listing) = plan;
     let out = &options.output;
+    let fingerprint = ConversionFingerprint::new(input, options, ctx)?;
+    let conversion = fingerprint.digest();
+    claim_output(out, &fingerprint, options.overwrite)?;
+    let _part_lock = crate::atomic_file::FolderLock::acquire(
+        out,
+        &format!(
+            "convert-part-{}-of-{}",
+            options.shard_index, options.shard_count
+        ),
+        "convert of this part",
+    )?;
     std::fs::create_dir_all(out.join("samples")).map_err(|e| Error::io(out, e))?;
     std::fs::create_dir_all(out.join("errors")).map_err(|e| Error::io(out, e))?;
     let mut listing_problems = 0;
@@ -495,41 +958,29 @@ pub fn convert_planned(
     // thread), so the sequential Parquet encoding does not leave a core idle.
     std::thread::scope(|scope| -> Result<()> {
         let mut pending: Option<std::thread::ScopedJoinHandle<'_, Result<ShardEntry>>> = None;
+        let join = |h: std::thread::ScopedJoinHandle<'_, Result<ShardEntry>>| {
+            h.join()
+                .unwrap_or_else(|_| Err(Error::invalid("convert", "the shard writer panicked")))
+        };
         for (index, chunk) in rows.chunks(options.rows_per_shard).enumerate() {
             if index % options.shard_count != options.shard_index {
+                continue;
+            }
+            let shard_fp = shard_fingerprint(&conversion, &input.root, chunk);
+            if let Some(entry) = finished_shard(out, index, &shard_fp)? {
+                // Finished by an earlier run of this conversion, from the same files.
+                progress(chunk.len());
+                shards.push(entry);
                 continue;
             }
             let samples_rel = format!("samples/part-{index:05}.parquet");
             let errors_rel = format!("errors/part-{index:05}.parquet");
             let (samples_path, errors_path) = (out.join(&samples_rel), out.join(&errors_rel));
-            if samples_path.exists() && errors_path.exists() {
-                // Finished by an earlier run: keep it.
-                let counts = (
-                    samples_table::parquet_row_count(&samples_path)?,
-                    samples_table::parquet_row_count(&errors_path)?,
-                );
-                if counts.0 + counts.1 != chunk.len() {
-                    return Err(Error::format(
-                        &samples_path,
-                        format!(
-                            "holds {} + {} error rows but this shard has {} listed rows: it was made from other input or options; remove the output folder",
-                            counts.0,
-                            counts.1,
-                            chunk.len()
-                        ),
-                    ));
-                }
-                progress(chunk.len());
-                shards.push(ShardEntry {
-                    index,
-                    samples_file: samples_rel,
-                    rows: counts.0,
-                    sha256: sha256_file(&samples_path)?,
-                    errors_file: errors_rel,
-                    error_rows: counts.1,
-                    errors_sha256: sha256_file(&errors_path)?,
-                });
-                continue;
+            let record_path = out.join(shard_record_name(index));
+            // A record that no longer matches goes first: an interruption from here on
+            // leaves a shard that the next run redoes.
+            if record_path.exists() {
+                std::fs::remove_file(&record_path).map_err(|e| Error::io(&record_path, e))?;
             }
             let results: Vec<std::result::Result<SampleRecord, Box<ErrorRecord>>> = chunk
                 .par_iter()
@@ -547,10 +998,9 @@ pub fn convert_planned(
                 }
             }
             if let Some(h) = pending.take() {
-                shards.push(h.join().expect("writer thread")?);
+                shards.push(join(h)?);
             }
             pending = Some(scope.spawn(move || {
-                // Errors first: a samples file without its errors file is never "finished".
                 samples_table::write_parquet(
                     &errors_path,
                     &mut samples_table::errors_frame(&bad)?,
@@ -559,7 +1009,7 @@ pub fn convert_planned(
                     &samples_path,
                     &mut samples_table::samples_frame(&good)?,
                 )?;
-                Ok(ShardEntry {
+                let entry = ShardEntry {
                     index,
                     samples_file: samples_rel,
                     rows: good.len(),
@@ -567,11 +1017,21 @@ pub fn convert_planned(
                     errors_file: errors_rel,
                     error_rows: bad.len(),
                     errors_sha256: sha256_file(&errors_path)?,
-                })
+                    bytes: std::fs::metadata(&samples_path)
+                        .map_err(|e| Error::io(&samples_path, e))?
+                        .len(),
+                    tail_sha256: tail_sha256(&samples_path)?,
+                    fingerprint: shard_fp,
+                };
+                // The record last: a shard is finished only once it exists.
+                let text = serde_json::to_string_pretty(&entry)
+                    .map_err(|e| Error::invalid("shard record", e.to_string()))?;
+                crate::atomic_file::write_bytes(&record_path, format!("{text}\n").as_bytes())?;
+                Ok(entry)
             }));
         }
         if let Some(h) = pending.take() {
-            shards.push(h.join().expect("writer thread")?);
+            shards.push(join(h)?);
         }
         Ok(())
     })?;
@@ -582,6 +1042,9 @@ pub fn convert_planned(
         tool: "arkit-tool".into(),
         version: env!("CARGO_PKG_VERSION").into(),
         input: options.input.display().to_string(),
+        input_root: fingerprint.input_root.clone(),
+        fingerprint: conversion,
+        topology_sha256: fingerprint.topology_sha256.clone(),
         layout: input.kind,
         lists: input
             .lists
@@ -644,14 +1107,28 @@ pub fn merge(dataset: &Path) -> Result<Manifest> {
         ));
     }
     for (p, path) in parts.iter().zip(&paths) {
-        if p.part[1] != n
-            || p.listed != first.listed
-            || p.rows_per_shard != first.rows_per_shard
-            || p.input != first.input
-        {
+        let differs = [
+            ("shard count", p.part[1] != n),
+            ("listed rows", p.listed != first.listed),
+            ("shard size", p.rows_per_shard != first.rows_per_shard),
+            (
+                "input",
+                p.input_root != first.input_root || p.input != first.input,
+            ),
+            (
+                "topology",
+                p.topology != first.topology || p.topology_sha256 != first.topology_sha256,
+            ),
+            ("embedded images", p.embed_images != first.embed_images),
+            ("conversion fingerprint", p.fingerprint != first.fingerprint),
+        ];
+        if let Some((what, _)) = differs.iter().find(|(_, d)| *d) {
             return Err(Error::format(
                 path,
-                "this part comes from a different conversion (input, shard count or shard size differ)",
+                format!(
+                    "this part comes from a different conversion than {} ({what} differs): rerun every part with the same input and options",
+                    paths[0].display()
+                ),
             ));
         }
     }
@@ -669,12 +1146,31 @@ pub fn merge(dataset: &Path) -> Result<Manifest> {
     Ok(merged)
 }
 
-/// Reads every `samples` shard of a converted dataset named by its `dataset.json`.
+/// Reads every `samples` shard of a converted dataset named by its `dataset.json`, each
+/// checked against the manifest first.
 pub fn read_dataset_samples(dataset: &Path) -> Result<Vec<SampleRecord>> {
+    crate::dataset::Dataset::open(dataset)?.read_all_samples()
+}
+
+/// Checks every file the manifest of `dataset` names against its full SHA-256; returns
+/// the number of files checked, or the first file that differs.
+pub fn verify_dataset(dataset: &Path) -> Result<usize> {
     let m = read_manifest(&dataset.join("dataset.json"))?;
-    let mut out = Vec::new();
+    let mut checked = 0;
     for s in &m.shards {
-        out.extend(samples_table::read_samples(&dataset.join(&s.samples_file))?);
+        for (file, sha) in [
+            (&s.samples_file, &s.sha256),
+            (&s.errors_file, &s.errors_sha256),
+        ] {
+            let path = dataset.join(file);
+            if &sha256_file(&path)? != sha {
+                return Err(Error::format(
+                    &path,
+                    "its SHA-256 differs from the manifest's: the file changed after convert wrote it; rerun `arkit-tool convert`",
+                ));
+            }
+            checked += 1;
+        }
     }
-    Ok(out)
+    Ok(checked)
 }

@@ -257,6 +257,7 @@ pub fn run_demo(
         embed_images: false,
         shard_index: 0,
         shard_count: 1,
+        overwrite: true,
     };
     let ctx = ValidationContext {
         projection: Camera::release_projection(),
@@ -439,8 +440,7 @@ pub fn run_demo(
 
     clock.start("report");
     let mut figures = Vec::new();
-    let samples =
-        crate::samples_table::read_samples(&dataset.join(&manifest.shards[0].samples_file))?;
+    let samples = crate::dataset::Dataset::open(&dataset)?.read_samples(&manifest.shards[0])?;
     figures.push(report::write_figure(
         &report_dir,
         "poses.png",
@@ -452,12 +452,7 @@ pub fn run_demo(
     figures.push(report::write_figure(
         &report_dir,
         "targets.png",
-        &targets_sheet(
-            &dataset,
-            manifest.shards[0].index,
-            &samples,
-            &manifest.input,
-        )?,
+        &targets_sheet(&dataset, manifest.shards[0].index, &samples)?,
         "What render stores for each sample",
         "Per row, one sample: the network's input crop; the face mask (green; eye and mouth \
          openings are not face); each face pixel coloured by the canonical 3D point it shows \
@@ -545,8 +540,8 @@ fn targets_sheet(
     dataset: &Path,
     shard: usize,
     samples: &[crate::samples_table::SampleRecord],
-    input: &str,
 ) -> Result<RgbImage> {
+    let data = crate::dataset::Dataset::open(dataset)?;
     let targets = crate::targets_table::read_targets(
         &dataset
             .join("targets")
@@ -559,7 +554,7 @@ fn targets_sheet(
     let mut cells = Vec::new();
     let step = (samples.len() / 4).max(1);
     for (s, t) in samples.iter().zip(&targets).step_by(step).take(4) {
-        let image = eval_dataset::sample_image(s, Path::new(input));
+        let image = data.image(s)?;
         let p = report::target_panels(s, t, &image)?;
         cells.extend([
             up(&p.crop),

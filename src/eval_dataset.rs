@@ -7,7 +7,7 @@
 //! repeated key keeps its first row.
 
 use crate::conventions::Pose;
-use crate::convert::read_manifest;
+use crate::dataset::Dataset;
 use crate::error::{Error, Result};
 use crate::eval::{self, EulerDifference, PoseFailure, SampleErrors, Summary};
 use crate::overlay::{MeshStyle, draw_mesh};
@@ -61,6 +61,11 @@ pub struct MatchProblems {
     pub missing: usize,
     /// Predicted masks that could not be scored, with the reason.
     pub unscored_masks: Vec<(SampleKey, String)>,
+    /// Predicted `R_t`s whose upper 3x3 is not a rotation (not orthonormal, or a
+    /// reflection), with the reason. They are scored as the official evaluation scores
+    /// them (its Euler angles of the nearest rotation), so the figures match it, but the
+    /// scores of such a prediction mean little: a matrix scaled by 1000 scores MAE_r 0.
+    pub non_rotations: Vec<(SampleKey, String)>,
 }
 
 /// One scored sample.
@@ -92,8 +97,8 @@ pub struct Evaluation {
     /// The worst samples by geodesic rotation error (worst first), with their
     /// predictions, for drawing.
     pub worst: Vec<(SampleRecord, Option<PredictionRecord>, f64)>,
-    /// The dataset's input root (to find images that are not embedded).
-    pub input_root: PathBuf,
+    /// The dataset (to read the worst samples' images for the report).
+    pub dataset: Dataset,
 }
 
 /// Which split each sample of a dataset is in: `split`'s assignment
@@ -187,7 +192,7 @@ pub fn evaluate(
     predictions: &[PredictionRecord],
     options: &EvalOptions,
 ) -> Result<Evaluation> {
-    let manifest = read_manifest(&dataset.join("dataset.json"))?;
+    let data = Dataset::open(dataset)?;
     let splits = SplitLookup::read(dataset)?;
     let mut problems = MatchProblems::default();
     let mut by_key: HashMap<&SampleKey, &PredictionRecord> = HashMap::new();
@@ -212,8 +217,8 @@ pub fn evaluate(
     let mut scored = Vec::new();
     let mut worst: Vec<(SampleRecord, Option<PredictionRecord>, f64)> = Vec::new();
     let mut splits_found: HashSet<String> = HashSet::new();
-    for shard in &manifest.shards {
-        let rows = samples_table::read_samples(&dataset.join(&shard.samples_file))?;
+    for shard in data.shards() {
+        let rows = data.read_samples(shard)?;
         for r in rows {
             let split = splits.of(&r);
             splits_found.insert(split.clone());
@@ -226,6 +231,15 @@ pub fn evaluate(
                 None => Err(PoseFailure::Missing),
                 Some(p) => eval::check_prediction(p.rt.as_ref()),
             };
+            if let Ok(rt) = &checked
+                && let Err(e) = crate::conventions::Pose::check_release_rt(rt)
+            {
+                let why = match e {
+                    Error::Invalid { message, .. } => message,
+                    other => other.to_string(),
+                };
+                problems.non_rotations.push((r.key.clone(), why));
+            }
             if pred.is_none() {
                 problems.missing += 1;
             }
@@ -302,7 +316,7 @@ pub fn evaluate(
         samples: scored,
         problems,
         worst,
-        input_root: PathBuf::from(&manifest.input),
+        dataset: data,
     })
 }
 
@@ -370,18 +384,6 @@ pub const PER_SAMPLE_COLUMNS: [&str; 19] = [
     "mask_iou",
 ];
 
-/// The image of a sample: embedded JPEG, else the file under the input root, else a
-/// grey canvas of the image's size.
-pub fn sample_image(sample: &SampleRecord, input_root: &Path) -> RgbImage {
-    let decoded = match &sample.jpeg {
-        Some(bytes) => image::load_from_memory(bytes).ok(),
-        None => image::open(input_root.join(&sample.image_path)).ok(),
-    };
-    decoded.map(|i| i.to_rgb8()).unwrap_or_else(|| {
-        RgbImage::from_pixel(sample.image_width, sample.image_height, Rgb([90, 90, 90]))
-    })
-}
-
 /// Writes the report folder: `errors_by_pose.png` (mean errors per |yaw|, |pitch| and
 /// distance bin), `worst.png` (the worst samples, true mesh green, predicted red) and
 /// `summary.txt`.
@@ -433,8 +435,17 @@ pub fn write_report(dir: &Path, ev: &Evaluation, topology: &FaceTopology) -> Res
     crate::atomic_file::write_bytes(&plot_path, &png_bytes(&bars_panel(&panels))?)?;
     written.push(plot_path);
     let mut cells = Vec::new();
+    let mut unreadable = Vec::new();
     for (sample, pred, err) in &ev.worst {
-        let mut img = sample_image(sample, &ev.input_root);
+        // A sample whose image cannot be read is left out of the picture and named in
+        // the summary, not drawn over a placeholder.
+        let mut img = match ev.dataset.image(sample) {
+            Ok(img) => img,
+            Err(e) => {
+                unreadable.push(e.to_string());
+                continue;
+            }
+        };
         let gt_verts: Vec<Point3<f64>> = sample
             .verts
             .chunks_exact(3)
@@ -479,7 +490,17 @@ pub fn write_report(dir: &Path, ev: &Evaluation, topology: &FaceTopology) -> Res
         written.push(p);
     }
     let p = dir.join("summary.txt");
-    crate::atomic_file::write_bytes(&p, ev.summary.table().as_bytes())?;
+    let mut text = ev.summary.table();
+    if !unreadable.is_empty() {
+        text.push_str(&format!(
+            "\nworst.png leaves out {} sample(s) whose image could not be read:\n",
+            unreadable.len()
+        ));
+        for why in &unreadable {
+            text.push_str(&format!("  {why}\n"));
+        }
+    }
+    crate::atomic_file::write_bytes(&p, text.as_bytes())?;
     written.push(p);
     Ok(written)
 }

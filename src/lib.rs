@@ -32,6 +32,7 @@
 //! - [`report`]: pictures of each stage and a self-contained `index.html`;
 //!   [`demo`]: the whole pipeline on synthetic data, with that report.
 //! - [`atomic_file`]: writes that never leave a half-written file.
+//! - [`dataset`]: a converted dataset opened once: manifest, checked shards, images.
 
 #![warn(missing_docs)]
 
@@ -39,6 +40,7 @@ pub mod allocator;
 pub mod augment;
 pub mod augment_dataset;
 pub mod convert;
+pub mod dataset;
 pub mod demo;
 pub mod eval;
 pub mod eval_dataset;

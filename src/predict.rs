@@ -16,14 +16,12 @@
 //! 1 px noise it gives the floor any model meets.
 
 use crate::conventions::{Camera, Pose};
-use crate::convert::read_manifest;
 use crate::error::{Error, Result};
 use crate::pnp::{self, Intrinsics, RansacParams};
 use crate::predictions_table::PredictionRecord;
 use crate::release::SampleKey;
 use crate::render::CropTransform;
 use crate::rng::Rng;
-use crate::samples_table;
 use crate::targets_table::{self, TargetsRecord};
 use nalgebra::{Point2, Point3};
 use rayon::prelude::*;
@@ -119,13 +117,13 @@ pub fn oracle_predictions(
     options: &OracleOptions,
     progress: &(dyn Fn(usize) + Sync),
 ) -> Result<(Vec<PredictionRecord>, OracleSummary)> {
-    let manifest = read_manifest(&dataset.join("dataset.json"))?;
+    let data = crate::dataset::Dataset::open(dataset)?;
     let splits = crate::eval_dataset::SplitLookup::read(dataset)?;
     let mut out = Vec::new();
     let mut summary = OracleSummary::default();
     let mut points = 0usize;
-    for shard in &manifest.shards {
-        let rows = samples_table::read_samples(&dataset.join(&shard.samples_file))?;
+    for shard in data.shards() {
+        let rows = data.read_samples(shard)?;
         let tpath = crate::targets_table::shard_path(targets_dir, shard.index);
         let targets: HashMap<SampleKey, TargetsRecord> = if tpath.exists() {
             targets_table::read_targets_by_key(&tpath)?
@@ -244,12 +242,12 @@ pub fn mean_pose_predictions(
     fit: Option<&str>,
     split: Option<&str>,
 ) -> Result<(Vec<PredictionRecord>, MeanPoseSummary)> {
-    let manifest = read_manifest(&dataset.join("dataset.json"))?;
+    let data = crate::dataset::Dataset::open(dataset)?;
     let splits = crate::eval_dataset::SplitLookup::read(dataset)?;
     let mut fitted = Vec::new();
     let mut keys = Vec::new();
-    for shard in &manifest.shards {
-        for r in samples_table::read_samples(&dataset.join(&shard.samples_file))? {
+    for shard in data.shards() {
+        for r in data.read_samples(shard)? {
             if splits.keeps(&r, fit) {
                 fitted.push(Pose::from_release_rt(&r.rt)?);
             }

@@ -8,7 +8,6 @@
 //! swap brings the image count closer to `N / subjects` of all images. No subject is
 //! ever in two splits.
 
-use crate::convert::read_manifest;
 use crate::error::{Error, Result};
 use crate::release::SampleKey;
 use crate::rng::Rng;
@@ -202,11 +201,10 @@ pub fn split_dataset(
     seed: u64,
     out: &std::path::Path,
 ) -> Result<BTreeMap<String, SplitCount>> {
-    let manifest = read_manifest(&dataset.join("dataset.json"))?;
+    let data = crate::dataset::Dataset::open(dataset)?;
     let mut keys: Vec<(SampleKey, String)> = Vec::new();
-    for s in &manifest.shards {
-        let path = dataset.join(&s.samples_file);
-        keys.extend(crate::samples_table::read_sample_keys(&path)?);
+    for s in data.shards() {
+        keys.extend(data.read_sample_keys(s)?);
     }
     let mut per_subject: BTreeMap<String, usize> = BTreeMap::new();
     for (k, _) in &keys {

@@ -14,7 +14,7 @@
 //! `loss.csv` (one row per step). Files are written atomically.
 
 use crate::conventions::Pose;
-use crate::convert::read_manifest;
+use crate::dataset::Dataset;
 use crate::error::{Error, Result};
 use crate::eval_dataset::SplitLookup;
 use crate::perspnet::layers::{IMAGENET_MEAN, IMAGENET_STD};
@@ -23,7 +23,7 @@ use crate::perspnet::model::named_trainable_vars;
 use crate::perspnet::{Adam, CorrTarget, LossTargets, LossWeights, PerspNet, PerspNetConfig};
 use crate::render::CropTransform;
 use crate::rng::Rng;
-use crate::samples_table::{self, SampleRecord};
+use crate::samples_table::SampleRecord;
 use crate::targets_table::{self, TargetsRecord};
 use crate::topology::FaceTopology;
 use candle_core::{DType, Device, Tensor};
@@ -281,7 +281,7 @@ pub fn example(
     sample: &SampleRecord,
     targets: &TargetsRecord,
     cfg: &PerspNetConfig,
-    input_root: &Path,
+    dataset: &Dataset,
 ) -> Result<Example> {
     if targets.crop.size as usize != cfg.input_size {
         return Err(Error::invalid(
@@ -354,7 +354,7 @@ pub fn example(
             format!("{}: point refers to mask pixel {p} of {n}", sample.key),
         ));
     }
-    let image = crate::eval_dataset::sample_image(sample, input_root);
+    let image = dataset.image(sample)?;
     Ok(Example {
         sample: sample.clone(),
         crop: targets.crop,
@@ -433,25 +433,31 @@ pub struct ShardedExamples {
     targets_dir: PathBuf,
     cfg: PerspNetConfig,
     split: Option<String>,
-    input_root: PathBuf,
+    data: Dataset,
     splits: SplitLookup,
     /// `(shard index, samples file, examples in the split)`.
     shards: Vec<(usize, String, usize)>,
+    /// Samples left out because their image could not be read, with the reason.
+    unreadable: Vec<(crate::release::SampleKey, String)>,
 }
 
 impl ShardedExamples {
-    /// Opens a rendered dataset: checks every shard has its targets and counts the
-    /// examples of `split` in each (reads the samples tables, not the images).
+    /// Opens a rendered dataset: checks every shard has its targets, checks that every
+    /// example's image can be found and has its recorded size (from the image's header:
+    /// a sample whose image cannot be read is left out and listed in
+    /// [`ShardedExamples::unreadable`], never replaced), and counts the examples of
+    /// `split` in each shard.
     pub fn open(
         dataset: &Path,
         targets_dir: &Path,
         cfg: &PerspNetConfig,
         split: Option<&str>,
     ) -> Result<Self> {
-        let manifest = read_manifest(&dataset.join("dataset.json"))?;
+        let data = Dataset::open(dataset)?;
         let splits = SplitLookup::read(dataset)?;
         let mut shards = Vec::new();
-        for shard in &manifest.shards {
+        let mut unreadable = Vec::new();
+        for shard in data.shards() {
             let tpath = targets_table::shard_path(targets_dir, shard.index);
             if !tpath.exists() {
                 return Err(Error::format(
@@ -460,13 +466,24 @@ impl ShardedExamples {
                 ));
             }
             let skipped = targets_table::read_skipped_keys(targets_dir, shard.index)?;
-            // Keys and splits only: the meshes are read when the shard is loaded.
-            let n = samples_table::read_sample_keys(&dataset.join(&shard.samples_file))?
-                .iter()
-                .filter(|(key, listed)| {
-                    splits.keeps_key(key, listed, split) && !skipped.contains(key)
-                })
-                .count();
+            let kept: Vec<SampleRecord> = data
+                .read_samples(shard)?
+                .into_iter()
+                .filter(|r| splits.keeps(r, split) && !skipped.contains(&r.key))
+                .collect();
+            let checks: Vec<Option<(crate::release::SampleKey, String)>> = {
+                use rayon::prelude::*;
+                kept.par_iter()
+                    .map(|r| {
+                        data.check_image(r)
+                            .err()
+                            .map(|e| (r.key.clone(), e.to_string()))
+                    })
+                    .collect()
+            };
+            let bad = checks.iter().flatten().count();
+            unreadable.extend(checks.into_iter().flatten());
+            let n = kept.len() - bad;
             if n > 0 {
                 shards.push((shard.index, shard.samples_file.clone(), n));
             }
@@ -476,10 +493,19 @@ impl ShardedExamples {
             targets_dir: targets_dir.to_path_buf(),
             cfg: cfg.clone(),
             split: split.map(str::to_string),
-            input_root: PathBuf::from(&manifest.input),
+            data,
             splits,
             shards,
+            unreadable,
         })
+    }
+}
+
+impl ShardedExamples {
+    /// The samples left out because their image could not be read (key, reason naming
+    /// the file), in shard order.
+    pub fn unreadable(&self) -> &[(crate::release::SampleKey, String)] {
+        &self.unreadable
     }
 }
 
@@ -499,14 +525,27 @@ impl ExampleShards for ShardedExamples {
         // Samples `render` reported it could not render have no row: leave them out.
         let skipped = targets_table::read_skipped_keys(&self.targets_dir, *index)?;
         let mut out = Vec::with_capacity(*n);
-        for r in samples_table::read_samples(&self.dataset.join(samples_file))? {
-            if !self.splits.keeps(&r, self.split.as_deref()) || skipped.contains(&r.key) {
+        let unreadable: std::collections::HashSet<&crate::release::SampleKey> =
+            self.unreadable.iter().map(|(k, _)| k).collect();
+        let shard = self
+            .data
+            .shards()
+            .iter()
+            .find(|s| s.index == *index)
+            .ok_or_else(|| {
+                Error::format(self.dataset.join(samples_file), "shard left the manifest")
+            })?;
+        for r in self.data.read_samples(shard)? {
+            if !self.splits.keeps(&r, self.split.as_deref())
+                || skipped.contains(&r.key)
+                || unreadable.contains(&r.key)
+            {
                 continue;
             }
             let t = targets
                 .get(&r.key)
                 .ok_or_else(|| Error::format(&tpath, format!("no targets row for {}", r.key)))?;
-            out.push(example(&r, t, &self.cfg, &self.input_root)?);
+            out.push(example(&r, t, &self.cfg, &self.data)?);
         }
         if out.len() != *n {
             return Err(Error::format(
@@ -1236,6 +1275,9 @@ pub struct ModelPredictSummary {
     /// Samples left out with `--mask truth` because `render` could not render them
     /// (no true mask; listed in the targets' `errors/`).
     pub without_true_mask: usize,
+    /// Samples left out because their image could not be read (key, reason naming the
+    /// file): no prediction is written for them, so `eval` counts them missing.
+    pub unreadable: Vec<(crate::release::SampleKey, String)>,
 }
 
 /// Runs a trained network over the samples of `split` (`None`: all): the crop box of
@@ -1259,13 +1301,12 @@ pub fn model_predictions(
     Vec<crate::predictions_table::PredictionRecord>,
     ModelPredictSummary,
 )> {
-    let manifest = read_manifest(&dataset.join("dataset.json"))?;
-    let input_root = PathBuf::from(&manifest.input);
+    let data = Dataset::open(dataset)?;
     let splits = SplitLookup::read(dataset)?;
     let size = model.checkpoint.config.input_size as u32;
     let mut out = Vec::new();
     let mut summary = ModelPredictSummary::default();
-    for shard in &manifest.shards {
+    for shard in data.shards() {
         let truth: HashMap<crate::release::SampleKey, TargetsRecord> = match true_masks {
             Some(dir) => {
                 targets_table::read_targets_by_key(&targets_table::shard_path(dir, shard.index))?
@@ -1276,10 +1317,7 @@ pub fn model_predictions(
             Some(dir) => targets_table::read_skipped_keys(dir, shard.index)?,
             None => Default::default(),
         };
-        for (i, r) in samples_table::read_samples(&dataset.join(&shard.samples_file))?
-            .into_iter()
-            .enumerate()
-        {
+        for (i, r) in data.read_samples(shard)?.into_iter().enumerate() {
             if !splits.keeps(&r, split) {
                 continue;
             }
@@ -1316,7 +1354,14 @@ pub fn model_predictions(
                     Some(t.mask()?)
                 }
             };
-            let image = crate::eval_dataset::sample_image(&r, &input_root);
+            let image = match data.image(&r) {
+                Ok(image) => image,
+                Err(e) => {
+                    summary.unreadable.push((r.key.clone(), e.to_string()));
+                    progress(1);
+                    continue;
+                }
+            };
             let input = network_input(&image, &crop);
             let p = predict_crop(
                 model,

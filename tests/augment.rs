@@ -167,6 +167,7 @@ fn synth_convert_augment_convert_round_trip() {
         embed_images: false,
         shard_index: 0,
         shard_count: 1,
+        overwrite: false,
     };
     convert::convert(&copts(release.path(), pq.path()), &ctx, &|_| {}).unwrap();
     let out = tempfile::tempdir().unwrap();

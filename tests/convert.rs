@@ -40,6 +40,7 @@ fn options(input: &Path, output: &Path, rows_per_shard: usize) -> ConvertOptions
         embed_images: false,
         shard_index: 0,
         shard_count: 1,
+        overwrite: false,
     }
 }
 
@@ -602,6 +603,15 @@ fn render_reports_and_skips_a_sample_it_cannot_render() {
     }
     samples_table::write_parquet(&shard0, &mut samples_table::samples_frame(&rows).unwrap())
         .unwrap();
+    // Readers refuse a shard that differs from the manifest; this test wants the broken
+    // row read, as if convert had written it, so the manifest forgets the shard's size.
+    let mut m = convert::read_manifest(&out.path().join("dataset.json")).unwrap();
+    m.shards[0].bytes = 0;
+    std::fs::write(
+        out.path().join("dataset.json"),
+        serde_json::to_string_pretty(&m).unwrap(),
+    )
+    .unwrap();
     let renderer = builtin_renderer();
     let ro = RenderOptions {
         size: 64,

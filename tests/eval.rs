@@ -45,6 +45,7 @@ fn rendered_in(dir: &Path, mode: RasterMode) {
         embed_images: true,
         shard_index: 0,
         shard_count: 1,
+        overwrite: false,
     };
     convert::convert(&copts, &ctx, &|_| {}).unwrap();
     let mut renderer = FaceRenderer::new(topology, Camera::release_projection()).unwrap();

@@ -914,6 +914,7 @@ mod pipeline {
             embed_images: false,
             shard_index: 0,
             shard_count: 1,
+            overwrite: false,
         };
         convert::convert(&copts, &ctx, &|_| {}).unwrap();
         let cfg = PerspNetConfig::tiny();

@@ -69,6 +69,10 @@ pub struct AugmentArgs {
     /// Worker threads (default: all cores).
     #[arg(long)]
     jobs: Option<usize>,
+    /// Exit with status 1 if any source sample could not be read (after augmenting
+    /// everything else).
+    #[arg(long)]
+    strict: bool,
     /// Print the summary as JSON.
     #[arg(long)]
     json: bool,
@@ -141,6 +145,10 @@ pub fn run(a: AugmentArgs) -> Result<ExitCode> {
         if let Some(p) = &a.preview {
             println!("wrote {}", p.display());
         }
+    }
+    super::report_unreadable(&summary.unreadable, "augment");
+    if a.strict && !summary.unreadable.is_empty() {
+        return Ok(ExitCode::FAILURE);
     }
     Ok(ExitCode::SUCCESS)
 }

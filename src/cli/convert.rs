@@ -15,7 +15,9 @@ use std::process::ExitCode;
 /// inside the image); a bad sample is skipped and recorded with its reason in
 /// errors/part-K.parquet, and files no list names in errors/listing.parquet.
 /// Writes samples/part-K.parquet and dataset.json (counts, shards, SHA-256 checksums).
-/// A rerun keeps finished shards. The output is byte-identical whatever --jobs.
+/// A rerun of the same conversion keeps finished shards; a folder holding another
+/// conversion is refused (--overwrite replaces it). The output is byte-identical
+/// whatever --jobs.
 ///
 /// Example: arkit-tool convert --input data/synth --output data/synth-parquet
 /// Cluster: run `convert --shard I/N` for I in 0..N (same --output), then `arkit-tool merge`.
@@ -44,6 +46,12 @@ pub struct ConvertArgs {
     /// Convert only part I of N (shards k with k % N == I), for job arrays.
     #[arg(long, value_name = "I/N", value_parser = super::parse_shard)]
     shard: Option<(usize, usize)>,
+    /// Replace the output of another conversion found in --output (its samples, errors,
+    /// manifests, splits and targets) instead of refusing. Without it, a folder that
+    /// holds a conversion of other input or options is refused, and a rerun of the same
+    /// conversion keeps its finished shards.
+    #[arg(long)]
+    overwrite: bool,
     /// Exit with status 1 if any sample was skipped (after converting everything else).
     #[arg(long)]
     strict: bool,
@@ -74,6 +82,7 @@ pub fn run(a: ConvertArgs) -> Result<ExitCode> {
         embed_images: a.embed_images,
         shard_index,
         shard_count,
+        overwrite: a.overwrite,
     };
     let ctx = ValidationContext {
         projection,

@@ -94,6 +94,8 @@ pub fn run(a: EvalArgs) -> Result<ExitCode> {
                 "duplicates": p.duplicates.len(),
                 "missing": p.missing,
                 "unscored_masks": p.unscored_masks.len(),
+                "non_rotations": p.non_rotations.len(),
+                "first_non_rotations": p.non_rotations.iter().take(10).map(|(k, why)| format!("{k}: {why}")).collect::<Vec<_>>(),
                 "first_unknown": p.unknown.iter().take(10).map(|k| k.to_string()).collect::<Vec<_>>(),
                 "first_duplicates": p.duplicates.iter().take(10).map(|k| k.to_string()).collect::<Vec<_>>(),
             },
@@ -114,6 +116,12 @@ pub fn run(a: EvalArgs) -> Result<ExitCode> {
             eprintln!(
                 "warning: {} samples have no prediction; scored as PnP failures",
                 p.missing
+            );
+        }
+        if let Some((k, why)) = p.non_rotations.first() {
+            eprintln!(
+                "warning: {} predicted R_t are not rotations, scored as the official evaluation scores them but meaningless (first: {k}: {why})",
+                p.non_rotations.len()
             );
         }
         if let Some((k, why)) = p.unscored_masks.first() {

@@ -1,7 +1,6 @@
 //! `arkit-tool inspect`.
 
 use arkit_tool::Result;
-use arkit_tool::convert::read_manifest;
 use arkit_tool::plot::{Histogram, histogram_panel};
 use arkit_tool::samples_table::{f64_values, read_parquet_columns, str_values};
 use clap::Args;
@@ -21,17 +20,26 @@ pub struct InspectArgs {
     /// Also draw the four histograms into a PNG.
     #[arg(long, value_name = "FILE.png")]
     plot: Option<PathBuf>,
+    /// First check every file the manifest names against its full SHA-256 (every other
+    /// command checks each shard's size and footer only); exits 1 on a mismatch.
+    #[arg(long)]
+    verify: bool,
     /// Print JSON.
     #[arg(long)]
     json: bool,
 }
 
 pub fn run(a: InspectArgs) -> Result<ExitCode> {
-    let m = read_manifest(&a.dataset.join("dataset.json"))?;
+    let data = arkit_tool::dataset::Dataset::open(&a.dataset)?;
+    if a.verify {
+        let n = arkit_tool::convert::verify_dataset(&a.dataset)?;
+        eprintln!("verified {n} files against the SHA-256 in dataset.json");
+    }
+    let m = data.manifest().clone();
     let (mut yaw, mut pitch, mut roll, mut dist) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
     let (mut subjects, mut actions) = (BTreeSet::new(), BTreeSet::new());
     for s in &m.shards {
-        let path = a.dataset.join(&s.samples_file);
+        let path = data.samples_path(s)?;
         let df = read_parquet_columns(
             &path,
             &[

@@ -125,3 +125,21 @@ pub fn thread_pool(jobs: Option<usize>) -> Result<rayon::ThreadPool> {
         .build()
         .map_err(|e| arkit_tool::Error::invalid("--jobs", e.to_string()))
 }
+
+/// Prints, on stderr, how many samples a command could not read and why (the first
+/// ten, each naming its file), so a moved release or a damaged image is never silent.
+pub fn report_unreadable(unreadable: &[(arkit_tool::release::SampleKey, String)], command: &str) {
+    if unreadable.is_empty() {
+        return;
+    }
+    eprintln!(
+        "{command}: skipped {} sample(s) whose image or annotation could not be read:",
+        unreadable.len()
+    );
+    for (key, why) in unreadable.iter().take(10) {
+        eprintln!("  {key}: {why}");
+    }
+    if unreadable.len() > 10 {
+        eprintln!("  ... and {} more", unreadable.len() - 10);
+    }
+}

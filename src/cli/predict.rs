@@ -36,6 +36,11 @@ pub struct PredictArgs {
     /// A folder written by `convert` (and `render`).
     #[arg(long)]
     dataset: PathBuf,
+    /// With --model: exit with status 1 if any sample's image could not be read (the
+    /// predictions of the others are still written; without it such samples are
+    /// reported and left out, and `eval` counts them missing).
+    #[arg(long)]
+    strict: bool,
     /// Use the stored ground-truth correspondences.
     #[arg(long)]
     oracle: bool,
@@ -175,6 +180,10 @@ pub fn run(a: PredictArgs) -> Result<ExitCode> {
                     summary.without_true_mask
                 );
             }
+        }
+        super::report_unreadable(&summary.unreadable, "predict");
+        if a.strict && !summary.unreadable.is_empty() {
+            return Ok(ExitCode::FAILURE);
         }
         return Ok(ExitCode::SUCCESS);
     }

@@ -99,6 +99,10 @@ pub struct TrainArgs {
     /// The release's resource folder (real topology: its vertex UVs); the built-in face without it.
     #[arg(long)]
     resources: Option<PathBuf>,
+    /// Exit with status 1, before training, if any sample's image could not be read
+    /// (without it such samples are reported and left out).
+    #[arg(long)]
+    strict: bool,
     /// Print the checkpoint summary as JSON.
     #[arg(long)]
     json: bool,
@@ -122,14 +126,21 @@ pub fn config_named(name: &str) -> Result<PerspNetConfig> {
 
 pub fn run(a: TrainArgs) -> Result<ExitCode> {
     let topology = super::load_topology(a.resources.as_deref())?;
+    let manifest = arkit_tool::convert::read_manifest(&a.dataset.join("dataset.json"))?;
+    arkit_tool::convert::check_topology(&manifest, &topology, &a.dataset)?;
     let mut config = config_named(&a.config)?;
     if let Some(loss) = a.loss {
         config.loss = loss;
     }
     let targets = a.targets.clone().unwrap_or_else(|| a.dataset.clone());
     let split = (a.split != "all").then_some(a.split.as_str());
+    let source = ShardedExamples::open(&a.dataset, &targets, &config, split)?;
+    let unreadable = source.unreadable().to_vec();
+    super::report_unreadable(&unreadable, "train");
+    if a.strict && !unreadable.is_empty() {
+        return Ok(ExitCode::FAILURE);
+    }
     let source: Box<dyn ExampleShards> = if a.stream {
-        let source = ShardedExamples::open(&a.dataset, &targets, &config, split)?;
         if !a.json {
             eprintln!(
                 "streaming {} training samples from {} shards, one shard in memory at a time",
@@ -139,7 +150,10 @@ pub fn run(a: TrainArgs) -> Result<ExitCode> {
         }
         Box::new(source)
     } else {
-        let examples = training::read_examples(&a.dataset, &targets, &config, split)?;
+        let mut examples = Vec::with_capacity(source.total());
+        for k in 0..source.shards() {
+            examples.extend(source.load(k)?.into_owned());
+        }
         let memory: usize = examples.iter().map(|e| e.memory_bytes()).sum();
         if !a.json {
             eprintln!(

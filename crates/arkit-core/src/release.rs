@@ -386,13 +386,24 @@ fn split_csv_line(line: &str) -> Vec<String> {
     fields
 }
 
-/// The text of a list CSV for `keys` (header `subject_id,facial_action,img_id`).
+/// The text of a list CSV for `keys` (header `subject_id,facial_action,img_id`). A field
+/// with a comma, a double quote or a line break is quoted as RFC 4180 says (inner
+/// quotes doubled), so [`parse_list`] (and pandas) read back the same ids.
 pub fn list_csv_text(keys: &[SampleKey]) -> String {
+    fn field(v: &str) -> std::borrow::Cow<'_, str> {
+        if v.contains([',', '"', '\n', '\r']) {
+            format!("\"{}\"", v.replace('"', "\"\"")).into()
+        } else {
+            v.into()
+        }
+    }
     let mut s = String::from("subject_id,facial_action,img_id\n");
     for k in keys {
         s.push_str(&format!(
             "{},{},{}\n",
-            k.subject_id, k.facial_action, k.img_id
+            field(&k.subject_id),
+            field(&k.facial_action),
+            field(&k.img_id)
         ));
     }
     s
@@ -582,5 +593,29 @@ mod tests {
         std::fs::write(&p, &bytes[..bytes.len() / 2]).unwrap();
         let e = read_info(&p).unwrap_err().to_string();
         assert!(e.contains("truncated_info.npz"), "{e}");
+    }
+
+    #[test]
+    fn list_ids_with_commas_and_quotes_round_trip() {
+        let keys = vec![
+            SampleKey {
+                subject_id: "12,5".into(),
+                facial_action: "say \"hi\"".into(),
+                img_id: "007".into(),
+            },
+            SampleKey {
+                subject_id: "plain".into(),
+                facial_action: "a".into(),
+                img_id: "1".into(),
+            },
+        ];
+        let text = list_csv_text(&keys);
+        assert!(text.contains("\"12,5\",\"say \"\"hi\"\"\",007"), "{text}");
+        let back: Vec<SampleKey> = parse_list(&text, Path::new("l.csv"))
+            .unwrap()
+            .into_iter()
+            .map(|r| r.key)
+            .collect();
+        assert_eq!(back, keys);
     }
 }

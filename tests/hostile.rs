@@ -1,0 +1,395 @@
+//! Hostile but fair input, and faults: every case ends in a clear error or a reported
+//! skip, never a silent substitute or stale output (issue 21).
+//!
+//! - a folder holding another conversion is refused, `--overwrite` replaces it;
+//! - a second writer of the same part is refused while the first holds its lock;
+//! - an input file changed in place makes its shard be redone on a rerun;
+//! - parts of different conversions do not merge;
+//! - a shard rewritten after `convert` is refused by readers;
+//! - a moved release or a missing image is reported and skipped by `augment`, `train`'s
+//!   example reader and `eval`'s report, never read as a grey canvas, and
+//!   `ARKIT_INPUT_ROOT` finds a moved release again;
+//! - degenerate samples (collapsed mesh, tiny image, image of another size than its
+//!   annotation's `points2d`) are skipped with the reason; bytes after a JPEG's end are
+//!   not mistaken for truncation;
+//! - stale temporaries of killed runs are removed.
+
+use arkit_tool::atomic_file::FolderLock;
+use arkit_tool::conventions::Camera;
+use arkit_tool::convert::{self, ConvertOptions, ValidationContext};
+use arkit_tool::dataset::Dataset;
+use arkit_tool::npy::{NpyArray, NpzCompression};
+use arkit_tool::release::{self, ReleaseLayout, SampleKey, Split};
+use arkit_tool::samples_table;
+use arkit_tool::synth::{self, FaceSource, SynthOptions};
+use std::path::Path;
+use std::process::Command;
+
+fn make_release(dir: &Path, subjects: usize, images: usize, seed: u64) {
+    let options = SynthOptions {
+        subjects,
+        images_per_subject: images,
+        width: 128,
+        height: 128,
+        seed,
+        ..SynthOptions::default()
+    };
+    synth::generate(&FaceSource::builtin(), &options, dir, &|| {}).unwrap();
+}
+
+fn context() -> ValidationContext {
+    ValidationContext {
+        projection: Camera::release_projection(),
+        topology: arkit_tool::synthetic_face::builtin().topology.clone(),
+        embed_images: false,
+    }
+}
+
+fn options(input: &Path, output: &Path, rows_per_shard: usize) -> ConvertOptions {
+    ConvertOptions {
+        input: input.to_path_buf(),
+        output: output.to_path_buf(),
+        resources: None,
+        rows_per_shard,
+        embed_images: false,
+        shard_index: 0,
+        shard_count: 1,
+        overwrite: false,
+    }
+}
+
+fn convert(o: &ConvertOptions) -> arkit_tool::Result<convert::Manifest> {
+    convert::convert(o, &context(), &|_| {})
+}
+
+fn keys(root: &Path, split: Split) -> Vec<SampleKey> {
+    release::read_list(&ReleaseLayout::new(root).list_path(split))
+        .unwrap()
+        .into_iter()
+        .map(|r| r.key)
+        .collect()
+}
+
+#[test]
+fn another_conversion_in_the_folder_is_refused_and_overwrite_replaces_it() {
+    let (a, b) = (tempfile::tempdir().unwrap(), tempfile::tempdir().unwrap());
+    make_release(a.path(), 2, 3, 1);
+    make_release(b.path(), 3, 2, 2);
+    let out = tempfile::tempdir().unwrap();
+    let first = convert(&options(a.path(), out.path(), 4)).unwrap();
+    let e = convert(&options(b.path(), out.path(), 4))
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("other input") && e.contains("--overwrite"),
+        "{e}"
+    );
+    // Nothing of the first conversion was touched.
+    assert_eq!(
+        convert::read_manifest(&out.path().join("dataset.json")).unwrap(),
+        first
+    );
+    // Other options into the same folder: refused too (a sharded part with another
+    // shard size would interleave its shards with these).
+    let e = convert(&options(a.path(), out.path(), 3))
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("other options"), "{e}");
+    // --overwrite replaces it: the samples are b's, as a fresh conversion gives them.
+    let mut o = options(b.path(), out.path(), 4);
+    o.overwrite = true;
+    convert(&o).unwrap();
+    let fresh = tempfile::tempdir().unwrap();
+    convert(&options(b.path(), fresh.path(), 4)).unwrap();
+    assert_eq!(
+        convert::read_dataset_samples(out.path()).unwrap(),
+        convert::read_dataset_samples(fresh.path()).unwrap()
+    );
+}
+
+#[test]
+fn a_second_writer_of_the_same_part_is_refused() {
+    let input = tempfile::tempdir().unwrap();
+    make_release(input.path(), 2, 2, 3);
+    let out = tempfile::tempdir().unwrap();
+    let held = FolderLock::acquire(out.path(), "convert-part-0-of-1", "convert").unwrap();
+    let e = convert(&options(input.path(), out.path(), 4))
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("another convert"), "{e}");
+    assert!(!out.path().join("dataset.json").exists());
+    drop(held);
+    convert(&options(input.path(), out.path(), 4)).unwrap();
+}
+
+#[test]
+fn an_input_file_changed_in_place_is_converted_again_and_temporaries_are_cleaned() {
+    let input = tempfile::tempdir().unwrap();
+    make_release(input.path(), 2, 4, 4);
+    let out = tempfile::tempdir().unwrap();
+    let first = convert(&options(input.path(), out.path(), 3)).unwrap();
+    let before = convert::read_dataset_samples(out.path()).unwrap();
+    // Sample 4 (shard 1) gets sample 0's annotation, in place; a killed run's temporary
+    // is left in samples/.
+    let root = input.path();
+    let layout = ReleaseLayout::new(root);
+    let split = |r: &samples_table::SampleRecord| {
+        if r.split == "test" {
+            Split::Test
+        } else {
+            Split::Train
+        }
+    };
+    let (r0, r4) = (&before[0], &before[4]);
+    std::thread::sleep(std::time::Duration::from_millis(20));
+    std::fs::copy(
+        layout.info_path(split(r0), &r0.key),
+        layout.info_path(split(r4), &r4.key),
+    )
+    .unwrap();
+    let train = [r0.key.clone(), r4.key.clone()];
+    let stale = out.path().join("samples/.part-00000.parquet.tmp-4242");
+    std::fs::write(&stale, b"half a shard").unwrap();
+    let second = convert(&options(root, out.path(), 3)).unwrap();
+    assert!(!stale.exists(), "a killed run's temporary survived");
+    let after = convert::read_dataset_samples(out.path()).unwrap();
+    let row = |rows: &[samples_table::SampleRecord], k: &SampleKey| {
+        rows.iter().find(|r| &r.key == k).unwrap().clone()
+    };
+    assert_ne!(row(&before, &train[1]).rt, row(&after, &train[1]).rt);
+    assert_eq!(row(&after, &train[1]).rt, row(&after, &train[0]).rt);
+    // Shard 1 was redone; the others were kept byte for byte.
+    for (a, b) in first.shards.iter().zip(&second.shards) {
+        assert_eq!(a.sha256 == b.sha256, a.index != 1, "shard {}", a.index);
+    }
+}
+
+#[test]
+fn parts_of_different_conversions_do_not_merge() {
+    let input = tempfile::tempdir().unwrap();
+    make_release(input.path(), 3, 2, 5);
+    let out = tempfile::tempdir().unwrap();
+    for i in 0..2 {
+        let mut o = options(input.path(), out.path(), 2);
+        (o.shard_index, o.shard_count) = (i, 2);
+        convert(&o).unwrap();
+    }
+    convert::merge(out.path()).unwrap();
+    // A part manifest from a conversion with another topology.
+    let part = out.path().join(convert::manifest_name(1, 2));
+    let mut m = convert::read_manifest(&part).unwrap();
+    m.topology_sha256 = "0".repeat(64);
+    std::fs::write(&part, serde_json::to_string_pretty(&m).unwrap()).unwrap();
+    let e = convert::merge(out.path()).unwrap_err().to_string();
+    assert!(e.contains("topology differs"), "{e}");
+}
+
+#[test]
+fn a_shard_rewritten_after_convert_is_refused() {
+    let input = tempfile::tempdir().unwrap();
+    make_release(input.path(), 2, 3, 6);
+    let out = tempfile::tempdir().unwrap();
+    let m = convert(&options(input.path(), out.path(), 3)).unwrap();
+    assert_eq!(
+        convert::verify_dataset(out.path()).unwrap(),
+        2 * m.shards.len()
+    );
+    // Shard 0 replaced by shard 1's file: a valid Parquet file, the wrong one.
+    std::fs::copy(
+        out.path().join(&m.shards[1].samples_file),
+        out.path().join(&m.shards[0].samples_file),
+    )
+    .unwrap();
+    let e = convert::read_dataset_samples(out.path())
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("part-00000.parquet") && e.contains("changed after convert"),
+        "{e}"
+    );
+    let e = convert::verify_dataset(out.path()).unwrap_err().to_string();
+    assert!(e.contains("SHA-256"), "{e}");
+}
+
+#[test]
+fn a_missing_image_is_reported_and_skipped_never_grey() {
+    let input = tempfile::tempdir().unwrap();
+    make_release(input.path(), 2, 3, 7);
+    let out = tempfile::tempdir().unwrap();
+    convert(&options(input.path(), out.path(), 4)).unwrap();
+    let data = Dataset::open(out.path()).unwrap();
+    let rows = data.read_all_samples().unwrap();
+    let gone = rows[2].clone();
+    let gone_path = data.image_path(&gone).unwrap();
+    std::fs::remove_file(&gone_path).unwrap();
+    let e = data.image(&gone).unwrap_err().to_string();
+    assert!(
+        e.contains(&gone_path.display().to_string()) && e.contains("ARKIT_INPUT_ROOT"),
+        "{e}"
+    );
+    assert!(data.check_image(&gone).is_err());
+    assert_eq!(data.image(&rows[0]).unwrap().dimensions(), (128, 128));
+    // augment: the other samples are augmented, the missing one reported.
+    let aug_out = tempfile::tempdir().unwrap();
+    let aopts = arkit_tool::augment_dataset::AugmentOptions {
+        output: aug_out.path().to_path_buf(),
+        axis: arkit_tool::augment_dataset::AxisChoice::Fixed(arkit_tool::augment::Axis::Roll),
+        rule: arkit_tool::augment_dataset::ProfilingRule::default(),
+        per_sample: 1,
+        flip: false,
+        with_originals: true,
+        seed: 1,
+        jpeg_quality: 90,
+        preview_pairs: 0,
+    };
+    let (summary, _) = arkit_tool::augment_dataset::augment_dataset(
+        out.path(),
+        &arkit_tool::synthetic_face::builtin().topology,
+        &aopts,
+        &|_| {},
+    )
+    .unwrap();
+    assert_eq!(summary.sources, rows.len());
+    assert_eq!(summary.unreadable.len(), 1);
+    assert_eq!(summary.unreadable[0].0, gone.key);
+    let originals = summary
+        .written
+        .iter()
+        .filter(|w| w.operation == "original")
+        .count();
+    assert_eq!(originals, rows.len() - 1);
+    assert!(
+        !summary.written.iter().any(|w| w.source == gone.key),
+        "something was written for the sample without an image"
+    );
+}
+
+#[test]
+fn a_moved_release_is_found_again_through_the_environment() {
+    let base = tempfile::tempdir().unwrap();
+    let release_dir = base.path().join("release");
+    make_release(&release_dir, 2, 2, 8);
+    let out = base.path().join("pq");
+    convert(&options(&release_dir, &out, 4)).unwrap();
+    let moved = base.path().join("moved");
+    std::fs::rename(&release_dir, &moved).unwrap();
+    let tool = env!("CARGO_BIN_EXE_arkit-tool");
+    let run = |env: Option<&Path>, strict: bool| {
+        let mut c = Command::new(tool);
+        c.args(["augment", "--input"])
+            .arg(&out)
+            .arg("--output")
+            .arg(base.path().join("aug"))
+            .arg("--with-originals");
+        if strict {
+            c.arg("--strict");
+        }
+        c.env_remove("ARKIT_INPUT_ROOT");
+        if let Some(p) = env {
+            c.env("ARKIT_INPUT_ROOT", p);
+        }
+        c.output().unwrap()
+    };
+    // Moved: every image is reported missing, with where it was looked for; nothing is
+    // made of grey squares.
+    let o = run(None, false);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success(), "{err}");
+    assert!(
+        err.contains("unreadable") && err.contains(&release_dir.display().to_string()),
+        "{err}"
+    );
+    // Pointed at its new place, it works.
+    let o = run(Some(&moved), true);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+}
+
+/// Writes `info` as the `_info.npz` of `key`.
+fn write_info(root: &Path, key: &SampleKey, arrays: Vec<(&'static str, NpyArray)>) {
+    let path = ReleaseLayout::new(root).info_path(Split::Train, key);
+    let refs: Vec<(&str, &NpyArray)> = arrays.iter().map(|(k, a)| (*k, a)).collect();
+    let mut f = std::fs::File::create(path).unwrap();
+    arkit_tool::npy::write_npz(&mut f, &refs, NpzCompression::Stored).unwrap();
+}
+
+#[test]
+fn degenerate_samples_are_skipped_with_the_reason() {
+    let input = tempfile::tempdir().unwrap();
+    make_release(input.path(), 3, 3, 9);
+    let root = input.path();
+    let layout = ReleaseLayout::new(root);
+    let train = keys(root, Split::Train);
+    let image = |k: &SampleKey| layout.image_path(Split::Train, k);
+    let good = release::read_info(&layout.info_path(Split::Train, &train[0])).unwrap();
+    let arrays = good.to_arrays();
+    let get = |name: &str| arrays.iter().find(|(n, _)| *n == name).unwrap().1.clone();
+    // 0: an all-zero mesh (projects to one point, inside the image).
+    write_info(
+        root,
+        &train[0],
+        vec![
+            (
+                "verts",
+                NpyArray::from_f32(vec![1220, 3], vec![0.0; 3660]).unwrap(),
+            ),
+            ("R_t", get("R_t")),
+        ],
+    );
+    // 1: a 1x1 JPEG.
+    let tiny = image::RgbImage::from_pixel(1, 1, image::Rgb([9, 9, 9]));
+    std::fs::write(image(&train[1]), synth::jpeg_bytes(&tiny, 90).unwrap()).unwrap();
+    // 2: the image resized (the annotation's own points2d say where the face was).
+    let img = image::open(image(&train[2])).unwrap().to_rgb8();
+    let bigger = image::imageops::resize(&img, 160, 160, image::imageops::FilterType::Triangle);
+    std::fs::write(image(&train[2]), synth::jpeg_bytes(&bigger, 90).unwrap()).unwrap();
+    // 3: bytes after the JPEG's end marker: a good sample.
+    let mut bytes = std::fs::read(image(&train[3])).unwrap();
+    bytes.extend_from_slice(&[0u8; 300]);
+    bytes.extend_from_slice(b"trailer");
+    std::fs::write(image(&train[3]), bytes).unwrap();
+    let out = tempfile::tempdir().unwrap();
+    let m = convert(&options(root, out.path(), 16)).unwrap();
+    let mut errors = Vec::new();
+    for s in &m.shards {
+        errors.extend(samples_table::read_errors(&out.path().join(&s.errors_file)).unwrap());
+    }
+    let reason = |k: &SampleKey| {
+        errors
+            .iter()
+            .find(|e| &e.key == k)
+            .map(|e| e.reason.clone())
+            .unwrap_or_else(|| panic!("{k} was not skipped"))
+    };
+    assert!(
+        reason(&train[0]).contains("collapsed"),
+        "{}",
+        reason(&train[0])
+    );
+    assert!(reason(&train[1]).contains("1x1"), "{}", reason(&train[1]));
+    assert!(
+        reason(&train[2]).contains("points2d"),
+        "{}",
+        reason(&train[2])
+    );
+    assert_eq!(errors.len(), 3, "{errors:?}");
+    let rows = convert::read_dataset_samples(out.path()).unwrap();
+    assert!(rows.iter().any(|r| r.key == train[3]));
+}
+
+#[test]
+fn jpeg_framing_walks_the_segments() {
+    let img = image::RgbImage::from_fn(40, 30, |x, y| image::Rgb([x as u8 * 5, y as u8 * 7, 90]));
+    let jpg = synth::jpeg_bytes(&img, 85).unwrap();
+    assert_eq!(convert::check_jpeg_framing(&jpg), Ok(jpg.len()));
+    let mut padded = jpg.clone();
+    padded.extend_from_slice(&[0xFF, 0xD9, 1, 2, 3]);
+    assert_eq!(convert::check_jpeg_framing(&padded), Ok(jpg.len()));
+    for cut in [jpg.len() - 2, jpg.len() / 2, 30, 5] {
+        let e = convert::check_jpeg_framing(&jpg[..cut]).unwrap_err();
+        assert!(
+            e.contains("truncated") || e.contains("corrupt"),
+            "{cut}: {e}"
+        );
+    }
+    assert!(convert::check_jpeg_framing(b"\x89PNG\r\n\x1a\n").is_err());
+}
