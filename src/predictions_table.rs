@@ -76,8 +76,21 @@ fn list_column(name: &str, values: Vec<Option<Series>>, inner: DataType) -> Colu
         .expect("a list of numbers casts to its own type")
 }
 
-/// Writes predictions as Parquet (atomically).
+/// Writes predictions as Parquet (atomically). A name ending in `.csv` is refused:
+/// [`read_predictions`] would read it as CSV.
 pub fn write_predictions(path: &Path, rows: &[PredictionRecord]) -> Result<()> {
+    if path
+        .extension()
+        .is_some_and(|e| e.eq_ignore_ascii_case("csv"))
+    {
+        return Err(Error::invalid(
+            "--output",
+            format!(
+                "{}: predictions are written as Parquet; name the file .parquet",
+                path.display()
+            ),
+        ));
+    }
     let mut df = predictions_frame(rows)?;
     write_parquet(path, &mut df)
 }
@@ -105,6 +118,17 @@ fn read_parquet_predictions(path: &Path) -> Result<Vec<PredictionRecord>> {
             return Ok(None);
         };
         let bad = |e: PolarsError| Error::format(path, format!("column {name}: {e}"));
+        // Only lists are cast (their numbers to f64): polars would turn any other column
+        // into one-element lists, with a deprecation warning on stderr.
+        if !matches!(c.dtype(), DataType::List(_)) {
+            return Err(Error::format(
+                path,
+                format!(
+                    "column {name} must be a list of numbers per row, found {}",
+                    c.dtype()
+                ),
+            ));
+        }
         let c = c
             .cast(&DataType::List(Box::new(DataType::Float64)))
             .map_err(bad)?;
@@ -304,5 +328,28 @@ mod tests {
         );
         let no_rt = "subject_id,facial_action,img_id\n";
         assert!(parse_csv(no_rt, p).unwrap_err().to_string().contains("R_t"));
+    }
+
+    #[test]
+    fn a_pose_column_that_is_not_a_list_is_refused_and_csv_names_are_not_written() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("flat.parquet");
+        let mut df = DataFrame::new(
+            1,
+            vec![
+                Column::new("subject_id".into(), ["s"]),
+                Column::new("facial_action".into(), ["a"]),
+                Column::new("img_id".into(), ["1"]),
+                Column::new("R_t".into(), [0.5f64]),
+            ],
+        )
+        .unwrap();
+        write_parquet(&path, &mut df).unwrap();
+        let e = read_predictions(&path).unwrap_err().to_string();
+        assert!(e.contains("column R_t must be a list"), "{e}");
+        let e = write_predictions(&dir.path().join("p.csv"), &[])
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains(".parquet"), "{e}");
     }
 }
