@@ -525,7 +525,7 @@ fn check_row(r: &samples_table::SampleRecord, vertex_count: usize) -> Result<()>
         ));
     }
     let lm = &r.landmarks_2d;
-    if lm.is_empty() || lm.len() % 2 != 0 || lm.iter().any(|v| !v.is_finite()) {
+    if lm.is_empty() || !lm.len().is_multiple_of(2) || lm.iter().any(|v| !v.is_finite()) {
         return Err(Error::invalid(
             "landmarks_2d",
             format!(
@@ -601,5 +601,126 @@ mod tests {
         assert_eq!(tally.examples.len(), SkipTally::EXAMPLES);
         assert!(tally.examples[0].ends_with(": reason 0"));
         assert!(tally.examples[9].ends_with(": reason 9"));
+    }
+
+    fn options(size: u32, uv_size: u32, points: usize) -> RenderOptions {
+        RenderOptions {
+            size,
+            uv_size,
+            points,
+            seed: 0,
+            output: PathBuf::from("/nonexistent"),
+            shard: (0, 1),
+            full_mask: false,
+        }
+    }
+
+    fn invalid_option(o: &RenderOptions) -> String {
+        match o.validate() {
+            Err(Error::Invalid { what, .. }) => what,
+            other => panic!("{o:?}: {other:?}"),
+        }
+    }
+
+    #[test]
+    fn render_options_are_checked_and_the_error_names_the_option() {
+        assert!(options(192, 192, 1024).validate().is_ok());
+        // The edges of every range are accepted...
+        assert!(options(16, 16, 256).validate().is_ok());
+        assert!(options(1024, 512, 65_536).validate().is_ok());
+        // ... and one past them is not.
+        assert_eq!(invalid_option(&options(15, 16, 1)), "--size");
+        assert_eq!(invalid_option(&options(1025, 16, 1)), "--size");
+        assert_eq!(invalid_option(&options(20_000, 16, 1)), "--size");
+        assert_eq!(invalid_option(&options(16, 15, 1)), "--uv-size");
+        assert_eq!(invalid_option(&options(16, 513, 1)), "--uv-size");
+        assert_eq!(invalid_option(&options(16, 16, 0)), "--points");
+        assert_eq!(invalid_option(&options(16, 16, 257)), "--points");
+        assert_eq!(invalid_option(&options(1024, 16, 65_537)), "--points");
+        let mut o = options(16, 16, 1);
+        o.shard = (2, 2);
+        assert_eq!(invalid_option(&o), "--shard");
+        o.shard = (0, 0);
+        assert_eq!(invalid_option(&o), "--shard");
+    }
+
+    fn manifest() -> Manifest {
+        let shard = |index: usize| crate::convert::ShardEntry {
+            index,
+            samples_file: format!("samples/part-{index:05}.parquet"),
+            rows: 4,
+            sha256: format!("{index:064}"),
+            errors_file: format!("errors/part-{index:05}.parquet"),
+            error_rows: 0,
+            errors_sha256: "e".repeat(64),
+        };
+        Manifest {
+            tool: "arkit-tool".into(),
+            version: "0".into(),
+            input: "data/a".into(),
+            layout: crate::convert::LayoutKind::Download,
+            lists: vec![],
+            topology: crate::synthetic_face::builtin().topology.source.clone(),
+            rows_per_shard: 4,
+            embed_images: false,
+            part: [0, 1],
+            listed: 8,
+            converted: 8,
+            skipped: 0,
+            listing_problems: 0,
+            shards: vec![shard(0), shard(1)],
+        }
+    }
+
+    #[test]
+    fn the_dataset_fingerprint_follows_the_samples_not_the_paths() {
+        let m = manifest();
+        let f = dataset_fingerprint(&m);
+        assert_eq!(f.len(), 64);
+        // The same samples converted from elsewhere, by another version: the same.
+        let mut same = m.clone();
+        (same.input, same.version) = ("/elsewhere".into(), "9".into());
+        assert_eq!(dataset_fingerprint(&same), f);
+        // Another samples file, another row count (the seeds of later shards move),
+        // another topology: different.
+        let mut other = m.clone();
+        other.shards[1].sha256 = "f".repeat(64);
+        assert_ne!(dataset_fingerprint(&other), f);
+        let mut other = m.clone();
+        other.shards[0].rows = 3;
+        assert_ne!(dataset_fingerprint(&other), f);
+        let mut other = m.clone();
+        other.topology = "/data/resources".into();
+        assert_ne!(dataset_fingerprint(&other), f);
+    }
+
+    #[test]
+    fn the_topology_must_be_the_one_the_dataset_was_converted_with() {
+        let builtin = crate::synthetic_face::builtin().topology.clone();
+        let mut m = manifest();
+        assert!(check_topology(&m, &builtin).is_ok());
+        m.topology = "/data/resources".into();
+        let e = check_topology(&m, &builtin).unwrap_err().to_string();
+        assert!(
+            e.contains("--resources") && e.contains("/data/resources"),
+            "{e}"
+        );
+        // A resources folder given for a dataset converted with the built-in face.
+        let mut real = builtin.clone();
+        real.source = "/data/resources".into();
+        assert!(check_topology(&m, &real).is_ok());
+        let e = check_topology(&manifest(), &real).unwrap_err().to_string();
+        assert!(e.contains("leave --resources out"), "{e}");
+    }
+
+    #[test]
+    fn the_refusal_names_what_differs() {
+        let old = serde_json::json!({"size": 64, "seed": 0, "dataset": "a"});
+        let new = serde_json::json!({"size": 64, "seed": 7, "dataset": "b", "full_mask": false});
+        let d = differences(&old, &new);
+        assert!(d.contains("seed 0 there, 7 now"), "{d}");
+        assert!(d.contains("another dataset"), "{d}");
+        assert!(d.contains("full_mask null there, false now"), "{d}");
+        assert!(!d.contains("size"), "{d}");
     }
 }
