@@ -212,7 +212,8 @@ mod tests {
 
     #[test]
     fn validate_names_the_field_out_of_range() {
-        let cases: [(&str, fn(&mut PerspNetConfig)); 9] = [
+        type Break = fn(&mut PerspNetConfig);
+        let cases: [(&str, Break); 9] = [
             ("input_size", |c| c.input_size = 2048),
             ("input_size", |c| c.input_size = 0),
             ("encoder_widths", |c| c.encoder_widths[2] = 0),
