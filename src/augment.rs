@@ -396,6 +396,13 @@ pub fn profile(
         )));
     }
     let (width, height) = input.image.dimensions();
+    // The rasterizer's buffer has a size limit (it panics beyond it).
+    let max = crate::raster::MAX_VIEWPORT;
+    if !(1..=max).contains(&width) || !(1..=max).contains(&height) {
+        return Err(Skip::BadInput(format!(
+            "image {width}x{height}: profiling renders images of at most {max} pixels a side"
+        )));
+    }
     let camera = Camera::release(width, height);
     check_inside(&camera, &input.pose, &input.verts, 0.0, "before")?;
     let new_pose = rotated_pose(&input.pose, axis, delta_deg);

@@ -109,10 +109,11 @@ impl CropSampling {
 }
 
 impl CropTransform {
-    /// The official box around projected landmarks `[u0, v0, u1, v1, ...]`.
+    /// The official box around projected landmarks `[u0, v0, u1, v1, ...]` (an odd
+    /// last value is ignored; no landmarks give a box that renders nothing).
     pub fn around_landmarks(landmarks_2d: &[f32], size: u32) -> Self {
         let (mut x0, mut y0, mut x1, mut y1) = (f64::MAX, f64::MAX, f64::MIN, f64::MIN);
-        for p in landmarks_2d.chunks(2) {
+        for p in landmarks_2d.chunks_exact(2) {
             let (u, v) = (p[0] as f64, p[1] as f64);
             x0 = x0.min(u);
             x1 = x1.max(u);
@@ -844,6 +845,19 @@ impl FaceRenderer {
             }
             None => (width, height),
         };
+        // The rasterizer's buffer panics beyond its limit: a crop size or an image size
+        // read from a file must fail here instead.
+        let max = crate::raster::MAX_VIEWPORT;
+        if !(1..=max).contains(&bw) || !(1..=max).contains(&bh) {
+            return Err(Error::invalid(
+                if crop.is_some() {
+                    "crop size"
+                } else {
+                    "image size"
+                },
+                format!("{bw}x{bh}: each side must be 1..={max} pixels"),
+            ));
+        }
         if buffer.width != bw || buffer.height != bh {
             *buffer = VisibilityBuffer::new(bw, bh);
         } else {
@@ -983,6 +997,7 @@ impl UvMapper {
     pub fn derive(topology: &FaceTopology) -> Result<Self> {
         let loops = topology.boundary_loops()?;
         let fill = topology.hole_fill()?;
+        // `boundary_loops` returns four loops, the outer one among them, or an error.
         let outer = loops.get(LoopRole::Outer).expect("outer loop").clone();
         let v = topology.vertex_count as u32;
         let mut uv = topology.uv.clone();

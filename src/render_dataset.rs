@@ -3,6 +3,13 @@
 //! same order. Parallel over samples; deterministic (each sample's points are drawn
 //! from `seed` and its position in the dataset); shards already written are kept.
 //!
+//! What was kept is known to be right: `targets/render.json` records the options, the
+//! topology and a fingerprint of the dataset's samples ([`dataset_fingerprint`]), and is
+//! written, after the options are checked, before any shard. A rerun whose
+//! `render.json` would differ is refused while `targets/` holds any shard file (remove
+//! them, choose another output, or use [`render_dataset_replacing`]); a failed run that
+//! wrote no shard does not block a rerun with other options.
+//!
 //! A sample that cannot be rendered (a pose the projection cannot use, a mesh of the
 //! wrong size, a vertex behind the camera) never stops the run: it gets no targets row,
 //! and a row in `targets/errors/part-K.parquet` (the `errors` table of `convert`, with
@@ -11,7 +18,7 @@
 //! ([`crate::targets_table::read_skipped_keys`]) skip those samples.
 
 use crate::conventions::Pose;
-use crate::convert::read_manifest;
+use crate::convert::{Manifest, read_manifest};
 use crate::error::{Error, Result};
 use crate::raster::VisibilityBuffer;
 use crate::render::{CropTransform, FaceRenderer, RasterMode, UvMapper, sample_points};
@@ -19,6 +26,7 @@ use crate::samples_table::{self, ErrorRecord};
 use crate::targets_table::{self, TargetsRecord};
 use nalgebra::Point3;
 use rayon::prelude::*;
+use sha2::{Digest, Sha256};
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 
@@ -42,6 +50,154 @@ pub struct RenderOptions {
     pub shard: (usize, usize),
     /// Also render the face mask over the whole image (`full_mask_rle`).
     pub full_mask: bool,
+}
+
+impl RenderOptions {
+    /// Crop sides accepted (`--size`).
+    pub const SIZE: std::ops::RangeInclusive<u32> = 16..=1024;
+    /// UV map sides accepted (`--uv-size`).
+    pub const UV_SIZE: std::ops::RangeInclusive<u32> = 16..=512;
+    /// Points per sample accepted (`--points`; also at most `size * size`).
+    pub const POINTS: std::ops::RangeInclusive<usize> = 1..=65_536;
+
+    /// Checks every option, naming the command-line option in the error.
+    pub fn validate(&self) -> Result<()> {
+        if !Self::SIZE.contains(&self.size) {
+            return Err(Error::invalid(
+                "--size",
+                format!("{} is not in {:?} pixels", self.size, Self::SIZE),
+            ));
+        }
+        if !Self::UV_SIZE.contains(&self.uv_size) {
+            return Err(Error::invalid(
+                "--uv-size",
+                format!("{} is not in {:?} texels", self.uv_size, Self::UV_SIZE),
+            ));
+        }
+        if !Self::POINTS.contains(&self.points) {
+            return Err(Error::invalid(
+                "--points",
+                format!("{} is not in {:?}", self.points, Self::POINTS),
+            ));
+        }
+        let pixels = self.size as usize * self.size as usize;
+        if self.points > pixels {
+            return Err(Error::invalid(
+                "--points",
+                format!(
+                    "{} is more than the {pixels} pixels of a --size {} crop",
+                    self.points, self.size
+                ),
+            ));
+        }
+        let (part, parts) = self.shard;
+        if parts == 0 || part >= parts {
+            return Err(Error::invalid(
+                "--shard",
+                format!("{part}/{parts}: need 0 <= I < N"),
+            ));
+        }
+        Ok(())
+    }
+}
+
+/// SHA-256 (hex) of what a dataset's targets depend on in its manifest: every samples
+/// shard's index, file, rows and checksum (a sample's seed follows from the rows before
+/// it) and the topology it was converted with. Unlike the bytes of `dataset.json`, it
+/// does not change when the same samples are converted again from another path or
+/// merged from `convert --shard` parts.
+pub fn dataset_fingerprint(manifest: &Manifest) -> String {
+    let shards: Vec<serde_json::Value> = manifest
+        .shards
+        .iter()
+        .map(|s| serde_json::json!([s.index, s.samples_file, s.rows, s.sha256]))
+        .collect();
+    let text = serde_json::json!({"topology": manifest.topology, "shards": shards}).to_string();
+    Sha256::digest(text.as_bytes())
+        .iter()
+        .map(|b| format!("{b:02x}"))
+        .collect()
+}
+
+/// Refuses to render a dataset with another topology than it was converted with: the
+/// built-in face and the release's mesh have the same vertex count, so nothing else
+/// would notice. Two resource folders are not compared (the folder may have moved).
+pub fn check_topology(manifest: &Manifest, topology: &crate::FaceTopology) -> Result<()> {
+    let builtin = &crate::synthetic_face::builtin().topology.source;
+    let (dataset_builtin, ours_builtin) =
+        (&manifest.topology == builtin, &topology.source == builtin);
+    if dataset_builtin == ours_builtin {
+        return Ok(());
+    }
+    Err(Error::invalid(
+        "--resources",
+        if ours_builtin {
+            format!(
+                "the dataset was converted with the topology of '{}'; pass --resources with that folder (without it the built-in face is used)",
+                manifest.topology
+            )
+        } else {
+            format!(
+                "the dataset was converted with the built-in face, not with '{}'; leave --resources out",
+                topology.source
+            )
+        },
+    ))
+}
+
+/// Whether `targets/` under `output` holds any shard file (targets or errors).
+fn has_shard_files(output: &Path) -> Result<bool> {
+    Ok(!shard_files(output)?.is_empty())
+}
+
+/// The shard files (`part-*.parquet`) in `output/targets` and `output/targets/errors`.
+fn shard_files(output: &Path) -> Result<Vec<PathBuf>> {
+    let mut files = Vec::new();
+    for dir in [
+        output.join("targets"),
+        output.join("targets").join("errors"),
+    ] {
+        let entries = match std::fs::read_dir(&dir) {
+            Ok(e) => e,
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => continue,
+            Err(e) => return Err(Error::io(&dir, e)),
+        };
+        for e in entries {
+            let e = e.map_err(|e| Error::io(&dir, e))?;
+            let name = e.file_name();
+            let name = name.to_string_lossy();
+            if name.starts_with("part-") && name.ends_with(".parquet") {
+                files.push(e.path());
+            }
+        }
+    }
+    files.sort();
+    Ok(files)
+}
+
+/// The differences between two `render.json` values, for the refusal message.
+fn differences(old: &serde_json::Value, new: &serde_json::Value) -> String {
+    let keys: std::collections::BTreeSet<&String> = [old, new]
+        .iter()
+        .filter_map(|v| v.as_object())
+        .flat_map(|o| o.keys())
+        .collect();
+    let mut out = Vec::new();
+    for k in keys {
+        let (a, b) = (&old[k.as_str()], &new[k.as_str()]);
+        if a != b {
+            out.push(if k == "dataset" {
+                "made from another dataset (or before render.json recorded one)".to_string()
+            } else {
+                format!("{k} {a} there, {b} now")
+            });
+        }
+    }
+    if out.is_empty() {
+        "render.json is not one this version writes".into()
+    } else {
+        out.join(", ")
+    }
 }
 
 /// What a run wrote.
@@ -70,47 +226,93 @@ fn mesh_key(verts: &[f32]) -> Vec<u32> {
     verts.iter().map(|v| v.to_bits()).collect()
 }
 
-/// Renders every shard of the converted dataset in `dataset`.
+/// Renders every shard of the converted dataset in `dataset`, keeping the shards an
+/// earlier run with the same options finished; refuses when `targets/` holds shards
+/// made with other options, another topology or from another dataset.
 pub fn render_dataset(
     dataset: &Path,
     renderer: &FaceRenderer,
     options: &RenderOptions,
     progress: &(dyn Fn(usize) + Sync),
 ) -> Result<RenderSummary> {
-    let manifest = read_manifest(&dataset.join("dataset.json"))?;
-    let (part, parts) = options.shard;
-    if parts == 0 || part >= parts {
+    render(dataset, renderer, options, false, progress)
+}
+
+/// [`render_dataset`], but shards made with other options, another topology or from
+/// another dataset are deleted (every `targets/part-*.parquet` and
+/// `targets/errors/part-*.parquet`) and rendered again instead of refused; shards made
+/// with the same ones are still kept. Not with a `shard` part other than `(0, 1)`: other
+/// parts may be writing into the same folder.
+pub fn render_dataset_replacing(
+    dataset: &Path,
+    renderer: &FaceRenderer,
+    options: &RenderOptions,
+    progress: &(dyn Fn(usize) + Sync),
+) -> Result<RenderSummary> {
+    if options.shard.1 != 1 {
         return Err(Error::invalid(
-            "--shard",
-            format!("{part}/{parts}: need 0 <= I < N"),
+            "--overwrite",
+            "not with --shard (other parts may be writing there): remove the targets folder before starting the parts instead",
         ));
     }
+    render(dataset, renderer, options, true, progress)
+}
+
+fn render(
+    dataset: &Path,
+    renderer: &FaceRenderer,
+    options: &RenderOptions,
+    replace: bool,
+    progress: &(dyn Fn(usize) + Sync),
+) -> Result<RenderSummary> {
+    // Everything is checked before anything is written.
+    options.validate()?;
+    let manifest_path = dataset.join("dataset.json");
+    let manifest = read_manifest(&manifest_path)?;
+    check_topology(&manifest, renderer.topology())?;
+    let (part, parts) = options.shard;
     let uv = UvMapper::derive(renderer.topology())?;
     // The layout's rasterization, once: a mesh's map is then three weighted positions
     // per texel.
     let uv_texels = uv.texels(options.uv_size);
-    std::fs::create_dir_all(options.output.join("targets"))
-        .map_err(|e| Error::io(&options.output, e))?;
-    // Shards are kept on a rerun only if they were made with the same options.
+    // Shards are kept on a rerun only if they were made with the same options, the
+    // same topology and from the same samples.
     let settings = serde_json::json!({
         "size": options.size, "uv_size": options.uv_size, "points": options.points, "seed": options.seed,
         "mode": renderer.mode, "topology": renderer.topology().source, "full_mask": options.full_mask,
+        "dataset": dataset_fingerprint(&manifest),
     });
     let settings_path = options.output.join("targets").join("render.json");
-    if settings_path.exists() {
-        let text =
-            std::fs::read_to_string(&settings_path).map_err(|e| Error::io(&settings_path, e))?;
-        let old: serde_json::Value = serde_json::from_str(&text)
-            .map_err(|e| Error::format(&settings_path, e.to_string()))?;
-        if old != settings {
-            return Err(Error::format(
-                &settings_path,
-                format!(
-                    "the targets here were made with other options ({old}); remove the targets folder or choose another --output"
-                ),
-            ));
+    let old: Option<serde_json::Value> = match std::fs::read_to_string(&settings_path) {
+        Ok(text) => Some(
+            // Unreadable as JSON counts as different settings.
+            serde_json::from_str(&text).unwrap_or(serde_json::Value::Null),
+        ),
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => None,
+        Err(e) => return Err(Error::io(&settings_path, e)),
+    };
+    if old.as_ref() != Some(&settings) {
+        if has_shard_files(&options.output)? {
+            if !replace {
+                let why = match &old {
+                    Some(old) => differences(old, &settings),
+                    None => "no render.json says how they were made".into(),
+                };
+                return Err(Error::format(
+                    &settings_path,
+                    format!(
+                        "the targets in {} were made otherwise ({why}); remove that folder, choose another --output, or pass --overwrite to replace them",
+                        options.output.join("targets").display()
+                    ),
+                ));
+            }
+            for f in shard_files(&options.output)? {
+                std::fs::remove_file(&f).map_err(|e| Error::io(&f, e))?;
+            }
         }
-    } else {
+        // No shard there: whatever wrote render.json rendered nothing that could be kept.
+        std::fs::create_dir_all(options.output.join("targets"))
+            .map_err(|e| Error::io(&options.output, e))?;
         crate::atomic_file::write_bytes(&settings_path, format!("{settings:#}\n").as_bytes())?;
     }
     std::fs::create_dir_all(options.output.join("targets").join("errors"))
@@ -148,13 +350,16 @@ pub fn render_dataset(
                 // UV maps depend only on the mesh: one per distinct mesh.
                 let mut uv_maps: HashMap<Vec<u32>, usize> = HashMap::new();
                 let mut unique: Vec<&[f32]> = Vec::new();
-                let index: Vec<usize> = rows
+                let vertex_count = renderer.topology().vertex_count;
+                // A row that cannot be rendered gets no map (and an errors row below).
+                let index: Vec<Option<usize>> = rows
                     .iter()
                     .map(|r| {
-                        *uv_maps.entry(mesh_key(&r.verts)).or_insert_with(|| {
+                        check_row(r, vertex_count).ok()?;
+                        Some(*uv_maps.entry(mesh_key(&r.verts)).or_insert_with(|| {
                             unique.push(&r.verts);
                             unique.len() - 1
-                        })
+                        }))
                     })
                     .collect();
                 distinct += unique.len();
@@ -176,6 +381,10 @@ pub fn render_dataset(
                         },
                         |(buffer, full), (i, r)| -> Result<TargetsRecord> {
                             progress(1);
+                            check_row(r, vertex_count)?;
+                            let map = index[i].ok_or_else(|| {
+                                Error::invalid("verts", "no UV map (the row failed its checks)")
+                            })?;
                             let verts: Vec<Point3<f32>> = r
                                 .verts
                                 .chunks(3)
@@ -225,7 +434,7 @@ pub fn render_dataset(
                                 &t,
                                 points,
                                 options.uv_size,
-                                &maps[index[i]],
+                                &maps[map],
                             )
                             .with_image(
                                 r.image_width,
@@ -249,7 +458,7 @@ pub fn render_dataset(
                     }
                 }
                 if let Some(h) = pending.take() {
-                    h.join().expect("writer thread")?;
+                    join_writer(h)?;
                 }
                 // Errors first: a targets file without its errors file is never
                 // "finished".
@@ -271,7 +480,7 @@ pub fn render_dataset(
             outputs.push(out);
         }
         if let Some(h) = pending.take() {
-            h.join().expect("writer thread")?;
+            join_writer(h)?;
         }
         Ok(())
     })?;
@@ -288,6 +497,54 @@ pub fn render_dataset(
         skipped: skipped.count,
         skipped_examples: skipped.examples,
     })
+}
+
+/// Waits for the thread writing a targets file; its panic (a bug, not an input) becomes
+/// an error instead of a second panic.
+fn join_writer(h: std::thread::ScopedJoinHandle<'_, Result<()>>) -> Result<()> {
+    h.join().unwrap_or_else(|_| {
+        Err(Error::invalid(
+            "render",
+            "the targets writer thread panicked",
+        ))
+    })
+}
+
+/// The checks of one samples row that rendering relies on (the samples file may come
+/// from elsewhere than `convert`): the mesh's size, finite even landmarks, and an image
+/// size the rasterizer takes. A failed row is skipped with this reason.
+fn check_row(r: &samples_table::SampleRecord, vertex_count: usize) -> Result<()> {
+    if r.verts.len() != 3 * vertex_count {
+        return Err(Error::invalid(
+            "verts",
+            format!(
+                "{} values, expected {} (3 per vertex of the topology)",
+                r.verts.len(),
+                3 * vertex_count
+            ),
+        ));
+    }
+    let lm = &r.landmarks_2d;
+    if lm.is_empty() || !lm.len().is_multiple_of(2) || lm.iter().any(|v| !v.is_finite()) {
+        return Err(Error::invalid(
+            "landmarks_2d",
+            format!(
+                "{} values: need a non-empty, even number of finite values",
+                lm.len()
+            ),
+        ));
+    }
+    let max = crate::raster::MAX_VIEWPORT;
+    if !(1..=max).contains(&r.image_width) || !(1..=max).contains(&r.image_height) {
+        return Err(Error::invalid(
+            "image size",
+            format!(
+                "{}x{}: each side must be 1..={max} pixels",
+                r.image_width, r.image_height
+            ),
+        ));
+    }
+    Ok(())
 }
 
 /// The samples a run skipped: how many, and the first few reasons (the full list
@@ -344,5 +601,126 @@ mod tests {
         assert_eq!(tally.examples.len(), SkipTally::EXAMPLES);
         assert!(tally.examples[0].ends_with(": reason 0"));
         assert!(tally.examples[9].ends_with(": reason 9"));
+    }
+
+    fn options(size: u32, uv_size: u32, points: usize) -> RenderOptions {
+        RenderOptions {
+            size,
+            uv_size,
+            points,
+            seed: 0,
+            output: PathBuf::from("/nonexistent"),
+            shard: (0, 1),
+            full_mask: false,
+        }
+    }
+
+    fn invalid_option(o: &RenderOptions) -> String {
+        match o.validate() {
+            Err(Error::Invalid { what, .. }) => what,
+            other => panic!("{o:?}: {other:?}"),
+        }
+    }
+
+    #[test]
+    fn render_options_are_checked_and_the_error_names_the_option() {
+        assert!(options(192, 192, 1024).validate().is_ok());
+        // The edges of every range are accepted...
+        assert!(options(16, 16, 256).validate().is_ok());
+        assert!(options(1024, 512, 65_536).validate().is_ok());
+        // ... and one past them is not.
+        assert_eq!(invalid_option(&options(15, 16, 1)), "--size");
+        assert_eq!(invalid_option(&options(1025, 16, 1)), "--size");
+        assert_eq!(invalid_option(&options(20_000, 16, 1)), "--size");
+        assert_eq!(invalid_option(&options(16, 15, 1)), "--uv-size");
+        assert_eq!(invalid_option(&options(16, 513, 1)), "--uv-size");
+        assert_eq!(invalid_option(&options(16, 16, 0)), "--points");
+        assert_eq!(invalid_option(&options(16, 16, 257)), "--points");
+        assert_eq!(invalid_option(&options(1024, 16, 65_537)), "--points");
+        let mut o = options(16, 16, 1);
+        o.shard = (2, 2);
+        assert_eq!(invalid_option(&o), "--shard");
+        o.shard = (0, 0);
+        assert_eq!(invalid_option(&o), "--shard");
+    }
+
+    fn manifest() -> Manifest {
+        let shard = |index: usize| crate::convert::ShardEntry {
+            index,
+            samples_file: format!("samples/part-{index:05}.parquet"),
+            rows: 4,
+            sha256: format!("{index:064}"),
+            errors_file: format!("errors/part-{index:05}.parquet"),
+            error_rows: 0,
+            errors_sha256: "e".repeat(64),
+        };
+        Manifest {
+            tool: "arkit-tool".into(),
+            version: "0".into(),
+            input: "data/a".into(),
+            layout: crate::convert::LayoutKind::Download,
+            lists: vec![],
+            topology: crate::synthetic_face::builtin().topology.source.clone(),
+            rows_per_shard: 4,
+            embed_images: false,
+            part: [0, 1],
+            listed: 8,
+            converted: 8,
+            skipped: 0,
+            listing_problems: 0,
+            shards: vec![shard(0), shard(1)],
+        }
+    }
+
+    #[test]
+    fn the_dataset_fingerprint_follows_the_samples_not_the_paths() {
+        let m = manifest();
+        let f = dataset_fingerprint(&m);
+        assert_eq!(f.len(), 64);
+        // The same samples converted from elsewhere, by another version: the same.
+        let mut same = m.clone();
+        (same.input, same.version) = ("/elsewhere".into(), "9".into());
+        assert_eq!(dataset_fingerprint(&same), f);
+        // Another samples file, another row count (the seeds of later shards move),
+        // another topology: different.
+        let mut other = m.clone();
+        other.shards[1].sha256 = "f".repeat(64);
+        assert_ne!(dataset_fingerprint(&other), f);
+        let mut other = m.clone();
+        other.shards[0].rows = 3;
+        assert_ne!(dataset_fingerprint(&other), f);
+        let mut other = m.clone();
+        other.topology = "/data/resources".into();
+        assert_ne!(dataset_fingerprint(&other), f);
+    }
+
+    #[test]
+    fn the_topology_must_be_the_one_the_dataset_was_converted_with() {
+        let builtin = crate::synthetic_face::builtin().topology.clone();
+        let mut m = manifest();
+        assert!(check_topology(&m, &builtin).is_ok());
+        m.topology = "/data/resources".into();
+        let e = check_topology(&m, &builtin).unwrap_err().to_string();
+        assert!(
+            e.contains("--resources") && e.contains("/data/resources"),
+            "{e}"
+        );
+        // A resources folder given for a dataset converted with the built-in face.
+        let mut real = builtin.clone();
+        real.source = "/data/resources".into();
+        assert!(check_topology(&m, &real).is_ok());
+        let e = check_topology(&manifest(), &real).unwrap_err().to_string();
+        assert!(e.contains("leave --resources out"), "{e}");
+    }
+
+    #[test]
+    fn the_refusal_names_what_differs() {
+        let old = serde_json::json!({"size": 64, "seed": 0, "dataset": "a"});
+        let new = serde_json::json!({"size": 64, "seed": 7, "dataset": "b", "full_mask": false});
+        let d = differences(&old, &new);
+        assert!(d.contains("seed 0 there, 7 now"), "{d}");
+        assert!(d.contains("another dataset"), "{d}");
+        assert!(d.contains("full_mask null there, false now"), "{d}");
+        assert!(!d.contains("size"), "{d}");
     }
 }

@@ -295,6 +295,8 @@ pub fn render_sample(
     options: &SynthOptions,
     planned: &PlannedSample,
 ) -> Result<SyntheticSample> {
+    // The image size must be one the rasterizer takes (it panics beyond its limit).
+    options.check()?;
     let subject = subject_look(options.seed, planned.subject);
     let mut r = Rng::for_stream(
         options.seed,

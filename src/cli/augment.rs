@@ -1,8 +1,8 @@
 //! `arkit-tool augment`.
 
-use arkit_tool::Result;
 use arkit_tool::augment::Axis;
 use arkit_tool::augment_dataset::{self, AugmentOptions, AxisChoice, ProfilingRule};
+use arkit_tool::{Error, Result};
 use clap::Args;
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -36,17 +36,18 @@ pub struct AugmentArgs {
     /// Which axis: auto (the rule), or always yaw, pitch or roll.
     #[arg(long, value_enum, default_value = "auto")]
     axis: AxisArg,
-    /// No angle goes past +/- this (degrees).
-    #[arg(long, default_value_t = 90.0)]
+    /// No angle goes past +/- this (degrees), in (0, 90].
+    #[arg(long, allow_negative_numbers = true, default_value_t = 90.0, value_parser = super::degrees_up_to_90)]
     max_angle: f64,
-    /// Smallest change (degrees).
-    #[arg(long, default_value_t = 5.0)]
+    /// Smallest change (degrees), in (0, 90]; at most --max-change and --max-angle.
+    #[arg(long, allow_negative_numbers = true, default_value_t = 5.0, value_parser = super::degrees_up_to_90)]
     min_change: f64,
-    /// Largest change (degrees).
-    #[arg(long, default_value_t = 30.0)]
+    /// Largest change (degrees), in (0, 90].
+    #[arg(long, allow_negative_numbers = true, default_value_t = 30.0, value_parser = super::degrees_up_to_90)]
     max_change: f64,
-    /// Augmentations drawn per sample.
-    #[arg(long, default_value_t = 1)]
+    /// Augmentations drawn per sample, 0..=100 (0: only --flip and/or
+    /// --with-originals).
+    #[arg(long, allow_negative_numbers = true, default_value_t = 1, value_parser = clap::builder::RangedU64ValueParser::<usize>::new().range(0..=100))]
     per_sample: usize,
     /// Also write a mirrored copy of every sample.
     #[arg(long)]
@@ -57,8 +58,8 @@ pub struct AugmentArgs {
     /// Seed of every random draw.
     #[arg(long, default_value_t = 0)]
     seed: u64,
-    /// JPEG quality of the written images.
-    #[arg(long, default_value_t = 95)]
+    /// JPEG quality of the written images, 1..=100.
+    #[arg(long, allow_negative_numbers = true, default_value_t = 95, value_parser = clap::value_parser!(u8).range(1..=100))]
     jpeg_quality: u8,
     /// Write a PNG grid of originals beside their augmentations, meshes drawn.
     #[arg(long)]
@@ -66,8 +67,8 @@ pub struct AugmentArgs {
     /// The release's resource folder (real topology); the built-in face without it.
     #[arg(long)]
     resources: Option<PathBuf>,
-    /// Worker threads (default: all cores).
-    #[arg(long)]
+    /// Worker threads, 1..=1024 (default: all cores).
+    #[arg(long, allow_negative_numbers = true, value_parser = super::jobs)]
     jobs: Option<usize>,
     /// Exit with status 1 if any source sample could not be read (after augmenting
     /// everything else).
@@ -87,7 +88,37 @@ enum AxisArg {
     Roll,
 }
 
+/// The checks between options that clap's per-option ranges cannot make.
+fn check(a: &AugmentArgs) -> Result<()> {
+    if a.min_change > a.max_change {
+        return Err(Error::invalid(
+            "--min-change",
+            format!(
+                "{} degrees is more than --max-change {}",
+                a.min_change, a.max_change
+            ),
+        ));
+    }
+    if a.min_change > a.max_angle {
+        return Err(Error::invalid(
+            "--min-change",
+            format!(
+                "{} degrees is more than --max-angle {}: no sample could change",
+                a.min_change, a.max_angle
+            ),
+        ));
+    }
+    if a.per_sample == 0 && !a.flip && !a.with_originals {
+        return Err(Error::invalid(
+            "--per-sample",
+            "0 with neither --flip nor --with-originals would write nothing",
+        ));
+    }
+    Ok(())
+}
+
 pub fn run(a: AugmentArgs) -> Result<ExitCode> {
+    check(&a)?;
     let topology = super::load_topology(a.resources.as_deref())?;
     let manifest = arkit_tool::convert::read_manifest(&a.input.join("dataset.json"))?;
     let options = AugmentOptions {

@@ -34,11 +34,11 @@ pub struct ConvertArgs {
     /// box. Without it, the built-in synthetic topology's landmarks are used.
     #[arg(long)]
     resources: Option<PathBuf>,
-    /// Rows per Parquet shard (memory is bounded by one shard).
-    #[arg(long, default_value_t = 4096)]
+    /// Rows per Parquet shard, 1..=100000 (memory is bounded by one shard).
+    #[arg(long, allow_negative_numbers = true, default_value_t = 4096, value_parser = clap::builder::RangedU64ValueParser::<usize>::new().range(1..=100_000))]
     rows_per_shard: usize,
-    /// Worker threads (default: all cores).
-    #[arg(long)]
+    /// Worker threads, 1..=1024 (default: all cores).
+    #[arg(long, allow_negative_numbers = true, value_parser = super::jobs)]
     jobs: Option<usize>,
     /// Store each JPEG's bytes in the samples table.
     #[arg(long)]

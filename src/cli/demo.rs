@@ -31,8 +31,8 @@ pub struct DemoArgs {
     /// Seed of the data, the split, the weights and the sampling.
     #[arg(long, default_value_t = 0)]
     seed: u64,
-    /// Worker threads (default: all cores).
-    #[arg(long)]
+    /// Worker threads, 1..=1024 (default: all cores).
+    #[arg(long, allow_negative_numbers = true, value_parser = super::jobs)]
     jobs: Option<usize>,
     /// Print the summary (timings, both eval summaries) as JSON.
     #[arg(long)]

@@ -57,11 +57,12 @@ pub struct PredictArgs {
     /// Where `render` wrote targets/ (default: the dataset).
     #[arg(long)]
     targets: Option<PathBuf>,
-    /// Gaussian pixel noise added to each point (standard deviation, pixels).
-    #[arg(long, default_value_t = 0.0)]
+    /// Gaussian pixel noise added to each point (standard deviation, pixels), in
+    /// [0, 100].
+    #[arg(long, allow_negative_numbers = true, default_value_t = 0.0, value_parser = super::noise_px)]
     noise_px: f64,
-    /// Share of points replaced by random image points (0..1).
-    #[arg(long, default_value_t = 0.0)]
+    /// Share of points replaced by random image points, in [0, 1).
+    #[arg(long, allow_negative_numbers = true, default_value_t = 0.0, value_parser = super::unit_interval_open)]
     outliers: f64,
     /// Only this split (as `eval` chooses it); `all` for every sample.
     #[arg(long, default_value = "test")]
@@ -69,14 +70,14 @@ pub struct PredictArgs {
     /// Seed of the noise and of RANSAC.
     #[arg(long, default_value_t = 0)]
     seed: u64,
-    /// RANSAC reprojection threshold, pixels.
-    #[arg(long, default_value_t = 8.0)]
+    /// RANSAC reprojection threshold, pixels, in (0, 1000].
+    #[arg(long, allow_negative_numbers = true, default_value_t = 8.0, value_parser = super::threshold_px)]
     threshold_px: f64,
     /// The predictions file to write (Parquet, schemas/predictions.json).
     #[arg(long)]
     output: PathBuf,
-    /// Worker threads (default: all cores).
-    #[arg(long)]
+    /// Worker threads, 1..=1024 (default: all cores).
+    #[arg(long, allow_negative_numbers = true, value_parser = super::jobs)]
     jobs: Option<usize>,
     /// With --model: sample the points from the `predicted` face mask, or from the
     /// `truth` that `render` stored (at the network's input size, in --targets), to

@@ -17,6 +17,14 @@ use std::process::ExitCode;
 /// --points pixels sampled from --seed. Stored compactly in targets/part-K.parquet
 /// (schemas/targets.json), row for row with samples/part-K.parquet.
 ///
+/// A rerun keeps the shards an earlier run finished with the same options, topology
+/// and dataset (targets/render.json records them with a fingerprint of the dataset's
+/// samples); when targets/ holds shards made otherwise, render refuses and names what
+/// differs: remove targets/, choose another --output, or pass --overwrite. Options are
+/// checked before anything is written, and a run that wrote no shard does not block a
+/// rerun with other options. A dataset converted with --resources must be rendered
+/// with --resources (the built-in face has as many vertices as the release's mesh).
+///
 /// Example: arkit-tool render --dataset data/pq
 ///          arkit-tool render --dataset data/pq --shard 3/50   (one task of a job array)
 #[derive(Args, Debug)]
@@ -27,14 +35,15 @@ pub struct RenderArgs {
     /// Where to write targets/ (default: the dataset folder).
     #[arg(long)]
     output: Option<PathBuf>,
-    /// Crop side in pixels.
-    #[arg(long, default_value_t = 192)]
+    /// Crop side in pixels, 16..=1024.
+    #[arg(long, allow_negative_numbers = true, default_value_t = 192, value_parser = clap::value_parser!(u32).range(16..=1024))]
     size: u32,
-    /// UV position map side in texels.
-    #[arg(long, default_value_t = 192)]
+    /// UV position map side in texels, 16..=512.
+    #[arg(long, allow_negative_numbers = true, default_value_t = 192, value_parser = clap::value_parser!(u32).range(16..=512))]
     uv_size: u32,
-    /// Pixels sampled per sample (repeated cyclically when the face has fewer).
-    #[arg(long, default_value_t = 1024)]
+    /// Pixels sampled per sample (repeated cyclically when the face has fewer),
+    /// 1..=65536 and at most --size squared.
+    #[arg(long, allow_negative_numbers = true, default_value_t = 1024, value_parser = clap::builder::RangedU64ValueParser::<usize>::new().range(1..=65_536))]
     points: usize,
     /// Seed of the sampling.
     #[arg(long, default_value_t = 0)]
@@ -46,8 +55,8 @@ pub struct RenderArgs {
     /// 0..N with the same --output (no merge needed; the files equal a single run's).
     #[arg(long, value_name = "I/N", value_parser = super::parse_shard)]
     shard: Option<(usize, usize)>,
-    /// Worker threads (default: all cores).
-    #[arg(long)]
+    /// Worker threads, 1..=1024 (default: all cores).
+    #[arg(long, allow_negative_numbers = true, value_parser = super::jobs)]
     jobs: Option<usize>,
     /// Whose targets: `exact` (ours: the box around the landmarks, pixel centres, the
     /// top-left rule, perspective-correct weights, rendered at the crop's resolution) or
@@ -60,6 +69,12 @@ pub struct RenderArgs {
     /// about 0.5 KiB more per 800x800 sample), with the same rules as the crop's.
     #[arg(long)]
     full_mask: bool,
+    /// Replace targets made with other options, another topology or from another
+    /// dataset (delete targets/part-*.parquet and targets/errors/part-*.parquet, then
+    /// render) instead of refusing; finished shards made the same way are still kept.
+    /// Not with --shard: remove the targets folder before starting the parts instead.
+    #[arg(long, conflicts_with = "shard")]
+    overwrite: bool,
     /// Print the summary as JSON.
     #[arg(long)]
     json: bool,
@@ -73,13 +88,6 @@ enum Compat {
 }
 
 pub fn run(a: RenderArgs) -> Result<ExitCode> {
-    let topology = super::load_topology(a.resources.as_deref())?;
-    let mut renderer = FaceRenderer::new(topology, Camera::release_projection())?;
-    renderer.mode = match a.compat {
-        Compat::Exact => RasterMode::Exact,
-        Compat::Official => RasterMode::Official,
-    };
-    let manifest = arkit_tool::convert::read_manifest(&a.dataset.join("dataset.json"))?;
     let options = RenderOptions {
         size: a.size,
         uv_size: a.uv_size,
@@ -88,6 +96,16 @@ pub fn run(a: RenderArgs) -> Result<ExitCode> {
         output: a.output.clone().unwrap_or_else(|| a.dataset.clone()),
         shard: a.shard.unwrap_or((0, 1)),
         full_mask: a.full_mask,
+    };
+    // The checks between options (--points at most --size squared), before any reading.
+    options.validate()?;
+    let manifest = arkit_tool::convert::read_manifest(&a.dataset.join("dataset.json"))?;
+    let topology = super::load_topology(a.resources.as_deref())?;
+    render_dataset::check_topology(&manifest, &topology)?;
+    let mut renderer = FaceRenderer::new(topology, Camera::release_projection())?;
+    renderer.mode = match a.compat {
+        Compat::Exact => RasterMode::Exact,
+        Compat::Official => RasterMode::Official,
     };
     let (part, parts) = options.shard;
     let mine: usize = manifest
@@ -98,9 +116,13 @@ pub fn run(a: RenderArgs) -> Result<ExitCode> {
         .sum();
     let bar = super::progress_bar(mine as u64, "render", "samples");
     let pool = super::thread_pool(a.jobs)?;
-    let summary = pool.install(|| {
-        render_dataset::render_dataset(&a.dataset, &renderer, &options, &|n| bar.inc(n as u64))
-    })?;
+    let render = if a.overwrite {
+        render_dataset::render_dataset_replacing
+    } else {
+        render_dataset::render_dataset
+    };
+    let summary =
+        pool.install(|| render(&a.dataset, &renderer, &options, &|n| bar.inc(n as u64)))?;
     bar.finish_and_clear();
     if a.json {
         println!("{}", serde_json::to_string_pretty(&summary).expect("json"));

@@ -21,16 +21,17 @@ pub struct SplitArgs {
     /// A folder written by `convert` (with dataset.json).
     #[arg(long)]
     dataset: PathBuf,
-    /// Hold out this many subjects for test.
-    #[arg(long)]
+    /// Hold out this many subjects for test (at least 1, fewer than the dataset has).
+    #[arg(long, allow_negative_numbers = true, value_parser = clap::builder::RangedU64ValueParser::<usize>::new().range(1..))]
     test_subjects: Option<usize>,
-    /// Hold out about this fraction of the images (whole subjects) for test.
-    #[arg(long)]
+    /// Hold out about this fraction of the images (whole subjects) for test, in (0, 1).
+    #[arg(long, allow_negative_numbers = true, value_parser = super::open_unit_interval)]
     test_fraction: Option<f64>,
     /// Keep the release's own train/test lists.
     #[arg(long)]
     keep_release: bool,
-    /// Also hold out this many subjects for validation (from the train side).
+    /// Also hold out this many subjects for validation (from the train side; fewer
+    /// than remain there).
     #[arg(long, default_value_t = 0)]
     val_subjects: usize,
     /// Seed of the subject shuffle.

@@ -21,23 +21,26 @@ pub struct SynthArgs {
     /// Folder to write (`ARKitFace_image_train/`, `ARKitFace_info_train/`, ..., `ARKitFace_list/`).
     #[arg(long)]
     output: PathBuf,
-    /// Number of subjects (identities).
-    #[arg(long, default_value_t = 10)]
+    /// Number of subjects (identities), 1..=100000.
+    #[arg(long, allow_negative_numbers = true, default_value_t = 10,
+          value_parser = clap::builder::RangedU64ValueParser::<usize>::new().range(1..=100_000))]
     subjects: usize,
-    /// Images per subject.
-    #[arg(long, default_value_t = 20)]
+    /// Images per subject, 1..=100000.
+    #[arg(long, allow_negative_numbers = true, default_value_t = 20,
+          value_parser = clap::builder::RangedU64ValueParser::<usize>::new().range(1..=100_000))]
     images_per_subject: usize,
-    /// Image size as WIDTHxHEIGHT (the official evaluation uses 800x800).
+    /// Image size as WIDTHxHEIGHT, each side 32..=8192 (the official evaluation uses
+    /// 800x800).
     #[arg(long, default_value = "800x800", value_parser = super::parse_size)]
     size: (u32, u32),
     /// Seed of every random choice.
     #[arg(long, default_value_t = 0)]
     seed: u64,
-    /// Fraction of subjects put in the test split.
-    #[arg(long, default_value_t = 0.2)]
+    /// Fraction of subjects put in the test split, in [0, 1].
+    #[arg(long, allow_negative_numbers = true, default_value_t = 0.2, value_parser = super::unit_interval)]
     test_fraction: f64,
-    /// JPEG quality, 1-100.
-    #[arg(long, default_value_t = 90)]
+    /// JPEG quality, 1..=100.
+    #[arg(long, allow_negative_numbers = true, default_value_t = 90, value_parser = clap::value_parser!(u8).range(1..=100))]
     jpeg_quality: u8,
     /// Use the real ARKit topology and template face from this folder (the release's
     /// `.npy` files: triangles.npy, uv_coords_std_202109.npy, kpt_ind.npy,

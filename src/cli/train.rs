@@ -47,29 +47,31 @@ pub struct TrainArgs {
     /// Train on this split (`all` for every sample).
     #[arg(long, default_value = "train")]
     split: String,
-    /// Passes over the training samples.
-    #[arg(long, default_value_t = 5)]
+    /// Passes over the training samples, 1..=100000.
+    #[arg(long, allow_negative_numbers = true, default_value_t = 5, value_parser = clap::builder::RangedU64ValueParser::<usize>::new().range(1..=100_000))]
     epochs: usize,
     /// A step budget instead of --epochs: stop after N steps (the learning-rate
     /// schedule is scaled to N; the last pass over the samples may end part way).
-    #[arg(long, value_name = "N", conflicts_with = "epochs")]
+    /// N is 1..=100000000.
+    #[arg(long, allow_negative_numbers = true, value_name = "N", conflicts_with = "epochs",
+          value_parser = clap::builder::RangedU64ValueParser::<usize>::new().range(1..=100_000_000))]
     steps: Option<usize>,
-    /// Samples per step.
-    #[arg(long, default_value_t = 4)]
+    /// Samples per step, 1..=1024.
+    #[arg(long, allow_negative_numbers = true, default_value_t = 4, value_parser = clap::builder::RangedU64ValueParser::<usize>::new().range(1..=1024))]
     batch: usize,
-    /// AdamW learning rate.
-    #[arg(long, default_value_t = 1e-3)]
+    /// AdamW learning rate, in (0, 1].
+    #[arg(long, allow_negative_numbers = true, default_value_t = 1e-3, value_parser = super::learning_rate)]
     lr: f64,
     /// Share of the steps at --lr; the rate then falls linearly to zero at the last
-    /// step (the paper's schedule). 1 keeps it constant.
-    #[arg(long, default_value_t = 0.5)]
+    /// step (the paper's schedule). In [0, 1]; 1 keeps it constant.
+    #[arg(long, allow_negative_numbers = true, default_value_t = 0.5, value_parser = super::unit_interval)]
     lr_hold: f64,
     /// Colour jitter strength (brightness and contrast in [1-c, 1+c], channel gains
-    /// in [1-c/2, 1+c/2]); 0 turns it off.
-    #[arg(long, default_value_t = 0.2)]
-    colour_jitter: f32,
-    /// Crop jitter: shift each crop by up to this many pixels per axis.
-    #[arg(long, default_value_t = 2)]
+    /// in [1-c/2, 1+c/2]), c in [0, 1]; 0 turns it off.
+    #[arg(long, allow_negative_numbers = true, default_value_t = 0.2, value_parser = super::unit_interval)]
+    colour_jitter: f64,
+    /// Crop jitter: shift each crop by up to this many pixels per axis, 0..=64.
+    #[arg(long, allow_negative_numbers = true, default_value_t = 2, value_parser = clap::value_parser!(u32).range(0..=64))]
     shift_px: u32,
     /// Train on the M points `render` stored instead of fresh face pixels each step.
     #[arg(long)]
@@ -179,7 +181,7 @@ pub fn run(a: TrainArgs) -> Result<ExitCode> {
         learning_rate: a.lr,
         lr_hold: a.lr_hold,
         augmentation: training::Augmentation {
-            colour: a.colour_jitter,
+            colour: a.colour_jitter as f32,
             shift_px: a.shift_px,
             resample_points: !a.stored_points,
         },

@@ -151,6 +151,51 @@ impl PerspNetConfig {
         if self.points == 0 || self.vertices == 0 {
             return Err("points and vertices must be positive".into());
         }
+        // Bounds a real network stays within; beyond them a config file would ask for
+        // more memory than any machine has (or zero-width layers) before anything runs.
+        if self.input_size > 1024 {
+            return Err(format!(
+                "input_size {} must be at most 1024",
+                self.input_size
+            ));
+        }
+        let widths = [
+            ("encoder_widths", &self.encoder_widths[..]),
+            ("decoder_widths", &self.decoder_widths[..]),
+            ("assign_hidden", &self.assign_hidden[..]),
+            ("fc_channels", &[self.fc_channels][..]),
+            ("feature_channels", &[self.feature_channels][..]),
+            ("color_channels", &[self.color_channels][..]),
+            ("pos_channels", &[self.pos_channels][..]),
+            ("global_hidden", &[self.global_hidden][..]),
+            ("global_channels", &[self.global_channels][..]),
+        ];
+        for (name, w) in widths {
+            if w.iter().any(|&c| !(1..=8192).contains(&c)) {
+                return Err(format!("{name} {w:?}: every width must be in 1..=8192"));
+            }
+        }
+        if self.points > 65_536 {
+            return Err(format!("points {} must be at most 65536", self.points));
+        }
+        if self.vertices > 1_000_000 {
+            return Err(format!(
+                "vertices {} must be at most 1000000",
+                self.vertices
+            ));
+        }
+        if !(self.init_std.is_finite() && self.init_std > 0.0 && self.init_std <= 1.0) {
+            return Err(format!("init_std {} must be in (0, 1]", self.init_std));
+        }
+        if !(self.bn_eps.is_finite() && self.bn_eps > 0.0 && self.bn_eps <= 1.0) {
+            return Err(format!("bn_eps {} must be in (0, 1]", self.bn_eps));
+        }
+        if !(0.0..=1.0).contains(&self.bn_momentum) {
+            return Err(format!(
+                "bn_momentum {} must be in [0, 1]",
+                self.bn_momentum
+            ));
+        }
         Ok(())
     }
 }
@@ -164,6 +209,28 @@ impl Default for PerspNetConfig {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn validate_names_the_field_out_of_range() {
+        type Break = fn(&mut PerspNetConfig);
+        let cases: [(&str, Break); 9] = [
+            ("input_size", |c| c.input_size = 2048),
+            ("input_size", |c| c.input_size = 0),
+            ("encoder_widths", |c| c.encoder_widths[2] = 0),
+            ("global_channels", |c| c.global_channels = 1 << 20),
+            ("points", |c| c.points = 100_000),
+            ("init_std", |c| c.init_std = f64::NAN),
+            ("bn_eps", |c| c.bn_eps = -1.0),
+            ("bn_momentum", |c| c.bn_momentum = 2.0),
+            ("dropout", |c| c.dropout = 1.0),
+        ];
+        for (field, break_it) in cases {
+            let mut c = PerspNetConfig::tiny();
+            break_it(&mut c);
+            let e = c.validate().unwrap_err();
+            assert!(e.starts_with(field), "{field}: {e}");
+        }
+    }
 
     #[test]
     fn json_round_trip() {
