@@ -289,6 +289,26 @@ pub fn augment_dataset(
     options: &AugmentOptions,
     progress: &(dyn Fn(usize) + Sync),
 ) -> Result<(AugmentSummary, Vec<(RgbImage, RgbImage)>)> {
+    if !(1..=100).contains(&options.jpeg_quality) {
+        return Err(Error::invalid(
+            "--jpeg-quality",
+            format!("{} is not in 1..=100", options.jpeg_quality),
+        ));
+    }
+    let r = &options.rule;
+    let ordered = r.min_change >= 0.0
+        && r.min_change <= r.max_change
+        && r.max_change <= r.max_angle
+        && r.max_angle <= 90.0;
+    if !ordered {
+        return Err(Error::invalid(
+            "--min-change/--max-change/--max-angle",
+            format!(
+                "need 0 <= min-change ({}) <= max-change ({}) <= max-angle ({}) <= 90",
+                r.min_change, r.max_change, r.max_angle
+            ),
+        ));
+    }
     let data = Dataset::open(dataset)?;
     let layout = ReleaseLayout::new(&options.output);
     crate::atomic_file::remove_stale_temporaries(&options.output, true)?;

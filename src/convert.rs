@@ -392,6 +392,15 @@ pub fn validate_sample(
         .map_err(|e| fail(&row.image, format!("JPEG does not decode: {e}")))?;
     let (width, height) = (image.width(), image.height());
     drop(image);
+    if width > crate::raster::MAX_VIEWPORT || height > crate::raster::MAX_VIEWPORT {
+        return Err(fail(
+            &row.image,
+            format!(
+                "the image is {width}x{height}: larger than the {} pixels a side the renderer takes",
+                crate::raster::MAX_VIEWPORT
+            ),
+        ));
+    }
     if width < MIN_IMAGE_SIDE || height < MIN_IMAGE_SIDE {
         return Err(fail(
             &row.image,
@@ -738,25 +747,42 @@ pub fn topology_digest(topology: &FaceTopology) -> String {
 }
 
 /// Checks that `topology` (what a command was given: `--resources`, or the built-in
-/// face) is the one `dataset` was converted with, so no stage renders or trains a
-/// dataset of the real ARKit mesh with the built-in stand-in (or the reverse).
-/// Manifests written before the digest was recorded are compared by vertex count.
-pub fn check_topology(manifest: &Manifest, topology: &FaceTopology, dataset: &Path) -> Result<()> {
+/// face) is the one a dataset was converted with, so no stage renders or trains a
+/// dataset of the real ARKit mesh with the built-in stand-in (or the reverse): both have
+/// 1,220 vertices, so nothing else would notice. Compared by [`topology_digest`] (the
+/// triangles and landmarks, wherever the folder now is); manifests written before the
+/// digest was recorded are compared by whether each is the built-in face.
+pub fn check_topology(manifest: &Manifest, topology: &FaceTopology) -> Result<()> {
+    let builtin = &crate::synthetic_face::builtin().topology.source;
+    let (dataset_builtin, ours_builtin) =
+        (&manifest.topology == builtin, &topology.source == builtin);
     let same = if manifest.topology_sha256.is_empty() {
-        true
+        dataset_builtin == ours_builtin
     } else {
         manifest.topology_sha256 == topology_digest(topology)
     };
-    if !same {
-        return Err(Error::format(
-            dataset.join("dataset.json"),
-            format!(
-                "the dataset was converted with the topology of {}, this command was given {}: pass the same --resources as to convert",
-                manifest.topology, topology.source
-            ),
-        ));
+    if same {
+        return Ok(());
     }
-    Ok(())
+    Err(Error::invalid(
+        "--resources",
+        if ours_builtin {
+            format!(
+                "the dataset was converted with the topology of '{}'; pass --resources with that folder (without it the built-in face is used)",
+                manifest.topology
+            )
+        } else if dataset_builtin {
+            format!(
+                "the dataset was converted with the built-in face, not with '{}'; leave --resources out",
+                topology.source
+            )
+        } else {
+            format!(
+                "the dataset was converted with the topology of '{}', whose triangles or landmarks differ from those of '{}'; pass the --resources given to convert",
+                manifest.topology, topology.source
+            )
+        },
+    ))
 }
 
 /// `root` as an absolute, canonical path (symbolic links resolved).

@@ -117,6 +117,21 @@ pub fn oracle_predictions(
     options: &OracleOptions,
     progress: &(dyn Fn(usize) + Sync),
 ) -> Result<(Vec<PredictionRecord>, OracleSummary)> {
+    if !(options.noise_px.is_finite() && options.noise_px >= 0.0) {
+        return Err(Error::invalid(
+            "--noise-px",
+            format!(
+                "{} is not a non-negative number of pixels",
+                options.noise_px
+            ),
+        ));
+    }
+    if !(0.0..1.0).contains(&options.outliers) {
+        return Err(Error::invalid(
+            "--outliers",
+            format!("{} is not a share in [0, 1)", options.outliers),
+        ));
+    }
     let data = crate::dataset::Dataset::open(dataset)?;
     let splits = crate::eval_dataset::SplitLookup::read(dataset)?;
     let mut out = Vec::new();

@@ -18,7 +18,7 @@
 //! ([`crate::targets_table::read_skipped_keys`]) skip those samples.
 
 use crate::conventions::Pose;
-use crate::convert::{Manifest, read_manifest};
+use crate::convert::Manifest;
 use crate::error::{Error, Result};
 use crate::raster::VisibilityBuffer;
 use crate::render::{CropTransform, FaceRenderer, RasterMode, UvMapper, sample_points};
@@ -119,31 +119,9 @@ pub fn dataset_fingerprint(manifest: &Manifest) -> String {
         .collect()
 }
 
-/// Refuses to render a dataset with another topology than it was converted with: the
-/// built-in face and the release's mesh have the same vertex count, so nothing else
-/// would notice. Two resource folders are not compared (the folder may have moved).
-pub fn check_topology(manifest: &Manifest, topology: &crate::FaceTopology) -> Result<()> {
-    let builtin = &crate::synthetic_face::builtin().topology.source;
-    let (dataset_builtin, ours_builtin) =
-        (&manifest.topology == builtin, &topology.source == builtin);
-    if dataset_builtin == ours_builtin {
-        return Ok(());
-    }
-    Err(Error::invalid(
-        "--resources",
-        if ours_builtin {
-            format!(
-                "the dataset was converted with the topology of '{}'; pass --resources with that folder (without it the built-in face is used)",
-                manifest.topology
-            )
-        } else {
-            format!(
-                "the dataset was converted with the built-in face, not with '{}'; leave --resources out",
-                topology.source
-            )
-        },
-    ))
-}
+/// Refuses to render a dataset with another topology than it was converted with (the
+/// one check every stage uses).
+pub use crate::convert::check_topology;
 
 /// Whether `targets/` under `output` holds any shard file (targets or errors).
 fn has_shard_files(output: &Path) -> Result<bool> {
@@ -267,8 +245,8 @@ fn render(
 ) -> Result<RenderSummary> {
     // Everything is checked before anything is written.
     options.validate()?;
-    let manifest_path = dataset.join("dataset.json");
-    let manifest = read_manifest(&manifest_path)?;
+    let data = crate::dataset::Dataset::open(dataset)?;
+    let manifest = data.manifest().clone();
     check_topology(&manifest, renderer.topology())?;
     let (part, parts) = options.shard;
     let uv = UvMapper::derive(renderer.topology())?;
@@ -346,7 +324,7 @@ fn render(
                 }
                 progress(shard.rows);
             } else {
-                let rows = samples_table::read_samples(&dataset.join(&shard.samples_file))?;
+                let rows = samples_table::read_samples(&data.samples_path(shard)?)?;
                 // UV maps depend only on the mesh: one per distinct mesh.
                 let mut uv_maps: HashMap<Vec<u32>, usize> = HashMap::new();
                 let mut unique: Vec<&[f32]> = Vec::new();
@@ -653,11 +631,17 @@ mod tests {
             errors_file: format!("errors/part-{index:05}.parquet"),
             error_rows: 0,
             errors_sha256: "e".repeat(64),
+            bytes: 0,
+            tail_sha256: String::new(),
+            fingerprint: String::new(),
         };
         Manifest {
             tool: "arkit-tool".into(),
             version: "0".into(),
             input: "data/a".into(),
+            input_root: String::new(),
+            fingerprint: String::new(),
+            topology_sha256: String::new(),
             layout: crate::convert::LayoutKind::Download,
             lists: vec![],
             topology: crate::synthetic_face::builtin().topology.source.clone(),

@@ -745,6 +745,43 @@ pub struct TrainOptions {
     pub resume: bool,
 }
 
+impl TrainOptions {
+    /// Checks the options a caller (the CLI, or code using the library) can get wrong:
+    /// at least one epoch and one sample per batch, a positive finite learning rate, a
+    /// hold fraction in [0, 1], a colour jitter in [0, 1].
+    pub fn validate(&self) -> Result<()> {
+        let bad = |what: &str, why: String| Err(Error::invalid(what, why));
+        if self.epochs == 0 {
+            return bad("--epochs", "must be at least 1".into());
+        }
+        if self.batch == 0 {
+            return bad("--batch", "must be at least 1".into());
+        }
+        if self.max_steps == Some(0) {
+            return bad("--steps", "must be at least 1".into());
+        }
+        if !(self.learning_rate.is_finite() && self.learning_rate > 0.0) {
+            return bad(
+                "--lr",
+                format!("{} is not a positive learning rate", self.learning_rate),
+            );
+        }
+        if !(0.0..=1.0).contains(&self.lr_hold) {
+            return bad(
+                "--lr-hold",
+                format!("{} is not a fraction in [0, 1]", self.lr_hold),
+            );
+        }
+        if !(0.0..=1.0).contains(&self.augmentation.colour) {
+            return bad(
+                "--colour-jitter",
+                format!("{} is not in [0, 1]", self.augmentation.colour),
+            );
+        }
+        Ok(())
+    }
+}
+
 /// One step's losses (weighted, as summed into the total).
 #[derive(Clone, Copy, Debug, Serialize)]
 pub struct StepLoss {
@@ -799,6 +836,7 @@ pub fn train<S: ExampleShards + ?Sized>(
     on_step: &dyn Fn(&StepLoss),
 ) -> Result<(Checkpoint, Vec<StepLoss>)> {
     let cfg = &options.config;
+    options.validate()?;
     if examples.total() == 0 {
         return Err(Error::invalid("train", "no training examples"));
     }

@@ -393,3 +393,77 @@ fn jpeg_framing_walks_the_segments() {
     }
     assert!(convert::check_jpeg_framing(b"\x89PNG\r\n\x1a\n").is_err());
 }
+
+#[test]
+fn library_options_are_checked_without_the_cli() {
+    use arkit_tool::training::{Augmentation, TrainOptions};
+    let base = TrainOptions {
+        config: arkit_tool::perspnet::PerspNetConfig::tiny(),
+        epochs: 1,
+        max_steps: None,
+        batch: 2,
+        learning_rate: 1e-3,
+        lr_hold: 0.5,
+        augmentation: Augmentation {
+            colour: 0.1,
+            shift_px: 0,
+            resample_points: true,
+        },
+        lowered_start: false,
+        seed: 0,
+        output: std::path::PathBuf::from("/nonexistent/model"),
+        resume: false,
+    };
+    base.validate().unwrap();
+    let cases: Vec<(&str, Box<dyn Fn(&mut TrainOptions)>)> = vec![
+        ("--epochs", Box::new(|o| o.epochs = 0)),
+        ("--batch", Box::new(|o| o.batch = 0)),
+        ("--steps", Box::new(|o| o.max_steps = Some(0))),
+        ("--lr", Box::new(|o| o.learning_rate = -1.0)),
+        ("--lr", Box::new(|o| o.learning_rate = f64::NAN)),
+        ("--lr-hold", Box::new(|o| o.lr_hold = 2.0)),
+        ("--colour-jitter", Box::new(|o| o.augmentation.colour = 3.0)),
+    ];
+    for (what, change) in cases {
+        let mut o = base.clone();
+        change(&mut o);
+        let e = o.validate().unwrap_err().to_string();
+        assert!(e.contains(what), "{what}: {e}");
+    }
+    // augment and the oracle check theirs before reading anything.
+    let missing = Path::new("/nonexistent/dataset");
+    let aopts = arkit_tool::augment_dataset::AugmentOptions {
+        output: std::path::PathBuf::from("/nonexistent/out"),
+        axis: arkit_tool::augment_dataset::AxisChoice::Auto,
+        rule: arkit_tool::augment_dataset::ProfilingRule::default(),
+        per_sample: 1,
+        flip: false,
+        with_originals: false,
+        seed: 1,
+        jpeg_quality: 0,
+        preview_pairs: 0,
+    };
+    let topo = &arkit_tool::synthetic_face::builtin().topology;
+    let e = arkit_tool::augment_dataset::augment_dataset(missing, topo, &aopts, &|_| {})
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("--jpeg-quality"), "{e}");
+    let mut bad_rule = aopts.clone();
+    bad_rule.jpeg_quality = 90;
+    bad_rule.rule.max_angle = 1000.0;
+    let e = arkit_tool::augment_dataset::augment_dataset(missing, topo, &bad_rule, &|_| {})
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("max-angle"), "{e}");
+    let o = arkit_tool::predict::OracleOptions {
+        noise_px: 0.0,
+        outliers: 1.0,
+        seed: 0,
+        split: None,
+        ransac: arkit_tool::pnp::RansacParams::default(),
+    };
+    let e = arkit_tool::predict::oracle_predictions(missing, missing, &o, &|_| {})
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("--outliers"), "{e}");
+}

@@ -465,6 +465,7 @@ fn render_refuses_the_builtin_face_for_a_dataset_converted_with_resources() {
     let path = a.join("dataset.json");
     let mut m: serde_json::Value = serde_json::from_slice(&std::fs::read(&path).unwrap()).unwrap();
     m["topology"] = "/data/resources".into();
+    m["topology_sha256"] = "ab".repeat(32).into();
     std::fs::write(&path, serde_json::to_vec_pretty(&m).unwrap()).unwrap();
     let out = dir.path().join("t");
     let r = render(&a, &out, &[]);
@@ -489,6 +490,15 @@ fn rows_render_cannot_use_are_skipped_with_the_reason() {
     rows[1].landmarks_2d.pop(); // odd: used to panic on chunks(2)
     rows[2].image_width = 20000; // beyond the rasterizer's buffer
     samples_table::write_parquet(&file, &mut samples_table::samples_frame(&rows).unwrap()).unwrap();
+    // Readers refuse a shard that differs from the manifest; these rows are meant to be
+    // read, as if convert had written them, so the manifest forgets the shard's size.
+    let mut m = m;
+    m.shards[0].bytes = 0;
+    std::fs::write(
+        a.join("dataset.json"),
+        serde_json::to_string_pretty(&m).unwrap(),
+    )
+    .unwrap();
     let renderer = FaceRenderer::new(
         arkit_tool::synthetic_face::builtin().topology.clone(),
         Camera::release_projection(),

@@ -129,7 +129,7 @@ pub fn config_named(name: &str) -> Result<PerspNetConfig> {
 pub fn run(a: TrainArgs) -> Result<ExitCode> {
     let topology = super::load_topology(a.resources.as_deref())?;
     let manifest = arkit_tool::convert::read_manifest(&a.dataset.join("dataset.json"))?;
-    arkit_tool::convert::check_topology(&manifest, &topology, &a.dataset)?;
+    arkit_tool::convert::check_topology(&manifest, &topology)?;
     let mut config = config_named(&a.config)?;
     if let Some(loss) = a.loss {
         config.loss = loss;
