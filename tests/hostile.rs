@@ -415,7 +415,8 @@ fn library_options_are_checked_without_the_cli() {
         resume: false,
     };
     base.validate().unwrap();
-    let cases: Vec<(&str, Box<dyn Fn(&mut TrainOptions)>)> = vec![
+    type Change = Box<dyn Fn(&mut TrainOptions)>;
+    let cases: Vec<(&str, Change)> = vec![
         ("--epochs", Box::new(|o| o.epochs = 0)),
         ("--batch", Box::new(|o| o.batch = 0)),
         ("--steps", Box::new(|o| o.max_steps = Some(0))),
