@@ -311,6 +311,7 @@ pub fn augment_dataset(
     }
     let data = Dataset::open(dataset)?;
     let layout = ReleaseLayout::new(&options.output);
+    let _lock = crate::atomic_file::FolderLock::acquire(&options.output, "augment", "augment")?;
     crate::atomic_file::remove_stale_temporaries(&options.output, true)?;
     let mirror_map = if options.flip {
         Some(topology.mirror_map()?)

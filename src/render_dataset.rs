@@ -260,7 +260,17 @@ fn render(
         "mode": renderer.mode, "topology": renderer.topology().source, "full_mask": options.full_mask,
         "dataset": dataset_fingerprint(&manifest),
     });
-    let settings_path = options.output.join("targets").join("render.json");
+    let targets_dir = options.output.join("targets");
+    // Parts of one render take the settings check in turn; a second render of the same
+    // part is refused while the first runs; killed runs' temporaries go.
+    let settings_lock = crate::atomic_file::FolderLock::wait(&targets_dir, "render-settings")?;
+    let _part_lock = crate::atomic_file::FolderLock::acquire(
+        &targets_dir,
+        &format!("render-part-{part}-of-{parts}"),
+        "render of this part",
+    )?;
+    crate::atomic_file::remove_stale_temporaries(&targets_dir, true)?;
+    let settings_path = targets_dir.join("render.json");
     let old: Option<serde_json::Value> = match std::fs::read_to_string(&settings_path) {
         Ok(text) => Some(
             // Unreadable as JSON counts as different settings.
@@ -293,6 +303,7 @@ fn render(
             .map_err(|e| Error::io(&options.output, e))?;
         crate::atomic_file::write_bytes(&settings_path, format!("{settings:#}\n").as_bytes())?;
     }
+    drop(settings_lock);
     std::fs::create_dir_all(options.output.join("targets").join("errors"))
         .map_err(|e| Error::io(&options.output, e))?;
     let (mut samples, mut bytes, mut distinct) = (0usize, 0u64, 0usize);

@@ -468,3 +468,39 @@ fn library_options_are_checked_without_the_cli() {
         .to_string();
     assert!(e.contains("--outliers"), "{e}");
 }
+
+#[test]
+fn a_second_render_of_the_same_part_is_refused_and_its_temporaries_are_cleaned() {
+    use arkit_tool::render::FaceRenderer;
+    use arkit_tool::render_dataset::{self, RenderOptions};
+    let input = tempfile::tempdir().unwrap();
+    make_release(input.path(), 2, 2, 10);
+    let out = tempfile::tempdir().unwrap();
+    convert(&options(input.path(), out.path(), 4)).unwrap();
+    let renderer = FaceRenderer::new(
+        arkit_tool::synthetic_face::builtin().topology.clone(),
+        Camera::release_projection(),
+    )
+    .unwrap();
+    let ro = RenderOptions {
+        size: 32,
+        uv_size: 16,
+        points: 32,
+        seed: 0,
+        shard: (0, 1),
+        full_mask: false,
+        output: out.path().to_path_buf(),
+    };
+    let targets = out.path().join("targets");
+    let held = FolderLock::acquire(&targets, "render-part-0-of-1", "render").unwrap();
+    let e = render_dataset::render_dataset(out.path(), &renderer, &ro, &|_| {})
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("another render of this part"), "{e}");
+    drop(held);
+    let stale = targets.join(".part-00000.parquet.tmp-777");
+    std::fs::write(&stale, b"half").unwrap();
+    render_dataset::render_dataset(out.path(), &renderer, &ro, &|_| {}).unwrap();
+    assert!(!stale.exists());
+    assert!(arkit_tool::targets_table::shard_path(out.path(), 0).exists());
+}
