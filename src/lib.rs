@@ -41,11 +41,13 @@ pub mod augment;
 pub mod augment_dataset;
 pub mod convert;
 pub mod dataset;
+#[cfg(feature = "model")]
 pub mod demo;
 pub mod eval;
 pub mod eval_dataset;
 pub mod official_crop;
 pub mod overlay;
+#[cfg(feature = "model")]
 pub mod perspnet;
 pub mod plot;
 pub mod pnp;
@@ -60,6 +62,7 @@ pub mod synth;
 pub mod synthetic_face;
 pub mod targets_table;
 pub mod topology;
+#[cfg(feature = "model")]
 pub mod training;
 
 pub use arkit_core::{atomic_file, conventions, error, npy, raster, release, rng};

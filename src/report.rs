@@ -151,6 +151,7 @@ pub fn pose_picture(samples: &[SampleRecord]) -> RgbImage {
 }
 
 /// The loss curve of a training log (`loss.csv` rows): total and each term.
+#[cfg(feature = "model")]
 pub fn loss_picture(log: &[crate::training::StepLoss]) -> RgbImage {
     let series = |name: &str, f: &dyn Fn(&crate::training::StepLoss) -> f32, c: [u8; 3]| Series {
         name: name.to_string(),

@@ -706,6 +706,7 @@ fn render_reports_and_skips_a_sample_it_cannot_render() {
 }
 
 #[test]
+#[cfg(feature = "model")]
 fn training_streams_shard_by_shard() {
     use arkit_tool::perspnet::PerspNetConfig;
     use arkit_tool::render_dataset::{self, RenderOptions};

@@ -395,6 +395,7 @@ fn jpeg_framing_walks_the_segments() {
 }
 
 #[test]
+#[cfg(feature = "model")]
 fn library_options_are_checked_without_the_cli() {
     use arkit_tool::training::{Augmentation, TrainOptions};
     let base = TrainOptions {

@@ -3,6 +3,7 @@
 
 mod augment;
 mod convert;
+#[cfg(feature = "model")]
 mod demo;
 mod eval;
 mod info;
@@ -12,6 +13,7 @@ mod render;
 mod split;
 mod synth;
 mod topology;
+#[cfg(feature = "model")]
 mod train;
 
 use arkit_tool::Result;
@@ -33,6 +35,7 @@ pub struct Cli {
 
 #[derive(Subcommand, Debug)]
 enum Command {
+    #[cfg(feature = "model")]
     Demo(demo::DemoArgs),
     Synth(synth::SynthArgs),
     Convert(convert::ConvertArgs),
@@ -40,6 +43,7 @@ enum Command {
     Split(split::SplitArgs),
     Inspect(inspect::InspectArgs),
     Render(render::RenderArgs),
+    #[cfg(feature = "model")]
     Train(train::TrainArgs),
     Predict(predict::PredictArgs),
     Eval(eval::EvalArgs),
@@ -51,6 +55,7 @@ enum Command {
 /// Runs a parsed command line.
 pub fn run(cli: Cli) -> Result<ExitCode> {
     match cli.command {
+        #[cfg(feature = "model")]
         Command::Demo(a) => demo::run(a),
         Command::Synth(a) => synth::run(a),
         Command::Convert(a) => convert::run(a),
@@ -58,6 +63,7 @@ pub fn run(cli: Cli) -> Result<ExitCode> {
         Command::Split(a) => split::run(a),
         Command::Inspect(a) => inspect::run(a),
         Command::Render(a) => render::run(a),
+        #[cfg(feature = "model")]
         Command::Train(a) => train::run(a),
         Command::Predict(a) => predict::run(a),
         Command::Eval(a) => eval::run(a),

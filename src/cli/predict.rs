@@ -145,6 +145,14 @@ pub fn run(a: PredictArgs) -> Result<ExitCode> {
         }
         return Ok(ExitCode::SUCCESS);
     }
+    #[cfg(not(feature = "model"))]
+    if a.model.is_some() {
+        return Err(arkit_tool::Error::invalid(
+            "--model",
+            "this arkit-tool was built without the `model` feature (candle); rebuild with default features to run a trained network",
+        ));
+    }
+    #[cfg(feature = "model")]
     if let Some(dir) = &a.model {
         let topology = super::load_topology(a.resources.as_deref())?;
         let model = arkit_tool::training::load(dir, &topology)?;
