@@ -21,7 +21,7 @@ use std::process::ExitCode;
 /// Which samples and how much (--axis auto): yaw is enlarged for faces already turned
 /// (|yaw| >= 20, |pitch| <= 25), pitch for moderately pitched near-frontal ones
 /// (8..25 or -35..-20, |yaw| <= 15), roll for any; by 5 to 30 degrees away from zero,
-/// never past --max-angle. See the README for the probabilities.
+/// never past --max-angle. docs/augment.md gives the probabilities.
 ///
 /// Example: arkit-tool augment --input data/pq --output data/aug --per-sample 2 --flip --preview aug.png
 #[derive(Args, Debug)]

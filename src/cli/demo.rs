@@ -15,7 +15,7 @@ use std::process::ExitCode;
 /// samples, the loss curve, errors by pose and the worst predictions drawn. The page
 /// works offline.
 ///
-/// --quick: 192 images and a short training run (about two minutes on two cores);
+/// --quick: 192 images and a short training run (about 20 s on two idle cores);
 /// without it, 960 images and a longer run (about ten minutes). The same --seed gives
 /// the same data, the same weights and the same table.
 ///
