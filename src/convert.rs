@@ -353,13 +353,7 @@ pub fn validate_sample(
             reason,
         })
     };
-    let strip = |e: Error| -> String {
-        match e {
-            Error::Format { message, .. } => message,
-            Error::Io { source, .. } => source.to_string(),
-            Error::Invalid { what, message } => format!("{what}: {message}"),
-        }
-    };
+    let strip = |e: Error| -> String { e.reason() };
     let info_path = root.join(&row.info);
     let info = release::read_info(&info_path).map_err(|e| fail(&row.info, strip(e)))?;
     if info.verts.len() != ctx.topology.vertex_count {

@@ -236,7 +236,7 @@ pub fn evaluate(
             {
                 let why = match e {
                     Error::Invalid { message, .. } => message,
-                    other => other.to_string(),
+                    other => other.reason(),
                 };
                 problems.non_rotations.push((r.key.clone(), why));
             }

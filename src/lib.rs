@@ -67,5 +67,5 @@ pub mod training;
 
 pub use arkit_core::{atomic_file, conventions, error, npy, raster, release, rng};
 pub use conventions::{Camera, EulerAngles, Pose};
-pub use error::{Error, Result};
+pub use error::{Error, ErrorKind, Result};
 pub use topology::FaceTopology;

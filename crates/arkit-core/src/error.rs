@@ -12,8 +12,9 @@ use std::path::{Path, PathBuf};
 /// Result alias used throughout the library.
 pub type Result<T, E = Error> = std::result::Result<T, E>;
 
-/// What went wrong, and where.
+/// What went wrong, and where. New variants may be added: match on [`Error::kind`].
 #[derive(Debug)]
+#[non_exhaustive]
 pub enum Error {
     /// The operating system could not read or write `path`.
     Io {
@@ -40,7 +41,38 @@ pub enum Error {
     },
 }
 
+/// The kind of an [`Error`], to match on.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[non_exhaustive]
+pub enum ErrorKind {
+    /// The operating system could not read or write a file.
+    Io,
+    /// A file was read but its content is not what it must be.
+    Format,
+    /// A value (an option, a pose, a camera) is invalid.
+    Invalid,
+}
+
 impl Error {
+    /// What kind of error this is.
+    pub fn kind(&self) -> ErrorKind {
+        match self {
+            Error::Io { .. } => ErrorKind::Io,
+            Error::Format { .. } => ErrorKind::Format,
+            Error::Invalid { .. } => ErrorKind::Invalid,
+        }
+    }
+
+    /// The error's message without the file it names (for tables whose rows already
+    /// name the file): the I/O error, the content problem, or `what: why`.
+    pub fn reason(&self) -> String {
+        match self {
+            Error::Io { source, .. } => source.to_string(),
+            Error::Format { message, .. } => message.clone(),
+            Error::Invalid { what, message } => format!("{what}: {message}"),
+        }
+    }
+
     /// An I/O error on `path`.
     pub fn io(path: impl AsRef<Path>, source: io::Error) -> Self {
         Error::Io {
@@ -102,5 +134,33 @@ impl std::error::Error for Error {
             Error::Io { source, .. } => Some(source),
             _ => None,
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn kind_and_reason_follow_the_variant() {
+        let io = Error::io("a.npz", io::Error::new(io::ErrorKind::NotFound, "gone"));
+        assert_eq!(
+            (io.kind(), io.reason()),
+            (ErrorKind::Io, "gone".to_string())
+        );
+        assert_eq!(io.to_string(), "a.npz: gone");
+        assert!(std::error::Error::source(&io).is_some());
+        let f = Error::format("b.jpg", "truncated");
+        assert_eq!(
+            (f.kind(), f.reason().as_str()),
+            (ErrorKind::Format, "truncated")
+        );
+        let v = Error::invalid("--size", "must be positive");
+        assert_eq!(v.kind(), ErrorKind::Invalid);
+        assert_eq!(v.reason(), "--size: must be positive");
+        // A value error re-attributed to the file it came from.
+        let r = v.in_file("c.json");
+        assert_eq!(r.kind(), ErrorKind::Format);
+        assert_eq!(r.path(), Some(Path::new("c.json")));
     }
 }

@@ -22,4 +22,4 @@ pub mod release;
 pub mod rng;
 
 pub use conventions::{Camera, EulerAngles, Pose};
-pub use error::{Error, Result};
+pub use error::{Error, ErrorKind, Result};
