@@ -16,6 +16,7 @@
 pub mod atomic_file;
 pub mod conventions;
 pub mod error;
+pub mod limits;
 pub mod npy;
 pub mod raster;
 pub mod release;
