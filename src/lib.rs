@@ -32,6 +32,8 @@
 //! - [`report`]: pictures of each stage and a self-contained `index.html`;
 //!   [`demo`]: the whole pipeline on synthetic data, with that report.
 //! - [`atomic_file`]: writes that never leave a half-written file.
+//! - [`limits`]: every bound on what the readers accept (re-exported from `arkit_core`);
+//!   [`target_codec`]: the byte codecs of the `targets` blobs.
 
 #![warn(missing_docs)]
 
@@ -60,7 +62,9 @@ pub mod targets_table;
 pub mod topology;
 pub mod training;
 
-pub use arkit_core::{atomic_file, conventions, error, npy, raster, release, rng};
+pub use arkit_core::{
+    atomic_file, conventions, error, limits, npy, raster, release, rng, target_codec,
+};
 pub use conventions::{Camera, EulerAngles, Pose};
 pub use error::{Error, Result};
 pub use topology::FaceTopology;
