@@ -27,7 +27,9 @@ fn put(dir: &Path, target: &str, name: &str, bytes: &[u8]) {
 }
 
 fn main() {
-    let dir = std::env::args().nth(1).unwrap_or_else(|| "fuzz/corpus".into());
+    let dir = std::env::args()
+        .nth(1)
+        .unwrap_or_else(|| "fuzz/corpus".into());
     let dir = Path::new(&dir);
     let arrays = [
         NpyArray::from_f32(vec![4, 3], (0..12).map(|i| i as f32 * 0.5).collect()),
@@ -54,17 +56,71 @@ fn main() {
         b.extend(data);
         b
     };
-    put(dir, "npy", "fortran.npy", &hand(1, "{'descr': '<u2', 'fortran_order': True, 'shape': (2, 3), }", &[0, 0, 3, 0, 1, 0, 4, 0, 2, 0, 5, 0]));
-    put(dir, "npy", "big_endian.npy", &hand(1, "{'descr': '>i4', 'fortran_order': False, 'shape': (2,), }", &[0, 0, 0, 1, 255, 255, 255, 255]));
-    put(dir, "npy", "v2.npy", &hand(2, "{\"descr\": \"<f8\", \"fortran_order\": False, \"shape\": (1,)}", &1.5f64.to_le_bytes()));
-    put(dir, "npy", "v3.npy", &hand(3, "{'descr': '|b1', 'fortran_order': False, 'shape': (2L,), }", &[1, 0]));
+    put(
+        dir,
+        "npy",
+        "fortran.npy",
+        &hand(
+            1,
+            "{'descr': '<u2', 'fortran_order': True, 'shape': (2, 3), }",
+            &[0, 0, 3, 0, 1, 0, 4, 0, 2, 0, 5, 0],
+        ),
+    );
+    put(
+        dir,
+        "npy",
+        "big_endian.npy",
+        &hand(
+            1,
+            "{'descr': '>i4', 'fortran_order': False, 'shape': (2,), }",
+            &[0, 0, 0, 1, 255, 255, 255, 255],
+        ),
+    );
+    put(
+        dir,
+        "npy",
+        "v2.npy",
+        &hand(
+            2,
+            "{\"descr\": \"<f8\", \"fortran_order\": False, \"shape\": (1,)}",
+            &1.5f64.to_le_bytes(),
+        ),
+    );
+    put(
+        dir,
+        "npy",
+        "v3.npy",
+        &hand(
+            3,
+            "{'descr': '|b1', 'fortran_order': False, 'shape': (2L,), }",
+            &[1, 0],
+        ),
+    );
 
-    let members: Vec<(String, &NpyArray)> =
-        arrays.iter().enumerate().map(|(i, a)| (format!("a{i}"), a)).collect();
+    let members: Vec<(String, &NpyArray)> = arrays
+        .iter()
+        .enumerate()
+        .map(|(i, a)| (format!("a{i}"), a))
+        .collect();
     let refs: Vec<(&str, &NpyArray)> = members.iter().map(|(k, a)| (k.as_str(), *a)).collect();
-    put(dir, "npz", "stored.npz", &npz_bytes(&refs, NpzCompression::Stored));
-    put(dir, "npz", "deflated.npz", &npz_bytes(&refs, NpzCompression::Deflated));
-    put(dir, "npz", "one.npz", &npz_bytes(&refs[..1], NpzCompression::Deflated));
+    put(
+        dir,
+        "npz",
+        "stored.npz",
+        &npz_bytes(&refs, NpzCompression::Stored),
+    );
+    put(
+        dir,
+        "npz",
+        "deflated.npz",
+        &npz_bytes(&refs, NpzCompression::Deflated),
+    );
+    put(
+        dir,
+        "npz",
+        "one.npz",
+        &npz_bytes(&refs[..1], NpzCompression::Deflated),
+    );
 
     // `_info.npz`: a face at 0.5 m, with and without the optional keys.
     let verts: Vec<Point3<f32>> = (0..1220)
@@ -86,20 +142,60 @@ fn main() {
         translation: Some([0.0, 0.0, -0.5]),
         points2d: None,
     };
-    put(dir, "info_npz", "deflated_info.npz", &info.to_npz_bytes(NpzCompression::Deflated).expect("npz"));
-    put(dir, "info_npz", "stored_info.npz", &info.to_npz_bytes(NpzCompression::Stored).expect("npz"));
+    put(
+        dir,
+        "info_npz",
+        "deflated_info.npz",
+        &info.to_npz_bytes(NpzCompression::Deflated).expect("npz"),
+    );
+    put(
+        dir,
+        "info_npz",
+        "stored_info.npz",
+        &info.to_npz_bytes(NpzCompression::Stored).expect("npz"),
+    );
     let mut bad = info.clone();
     bad.rt[14] = 0.5; // behind the camera
-    put(dir, "info_npz", "behind_info.npz", &bad.to_npz_bytes(NpzCompression::Deflated).expect("npz"));
+    put(
+        dir,
+        "info_npz",
+        "behind_info.npz",
+        &bad.to_npz_bytes(NpzCompression::Deflated).expect("npz"),
+    );
 
     put(dir, "list_csv", "plain.csv", b"subject_id,facial_action,img_id\n225579,09_LeftToRight_Frown,1616212233525\n000123,01_Neutral,0001616\n");
     put(dir, "list_csv", "pandas.csv", b",subject_id,facial_action,img_id,extra\r\n0,000123,01_Neutral,0001616,x\r\n1,\"42\",\"a,b\",7,\"q\"\"q\"\r\n");
-    put(dir, "list_csv", "bom.csv", "\u{feff}subject_id,facial_action,img_id\n1,a,2\n\n".as_bytes());
-    put(dir, "list_csv", "bad_name.csv", b"subject_id,facial_action,img_id\n1,..,2\n");
+    put(
+        dir,
+        "list_csv",
+        "bom.csv",
+        "\u{feff}subject_id,facial_action,img_id\n1,a,2\n\n".as_bytes(),
+    );
+    put(
+        dir,
+        "list_csv",
+        "bad_name.csv",
+        b"subject_id,facial_action,img_id\n1,..,2\n",
+    );
 
-    put(dir, "predictions_csv", "poses.csv", b"subject_id,facial_action,img_id,R_t\n1,a,2,1 0 0 0 0 1 0 0 0 0 1 0 0 0 -0.5 1\n1,a,3,\n");
-    put(dir, "predictions_csv", "verts.csv", b"img_id,R_t,verts,subject_id,facial_action\n7,,0.5 -1e-3 2,s,a\n");
-    put(dir, "predictions_csv", "short.csv", b"subject_id,facial_action,img_id,R_t\n1,a,2,1 0 0\n");
+    put(
+        dir,
+        "predictions_csv",
+        "poses.csv",
+        b"subject_id,facial_action,img_id,R_t\n1,a,2,1 0 0 0 0 1 0 0 0 0 1 0 0 0 -0.5 1\n1,a,3,\n",
+    );
+    put(
+        dir,
+        "predictions_csv",
+        "verts.csv",
+        b"img_id,R_t,verts,subject_id,facial_action\n7,,0.5 -1e-3 2,s,a\n",
+    );
+    put(
+        dir,
+        "predictions_csv",
+        "short.csv",
+        b"subject_id,facial_action,img_id,R_t\n1,a,2,1 0 0\n",
+    );
 
     // targets_blobs: [mask pixels u32][uv side u16][split u16][blob...].
     let blobs = |len: u32, uv: u16, split: u16, rest: &[u8]| {
@@ -111,13 +207,34 @@ fn main() {
     };
     let mask: Vec<bool> = (0..64).map(|i| (i / 3) % 2 == 1).collect();
     let runs = target_codec::pack_u32_le(&target_codec::rle_encode(&mask));
-    put(dir, "targets_blobs", "mask.bin", &blobs(64, 0, runs.len() as u16, &runs));
+    put(
+        dir,
+        "targets_blobs",
+        "mask.bin",
+        &blobs(64, 0, runs.len() as u16, &runs),
+    );
     let bits: Vec<u16> = (0..48u32).map(|i| (15360 + i * 7) as u16).collect();
     let uv = target_codec::encode_uv_map(&bits, 4);
     put(dir, "targets_blobs", "uv4.bin", &blobs(0, 4, 0, &uv));
-    let (v, w) = target_codec::encode_correspondences(&[[1, 2, 3], [4, 5, 1219]], &[[65535, 0], [3, 4]]);
+    let (v, w) =
+        target_codec::encode_correspondences(&[[1, 2, 3], [4, 5, 1219]], &[[65535, 0], [3, 4]]);
     let mut both = v.clone();
     both.extend(&w);
-    put(dir, "targets_blobs", "corr.bin", &blobs(3, 0, v.len() as u16, &both));
-    put(dir, "targets_blobs", "claims.bin", &blobs(u32::MAX, 65535, 12, &[0, 0, 0, 128, 0, 0, 0, 128, 0, 0, 0, 128]));
+    put(
+        dir,
+        "targets_blobs",
+        "corr.bin",
+        &blobs(3, 0, v.len() as u16, &both),
+    );
+    put(
+        dir,
+        "targets_blobs",
+        "claims.bin",
+        &blobs(
+            u32::MAX,
+            65535,
+            12,
+            &[0, 0, 0, 128, 0, 0, 0, 128, 0, 0, 0, 128],
+        ),
+    );
 }

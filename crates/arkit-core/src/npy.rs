@@ -1051,7 +1051,10 @@ mod tests {
             parse_npy(&b, p()).unwrap()
         };
         for shape in ["(1, 2, 1, 3, 1)", "(2, 1, 3)", "(1, 1, 2, 3)"] {
-            assert_eq!(shaped(shape).data(), &ArrayData::U16(vec![0, 1, 2, 3, 4, 5]));
+            assert_eq!(
+                shaped(shape).data(),
+                &ArrayData::U16(vec![0, 1, 2, 3, 4, 5])
+            );
         }
         // A 2x2x2 array: C index (i, j, k) holds Fortran element i + 2j + 4k.
         let mut b = b"\x93NUMPY\x01\x00".to_vec();

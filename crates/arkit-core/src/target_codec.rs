@@ -254,7 +254,10 @@ mod tests {
         // from the sum; against a 6 G mask: refused from the mask size limit.
         let runs = [1u32 << 31, 1 << 31, 1 << 31];
         let e = rle_decode(&runs, 192 * 192).unwrap_err().to_string();
-        assert!(e.contains("runs cover 6442450944 pixels, the mask has 36864"), "{e}");
+        assert!(
+            e.contains("runs cover 6442450944 pixels, the mask has 36864"),
+            "{e}"
+        );
         let e = rle_decode(&runs, 6_442_450_944).unwrap_err().to_string();
         assert!(e.contains("more than the 67108864 allowed"), "{e}");
         // Runs that would overflow a u32 total are summed in u64.
@@ -278,7 +281,10 @@ mod tests {
         let blob = encode_uv_map(&bits, size);
         assert_eq!(blob.len(), 150);
         assert_eq!(decode_uv_map(&blob, size).unwrap(), bits);
-        assert_eq!(encode_uv_map(&decode_uv_map(&blob, size).unwrap(), size), blob);
+        assert_eq!(
+            encode_uv_map(&decode_uv_map(&blob, size).unwrap(), size),
+            blob
+        );
         assert!(decode_uv_map(&blob[1..], size).is_err());
         assert!(decode_uv_map(&blob, size + 1).is_err());
         assert_eq!(decode_uv_map(&[], 0).unwrap(), Vec::<u16>::new());
@@ -314,9 +320,6 @@ mod tests {
         assert!(decode_correspondences(&vb[..6], &wb).is_err());
         assert!(decode_correspondences(&vb[..11], &wb[..7]).is_err());
         assert!(decode_correspondences(&vb, &wb[..6]).is_err());
-        assert_eq!(
-            decode_correspondences(&[], &[]).unwrap(),
-            (vec![], vec![])
-        );
+        assert_eq!(decode_correspondences(&[], &[]).unwrap(), (vec![], vec![]));
     }
 }

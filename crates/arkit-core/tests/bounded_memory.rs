@@ -34,9 +34,8 @@ unsafe impl GlobalAlloc for Counting {
         let p = unsafe { System.realloc(ptr, layout, new_size) };
         if !p.is_null() {
             if new_size >= layout.size() {
-                let now =
-                    LIVE.fetch_add(new_size - layout.size(), Ordering::SeqCst) + new_size
-                        - layout.size();
+                let now = LIVE.fetch_add(new_size - layout.size(), Ordering::SeqCst) + new_size
+                    - layout.size();
                 PEAK.fetch_max(now, Ordering::SeqCst);
             } else {
                 LIVE.fetch_sub(layout.size() - new_size, Ordering::SeqCst);
@@ -189,7 +188,10 @@ fn case2_a_deflate_bomb_is_refused_from_its_header_before_inflating() {
     let e = res.unwrap_err().to_string();
     assert!(
         e.starts_with("bomb.npz:verts.npy: header says 1073741824 <f4 = 4294967296 bytes")
-            && e.contains(&format!("more than the {} bytes allowed", limits::MAX_ARRAY_BYTES)),
+            && e.contains(&format!(
+                "more than the {} bytes allowed",
+                limits::MAX_ARRAY_BYTES
+            )),
         "{e}"
     );
     assert!(peak < 2 * MIB, "peak {peak} bytes");
@@ -200,7 +202,10 @@ fn case2_a_deflate_bomb_is_refused_from_its_header_before_inflating() {
     let z = zip_members(&[("verts.npy".into(), member)], true);
     let (res, peak) = peak_during(|| npy::parse_npz(&z, Path::new("short.npz")));
     let e = res.unwrap_err().to_string();
-    assert!(e.contains("truncated") && e.contains("file holds 1048576"), "{e}");
+    assert!(
+        e.contains("truncated") && e.contains("file holds 1048576"),
+        "{e}"
+    );
     assert!(peak < 4 * MIB, "peak {peak} bytes");
 }
 
@@ -229,8 +234,13 @@ fn case3_trailing_bytes_are_bounded() {
     assert_eq!(npy::parse_npy(&ok, Path::new("t.npy")).unwrap(), a);
     let mut bad = ok.clone();
     bad.push(7);
-    let e = npy::parse_npy(&bad, Path::new("t.npy")).unwrap_err().to_string();
-    assert!(e.starts_with("t.npy:") && e.contains("after the array's data"), "{e}");
+    let e = npy::parse_npy(&bad, Path::new("t.npy"))
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.starts_with("t.npy:") && e.contains("after the array's data"),
+        "{e}"
+    );
     // In an archive, the tail is read through a cap, not inflated whole: 64 MiB of
     // deflated zeros after the data.
     let mut member = bytes.clone();
@@ -238,7 +248,10 @@ fn case3_trailing_bytes_are_bounded() {
     let z = zip_members(&[("verts.npy".into(), member)], true);
     let (res, peak) = peak_during(|| npy::parse_npz(&z, Path::new("tail.npz")));
     let e = res.unwrap_err().to_string();
-    assert!(e.starts_with("tail.npz:verts.npy:") && e.contains("after the array"), "{e}");
+    assert!(
+        e.starts_with("tail.npz:verts.npy:") && e.contains("after the array"),
+        "{e}"
+    );
     assert!(peak < 2 * MIB, "peak {peak} bytes");
     // A bare .npy with 4 GB after a valid array: refused from its length (a sparse file).
     let dir = tempfile::tempdir().unwrap();
@@ -256,7 +269,11 @@ fn case3_trailing_bytes_are_bounded() {
     // Within the file limit, the stream stops after the allowance.
     f.set_len(bytes.len() as u64 + 10 * MIB as u64).unwrap();
     let (res, peak) = peak_during(|| npy::read_npy(&p));
-    assert!(res.unwrap_err().to_string().contains("after the array's data"));
+    assert!(
+        res.unwrap_err()
+            .to_string()
+            .contains("after the array's data")
+    );
     assert!(peak < MIB, "peak {peak} bytes");
 }
 
@@ -287,7 +304,10 @@ fn case5_header_length_is_capped() {
     b.extend(0xFFFF_FFF0u32.to_le_bytes());
     let (res, peak) = peak_during(|| npy::parse_npy(&b, Path::new("h.npy")));
     let e = res.unwrap_err().to_string();
-    assert!(e.starts_with("h.npy: header length 4294967280 is more than"), "{e}");
+    assert!(
+        e.starts_with("h.npy: header length 4294967280 is more than"),
+        "{e}"
+    );
     assert!(peak < 64 * 1024, "peak {peak} bytes");
     // Exactly at the limit is allowed (and then parsed as any header).
     let mut h = "{'descr': '<f4', 'fortran_order': False, 'shape': (0,), }".to_string();
@@ -329,7 +349,10 @@ fn case6_member_count_is_capped() {
     );
     let z = zip_members(&members[..limits::MAX_NPZ_MEMBERS], false);
     assert_eq!(
-        npy::parse_npz(&z, Path::new("ok.npz")).unwrap().keys().count(),
+        npy::parse_npz(&z, Path::new("ok.npz"))
+            .unwrap()
+            .keys()
+            .count(),
         limits::MAX_NPZ_MEMBERS
     );
 }
