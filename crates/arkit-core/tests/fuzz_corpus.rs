@@ -42,12 +42,12 @@ fn replay(target: &str, entry: Entry, min_files: usize, min_accepted: usize) {
 
 #[test]
 fn npy_corpus() {
-    replay("npy", fuzz_entry::npy, 10, 10);
+    replay("npy", fuzz_entry::npy, 21, 20);
 }
 
 #[test]
 fn npz_corpus() {
-    replay("npz", fuzz_entry::npz, 3, 3);
+    replay("npz", fuzz_entry::npz, 5, 5);
 }
 
 #[test]
