@@ -577,7 +577,11 @@ mod tests {
         let verts = vec![nalgebra::Point3::new(0.0f32, 0.0, 0.0); 3];
         let rec = tiny_record();
         assert_eq!(rec.mask().unwrap(), vec![false, false, false, true]);
-        assert_eq!(rec.full_mask().unwrap().unwrap()[7], true);
+        let full = rec.full_mask().unwrap().unwrap();
+        assert_eq!(
+            (full.len(), full.iter().filter(|&&m| m).count(), full[7]),
+            (8, 1, true)
+        );
         let d = dense(&rec, &verts).unwrap();
         assert_eq!((d.corr_matrix.len(), d.chosen_pixels), (6, vec![3, 3]));
         // 12 bytes of runs claiming 6 G pixels: refused from their sum.
