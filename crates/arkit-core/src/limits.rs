@@ -10,9 +10,12 @@
 //! The values are far above what the release (and everything `arkit-tool` writes) needs;
 //! each constant says what it bounds, what real files need, and why that value.
 //!
-//! Tested in `npy`, `target_codec` and `release` (one test per limit, with crafted bytes
-//! just over it), by `tests/bounded_memory.rs` (peak allocation under a counting
-//! allocator while reading hostile files), and by the fuzz targets in `fuzz/`.
+//! Tested: the `.npy` / `.npz` limits by `tests/bounded_memory.rs` (crafted bytes at and
+//! just over each limit, with the peak allocation measured under a counting allocator),
+//! the mask and UV limits by `target_codec`'s tests, the `targets` table's sizes by
+//! `arkit_tool::targets_table`'s tests, and everything by the fuzz targets in `fuzz/`
+//! (run with a memory limit, so an unbounded allocation is a crash). The consistency
+//! of the values is checked at compile time below.
 
 /// Largest `.npy` header (the dict literal after the length field), in bytes.
 ///
