@@ -33,6 +33,8 @@
 //!   [`demo`]: the whole pipeline on synthetic data, with that report.
 //! - [`atomic_file`]: writes that never leave a half-written file.
 //! - [`dataset`]: a converted dataset opened once: manifest, checked shards, images.
+//! - [`limits`]: every bound on what the readers accept (re-exported from `arkit_core`);
+//!   [`target_codec`]: the byte codecs of the `targets` blobs.
 
 #![warn(missing_docs)]
 
@@ -65,7 +67,9 @@ pub mod topology;
 #[cfg(feature = "model")]
 pub mod training;
 
-pub use arkit_core::{atomic_file, conventions, error, npy, raster, release, rng};
+pub use arkit_core::{
+    atomic_file, conventions, error, limits, npy, raster, release, rng, target_codec,
+};
 pub use conventions::{Camera, EulerAngles, Pose};
 pub use error::{Error, ErrorKind, Result};
 pub use topology::FaceTopology;

@@ -16,20 +16,9 @@ use crate::error::{Error, Result};
 use crate::release::SampleKey;
 use crate::samples_table::{read_parquet, str_values, write_parquet};
 use polars::prelude::*;
-use std::path::Path;
 
-/// One prediction row.
-#[derive(Clone, Debug, PartialEq)]
-pub struct PredictionRecord {
-    /// The sample.
-    pub key: SampleKey,
-    /// Predicted `R_t` (row-vector form, row-major), `None` when the predictor failed.
-    pub rt: Option<[f64; 16]>,
-    /// Predicted canonical vertices, 1220 x 3 row-major, metres.
-    pub verts: Option<Vec<f32>>,
-    /// Predicted crop mask as run lengths (see the module docs).
-    pub mask_rle: Option<Vec<u32>>,
-}
+pub use arkit_core::predictions_csv::{PredictionRecord, parse_csv, rt_of};
+use std::path::Path;
 
 /// The rows as a DataFrame. Optional columns are written only when some row has them.
 pub fn predictions_frame(rows: &[PredictionRecord]) -> Result<DataFrame> {
@@ -158,14 +147,15 @@ fn read_parquet_predictions(path: &Path) -> Result<Vec<PredictionRecord>> {
                 .map_err(|e| Error::format(path, format!("column mask_rle: {e}")))?;
             Some(
                 ca.iter()
-                    .map(|b| {
+                    .enumerate()
+                    .map(|(i, b)| {
                         b.map(|b| {
-                            b.chunks_exact(4)
-                                .map(|c| u32::from_le_bytes([c[0], c[1], c[2], c[3]]))
-                                .collect()
+                            crate::target_codec::unpack_u32_le(b, "mask_rle")
+                                .map_err(|e| Error::format(path, format!("row {i}: {e}")))
                         })
+                        .transpose()
                     })
-                    .collect(),
+                    .collect::<Result<Vec<_>>>()?,
             )
         }
     };
@@ -183,88 +173,6 @@ fn read_parquet_predictions(path: &Path) -> Result<Vec<PredictionRecord>> {
                 .and_then(|v| v[i].as_ref())
                 .map(|v| v.iter().map(|&x| x as f32).collect()),
             mask_rle: masks.as_ref().and_then(|m| m[i].clone()),
-        });
-    }
-    Ok(out)
-}
-
-fn rt_of(values: Option<&[f64]>, path: &Path, row: usize) -> Result<Option<[f64; 16]>> {
-    match values {
-        None => Ok(None),
-        Some(v) if v.len() == 16 => {
-            let mut m = [0.0; 16];
-            m.copy_from_slice(v);
-            Ok(Some(m))
-        }
-        Some(v) => Err(Error::format(
-            path,
-            format!("row {row}: R_t has {} values, expected 16", v.len()),
-        )),
-    }
-}
-
-/// Parses the CSV form (see the module docs).
-pub fn parse_csv(text: &str, path: &Path) -> Result<Vec<PredictionRecord>> {
-    let mut lines = text
-        .lines()
-        .enumerate()
-        .filter(|(_, l)| !l.trim().is_empty());
-    let (_, header) = lines
-        .next()
-        .ok_or_else(|| Error::format(path, "empty file: expected a header line"))?;
-    let names: Vec<&str> = header.split(',').map(|h| h.trim()).collect();
-    let find = |n: &str| names.iter().position(|h| *h == n);
-    let need =
-        |n: &str| find(n).ok_or_else(|| Error::format(path, format!("header has no column '{n}'")));
-    let (si, fi, ii, ri) = (
-        need("subject_id")?,
-        need("facial_action")?,
-        need("img_id")?,
-        need("R_t")?,
-    );
-    let vi = find("verts");
-    let mut out = Vec::new();
-    for (n, line) in lines {
-        let fields: Vec<&str> = line
-            .split(',')
-            .map(|f| f.trim().trim_matches('"'))
-            .collect();
-        if fields.len() != names.len() {
-            return Err(Error::format(
-                path,
-                format!(
-                    "line {}: {} fields, the header has {}",
-                    n + 1,
-                    fields.len(),
-                    names.len()
-                ),
-            ));
-        }
-        let numbers = |f: &str| -> Result<Option<Vec<f64>>> {
-            if f.is_empty() {
-                return Ok(None);
-            }
-            f.split_whitespace()
-                .map(|x| {
-                    x.parse::<f64>().map_err(|_| {
-                        Error::format(path, format!("line {}: '{x}' is not a number", n + 1))
-                    })
-                })
-                .collect::<Result<Vec<f64>>>()
-                .map(Some)
-        };
-        out.push(PredictionRecord {
-            key: SampleKey {
-                subject_id: fields[si].to_string(),
-                facial_action: fields[fi].to_string(),
-                img_id: fields[ii].to_string(),
-            },
-            rt: rt_of(numbers(fields[ri])?.as_deref(), path, n + 1)?,
-            verts: match vi {
-                Some(v) => numbers(fields[v])?.map(|v| v.iter().map(|&x| x as f32).collect()),
-                None => None,
-            },
-            mask_rle: None,
         });
     }
     Ok(out)
@@ -307,29 +215,6 @@ mod tests {
         write_predictions(&path, &rows).unwrap();
         assert_eq!(read_predictions(&path).unwrap(), rows);
     }
-
-    #[test]
-    fn csv_reads_and_names_bad_lines() {
-        let p = Path::new("pred.csv");
-        let ok = "subject_id,facial_action,img_id,R_t\n1,a,2,1 0 0 0 0 1 0 0 0 0 1 0 0 0 -0.5 1\n1,a,3,\n";
-        let rows = parse_csv(ok, p).unwrap();
-        assert_eq!(rows.len(), 2);
-        assert_eq!(rows[0].rt.unwrap()[14], -0.5);
-        assert_eq!(rows[1].rt, None);
-        let short = "subject_id,facial_action,img_id,R_t\n1,a,2,1 0 0\n";
-        let e = parse_csv(short, p).unwrap_err().to_string();
-        assert!(e.contains("pred.csv") && e.contains("3 values"), "{e}");
-        let word = "subject_id,facial_action,img_id,R_t\n1,a,2,x\n";
-        assert!(
-            parse_csv(word, p)
-                .unwrap_err()
-                .to_string()
-                .contains("line 2")
-        );
-        let no_rt = "subject_id,facial_action,img_id\n";
-        assert!(parse_csv(no_rt, p).unwrap_err().to_string().contains("R_t"));
-    }
-
     #[test]
     fn a_pose_column_that_is_not_a_list_is_refused_and_csv_names_are_not_written() {
         let dir = tempfile::tempdir().unwrap();

@@ -21,13 +21,27 @@
 //!   instead of 48 KiB for plain float16 (measured on `synth` faces, zstd). float16
 //!   keeps about 3 significant digits: a relative error of at most 2^-11, 0.031 mm for
 //!   |x| < 0.125 m.
+//!
+//! The byte codecs live in [`arkit_core::target_codec`] (re-exported here) so they can
+//! be fuzzed without polars. Reading never trusts a size from the file: `crop_size`,
+//! `uv_size`, `image_width` and `image_height` are checked against [`crate::limits`]
+//! (a null is an error naming the column and row) before anything is sized from them;
+//! blobs must hold whole elements; run lengths are summed before a mask is allocated;
+//! [`dense`] checks every point and the matrix size before allocating. Tested below with
+//! crafted files and records.
 
 use crate::error::{Error, Result};
+use crate::limits;
 use crate::release::SampleKey;
 use crate::render::{CropSampling, CropTransform, FaceTargets};
 use half::f16;
 use polars::prelude::*;
 use std::path::Path;
+
+pub use arkit_core::target_codec::{
+    decode_uv_map, encode_uv_map, mask_len, pack_u16_le, pack_u32_le, rle_decode, rle_encode,
+    unpack_u16_le, unpack_u32_le,
+};
 
 /// Largest error of a stored barycentric weight.
 pub const WEIGHT_QUANTUM: f32 = 1.0 / 65535.0;
@@ -57,39 +71,6 @@ pub struct TargetsRecord {
     pub image_height: u32,
     /// Run lengths of the full-image mask, or empty when it was not rendered.
     pub full_mask_rle: Vec<u32>,
-}
-
-/// Run-length encodes a mask (first run is background, possibly empty).
-pub fn rle_encode(mask: &[bool]) -> Vec<u32> {
-    let mut runs = Vec::new();
-    let mut current = false;
-    let mut n = 0u32;
-    for &m in mask {
-        if m == current {
-            n += 1;
-        } else {
-            runs.push(n);
-            current = m;
-            n = 1;
-        }
-    }
-    runs.push(n);
-    runs
-}
-
-/// Decodes [`rle_encode`]'s runs into `len` pixels; errors if they do not add up.
-pub fn rle_decode(runs: &[u32], len: usize) -> Result<Vec<bool>> {
-    let mut out = Vec::with_capacity(len);
-    for (k, &r) in runs.iter().enumerate() {
-        out.extend(std::iter::repeat_n(k % 2 == 1, r as usize));
-    }
-    if out.len() != len {
-        return Err(Error::invalid(
-            "mask_rle",
-            format!("runs cover {} pixels, the crop has {len}", out.len()),
-        ));
-    }
-    Ok(out)
 }
 
 fn quantise(w: f32) -> u16 {
@@ -141,7 +122,7 @@ impl TargetsRecord {
         if self.full_mask_rle.is_empty() {
             return Ok(None);
         }
-        let len = self.image_width as usize * self.image_height as usize;
+        let len = mask_len(self.image_width, self.image_height, "full mask")?;
         rle_decode(&self.full_mask_rle, len).map(Some)
     }
 
@@ -158,13 +139,14 @@ impl TargetsRecord {
 
     /// The mask, decoded.
     pub fn mask(&self) -> Result<Vec<bool>> {
-        rle_decode(&self.mask_rle, (self.crop.size * self.crop.size) as usize)
+        let len = mask_len(self.crop.size, self.crop.size, "crop mask")?;
+        rle_decode(&self.mask_rle, len)
     }
 
     /// The UV map as f32 positions.
     pub fn uv_positions(&self) -> Vec<[f32; 3]> {
         self.uv_map
-            .chunks(3)
+            .chunks_exact(3)
             .map(|c| [0, 1, 2].map(|k| f16::from_bits(c[k]).to_f32()))
             .collect()
     }
@@ -178,66 +160,6 @@ impl TargetsRecord {
             + self.uv_map.len() * 2
             + self.full_mask_rle.len() * 4
     }
-}
-
-/// Encodes a UV map's float16 bits (`size^2 x 3`, texel-major) for storage: for each
-/// channel, the row-wise wrapping differences of the bits (first texel of a row kept
-/// as is), written as the plane of low bytes followed by the plane of high bytes.
-/// Lossless; [`decode_uv_map`] inverts it.
-pub fn encode_uv_map(bits: &[u16], size: u32) -> Vec<u8> {
-    let n = size as usize;
-    let texels = bits.len() / 3;
-    let mut out = vec![0u8; bits.len() * 2];
-    for k in 0..3 {
-        let (lo, hi) = out[k * 2 * texels..(k + 1) * 2 * texels].split_at_mut(texels);
-        for t in 0..texels {
-            let prev = if n > 0 && t % n != 0 {
-                bits[(t - 1) * 3 + k]
-            } else {
-                0
-            };
-            let d = bits[t * 3 + k].wrapping_sub(prev);
-            lo[t] = d as u8;
-            hi[t] = (d >> 8) as u8;
-        }
-    }
-    out
-}
-
-/// Inverts [`encode_uv_map`]: `size^2 x 3` float16 bits; errors when the blob does not
-/// hold exactly that many.
-pub fn decode_uv_map(bytes: &[u8], size: u32) -> Result<Vec<u16>> {
-    let n = size as usize;
-    let texels = n * n;
-    if bytes.len() != texels * 6 {
-        return Err(Error::invalid(
-            "uv_map_delta",
-            format!(
-                "{} bytes, a {size}x{size} map needs {}",
-                bytes.len(),
-                texels * 6
-            ),
-        ));
-    }
-    let mut bits = vec![0u16; texels * 3];
-    for k in 0..3 {
-        let plane = &bytes[k * 2 * texels..(k + 1) * 2 * texels];
-        let (lo, hi) = plane.split_at(texels);
-        for t in 0..texels {
-            let d = lo[t] as u16 | (hi[t] as u16) << 8;
-            let prev = if t % n != 0 { bits[(t - 1) * 3 + k] } else { 0 };
-            bits[t * 3 + k] = prev.wrapping_add(d);
-        }
-    }
-    Ok(bits)
-}
-
-fn le_u32(v: &[u32]) -> Vec<u8> {
-    v.iter().flat_map(|x| x.to_le_bytes()).collect()
-}
-
-fn le_u16(v: impl Iterator<Item = u16>) -> Vec<u8> {
-    v.flat_map(|x| x.to_le_bytes()).collect()
 }
 
 /// The rows as a DataFrame (columns as `schemas/targets.json`).
@@ -270,19 +192,19 @@ pub fn targets_frame(rows: &[TargetsRecord]) -> Result<DataFrame> {
         f("crop_side_y", &|r| r.crop.side_y),
         u("crop_size", &|r| r.crop.size),
         s("crop_sampling", &|r| r.crop.sampling.name().to_string()),
-        b("mask_rle", &|r| le_u32(&r.mask_rle)),
+        b("mask_rle", &|r| pack_u32_le(&r.mask_rle)),
         b("corr_vertices", &|r| {
-            le_u16(r.corr_vertices.iter().flatten().copied())
+            pack_u16_le(r.corr_vertices.iter().flatten().copied())
         }),
         b("corr_weights", &|r| {
-            le_u16(r.corr_weights_q.iter().flatten().copied())
+            pack_u16_le(r.corr_weights_q.iter().flatten().copied())
         }),
-        b("points", &|r| le_u32(&r.points)),
+        b("points", &|r| pack_u32_le(&r.points)),
         u("uv_size", &|r| r.uv_size),
         b("uv_map_delta", &|r| encode_uv_map(&r.uv_map, r.uv_size)),
         u("image_width", &|r| r.image_width),
         u("image_height", &|r| r.image_height),
-        b("full_mask_rle", &|r| le_u32(&r.full_mask_rle)),
+        b("full_mask_rle", &|r| pack_u32_le(&r.full_mask_rle)),
     ];
     DataFrame::new(rows.len(), columns).map_err(|e| Error::invalid("targets table", e.to_string()))
 }
@@ -293,13 +215,23 @@ pub fn read_targets(path: &Path) -> Result<Vec<TargetsRecord>> {
     let st = |n: &str| crate::samples_table::str_values(&df, n, path);
     let fl = |n: &str| crate::samples_table::f64_values(&df, n, path);
     let bad = |n: &str, e: PolarsError| Error::format(path, format!("column {n}: {e}"));
-    let u32s = |n: &str| -> Result<Vec<u32>> {
+    // A u32 column, each value at most `max` (checked before anything is sized from it);
+    // a null is an error naming the column and the row.
+    let u32s = |n: &str, max: u32| -> Result<Vec<u32>> {
         let c = df.column(n).map_err(|e| bad(n, e))?;
-        Ok(c.u32()
+        c.u32()
             .map_err(|e| bad(n, e))?
             .iter()
-            .map(|v| v.unwrap_or(0))
-            .collect())
+            .enumerate()
+            .map(|(i, v)| match v {
+                None => Err(Error::format(path, format!("row {i}: {n} is null"))),
+                Some(v) if v > max => Err(Error::format(
+                    path,
+                    format!("row {i}: {n} {v} is more than the {max} allowed"),
+                )),
+                Some(v) => Ok(v),
+            })
+            .collect()
     };
     let bins = |n: &str| -> Result<Vec<Vec<u8>>> {
         let c = df.column(n).map_err(|e| bad(n, e))?;
@@ -334,8 +266,10 @@ pub fn read_targets(path: &Path) -> Result<Vec<TargetsRecord>> {
     } else {
         vec![CropSampling::Centres; df.height()]
     };
-    let (size, uv_size) = (u32s("crop_size")?, u32s("uv_size")?);
-    let (image_width, image_height) = (u32s("image_width")?, u32s("image_height")?);
+    let size = u32s("crop_size", limits::MAX_CROP_SIZE)?;
+    let uv_size = u32s("uv_size", limits::MAX_UV_SIZE)?;
+    let image_width = u32s("image_width", limits::MAX_IMAGE_SIDE)?;
+    let image_height = u32s("image_height", limits::MAX_IMAGE_SIDE)?;
     let full_mask = bins("full_mask_rle")?;
     let (mask, cv, cw, pts, uv) = (
         bins("mask_rle")?,
@@ -344,26 +278,11 @@ pub fn read_targets(path: &Path) -> Result<Vec<TargetsRecord>> {
         bins("points")?,
         bins("uv_map_delta")?,
     );
-    let u16s = |b: &[u8]| -> Vec<u16> {
-        b.chunks_exact(2)
-            .map(|c| u16::from_le_bytes([c[0], c[1]]))
-            .collect()
-    };
-    let u32v = |b: &[u8]| -> Vec<u32> {
-        b.chunks_exact(4)
-            .map(|c| u32::from_le_bytes([c[0], c[1], c[2], c[3]]))
-            .collect()
-    };
+    let at = |i: usize| move |e: Error| Error::format(path, format!("row {i}: {e}"));
     let mut out = Vec::with_capacity(df.height());
     for i in 0..df.height() {
-        let ids = u16s(&cv[i]);
-        let ws = u16s(&cw[i]);
-        if ids.len() % 3 != 0 || ws.len() % 2 != 0 || ids.len() / 3 != ws.len() / 2 {
-            return Err(Error::format(
-                path,
-                format!("row {i}: correspondence blobs have inconsistent lengths"),
-            ));
-        }
+        let (corr_vertices, corr_weights_q) =
+            arkit_core::target_codec::decode_correspondences(&cv[i], &cw[i]).map_err(at(i))?;
         out.push(TargetsRecord {
             key: SampleKey {
                 subject_id: subj[i].clone(),
@@ -378,16 +297,15 @@ pub fn read_targets(path: &Path) -> Result<Vec<TargetsRecord>> {
                 size: size[i],
                 sampling: sampling[i],
             },
-            mask_rle: u32v(&mask[i]),
-            corr_vertices: ids.chunks(3).map(|c| [c[0], c[1], c[2]]).collect(),
-            corr_weights_q: ws.chunks(2).map(|c| [c[0], c[1]]).collect(),
-            points: u32v(&pts[i]),
+            mask_rle: unpack_u32_le(&mask[i], "mask_rle").map_err(at(i))?,
+            corr_vertices,
+            corr_weights_q,
+            points: unpack_u32_le(&pts[i], "points").map_err(at(i))?,
             uv_size: uv_size[i],
-            uv_map: decode_uv_map(&uv[i], uv_size[i])
-                .map_err(|e| Error::format(path, format!("row {i}: {e}")))?,
+            uv_map: decode_uv_map(&uv[i], uv_size[i]).map_err(at(i))?,
             image_width: image_width[i],
             image_height: image_height[i],
-            full_mask_rle: u32v(&full_mask[i]),
+            full_mask_rle: unpack_u32_le(&full_mask[i], "full_mask_rle").map_err(at(i))?,
         });
     }
     Ok(out)
@@ -464,29 +382,52 @@ pub struct DenseTargets {
 pub fn dense(record: &TargetsRecord, verts: &[nalgebra::Point3<f32>]) -> Result<DenseTargets> {
     let mask = record.mask()?;
     let pixels = mask_pixel_indices(&mask);
-    if pixels.len() != record.corr_vertices.len() {
+    if pixels.len() != record.corr_vertices.len()
+        || record.corr_weights_q.len() != record.corr_vertices.len()
+    {
         return Err(Error::invalid(
             "targets",
             format!(
-                "{} mask pixels but {} correspondences",
+                "{} mask pixels but {} correspondences and {} weights",
                 pixels.len(),
-                record.corr_vertices.len()
+                record.corr_vertices.len(),
+                record.corr_weights_q.len()
             ),
         ));
     }
     let n = verts.len();
+    // Every size below comes from the stored row: check before allocating.
+    if let Some((row, &p)) = record
+        .points
+        .iter()
+        .enumerate()
+        .find(|(_, p)| **p as usize >= pixels.len())
+    {
+        return Err(Error::invalid(
+            "targets",
+            format!("point {row} refers to mask pixel {p} of {}", pixels.len()),
+        ));
+    }
+    let cells = (record.points.len() as u64)
+        .checked_mul(n as u64)
+        .filter(|&c| c.saturating_mul(4) <= limits::MAX_DENSE_BYTES)
+        .ok_or_else(|| {
+            Error::invalid(
+                "targets",
+                format!(
+                    "{} points x {n} vertices is more than the {} bytes allowed for the \
+                     correspondence matrix",
+                    record.points.len(),
+                    limits::MAX_DENSE_BYTES
+                ),
+            )
+        })?;
     let weights = record.weights();
-    let mut corr_matrix = vec![0f32; record.points.len() * n];
+    let mut corr_matrix = vec![0f32; cells as usize];
     let mut coords = Vec::with_capacity(record.points.len());
     let mut chosen_pixels = Vec::with_capacity(record.points.len());
     for (row, &p) in record.points.iter().enumerate() {
         let p = p as usize;
-        if p >= pixels.len() {
-            return Err(Error::invalid(
-                "targets",
-                format!("point {row} refers to mask pixel {p} of {}", pixels.len()),
-            ));
-        }
         chosen_pixels.push(pixels[p]);
         let ids = record.corr_vertices[p];
         let mut c = nalgebra::Vector3::zeros();
@@ -514,21 +455,6 @@ pub fn dense(record: &TargetsRecord, verts: &[nalgebra::Point3<f32>]) -> Result<
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    #[test]
-    fn rle_round_trip() {
-        for mask in [
-            vec![],
-            vec![true],
-            vec![false, false],
-            vec![true, true, false, true, false, false],
-        ] {
-            let runs = rle_encode(&mask);
-            assert_eq!(rle_decode(&runs, mask.len()).unwrap(), mask);
-        }
-        assert_eq!(rle_encode(&[true, true, false]), vec![0, 2, 1]);
-        assert!(rle_decode(&[1, 2], 5).is_err());
-    }
 
     #[test]
     fn uv_map_encoding_is_lossless_and_compact_where_smooth() {
@@ -572,5 +498,125 @@ mod tests {
                 .max((third - w[2]).abs() / 2.0);
         }
         assert!(worst <= 0.5 * WEIGHT_QUANTUM + 1e-7, "{worst}");
+    }
+
+    fn tiny_record() -> TargetsRecord {
+        TargetsRecord {
+            key: SampleKey {
+                subject_id: "1".into(),
+                facial_action: "a".into(),
+                img_id: "2".into(),
+            },
+            crop: CropTransform {
+                x0: 0.0,
+                y0: 0.0,
+                side: 2.0,
+                side_y: 2.0,
+                size: 2,
+                sampling: CropSampling::Centres,
+            },
+            mask_rle: vec![3, 1],
+            corr_vertices: vec![[0, 1, 2]],
+            corr_weights_q: vec![[30000, 30000]],
+            points: vec![0, 0],
+            uv_size: 1,
+            uv_map: vec![1, 2, 3],
+            image_width: 4,
+            image_height: 2,
+            full_mask_rle: vec![7, 1],
+        }
+    }
+
+    #[test]
+    fn read_targets_checks_sizes_and_nulls_from_the_file() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("t.parquet");
+        let rec = tiny_record();
+        let write = |df: &mut DataFrame| crate::samples_table::write_parquet(&path, df).unwrap();
+        let mut df = targets_frame(std::slice::from_ref(&rec)).unwrap();
+        write(&mut df);
+        assert_eq!(read_targets(&path).unwrap(), vec![rec.clone()]);
+        let expect_err = |col: Column, want: &str| {
+            let mut df = targets_frame(std::slice::from_ref(&rec)).unwrap();
+            df.with_column(col).unwrap();
+            write(&mut df);
+            let e = read_targets(&path).unwrap_err().to_string();
+            assert!(e.contains("t.parquet: row 0: ") && e.contains(want), "{e}");
+        };
+        let u = |n: &str, v: Option<u32>| Column::new(n.into(), vec![v]);
+        let b = |n: &str, v: &[u8]| Column::new(n.into(), vec![v]);
+        expect_err(
+            u("crop_size", Some(5000)),
+            "crop_size 5000 is more than the 4096",
+        );
+        expect_err(u("crop_size", None), "crop_size is null");
+        expect_err(
+            u("uv_size", Some(u32::MAX)),
+            "uv_size 4294967295 is more than",
+        );
+        expect_err(
+            u("image_width", Some(70_000)),
+            "image_width 70000 is more than",
+        );
+        expect_err(u("image_height", None), "image_height is null");
+        expect_err(
+            b("mask_rle", &[1, 0, 0]),
+            "mask_rle: 3 bytes, not a whole number",
+        );
+        expect_err(b("points", &[1, 0, 0, 0, 0]), "points: 5 bytes");
+        expect_err(b("full_mask_rle", &[9]), "full_mask_rle: 1 bytes");
+        expect_err(
+            b("corr_weights", &[1, 0]),
+            "corr_vertices has 6 bytes and corr_weights 2",
+        );
+        expect_err(b("uv_map_delta", &[0; 5]), "uv_map_delta");
+    }
+
+    #[test]
+    fn masks_and_dense_tensors_check_sizes_before_allocating() {
+        let verts = vec![nalgebra::Point3::new(0.0f32, 0.0, 0.0); 3];
+        let rec = tiny_record();
+        assert_eq!(rec.mask().unwrap(), vec![false, false, false, true]);
+        let full = rec.full_mask().unwrap().unwrap();
+        assert_eq!(
+            (full.len(), full.iter().filter(|&&m| m).count(), full[7]),
+            (8, 1, true)
+        );
+        let d = dense(&rec, &verts).unwrap();
+        assert_eq!((d.corr_matrix.len(), d.chosen_pixels), (6, vec![3, 3]));
+        // 12 bytes of runs claiming 6 G pixels: refused from their sum.
+        let mut r = rec.clone();
+        r.mask_rle = vec![1 << 31, 1 << 31, 1 << 31];
+        assert!(
+            r.mask()
+                .unwrap_err()
+                .to_string()
+                .contains("runs cover 6442450944")
+        );
+        // A huge crop side or image from a record: refused from the size.
+        r.crop.size = u32::MAX;
+        assert!(r.mask().unwrap_err().to_string().contains("more than"));
+        let mut r = rec.clone();
+        (r.image_width, r.image_height) = (65_535, 65_535);
+        let e = r.full_mask().unwrap_err().to_string();
+        assert!(e.contains("65535x65535") && e.contains("more than"), "{e}");
+        // 100 000 points x 1220 vertices (488 MB of matrix): refused before allocating.
+        let mut r = rec.clone();
+        r.points = vec![0; 100_000];
+        let many = vec![nalgebra::Point3::new(0.0f32, 0.0, 0.0); 1220];
+        let e = dense(&r, &many).unwrap_err().to_string();
+        assert!(e.contains("100000 points x 1220 vertices"), "{e}");
+        // A point past the mask pixels, or weights not matching, are errors.
+        let mut r = rec.clone();
+        r.points = vec![0, 1];
+        assert!(
+            dense(&r, &verts)
+                .unwrap_err()
+                .to_string()
+                .contains("mask pixel 1 of 1")
+        );
+        let mut r = rec.clone();
+        r.corr_weights_q.clear();
+        assert!(dense(&r, &verts).is_err());
     }
 }

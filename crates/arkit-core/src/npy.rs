@@ -9,12 +9,29 @@
 //! Supported: bool, (u)int8/16/32/64 and float32/64 in either byte order, C and Fortran
 //! order (Fortran data is returned in C order), any number of dimensions. Anything else
 //! (object arrays, strings, structured dtypes, complex) is refused with an error naming
-//! the file and the dtype. Bytes after the data are ignored, as numpy ignores them.
+//! the file and the dtype.
+//!
+//! Bounded reading (see [`crate::limits`]): nothing is allocated from a size the file
+//! states before that size is checked. A header is at most
+//! [`limits::MAX_NPY_HEADER_BYTES`]; its shape times the element size (overflow-checked)
+//! is checked against [`limits::MAX_ARRAY_BYTES`] before the data is read; the data is
+//! then read as a stream, exactly the declared bytes. Up to
+//! [`limits::MAX_NPY_TRAILING_BYTES`] bytes after the data are ignored, as numpy ignores
+//! them; more are refused, so that a file with gigabytes after a valid array is not read
+//! through. `.npz` archives: at most [`limits::MAX_NPZ_MEMBERS`] members and
+//! [`limits::MAX_NPZ_ARRAY_BYTES`] of data in all; the zip directory's size claims are
+//! never trusted (members are read through capped streams), and a deflated member is
+//! refused from its header before it is inflated. Files are checked against
+//! [`limits::MAX_NPY_FILE_BYTES`] / [`limits::MAX_NPZ_FILE_BYTES`] before reading.
+//! Tested below with crafted bytes for each limit, in `tests/bounded_memory.rs` (peak
+//! allocation while reading hostile files), and by the `npy` and `npz` fuzz targets.
+//!
 //! Writing produces version 1.0 files byte-identical to numpy's for C-order
 //! little-endian arrays, and zip archives with fixed timestamps, so output is
 //! deterministic.
 
 use crate::error::{Error, Result};
+use crate::limits;
 use std::io::{Read, Seek, Write};
 use std::path::{Path, PathBuf};
 
@@ -187,8 +204,9 @@ pub struct NpyArray {
 impl NpyArray {
     /// An array; errors unless the product of `shape` is the number of values.
     pub fn new(shape: Vec<usize>, data: ArrayData) -> Result<Self> {
-        let n: usize = shape.iter().product();
-        if n != data.len() {
+        let n = shape.iter().try_fold(1usize, |a, &d| a.checked_mul(d));
+        if n != Some(data.len()) {
+            let n = n.map_or("more than usize::MAX".to_string(), |n| n.to_string());
             return Err(Error::invalid(
                 "array",
                 format!("shape {shape:?} holds {n} values, {} given", data.len()),
@@ -382,23 +400,54 @@ fn parse_header_dict(text: &str) -> std::result::Result<(String, bool, Vec<usize
     ))
 }
 
-/// Parses `.npy` bytes; `source` names the file in errors.
+/// Parses `.npy` bytes; `source` names the file in errors. At most
+/// [`limits::MAX_NPY_TRAILING_BYTES`] bytes may follow the data (see the module docs).
 pub fn parse_npy(bytes: &[u8], source: &Path) -> Result<NpyArray> {
+    let io = |e: std::io::Error| Error::format(source, format!("cannot read: {e}"));
+    let mut r = bytes;
+    read_npy_from(&mut r, source, limits::MAX_ARRAY_BYTES, "per array", &io).map(|(a, _)| a)
+}
+
+/// Reads into `buf` until it is full or the reader ends; returns the count read.
+fn read_up_to<R: Read + ?Sized>(r: &mut R, buf: &mut [u8]) -> std::io::Result<usize> {
+    let mut got = 0;
+    while got < buf.len() {
+        match r.read(&mut buf[got..]) {
+            Ok(0) => break,
+            Ok(k) => got += k,
+            Err(e) if e.kind() == std::io::ErrorKind::Interrupted => continue,
+            Err(e) => return Err(e),
+        }
+    }
+    Ok(got)
+}
+
+/// Reads one array from a stream: the header (at most
+/// [`limits::MAX_NPY_HEADER_BYTES`]), then exactly the data it declares (checked against
+/// `max_data`, named `limit_name` in the error, before any of it is read), then at most
+/// [`limits::MAX_NPY_TRAILING_BYTES`] + 1 bytes to check the tail. Memory is bounded by
+/// the declared data size, never by what the stream claims elsewhere. Returns the array
+/// and its data size in bytes.
+fn read_npy_from<R: Read + ?Sized>(
+    r: &mut R,
+    source: &Path,
+    max_data: u64,
+    limit_name: &str,
+    io: &dyn Fn(std::io::Error) -> Error,
+) -> Result<(NpyArray, u64)> {
     let err = |m: String| Error::format(source, m);
-    if bytes.len() < 10 || &bytes[..6] != b"\x93NUMPY" {
+    let mut pre = [0u8; 12];
+    if read_up_to(r, &mut pre[..10]).map_err(io)? < 10 || &pre[..6] != b"\x93NUMPY" {
         return Err(err("not a .npy file (magic bytes missing)".into()));
     }
-    let (major, minor) = (bytes[6], bytes[7]);
-    let (header_len, start) = match major {
-        1 => (u16::from_le_bytes([bytes[8], bytes[9]]) as usize, 10usize),
+    let (major, minor) = (pre[6], pre[7]);
+    let header_len = match major {
+        1 => u16::from_le_bytes([pre[8], pre[9]]) as usize,
         2 | 3 => {
-            if bytes.len() < 12 {
+            if read_up_to(r, &mut pre[10..12]).map_err(io)? < 2 {
                 return Err(err("truncated header".into()));
             }
-            (
-                u32::from_le_bytes([bytes[8], bytes[9], bytes[10], bytes[11]]) as usize,
-                12,
-            )
+            u32::from_le_bytes([pre[8], pre[9], pre[10], pre[11]]) as usize
         }
         _ => {
             return Err(err(format!(
@@ -406,16 +455,20 @@ pub fn parse_npy(bytes: &[u8], source: &Path) -> Result<NpyArray> {
             )));
         }
     };
-    let end = start
-        .checked_add(header_len)
-        .filter(|&e| e <= bytes.len())
-        .ok_or_else(|| err("truncated header".into()))?;
+    if header_len > limits::MAX_NPY_HEADER_BYTES {
+        return Err(err(format!(
+            "header length {header_len} is more than the {} bytes allowed (numpy's own limit)",
+            limits::MAX_NPY_HEADER_BYTES
+        )));
+    }
+    let mut raw = vec![0u8; header_len];
+    if read_up_to(r, &mut raw).map_err(io)? < header_len {
+        return Err(err("truncated header".into()));
+    }
     let text = if major == 3 {
-        std::str::from_utf8(&bytes[start..end])
-            .map_err(|_| err("header is not UTF-8".into()))?
-            .to_string()
+        String::from_utf8(raw).map_err(|_| err("header is not UTF-8".into()))?
     } else {
-        bytes[start..end].iter().map(|&b| b as char).collect()
+        raw.iter().map(|&b| b as char).collect()
     };
     let (descr, fortran_order, shape) =
         parse_header_dict(&text).map_err(|m| err(format!("malformed header: {m}")))?;
@@ -430,16 +483,37 @@ pub fn parse_npy(bytes: &[u8], source: &Path) -> Result<NpyArray> {
         fortran_order,
         shape,
     };
-    let count = header
+    let need = header
         .shape
         .iter()
-        .try_fold(1usize, |a, &d| a.checked_mul(d))
+        .try_fold(dtype.size() as u64, |a, &d| a.checked_mul(d as u64))
         .ok_or_else(|| err(format!("shape {:?} is too large", header.shape)))?;
-    let need = count
-        .checked_mul(dtype.size())
-        .ok_or_else(|| err("shape is too large".into()))?;
-    let data = &bytes[end..];
-    if data.len() < need {
+    if need > max_data {
+        return Err(err(format!(
+            "header says {} {} = {} bytes, more than the {} bytes allowed {}",
+            shape_text(&header.shape),
+            descr,
+            need,
+            max_data,
+            limit_name
+        )));
+    }
+    // `need` is at most `max_data`. The buffer grows as data actually arrives (doubling
+    // from 1 MiB, never beyond `need`), so a short stream declaring much costs little
+    // and a full one costs `need`, not the next power of two.
+    let mut data: Vec<u8> = Vec::new();
+    let mut want = need.min(1 << 20);
+    loop {
+        data.reserve_exact(want as usize - data.len());
+        r.take(want - data.len() as u64)
+            .read_to_end(&mut data)
+            .map_err(io)?;
+        if (data.len() as u64) < want || want == need {
+            break;
+        }
+        want = want.saturating_mul(2).min(need);
+    }
+    if (data.len() as u64) < need {
         return Err(err(format!(
             "truncated: header says {} {} = {} bytes, file holds {}",
             shape_text(&header.shape),
@@ -448,13 +522,25 @@ pub fn parse_npy(bytes: &[u8], source: &Path) -> Result<NpyArray> {
             data.len()
         )));
     }
-    let values = decode(&data[..need], &header);
+    let extra = std::io::copy(
+        &mut r.take(limits::MAX_NPY_TRAILING_BYTES + 1),
+        &mut std::io::sink(),
+    )
+    .map_err(io)?;
+    if extra > limits::MAX_NPY_TRAILING_BYTES {
+        return Err(err(format!(
+            "more than {} bytes after the array's data (np.save writes none)",
+            limits::MAX_NPY_TRAILING_BYTES
+        )));
+    }
+    let values = decode(data, &header);
     let values = if header.fortran_order && header.shape.len() > 1 {
         fortran_to_c(values, &header.shape)
     } else {
         values
     };
-    NpyArray::new(header.shape, values).map_err(|e| e.in_file(source))
+    let array = NpyArray::new(header.shape, values).map_err(|e| e.in_file(source))?;
+    Ok((array, need))
 }
 
 fn shape_text(shape: &[usize]) -> String {
@@ -469,7 +555,7 @@ fn shape_text(shape: &[usize]) -> String {
     }
 }
 
-fn decode(bytes: &[u8], h: &Header) -> ArrayData {
+fn decode(bytes: Vec<u8>, h: &Header) -> ArrayData {
     macro_rules! num {
         ($t:ty, $n:expr, $variant:ident) => {{
             let v: Vec<$t> = bytes
@@ -488,7 +574,7 @@ fn decode(bytes: &[u8], h: &Header) -> ArrayData {
     }
     match h.dtype {
         DType::Bool => ArrayData::Bool(bytes.iter().map(|&b| b != 0).collect()),
-        DType::U8 => ArrayData::U8(bytes.to_vec()),
+        DType::U8 => ArrayData::U8(bytes),
         DType::I8 => ArrayData::I8(bytes.iter().map(|&b| b as i8).collect()),
         DType::U16 => num!(u16, 2, U16),
         DType::I16 => num!(i16, 2, I16),
@@ -501,31 +587,37 @@ fn decode(bytes: &[u8], h: &Header) -> ArrayData {
     }
 }
 
-/// Reorders Fortran-order (column-major) values into C order.
+/// Reorders Fortran-order (column-major) values into C order, walking the Fortran
+/// index incrementally (O(1) per value, no index table). Axes of length 1 do not change
+/// the order and are skipped, so a header with thousands of them costs nothing.
 fn fortran_to_c(data: ArrayData, shape: &[usize]) -> ArrayData {
-    let n: usize = shape.iter().product();
-    // C index -> Fortran index.
-    let mut map = Vec::with_capacity(n);
-    let nd = shape.len();
-    let mut idx = vec![0usize; nd];
-    for _ in 0..n {
-        let mut f = 0;
-        let mut stride = 1;
-        for d in 0..nd {
-            f += idx[d] * stride;
-            stride *= shape[d];
-        }
-        map.push(f);
-        for d in (0..nd).rev() {
-            idx[d] += 1;
-            if idx[d] < shape[d] {
-                break;
-            }
-            idx[d] = 0;
-        }
+    let dims: Vec<usize> = shape.iter().copied().filter(|&d| d != 1).collect();
+    let nd = dims.len();
+    if nd < 2 || dims.contains(&0) {
+        return data;
+    }
+    let mut strides = Vec::with_capacity(nd);
+    let mut stride = 1usize;
+    for &d in &dims {
+        strides.push(stride);
+        stride = stride.saturating_mul(d);
     }
     each_variant!(data, v => {
-        let out = map.iter().map(|&i| v[i]).collect();
+        let mut out = Vec::with_capacity(v.len());
+        let mut idx = vec![0usize; nd];
+        let mut f = 0usize;
+        for _ in 0..v.len() {
+            out.push(v[f]);
+            for d in (0..nd).rev() {
+                idx[d] += 1;
+                f += strides[d];
+                if idx[d] < dims[d] {
+                    break;
+                }
+                f -= strides[d] * dims[d];
+                idx[d] = 0;
+            }
+        }
         reconstruct(&v, out)
     })
 }
@@ -562,10 +654,26 @@ where
     <ArrayData as Reconstruct<T>>::build(values)
 }
 
-/// Reads a `.npy` file.
+/// Checks a file's length against `max` before it is read.
+fn check_file_len(path: &Path, max: u64, what: &str) -> Result<std::fs::File> {
+    let file = std::fs::File::open(path).map_err(|e| Error::io(path, e))?;
+    let len = file.metadata().map_err(|e| Error::io(path, e))?.len();
+    if len > max {
+        return Err(Error::format(
+            path,
+            format!("file is {len} bytes, more than the {max} bytes allowed for {what}"),
+        ));
+    }
+    Ok(file)
+}
+
+/// Reads a `.npy` file: its length is checked against [`limits::MAX_NPY_FILE_BYTES`],
+/// then it is read as a stream (header, declared data, bounded tail), never whole.
 pub fn read_npy(path: &Path) -> Result<NpyArray> {
-    let bytes = std::fs::read(path).map_err(|e| Error::io(path, e))?;
-    parse_npy(&bytes, path)
+    let file = check_file_len(path, limits::MAX_NPY_FILE_BYTES, "a .npy file")?;
+    let mut r = std::io::BufReader::new(file);
+    let io = |e: std::io::Error| Error::io(path, e);
+    read_npy_from(&mut r, path, limits::MAX_ARRAY_BYTES, "per array", &io).map(|(a, _)| a)
 }
 
 /// Writes `array` as a version 1.0 `.npy` (C order, little-endian), laid out exactly as
@@ -716,6 +824,12 @@ impl Npz {
 }
 
 /// Parses `.npz` bytes; `source` names the archive in errors.
+///
+/// At most [`limits::MAX_NPZ_MEMBERS`] members; each is read as a stream (see
+/// [`parse_npy`]) whose data is bounded by [`limits::MAX_ARRAY_BYTES`] and, summed over
+/// the archive, by [`limits::MAX_NPZ_ARRAY_BYTES`]. The sizes the zip directory claims
+/// are never used to allocate: a member claiming 100 GB that holds 14 KB is read as
+/// numpy reads it, and a deflate bomb is refused from its header, before inflating.
 pub fn parse_npz(bytes: &[u8], source: &Path) -> Result<Npz> {
     let mut zip = zip::ZipArchive::new(std::io::Cursor::new(bytes)).map_err(|e| {
         Error::format(
@@ -723,7 +837,18 @@ pub fn parse_npz(bytes: &[u8], source: &Path) -> Result<Npz> {
             format!("not a valid zip archive (truncated or corrupt): {e}"),
         )
     })?;
+    if zip.len() > limits::MAX_NPZ_MEMBERS {
+        return Err(Error::format(
+            source,
+            format!(
+                "{} members, more than the {} allowed",
+                zip.len(),
+                limits::MAX_NPZ_MEMBERS
+            ),
+        ));
+    }
     let mut members = Vec::with_capacity(zip.len());
+    let mut total = 0u64;
     for i in 0..zip.len() {
         let mut f = zip
             .by_index(i)
@@ -736,14 +861,21 @@ pub fn parse_npz(bytes: &[u8], source: &Path) -> Result<Npz> {
         let Some(key) = name.strip_suffix(".npy") else {
             return Err(Error::format(&member, "member is not a .npy array"));
         };
-        let mut buf = Vec::with_capacity(f.size() as usize);
-        f.read_to_end(&mut buf).map_err(|e| {
+        let io = |e: std::io::Error| {
             Error::format(
                 &member,
                 format!("cannot read member (truncated or corrupt): {e}"),
             )
-        })?;
-        members.push((key.to_string(), parse_npy(&buf, &member)?));
+        };
+        let left = limits::MAX_NPZ_ARRAY_BYTES - total;
+        let (max, limit_name) = if left < limits::MAX_ARRAY_BYTES {
+            (left, "for the rest of the archive")
+        } else {
+            (limits::MAX_ARRAY_BYTES, "per array")
+        };
+        let (array, size) = read_npy_from(&mut f, &member, max, limit_name, &io)?;
+        total += size;
+        members.push((key.to_string(), array));
     }
     Ok(Npz {
         path: source.to_path_buf(),
@@ -751,9 +883,23 @@ pub fn parse_npz(bytes: &[u8], source: &Path) -> Result<Npz> {
     })
 }
 
-/// Reads an `.npz` file.
+/// Reads an `.npz` file: its length is checked against [`limits::MAX_NPZ_FILE_BYTES`]
+/// before it is read, and the read is capped there too (for files whose length lies).
 pub fn read_npz(path: &Path) -> Result<Npz> {
-    let bytes = std::fs::read(path).map_err(|e| Error::io(path, e))?;
+    let file = check_file_len(path, limits::MAX_NPZ_FILE_BYTES, "an .npz file")?;
+    let mut bytes = Vec::new();
+    file.take(limits::MAX_NPZ_FILE_BYTES + 1)
+        .read_to_end(&mut bytes)
+        .map_err(|e| Error::io(path, e))?;
+    if bytes.len() as u64 > limits::MAX_NPZ_FILE_BYTES {
+        return Err(Error::format(
+            path,
+            format!(
+                "file grew beyond the {} bytes allowed for an .npz file",
+                limits::MAX_NPZ_FILE_BYTES
+            ),
+        ));
+    }
     parse_npz(&bytes, path)
 }
 
@@ -893,6 +1039,31 @@ mod tests {
         }
         let a = parse_npy(&bytes, p()).unwrap();
         assert_eq!(a.data(), &ArrayData::U16(vec![0, 1, 2, 3, 4, 5]));
+        // Axes of length 1 anywhere do not change the order (they are skipped).
+        let shaped = |shape: &str| {
+            let mut b = b"\x93NUMPY\x01\x00".to_vec();
+            let h = format!("{{'descr': '<u2', 'fortran_order': True, 'shape': {shape}, }}\n");
+            b.extend((h.len() as u16).to_le_bytes());
+            b.extend(h.as_bytes());
+            for v in [0u16, 3, 1, 4, 2, 5] {
+                b.extend(v.to_le_bytes());
+            }
+            parse_npy(&b, p()).unwrap()
+        };
+        for shape in ["(1, 2, 1, 3, 1)", "(2, 1, 3)", "(1, 1, 2, 3)"] {
+            assert_eq!(
+                shaped(shape).data(),
+                &ArrayData::U16(vec![0, 1, 2, 3, 4, 5])
+            );
+        }
+        // A 2x2x2 array: C index (i, j, k) holds Fortran element i + 2j + 4k.
+        let mut b = b"\x93NUMPY\x01\x00".to_vec();
+        let h = "{'descr': '|u1', 'fortran_order': True, 'shape': (2, 2, 2), }\n";
+        b.extend((h.len() as u16).to_le_bytes());
+        b.extend(h.as_bytes());
+        b.extend(0u8..8);
+        let a = parse_npy(&b, p()).unwrap();
+        assert_eq!(a.data(), &ArrayData::U8(vec![0, 4, 2, 6, 1, 5, 3, 7]));
     }
 
     #[test]

@@ -312,7 +312,10 @@ pub fn read_list(path: &Path) -> Result<Vec<ListRow>> {
 }
 
 /// Parses list CSV text; `path` names it in errors. See [`read_list`].
+///
+/// A leading UTF-8 byte-order mark (as Excel writes "CSV UTF-8") is skipped.
 pub fn parse_list(text: &str, path: &Path) -> Result<Vec<ListRow>> {
+    let text = text.strip_prefix('\u{feff}').unwrap_or(text);
     let mut lines = text.lines().enumerate();
     let header = loop {
         match lines.next() {
@@ -465,6 +468,19 @@ mod tests {
             .collect();
         let back = parse_list(&list_csv_text(&keys), Path::new("x")).unwrap();
         assert_eq!(back.into_iter().map(|r| r.key).collect::<Vec<_>>(), keys);
+    }
+
+    #[test]
+    fn list_with_a_utf8_bom_reads_like_without() {
+        let plain = "subject_id,facial_action,img_id\r\n000123,01_Neutral,0001616\r\n";
+        let with_bom = format!("\u{feff}{plain}");
+        let rows = parse_list(&with_bom, Path::new("bom.csv")).unwrap();
+        assert_eq!(rows, parse_list(plain, Path::new("bom.csv")).unwrap());
+        assert_eq!(rows[0].key, key("000123", "01_Neutral", "0001616"));
+        assert_eq!(rows[0].line, 2);
+        // Only a leading mark is skipped: one inside a name is kept, so it does not match.
+        let inner = "subject_id,\u{feff}facial_action,img_id\n1,a,2\n";
+        assert!(parse_list(inner, Path::new("bom.csv")).is_err());
     }
 
     #[test]

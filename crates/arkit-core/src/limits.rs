@@ -1,0 +1,112 @@
+//! Every limit on what the readers accept, in one place.
+//!
+//! The rule: no size read from a file (a zip directory entry, an `.npy` header's shape,
+//! a run length, a blob length, a map side) is trusted. Each is checked, with overflow-
+//! safe arithmetic, against what the file can actually hold and against one of the
+//! limits below *before* anything is allocated from it, and compressed data is inflated
+//! through a reader capped at the limit, so a hostile or corrupt file costs at most
+//! about the limit in memory and is refused with an error naming the file.
+//!
+//! The values are far above what the release (and everything `arkit-tool` writes) needs;
+//! each constant says what it bounds, what real files need, and why that value.
+//!
+//! Tested: the `.npy` / `.npz` limits by `tests/bounded_memory.rs` (crafted bytes at and
+//! just over each limit, with the peak allocation measured under a counting allocator),
+//! the mask and UV limits by `target_codec`'s tests, the `targets` table's sizes by
+//! `arkit_tool::targets_table`'s tests, and everything by the fuzz targets in `fuzz/`
+//! (run with a memory limit, so an unbounded allocation is a crash). The consistency
+//! of the values is checked at compile time below.
+
+/// Largest `.npy` header (the dict literal after the length field), in bytes.
+///
+/// numpy itself refuses headers above 10 000 bytes (`max_header_size` of `np.load`,
+/// since numpy 1.24); the release's headers are 118 bytes (64-byte aligned dicts such as
+/// `{'descr': '<f4', 'fortran_order': False, 'shape': (1220, 3), }`).
+pub const MAX_NPY_HEADER_BYTES: usize = 10_000;
+
+/// Largest data of one array (shape product times element size), in bytes: 256 MiB.
+///
+/// Bounds every `.npy` file and every `.npz` member, checked from the header before the
+/// data is read. The release's largest arrays are `verts` / `verts_gt` (1220 x 3
+/// float32, 14 640 bytes); the topology files `arkit-tool` reads (triangles, UVs,
+/// landmarks, template) are below 100 KB. 256 MiB leaves room for any array a user could
+/// reasonably feed the tool while keeping a hostile file's cost bounded.
+pub const MAX_ARRAY_BYTES: u64 = 256 << 20;
+
+/// Largest total of array data in one `.npz` archive, in bytes: 256 MiB.
+///
+/// Each member is also bounded by [`MAX_ARRAY_BYTES`]; this bounds the sum, so that many
+/// deflated members cannot add up to gigabytes. An `_info.npz` of the release holds
+/// about 60 KB of arrays.
+pub const MAX_NPZ_ARRAY_BYTES: u64 = 256 << 20;
+
+/// Most members (arrays) in one `.npz` archive: 64.
+///
+/// Checked before any member is opened. The release's `_info.npz` files have 10 keys
+/// (`verts`, `R_t`, `verts_gt`, `faceAnchortransform`, `cameratransform`,
+/// `projectionMatrix`, `euler_angles`, `translation`, `points2d`, ...).
+pub const MAX_NPZ_MEMBERS: usize = 64;
+
+/// Largest `.npz` file read, in bytes: 64 MiB.
+///
+/// Checked on the file's length before it is read (and the read itself is capped, for
+/// files whose length lies, such as pipes). The release's `_info.npz` files are about
+/// 100 KB (`savez`, uncompressed).
+pub const MAX_NPZ_FILE_BYTES: u64 = 64 << 20;
+
+/// Largest number of bytes accepted after an array's data, in a `.npy` file or an
+/// `.npz` member: 4096.
+///
+/// numpy's `np.load` ignores bytes after the data, and `np.save` never writes any; we
+/// accept (and ignore) a few, as numpy does, but refuse more, because an unbounded tail
+/// would have to be read (or inflated) to be skipped: a file with gigabytes after a
+/// valid array is refused instead of read.
+pub const MAX_NPY_TRAILING_BYTES: u64 = 4096;
+
+/// Largest `.npy` file read, in bytes: [`MAX_ARRAY_BYTES`] plus the largest header and
+/// the trailing allowance. Checked on the file's length before reading.
+pub const MAX_NPY_FILE_BYTES: u64 =
+    MAX_ARRAY_BYTES + 12 + MAX_NPY_HEADER_BYTES as u64 + MAX_NPY_TRAILING_BYTES;
+
+/// Largest side of a crop in a `targets` file (`crop_size`), in pixels: 4096.
+///
+/// `render` writes 192- or 256-pixel crops (PerspNet uses 192); a mask of 4096 x 4096
+/// is 16 M pixels.
+pub const MAX_CROP_SIZE: u32 = 4096;
+
+/// Largest side of a UV position map (`uv_size`), in texels: 4096.
+///
+/// `render` writes 192 x 192 maps (PerspNet's); a 4096 x 4096 map is 96 MiB of
+/// float16 positions, the largest blob a `targets` row can make the reader allocate.
+pub const MAX_UV_SIZE: u32 = 4096;
+
+/// Largest width or height of a sample's image (`image_width`, `image_height`), in
+/// pixels: 65 535, the largest a JPEG can declare. The release's images are 1280 x 720
+/// (portrait or landscape).
+pub const MAX_IMAGE_SIDE: u32 = 65_535;
+
+/// Most pixels of one decoded mask (crop mask or full-image mask): 2^26 (67 M, 8192 x
+/// 8192), so a decoded mask is at most 64 MiB. Run lengths are summed (in `u64`) and
+/// compared with the mask's size before the mask is allocated. The release's images
+/// have 0.92 M pixels; crops at [`MAX_CROP_SIZE`] have 16.8 M.
+pub const MAX_MASK_PIXELS: u64 = 1 << 26;
+
+/// Largest dense tensor built from one stored row (`points x vertex_count` float32
+/// correspondence matrix), in bytes: the same bound as one array, [`MAX_ARRAY_BYTES`].
+/// PerspNet's is 1024 x 1220 x 4 = 5 MB.
+pub const MAX_DENSE_BYTES: u64 = MAX_ARRAY_BYTES;
+
+// Compile-time checks: what real files need fits, with room, and every bound stays far
+// below what the machine can hold.
+const _: () = {
+    assert!(MAX_NPY_HEADER_BYTES >= 118);
+    assert!(MAX_ARRAY_BYTES >= 1220 * 3 * 8);
+    assert!(MAX_NPZ_FILE_BYTES >= 100_000);
+    assert!(MAX_NPZ_MEMBERS >= 10);
+    assert!(MAX_MASK_PIXELS >= 1280 * 720);
+    assert!(MAX_MASK_PIXELS >= MAX_CROP_SIZE as u64 * MAX_CROP_SIZE as u64);
+    // A UV map blob at the limit is at most one array's size.
+    assert!(MAX_UV_SIZE as u64 * MAX_UV_SIZE as u64 * 6 <= MAX_ARRAY_BYTES);
+    assert!(MAX_NPY_FILE_BYTES < 1 << 30);
+    assert!(MAX_NPZ_ARRAY_BYTES < 1 << 30);
+};

@@ -1,0 +1,8 @@
+#![no_main]
+//! Fuzz target `predictions_csv`: see `arkit_core::fuzz_entry::predictions_csv`.
+
+use libfuzzer_sys::fuzz_target;
+
+fuzz_target!(|data: &[u8]| {
+    let _ = arkit_core::fuzz_entry::predictions_csv(data);
+});
