@@ -538,17 +538,7 @@ pub struct ShardEntry {
 /// How many bytes at a file's end [`tail_sha256`] hashes.
 pub const TAIL_BYTES: u64 = 64 * 1024;
 
-/// A release image larger than this (bytes) is refused before it is read (the release's
-/// 800x800 JPEGs are about 100 KiB).
-pub const MAX_IMAGE_FILE_BYTES: u64 = 64 << 20;
-
-/// Images smaller than this (either side, pixels) are refused: no face crop can be
-/// taken from them.
-pub const MIN_IMAGE_SIDE: u32 = 32;
-
-/// A face whose 68 landmarks span fewer pixels than this (both sides) is refused as
-/// degenerate (an all-zero or collapsed mesh).
-pub const MIN_FACE_SPAN_PX: f64 = 8.0;
+pub use crate::limits::{MAX_IMAGE_FILE_BYTES, MIN_FACE_SPAN_PX, MIN_IMAGE_SIDE};
 
 /// The annotation's own `points2d`, when present, must lie within this many pixels
 /// (median over the vertices) of `verts` at `R_t` projected into the image, or this

@@ -110,3 +110,17 @@ const _: () = {
     assert!(MAX_NPY_FILE_BYTES < 1 << 30);
     assert!(MAX_NPZ_ARRAY_BYTES < 1 << 30);
 };
+
+/// A release image larger than this (bytes) is refused before it is read (the release's
+/// 800x800 JPEGs are about 100 KiB). Tested in `tests/hostile.rs` of the root crate
+/// through `convert`.
+pub const MAX_IMAGE_FILE_BYTES: u64 = 64 << 20;
+
+/// Images smaller than this (either side, pixels) are refused by `convert`: no face
+/// crop can be taken from them (the release's are 1280x720 and larger).
+pub const MIN_IMAGE_SIDE: u32 = 32;
+
+/// A face whose 68 landmarks span fewer pixels than this (both ways) is refused by
+/// `convert` as degenerate (an all-zero or collapsed mesh); the release's faces span
+/// hundreds of pixels.
+pub const MIN_FACE_SPAN_PX: f64 = 8.0;
