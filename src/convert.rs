@@ -28,6 +28,7 @@
 //! repeat a key, are reported in `errors/listing.parquet`.
 
 use crate::conventions::{Camera, Pose};
+use crate::dataset::MANIFEST_FILE;
 use crate::error::{Error, Result};
 use crate::release::{self, ListRow, SampleKey};
 use crate::samples_table::{self, ErrorRecord, SampleRecord};
@@ -828,7 +829,7 @@ fn claim_output(output: &Path, fingerprint: &ConversionFingerprint, overwrite: b
     let has_output = ["samples", "errors", "manifest"]
         .iter()
         .any(|d| std::fs::read_dir(output.join(d)).is_ok_and(|mut r| r.next().is_some()))
-        || output.join("dataset.json").exists();
+        || output.join(MANIFEST_FILE).exists();
     let conflict = match &existing {
         Some(e) => e != fingerprint,
         None => has_output,
@@ -861,7 +862,7 @@ fn claim_output(output: &Path, fingerprint: &ConversionFingerprint, overwrite: b
                 std::fs::remove_dir_all(&p).map_err(|e| Error::io(&p, e))?;
             }
         }
-        let p = output.join("dataset.json");
+        let p = output.join(MANIFEST_FILE);
         if p.exists() {
             std::fs::remove_file(&p).map_err(|e| Error::io(&p, e))?;
         }
@@ -901,7 +902,7 @@ fn finished_shard(out: &Path, index: usize, fingerprint: &str) -> Result<Option<
 /// The manifest's file name for a part.
 pub fn manifest_name(index: usize, count: usize) -> String {
     if count == 1 {
-        "dataset.json".into()
+        MANIFEST_FILE.into()
     } else {
         format!("manifest/part-{index:04}-of-{count:04}.json")
     }
@@ -1152,7 +1153,7 @@ pub fn merge(dataset: &Path) -> Result<Manifest> {
         shards,
         ..first
     };
-    write_manifest(&dataset.join("dataset.json"), &merged)?;
+    write_manifest(&dataset.join(MANIFEST_FILE), &merged)?;
     Ok(merged)
 }
 
@@ -1165,7 +1166,7 @@ pub fn read_dataset_samples(dataset: &Path) -> Result<Vec<SampleRecord>> {
 /// Checks every file the manifest of `dataset` names against its full SHA-256; returns
 /// the number of files checked, or the first file that differs.
 pub fn verify_dataset(dataset: &Path) -> Result<usize> {
-    let m = read_manifest(&dataset.join("dataset.json"))?;
+    let m = read_manifest(&dataset.join(MANIFEST_FILE))?;
     let mut checked = 0;
     for s in &m.shards {
         for (file, sha) in [

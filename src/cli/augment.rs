@@ -120,7 +120,9 @@ fn check(a: &AugmentArgs) -> Result<()> {
 pub fn run(a: AugmentArgs) -> Result<ExitCode> {
     check(&a)?;
     let topology = super::load_topology(a.resources.as_deref())?;
-    let manifest = arkit_tool::convert::read_manifest(&a.input.join("dataset.json"))?;
+    let manifest = arkit_tool::dataset::Dataset::open(&a.input)?
+        .manifest()
+        .clone();
     let options = AugmentOptions {
         output: a.output.clone(),
         axis: match a.axis {

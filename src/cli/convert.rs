@@ -150,7 +150,7 @@ pub fn run_merge(a: MergeArgs) -> Result<ExitCode> {
         m.shards.len(),
         m.converted,
         m.skipped,
-        a.dataset.join("dataset.json").display()
+        a.dataset.join(arkit_tool::dataset::MANIFEST_FILE).display()
     );
     Ok(ExitCode::SUCCESS)
 }

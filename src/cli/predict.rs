@@ -116,7 +116,9 @@ pub fn run(a: PredictArgs) -> Result<ExitCode> {
             "noise must be >= 0 and the outlier share in [0, 1)",
         ));
     }
-    let manifest = arkit_tool::convert::read_manifest(&a.dataset.join("dataset.json"))?;
+    let manifest = arkit_tool::dataset::Dataset::open(&a.dataset)?
+        .manifest()
+        .clone();
     let ransac = RansacParams {
         reprojection_threshold_px: a.threshold_px,
         seed: a.seed,

@@ -99,7 +99,9 @@ pub fn run(a: RenderArgs) -> Result<ExitCode> {
     };
     // The checks between options (--points at most --size squared), before any reading.
     options.validate()?;
-    let manifest = arkit_tool::convert::read_manifest(&a.dataset.join("dataset.json"))?;
+    let manifest = arkit_tool::dataset::Dataset::open(&a.dataset)?
+        .manifest()
+        .clone();
     let topology = super::load_topology(a.resources.as_deref())?;
     render_dataset::check_topology(&manifest, &topology)?;
     let mut renderer = FaceRenderer::new(topology, Camera::release_projection())?;

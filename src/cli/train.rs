@@ -128,7 +128,9 @@ pub fn config_named(name: &str) -> Result<PerspNetConfig> {
 
 pub fn run(a: TrainArgs) -> Result<ExitCode> {
     let topology = super::load_topology(a.resources.as_deref())?;
-    let manifest = arkit_tool::convert::read_manifest(&a.dataset.join("dataset.json"))?;
+    let manifest = arkit_tool::dataset::Dataset::open(&a.dataset)?
+        .manifest()
+        .clone();
     arkit_tool::convert::check_topology(&manifest, &topology)?;
     let mut config = config_named(&a.config)?;
     if let Some(loss) = a.loss {

@@ -116,6 +116,19 @@ pub fn remove_stale_temporaries(dir: &Path, recursive: bool) -> Result<Vec<PathB
     Ok(removed)
 }
 
+/// Opens (creating it and its folder if needed) the lock file `dir/.NAME.lock`.
+fn open_lock_file(dir: &Path, name: &str) -> Result<(fs::File, PathBuf)> {
+    fs::create_dir_all(dir).map_err(|e| Error::io(dir, e))?;
+    let path = dir.join(format!(".{name}.lock"));
+    let file = fs::OpenOptions::new()
+        .create(true)
+        .truncate(false)
+        .write(true)
+        .open(&path)
+        .map_err(|e| Error::io(&path, e))?;
+    Ok((file, path))
+}
+
 /// An exclusive claim on an output folder (or on one part of it), held until dropped.
 #[derive(Debug)]
 pub struct FolderLock {
@@ -128,14 +141,7 @@ impl FolderLock {
     /// what holds it (for example `convert`). Refuses at once when another process
     /// holds it.
     pub fn acquire(dir: &Path, name: &str, what: &str) -> Result<Self> {
-        fs::create_dir_all(dir).map_err(|e| Error::io(dir, e))?;
-        let path = dir.join(format!(".{name}.lock"));
-        let file = fs::OpenOptions::new()
-            .create(true)
-            .truncate(false)
-            .write(true)
-            .open(&path)
-            .map_err(|e| Error::io(&path, e))?;
+        let (file, path) = open_lock_file(dir, name)?;
         match file.try_lock() {
             Ok(()) => Ok(Self { _file: file, path }),
             Err(fs::TryLockError::WouldBlock) => Err(Error::format(
@@ -152,14 +158,7 @@ impl FolderLock {
     /// Takes the lock file `dir/.NAME.lock`, waiting while another process holds it: for
     /// short critical sections that parallel writers of one folder take in turn.
     pub fn wait(dir: &Path, name: &str) -> Result<Self> {
-        fs::create_dir_all(dir).map_err(|e| Error::io(dir, e))?;
-        let path = dir.join(format!(".{name}.lock"));
-        let file = fs::OpenOptions::new()
-            .create(true)
-            .truncate(false)
-            .write(true)
-            .open(&path)
-            .map_err(|e| Error::io(&path, e))?;
+        let (file, path) = open_lock_file(dir, name)?;
         file.lock().map_err(|e| Error::io(&path, e))?;
         Ok(Self { _file: file, path })
     }
