@@ -7,26 +7,21 @@
 //!    triangle counter-clockwise in image space, compute the integer edge functions and
 //!    the bounding box clipped to the viewport. A mesh
 //!    ([`VisibilityBuffer::rasterize_mesh`]) checks and snaps each vertex once, not once
-//!    per triangle using it: the setup's instructions fell from 1.10 M to 0.46 M per
-//!    192x192 face crop (0.42 -> 0.39 ms for the whole visibility stage, best of 8);
-//!    inlining the setup into the mesh loop, rather than returning it through memory,
-//!    saved another 0.18 M. Folding the top-left bias into the
-//!    stepped edge values (three additions less per box pixel) made no measurable
-//!    difference (1.820 -> 1.817 M instructions in the walk), so the walk keeps them.
+//!    per triangle using it.
 //! 2. **Coverage** ([`TriangleSetup::for_each_covered`]): walk the box, stepping the
 //!    three edge functions by integer increments; a pixel centre is inside when every
 //!    edge function is positive, or zero on a *top* or *left* edge (the top-left rule).
 //!    A row of a triangle is covered on one run of pixels, so for boxes up to 64 pixels
 //!    wide (a face crop's triangles are 3.6 pixels wide on average) each row's
 //!    coverage is taken as a bit mask, two pixels at a time in SSE2 lanes, and the run
-//!    between its first and last set bits is visited: no branch per pixel. That costs
-//!    14% more instructions than three tests per pixel and saves 12% of the time (the
-//!    branches on the edge tests were mispredicted at every run boundary). A small
-//!    triangle's box up to 8x8 pixels (96% of a face crop's) is taken whole: its
-//!    edge values as `i32` in SSE2 lanes, one bit per pixel ([`BoxCoverage`]), then
-//!    one loop over the set bits, with no branch per row or run: over 400 varied
-//!    poses 11.1 k -> 4.2 k mispredicted branches per sample (valgrind's model),
-//!    2.07 -> 1.94 M instructions, visibility 0.31-0.32 -> 0.27-0.28 ms.
+//!    between its first and last set bits is visited: no branch per pixel. A small
+//!    triangle's box up to 8x8 pixels (most of a face crop's) is taken whole: its
+//!    edge values as `i32` in SSE2 lanes, one bit per pixel (`BoxCoverage`), then
+//!    one loop over the set bits, with no branch per row or run. Every vector path has
+//!    a scalar twin it is tested against (the box walk visits exactly what the pixel
+//!    walk visits, on thousands of small triangles with edges through pixel centres).
+//!    How much each choice saved is in `docs/performance.md`
+//!    (`cargo bench --bench raster`, `--bench render`).
 //! 3. **Interpolation**: screen-space barycentrics from the edge functions, then
 //!    perspective-correct barycentrics `b_i = l_i w_i^-1 / sum_j l_j w_j^-1` and the
 //!    depth key `sum_i l_i w_i^-1` (1/w, larger is nearer), one division per pixel.
