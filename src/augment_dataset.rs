@@ -166,6 +166,60 @@ pub struct AugmentOptions {
     pub preview_pairs: usize,
 }
 
+impl AugmentOptions {
+    /// Checks what the options cannot be, before anything is read or written: a JPEG
+    /// quality in 1..=100, `0 <= min_change <= max_change`, `min_change <= max_angle`
+    /// (or no sample could change), `max_angle` in (0, 90], and something to write
+    /// (`per_sample > 0`, `flip` or `with_originals`). The CLI calls it after parsing.
+    pub fn validate(&self) -> Result<()> {
+        let r = &self.rule;
+        let bad = |what: &str, why: String| Err(Error::invalid(what, why));
+        if !(1..=100).contains(&self.jpeg_quality) {
+            return bad(
+                "--jpeg-quality",
+                format!("{} is not in 1..=100", self.jpeg_quality),
+            );
+        }
+        if !(r.max_angle > 0.0 && r.max_angle <= 90.0) {
+            return bad(
+                "--max-angle",
+                format!("{} degrees is not in (0, 90]", r.max_angle),
+            );
+        }
+        if r.min_change.is_nan() || r.min_change < 0.0 {
+            return bad(
+                "--min-change",
+                format!("{} degrees is not a non-negative angle", r.min_change),
+            );
+        }
+        if r.min_change > r.max_change {
+            return bad(
+                "--min-change",
+                format!(
+                    "{} degrees is more than --max-change {}",
+                    r.min_change, r.max_change
+                ),
+            );
+        }
+        if r.min_change > r.max_angle {
+            return bad(
+                "--min-change",
+                format!(
+                    "{} degrees is more than --max-angle {}: no sample could change",
+                    r.min_change, r.max_angle
+                ),
+            );
+        }
+        if self.per_sample == 0 && !self.flip && !self.with_originals {
+            return bad(
+                "--per-sample",
+                "0 with neither --flip nor --with-originals would write nothing".into(),
+            );
+        }
+        Ok(())
+    }
+}
+
 /// One sample written.
 #[derive(Clone, Debug, PartialEq, Serialize)]
 pub struct AugmentedRecord {
@@ -289,26 +343,7 @@ pub fn augment_dataset(
     options: &AugmentOptions,
     progress: &(dyn Fn(usize) + Sync),
 ) -> Result<(AugmentSummary, Vec<(RgbImage, RgbImage)>)> {
-    if !(1..=100).contains(&options.jpeg_quality) {
-        return Err(Error::invalid(
-            "--jpeg-quality",
-            format!("{} is not in 1..=100", options.jpeg_quality),
-        ));
-    }
-    let r = &options.rule;
-    let ordered = r.min_change >= 0.0
-        && r.min_change <= r.max_change
-        && r.max_change <= r.max_angle
-        && r.max_angle <= 90.0;
-    if !ordered {
-        return Err(Error::invalid(
-            "--min-change/--max-change/--max-angle",
-            format!(
-                "need 0 <= min-change ({}) <= max-change ({}) <= max-angle ({}) <= 90",
-                r.min_change, r.max_change, r.max_angle
-            ),
-        ));
-    }
+    options.validate()?;
     let data = Dataset::open(dataset)?;
     let layout = ReleaseLayout::new(&options.output);
     let _lock = crate::atomic_file::FolderLock::acquire(&options.output, "augment", "augment")?;

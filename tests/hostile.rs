@@ -457,6 +457,10 @@ fn library_options_are_checked_without_the_cli() {
         .unwrap_err()
         .to_string();
     assert!(e.contains("max-angle"), "{e}");
+    // A maximum angle below the largest change is fine: changes stop at the angle.
+    bad_rule.rule.max_angle = 20.0;
+    assert!(bad_rule.rule.max_change > 20.0);
+    bad_rule.validate().unwrap();
     let o = arkit_tool::predict::OracleOptions {
         noise_px: 0.0,
         outliers: 1.0,

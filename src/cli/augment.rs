@@ -1,8 +1,8 @@
 //! `arkit-tool augment`.
 
+use arkit_tool::Result;
 use arkit_tool::augment::Axis;
 use arkit_tool::augment_dataset::{self, AugmentOptions, AxisChoice, ProfilingRule};
-use arkit_tool::{Error, Result};
 use clap::Args;
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -88,41 +88,7 @@ enum AxisArg {
     Roll,
 }
 
-/// The checks between options that clap's per-option ranges cannot make.
-fn check(a: &AugmentArgs) -> Result<()> {
-    if a.min_change > a.max_change {
-        return Err(Error::invalid(
-            "--min-change",
-            format!(
-                "{} degrees is more than --max-change {}",
-                a.min_change, a.max_change
-            ),
-        ));
-    }
-    if a.min_change > a.max_angle {
-        return Err(Error::invalid(
-            "--min-change",
-            format!(
-                "{} degrees is more than --max-angle {}: no sample could change",
-                a.min_change, a.max_angle
-            ),
-        ));
-    }
-    if a.per_sample == 0 && !a.flip && !a.with_originals {
-        return Err(Error::invalid(
-            "--per-sample",
-            "0 with neither --flip nor --with-originals would write nothing",
-        ));
-    }
-    Ok(())
-}
-
 pub fn run(a: AugmentArgs) -> Result<ExitCode> {
-    check(&a)?;
-    let topology = super::load_topology(a.resources.as_deref())?;
-    let manifest = arkit_tool::dataset::Dataset::open(&a.input)?
-        .manifest()
-        .clone();
     let options = AugmentOptions {
         output: a.output.clone(),
         axis: match a.axis {
@@ -144,6 +110,12 @@ pub fn run(a: AugmentArgs) -> Result<ExitCode> {
         jpeg_quality: a.jpeg_quality,
         preview_pairs: if a.preview.is_some() { 6 } else { 0 },
     };
+    // Every check between options, before anything is read.
+    options.validate()?;
+    let topology = super::load_topology(a.resources.as_deref())?;
+    let manifest = arkit_tool::dataset::Dataset::open(&a.input)?
+        .manifest()
+        .clone();
     let bar = super::progress_bar(manifest.converted as u64, "augment", "samples");
     let pool = super::thread_pool(a.jobs)?;
     let (summary, previews) = pool.install(|| {
