@@ -32,7 +32,8 @@
 //! - [`report`]: pictures of each stage and a self-contained `index.html`;
 //!   [`demo`]: the whole pipeline on synthetic data, with that report.
 //! - [`atomic_file`]: writes that never leave a half-written file.
-//! - [`dataset`]: a converted dataset opened once: manifest, checked shards, images.
+//! - [`dataset`]: a converted dataset opened once: manifest, checked shards, images;
+//!   [`loader`]: one sample as the official PyTorch loader returns it, on the fly.
 //! - [`limits`]: every bound on what the readers accept (re-exported from `arkit_core`);
 //!   [`target_codec`]: the byte codecs of the `targets` blobs.
 
@@ -47,6 +48,7 @@ pub mod dataset;
 pub mod demo;
 pub mod eval;
 pub mod eval_dataset;
+pub mod loader;
 pub mod official_crop;
 pub mod overlay;
 #[cfg(feature = "model")]

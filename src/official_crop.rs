@@ -76,6 +76,57 @@ pub fn box_crop(left: f64, top: f64, right: f64, bottom: f64, size: u32) -> Crop
     }
 }
 
+/// `cv2.getAffineTransform(src, dst)`: the 2x3 map (row-major) taking the three `src`
+/// points (float32, as OpenCV takes them) onto `dst`, solved as OpenCV solves it: the
+/// 6x6 system `[x y 1 0 0 0 | u]`, `[0 0 0 x y 1 | v]` by Gaussian elimination with
+/// partial pivoting in double (its `LU` decomposition: the first row of largest pivot,
+/// rows updated by `alpha = A[j][i] * (-1 / A[i][i])`, back substitution dividing by the
+/// pivot). The bits matter: the official loader floors points mapped through this
+/// matrix, and a coefficient one ulp off moves a point on an exact integer by a pixel.
+/// `None` when the points are collinear.
+pub fn affine_transform(src: [[f32; 2]; 3], dst: [[f32; 2]; 3]) -> Option<[f64; 6]> {
+    let mut a = [[0f64; 6]; 6];
+    let mut b = [0f64; 6];
+    for i in 0..3 {
+        let (x, y) = (src[i][0] as f64, src[i][1] as f64);
+        a[2 * i][..3].copy_from_slice(&[x, y, 1.0]);
+        a[2 * i + 1][3..].copy_from_slice(&[x, y, 1.0]);
+        b[2 * i] = dst[i][0] as f64;
+        b[2 * i + 1] = dst[i][1] as f64;
+    }
+    for i in 0..6 {
+        let mut k = i;
+        for j in i + 1..6 {
+            if a[j][i].abs() > a[k][i].abs() {
+                k = j;
+            }
+        }
+        if a[k][i].abs() < f64::EPSILON * 10.0 {
+            return None;
+        }
+        if k != i {
+            a.swap(i, k);
+            b.swap(i, k);
+        }
+        let d = -1.0 / a[i][i];
+        for j in i + 1..6 {
+            let alpha = a[j][i] * d;
+            for c in i + 1..6 {
+                a[j][c] += alpha * a[i][c];
+            }
+            b[j] += alpha * b[i];
+        }
+    }
+    for i in (0..6).rev() {
+        let mut s = b[i];
+        for c in i + 1..6 {
+            s -= a[i][c] * b[c];
+        }
+        b[i] = s / a[i][i];
+    }
+    Some(b)
+}
+
 /// Fractional bits of OpenCV's source positions (`INTER_BITS`).
 const INTER_BITS: u32 = 5;
 /// Fractional bits of the inverse map's per-row and per-column terms (`AB_BITS`).
@@ -209,6 +260,28 @@ pub fn nearest_face_tap(t: WarpTap, is_face: impl Fn(i64, i64) -> bool) -> Optio
 
 #[cfg(test)]
 mod tests {
+
+    #[test]
+    fn affine_transform_solves_the_three_point_map() {
+        // A box (10, 20)-(200, 210) onto a 192 crop: scale 191/190, offset -scale * corner.
+        let m = affine_transform(
+            [[10.0, 20.0], [10.0, 210.0], [200.0, 20.0]],
+            [[0.0, 0.0], [0.0, 191.0], [191.0, 0.0]],
+        )
+        .unwrap();
+        let s = 191.0 / 190.0;
+        let hand = [s, 0.0, -10.0 * s, 0.0, s, -20.0 * s];
+        for (a, b) in m.iter().zip(hand) {
+            assert!((a - b).abs() < 1e-12, "{m:?}");
+        }
+        // The corners land on the crop's corners.
+        let at = |x: f64, y: f64| (m[0] * x + m[1] * y + m[2], m[3] * x + m[4] * y + m[5]);
+        let (u, v) = at(200.0, 210.0);
+        assert!((u - 191.0).abs() < 1e-12 && (v - 191.0).abs() < 1e-12);
+        // Collinear points have no map.
+        assert!(affine_transform([[0.0, 0.0], [1.0, 1.0], [2.0, 2.0]], [[0.0; 2]; 3]).is_none());
+    }
+
     use super::*;
 
     fn crop(left: f64, top: f64, right: f64, bottom: f64, size: u32) -> CropTransform {

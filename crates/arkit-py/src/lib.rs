@@ -1,0 +1,610 @@
+//! `arkit_tool._native`: the Python package's Rust core (pyo3). The Python layer
+//! (`python/src/arkit_tool/`) wraps these classes and functions; users import
+//! `arkit_tool`, not this module.
+//!
+//! What crosses the boundary:
+//! - [`Loader`]: `arkit_tool::loader::FaceLoader`, one sample as the official PyTorch
+//!   loader returns it, as numpy arrays that own the Rust buffers (no copy).
+//! - [`Dataset`]: a converted dataset's samples, by position.
+//! - [`solve_pnp_ransac`], [`project`], [`evaluate`]: PnP, the release's projection and
+//!   the paper's metrics.
+//!
+//! Invariants: the GIL is released while Rust works (`Python::detach`); nothing here
+//! starts a thread, so a loader is safe to use after `fork` (DataLoader workers); every
+//! error, and any panic, reaches Python as `DataError` (a `ValueError`) whose message
+//! names the file and the problem, never as a Rust panic. Tested by `python/tests`.
+
+use arkit_tool::loader::{Compat, FaceLoader, LoaderItem, LoaderMode, LoaderOptions};
+use arkit_tool::release::SampleKey;
+use arkit_tool::samples_table::SampleRecord;
+use arkit_tool::{Camera, Error, FaceTopology, Pose};
+use nalgebra::{Point2, Point3};
+use numpy::{IntoPyArray, PyArrayMethods, PyReadonlyArray2};
+use pyo3::create_exception;
+use pyo3::prelude::*;
+use pyo3::types::PyDict;
+use std::path::{Path, PathBuf};
+use std::sync::Mutex;
+
+create_exception!(
+    _native,
+    DataError,
+    pyo3::exceptions::PyValueError,
+    "A dataset, sample or argument that arkit_tool cannot use; the message names the file and the problem."
+);
+
+fn py_err(e: Error) -> PyErr {
+    DataError::new_err(e.to_string())
+}
+
+/// Runs `f` without the GIL, turning an error or a panic into `DataError`.
+fn run<T: Send>(py: Python<'_>, f: impl FnOnce() -> arkit_tool::Result<T> + Send) -> PyResult<T> {
+    py.detach(|| std::panic::catch_unwind(std::panic::AssertUnwindSafe(f)))
+        .map_err(|p| {
+            let why = p
+                .downcast_ref::<String>()
+                .cloned()
+                .or_else(|| p.downcast_ref::<&str>().map(|s| s.to_string()))
+                .unwrap_or_default();
+            DataError::new_err(format!("internal error (a bug in arkit_tool): {why}"))
+        })?
+        .map_err(py_err)
+}
+
+/// The topology a dataset was converted with: `resources` when given, else the folder
+/// its manifest names when that is a resources folder, else the built-in face.
+fn topology_for(
+    dir: &Path,
+    resources: Option<&Path>,
+) -> arkit_tool::Result<(FaceTopology, Option<PathBuf>)> {
+    let from = match resources {
+        Some(r) => Some(r.to_path_buf()),
+        None => {
+            let data = arkit_tool::dataset::Dataset::open(dir)?;
+            let recorded = PathBuf::from(&data.manifest().topology);
+            recorded.join("triangles.npy").is_file().then_some(recorded)
+        }
+    };
+    match from {
+        Some(r) => Ok((FaceTopology::from_resources(&r)?, Some(r))),
+        None => Ok((arkit_tool::synthetic_face::builtin().topology.clone(), None)),
+    }
+}
+
+/// One sample after another as the official loader returns them.
+#[pyclass(module = "arkit_tool._native", frozen)]
+struct Loader {
+    inner: FaceLoader,
+}
+
+#[pymethods]
+impl Loader {
+    #[new]
+    #[pyo3(signature = (dir, split, mode, compat, img_size, n_pts, seed, resources=None))]
+    #[allow(clippy::too_many_arguments)]
+    fn new(
+        py: Python<'_>,
+        dir: PathBuf,
+        split: Option<String>,
+        mode: &str,
+        compat: &str,
+        img_size: u32,
+        n_pts: usize,
+        seed: u64,
+        resources: Option<PathBuf>,
+    ) -> PyResult<Self> {
+        let options = LoaderOptions {
+            split,
+            mode: LoaderMode::parse(mode).map_err(py_err)?,
+            compat: Compat::parse(compat).map_err(py_err)?,
+            img_size,
+            n_pts,
+            seed,
+        };
+        let inner = run(py, || {
+            let (topology, from) = topology_for(&dir, resources.as_deref())?;
+            let uv_triangles = match &from {
+                Some(r) => arkit_tool::loader::read_uv_triangles(r)?,
+                None => None,
+            };
+            FaceLoader::open(&dir, topology, uv_triangles, options)
+        })?;
+        Ok(Loader { inner })
+    }
+
+    fn __len__(&self) -> usize {
+        self.inner.len()
+    }
+
+    /// `(subject_id, facial_action, img_id, split)` of sample `index`.
+    fn key(&self, index: usize) -> PyResult<(String, String, String, String)> {
+        let (k, s) = self.inner.key(index).ok_or_else(|| {
+            pyo3::exceptions::PyIndexError::new_err(format!(
+                "index {index} out of range for {} samples",
+                self.inner.len()
+            ))
+        })?;
+        Ok((
+            k.subject_id.clone(),
+            k.facial_action.clone(),
+            k.img_id.clone(),
+            s.to_string(),
+        ))
+    }
+
+    /// Sample `index` of `epoch` as a dict of numpy arrays; `corr` is `"dense"`,
+    /// `"sparse"` or `"both"`; `extras` adds the official box and pre-mapping points.
+    #[pyo3(signature = (index, epoch=0, corr="dense", eval_keys=false, extras=false))]
+    fn item<'py>(
+        &self,
+        py: Python<'py>,
+        index: usize,
+        epoch: u64,
+        corr: &str,
+        eval_keys: bool,
+        extras: bool,
+    ) -> PyResult<Bound<'py, PyDict>> {
+        let (dense, sparse) = match corr {
+            "dense" => (true, false),
+            "sparse" => (false, true),
+            "both" => (true, true),
+            _ => {
+                return Err(DataError::new_err(format!(
+                    "corr: '{corr}': expected 'dense', 'sparse' or 'both'"
+                )));
+            }
+        };
+        if index >= self.inner.len() {
+            return Err(pyo3::exceptions::PyIndexError::new_err(format!(
+                "index {index} out of range for {} samples",
+                self.inner.len()
+            )));
+        }
+        let (item, corr_mat) = run(py, || {
+            let item = self.inner.item(index, epoch)?;
+            let corr_mat = dense.then(|| dense_correspondences(&item));
+            Ok((item, corr_mat))
+        })?;
+        item_dict(py, item, corr_mat, sparse, eval_keys, extras)
+    }
+}
+
+/// The dense `n_pts x V` correspondence matrix of an item (`V` from its mesh).
+fn dense_correspondences(item: &LoaderItem) -> Vec<f32> {
+    let v = item.model.len() / 3;
+    let mut m = vec![0f32; item.corr_vertices.len() * v];
+    for (r, (ids, w)) in item
+        .corr_vertices
+        .iter()
+        .zip(&item.corr_weights)
+        .enumerate()
+    {
+        for k in 0..3 {
+            m[r * v + ids[k] as usize] = w[k];
+        }
+    }
+    m
+}
+
+fn item_dict<'py>(
+    py: Python<'py>,
+    item: LoaderItem,
+    corr_mat: Option<Vec<f32>>,
+    sparse: bool,
+    eval_keys: bool,
+    extras: bool,
+) -> PyResult<Bound<'py, PyDict>> {
+    let s = (item.mask.len() as f64).sqrt() as usize;
+    let n = item.choose.len();
+    let v = item.model.len() / 3;
+    let d = PyDict::new(py);
+    d.set_item("img", item.img.into_pyarray(py).reshape([3, s, s])?)?;
+    d.set_item("choose", item.choose.into_pyarray(py))?;
+    d.set_item("model", item.model.into_pyarray(py).reshape([v, 3])?)?;
+    d.set_item("uvmap", {
+        let u = item.uvmap;
+        let us = ((u.len() / 3) as f64).sqrt() as usize;
+        u.into_pyarray(py).reshape([3, us, us])?
+    })?;
+    d.set_item("nocs", item.nocs.into_pyarray(py).reshape([n, 3])?)?;
+    let mask: Vec<i64> = item.mask.iter().map(|&m| m as i64).collect();
+    d.set_item("mask", mask.into_pyarray(py).reshape([s, s])?)?;
+    if let Some(m) = corr_mat {
+        d.set_item("corr_mat", m.into_pyarray(py).reshape([n, v])?)?;
+    }
+    if sparse {
+        let ids: Vec<i64> = item
+            .corr_vertices
+            .iter()
+            .flat_map(|t| t.map(|x| x as i64))
+            .collect();
+        let w: Vec<f32> = item.corr_weights.iter().flatten().copied().collect();
+        d.set_item("corr_ids", ids.into_pyarray(py).reshape([n, 3])?)?;
+        d.set_item("corr_weights", w.into_pyarray(py).reshape([n, 3])?)?;
+    }
+    if eval_keys {
+        d.set_item(
+            "tform_inv",
+            item.tform_inv.to_vec().into_pyarray(py).reshape([2, 3])?,
+        )?;
+        d.set_item("R_t", item.rt.to_vec().into_pyarray(py).reshape([4, 4])?)?;
+        d.set_item("img_path", item.image_path.to_string_lossy().into_owned())?;
+        d.set_item("subjectid", &item.key.subject_id)?;
+        d.set_item("imgid", &item.key.img_id)?;
+        d.set_item("facial_action", &item.key.facial_action)?;
+    }
+    if extras {
+        d.set_item("choose_box", item.choose_box.into_pyarray(py))?;
+        if let Some(b) = item.official_box {
+            d.set_item("box", b.to_vec().into_pyarray(py))?;
+        }
+        d.set_item("box_clipped", item.box_clipped)?;
+        let c = item.crop;
+        d.set_item("crop", (c.x0, c.y0, c.side, c.side_y))?;
+        d.set_item("image_path", item.image_path.to_string_lossy().into_owned())?;
+    }
+    Ok(d)
+}
+
+/// Where each sample is: its shard and its row in the shard.
+struct Located {
+    key: SampleKey,
+    split: String,
+    shard: usize,
+    row: usize,
+}
+
+/// A converted dataset's samples, read shard by shard (the last shard read is kept).
+#[pyclass(module = "arkit_tool._native", frozen)]
+struct Dataset {
+    inner: arkit_tool::dataset::Dataset,
+    rows: Vec<Located>,
+    cache: Mutex<Option<(usize, Vec<SampleRecord>)>>,
+}
+
+#[pymethods]
+impl Dataset {
+    #[new]
+    fn new(py: Python<'_>, dir: PathBuf) -> PyResult<Self> {
+        let (inner, rows) = run(py, || {
+            let data = arkit_tool::dataset::Dataset::open(&dir)?;
+            let splits = arkit_tool::eval_dataset::SplitLookup::read(&dir)?;
+            let mut rows = Vec::new();
+            for (k, shard) in data.shards().iter().enumerate() {
+                for (row, (key, listed)) in data.read_sample_keys(shard)?.into_iter().enumerate() {
+                    let split = splits.of_key(&key, &listed);
+                    rows.push(Located {
+                        key,
+                        split,
+                        shard: k,
+                        row,
+                    });
+                }
+            }
+            Ok((data, rows))
+        })?;
+        Ok(Dataset {
+            inner,
+            rows,
+            cache: Mutex::new(None),
+        })
+    }
+
+    fn __len__(&self) -> usize {
+        self.rows.len()
+    }
+
+    /// `(subject_id, facial_action, img_id, split)` per sample, in order.
+    fn keys(&self) -> Vec<(String, String, String, String)> {
+        self.rows
+            .iter()
+            .map(|r| {
+                (
+                    r.key.subject_id.clone(),
+                    r.key.facial_action.clone(),
+                    r.key.img_id.clone(),
+                    r.split.clone(),
+                )
+            })
+            .collect()
+    }
+
+    /// The samples tables' files, in shard order.
+    fn shard_files(&self) -> Vec<String> {
+        self.inner
+            .shards()
+            .iter()
+            .map(|s| {
+                self.inner
+                    .dir()
+                    .join(&s.samples_file)
+                    .to_string_lossy()
+                    .into_owned()
+            })
+            .collect()
+    }
+
+    /// The manifest (`dataset.json`) as JSON text.
+    fn manifest_json(&self) -> String {
+        serde_json::to_string(self.inner.manifest()).expect("the manifest serialises")
+    }
+
+    /// Sample `index` as a dict.
+    fn sample<'py>(&self, py: Python<'py>, index: usize) -> PyResult<Bound<'py, PyDict>> {
+        let loc = self.rows.get(index).ok_or_else(|| {
+            pyo3::exceptions::PyIndexError::new_err(format!(
+                "index {index} out of range for {} samples",
+                self.rows.len()
+            ))
+        })?;
+        let (shard, row) = (loc.shard, loc.row);
+        let r = run(py, || {
+            let mut cache = self.cache.lock().unwrap_or_else(|e| e.into_inner());
+            if cache.as_ref().map(|c| c.0) != Some(shard) {
+                let rows = self.inner.read_samples(&self.inner.shards()[shard])?;
+                *cache = Some((shard, rows));
+            }
+            let rows = &cache.as_ref().expect("just filled").1;
+            rows.get(row).cloned().ok_or_else(|| {
+                Error::invalid(
+                    "dataset",
+                    format!("shard {shard} has no row {row}: it changed"),
+                )
+            })
+        })?;
+        let d = PyDict::new(py);
+        d.set_item("subject_id", &r.key.subject_id)?;
+        d.set_item("facial_action", &r.key.facial_action)?;
+        d.set_item("img_id", &r.key.img_id)?;
+        d.set_item("split", &loc.split)?;
+        d.set_item("listed_split", &r.split)?;
+        d.set_item(
+            "image_path",
+            self.inner
+                .image_path(&r)
+                .map(|p| p.to_string_lossy().into_owned()),
+        )?;
+        d.set_item("image_width", r.image_width)?;
+        d.set_item("image_height", r.image_height)?;
+        let v = r.verts.len() / 3;
+        d.set_item("verts", r.verts.into_pyarray(py).reshape([v, 3])?)?;
+        d.set_item("R_t", r.rt.to_vec().into_pyarray(py).reshape([4, 4])?)?;
+        d.set_item("yaw_deg", r.yaw_deg)?;
+        d.set_item("pitch_deg", r.pitch_deg)?;
+        d.set_item("roll_deg", r.roll_deg)?;
+        d.set_item("translation_m", r.translation_m.to_vec().into_pyarray(py))?;
+        let l = r.landmarks_2d.len() / 2;
+        d.set_item(
+            "landmarks_2d",
+            r.landmarks_2d.into_pyarray(py).reshape([l, 2])?,
+        )?;
+        d.set_item("face_box", r.face_box.to_vec().into_pyarray(py))?;
+        Ok(d)
+    }
+}
+
+/// Robust PnP (P3P + MSAC + Levenberg-Marquardt) with OpenCV's conventions:
+/// `X_cam = R X + t`, pixels, `camera_matrix` 3x3, no distortion. Returns
+/// `(success, rvec (3, 1), tvec (3, 1), inliers (k, 1) int32)`, or
+/// `(False, None, None, None)`.
+#[pyfunction]
+#[pyo3(signature = (object_points, image_points, camera_matrix, reprojection_error=8.0, iterations_count=100, confidence=0.99, seed=0))]
+#[allow(clippy::too_many_arguments, clippy::type_complexity)]
+fn solve_pnp_ransac<'py>(
+    py: Python<'py>,
+    object_points: PyReadonlyArray2<'py, f64>,
+    image_points: PyReadonlyArray2<'py, f64>,
+    camera_matrix: PyReadonlyArray2<'py, f64>,
+    reprojection_error: f64,
+    iterations_count: usize,
+    confidence: f64,
+    seed: u64,
+) -> PyResult<(
+    bool,
+    Option<Py<PyAny>>,
+    Option<Py<PyAny>>,
+    Option<Py<PyAny>>,
+)> {
+    let (o, i, k) = (
+        object_points.as_array(),
+        image_points.as_array(),
+        camera_matrix.as_array(),
+    );
+    if o.ncols() != 3 || i.ncols() != 2 || o.nrows() != i.nrows() {
+        return Err(DataError::new_err(format!(
+            "object_points must be (N, 3) and image_points (N, 2) with the same N; got {:?} and {:?}",
+            o.shape(),
+            i.shape()
+        )));
+    }
+    if k.shape() != [3, 3] {
+        return Err(DataError::new_err(format!(
+            "camera_matrix must be 3x3, got {:?}",
+            k.shape()
+        )));
+    }
+    let object: Vec<Point3<f64>> = o
+        .rows()
+        .into_iter()
+        .map(|r| Point3::new(r[0], r[1], r[2]))
+        .collect();
+    let image: Vec<Point2<f64>> = i
+        .rows()
+        .into_iter()
+        .map(|r| Point2::new(r[0], r[1]))
+        .collect();
+    let intr = arkit_tool::pnp::Intrinsics {
+        fx: k[[0, 0]],
+        fy: k[[1, 1]],
+        cx: k[[0, 2]],
+        cy: k[[1, 2]],
+    };
+    let params = arkit_tool::pnp::RansacParams {
+        reprojection_threshold_px: reprojection_error,
+        max_iterations: iterations_count,
+        confidence,
+        seed,
+    };
+    let solved = py.detach(|| arkit_tool::pnp::solve_pnp_ransac(&object, &image, &intr, &params));
+    match solved {
+        Err(_) => Ok((false, None, None, None)),
+        Ok(s) => {
+            let r = s.rotation.scaled_axis();
+            let rvec = vec![r.x, r.y, r.z].into_pyarray(py).reshape([3, 1])?;
+            let t = s.translation;
+            let tvec = vec![t.x, t.y, t.z].into_pyarray(py).reshape([3, 1])?;
+            let inl: Vec<i32> = s.inliers.iter().map(|&x| x as i32).collect();
+            let m = inl.len();
+            let inliers = inl.into_pyarray(py).reshape([m, 1])?;
+            Ok((
+                true,
+                Some(rvec.into_any().unbind()),
+                Some(tvec.into_any().unbind()),
+                Some(inliers.into_any().unbind()),
+            ))
+        }
+    }
+}
+
+/// Projects canonical points `(N, 3)` with the release's `R_t` (4x4, row-vector form)
+/// and camera for a `width x height` image: `(N, 2)` pixels (the release's y flip).
+#[pyfunction]
+fn project<'py>(
+    py: Python<'py>,
+    verts: PyReadonlyArray2<'py, f64>,
+    r_t: PyReadonlyArray2<'py, f64>,
+    width: u32,
+    height: u32,
+) -> PyResult<Bound<'py, PyAny>> {
+    let (v, m) = (verts.as_array(), r_t.as_array());
+    if v.ncols() != 3 || m.shape() != [4, 4] {
+        return Err(DataError::new_err(format!(
+            "verts must be (N, 3) and R_t 4x4; got {:?} and {:?}",
+            v.shape(),
+            m.shape()
+        )));
+    }
+    let mut rt = [0f64; 16];
+    for (k, x) in m.iter().enumerate() {
+        rt[k] = *x;
+    }
+    let points: Vec<Point3<f64>> = v
+        .rows()
+        .into_iter()
+        .map(|r| Point3::new(r[0], r[1], r[2]))
+        .collect();
+    let n = points.len();
+    let out = run(py, || {
+        let pose = Pose::from_release_rt(&rt)?;
+        let camera = Camera::new(Camera::release_projection(), width, height)?;
+        Ok(camera
+            .project_all(&pose, &points)
+            .iter()
+            .flat_map(|p| [p.u, p.v])
+            .collect::<Vec<f64>>())
+    })?;
+    Ok(out.into_pyarray(py).reshape([n, 2])?.into_any())
+}
+
+/// The paper's metrics of `predictions` (`(subject_id, facial_action, img_id, R_t as 16
+/// numbers or None)` rows, or a Parquet/CSV file's path) on `dir`: `eval --json`'s
+/// output as JSON text.
+#[pyfunction]
+#[pyo3(signature = (dir, predictions=None, predictions_path=None, split=None))]
+fn evaluate(
+    py: Python<'_>,
+    dir: PathBuf,
+    predictions: Option<Vec<(String, String, String, Option<Vec<f64>>)>>,
+    predictions_path: Option<PathBuf>,
+    split: Option<String>,
+) -> PyResult<String> {
+    run(py, || {
+        let rows = match (predictions, predictions_path) {
+            (Some(rows), None) => rows
+                .into_iter()
+                .enumerate()
+                .map(|(i, (s, a, id, rt))| {
+                    Ok(arkit_tool::predictions_table::PredictionRecord {
+                        key: SampleKey {
+                            subject_id: s,
+                            facial_action: a,
+                            img_id: id,
+                        },
+                        rt: arkit_core_rt(rt.as_deref(), i)?,
+                        verts: None,
+                        mask_rle: None,
+                    })
+                })
+                .collect::<arkit_tool::Result<Vec<_>>>()?,
+            (None, Some(path)) => arkit_tool::predictions_table::read_predictions(&path)?,
+            _ => {
+                return Err(Error::invalid(
+                    "predictions",
+                    "give either rows or a file's path",
+                ));
+            }
+        };
+        let options = arkit_tool::eval_dataset::EvalOptions {
+            split,
+            keep_worst: 0,
+            ..Default::default()
+        };
+        let ev = arkit_tool::eval_dataset::evaluate(&dir, &rows, &options)?;
+        let p = &ev.problems;
+        Ok(serde_json::json!({
+            "summary": ev.summary,
+            "problems": {
+                "unknown": p.unknown.len(),
+                "duplicates": p.duplicates.len(),
+                "missing": p.missing,
+                "non_rotations": p.non_rotations.len(),
+            },
+        })
+        .to_string())
+    })
+}
+
+fn arkit_core_rt(rt: Option<&[f64]>, row: usize) -> arkit_tool::Result<Option<[f64; 16]>> {
+    match rt {
+        None => Ok(None),
+        Some(v) if v.len() == 16 => {
+            let mut m = [0.0; 16];
+            m.copy_from_slice(v);
+            Ok(Some(m))
+        }
+        Some(v) => Err(Error::invalid(
+            "predictions",
+            format!("row {row}: R_t has {} numbers, expected 16", v.len()),
+        )),
+    }
+}
+
+/// An image file decoded as the loader decodes it (the `image` crate): `(H, W, 3)` uint8 RGB.
+#[pyfunction]
+fn read_image<'py>(py: Python<'py>, path: PathBuf) -> PyResult<Bound<'py, PyAny>> {
+    let img = run(py, || {
+        let bytes = std::fs::read(&path).map_err(|e| Error::io(&path, e))?;
+        image::load_from_memory(&bytes)
+            .map(|i| i.to_rgb8())
+            .map_err(|e| Error::format(&path, format!("does not decode: {e}")))
+    })?;
+    let (w, h) = img.dimensions();
+    Ok(img
+        .into_raw()
+        .into_pyarray(py)
+        .reshape([h as usize, w as usize, 3])?
+        .into_any())
+}
+
+#[pymodule]
+fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
+    m.add_class::<Loader>()?;
+    m.add_class::<Dataset>()?;
+    m.add_function(wrap_pyfunction!(solve_pnp_ransac, m)?)?;
+    m.add_function(wrap_pyfunction!(project, m)?)?;
+    m.add_function(wrap_pyfunction!(evaluate, m)?)?;
+    m.add_function(wrap_pyfunction!(read_image, m)?)?;
+    m.add("DataError", m.py().get_type::<DataError>())?;
+    m.add("__version__", env!("CARGO_PKG_VERSION"))?;
+    Ok(())
+}

@@ -1,0 +1,82 @@
+"""Throughput of ARKitFaceDataset through torch's DataLoader, per core, side by side with
+the JPEG-decode floor, printed as `ratio:` lines against the official loader.
+
+    python python/bench/dataloader.py [--samples 256] [--resources DIR]
+
+Makes an 800x800 synthetic dataset with the arkit-tool binary (the real topology when
+the resource files are there), then, in one process on one core (torch threads 1,
+num_workers 0), times: decoding the dataset's JPEGs with Pillow (libjpeg-turbo: the floor
+of any loader that decodes the full image), and the DataLoader over the dataset (batch
+64, 1,024 points) for compat exact and official, dense and sparse correspondences. The
+official `ARKitDataset.get_item` costs 19-31 ms a sample on this kind of machine
+(../shared/measurements.md, measured side by side on 2026-12-01); the ratios use 19 ms
+(its fastest, test mode) and 31 ms (train mode with colour jitter).
+"""
+
+import argparse
+import os
+import pathlib
+import subprocess
+import tempfile
+import time
+
+import numpy as np
+
+ROOT = pathlib.Path(__file__).resolve().parents[2]
+OFFICIAL_MS = {"eval": 19.0, "train": 31.0}
+
+
+def main():
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--samples", type=int, default=256)
+    p.add_argument("--resources", default=str(ROOT.parent / "shared" / "arkitface-resources"))
+    p.add_argument("--bin", default=str(ROOT / "target" / "release" / "arkit-tool"))
+    a = p.parse_args()
+    os.environ.setdefault("OMP_NUM_THREADS", "1")
+    import torch
+
+    torch.set_num_threads(1)
+    from PIL import Image
+
+    import arkit_tool
+
+    tmp = pathlib.Path(tempfile.mkdtemp())
+    res = ["--resources", a.resources] if (pathlib.Path(a.resources) / "triangles.npy").exists() else []
+    per_subject = 16
+    subjects = max(1, (a.samples + per_subject - 1) // per_subject)
+    subprocess.run([a.bin, "synth", "--output", tmp / "release", "--subjects", str(subjects),
+                    "--images-per-subject", str(per_subject), "--size", "800x800",
+                    "--test-fraction", "0", "--seed", "1", *res], check=True, stdout=subprocess.DEVNULL)
+    subprocess.run([a.bin, "convert", "--input", tmp / "release", "--output", tmp / "data", *res],
+                   check=True, stdout=subprocess.DEVNULL)
+    data = tmp / "data"
+    print(f"dataset: {subjects * per_subject} samples, 800x800, topology: {'real' if res else 'built-in'}")
+
+    probe = arkit_tool.ARKitFaceDataset(data, split=None, mode="eval", n_pts=16)
+    paths = [probe.item(i, extras=True)["image_path"] for i in range(len(probe))]
+    t = time.perf_counter()
+    for path in paths:
+        np.asarray(Image.open(path).convert("RGB"))
+    floor_ms = (time.perf_counter() - t) / len(paths) * 1e3
+    print(f"JPEG decode (Pillow): {floor_ms:.2f} ms a sample")
+
+    for mode in ["eval", "train"]:
+        for compat in ["exact", "official"]:
+            for corr in ["dense", "sparse"]:
+                ds = arkit_tool.ARKitFaceDataset(data, split=None, mode=mode, compat=compat, corr=corr)
+                loader = torch.utils.data.DataLoader(ds, batch_size=64, shuffle=True, num_workers=0)
+                next(iter(loader))  # warm
+                t = time.perf_counter()
+                n = 0
+                for batch in loader:
+                    n += batch["img"].shape[0]
+                ms = (time.perf_counter() - t) / n * 1e3
+                name = f"{mode}/{compat}/{corr}"
+                print(f"{name}: {ms:.2f} ms a sample, {1e3 / ms:.0f} samples/s/core")
+                print(f"ratio: official get_item {OFFICIAL_MS[mode]:.0f} ms / arkit_tool {name} = "
+                      f"{OFFICIAL_MS[mode] / ms:.1f}x")
+                print(f"ratio: arkit_tool {name} / JPEG decode floor = {ms / floor_ms:.2f}")
+
+
+if __name__ == "__main__":
+    main()

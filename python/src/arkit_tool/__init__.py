@@ -1,0 +1,288 @@
+"""arkit_tool: the ARKitFace dataset for PyTorch, computed by the arkit-tool Rust library.
+
+- `open_dataset(DIR)`: a dataset written by `arkit-tool convert`: its samples table, its
+  splits, one sample by position or key.
+- `ARKitFaceDataset(DIR, ...)`: a map-style dataset returning what the official
+  `ARKitDataset.get_item` returns (same keys, shapes, dtypes and meaning), computed on
+  the fly from the release's images and meshes; `compat="official"` follows the official
+  loader's rules, `compat="exact"` ours.
+- `solve_pnp_ransac`, `project`, `evaluate`: PnP with OpenCV's conventions, the release's
+  projection, the paper's metrics.
+
+Errors are `DataError` (a `ValueError`) with a message naming the file and the problem.
+See docs/python.md in the repository.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from typing import Any, Dict, Iterable, List, Optional, Sequence, Tuple, Union
+
+import numpy as np
+
+from . import _native
+from ._native import DataError
+
+__all__ = [
+    "ARKitFaceDataset",
+    "ConvertedDataset",
+    "DataError",
+    "evaluate",
+    "open_dataset",
+    "project",
+    "read_image",
+    "solve_pnp_ransac",
+]
+__version__ = _native.__version__
+
+Key = Tuple[str, str, str]
+
+
+class ConvertedDataset:
+    """A dataset written by `arkit-tool convert` (the folder holding `dataset.json`)."""
+
+    def __init__(self, path: Union[str, os.PathLike]):
+        self.path = os.fspath(path)
+        self._native = _native.Dataset(self.path)
+        self._keys = self._native.keys()
+        self._index: Optional[Dict[Key, int]] = None
+
+    def __len__(self) -> int:
+        return len(self._keys)
+
+    def __repr__(self) -> str:
+        return f"ConvertedDataset({self.path!r}, {len(self)} samples, splits {self.splits})"
+
+    @property
+    def manifest(self) -> Dict[str, Any]:
+        """The conversion's manifest (`dataset.json`)."""
+        return json.loads(self._native.manifest_json())
+
+    @property
+    def keys(self) -> List[Key]:
+        """`(subject_id, facial_action, img_id)` of every sample, in order."""
+        return [k[:3] for k in self._keys]
+
+    @property
+    def splits(self) -> Dict[str, int]:
+        """Samples per split (`split`'s assignment when it has run, else the lists')."""
+        out: Dict[str, int] = {}
+        for k in self._keys:
+            out[k[3]] = out.get(k[3], 0) + 1
+        return out
+
+    def split_indices(self, split: str) -> List[int]:
+        """Positions of the samples of `split`."""
+        return [i for i, k in enumerate(self._keys) if k[3] == split]
+
+    def index_of(self, key: Key) -> int:
+        """The position of `(subject_id, facial_action, img_id)`."""
+        if self._index is None:
+            self._index = {k[:3]: i for i, k in enumerate(self._keys)}
+        try:
+            return self._index[tuple(str(x) for x in key)]
+        except KeyError:
+            raise DataError(f"{self.path}: no sample {tuple(key)}") from None
+
+    def sample(self, which: Union[int, Key]) -> Dict[str, Any]:
+        """One sample's row: verts (1220x3), R_t (4x4), image path and size, keys, pose."""
+        index = which if isinstance(which, (int, np.integer)) else self.index_of(which)
+        return self._native.sample(int(index))
+
+    @property
+    def shard_files(self) -> List[str]:
+        """The samples tables (Parquet), in order."""
+        return self._native.shard_files()
+
+    @property
+    def samples(self):
+        """The samples table: a polars DataFrame when polars is installed, else a pyarrow
+        Table (one of the two is needed)."""
+        try:
+            import polars as pl
+
+            return pl.concat([pl.read_parquet(f) for f in self.shard_files])
+        except ImportError:
+            pass
+        try:
+            import pyarrow as pa
+            import pyarrow.parquet as pq
+        except ImportError:
+            raise ImportError(
+                "the samples table needs polars or pyarrow: pip install pyarrow"
+            ) from None
+        return pa.concat_tables([pq.read_table(f) for f in self.shard_files])
+
+
+def open_dataset(path: Union[str, os.PathLike]) -> ConvertedDataset:
+    """Opens a dataset written by `arkit-tool convert`."""
+    return ConvertedDataset(path)
+
+
+class ARKitFaceDataset:
+    """What the official `ARKitDataset.get_item` returns, computed on the fly.
+
+    Keys: `img` (3 x S x S float32, normalised as the official transform), `choose`
+    (n_pts int64 crop pixel indices), `model` (1220 x 3 float32), `uvmap` (3 x S x S in
+    [-1, 1]), `nocs` (n_pts x 3), `mask` (S x S int64), `corr_mat` (n_pts x 1220 float32;
+    with `corr="sparse"` instead `corr_ids` (n_pts x 3 int64) and `corr_weights`
+    (n_pts x 3 float32); `"both"` gives all three), and in `mode="eval"` also
+    `tform_inv` (2 x 3), `R_t` (4 x 4), `img_path`, `subjectid`, `imgid`, `facial_action`.
+
+    `compat="official"` follows the official loader's rules (its integer box, cv2's
+    affine warp, its rasterizer's screen-space weights, its UV map and point choice);
+    `"exact"` follows ours. In `mode="train"` the official augmentation (box jitter,
+    colour jitter) is drawn from `(seed, epoch, index)`: call `set_epoch` each epoch; the
+    same batches come out whatever the number of DataLoader workers.
+
+    `split` is a split name (`"train"`, `"test"`, ...) or None for every sample;
+    `resources` the release's resource folder when the dataset was converted with it and
+    that folder moved (by default the folder the conversion recorded).
+    """
+
+    def __init__(
+        self,
+        path: Union[str, os.PathLike],
+        split: Optional[str] = "train",
+        mode: str = "train",
+        compat: str = "exact",
+        img_size: int = 192,
+        n_pts: int = 1024,
+        seed: int = 0,
+        resources: Optional[Union[str, os.PathLike]] = None,
+        corr: str = "dense",
+        tensors: bool = False,
+    ):
+        if corr not in ("dense", "sparse", "both"):
+            raise DataError(f"corr: {corr!r}: expected 'dense', 'sparse' or 'both'")
+        self.path = os.fspath(path)
+        self.split = split
+        self.mode = mode
+        self.compat = compat
+        self.img_size = int(img_size)
+        self.n_pts = int(n_pts)
+        self.seed = int(seed)
+        self.resources = None if resources is None else os.fspath(resources)
+        self.corr = corr
+        self.tensors = bool(tensors)
+        self.epoch = 0
+        self._loader = self._open()
+        if self.tensors:
+            import torch  # noqa: F401  (fail now, not in a worker)
+
+    def _open(self):
+        return _native.Loader(
+            self.path,
+            self.split,
+            self.mode,
+            self.compat,
+            self.img_size,
+            self.n_pts,
+            self.seed,
+            self.resources,
+        )
+
+    # Pickled for spawn-started workers: the native loader is reopened there.
+    def __getstate__(self):
+        state = dict(self.__dict__)
+        state["_loader"] = None
+        return state
+
+    def __setstate__(self, state):
+        self.__dict__.update(state)
+        self._loader = self._open()
+
+    def __len__(self) -> int:
+        return len(self._loader)
+
+    def set_epoch(self, epoch: int) -> None:
+        """The epoch whose random draws `__getitem__` uses (training mode)."""
+        self.epoch = int(epoch)
+
+    def key(self, index: int) -> Tuple[str, str, str, str]:
+        """`(subject_id, facial_action, img_id, split)` of sample `index`."""
+        return self._loader.key(index)
+
+    def item(self, index: int, epoch: Optional[int] = None, extras: bool = False) -> Dict[str, Any]:
+        """Sample `index` (of `epoch`, default the current one). `extras` adds, for
+        checks: `choose_box` and `box` (official: the points before mapping, the integer
+        box), `box_clipped`, `crop` (x0, y0, side_x, side_y) and `image_path`."""
+        if index < 0:
+            index += len(self)
+        d = self._loader.item(
+            int(index),
+            self.epoch if epoch is None else int(epoch),
+            self.corr,
+            self.mode == "eval",
+            extras,
+        )
+        if self.tensors:
+            import torch
+
+            d = {k: torch.from_numpy(v) if isinstance(v, np.ndarray) else v for k, v in d.items()}
+        return d
+
+    def __getitem__(self, index: int) -> Dict[str, Any]:
+        return self.item(index)
+
+
+def solve_pnp_ransac(
+    object_points,
+    image_points,
+    camera_matrix,
+    dist_coeffs=None,
+    reprojection_error: float = 8.0,
+    iterations_count: int = 100,
+    confidence: float = 0.99,
+    seed: int = 0,
+):
+    """PnP with RANSAC, OpenCV's conventions (`cv2.solvePnPRansac`'s arguments and
+    result): `X_cam = R X + t`. Returns `(success, rvec, tvec, inliers)`, rvec and tvec
+    (3, 1) float64, inliers (k, 1) int32; `(False, None, None, None)` on failure.
+    Distortion is not modelled: `dist_coeffs` must be None or zeros."""
+    if dist_coeffs is not None and np.any(np.asarray(dist_coeffs) != 0):
+        raise DataError("dist_coeffs: lens distortion is not supported; undistort the points first")
+    obj = np.ascontiguousarray(np.asarray(object_points, dtype=np.float64).reshape(-1, 3))
+    img = np.ascontiguousarray(np.asarray(image_points, dtype=np.float64).reshape(-1, 2))
+    k = np.ascontiguousarray(np.asarray(camera_matrix, dtype=np.float64))
+    return _native.solve_pnp_ransac(
+        obj, img, k, float(reprojection_error), int(iterations_count), float(confidence), int(seed)
+    )
+
+
+def read_image(path: Union[str, os.PathLike]) -> np.ndarray:
+    """An image file decoded as the loader decodes it: (H, W, 3) uint8 RGB."""
+    return _native.read_image(os.fspath(path))
+
+
+def project(verts, R_t, width: int, height: int) -> np.ndarray:
+    """Canonical points (N, 3) to image pixels (N, 2) with the release's row-vector
+    `R_t` and camera, for a `width x height` image."""
+    v = np.ascontiguousarray(np.asarray(verts, dtype=np.float64).reshape(-1, 3))
+    m = np.ascontiguousarray(np.asarray(R_t, dtype=np.float64))
+    return _native.project(v, m, int(width), int(height))
+
+
+def evaluate(
+    dataset: Union[str, os.PathLike],
+    predictions: Union[str, os.PathLike, Dict[Key, Any], Iterable[Tuple[str, str, str, Any]]],
+    split: Optional[str] = None,
+) -> Dict[str, Any]:
+    """The paper's metrics (what `arkit-tool eval --json` prints) of `predictions`: a
+    predictions file (Parquet or CSV), a dict `{(subject_id, facial_action, img_id):
+    R_t}` or rows `(subject_id, facial_action, img_id, R_t)`; an `R_t` of None is a
+    failed prediction."""
+    if isinstance(predictions, (str, os.PathLike)):
+        text = _native.evaluate(os.fspath(dataset), None, os.fspath(predictions), split)
+        return json.loads(text)
+    items: Sequence = list(predictions.items()) if isinstance(predictions, dict) else list(predictions)
+    rows = []
+    for item in items:
+        if isinstance(predictions, dict):
+            (s, a, i), rt = item
+        else:
+            s, a, i, rt = item
+        flat = None if rt is None else [float(x) for x in np.asarray(rt, dtype=np.float64).reshape(-1)]
+        rows.append((str(s), str(a), str(i), flat))
+    return json.loads(_native.evaluate(os.fspath(dataset), rows, None, split))

@@ -1,0 +1,1156 @@
+//! `loader`: one training sample as the official PyTorch loader returns it, computed on
+//! the fly from a converted dataset: what the Python package's `ARKitFaceDataset`
+//! serves.
+//!
+//! The official `ARKitDataset.get_item` (`data/arkit_dataset.py` of the official code)
+//! returns, per sample: `img` (the `S x S` crop, `ToTensor` + ImageNet `Normalize`,
+//! channels first), `choose` (`n_pts` crop pixel indices), `model` (the mesh, 1220 x 3),
+//! `uvmap` (3 x S x S, the UV position map in [-1, 1]), `nocs` (the points' canonical
+//! positions times 4.5), `mask` (S x S, 0/1), `corr_mat` (n_pts x 1220: each point's
+//! triangle's three vertex weights) and, in evaluation, `tform_inv` (crop pixel to image,
+//! 2 x 3) and `R_t`. [`FaceLoader::item`] computes them for one sample; the vertex ids
+//! and weights are kept sparse ([`LoaderItem::corr_vertices`]), the dense matrix is the
+//! caller's choice.
+//!
+//! Two rule sets ([`Compat`]):
+//! - [`Compat::Official`]: every value by the official loader's rules: its integer box
+//!   ([`official_box`]: `int()` of the landmarks' box edges), the `cv2` affine map and
+//!   `cv2.warpAffine` resampling ([`crate::official_crop`]), its rasterizer over the whole
+//!   image (screen-space weights), its point choice (face pixels of the full-resolution
+//!   mask sliced `mask[top:bottom+1, left:right+1]` with Python's slice rules, drawn
+//!   without repetition or repeated cyclically, mapped to crop pixels by the affine map
+//!   and `floor`), its UV map (the UV triangles drawn at `uv * (S - 1)`, the ring at 1.1
+//!   times the contour in the `4.5 v + 0.5` space, [`OfficialUvLayout`]).
+//! - [`Compat::Exact`]: ours, as `render` stores them: the square box at pixel centres,
+//!   our bilinear crop, our rasterizer at crop resolution (perspective-correct weights),
+//!   points drawn from the crop mask, our UV map (texel centres, `--uv-size` = `S`).
+//!
+//! Training mode ([`LoaderMode::Train`]) adds the official online augmentation: the box
+//! centre moved by up to 0.15 of the landmarks' box size in x and y, its half-side scaled
+//! by 0.95-1.05, then a colour jitter with torchvision's `ColorJitter(0.3, 0.3, 0.2,
+//! 0.01)` ranges ([`jitter_colour`]). Every random draw comes from [`Rng::for_stream`] of
+//! `(seed, epoch, index)`, so an item is the same whichever worker process computes it.
+//!
+//! Where the official loader fails (its box leaves the image's top or left edge, the
+//! slice of a negative index is empty and `np.pad` raises; its `__getitem__` then trains
+//! on a random other sample), [`FaceLoader::item`] returns an error saying so in
+//! evaluation mode; in training mode the box jitter is drawn again (up to
+//! [`JITTER_DRAWS`] times, then the box without jitter) so a usable box is never replaced
+//! by another sample.
+//!
+//! Tested in `tests/loader.rs` (every field against the library's render path and
+//! values derived by hand, determinism across calls, the official slice rule) and by the
+//! Python package's tests against a numpy re-implementation of the official formulas.
+
+use crate::conventions::{Camera, Pose};
+use crate::dataset::Dataset;
+use crate::error::{Error, Result};
+use crate::official_crop::{affine_transform, box_crop, warp_affine, warp_mask};
+use crate::raster::{ScreenVertex, VisibilityBuffer};
+use crate::release::SampleKey;
+use crate::render::{
+    CropSampling, CropTransform, FaceRenderer, RasterMode, UvMapper, UvTexels, sample_points,
+};
+use crate::rng::Rng;
+use crate::topology::FaceTopology;
+use nalgebra::Point3;
+use std::path::{Path, PathBuf};
+
+/// Which rules the values follow (see the module docs).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Compat {
+    /// Ours (`render`'s default).
+    Exact,
+    /// The official loader's.
+    Official,
+}
+
+impl Compat {
+    /// `"exact"` or `"official"`.
+    pub fn parse(s: &str) -> Result<Self> {
+        match s {
+            "exact" => Ok(Compat::Exact),
+            "official" => Ok(Compat::Official),
+            _ => Err(Error::invalid(
+                "compat",
+                format!("'{s}': expected 'exact' or 'official'"),
+            )),
+        }
+    }
+}
+
+/// Training (random box jitter and colour jitter) or evaluation (neither).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum LoaderMode {
+    /// The official training transform.
+    Train,
+    /// The official test transform.
+    Eval,
+}
+
+impl LoaderMode {
+    /// `"train"` or `"eval"`.
+    pub fn parse(s: &str) -> Result<Self> {
+        match s {
+            "train" => Ok(LoaderMode::Train),
+            "eval" => Ok(LoaderMode::Eval),
+            _ => Err(Error::invalid(
+                "mode",
+                format!("'{s}': expected 'train' or 'eval'"),
+            )),
+        }
+    }
+}
+
+/// What [`FaceLoader::open`] takes.
+#[derive(Clone, Debug)]
+pub struct LoaderOptions {
+    /// The split to serve (`"train"`, `"test"`, ...), or `None` for every sample. The
+    /// split of `split` when the dataset has a `splits.json`, else the listed split.
+    pub split: Option<String>,
+    /// Training or evaluation.
+    pub mode: LoaderMode,
+    /// Whose rules.
+    pub compat: Compat,
+    /// Crop side `S` (the official 192), 16..=1024.
+    pub img_size: u32,
+    /// Points per sample (the official 1024), 1..=65536.
+    pub n_pts: usize,
+    /// Seed of every random draw.
+    pub seed: u64,
+}
+
+impl LoaderOptions {
+    /// Checks the ranges.
+    pub fn validate(&self) -> Result<()> {
+        if !(16..=1024).contains(&self.img_size) {
+            return Err(Error::invalid(
+                "img_size",
+                format!("{}: must be 16..=1024", self.img_size),
+            ));
+        }
+        if !(1..=65536).contains(&self.n_pts) {
+            return Err(Error::invalid(
+                "n_pts",
+                format!("{}: must be 1..=65536", self.n_pts),
+            ));
+        }
+        Ok(())
+    }
+}
+
+/// How often a training box jitter is drawn again when the official box fails.
+pub const JITTER_DRAWS: usize = 10;
+
+/// ImageNet mean and standard deviation, the official `Normalize`.
+pub const IMAGE_MEAN: [f32; 3] = [0.485, 0.456, 0.406];
+/// See [`IMAGE_MEAN`].
+pub const IMAGE_STD: [f32; 3] = [0.229, 0.224, 0.225];
+
+/// One sample as the official loader returns it (see the module docs). Arrays are
+/// row-major and channels first where the official tensors are.
+#[derive(Clone, Debug, PartialEq)]
+pub struct LoaderItem {
+    /// The sample's key.
+    pub key: SampleKey,
+    /// The image file (absolute), or the dataset folder for an embedded image.
+    pub image_path: PathBuf,
+    /// `3 x S x S`, normalised.
+    pub img: Vec<f32>,
+    /// `n_pts` crop pixel indices (`row * S + col`).
+    pub choose: Vec<i64>,
+    /// The mesh, `1220 x 3` (metres, canonical frame).
+    pub model: Vec<f32>,
+    /// `3 x S x S` in [-1, 1] (`-1` where no UV triangle covers the texel).
+    pub uvmap: Vec<f32>,
+    /// `n_pts x 3`: each point's canonical position times 4.5.
+    pub nocs: Vec<f32>,
+    /// `S x S` crop face mask.
+    pub mask: Vec<u8>,
+    /// `n_pts`: the three vertex ids of each point's triangle.
+    pub corr_vertices: Vec<[u32; 3]>,
+    /// `n_pts`: their weights (sum 1).
+    pub corr_weights: Vec<[f32; 3]>,
+    /// Crop pixel `(col, row)` to image point: `[a, b, c, d, e, f]`, `u = a col + b row +
+    /// c`, `v = d col + e row + f` (the official `tform_inv`).
+    pub tform_inv: [f64; 6],
+    /// `R_t`, row-major.
+    pub rt: [f64; 16],
+    /// The crop.
+    pub crop: CropTransform,
+    /// [`Compat::Official`] only: the integer box `[left, top, right, bottom]`.
+    pub official_box: Option<[i64; 4]>,
+    /// [`Compat::Official`] only: the chosen points as indices into the flattened
+    /// `mask[top:bottom+1, left:right+1]` (the official `choose` before it is mapped).
+    pub choose_box: Vec<i64>,
+    /// [`Compat::Official`] only: whether the box leaves the image, so that the slice
+    /// is clipped (right or bottom) or wrapped (left or top, Python's negative indices)
+    /// and the official mapping of points to crop pixels misplaces them.
+    pub box_clipped: bool,
+}
+
+/// One row of the index [`FaceLoader`] keeps per sample (the mesh is read per item).
+#[derive(Clone, Debug)]
+struct IndexRow {
+    key: SampleKey,
+    split: String,
+    image_path: String,
+    info_path: PathBuf,
+    width: u32,
+    height: u32,
+    rt: [f64; 16],
+    jpeg: Option<Vec<u8>>,
+    /// The mesh, kept only with an embedded image (the release may be gone).
+    verts: Option<Vec<f32>>,
+}
+
+/// The official UV layout rasterized once for one map size: per texel the UV triangle
+/// and its screen-space weights, by the official rasterizer's rules at `uv * (S - 1)`.
+#[derive(Clone, Debug)]
+pub struct OfficialUvLayout {
+    size: u32,
+    triangles: Vec<[u32; 3]>,
+    /// Per texel, the triangle index or [`VisibilityBuffer::EMPTY`].
+    triangle: Vec<u32>,
+    bary: Vec<[f32; 3]>,
+    ring_of: Vec<u32>,
+    centroid_loops: Vec<Vec<u32>>,
+    extended: usize,
+}
+
+impl OfficialUvLayout {
+    /// The layout of `uv` (its UV coordinates, triangles, ring and hole loops) drawn at
+    /// `size` by the official rasterizer's rules at `uv * (S - 1)`; with `release` (the
+    /// release's `tris_2500x3_202110.npy` and the 1,279 rows of
+    /// `uv_coords_std_202109.npy`) the release's own triangles and vertex order instead
+    /// ([`OfficialUvLayout::release_order`]).
+    pub fn new(
+        uv: &UvMapper,
+        release: Option<(Vec<[u32; 3]>, Vec<[f32; 2]>)>,
+        vertex_count: usize,
+        size: u32,
+    ) -> Result<Self> {
+        let (coords, triangles, ring_of, centroid_loops) = match release {
+            Some((tris, coords)) => {
+                let (ring_of, loops) = Self::release_order(&tris, vertex_count, coords.len())?;
+                (coords, tris, ring_of, loops)
+            }
+            None => (
+                uv.uv.clone(),
+                uv.triangles.clone(),
+                uv.ring_of.clone(),
+                uv.centroid_loops.clone(),
+            ),
+        };
+        if let Some(t) = triangles
+            .iter()
+            .flatten()
+            .find(|&&v| v as usize >= coords.len())
+        {
+            return Err(Error::invalid(
+                "UV triangles",
+                format!("vertex {t} beyond the {} UV vertices", coords.len()),
+            ));
+        }
+        let s = (size - 1) as f32;
+        let screen: Vec<ScreenVertex> = coords
+            .iter()
+            .map(|t| ScreenVertex {
+                x: t[0] * s,
+                y: t[1] * s,
+                inv_w: 1.0,
+            })
+            .collect();
+        let mut vb = VisibilityBuffer::new(size, size);
+        crate::raster::rasterize_mesh_official(&mut vb, &screen, &triangles)
+            .map_err(|e| Error::invalid("UV triangles", e.to_string()))?;
+        Ok(OfficialUvLayout {
+            size,
+            triangles,
+            triangle: vb.triangle,
+            bary: vb.bary,
+            ring_of,
+            centroid_loops,
+            extended: coords.len(),
+        })
+    }
+
+    /// The release's extended vertices, read off its UV triangles: after the mesh
+    /// triangles come, for ring vertex `V + k`, the pair `[c_k, V+k+1, V+k]`,
+    /// `[c_k, c_k+1, V+k+1]` (so `c_k`, the first column of every other ring triangle,
+    /// is the contour vertex the official loader scales by 1.1 for row `V + k`), then a
+    /// fan `[l_i, centre, l_i+1]` around each hole centroid (the last three rows), whose
+    /// first column is the hole's loop in the official order.
+    pub fn release_order(
+        tris: &[[u32; 3]],
+        vertex_count: usize,
+        rows: usize,
+    ) -> Result<(Vec<u32>, Vec<Vec<u32>>)> {
+        let v = vertex_count as u32;
+        let bad = |why: &str| Error::invalid("tris_2500x3_202110.npy", why.to_string());
+        if rows < vertex_count + 3 {
+            return Err(bad("fewer UV rows than the mesh and three hole centroids"));
+        }
+        let centres: Vec<u32> = (rows as u32 - 3..rows as u32).collect();
+        let first_extra = tris
+            .iter()
+            .position(|t| t.iter().any(|&x| x >= v))
+            .ok_or_else(|| bad("no triangle beyond the mesh"))?;
+        let extra = &tris[first_extra..];
+        let ring: Vec<&[u32; 3]> = extra
+            .iter()
+            .filter(|t| !t.iter().any(|x| centres.contains(x)))
+            .collect();
+        let ring_of: Vec<u32> = ring.iter().step_by(2).map(|t| t[0]).collect();
+        if ring_of.len() != rows - vertex_count - 3 || ring_of.iter().any(|&c| c >= v) {
+            return Err(bad(
+                "the ring triangles do not pair one contour vertex per ring row",
+            ));
+        }
+        let loops = centres
+            .iter()
+            .map(|&c| {
+                let fan: Vec<u32> = extra.iter().filter(|t| t[1] == c).map(|t| t[0]).collect();
+                if fan.len() < 3 || fan.iter().any(|&x| x >= v) {
+                    return Err(bad("a hole centroid without its fan"));
+                }
+                Ok(fan)
+            })
+            .collect::<Result<Vec<_>>>()?;
+        Ok((ring_of, loops))
+    }
+
+    /// The official UV map of `verts` (metres), channels first, in [-1, 1]: the
+    /// positions mapped by `4.5 v + 0.5`, the ring at 1.1 times its contour vertex in that
+    /// space, the hole centroids their loops' means, interpolated with the layout's
+    /// weights, clipped to [0, 1] and mapped by `2 x - 1` (uncovered texels -1).
+    pub fn uv_map(&self, verts: &[Point3<f32>]) -> Vec<f32> {
+        let mut colors: Vec<[f32; 3]> = verts
+            .iter()
+            .map(|p| [p.x * 4.5 + 0.5, p.y * 4.5 + 0.5, p.z * 4.5 + 0.5])
+            .collect();
+        for &c in &self.ring_of {
+            let v = colors[c as usize];
+            colors.push([v[0] * 1.1, v[1] * 1.1, v[2] * 1.1]);
+        }
+        for l in &self.centroid_loops {
+            // numpy's float32 mean over axis 0: a running float32 sum, then / n.
+            let mut sum = [0f32; 3];
+            for &i in l {
+                for (s, v) in sum.iter_mut().zip(colors[i as usize]) {
+                    *s += v;
+                }
+            }
+            colors.push(sum.map(|s| s / l.len() as f32));
+        }
+        debug_assert_eq!(colors.len(), self.extended);
+        let n = (self.size * self.size) as usize;
+        let mut out = vec![-1f32; 3 * n];
+        for (i, (&t, w)) in self.triangle.iter().zip(&self.bary).enumerate() {
+            if t == VisibilityBuffer::EMPTY {
+                continue;
+            }
+            let [a, b, c] = self.triangles[t as usize].map(|v| colors[v as usize]);
+            for k in 0..3 {
+                let v = w[0] * a[k] + w[1] * b[k] + w[2] * c[k];
+                out[k * n + i] = v.clamp(0.0, 1.0) * 2.0 - 1.0;
+            }
+        }
+        out
+    }
+}
+
+/// The official integer box around landmarks `(u, v)`, with the training jitter
+/// `(dx, dy, scale)` (`None` in evaluation): `[left, top, right, bottom]`, each
+/// `int(centre -/+ 0.75 scale size)` (truncation toward zero, as Python's `int`), where
+/// `size` is the larger side of the landmarks' box.
+pub fn official_box(landmarks: &[(f64, f64)], jitter: Option<(f64, f64, f64)>) -> [i64; 4] {
+    let (mut x0, mut y0, mut x1, mut y1) = (f64::MAX, f64::MAX, f64::MIN, f64::MIN);
+    for &(u, v) in landmarks {
+        x0 = x0.min(u);
+        x1 = x1.max(u);
+        y0 = y0.min(v);
+        y1 = y1.max(v);
+    }
+    let size = (x1 - x0).max(y1 - y0);
+    let (mut cx, mut cy) = (0.5 * (x1 + x0), 0.5 * (y1 + y0));
+    let mut ss = 0.75;
+    if let Some((dx, dy, scale)) = jitter {
+        cx += dx;
+        cy += dy;
+        ss *= scale;
+    }
+    [
+        (cx - ss * size).trunc() as i64,
+        (cy - ss * size).trunc() as i64,
+        (cx + ss * size).trunc() as i64,
+        (cy + ss * size).trunc() as i64,
+    ]
+}
+
+/// Python's `range(len)[start:stop]` for a step of 1: the clipped, wrapped bounds.
+pub fn python_slice(start: i64, stop: i64, len: i64) -> std::ops::Range<i64> {
+    let fix = |i: i64| {
+        if i < 0 { (i + len).max(0) } else { i.min(len) }
+    };
+    let (a, b) = (fix(start), fix(stop));
+    a..b.max(a)
+}
+
+/// torchvision's `ColorJitter(0.3, 0.3, 0.2, 0.01)`: brightness, contrast and saturation
+/// factors uniform in [0.7, 1.3], [0.7, 1.3], [0.8, 1.2], a hue shift uniform in
+/// [-0.01, 0.01] of a turn, applied in a random order ([`ColourJitter::apply`]).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct ColourJitter {
+    /// Brightness factor (1: unchanged).
+    pub brightness: f32,
+    /// Contrast factor.
+    pub contrast: f32,
+    /// Saturation factor.
+    pub saturation: f32,
+    /// Hue shift in turns.
+    pub hue: f32,
+    /// The order of the four operations (0 brightness, 1 contrast, 2 saturation, 3 hue).
+    pub order: [usize; 4],
+}
+
+impl ColourJitter {
+    /// One draw from `rng`.
+    pub fn draw(rng: &mut Rng) -> Self {
+        let brightness = rng.uniform(0.7, 1.3) as f32;
+        let contrast = rng.uniform(0.7, 1.3) as f32;
+        let saturation = rng.uniform(0.8, 1.2) as f32;
+        let hue = rng.uniform(-0.01, 0.01) as f32;
+        let mut order = [0usize, 1, 2, 3];
+        for k in (1..4).rev() {
+            order.swap(k, rng.below(k as u64 + 1) as usize);
+        }
+        ColourJitter {
+            brightness,
+            contrast,
+            saturation,
+            hue,
+            order,
+        }
+    }
+
+    /// Applies the jitter to an interleaved RGB image, each operation rounded back to
+    /// bytes as PIL does between operations. Brightness blends with black, contrast with
+    /// the grey of the image's mean luma (ITU-R 601 integer luma, as PIL's `L`),
+    /// saturation with each pixel's luma; the hue shift rotates the HSV hue.
+    pub fn apply(&self, rgb: &mut [u8]) {
+        let luma = |p: &[u8]| (p[0] as u32 * 299 + p[1] as u32 * 587 + p[2] as u32 * 114) / 1000;
+        let blend =
+            |v: f32, grey: f32, f: f32| (grey + f * (v - grey)).round().clamp(0.0, 255.0) as u8;
+        for op in self.order {
+            match op {
+                0 => rgb
+                    .iter_mut()
+                    .for_each(|v| *v = blend(*v as f32, 0.0, self.brightness)),
+                1 => {
+                    let n = (rgb.len() / 3).max(1) as f64;
+                    let mean = rgb.chunks_exact(3).map(|p| luma(p) as f64).sum::<f64>() / n;
+                    let grey = (mean + 0.5).floor() as f32;
+                    rgb.iter_mut()
+                        .for_each(|v| *v = blend(*v as f32, grey, self.contrast));
+                }
+                2 => rgb.chunks_exact_mut(3).for_each(|p| {
+                    let grey = luma(p) as f32;
+                    p.iter_mut()
+                        .for_each(|v| *v = blend(*v as f32, grey, self.saturation));
+                }),
+                _ => {
+                    if self.hue != 0.0 {
+                        rgb.chunks_exact_mut(3).for_each(|p| shift_hue(p, self.hue))
+                    }
+                }
+            }
+        }
+    }
+}
+
+/// [`ColourJitter::draw`] then [`ColourJitter::apply`].
+pub fn jitter_colour(rgb: &mut [u8], rng: &mut Rng) {
+    ColourJitter::draw(rng).apply(rgb)
+}
+
+/// Rotates one pixel's HSV hue by `h` turns.
+fn shift_hue(p: &mut [u8], h: f32) {
+    let [r, g, b] = [p[0], p[1], p[2]].map(|v| v as f32 / 255.0);
+    let max = r.max(g).max(b);
+    let min = r.min(g).min(b);
+    let d = max - min;
+    if d == 0.0 {
+        return;
+    }
+    let mut hue = if max == r {
+        ((g - b) / d).rem_euclid(6.0)
+    } else if max == g {
+        (b - r) / d + 2.0
+    } else {
+        (r - g) / d + 4.0
+    } / 6.0;
+    hue = (hue + h).rem_euclid(1.0);
+    let (sat, val) = (d / max, max);
+    let i = (hue * 6.0).floor();
+    let f = hue * 6.0 - i;
+    let (pp, q, t) = (
+        val * (1.0 - sat),
+        val * (1.0 - sat * f),
+        val * (1.0 - sat * (1.0 - f)),
+    );
+    let (r, g, b) = match i as i32 % 6 {
+        0 => (val, t, pp),
+        1 => (q, val, pp),
+        2 => (pp, val, t),
+        3 => (pp, q, val),
+        4 => (t, pp, val),
+        _ => (val, pp, q),
+    };
+    for (o, v) in p.iter_mut().zip([r, g, b]) {
+        *o = (v * 255.0).round().clamp(0.0, 255.0) as u8;
+    }
+}
+
+/// `ToTensor` then `Normalize(IMAGE_MEAN, IMAGE_STD)` of an interleaved RGB crop:
+/// channels first.
+pub fn normalise(rgb: &[u8]) -> Vec<f32> {
+    let n = rgb.len() / 3;
+    let mut out = vec![0f32; 3 * n];
+    for (i, p) in rgb.chunks_exact(3).enumerate() {
+        for k in 0..3 {
+            out[k * n + i] = (p[k] as f32 / 255.0 - IMAGE_MEAN[k]) / IMAGE_STD[k];
+        }
+    }
+    out
+}
+
+/// A converted dataset served sample by sample (see the module docs). Holds a small
+/// index per sample (key, image path, size, `R_t`); the mesh is read from the sample's
+/// `_info.npz` per item (checked against the table's `R_t`), as the official loader
+/// reads it.
+#[derive(Debug)]
+pub struct FaceLoader {
+    dataset: Dataset,
+    rows: Vec<IndexRow>,
+    renderer: FaceRenderer,
+    camera_projection: nalgebra::Matrix4<f64>,
+    uv_texels: UvTexels,
+    uv: UvMapper,
+    official_uv: OfficialUvLayout,
+    options: LoaderOptions,
+}
+
+impl FaceLoader {
+    /// Opens `dir` (what `convert` wrote) for `options`, with `topology` (the one the
+    /// dataset was converted with; checked) and, for [`Compat::Official`], the release's
+    /// UV triangles `uv_triangles` when known.
+    pub fn open(
+        dir: &Path,
+        topology: FaceTopology,
+        uv_triangles: Option<Vec<[u32; 3]>>,
+        options: LoaderOptions,
+    ) -> Result<Self> {
+        options.validate()?;
+        let dataset = Dataset::open(dir)?;
+        crate::convert::check_topology(dataset.manifest(), &topology)?;
+        let splits = crate::eval_dataset::SplitLookup::read(dir)?;
+        let layout = crate::convert::DiscoveredInput {
+            root: dataset.image_root().to_path_buf(),
+            kind: dataset.manifest().layout,
+            lists: Vec::new(),
+        };
+        let mut rows = Vec::new();
+        for shard in dataset.shards() {
+            for r in dataset.read_samples(shard)? {
+                let split = splits.of(&r);
+                if options.split.as_deref().is_some_and(|s| s != split) {
+                    continue;
+                }
+                rows.push(IndexRow {
+                    info_path: dataset
+                        .image_root()
+                        .join(layout.info_relative(&r.split, &r.key)),
+                    key: r.key,
+                    split,
+                    image_path: r.image_path,
+                    width: r.image_width,
+                    height: r.image_height,
+                    rt: r.rt,
+                    verts: r.jpeg.is_some().then_some(r.verts),
+                    jpeg: r.jpeg,
+                });
+            }
+        }
+        let uv = UvMapper::derive(&topology)?;
+        let uv_texels = uv.texels(options.img_size);
+        let release_uv = uv_triangles.map(|t| {
+            let mut coords = topology.uv.clone();
+            coords.extend_from_slice(&topology.uv_extension);
+            (t, coords)
+        });
+        let official_uv =
+            OfficialUvLayout::new(&uv, release_uv, topology.vertex_count, options.img_size)?;
+        // The official loader reads the projection matrix as float32
+        // (`np.loadtxt(..., dtype=np.float32)`): its screen positions follow those values.
+        let projection = match options.compat {
+            Compat::Exact => Camera::release_projection(),
+            Compat::Official => Camera::release_projection().map(|x| x as f32 as f64),
+        };
+        let mut renderer = FaceRenderer::new(topology, projection)?;
+        renderer.mode = match options.compat {
+            Compat::Exact => RasterMode::Exact,
+            Compat::Official => RasterMode::Official,
+        };
+        Ok(FaceLoader {
+            dataset,
+            rows,
+            renderer,
+            camera_projection: projection,
+            uv_texels,
+            uv,
+            official_uv,
+            options,
+        })
+    }
+
+    /// Samples served.
+    pub fn len(&self) -> usize {
+        self.rows.len()
+    }
+
+    /// Whether no sample is served.
+    pub fn is_empty(&self) -> bool {
+        self.rows.is_empty()
+    }
+
+    /// The options.
+    pub fn options(&self) -> &LoaderOptions {
+        &self.options
+    }
+
+    /// The key and split of sample `index`.
+    pub fn key(&self, index: usize) -> Option<(&SampleKey, &str)> {
+        self.rows.get(index).map(|r| (&r.key, r.split.as_str()))
+    }
+
+    /// The dataset.
+    pub fn dataset(&self) -> &Dataset {
+        &self.dataset
+    }
+
+    /// The mesh of sample `index`, read from its `_info.npz` and checked against the
+    /// samples table (its `R_t` must be the table's, bit for bit); from the table for a
+    /// dataset with embedded images.
+    pub fn mesh(&self, index: usize) -> Result<Vec<Point3<f32>>> {
+        let row = self.row(index)?;
+        if let Some(v) = &row.verts {
+            return Ok(v
+                .chunks_exact(3)
+                .map(|c| Point3::new(c[0], c[1], c[2]))
+                .collect());
+        }
+        let info = crate::release::read_info(&row.info_path)?;
+        if info.rt != row.rt {
+            return Err(Error::format(
+                &row.info_path,
+                format!(
+                    "R_t differs from the samples table's for {}: the file changed since convert",
+                    row.key
+                ),
+            ));
+        }
+        if info.verts.len() != self.renderer.topology().vertex_count {
+            return Err(Error::format(
+                &row.info_path,
+                format!(
+                    "{} vertices, the topology has {}",
+                    info.verts.len(),
+                    self.renderer.topology().vertex_count
+                ),
+            ));
+        }
+        Ok(info.verts)
+    }
+
+    fn row(&self, index: usize) -> Result<&IndexRow> {
+        self.rows.get(index).ok_or_else(|| {
+            Error::invalid(
+                "index",
+                format!("{index}: the dataset serves {} samples", self.rows.len()),
+            )
+        })
+    }
+
+    fn image(&self, row: &IndexRow) -> Result<image::RgbImage> {
+        let record = crate::samples_table::SampleRecord {
+            key: row.key.clone(),
+            split: row.split.clone(),
+            image_path: row.image_path.clone(),
+            image_width: row.width,
+            image_height: row.height,
+            jpeg: row.jpeg.clone(),
+            verts: Vec::new(),
+            rt: row.rt,
+            yaw_deg: 0.0,
+            pitch_deg: 0.0,
+            roll_deg: 0.0,
+            translation_m: [0.0; 3],
+            landmarks_2d: Vec::new(),
+            face_box: [0.0; 4],
+        };
+        self.dataset.image(&record)
+    }
+
+    /// Sample `index` of epoch `epoch` (the epoch matters in training mode only).
+    pub fn item(&self, index: usize, epoch: u64) -> Result<LoaderItem> {
+        let row = self.row(index)?;
+        let verts = self.mesh(index)?;
+        let image = self.image(row)?;
+        let pose = Pose::from_release_rt(&row.rt)?;
+        let epoch = match self.options.mode {
+            LoaderMode::Train => epoch,
+            LoaderMode::Eval => 0,
+        };
+        let stream = (epoch << 40) ^ index as u64;
+        let mut rng = Rng::for_stream(self.options.seed, stream);
+        let camera = Camera::new(self.camera_projection, row.width, row.height)?;
+        let landmark_points: Vec<Point3<f64>> = self
+            .renderer
+            .topology()
+            .landmarks
+            .iter()
+            .map(|&i| verts[i as usize].cast())
+            .collect();
+        let landmarks: Vec<(f64, f64)> = camera
+            .project_all(&pose, &landmark_points)
+            .iter()
+            .map(|p| (p.u, p.v))
+            .collect();
+        let train = self.options.mode == LoaderMode::Train;
+        let mut item = match self.options.compat {
+            Compat::Exact => self.exact(row, &verts, &pose, &image, &landmarks, train, &mut rng)?,
+            Compat::Official => {
+                self.official(row, &verts, &pose, &image, &landmarks, train, &mut rng)?
+            }
+        };
+        item.model = verts.iter().flat_map(|p| [p.x, p.y, p.z]).collect();
+        Ok(item)
+    }
+
+    /// A training jitter `(dx, dy, scale)` for landmarks whose box has side `size`.
+    fn draw_jitter(rng: &mut Rng, size: f64) -> (f64, f64, f64) {
+        let r = 0.15 * size;
+        let dx = rng.uniform(-r, r);
+        let dy = rng.uniform(-r, r);
+        (dx, dy, rng.uniform(0.95, 1.05))
+    }
+
+    fn image_path(&self, row: &IndexRow) -> PathBuf {
+        match row.jpeg {
+            Some(_) => self.dataset.dir().to_path_buf(),
+            None => self.dataset.image_root().join(&row.image_path),
+        }
+    }
+
+    #[allow(clippy::too_many_arguments)]
+    fn exact(
+        &self,
+        row: &IndexRow,
+        verts: &[Point3<f32>],
+        pose: &Pose,
+        image: &image::RgbImage,
+        landmarks: &[(f64, f64)],
+        train: bool,
+        rng: &mut Rng,
+    ) -> Result<LoaderItem> {
+        let s = self.options.img_size;
+        let flat: Vec<f32> = landmarks
+            .iter()
+            .flat_map(|&(u, v)| [u as f32, v as f32])
+            .collect();
+        let mut crop = CropTransform::around_landmarks(&flat, s);
+        if train {
+            // The landmarks' box size is 2/3 of the crop's side (half-side 0.75 size).
+            let size = crop.side / 1.5;
+            let (dx, dy, scale) = Self::draw_jitter(rng, size);
+            let (cx, cy) = (
+                crop.x0 + crop.side / 2.0 + dx,
+                crop.y0 + crop.side / 2.0 + dy,
+            );
+            let side = crop.side * scale;
+            crop = CropTransform {
+                x0: cx - side / 2.0,
+                y0: cy - side / 2.0,
+                side,
+                side_y: side,
+                size: s,
+                sampling: CropSampling::Centres,
+            };
+        }
+        let mut buffer = VisibilityBuffer::new(s, s);
+        let t = self
+            .renderer
+            .render(verts, pose, row.width, row.height, &crop, &mut buffer)?;
+        let pixels = t.mask_pixels();
+        if pixels.is_empty() {
+            return Err(Error::invalid(
+                "crop",
+                format!("no face pixel in the crop of {}", row.key),
+            ));
+        }
+        let chosen = sample_points(pixels.len(), self.options.n_pts, rng.next_u64());
+        let coords = t.coordinate_map(verts);
+        let mut rgb = crop.crop_image(image).into_raw();
+        if train {
+            jitter_colour(&mut rgb, rng);
+        }
+        let extended = self.uv.extended_positions(verts);
+        let map = self.uv_texels.position_map(&extended);
+        let n = (s * s) as usize;
+        let mut uvmap = vec![-1f32; 3 * n];
+        for (i, p) in map.iter().enumerate() {
+            if p[0].is_nan() {
+                continue;
+            }
+            for k in 0..3 {
+                uvmap[k * n + i] = (p[k] * 9.0).clamp(-1.0, 1.0);
+            }
+        }
+        let o = crop.sampling.offset();
+        let (sx, sy) = (crop.side / s as f64, crop.side_y / s as f64);
+        Ok(LoaderItem {
+            key: row.key.clone(),
+            image_path: self.image_path(row),
+            img: normalise(&rgb),
+            choose: chosen.iter().map(|&c| pixels[c as usize] as i64).collect(),
+            model: Vec::new(),
+            uvmap,
+            nocs: chosen
+                .iter()
+                .flat_map(|&c| {
+                    let p = coords[c as usize];
+                    [p.x * 4.5, p.y * 4.5, p.z * 4.5]
+                })
+                .collect(),
+            mask: t.mask.iter().map(|&m| m as u8).collect(),
+            corr_vertices: chosen
+                .iter()
+                .map(|&c| t.corr_vertices[c as usize].map(|v| v as u32))
+                .collect(),
+            corr_weights: chosen.iter().map(|&c| t.corr_weights[c as usize]).collect(),
+            tform_inv: [sx, 0.0, crop.x0 + o * sx, 0.0, sy, crop.y0 + o * sy],
+            rt: row.rt,
+            crop,
+            official_box: None,
+            choose_box: Vec::new(),
+            box_clipped: false,
+        })
+    }
+
+    #[allow(clippy::too_many_arguments)]
+    fn official(
+        &self,
+        row: &IndexRow,
+        verts: &[Point3<f32>],
+        pose: &Pose,
+        image: &image::RgbImage,
+        landmarks: &[(f64, f64)],
+        train: bool,
+        rng: &mut Rng,
+    ) -> Result<LoaderItem> {
+        let s = self.options.img_size;
+        let (w, h) = (row.width as i64, row.height as i64);
+        let mut buffer = VisibilityBuffer::new(1, 1);
+        let full_mask =
+            self.renderer
+                .render_full_mask(verts, pose, row.width, row.height, &mut buffer)?;
+        let (x0, x1, y0, y1) = landmarks.iter().fold(
+            (f64::MAX, f64::MIN, f64::MAX, f64::MIN),
+            |(a, b, c, d), &(u, v)| (a.min(u), b.max(u), c.min(v), d.max(v)),
+        );
+        let size = (x1 - x0).max(y1 - y0);
+        // The face pixels of the official slice of the full mask, or why there are none.
+        let choose_in = |b: [i64; 4]| -> std::result::Result<(Vec<i64>, i64, i64, i64), String> {
+            let [left, top, right, bottom] = b;
+            if right <= left || bottom <= top {
+                return Err(format!("the official box {b:?} is empty"));
+            }
+            let rows = python_slice(top, bottom + 1, h);
+            let cols = python_slice(left, right + 1, w);
+            let width = cols.end - cols.start;
+            let mut nz = Vec::new();
+            for (k, y) in rows.clone().enumerate() {
+                for (j, x) in cols.clone().enumerate() {
+                    if full_mask[(y * w + x) as usize] {
+                        nz.push(k as i64 * width + j as i64);
+                    }
+                }
+            }
+            if nz.is_empty() {
+                return Err(format!(
+                    "the official box {b:?} (left, top, right, bottom) of a {w}x{h} image holds no face pixel of mask[top:bottom+1, left:right+1]{}: the official loader raises on this sample and trains on a random other one",
+                    if top < 0 || left < 0 {
+                        " (a negative start indexes from the end in Python)"
+                    } else {
+                        ""
+                    }
+                ));
+            }
+            Ok((nz, rows.start, cols.start, width))
+        };
+        let mut chosen_box = official_box(landmarks, None);
+        let mut found = None;
+        if train {
+            for _ in 0..JITTER_DRAWS {
+                let b = official_box(landmarks, Some(Self::draw_jitter(rng, size)));
+                if let Ok(c) = choose_in(b) {
+                    chosen_box = b;
+                    found = Some(c);
+                    break;
+                }
+            }
+        }
+        let (nz, row0, col0, slice_w) = match found {
+            Some(c) => c,
+            None => choose_in(chosen_box)
+                .map_err(|why| Error::invalid("official box", format!("{}: {why}", row.key)))?,
+        };
+        let [left, top, right, bottom] = chosen_box;
+        let crop = box_crop(left as f64, top as f64, right as f64, bottom as f64, s);
+        let picks = sample_points(nz.len(), self.options.n_pts, rng.next_u64());
+        let choose_box: Vec<i64> = picks.iter().map(|&p| nz[p as usize]).collect();
+        // The official mapping: columns of the unclipped box width, then the affine map
+        // cv2.getAffineTransform solves (its bits, see `official_crop::affine_transform`).
+        let crop_w = right - left + 1;
+        let (l, t, r, b) = (left as f32, top as f32, right as f32, bottom as f32);
+        let last = (s - 1) as f32;
+        let corners = [[0.0, 0.0], [0.0, last], [last, 0.0]];
+        let box_corners = [[l, t], [l, b], [r, t]];
+        let singular = || {
+            Error::invalid(
+                "official box",
+                format!("{}: the box {chosen_box:?} is degenerate", row.key),
+            )
+        };
+        let tform = affine_transform(box_corners, corners).ok_or_else(singular)?;
+        let tform_inv = affine_transform(corners, box_corners).ok_or_else(singular)?;
+        let n = (s * s) as i64;
+        let n_mesh = self.renderer.topology().triangles.len() as u32;
+        let triangles = &self.renderer.topology().triangles;
+        let mut choose = Vec::with_capacity(choose_box.len());
+        let mut nocs = Vec::with_capacity(3 * choose_box.len());
+        let mut corr_vertices = Vec::with_capacity(choose_box.len());
+        let mut corr_weights = Vec::with_capacity(choose_box.len());
+        for &cb in &choose_box {
+            let col = (cb % crop_w + left) as f64;
+            let rw = (cb / crop_w + top) as f64;
+            // numpy's `point2d @ W + b`.
+            let px = (col * tform[0] + rw * tform[1]) + tform[2];
+            let py = (col * tform[3] + rw * tform[4]) + tform[5];
+            let k = py.floor() as i64 * s as i64 + px.floor() as i64;
+            if !(0..n).contains(&k) {
+                return Err(Error::invalid(
+                    "official box",
+                    format!(
+                        "{}: a point maps outside the crop (pixel {k}); the official loader would replace it by a random pixel",
+                        row.key
+                    ),
+                ));
+            }
+            choose.push(k);
+            // The full-resolution pixel the slice index names.
+            let (y, x) = (row0 + cb / slice_w, col0 + cb % slice_w);
+            let i = (y * w + x) as usize;
+            let t = buffer.triangle[i];
+            debug_assert!(t < n_mesh);
+            let tri = triangles[t as usize];
+            let wt = buffer.bary[i];
+            let attr = tri.map(|v| {
+                let p = verts[v as usize];
+                [p.x, p.y, p.z].map(|q| ((q as f64 * 4.5 + 0.5) * 255.0) as f32)
+            });
+            for k in 0..3 {
+                let v = wt[0] * attr[0][k] + wt[1] * attr[1][k] + wt[2] * attr[2][k];
+                nocs.push(v / 255.0 - 0.5);
+            }
+            corr_vertices.push(tri);
+            corr_weights.push(wt);
+        }
+        let mut rgb = warp_affine(image.as_raw(), row.width, row.height, 3, &crop);
+        if train {
+            jitter_colour(&mut rgb, rng);
+        }
+        let mask = warp_mask(&full_mask, row.width, row.height, &crop);
+        let box_clipped = left < 0 || top < 0 || right >= w || bottom >= h;
+        Ok(LoaderItem {
+            key: row.key.clone(),
+            image_path: self.image_path(row),
+            img: normalise(&rgb),
+            choose,
+            model: Vec::new(),
+            uvmap: self.official_uv.uv_map(verts),
+            nocs,
+            mask: mask.iter().map(|&m| m as u8).collect(),
+            corr_vertices,
+            corr_weights,
+            tform_inv,
+            rt: row.rt,
+            crop,
+            official_box: Some(chosen_box),
+            choose_box,
+            box_clipped,
+        })
+    }
+}
+
+/// The release's UV triangles (`tris_2500x3_202110.npy`) from a resources folder, when
+/// the file is there: `(N, 3)` integer vertex ids.
+pub fn read_uv_triangles(resources: &Path) -> Result<Option<Vec<[u32; 3]>>> {
+    let path = resources.join("tris_2500x3_202110.npy");
+    if !path.exists() {
+        return Ok(None);
+    }
+    let a = crate::npy::read_npy(&path)?;
+    if a.shape().len() != 2 || a.shape()[1] != 3 {
+        return Err(Error::format(
+            &path,
+            format!("expected shape (N, 3), found {:?}", a.shape()),
+        ));
+    }
+    let v = a.to_f64_vec();
+    if v.iter()
+        .any(|&x| x < 0.0 || x.fract() != 0.0 || x > u32::MAX as f64)
+    {
+        return Err(Error::format(
+            &path,
+            "vertex ids must be non-negative integers",
+        ));
+    }
+    Ok(Some(
+        v.chunks_exact(3)
+            .map(|c| [c[0] as u32, c[1] as u32, c[2] as u32])
+            .collect(),
+    ))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn python_slices_clip_and_wrap_as_python_does() {
+        // mask[top:bottom+1] of an 800-row image.
+        assert_eq!(python_slice(10, 301, 800), 10..301);
+        assert_eq!(python_slice(700, 901, 800), 700..800);
+        // A negative start counts from the end: [-5:301] is [795:301], empty.
+        assert_eq!(python_slice(-5, 301, 800), 795..795);
+        // ... unless the stop is past it.
+        assert_eq!(python_slice(-5, 900, 800), 795..800);
+        assert_eq!(python_slice(-900, 5, 800), 0..5);
+    }
+
+    #[test]
+    fn the_official_box_truncates_toward_zero_with_and_without_jitter() {
+        // Landmarks spanning x 100..200, y 50..130: size 100, centre (150, 90).
+        let l = [(100.0, 50.0), (200.0, 130.0), (150.0, 90.0)];
+        assert_eq!(official_box(&l, None), [75, 15, 225, 165]);
+        // Centre moved by (10.5, -20.25), half-side 0.75 * 1.02 * 100 = 76.5.
+        let b = official_box(&l, Some((10.5, -20.25, 1.02)));
+        assert_eq!(b, [84, -6, 237, 146]);
+        // int() truncates toward zero: -6.75 -> -6, not -7.
+        assert_eq!((90.0f64 - 20.25 - 76.5).trunc(), -6.0);
+    }
+
+    #[test]
+    fn colour_jitter_operations_match_their_definitions() {
+        let pixels = [200u8, 100, 50, 10, 20, 30];
+        let none = ColourJitter {
+            brightness: 1.0,
+            contrast: 1.0,
+            saturation: 1.0,
+            hue: 0.0,
+            order: [0, 1, 2, 3],
+        };
+        let mut p = pixels;
+        none.apply(&mut p);
+        assert_eq!(p, pixels);
+        let mut p = pixels;
+        ColourJitter {
+            brightness: 0.5,
+            ..none
+        }
+        .apply(&mut p);
+        assert_eq!(p, [100, 50, 25, 5, 10, 15]);
+        // Saturation 0: each pixel its integer luma (299 R + 587 G + 114 B) / 1000.
+        let mut p = pixels;
+        ColourJitter {
+            saturation: 0.0,
+            ..none
+        }
+        .apply(&mut p);
+        let l0 = (200 * 299 + 100 * 587 + 50 * 114) / 1000;
+        let l1 = (10 * 299 + 20 * 587 + 30 * 114) / 1000;
+        assert_eq!(p, [l0, l0, l0, l1, l1, l1].map(|v| v as u8));
+        // Contrast 0: every value the rounded mean luma.
+        let mut p = pixels;
+        ColourJitter {
+            contrast: 0.0,
+            ..none
+        }
+        .apply(&mut p);
+        let mean = ((l0 + l1) as f64 / 2.0 + 0.5).floor() as u8;
+        assert_eq!(p, [mean; 6]);
+        // A third of a turn takes pure red to pure green.
+        let mut p = [255u8, 0, 0];
+        ColourJitter {
+            hue: 1.0 / 3.0,
+            ..none
+        }
+        .apply(&mut p);
+        assert_eq!(p, [0, 255, 0]);
+    }
+
+    #[test]
+    fn colour_jitter_draws_stay_in_torchvision_ranges() {
+        let mut rng = Rng::new(5);
+        for _ in 0..1000 {
+            let j = ColourJitter::draw(&mut rng);
+            assert!((0.7..1.3).contains(&j.brightness) && (0.7..1.3).contains(&j.contrast));
+            assert!((0.8..1.2).contains(&j.saturation) && (-0.01..0.01).contains(&j.hue));
+            let mut o = j.order;
+            o.sort();
+            assert_eq!(o, [0, 1, 2, 3]);
+        }
+    }
+
+    #[test]
+    fn normalisation_is_to_tensor_then_imagenet_normalize() {
+        let out = normalise(&[255, 0, 128, 0, 255, 64]);
+        // Channels first: R of pixel 0, R of pixel 1, G..., B...
+        assert!((out[0] - (1.0 - 0.485) / 0.229).abs() < 1e-6);
+        assert!((out[1] - (0.0 - 0.485) / 0.229).abs() < 1e-6);
+        assert!((out[3] - (1.0 - 0.456) / 0.224).abs() < 1e-6);
+        assert!((out[4] - (128.0 / 255.0 - 0.406) / 0.225).abs() < 1e-6);
+    }
+
+    #[test]
+    fn options_out_of_range_are_refused_naming_the_option() {
+        let o = LoaderOptions {
+            split: None,
+            mode: LoaderMode::Eval,
+            compat: Compat::Exact,
+            img_size: 8,
+            n_pts: 1024,
+            seed: 0,
+        };
+        assert!(o.validate().unwrap_err().to_string().contains("img_size"));
+        let o = LoaderOptions {
+            img_size: 192,
+            n_pts: 0,
+            ..o
+        };
+        assert!(o.validate().unwrap_err().to_string().contains("n_pts"));
+        assert!(Compat::parse("opencv").is_err() && LoaderMode::parse("test").is_err());
+    }
+}
