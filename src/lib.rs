@@ -21,6 +21,7 @@
 //!   histogram pictures.
 //! - [`eval`]: the paper's metrics; [`predictions_table`]: the predictions file;
 //!   [`eval_dataset`]: a dataset's predictions scored, with a report.
+//! - [`import_arkit`]: a user's own ARKit captures into the release's layout.
 //! - [`overlay`]: meshes drawn over images.
 //! - [`pnp`]: the pose from 2D-3D correspondences (P3P + MSAC + Levenberg-Marquardt);
 //!   [`predict`]: crop pixels to a release pose, and the oracle predictor.
@@ -47,6 +48,7 @@ pub mod dataset;
 pub mod demo;
 pub mod eval;
 pub mod eval_dataset;
+pub mod import_arkit;
 pub mod official_crop;
 pub mod overlay;
 #[cfg(feature = "model")]
