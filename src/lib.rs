@@ -21,6 +21,7 @@
 //!   histogram pictures.
 //! - [`eval`]: the paper's metrics; [`predictions_table`]: the predictions file;
 //!   [`eval_dataset`]: a dataset's predictions scored, with a report.
+//! - [`biwi`]: the BIWI Kinect Head Pose database into the release's conventions.
 //! - [`import_arkit`]: a user's own ARKit captures into the release's layout.
 //! - [`overlay`]: meshes drawn over images.
 //! - [`pnp`]: the pose from 2D-3D correspondences (P3P + MSAC + Levenberg-Marquardt);
@@ -42,6 +43,7 @@
 pub mod allocator;
 pub mod augment;
 pub mod augment_dataset;
+pub mod biwi;
 pub mod convert;
 pub mod dataset;
 #[cfg(feature = "model")]

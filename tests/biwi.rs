@@ -1,0 +1,346 @@
+//! `convert --format biwi`: a synthetic BIWI-shaped folder (known poses, a known head
+//! mesh, calibration), written as the database is distributed, converted, and checked:
+//! the pose that went in comes out to 1e-9, the mesh lands where the written image shows
+//! the head, frames without a pose are listed, bad files are reported.
+
+use arkit_tool::biwi::{self, BIWI_LANDMARKS, HEAD_ORIGIN_SHIFT_M};
+use arkit_tool::conventions::{Camera, EulerAngles, Pose};
+use arkit_tool::raster::VisibilityBuffer;
+use arkit_tool::release::{self, ReleaseLayout, SampleKey, Split};
+use image::{Rgb, RgbImage};
+use nalgebra::{Matrix3, Point3, Rotation3, Vector3};
+use serde_json::Value;
+use std::fmt::Write as _;
+use std::path::Path;
+use std::process::Command;
+
+const K: [f64; 4] = [517.679, 517.679, 320.0, 240.5]; // fx, fy, cx, cy
+
+fn flip() -> Matrix3<f64> {
+    Matrix3::from_diagonal(&Vector3::new(1.0, -1.0, -1.0))
+}
+
+fn calibration() -> (Rotation3<f64>, Vector3<f64>) {
+    (
+        Rotation3::from_euler_angles(0.012, -0.009, 0.004),
+        Vector3::new(-24.0198, 5.8896, -13.2308),
+    )
+}
+
+/// The head in the release's frame: the built-in face's 1,220 vertices repeated to the
+/// 6,918 of a BIWI mesh (so the official landmark numbers exist).
+fn release_head() -> Vec<Point3<f64>> {
+    let t = arkit_tool::synthetic_face::builtin()
+        .topology
+        .template
+        .clone()
+        .unwrap();
+    (0..6918).map(|i| t[i % t.len()].cast()).collect()
+}
+
+/// The mesh as BIWI stores it: `p = 1000 F (v + c)`, millimetres.
+fn biwi_head() -> Vec<Point3<f64>> {
+    let c = Vector3::from(HEAD_ORIGIN_SHIFT_M);
+    release_head()
+        .iter()
+        .map(|v| Point3::from(flip() * (v.coords + c) * 1000.0))
+        .collect()
+}
+
+/// The pose file of a release pose (the inverse of the conversion's rules).
+fn pose_text(pose: &Pose) -> String {
+    let (rc, tc) = calibration();
+    let c = Vector3::from(HEAD_ORIGIN_SHIFT_M);
+    let r_gl = *pose.rotation().matrix();
+    let t_gl = pose.translation_m() - r_gl * c;
+    let r_cv = flip() * r_gl * flip();
+    let t_cv = flip() * t_gl * 1000.0;
+    let r = rc.matrix().transpose() * r_cv;
+    let t = rc.matrix().transpose() * (t_cv - tc);
+    let mut s = String::new();
+    for i in 0..3 {
+        writeln!(s, "{} {} {} ", r[(i, 0)], r[(i, 1)], r[(i, 2)]).unwrap();
+    }
+    writeln!(s, "\n{} {} {} ", t.x, t.y, t.z).unwrap();
+    s
+}
+
+fn cal_text(distortion: &str) -> String {
+    let (rc, tc) = calibration();
+    let m = rc.matrix();
+    format!(
+        "{} 0 {} \n0 {} {} \n0 0 1 \n\n{distortion}\n\n{} {} {} \n{} {} {} \n{} {} {} \n\n{} {} {} \n\n640 480\n",
+        K[0],
+        K[2],
+        K[1],
+        K[3],
+        m[(0, 0)],
+        m[(0, 1)],
+        m[(0, 2)],
+        m[(1, 0)],
+        m[(1, 1)],
+        m[(1, 2)],
+        m[(2, 0)],
+        m[(2, 1)],
+        m[(2, 2)],
+        tc.x,
+        tc.y,
+        tc.z
+    )
+}
+
+/// The RGB camera as a release-form projection (K in OpenCV's convention).
+fn rgb_camera() -> Camera {
+    let (w, h) = (640.0, 480.0);
+    let mut p = Camera::release_projection();
+    p[(0, 0)] = 2.0 * K[0] / w;
+    p[(1, 1)] = 2.0 * K[1] / h;
+    p[(2, 0)] = 1.0 - 2.0 * (K[2] + 0.5) / w;
+    p[(2, 1)] = 2.0 * (K[3] + 0.5) / h - 1.0;
+    Camera::new(p, 640, 480).unwrap()
+}
+
+fn silhouette(camera: &Camera, pose: &Pose, verts: &[Point3<f64>]) -> Vec<bool> {
+    let v32: Vec<Point3<f32>> = verts.iter().map(|p| p.cast()).collect();
+    let mut vis = VisibilityBuffer::new(camera.width, camera.height);
+    vis.rasterize_mesh(
+        &camera.project_to_screen(pose, &v32),
+        &arkit_tool::synthetic_face::builtin().topology.triangles,
+    )
+    .unwrap();
+    vis.triangle.iter().map(|&t| t != u32::MAX).collect()
+}
+
+fn poses() -> Vec<Pose> {
+    (0..3)
+        .map(|i| {
+            Pose::from_euler(
+                EulerAngles::new(
+                    -30.0 + 25.0 * i as f64,
+                    10.0 - 8.0 * i as f64,
+                    4.0 * i as f64,
+                ),
+                Vector3::new(0.03 - 0.02 * i as f64, -0.02, -0.85 - 0.05 * i as f64),
+            )
+        })
+        .collect()
+}
+
+/// Writes a BIWI-shaped `hpdb` folder: sequences 01 and 02 with three posed frames
+/// each and, in 01, one image without a pose file.
+fn write_hpdb(root: &Path) {
+    let obj: String = biwi_head()
+        .iter()
+        .map(|p| format!("v {} {} {}\n", p.x, p.y, p.z))
+        .chain(
+            arkit_tool::synthetic_face::builtin()
+                .topology
+                .triangles
+                .iter()
+                .map(|t| format!("f {} {} {}\n", t[0] + 1, t[1] + 1, t[2] + 1)),
+        )
+        .collect();
+    let camera = rgb_camera();
+    let head = release_head();
+    for seq in ["01", "02"] {
+        let dir = root.join(seq);
+        std::fs::create_dir_all(&dir).unwrap();
+        std::fs::write(root.join(format!("{seq}.obj")), &obj).unwrap();
+        std::fs::write(dir.join("rgb.cal"), cal_text("0 0 0 0")).unwrap();
+        for (i, pose) in poses().iter().enumerate() {
+            let n = format!("{:05}", 3 + i);
+            std::fs::write(dir.join(format!("frame_{n}_pose.txt")), pose_text(pose)).unwrap();
+            let mask = silhouette(&camera, pose, &head);
+            RgbImage::from_fn(640, 480, |x, y| {
+                if mask[(y * 640 + x) as usize] {
+                    Rgb([230, 220, 210])
+                } else {
+                    Rgb([(x / 8) as u8, (y / 8) as u8, 30])
+                }
+            })
+            .save(dir.join(format!("frame_{n}_rgb.png")))
+            .unwrap();
+        }
+    }
+    std::fs::copy(
+        root.join("01/frame_00003_rgb.png"),
+        root.join("01/frame_00009_rgb.png"),
+    )
+    .unwrap();
+}
+
+fn key(seq: &str, n: &str) -> SampleKey {
+    SampleKey {
+        subject_id: seq.into(),
+        facial_action: "biwi".into(),
+        img_id: n.into(),
+    }
+}
+
+#[test]
+fn poses_and_meshes_round_trip_and_land_on_the_head() {
+    let dir = tempfile::tempdir().unwrap();
+    let (hpdb, staging) = (dir.path().join("hpdb"), dir.path().join("staging"));
+    write_hpdb(&hpdb);
+    let (summary, topology) = biwi::stage(&hpdb, &staging, 800, &|| {}).unwrap();
+    assert_eq!(summary.sequences, 2);
+    assert_eq!(summary.frames_found, 7);
+    assert_eq!(summary.staged, 6, "{:?}", summary.problems);
+    assert_eq!(
+        summary.without_pose,
+        vec!["01/frame_00009_rgb.png".to_string()]
+    );
+    assert_eq!(topology.vertex_count, 6918);
+    assert_eq!(topology.landmarks, BIWI_LANDMARKS.to_vec());
+    let layout = ReleaseLayout::new(&staging);
+    let head = release_head();
+    let camera = Camera::release(800, 800);
+    for seq in ["01", "02"] {
+        for (i, pose) in poses().iter().enumerate() {
+            let k = key(seq, &format!("{:05}", 3 + i));
+            let info =
+                release::read_info_with_vertex_count(&layout.info_path(Split::Test, &k), 6918)
+                    .unwrap();
+            let err = info
+                .rt
+                .iter()
+                .zip(pose.to_release_rt())
+                .map(|(a, b)| (a - b).abs())
+                .fold(0.0, f64::max);
+            assert!(err < 1e-9, "{k}: R_t off by {err:e}");
+            // The subject's own mesh, in metres and the release's axes.
+            let verr = info
+                .verts
+                .iter()
+                .zip(&head)
+                .map(|(a, b)| (a.cast::<f64>() - b).norm())
+                .fold(0.0, f64::max);
+            assert!(verr < 1e-6, "{k}: mesh off by {verr}");
+            // The written image shows the head where the mesh projects.
+            let img = image::open(layout.image_path(Split::Test, &k))
+                .unwrap()
+                .to_rgb8();
+            assert_eq!((img.width(), img.height()), (800, 800));
+            let shown: Vec<bool> = img.pixels().map(|p| p[0] > 150).collect();
+            let projected = silhouette(&camera, pose, &head);
+            let inter = shown
+                .iter()
+                .zip(&projected)
+                .filter(|(a, b)| **a && **b)
+                .count();
+            let union = shown
+                .iter()
+                .zip(&projected)
+                .filter(|(a, b)| **a || **b)
+                .count();
+            let iou = inter as f64 / union as f64;
+            assert!(inter > 3000, "head too small: {inter} px");
+            eprintln!("{k}: IoU {iou:.4}, R_t error {err:.1e}");
+            assert!(iou > 0.95, "{k}: IoU {iou}");
+        }
+    }
+}
+
+#[test]
+fn the_official_composition_in_row_vector_form_agrees() {
+    // The official code: R_t_cv = R_t_raw @ R_t_calibration (row form), then
+    // yaw and roll negated, ty and tz negated, then center_mat @ R_t_gl.
+    let pose = poses()[1];
+    let text = pose_text(&pose);
+    let fp = biwi::FramePose::parse(&text, Path::new("p.txt")).unwrap();
+    let cal = biwi::Calibration::parse(&cal_text("0 0 0 0"), Path::new("rgb.cal")).unwrap();
+    let row = |r: &Matrix3<f64>, t: &Vector3<f64>| {
+        let mut m = nalgebra::Matrix4::identity();
+        m.fixed_view_mut::<3, 3>(0, 0).copy_from(&r.transpose());
+        m[(3, 0)] = t.x;
+        m[(3, 1)] = t.y;
+        m[(3, 2)] = t.z;
+        m
+    };
+    let mut rt_cv = row(&fp.rotation, &fp.translation_mm) * row(&cal.rotation, &cal.translation_mm);
+    for c in 0..3 {
+        rt_cv[(3, c)] /= 1000.0;
+    }
+    let r_cv = Rotation3::from_matrix(&rt_cv.fixed_view::<3, 3>(0, 0).transpose().into_owned());
+    let e = EulerAngles::from_rotation(&r_cv);
+    let r_gl = EulerAngles::new(-e.yaw_deg, e.pitch_deg, -e.roll_deg).to_rotation();
+    let mut rt_gl = row(
+        r_gl.matrix(),
+        &Vector3::new(rt_cv[(3, 0)], -rt_cv[(3, 1)], -rt_cv[(3, 2)]),
+    );
+    let c = Vector3::from(HEAD_ORIGIN_SHIFT_M);
+    rt_gl = row(&Matrix3::identity(), &c) * rt_gl;
+    let ours = biwi::release_pose(&fp, &cal).release_matrix();
+    assert!((ours - rt_gl).abs().max() < 1e-9, "{ours} vs {rt_gl}");
+}
+
+#[test]
+fn bad_files_are_reported_and_the_rest_converted() {
+    let dir = tempfile::tempdir().unwrap();
+    let hpdb = dir.path().join("hpdb");
+    write_hpdb(&hpdb);
+    std::fs::write(
+        hpdb.join("01/frame_00004_pose.txt"),
+        "1 0 0\n0 2 0\n0 0 1\n\n0 0 900\n",
+    )
+    .unwrap();
+    std::fs::write(hpdb.join("01/frame_00005_rgb.png"), b"not a png").unwrap();
+    std::fs::write(hpdb.join("02/rgb.cal"), cal_text("0.1 0 0 0")).unwrap();
+    let (summary, _) = biwi::stage(&hpdb, &dir.path().join("s"), 400, &|| {}).unwrap();
+    assert_eq!(summary.staged, 1, "{:#?}", summary.problems);
+    let why = |f: &str| {
+        summary
+            .problems
+            .iter()
+            .find(|p| p.file == f)
+            .unwrap_or_else(|| panic!("{f}: {:#?}", summary.problems))
+            .reason
+            .clone()
+    };
+    assert!(why("01/frame_00004_pose.txt").contains("not a rotation"));
+    assert!(why("01/frame_00005_rgb.png").contains("decode"));
+    assert!(why("02/rgb.cal").contains("distortion"));
+    // A folder that is not BIWI's is a clear error naming it.
+    let empty = dir.path().join("empty");
+    std::fs::create_dir_all(&empty).unwrap();
+    let err = biwi::stage(&empty, &dir.path().join("t"), 400, &|| {})
+        .unwrap_err()
+        .to_string();
+    assert!(err.contains("empty") && err.contains("hpdb"), "{err}");
+}
+
+fn tool() -> Command {
+    Command::new(env!("CARGO_BIN_EXE_arkit-tool"))
+}
+
+#[test]
+fn cli_convert_biwi_then_eval_scores_add_on_the_subjects_mesh() {
+    let dir = tempfile::tempdir().unwrap();
+    let (hpdb, pq) = (dir.path().join("hpdb"), dir.path().join("pq"));
+    write_hpdb(&hpdb);
+    let out = tool()
+        .args(["convert", "--format", "biwi", "--json", "--input"])
+        .arg(&hpdb)
+        .arg("--output")
+        .arg(&pq)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let v: Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(v["biwi"]["staged"], 6);
+    assert_eq!(v["biwi"]["without_pose"][0], "01/frame_00009_rgb.png");
+    assert_eq!(v["manifest"]["converted"], 6);
+    assert_eq!(v["manifest"]["skipped"], 0);
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        stderr.contains("no pose file for 01/frame_00009_rgb.png"),
+        "{stderr}"
+    );
+    let samples = arkit_tool::convert::read_dataset_samples(&pq).unwrap();
+    assert_eq!(samples.len(), 6);
+    assert!(samples.iter().all(|s| s.verts.len() == 6918 * 3));
+}
