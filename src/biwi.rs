@@ -71,6 +71,9 @@ pub const HEAD_ORIGIN_SHIFT_M: [f64; 3] = [0.0, 0.01, -0.021];
 /// checked on the length before reading (a BIWI head mesh is about 1 MB).
 pub const MAX_TEXT_FILE_BYTES: u64 = 64 << 20;
 
+/// How the topology of a BIWI dataset is named in its manifest (`topology`).
+pub const TOPOLOGY_PREFIX: &str = "BIWI head mesh";
+
 /// Most vertices of a head mesh: 1,000,000 (BIWI's have 6,918).
 pub const MAX_MESH_VERTICES: usize = 1_000_000;
 
@@ -348,7 +351,7 @@ pub fn biwi_topology(mesh: &HeadMesh) -> Result<FaceTopology> {
         ));
     }
     Ok(FaceTopology {
-        source: format!("BIWI head mesh ({} vertices)", mesh.vertices.len()),
+        source: format!("{TOPOLOGY_PREFIX} ({} vertices)", mesh.vertices.len()),
         vertex_count: mesh.vertices.len(),
         triangles: mesh.triangles.clone(),
         uv: Vec::new(),

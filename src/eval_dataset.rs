@@ -71,6 +71,9 @@ pub struct MatchProblems {
     /// them (its Euler angles of the nearest rotation), so the figures match it, but the
     /// scores of such a prediction mean little: a matrix scaled by 1000 scores MAE_r 0.
     pub non_rotations: Vec<(SampleKey, String)>,
+    /// Predicted meshes not scored because the dataset's head mesh is another
+    /// topology (BIWI's): 3D reconstruction needs vertex-to-vertex correspondence.
+    pub unscored_verts: usize,
     /// Samples of the split left out by [`EvalOptions::exclude`].
     pub excluded: usize,
     /// Keys of [`EvalOptions::exclude`] that are not samples of the evaluated split.
@@ -222,6 +225,11 @@ pub fn evaluate(
     } else {
         target_masks(options.targets.as_deref().unwrap_or(dataset), &with_masks)?
     };
+    // A dataset of another head mesh than ARKit's (`convert --format biwi`).
+    let other_mesh = data
+        .manifest()
+        .topology
+        .starts_with(crate::biwi::TOPOLOGY_PREFIX);
     let mut seen: HashSet<SampleKey> = HashSet::new();
     let mut scored = Vec::new();
     let mut worst: Vec<(SampleRecord, Option<PredictionRecord>, f64)> = Vec::new();
@@ -256,7 +264,16 @@ pub fn evaluate(
             if pred.is_none() {
                 problems.missing += 1;
             }
-            let pred_verts = pred.and_then(|p| p.verts.as_deref());
+            let mut pred_verts = pred.and_then(|p| p.verts.as_deref());
+            if other_mesh
+                && let Some(v) = pred_verts
+                && v.len() != r.verts.len()
+            {
+                // A network's 1,220-vertex face against another head mesh (BIWI's): no
+                // vertex correspondence, so no 3D reconstruction error; counted.
+                problems.unscored_verts += 1;
+                pred_verts = None;
+            }
             if let Some(v) = pred_verts
                 && v.len() != r.verts.len()
             {

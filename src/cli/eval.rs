@@ -114,6 +114,7 @@ pub fn run(a: EvalArgs) -> Result<ExitCode> {
                 "unscored_masks": p.unscored_masks.len(),
                 "non_rotations": p.non_rotations.len(),
                 "excluded": p.excluded,
+                "unscored_verts": p.unscored_verts,
                 "exclude_unknown": p.exclude_unknown.len(),
                 "first_exclude_unknown": p.exclude_unknown.iter().take(10).map(|k| k.to_string()).collect::<Vec<_>>(),
                 "first_non_rotations": p.non_rotations.iter().take(10).map(|(k, why)| format!("{k}: {why}")).collect::<Vec<_>>(),
@@ -124,6 +125,12 @@ pub fn run(a: EvalArgs) -> Result<ExitCode> {
         println!("{}", serde_json::to_string_pretty(&out).expect("json"));
     } else {
         print!("{}", ev.summary.table());
+        if p.unscored_verts > 0 {
+            eprintln!(
+                "note: {} predicted meshes not scored for 3D reconstruction: the dataset's head mesh is another topology",
+                p.unscored_verts
+            );
+        }
         if a.exclude.is_some() {
             eprintln!("left out {} samples named by --exclude", p.excluded);
         }
