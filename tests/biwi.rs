@@ -185,6 +185,31 @@ fn cli_convert_biwi_then_eval_scores_add_on_the_subjects_mesh() {
         stderr.contains("no pose file for 01/frame_00009_rgb.png"),
         "{stderr}"
     );
+    // --strict: the image without a pose makes the run exit 1 (after converting the
+    // rest); --shard is refused with the reason.
+    let out = tool()
+        .args(["convert", "--format", "biwi", "--strict", "--input"])
+        .arg(&hpdb)
+        .arg("--output")
+        .arg(dir.path().join("pq-strict"))
+        .output()
+        .unwrap();
+    assert_eq!(
+        out.status.code(),
+        Some(1),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(dir.path().join("pq-strict/dataset.json").exists());
+    let out = tool()
+        .args(["convert", "--format", "biwi", "--shard", "0/2", "--input"])
+        .arg(&hpdb)
+        .arg("--output")
+        .arg(dir.path().join("pq-shard"))
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("--shard"));
     let samples = arkit_tool::convert::read_dataset_samples(&pq).unwrap();
     assert_eq!(samples.len(), 6);
     assert!(samples.iter().all(|s| s.verts.len() == 6918 * 3));
