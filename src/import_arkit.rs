@@ -726,10 +726,34 @@ pub fn import_capture(
         }
     }
     let layout = ReleaseLayout::new(&options.output);
+    // Two frames with one key (a `capture/` sub-folder beside frames in the root): the
+    // first is imported, the other reported, never written over it.
+    let mut seen = std::collections::HashMap::new();
+    let first_of: Vec<Option<PathBuf>> = frames
+        .iter()
+        .map(|f| match seen.get(&f.key) {
+            Some(first) => Some(PathBuf::clone(first)),
+            None => {
+                seen.insert(f.key.clone(), f.json.clone());
+                None
+            }
+        })
+        .collect();
     let results: Vec<std::result::Result<SampleKey, FrameProblem>> = frames
         .par_iter()
-        .map(|f| {
+        .zip(&first_of)
+        .map(|(f, first)| {
             let r = (|| {
+                if let Some(first) = first {
+                    return Err(FrameProblem {
+                        file: relative_string(&f.json),
+                        reason: format!(
+                            "the same sample key ({}) as {}, imported first",
+                            f.key,
+                            relative_string(first)
+                        ),
+                    });
+                }
                 let done = import_frame(&options.input, f, options.size)?;
                 let write_fail = |e: Error| FrameProblem {
                     file: relative_string(&f.json),

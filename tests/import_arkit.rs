@@ -453,10 +453,16 @@ fn cli_strict_json_and_clear_errors() {
     let dir = tempfile::tempdir().unwrap();
     let (input, output) = (dir.path().join("cap"), dir.path().join("rel"));
     bad_capture(&input);
-    // Sub-folders are facial actions.
+    // Sub-folders are facial actions; a `capture/` sub-folder repeating a root frame's
+    // key is reported, not written over it.
     write_frame(
         &input.join("smile"),
         "f1",
+        &scene(InterfaceOrientation::LandscapeRight, 0.0, 5.0, 0.0),
+    );
+    write_frame(
+        &input.join("capture"),
+        "good",
         &scene(InterfaceOrientation::LandscapeRight, 0.0, 5.0, 0.0),
     );
     let preview = dir.path().join("preview.png");
@@ -477,7 +483,12 @@ fn cli_strict_json_and_clear_errors() {
     );
     let v: Value = serde_json::from_slice(&out.stdout).unwrap();
     assert_eq!(v["imported"], 2);
-    assert_eq!(v["skipped"].as_array().unwrap().len(), 7);
+    let skipped = v["skipped"].as_array().unwrap();
+    assert_eq!(skipped.len(), 8);
+    assert!(
+        skipped.iter().any(|p| p["file"] == "good.json"
+            && p["reason"].as_str().unwrap().contains("capture/good.json"))
+    );
     assert_eq!(v["subject_id"], "cap");
     assert!(image::open(&preview).is_ok());
     let keys = release::read_list(&ReleaseLayout::new(&output).list_path(Split::Test)).unwrap();
