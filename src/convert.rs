@@ -356,7 +356,8 @@ pub fn validate_sample(
     };
     let strip = |e: Error| -> String { e.reason() };
     let info_path = root.join(&row.info);
-    let info = release::read_info(&info_path).map_err(|e| fail(&row.info, strip(e)))?;
+    let info = release::read_info_with_vertex_count(&info_path, ctx.topology.vertex_count)
+        .map_err(|e| fail(&row.info, strip(e)))?;
     if info.verts.len() != ctx.topology.vertex_count {
         return Err(fail(
             &row.info,

@@ -37,6 +37,10 @@ pub struct EvalOptions {
     pub targets: Option<PathBuf>,
     /// How many of the worst samples to keep for drawing.
     pub keep_worst: usize,
+    /// Samples left out of the scores (for example the BIWI frames where a face
+    /// detector fails, as the paper's 13,219 of 15,678); predictions for them are
+    /// neither scored nor reported as unknown.
+    pub exclude: HashSet<SampleKey>,
 }
 
 impl Default for EvalOptions {
@@ -46,6 +50,7 @@ impl Default for EvalOptions {
             euler: EulerDifference::Official,
             targets: None,
             keep_worst: 8,
+            exclude: HashSet::new(),
         }
     }
 }
@@ -66,6 +71,13 @@ pub struct MatchProblems {
     /// them (its Euler angles of the nearest rotation), so the figures match it, but the
     /// scores of such a prediction mean little: a matrix scaled by 1000 scores MAE_r 0.
     pub non_rotations: Vec<(SampleKey, String)>,
+    /// Predicted meshes not scored because the dataset's head mesh is another
+    /// topology (BIWI's): 3D reconstruction needs vertex-to-vertex correspondence.
+    pub unscored_verts: usize,
+    /// Samples of the split left out by [`EvalOptions::exclude`].
+    pub excluded: usize,
+    /// Keys of [`EvalOptions::exclude`] that are not samples of the evaluated split.
+    pub exclude_unknown: Vec<SampleKey>,
 }
 
 /// One scored sample.
@@ -213,6 +225,11 @@ pub fn evaluate(
     } else {
         target_masks(options.targets.as_deref().unwrap_or(dataset), &with_masks)?
     };
+    // A dataset of another head mesh than ARKit's (`convert --format biwi`).
+    let other_mesh = data
+        .manifest()
+        .topology
+        .starts_with(crate::biwi::TOPOLOGY_PREFIX);
     let mut seen: HashSet<SampleKey> = HashSet::new();
     let mut scored = Vec::new();
     let mut worst: Vec<(SampleRecord, Option<PredictionRecord>, f64)> = Vec::new();
@@ -226,6 +243,10 @@ pub fn evaluate(
                 continue;
             }
             seen.insert(r.key.clone());
+            if options.exclude.contains(&r.key) {
+                problems.excluded += 1;
+                continue;
+            }
             let pred = by_key.get(&r.key).copied();
             let checked = match pred {
                 None => Err(PoseFailure::Missing),
@@ -243,7 +264,16 @@ pub fn evaluate(
             if pred.is_none() {
                 problems.missing += 1;
             }
-            let pred_verts = pred.and_then(|p| p.verts.as_deref());
+            let mut pred_verts = pred.and_then(|p| p.verts.as_deref());
+            if other_mesh
+                && let Some(v) = pred_verts
+                && v.len() != r.verts.len()
+            {
+                // A network's 1,220-vertex face against another head mesh (BIWI's): no
+                // vertex correspondence, so no 3D reconstruction error; counted.
+                problems.unscored_verts += 1;
+                pred_verts = None;
+            }
             if let Some(v) = pred_verts
                 && v.len() != r.verts.len()
             {
@@ -310,6 +340,14 @@ pub fn evaluate(
             problems.unknown.push(p.key.clone());
         }
     }
+    let mut exclude_unknown: Vec<SampleKey> = options
+        .exclude
+        .iter()
+        .filter(|k| !seen.contains(*k))
+        .cloned()
+        .collect();
+    exclude_unknown.sort();
+    problems.exclude_unknown = exclude_unknown;
     let errors: Vec<SampleErrors> = scored.iter().map(|s| s.errors.clone()).collect();
     Ok(Evaluation {
         summary: eval::summarize(&errors, options.euler),
@@ -384,6 +422,29 @@ pub const PER_SAMPLE_COLUMNS: [&str; 19] = [
     "mask_iou",
 ];
 
+/// Draws `verts` at `pose`: the topology's outline when the mesh is the topology's,
+/// else (another head mesh, such as BIWI's) every vertex as a point, so no mesh is
+/// drawn with another mesh's triangles.
+fn draw_outline_or_points(
+    img: &mut RgbImage,
+    topology: &FaceTopology,
+    verts: &[Point3<f64>],
+    pose: &Pose,
+    colour: Rgb<u8>,
+) -> Result<()> {
+    if verts.len() == topology.vertex_count {
+        return draw_mesh(img, topology, verts, pose, &MeshStyle::outline(colour));
+    }
+    let camera = crate::conventions::Camera::release(img.width(), img.height());
+    for q in camera.project_all(pose, verts) {
+        let (x, y) = (q.u.floor(), q.v.floor());
+        if x >= 0.0 && y >= 0.0 && x < img.width() as f64 && y < img.height() as f64 {
+            img.put_pixel(x as u32, y as u32, colour);
+        }
+    }
+    Ok(())
+}
+
 /// Writes the report folder: `errors_by_pose.png` (mean errors per |yaw|, |pitch| and
 /// distance bin), `worst.png` (the worst samples, true mesh green, predicted red) and
 /// `summary.txt`.
@@ -452,13 +513,7 @@ pub fn write_report(dir: &Path, ev: &Evaluation, topology: &FaceTopology) -> Res
             .map(|c| Point3::new(c[0] as f64, c[1] as f64, c[2] as f64))
             .collect();
         if let Ok(pose) = Pose::from_release_rt(&sample.rt) {
-            draw_mesh(
-                &mut img,
-                topology,
-                &gt_verts,
-                &pose,
-                &MeshStyle::outline(Rgb([40, 240, 90])),
-            )?;
+            draw_outline_or_points(&mut img, topology, &gt_verts, &pose, Rgb([40, 240, 90]))?;
         }
         if let Some(p) = pred
             && let Some(rt) = p.rt
@@ -471,13 +526,7 @@ pub fn write_report(dir: &Path, ev: &Evaluation, topology: &FaceTopology) -> Res
                     .collect(),
                 None => gt_verts.clone(),
             };
-            draw_mesh(
-                &mut img,
-                topology,
-                &pv,
-                &pose,
-                &MeshStyle::outline(Rgb([250, 60, 60])),
-            )?;
+            draw_outline_or_points(&mut img, topology, &pv, &pose, Rgb([250, 60, 60]))?;
         }
         let label = format!("{} {:.1} deg", sample.key.img_id, err);
         crate::plot::draw_text(&mut img, 6, 6, &label, 2, Rgb([255, 255, 0]));

@@ -21,6 +21,8 @@
 //!   histogram pictures.
 //! - [`eval`]: the paper's metrics; [`predictions_table`]: the predictions file;
 //!   [`eval_dataset`]: a dataset's predictions scored, with a report.
+//! - [`biwi`]: the BIWI Kinect Head Pose database into the release's conventions.
+//! - [`import_arkit`]: a user's own ARKit captures into the release's layout.
 //! - [`overlay`]: meshes drawn over images.
 //! - [`pnp`]: the pose from 2D-3D correspondences (P3P + MSAC + Levenberg-Marquardt);
 //!   [`predict`]: crop pixels to a release pose, and the oracle predictor.
@@ -42,12 +44,14 @@
 pub mod allocator;
 pub mod augment;
 pub mod augment_dataset;
+pub mod biwi;
 pub mod convert;
 pub mod dataset;
 #[cfg(feature = "model")]
 pub mod demo;
 pub mod eval;
 pub mod eval_dataset;
+pub mod import_arkit;
 pub mod loader;
 pub mod official_crop;
 pub mod overlay;

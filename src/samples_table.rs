@@ -27,7 +27,8 @@ pub struct SampleRecord {
     pub image_height: u32,
     /// The JPEG file's bytes, when converted with `--embed-images`.
     pub jpeg: Option<Vec<u8>>,
-    /// `verts`, 1220 x 3 row-major, metres, canonical frame.
+    /// `verts`, N x 3 row-major, metres, canonical frame (N = 1220 for ARKit data; a
+    /// BIWI dataset holds each subject's own head mesh).
     pub verts: Vec<f32>,
     /// `R_t`, 16 numbers row-major, row-vector form.
     pub rt: [f64; 16],

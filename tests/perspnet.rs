@@ -1,6 +1,8 @@
 //! The reference PerspNet (`arkit_tool::perspnet`): layers against hand values and
 //! candle's own ops, the `paper` shapes and parameter counts, and `tiny` training.
 
+mod support;
+
 mod layers {
     //! Hand-checked tests of the custom differentiable layers.
 
@@ -1084,6 +1086,58 @@ mod pipeline {
             ev.summary.mask.is_some(),
             "{:?}",
             ev.problems.unscored_masks
+        );
+
+        // The same network on BIWI (convert --format biwi): crops around the BIWI
+        // mesh's 68 landmarks, poses through PnP, eval's ADD on the subject's head; the
+        // predicted 1,220-vertex meshes are not scored against the 6,918-vertex heads.
+        let hpdb = tempfile::tempdir().unwrap();
+        super::support::biwi_writer::write_hpdb(hpdb.path());
+        let biwi_pq = tempfile::tempdir().unwrap();
+        let staging = biwi_pq.path().join("biwi-release");
+        let (staged, biwi_topology) =
+            arkit_tool::biwi::stage(hpdb.path(), &staging, 256, &|| {}).unwrap();
+        assert_eq!(staged.staged, 6);
+        let bctx = ValidationContext {
+            projection: Camera::release_projection(),
+            topology: biwi_topology,
+            embed_images: false,
+        };
+        let bopts = ConvertOptions {
+            input: staging.clone(),
+            output: biwi_pq.path().to_path_buf(),
+            ..copts.clone()
+        };
+        let m = convert::convert(&bopts, &bctx, &|_| {}).unwrap();
+        assert_eq!((m.converted, m.skipped), (6, 0));
+        let (rows, summary) = training::model_predictions(
+            biwi_pq.path(),
+            &model,
+            None,
+            arkit_tool::render::CropRule::Ours,
+            None,
+            5,
+            &RansacParams::default(),
+            &|_| {},
+        )
+        .unwrap();
+        assert_eq!(summary.samples, 6);
+        assert_eq!(rows.len(), 6);
+        let ev = eval_dataset::evaluate(
+            biwi_pq.path(),
+            &rows,
+            &EvalOptions {
+                split: None,
+                ..EvalOptions::default()
+            },
+        )
+        .unwrap();
+        assert_eq!(ev.summary.samples, 6);
+        assert!(ev.summary.add_mm.is_finite());
+        assert_eq!(ev.summary.recon_mean_mm, None);
+        assert_eq!(
+            ev.problems.unscored_verts,
+            rows.iter().filter(|r| r.verts.is_some()).count()
         );
     }
 }

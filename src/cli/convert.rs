@@ -3,7 +3,15 @@
 use arkit_tool::Result;
 use arkit_tool::conventions::Camera;
 use arkit_tool::convert::{self, ConvertOptions, ValidationContext};
-use clap::Args;
+use clap::{Args, ValueEnum};
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
+enum InputFormat {
+    /// The ARKitFace release (or synth / augment / import-arkit output).
+    Arkit,
+    /// The BIWI Kinect Head Pose database (hpdb/).
+    Biwi,
+}
 use std::path::PathBuf;
 use std::process::ExitCode;
 
@@ -19,13 +27,32 @@ use std::process::ExitCode;
 /// conversion is refused (--overwrite replaces it). The output is byte-identical
 /// whatever --jobs.
 ///
+/// With --format biwi, --input is the BIWI Kinect Head Pose database's hpdb/ folder
+/// (01/frame_00003_rgb.png, 01/frame_00003_pose.txt, 01/rgb.cal, 01.obj, ...): each
+/// posed frame is first written as a release sample into --staging (pose in the RGB
+/// camera, OpenGL axes, metres, row-vector R_t; image resampled into the release camera;
+/// verts = the sequence's own head mesh), then converted as above with the BIWI head's
+/// topology. Images without a pose file are listed, not guessed. See docs/biwi.md.
+///
 /// Example: arkit-tool convert --input data/synth --output data/synth-parquet
+/// Example: arkit-tool convert --format biwi --input BIWI/hpdb --output data/biwi-pq
 /// Cluster: run `convert --shard I/N` for I in 0..N (same --output), then `arkit-tool merge`.
 #[derive(Args, Debug)]
 pub struct ConvertArgs {
-    /// The release folder.
+    /// The release folder (or, with --format biwi, BIWI's hpdb folder).
     #[arg(long)]
     input: PathBuf,
+    /// What --input holds: the ARKitFace release layout, or the BIWI database.
+    #[arg(long, value_enum, default_value = "arkit")]
+    format: InputFormat,
+    /// With --format biwi: where the frames are written in the release's layout
+    /// (default: OUTPUT/biwi-release).
+    #[arg(long)]
+    staging: Option<PathBuf>,
+    /// With --format biwi: side of the square images written into the release camera,
+    /// 32..=16384 (the official preprocessing uses 800).
+    #[arg(long, allow_negative_numbers = true, default_value_t = 800, value_parser = clap::value_parser!(u32).range(32..=16384))]
+    biwi_size: u32,
     /// Output folder (samples/, errors/, dataset.json).
     #[arg(long)]
     output: PathBuf,
@@ -52,7 +79,8 @@ pub struct ConvertArgs {
     /// conversion keeps its finished shards.
     #[arg(long)]
     overwrite: bool,
-    /// Exit with status 1 if any sample was skipped (after converting everything else).
+    /// Exit with status 1 if any sample was skipped (after converting everything else);
+    /// with --format biwi also if a frame had no pose file or a sequence was skipped.
     #[arg(long)]
     strict: bool,
     /// Print the manifest as JSON.
@@ -61,6 +89,9 @@ pub struct ConvertArgs {
 }
 
 pub fn run(a: ConvertArgs) -> Result<ExitCode> {
+    if a.format == InputFormat::Biwi {
+        return run_biwi(a);
+    }
     let topology = super::load_topology(a.resources.as_deref())?;
     let projection = match &a.resources {
         Some(dir) if dir.join("projection_matrix.txt").exists() => {
@@ -68,11 +99,76 @@ pub fn run(a: ConvertArgs) -> Result<ExitCode> {
         }
         _ => Camera::release_projection(),
     };
-    if a.resources.is_none() {
+    if a.resources.is_none() && a.format == InputFormat::Arkit {
         eprintln!(
             "note: no --resources: landmarks and face boxes use the built-in synthetic topology (right for `synth` data, not for the real release)"
         );
     }
+    convert_with(a, topology, projection, None)
+}
+
+/// `convert --format biwi`: stage the frames in the release layout, then convert.
+fn run_biwi(a: ConvertArgs) -> Result<ExitCode> {
+    if a.resources.is_some() {
+        return Err(arkit_tool::Error::invalid(
+            "--resources",
+            "not used with --format biwi (the BIWI head mesh is the topology)",
+        ));
+    }
+    if a.shard.is_some() {
+        return Err(arkit_tool::Error::invalid(
+            "--shard",
+            "not used with --format biwi (BIWI's 15,678 frames convert on one machine)",
+        ));
+    }
+    let staging = a
+        .staging
+        .clone()
+        .unwrap_or_else(|| a.output.join("biwi-release"));
+    let total = arkit_tool::biwi::count_frames(&a.input);
+    let bar = super::progress_bar(total as u64, "biwi", "frames");
+    let pool = super::thread_pool(a.jobs)?;
+    let (summary, topology) =
+        pool.install(|| arkit_tool::biwi::stage(&a.input, &staging, a.biwi_size, &|| bar.inc(1)))?;
+    bar.finish_and_clear();
+    eprintln!(
+        "BIWI: {} sequences, {} frames, {} staged in {} ({} without a pose file, {} problems; head mesh of {} vertices)",
+        summary.sequences,
+        summary.frames_found,
+        summary.staged,
+        staging.display(),
+        summary.without_pose.len(),
+        summary.problems.len(),
+        summary.vertex_count
+    );
+    for f in summary.without_pose.iter().take(10) {
+        eprintln!("  no pose file for {f}: not converted");
+    }
+    if summary.without_pose.len() > 10 {
+        eprintln!(
+            "  ... and {} more without a pose",
+            summary.without_pose.len() - 10
+        );
+    }
+    for p in summary.problems.iter().take(10) {
+        eprintln!("  {}: {}", p.file, p.reason);
+    }
+    let mut a = a;
+    a.input = staging;
+    let strict_fail = a.strict && !(summary.problems.is_empty() && summary.without_pose.is_empty());
+    let code = convert_with(a, topology, Camera::release_projection(), Some(&summary))?;
+    if strict_fail {
+        return Ok(ExitCode::from(1));
+    }
+    Ok(code)
+}
+
+fn convert_with(
+    a: ConvertArgs,
+    topology: arkit_tool::FaceTopology,
+    projection: nalgebra::Matrix4<f64>,
+    biwi: Option<&arkit_tool::biwi::StageSummary>,
+) -> Result<ExitCode> {
     let (shard_index, shard_count) = a.shard.unwrap_or((0, 1));
     let options = ConvertOptions {
         input: a.input.clone(),
@@ -114,7 +210,14 @@ pub fn run(a: ConvertArgs) -> Result<ExitCode> {
     })?;
     bar.finish_and_clear();
     if a.json {
-        println!("{}", serde_json::to_string_pretty(&manifest).expect("json"));
+        match biwi {
+            None => println!("{}", serde_json::to_string_pretty(&manifest).expect("json")),
+            Some(b) => println!(
+                "{}",
+                serde_json::to_string_pretty(&serde_json::json!({"biwi": b, "manifest": manifest}))
+                    .expect("json")
+            ),
+        }
     }
     let manifest_file = a
         .output

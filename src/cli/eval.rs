@@ -22,7 +22,12 @@ use std::process::ExitCode;
 /// Predictions: Parquet or CSV (schemas/predictions.json) keyed by subject_id,
 /// facial_action, img_id with R_t (16 numbers, the release's row-vector form).
 ///
+/// ADD is the mean over the sample's own vertices: ARKit's 1,220, or for a BIWI
+/// dataset (convert --format biwi) the subject's own head mesh. --exclude leaves
+/// listed frames out (the paper's BIWI table with a detected box: 13,219 of 15,678).
+///
 /// Example: arkit-tool eval --dataset data/pq --predictions pred.parquet --split test --report report/
+/// BIWI:    arkit-tool eval --dataset data/biwi-pq --predictions pred.parquet --split all --exclude no_box.csv
 #[derive(Args, Debug)]
 pub struct EvalArgs {
     /// A folder written by `convert`.
@@ -55,6 +60,12 @@ pub struct EvalArgs {
     /// Print the summary and the matching problems as JSON.
     #[arg(long)]
     json: bool,
+    /// Leave these samples out of the scores: a list CSV with the columns subject_id,
+    /// facial_action, img_id (the release's list format), for example the BIWI frames
+    /// where a face detector finds no face (the paper's 13,219-frame protocol). The
+    /// count left out is printed; listed keys the split does not have are reported.
+    #[arg(long, value_name = "LIST.csv")]
+    exclude: Option<PathBuf>,
 }
 
 /// `--euler` values.
@@ -74,6 +85,13 @@ pub fn run(a: EvalArgs) -> Result<ExitCode> {
         },
         targets: a.targets.clone(),
         keep_worst: if a.report.is_some() { 8 } else { 0 },
+        exclude: match &a.exclude {
+            None => Default::default(),
+            Some(path) => arkit_tool::release::read_list(path)?
+                .into_iter()
+                .map(|r| r.key)
+                .collect(),
+        },
     };
     let ev = eval_dataset::evaluate(&a.dataset, &predictions, &options)?;
     if let Some(path) = &a.per_sample {
@@ -95,6 +113,10 @@ pub fn run(a: EvalArgs) -> Result<ExitCode> {
                 "missing": p.missing,
                 "unscored_masks": p.unscored_masks.len(),
                 "non_rotations": p.non_rotations.len(),
+                "excluded": p.excluded,
+                "unscored_verts": p.unscored_verts,
+                "exclude_unknown": p.exclude_unknown.len(),
+                "first_exclude_unknown": p.exclude_unknown.iter().take(10).map(|k| k.to_string()).collect::<Vec<_>>(),
                 "first_non_rotations": p.non_rotations.iter().take(10).map(|(k, why)| format!("{k}: {why}")).collect::<Vec<_>>(),
                 "first_unknown": p.unknown.iter().take(10).map(|k| k.to_string()).collect::<Vec<_>>(),
                 "first_duplicates": p.duplicates.iter().take(10).map(|k| k.to_string()).collect::<Vec<_>>(),
@@ -103,6 +125,21 @@ pub fn run(a: EvalArgs) -> Result<ExitCode> {
         println!("{}", serde_json::to_string_pretty(&out).expect("json"));
     } else {
         print!("{}", ev.summary.table());
+        if p.unscored_verts > 0 {
+            eprintln!(
+                "note: {} predicted meshes not scored for 3D reconstruction: the dataset's head mesh is another topology",
+                p.unscored_verts
+            );
+        }
+        if a.exclude.is_some() {
+            eprintln!("left out {} samples named by --exclude", p.excluded);
+        }
+        if let Some(k) = p.exclude_unknown.first() {
+            eprintln!(
+                "warning: {} keys of --exclude are not samples of this split (first: {k})",
+                p.exclude_unknown.len()
+            );
+        }
         for (what, keys) in [("unknown", &p.unknown), ("repeated", &p.duplicates)] {
             if !keys.is_empty() {
                 eprintln!(

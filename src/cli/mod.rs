@@ -6,6 +6,7 @@ mod convert;
 #[cfg(feature = "model")]
 mod demo;
 mod eval;
+mod import_arkit;
 mod info;
 mod inspect;
 mod predict;
@@ -39,6 +40,7 @@ enum Command {
     Demo(demo::DemoArgs),
     Synth(synth::SynthArgs),
     Convert(convert::ConvertArgs),
+    ImportArkit(import_arkit::ImportArkitArgs),
     Merge(convert::MergeArgs),
     Split(split::SplitArgs),
     Inspect(inspect::InspectArgs),
@@ -59,6 +61,7 @@ pub fn run(cli: Cli) -> Result<ExitCode> {
         Command::Demo(a) => demo::run(a),
         Command::Synth(a) => synth::run(a),
         Command::Convert(a) => convert::run(a),
+        Command::ImportArkit(a) => import_arkit::run(a),
         Command::Merge(a) => convert::run_merge(a),
         Command::Split(a) => split::run(a),
         Command::Inspect(a) => inspect::run(a),

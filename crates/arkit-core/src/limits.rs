@@ -124,3 +124,8 @@ pub const MIN_IMAGE_SIDE: u32 = 32;
 /// `convert` as degenerate (an all-zero or collapsed mesh); the release's faces span
 /// hundreds of pixels.
 pub const MIN_FACE_SPAN_PX: f64 = 8.0;
+
+/// Largest frame JSON of an ARKit capture (`import-arkit`) read, in bytes: 16 MiB,
+/// checked on the file's length before it is read. A frame with the anchor's 1,220
+/// vertices written as decimal text is about 100 KB.
+pub const MAX_CAPTURE_JSON_BYTES: u64 = 16 << 20;

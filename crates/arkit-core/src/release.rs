@@ -161,7 +161,13 @@ impl InfoAnnotation {
 
     /// Parses an `_info.npz` archive; `path` names it in errors.
     pub fn from_npz(npz: &Npz, path: &Path) -> Result<Self> {
-        let verts = points3(npz.require_finite_f64("verts", &[ARKIT_VERTEX_COUNT, 3])?);
+        Self::from_npz_with_vertex_count(npz, path, ARKIT_VERTEX_COUNT)
+    }
+
+    /// As [`InfoAnnotation::from_npz`] for a mesh of `vertex_count` vertices (another
+    /// head mesh than ARKit's, such as BIWI's, converted into the release's layout).
+    pub fn from_npz_with_vertex_count(npz: &Npz, path: &Path, vertex_count: usize) -> Result<Self> {
+        let verts = points3(npz.require_finite_f64("verts", &[vertex_count, 3])?);
         let rt = mat16(npz.require_finite_f64("R_t", &[4, 4])?);
         Pose::check_release_rt(&rt).map_err(|e| e.in_file(path))?;
         let optional = |key: &str, shape: &[usize]| -> Result<Option<Vec<f64>>> {
@@ -174,13 +180,13 @@ impl InfoAnnotation {
         Ok(InfoAnnotation {
             verts,
             rt,
-            verts_gt: optional("verts_gt", &[ARKIT_VERTEX_COUNT, 3])?.map(points3),
+            verts_gt: optional("verts_gt", &[vertex_count, 3])?.map(points3),
             face_anchor_transform: optional("faceAnchortransform", &[4, 4])?.map(mat16),
             camera_transform: optional("cameratransform", &[4, 4])?.map(mat16),
             projection_matrix: optional("projectionMatrix", &[4, 4])?.map(mat16),
             euler_angles_pyr: optional("euler_angles", &[3])?.map(|v| [v[0], v[1], v[2]]),
             translation: optional("translation", &[3])?.map(|v| [v[0], v[1], v[2]]),
-            points2d: optional("points2d", &[ARKIT_VERTEX_COUNT, 2])?
+            points2d: optional("points2d", &[vertex_count, 2])?
                 .map(|v| v.chunks(2).map(|c| [c[0], c[1]]).collect()),
         })
     }
@@ -286,6 +292,12 @@ impl InfoAnnotation {
 pub fn read_info(path: &Path) -> Result<InfoAnnotation> {
     let npz = npy::read_npz(path)?;
     InfoAnnotation::from_npz(&npz, path)
+}
+
+/// Reads and validates one `_info.npz` whose mesh has `vertex_count` vertices.
+pub fn read_info_with_vertex_count(path: &Path, vertex_count: usize) -> Result<InfoAnnotation> {
+    let npz = npy::read_npz(path)?;
+    InfoAnnotation::from_npz_with_vertex_count(&npz, path, vertex_count)
 }
 
 /// Writes one `_info.npz` atomically (as numpy's `savez_compressed` or `savez`).

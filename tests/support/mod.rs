@@ -1,0 +1,3 @@
+//! Writers of synthetic input shared by several test files.
+
+pub mod biwi_writer;
