@@ -185,7 +185,8 @@ pub struct LoaderItem {
     pub choose_box: Vec<i64>,
     /// [`Compat::Official`] only: whether the box leaves the image, so that the slice
     /// is clipped (right or bottom) or wrapped (left or top, Python's negative indices)
-    /// and the official mapping of points to crop pixels misplaces them.
+    /// and the official mapping of points to crop pixels misplaces them (points mapped
+    /// outside the crop are then replaced by a random pixel, as the official loader does).
     pub box_clipped: bool,
 }
 
@@ -539,6 +540,8 @@ pub struct FaceLoader {
     uv: UvMapper,
     official_uv: OfficialUvLayout,
     options: LoaderOptions,
+    /// Visibility buffers kept between items (an 800x800 buffer is 13 MB to allocate).
+    buffers: std::sync::Mutex<Vec<VisibilityBuffer>>,
 }
 
 impl FaceLoader {
@@ -611,6 +614,7 @@ impl FaceLoader {
             uv,
             official_uv,
             options,
+            buffers: std::sync::Mutex::new(Vec::new()),
         })
     }
 
@@ -859,12 +863,39 @@ impl FaceLoader {
         train: bool,
         rng: &mut Rng,
     ) -> Result<LoaderItem> {
+        let mut buffer = self.take_buffer();
+        let full_mask = self
+            .renderer
+            .render_full_mask(verts, pose, row.width, row.height, &mut buffer);
+        let result = full_mask.and_then(|full_mask| {
+            self.official_from(row, verts, image, landmarks, train, rng, &buffer, &full_mask)
+        });
+        self.buffers
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .push(buffer);
+        result
+    }
+
+    fn take_buffer(&self) -> VisibilityBuffer {
+        let kept = self.buffers.lock().unwrap_or_else(|e| e.into_inner()).pop();
+        kept.unwrap_or_else(|| VisibilityBuffer::new(1, 1))
+    }
+
+    #[allow(clippy::too_many_arguments)]
+    fn official_from(
+        &self,
+        row: &IndexRow,
+        verts: &[Point3<f32>],
+        image: &image::RgbImage,
+        landmarks: &[(f64, f64)],
+        train: bool,
+        rng: &mut Rng,
+        buffer: &VisibilityBuffer,
+        full_mask: &[bool],
+    ) -> Result<LoaderItem> {
         let s = self.options.img_size;
         let (w, h) = (row.width as i64, row.height as i64);
-        let mut buffer = VisibilityBuffer::new(1, 1);
-        let full_mask =
-            self.renderer
-                .render_full_mask(verts, pose, row.width, row.height, &mut buffer)?;
         let (x0, x1, y0, y1) = landmarks.iter().fold(
             (f64::MAX, f64::MIN, f64::MAX, f64::MIN),
             |(a, b, c, d), &(u, v)| (a.min(u), b.max(u), c.min(v), d.max(v)),
@@ -949,15 +980,6 @@ impl FaceLoader {
             let px = (col * tform[0] + rw * tform[1]) + tform[2];
             let py = (col * tform[3] + rw * tform[4]) + tform[5];
             let k = py.floor() as i64 * s as i64 + px.floor() as i64;
-            if !(0..n).contains(&k) {
-                return Err(Error::invalid(
-                    "official box",
-                    format!(
-                        "{}: a point maps outside the crop (pixel {k}); the official loader would replace it by a random pixel",
-                        row.key
-                    ),
-                ));
-            }
             choose.push(k);
             // The full-resolution pixel the slice index names.
             let (y, x) = (row0 + cb / slice_w, col0 + cb % slice_w);
@@ -977,12 +999,26 @@ impl FaceLoader {
             corr_vertices.push(tri);
             corr_weights.push(wt);
         }
+        // The official rule for points mapped outside the crop (only where the box leaves
+        // the image and the slice is clipped or wrapped): every index past the end becomes
+        // one random pixel, every negative index another (arkit_dataset.py:226-230).
+        let replaced = choose.iter().any(|k| !(0..n).contains(k));
+        if replaced {
+            let (high, low) = (rng.below(n as u64) as i64, rng.below(n as u64) as i64);
+            for k in &mut choose {
+                if *k >= n {
+                    *k = high;
+                } else if *k < 0 {
+                    *k = low;
+                }
+            }
+        }
         let mut rgb = warp_affine(image.as_raw(), row.width, row.height, 3, &crop);
         if train {
             jitter_colour(&mut rgb, rng);
         }
-        let mask = warp_mask(&full_mask, row.width, row.height, &crop);
-        let box_clipped = left < 0 || top < 0 || right >= w || bottom >= h;
+        let mask = warp_mask(full_mask, row.width, row.height, &crop);
+        let box_clipped = left < 0 || top < 0 || right >= w || bottom >= h || replaced;
         Ok(LoaderItem {
             key: row.key.clone(),
             image_path: self.image_path(row),
