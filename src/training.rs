@@ -748,7 +748,8 @@ pub struct TrainOptions {
 impl TrainOptions {
     /// Checks the options a caller (the CLI, or code using the library) can get wrong:
     /// at least one epoch and one sample per batch, a positive finite learning rate, a
-    /// hold fraction in [0, 1], a colour jitter in [0, 1].
+    /// hold fraction in [0, 1], a colour jitter in [0, 1], no `--lowered-start` with the
+    /// paper's loss (its weights are fixed).
     pub fn validate(&self) -> Result<()> {
         let bad = |what: &str, why: String| Err(Error::invalid(what, why));
         if self.epochs == 0 {
@@ -770,6 +771,12 @@ impl TrainOptions {
             return bad(
                 "--lr-hold",
                 format!("{} is not a fraction in [0, 1]", self.lr_hold),
+            );
+        }
+        if self.lowered_start && self.config.loss == crate::perspnet::LossVariant::Paper {
+            return bad(
+                "--lowered-start",
+                "lowers the official schedule's weights; --loss paper holds the paper's fixed weights".into(),
             );
         }
         if !(0.0..=1.0).contains(&self.augmentation.colour) {

@@ -815,8 +815,8 @@ mod train {
         let t = loss.compute(&out, &targets)?;
         assert!(t.values()?.iter().all(|x| x.is_finite()));
         // The paper's variant: L_corr is the plain L1 of X_corr (at the official 4.5 / 9
-        // scale) against the targets, computed here from the raw outputs; the other
-        // terms are the official ones; and the weights stay put even when the weighted
+        // scale) against the targets, computed here from the raw outputs; the weights
+        // are the paper's (0.5 / 0.01 / 1 / 0.01), and they stay put even when the weighted
         // L_corr is below the schedule's thresholds (a corr weight of 1e-6 puts it
         // there), where the official loss lowers them.
         let mut paper = PerspNetLoss::new(LossVariant::Paper);
@@ -838,11 +838,11 @@ mod train {
             vp[1],
             vo[1]
         );
-        assert_eq!(paper.weights, LossWeights::default());
+        assert_eq!(paper.weights, LossWeights::paper());
         let mut low = PerspNetLoss::new(LossVariant::Paper);
         low.weights.corr = 1e-6;
         low.compute(&out, &targets)?;
-        assert_eq!(low.weights.kl, LossWeights::default().kl);
+        assert_eq!(low.weights.kl, LossWeights::paper().kl);
         let mut official_low = PerspNetLoss::default();
         official_low.weights.corr = 1e-6;
         official_low.compute(&out, &targets)?;
