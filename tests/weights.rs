@@ -256,3 +256,122 @@ fn a_torch_saved_state_dict_imports() {
             .unwrap();
     assert_eq!(c["steps"], 42);
 }
+
+/// `predict --dump`: every predicted sample's inputs and raw outputs, consistent with
+/// each other (rows of M sum to 1, `points` is `M X`), and the dumped inputs fed to the
+/// network again give the dumped outputs.
+#[test]
+fn predict_dump_holds_inputs_and_outputs() {
+    let dir = tempfile::tempdir().unwrap();
+    let p = |n: &str| dir.path().join(n).to_str().unwrap().to_string();
+    let ok = |args: &[&str]| {
+        let out = tool().args(args).output().unwrap();
+        assert!(
+            out.status.success(),
+            "{args:?}: {}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+    };
+    let cfg = PerspNetConfig::tiny();
+    let vm = random_varmap(&cfg, 5);
+    let w = dir.path().join("w.safetensors");
+    save(&export_state_dict(&vm, 0).unwrap(), &w);
+    ok(&[
+        "import-weights",
+        w.to_str().unwrap(),
+        "--config",
+        "tiny",
+        "--output",
+        &p("model"),
+    ]);
+    ok(&[
+        "synth",
+        "--output",
+        &p("synth"),
+        "--subjects",
+        "2",
+        "--images-per-subject",
+        "2",
+        "--size",
+        "128x128",
+    ]);
+    ok(&["convert", "--input", &p("synth"), "--output", &p("pq")]);
+    // --dump needs a network.
+    let out = tool()
+        .args([
+            "predict",
+            "--oracle",
+            "--dataset",
+            &p("pq"),
+            "--output",
+            &p("o.parquet"),
+            "--dump",
+            &p("x.npz"),
+        ])
+        .output()
+        .unwrap();
+    assert_eq!(out.status.code(), Some(2));
+    assert!(String::from_utf8_lossy(&out.stderr).contains("invalid --dump"));
+    ok(&[
+        "predict",
+        "--model",
+        &p("model"),
+        "--dataset",
+        &p("pq"),
+        "--split",
+        "all",
+        "--output",
+        &p("pred.parquet"),
+        "--dump",
+        &p("dump.npz"),
+    ]);
+    let npz = arkit_core::npy::read_npz(&dir.path().join("dump.npz")).unwrap();
+    let samples: std::collections::BTreeSet<String> = npz
+        .keys()
+        .filter_map(|k| k.strip_suffix("/image").map(str::to_string))
+        .collect();
+    assert_eq!(samples.len(), 4);
+    assert_eq!(npz.require("vertex_uv").unwrap().shape(), &[1220, 2]);
+    let (s, m, v) = (cfg.input_size, cfg.points, cfg.vertices);
+    let topo = &arkit_tool::synthetic_face::builtin().topology;
+    let model = training::load(&dir.path().join("model"), topo).unwrap();
+    for key in &samples {
+        let get = |n: &str| npz.require(&format!("{key}/{n}")).unwrap();
+        assert_eq!(get("image").shape(), &[3, s, s]);
+        assert_eq!(get("seg_logits").shape(), &[2, s, s]);
+        assert_eq!(get("uv_map").shape(), &[3, s, s]);
+        assert_eq!(get("assignment").shape(), &[m, v]);
+        assert_eq!(get("points").shape(), &[m, 3]);
+        let a = get("assignment").to_f32_vec();
+        let x = get("vertices").to_f32_vec();
+        let pts = get("points").to_f32_vec();
+        for i in 0..m {
+            let row = &a[i * v..(i + 1) * v];
+            assert!((row.iter().sum::<f32>() - 1.0).abs() < 1e-4);
+            for c in 0..3 {
+                let mx: f32 = row.iter().enumerate().map(|(j, r)| r * x[j * 3 + c]).sum();
+                assert!(
+                    (mx - pts[i * 3 + c]).abs() < 1e-4 * (1.0 + mx.abs()),
+                    "{key} point {i}"
+                );
+            }
+        }
+        let choose: Vec<u32> = match get("choose").data() {
+            arkit_core::npy::ArrayData::I64(c) => c.iter().map(|&c| c as u32).collect(),
+            other => panic!("choose is {other:?}"),
+        };
+        assert!(choose.iter().all(|&c| (c as usize) < s * s));
+        // The dumped inputs reproduce the dumped outputs.
+        let img = Tensor::from_vec(get("image").to_f32_vec(), (1, 3, s, s), &Device::Cpu).unwrap();
+        let ch = Tensor::from_vec(choose, (1, m), &Device::Cpu).unwrap();
+        let out = model.net.forward(&img, &ch, false).unwrap();
+        let flat = |t: &Tensor| t.flatten_all().unwrap().to_vec1::<f32>().unwrap();
+        assert_eq!(
+            flat(&out.dense.seg_logits),
+            get("seg_logits").to_f32_vec(),
+            "{key}"
+        );
+        assert_eq!(flat(&out.dense.uv_map), get("uv_map").to_f32_vec(), "{key}");
+        assert_eq!(flat(&out.assignment().unwrap()), a, "{key}");
+    }
+}
