@@ -898,7 +898,7 @@ pub fn train<S: ExampleShards + ?Sized>(
     let mut start_epoch = 0;
     let mut opt = Adam::new(named_trainable_vars(&varmap), options.learning_rate)
         .map_err(|e| candle_err("optimizer", e))?;
-    let mut loss = PerspNetLoss::new(cfg.loss);
+    let mut loss = PerspNetLoss::for_config(cfg);
     if options.lowered_start {
         // The weights the official schedule reaches once L_corr < 0.1.
         loss.weights.update_schedule(0.05);

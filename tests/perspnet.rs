@@ -872,6 +872,64 @@ mod train {
     }
 }
 
+mod ablations {
+    //! "w/o PE": without the position encoding, points whose image features are equal
+    //! get equal assignment rows; with it they differ by position.
+
+    use arkit_tool::perspnet::model::synthetic_vertex_uv;
+    use arkit_tool::perspnet::{PerspNet, PerspNetConfig};
+    use candle_core::{DType, Device, Result, Tensor};
+    use candle_nn::{VarBuilder, VarMap};
+
+    /// The largest difference between any assignment row and the first, with the
+    /// point-wise image-feature layer zeroed (so every point's image feature is 0).
+    fn row_spread(position_encoding: bool) -> Result<f32> {
+        let dev = Device::Cpu;
+        let cfg = PerspNetConfig {
+            position_encoding,
+            ..PerspNetConfig::tiny()
+        };
+        let vm = VarMap::new();
+        let vb = VarBuilder::from_varmap(&vm, DType::F32, &dev);
+        let net = PerspNet::new(&cfg, &synthetic_vertex_uv(cfg.vertices, &dev)?, vb)?;
+        {
+            let data = vm.data().lock().unwrap();
+            for (k, v) in data.iter() {
+                if k.starts_with("instance_color.") {
+                    v.set(&v.zeros_like()?)?;
+                }
+            }
+            let w = data["instance_global.0.weight"].dims().to_vec();
+            assert_eq!(w[1], cfg.local_channels());
+        }
+        let s = cfg.input_size;
+        let img = Tensor::randn(0f32, 1., (1, 3, s, s), &dev)?;
+        let choose: Vec<u32> = (0..cfg.points as u32)
+            .map(|i| (i * 37) % (s * s) as u32)
+            .collect();
+        let choose = Tensor::from_vec(choose, (1, cfg.points), &dev)?;
+        let a = net
+            .forward(&img, &choose, false)?
+            .assign_logits
+            .squeeze(0)?;
+        let first = a.narrow(0, 0, 1)?;
+        a.broadcast_sub(&first)?
+            .abs()?
+            .max_all()?
+            .to_scalar::<f32>()
+    }
+
+    #[test]
+    fn without_position_encoding_rows_depend_on_features_only() -> Result<()> {
+        assert_eq!(row_spread(false)?, 0.0);
+        assert!(row_spread(true)? > 1e-4);
+        let mut c = PerspNetConfig::paper();
+        c.position_encoding = false;
+        assert_eq!(c.assign_in_channels(), 64 + 2048);
+        Ok(())
+    }
+}
+
 mod pipeline {
     //! synth -> convert -> render (64x64, 256 points) -> train (tiny) -> predict
     //! --model -> eval, on a few samples.

@@ -84,6 +84,14 @@ pub struct TrainArgs {
     /// and targets when it comes round).
     #[arg(long)]
     stream: bool,
+    /// The paper's ablation "w/o PE": the points' local features are the image
+    /// features alone, without the 2D position encoding.
+    #[arg(long)]
+    no_position_encoding: bool,
+    /// The paper's ablation "w/o L_M": no assignment loss (KL and entropy); the
+    /// assignment matrix is learned through the correspondence loss only.
+    #[arg(long)]
+    no_assignment_loss: bool,
     /// Start the loss at the weights the official schedule lowers to once the
     /// correspondence loss falls below 0.1 (KL and segmentation 0.01), instead of
     /// waiting for one batch to get there (the official, sticky trigger). Official loss
@@ -133,6 +141,12 @@ pub fn run(a: TrainArgs) -> Result<ExitCode> {
     let mut config = config_named(&a.config)?;
     if let Some(loss) = a.loss {
         config.loss = loss;
+    }
+    if a.no_position_encoding {
+        config.position_encoding = false;
+    }
+    if a.no_assignment_loss {
+        config.assignment_loss = false;
     }
     if a.lowered_start && config.loss == LossVariant::Paper {
         return Err(Error::invalid(

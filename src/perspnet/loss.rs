@@ -190,6 +190,9 @@ pub struct PerspNetLoss {
     pub threshold: f64,
     /// Whether to apply [`LossWeights::update_schedule`] on every call.
     pub schedule: bool,
+    /// Whether `L_M` (KL and entropy) is in the loss; without it (the paper's "w/o
+    /// L_M" ablation) both terms are computed at weight 0, whatever the schedule says.
+    pub assignment: bool,
 }
 
 impl Default for PerspNetLoss {
@@ -206,7 +209,27 @@ impl PerspNetLoss {
             weights: LossWeights::initial(variant),
             threshold: if official { 0.01 } else { 0.0 },
             schedule: official,
+            assignment: true,
         }
+    }
+
+    /// The loss a network of `cfg` trains with: its variant, with or without `L_M`.
+    pub fn for_config(cfg: &super::PerspNetConfig) -> Self {
+        Self {
+            assignment: cfg.assignment_loss,
+            ..Self::new(cfg.loss)
+        }
+    }
+
+    /// The weights the terms are computed with: [`Self::weights`], with the KL and
+    /// entropy weights 0 when `L_M` is off.
+    pub fn effective_weights(&self) -> LossWeights {
+        let mut w = self.weights;
+        if !self.assignment {
+            w.kl = 0.0;
+            w.entropy = 0.0;
+        }
+        w
     }
 
     /// Computes the loss terms, first updating the weights from `L_corr` when the
@@ -217,7 +240,7 @@ impl PerspNetLoss {
             let c = corr.to_dtype(DType::F64)?.to_scalar::<f64>()?;
             self.weights.update_schedule(c);
         }
-        perspnet_loss_with_corr(out, t, &self.weights, corr)
+        perspnet_loss_with_corr(out, t, &self.effective_weights(), corr)
     }
 }
 
@@ -436,6 +459,29 @@ mod tests {
             total,
             0.5 * l_s + 0.01 * l_m + l_corr + 0.01 * l_seg,
             "total",
+        );
+        // Without L_M (the "w/o L_M" ablation): the KL and entropy are 0 and the total
+        // is the other three terms.
+        let mut cfg = crate::perspnet::PerspNetConfig::tiny();
+        cfg.loss = LossVariant::Paper;
+        cfg.assignment_loss = false;
+        let off = PerspNetLoss::for_config(&cfg);
+        let terms = loss_terms(
+            &logits,
+            &vertices,
+            &seg_logits,
+            &uv_map,
+            &t,
+            &off.effective_weights(),
+            off.threshold,
+        )?;
+        let [total, corr, _, kl, entropy, _] = terms.values()?.map(f64::from);
+        assert_eq!((kl, entropy), (0.0, 0.0));
+        close(corr, l_corr, "L_corr without L_M");
+        close(
+            total,
+            0.5 * l_s + l_corr + 0.01 * l_seg,
+            "total without L_M",
         );
         Ok(())
     }

@@ -388,9 +388,13 @@ impl PerspNet {
         // Local 2D features: sampled image features (1x1 conv + ReLU) ++ position encoding.
         let emb = gather_pixels(&dense.image_features, choose)?; // B x M x F
         let color = relu(&self.instance_color.forward(&emb)?)?;
-        let pos = positional_encoding_points(choose, self.cfg.pos_channels, w, img.device())?
-            .to_dtype(color.dtype())?;
-        let local = Tensor::cat(&[&color, &pos], 2)?; // B x M x 128
+        let local = if self.cfg.position_encoding {
+            let pos = positional_encoding_points(choose, self.cfg.pos_channels, w, img.device())?
+                .to_dtype(color.dtype())?;
+            Tensor::cat(&[&color, &pos], 2)? // B x M x 128
+        } else {
+            color
+        };
         let g2 = mlp_global(&self.instance_global, &local)?; // B x 1 x 1024
 
         // 3D global feature from the UV features read at the vertex UVs.
