@@ -690,10 +690,20 @@ pub struct Checkpoint {
     pub example_shards: usize,
     /// Steps run.
     pub steps: usize,
-    /// Total loss of the first and last step.
+    /// Total loss of the first and last step (NaN, written `null`, without steps).
+    #[serde(deserialize_with = "nan_if_null")]
     pub first_loss: f32,
     /// Total loss of the last step.
+    #[serde(deserialize_with = "nan_if_null")]
     pub last_loss: f32,
+    /// The weights file this model was imported from (`import-weights`), if it was.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub imported_from: Option<String>,
+}
+
+/// A loss written as `null` (JSON has no NaN) reads back as NaN.
+fn nan_if_null<'de, D: serde::Deserializer<'de>>(d: D) -> std::result::Result<f32, D::Error> {
+    Ok(Option::<f32>::deserialize(d)?.unwrap_or(f32::NAN))
 }
 
 fn one_shard() -> usize {
@@ -748,7 +758,8 @@ pub struct TrainOptions {
 impl TrainOptions {
     /// Checks the options a caller (the CLI, or code using the library) can get wrong:
     /// at least one epoch and one sample per batch, a positive finite learning rate, a
-    /// hold fraction in [0, 1], a colour jitter in [0, 1].
+    /// hold fraction in [0, 1], a colour jitter in [0, 1], no `--lowered-start` with the
+    /// paper's loss (its weights are fixed).
     pub fn validate(&self) -> Result<()> {
         let bad = |what: &str, why: String| Err(Error::invalid(what, why));
         if self.epochs == 0 {
@@ -770,6 +781,12 @@ impl TrainOptions {
             return bad(
                 "--lr-hold",
                 format!("{} is not a fraction in [0, 1]", self.lr_hold),
+            );
+        }
+        if self.lowered_start && self.config.loss == crate::perspnet::LossVariant::Paper {
+            return bad(
+                "--lowered-start",
+                "lowers the official schedule's weights; --loss paper holds the paper's fixed weights".into(),
             );
         }
         if !(0.0..=1.0).contains(&self.augmentation.colour) {
@@ -875,12 +892,13 @@ pub fn train<S: ExampleShards + ?Sized>(
         steps: 0,
         first_loss: f32::NAN,
         last_loss: f32::NAN,
+        imported_from: None,
     };
     let mut log = Vec::new();
     let mut start_epoch = 0;
     let mut opt = Adam::new(named_trainable_vars(&varmap), options.learning_rate)
         .map_err(|e| candle_err("optimizer", e))?;
-    let mut loss = PerspNetLoss::new(cfg.loss);
+    let mut loss = PerspNetLoss::for_config(cfg);
     if options.lowered_start {
         // The weights the official schedule reaches once L_corr < 0.1.
         loss.weights.update_schedule(0.05);
@@ -1175,6 +1193,146 @@ fn write_checkpoint(
     crate::atomic_file::write_bytes(&dir.join("perspnet.json"), json.as_bytes())
 }
 
+/// Reads a PyTorch `state_dict` (a `torch.save` zip, or the safetensors file
+/// [`export_weights`] writes) of the official network with `config`'s shapes into a new
+/// model folder `output` (`perspnet.json` and `model.safetensors`, which `predict
+/// --model` reads). Every tensor must match by name and shape; otherwise nothing is
+/// written and the error lists the missing, extra and misshapen ones.
+pub fn import_weights(
+    file: &Path,
+    config: &PerspNetConfig,
+    topology: &FaceTopology,
+    output: &Path,
+) -> Result<Checkpoint> {
+    use crate::perspnet::weights::{WeightError, WeightFile};
+    let weights = WeightFile::open(file).map_err(|e| Error::format(file, e.to_string()))?;
+    let device = Device::Cpu;
+    let varmap = VarMap::new();
+    let vb = VarBuilder::from_varmap(&varmap, DType::F32, &device);
+    PerspNet::new(config, &vertex_uv(topology, &device)?, vb)
+        .map_err(|e| candle_err("network", e))?;
+    let steps = weights.load_into(&varmap).map_err(|e| match e {
+        WeightError::Mismatch(m) => Error::format(
+            file,
+            format!("does not match the network of this --config: {m}"),
+        ),
+        WeightError::Read(m) => Error::format(file, m),
+    })?;
+    let checkpoint = Checkpoint {
+        config: config.clone(),
+        topology: topology.source.clone(),
+        epochs: 0,
+        batch: 0,
+        learning_rate: 0.0,
+        lr_hold: 1.0,
+        augmentation: Augmentation::NONE,
+        lowered_start: false,
+        max_steps: None,
+        seed: 0,
+        loss_weights: None,
+        epochs_done: 0,
+        examples: 0,
+        example_shards: 1,
+        steps: steps.max(0) as usize,
+        first_loss: f32::NAN,
+        last_loss: f32::NAN,
+        imported_from: Some(file.display().to_string()),
+    };
+    std::fs::create_dir_all(output).map_err(|e| Error::io(output, e))?;
+    save_renamed(&output.join("model.safetensors"), &|p| varmap.save(p))?;
+    let json = serde_json::to_string_pretty(&checkpoint).expect("checkpoint json");
+    crate::atomic_file::write_bytes(&output.join("perspnet.json"), json.as_bytes())?;
+    Ok(checkpoint)
+}
+
+/// Writes a model folder's weights as the official network's `state_dict` in a
+/// safetensors file (official names and shapes, with every batch norm's
+/// `num_batches_tracked`, set to the model's training steps), which PyTorch loads with
+/// `load_state_dict(safetensors.torch.load_file(path), strict=True)`. Returns the
+/// number of entries written.
+pub fn export_weights(model_dir: &Path, output: &Path) -> Result<usize> {
+    let p = model_dir.join("perspnet.json");
+    let text = std::fs::read_to_string(&p).map_err(|e| Error::io(&p, e))?;
+    let checkpoint: Checkpoint =
+        serde_json::from_str(&text).map_err(|e| Error::format(&p, e.to_string()))?;
+    let cfg = &checkpoint.config;
+    let device = Device::Cpu;
+    let mut varmap = VarMap::new();
+    let vb = VarBuilder::from_varmap(&varmap, DType::F32, &device);
+    // The vertex UV table is not a weight: any table of the right size builds the network.
+    let uv = crate::perspnet::model::synthetic_vertex_uv(cfg.vertices, &device)
+        .map_err(|e| candle_err("network", e))?;
+    PerspNet::new(cfg, &uv, vb).map_err(|e| candle_err("network", e))?;
+    let w = model_dir.join("model.safetensors");
+    varmap
+        .load(&w)
+        .map_err(|e| Error::format(&w, e.to_string()))?;
+    let entries = crate::perspnet::weights::export_state_dict(&varmap, checkpoint.steps as i64)
+        .map_err(|e| candle_err("export", e))?;
+    let n = entries.len();
+    let map: HashMap<String, Tensor> = entries.into_iter().collect();
+    if let Some(dir) = output.parent().filter(|d| !d.as_os_str().is_empty()) {
+        std::fs::create_dir_all(dir).map_err(|e| Error::io(dir, e))?;
+    }
+    save_renamed(output, &|p| candle_core::safetensors::save(&map, p))?;
+    Ok(n)
+}
+
+/// Writes `predict --dump`'s npz: for each sample `KEY` (`subject/action/image`),
+/// `KEY/image` (`3 x S x S` f32, the normalised crop), `KEY/choose` (`M` int64 pixel
+/// indices `y * S + x`), `KEY/seg_logits` (`2 x S x S`), `KEY/uv_map` (`3 x S x S`),
+/// `KEY/assignment` (`M x V`, rows summing to 1), `KEY/points` (`M X`, `M x 3`) and
+/// `KEY/vertices` (X, `V x 3`), the last three in the UV map's units (9 x canonical);
+/// and once, `vertex_uv` (`V x 2`, where X is read from the UV map: `grid_sample` at
+/// `2 uv - 1`, `align_corners=False`).
+pub fn write_dump(
+    path: &Path,
+    cfg: &PerspNetConfig,
+    topology: &FaceTopology,
+    dump: &[(crate::release::SampleKey, RawOutputs)],
+) -> Result<()> {
+    use arkit_core::npy::{NpyArray, NpzCompression, write_npz};
+    let (s, m, v) = (cfg.input_size, cfg.points, cfg.vertices);
+    let uv: Vec<f32> = topology.uv[..v].iter().flat_map(|t| [t[0], t[1]]).collect();
+    let mut arrays: Vec<(String, NpyArray)> =
+        vec![("vertex_uv".into(), NpyArray::from_f32(vec![v, 2], uv)?)];
+    for (key, r) in dump {
+        let k = key.to_string();
+        arrays.push((
+            format!("{k}/image"),
+            NpyArray::from_f32(vec![3, s, s], r.image.clone())?,
+        ));
+        arrays.push((
+            format!("{k}/choose"),
+            NpyArray::from_i64(vec![m], r.choose.iter().map(|&c| c as i64).collect())?,
+        ));
+        arrays.push((
+            format!("{k}/seg_logits"),
+            NpyArray::from_f32(vec![2, s, s], r.seg_logits.clone())?,
+        ));
+        arrays.push((
+            format!("{k}/uv_map"),
+            NpyArray::from_f32(vec![3, s, s], r.uv_map.clone())?,
+        ));
+        arrays.push((
+            format!("{k}/assignment"),
+            NpyArray::from_f32(vec![m, v], r.assignment.clone())?,
+        ));
+        arrays.push((
+            format!("{k}/points"),
+            NpyArray::from_f32(vec![m, 3], r.points.clone())?,
+        ));
+        arrays.push((
+            format!("{k}/vertices"),
+            NpyArray::from_f32(vec![v, 3], r.vertices.clone())?,
+        ));
+    }
+    let members: Vec<(&str, &NpyArray)> = arrays.iter().map(|(k, a)| (k.as_str(), a)).collect();
+    let mut buf = std::io::Cursor::new(Vec::new());
+    write_npz(&mut buf, &members, NpzCompression::Deflated)?;
+    crate::atomic_file::write_bytes(path, buf.get_ref())
+}
+
 /// A trained network loaded from a checkpoint folder.
 pub struct TrainedModel {
     /// How it was made.
@@ -1239,10 +1397,40 @@ pub fn predict_crop(
     seed: u64,
     truth: Option<&[bool]>,
 ) -> Result<NetworkPrediction> {
+    predict_crop_raw(model, input, seed, truth, false).map(|(p, _)| p)
+}
+
+/// The network's inputs and raw outputs for one crop (`predict --dump`).
+#[derive(Clone, Debug)]
+pub struct RawOutputs {
+    /// The normalised crop as the network sees it, `3 x S x S`.
+    pub image: Vec<f32>,
+    /// The chosen pixel indices `y * S + x`, `M`.
+    pub choose: Vec<u32>,
+    /// Segmentation logits `2 x S x S`.
+    pub seg_logits: Vec<f32>,
+    /// UV position map `3 x S x S` (tanh; 9 x canonical units).
+    pub uv_map: Vec<f32>,
+    /// The assignment matrix M (softmax over the vertices), `M x V`.
+    pub assignment: Vec<f32>,
+    /// `M X`, `M x 3`, in the UV map's units (9 x canonical).
+    pub points: Vec<f32>,
+    /// The vertices X read from the UV map, `V x 3`, in the UV map's units.
+    pub vertices: Vec<f32>,
+}
+
+/// [`predict_crop`], also returning the raw outputs when `keep_raw`.
+pub fn predict_crop_raw(
+    model: &TrainedModel,
+    input: &[f32],
+    seed: u64,
+    truth: Option<&[bool]>,
+    keep_raw: bool,
+) -> Result<(NetworkPrediction, Option<RawOutputs>)> {
     let cfg = &model.checkpoint.config;
     let s = cfg.input_size;
     let device = Device::Cpu;
-    let run = || -> candle_core::Result<NetworkPrediction> {
+    let run = || -> candle_core::Result<(NetworkPrediction, Option<RawOutputs>)> {
         let img = Tensor::from_slice(input, (1, 3, s, s), &device)?;
         let dense = model.net.forward_dense(&img, false)?;
         let logits = dense.seg_logits.squeeze(0)?; // 2 x S x S
@@ -1269,12 +1457,29 @@ pub fn predict_crop(
             .squeeze(0)?
             .to_vec2::<f32>()?;
         let verts = out.vertices_canonical()?.flatten_all()?.to_vec1::<f32>()?;
-        Ok(NetworkPrediction {
-            mask,
-            pixels,
-            points: corr.iter().map(|p| [p[0], p[1], p[2]]).collect(),
-            verts,
-        })
+        let raw = if keep_raw {
+            let flat = |t: &Tensor| t.flatten_all()?.to_vec1::<f32>();
+            Some(RawOutputs {
+                image: input.to_vec(),
+                choose: pixels.clone(),
+                seg_logits: flat(&out.dense.seg_logits)?,
+                uv_map: flat(&out.dense.uv_map)?,
+                assignment: flat(&out.assignment()?)?,
+                points: flat(&out.correspondences()?)?,
+                vertices: flat(&out.vertices)?,
+            })
+        } else {
+            None
+        };
+        Ok((
+            NetworkPrediction {
+                mask,
+                pixels,
+                points: corr.iter().map(|p| [p[0], p[1], p[2]]).collect(),
+                verts,
+            },
+            raw,
+        ))
     };
     run().map_err(|e| candle_err("network forward", e))
 }
@@ -1335,6 +1540,28 @@ pub fn model_predictions(
     seed: u64,
     ransac: &crate::pnp::RansacParams,
     progress: &dyn Fn(usize),
+) -> Result<(
+    Vec<crate::predictions_table::PredictionRecord>,
+    ModelPredictSummary,
+)> {
+    model_predictions_dump(
+        dataset, model, split, crop_rule, true_masks, seed, ransac, progress, None,
+    )
+}
+
+/// [`model_predictions`], also collecting each predicted sample's network inputs and
+/// raw outputs into `dump` when given.
+#[allow(clippy::too_many_arguments)]
+pub fn model_predictions_dump(
+    dataset: &Path,
+    model: &TrainedModel,
+    split: Option<&str>,
+    crop_rule: crate::render::CropRule,
+    true_masks: Option<&Path>,
+    seed: u64,
+    ransac: &crate::pnp::RansacParams,
+    progress: &dyn Fn(usize),
+    mut dump: Option<&mut Vec<(crate::release::SampleKey, RawOutputs)>>,
 ) -> Result<(
     Vec<crate::predictions_table::PredictionRecord>,
     ModelPredictSummary,
@@ -1401,12 +1628,16 @@ pub fn model_predictions(
                 }
             };
             let input = network_input(&image, &crop);
-            let p = predict_crop(
+            let (p, raw) = predict_crop_raw(
                 model,
                 &input,
                 seed ^ ((shard.index as u64) << 32 | i as u64),
                 true_mask.as_deref(),
+                dump.is_some(),
             )?;
+            if let (Some(d), Some(raw)) = (dump.as_deref_mut(), raw) {
+                d.push((r.key.clone(), raw));
+            }
             let pose = pose_of(&p, &crop, r.image_width, r.image_height, ransac);
             summary.samples += 1;
             summary.failures += pose.is_none() as usize;

@@ -337,6 +337,19 @@ fn checks_between_options_come_before_any_output() {
         assert!(e.contains(&format!("invalid {option}")), "{e}");
         assert!(!out.exists());
     }
+    // train: --lowered-start belongs to the official loss's schedule.
+    let r = tool()
+        .args(["train", "--dataset", "/nonexistent", "--output", s(&out)])
+        .args(["--loss", "paper", "--lowered-start"])
+        .output()
+        .unwrap();
+    assert_eq!(r.status.code(), Some(2));
+    assert!(
+        stderr(&r).contains("invalid --lowered-start"),
+        "{}",
+        stderr(&r)
+    );
+    assert!(!out.exists());
     // augment: --min-change above --max-change, and nothing to write.
     for (extra, option) in [
         (

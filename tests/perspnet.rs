@@ -817,8 +817,8 @@ mod train {
         let t = loss.compute(&out, &targets)?;
         assert!(t.values()?.iter().all(|x| x.is_finite()));
         // The paper's variant: L_corr is the plain L1 of X_corr (at the official 4.5 / 9
-        // scale) against the targets, computed here from the raw outputs; the other
-        // terms are the official ones; and the weights stay put even when the weighted
+        // scale) against the targets, computed here from the raw outputs; the weights
+        // are the paper's (0.5 / 0.01 / 1 / 0.01), and they stay put even when the weighted
         // L_corr is below the schedule's thresholds (a corr weight of 1e-6 puts it
         // there), where the official loss lowers them.
         let mut paper = PerspNetLoss::new(LossVariant::Paper);
@@ -840,11 +840,11 @@ mod train {
             vp[1],
             vo[1]
         );
-        assert_eq!(paper.weights, LossWeights::default());
+        assert_eq!(paper.weights, LossWeights::paper());
         let mut low = PerspNetLoss::new(LossVariant::Paper);
         low.weights.corr = 1e-6;
         low.compute(&out, &targets)?;
-        assert_eq!(low.weights.kl, LossWeights::default().kl);
+        assert_eq!(low.weights.kl, LossWeights::paper().kl);
         let mut official_low = PerspNetLoss::default();
         official_low.weights.corr = 1e-6;
         official_low.compute(&out, &targets)?;
@@ -870,6 +870,64 @@ mod train {
             .to_scalar()?;
         assert_eq!((d1, d2), (0.0, 0.0));
         std::fs::remove_file(&path).ok();
+        Ok(())
+    }
+}
+
+mod ablations {
+    //! "w/o PE": without the position encoding, points whose image features are equal
+    //! get equal assignment rows; with it they differ by position.
+
+    use arkit_tool::perspnet::model::synthetic_vertex_uv;
+    use arkit_tool::perspnet::{PerspNet, PerspNetConfig};
+    use candle_core::{DType, Device, Result, Tensor};
+    use candle_nn::{VarBuilder, VarMap};
+
+    /// The largest difference between any assignment row and the first, with the
+    /// point-wise image-feature layer zeroed (so every point's image feature is 0).
+    fn row_spread(position_encoding: bool) -> Result<f32> {
+        let dev = Device::Cpu;
+        let cfg = PerspNetConfig {
+            position_encoding,
+            ..PerspNetConfig::tiny()
+        };
+        let vm = VarMap::new();
+        let vb = VarBuilder::from_varmap(&vm, DType::F32, &dev);
+        let net = PerspNet::new(&cfg, &synthetic_vertex_uv(cfg.vertices, &dev)?, vb)?;
+        {
+            let data = vm.data().lock().unwrap();
+            for (k, v) in data.iter() {
+                if k.starts_with("instance_color.") {
+                    v.set(&v.zeros_like()?)?;
+                }
+            }
+            let w = data["instance_global.0.weight"].dims().to_vec();
+            assert_eq!(w[1], cfg.local_channels());
+        }
+        let s = cfg.input_size;
+        let img = Tensor::randn(0f32, 1., (1, 3, s, s), &dev)?;
+        let choose: Vec<u32> = (0..cfg.points as u32)
+            .map(|i| (i * 37) % (s * s) as u32)
+            .collect();
+        let choose = Tensor::from_vec(choose, (1, cfg.points), &dev)?;
+        let a = net
+            .forward(&img, &choose, false)?
+            .assign_logits
+            .squeeze(0)?;
+        let first = a.narrow(0, 0, 1)?;
+        a.broadcast_sub(&first)?
+            .abs()?
+            .max_all()?
+            .to_scalar::<f32>()
+    }
+
+    #[test]
+    fn without_position_encoding_rows_depend_on_features_only() -> Result<()> {
+        assert_eq!(row_spread(false)?, 0.0);
+        assert!(row_spread(true)? > 1e-4);
+        let mut c = PerspNetConfig::paper();
+        c.position_encoding = false;
+        assert_eq!(c.assign_in_channels(), 64 + 2048);
         Ok(())
     }
 }

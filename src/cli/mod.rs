@@ -16,6 +16,8 @@ mod synth;
 mod topology;
 #[cfg(feature = "model")]
 mod train;
+#[cfg(feature = "model")]
+mod weights;
 
 use arkit_tool::Result;
 use clap::{Parser, Subcommand};
@@ -47,6 +49,10 @@ enum Command {
     Render(render::RenderArgs),
     #[cfg(feature = "model")]
     Train(train::TrainArgs),
+    #[cfg(feature = "model")]
+    ImportWeights(weights::ImportWeightsArgs),
+    #[cfg(feature = "model")]
+    ExportWeights(weights::ExportWeightsArgs),
     Predict(predict::PredictArgs),
     Eval(eval::EvalArgs),
     Augment(augment::AugmentArgs),
@@ -68,6 +74,10 @@ pub fn run(cli: Cli) -> Result<ExitCode> {
         Command::Render(a) => render::run(a),
         #[cfg(feature = "model")]
         Command::Train(a) => train::run(a),
+        #[cfg(feature = "model")]
+        Command::ImportWeights(a) => weights::run_import(a),
+        #[cfg(feature = "model")]
+        Command::ExportWeights(a) => weights::run_export(a),
         Command::Predict(a) => predict::run(a),
         Command::Eval(a) => eval::run(a),
         Command::Augment(a) => augment::run(a),

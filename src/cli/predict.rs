@@ -90,6 +90,13 @@ pub struct PredictArgs {
     /// train on the official crop). With --mask truth, the targets' own crop is used.
     #[arg(long, value_enum, default_value = "ours")]
     crop: CropChoice,
+    /// With --model: also write, for each predicted sample, the network's inputs (the
+    /// normalised crop, the chosen pixel indices) and raw outputs (segmentation logits,
+    /// UV map, assignment matrix, M X, X) to this .npz, keyed `subject/action/image/NAME`
+    /// (see docs/train.md; about 1.4 MB a sample for `tiny`, 6 MB for `paper`, held in
+    /// memory until written).
+    #[arg(long, value_name = "FILE.npz")]
+    dump: Option<PathBuf>,
     /// Print the summary as JSON.
     #[arg(long)]
     json: bool,
@@ -114,6 +121,12 @@ pub fn run(a: PredictArgs) -> Result<ExitCode> {
         return Err(arkit_tool::Error::invalid(
             "--noise-px/--outliers",
             "noise must be >= 0 and the outlier share in [0, 1)",
+        ));
+    }
+    if a.dump.is_some() && a.model.is_none() {
+        return Err(arkit_tool::Error::invalid(
+            "--dump",
+            "dumps a network's inputs and outputs: it needs --model",
         ));
     }
     let manifest = arkit_tool::dataset::Dataset::open(&a.dataset)?
@@ -160,7 +173,8 @@ pub fn run(a: PredictArgs) -> Result<ExitCode> {
         let model = arkit_tool::training::load(dir, &topology)?;
         let bar = super::progress_bar(manifest.converted as u64, "predict", "samples");
         let targets = a.targets.clone().unwrap_or_else(|| a.dataset.clone());
-        let (rows, summary) = arkit_tool::training::model_predictions(
+        let mut dump = Vec::new();
+        let (rows, summary) = arkit_tool::training::model_predictions_dump(
             &a.dataset,
             &model,
             split,
@@ -172,9 +186,20 @@ pub fn run(a: PredictArgs) -> Result<ExitCode> {
             a.seed,
             &ransac,
             &|n| bar.inc(n as u64),
+            a.dump.is_some().then_some(&mut dump),
         )?;
         bar.finish_and_clear();
         write_predictions(&a.output, &rows)?;
+        if let Some(path) = &a.dump {
+            arkit_tool::training::write_dump(path, &model.checkpoint.config, &topology, &dump)?;
+            if !a.json {
+                eprintln!(
+                    "dumped {} samples' network inputs and outputs -> {}",
+                    dump.len(),
+                    path.display()
+                );
+            }
+        }
         if a.json {
             println!("{}", serde_json::to_string_pretty(&summary).expect("json"));
         } else {

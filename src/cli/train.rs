@@ -15,7 +15,8 @@ use std::process::ExitCode;
 /// official losses (smooth-L1 correspondence, shape L1 against 9x the mesh, KL to the
 /// barycentric rows with the entropy term, segmentation cross-entropy, and the official
 /// schedule that lowers the weights as the correspondence loss falls; `--loss paper`:
-/// plain L1 and fixed weights, which trains better on short CPU runs) and Adam, and
+/// the paper's loss, plain L1 correspondences and the fixed weights 0.5 / 0.01 / 1 /
+/// 0.01 on shape / assignment / correspondence / segmentation) and Adam, and
 /// writes DIR/perspnet.json, DIR/model.safetensors, DIR/adam.safetensors and
 /// DIR/loss.csv after every epoch (--resume continues from them exactly). The learning
 /// rate is held for --lr-hold of the steps, then falls linearly to zero; each step sees
@@ -41,7 +42,8 @@ pub struct TrainArgs {
     config: String,
     /// The loss: `official` (models/loss.py: smooth-L1 correspondences, weights lowered
     /// as the correspondence loss falls) or `paper` (the paper's text: plain L1, fixed
-    /// weights). Overrides the config file's `loss`.
+    /// weights 0.5 L_S + 0.01 L_M + 1.0 L_corr + 0.01 L_seg). Overrides the config
+    /// file's `loss`.
     #[arg(long, value_name = "official|paper")]
     loss: Option<LossVariant>,
     /// Train on this split (`all` for every sample).
@@ -82,9 +84,18 @@ pub struct TrainArgs {
     /// and targets when it comes round).
     #[arg(long)]
     stream: bool,
+    /// The paper's ablation "w/o PE": the points' local features are the image
+    /// features alone, without the 2D position encoding.
+    #[arg(long)]
+    no_position_encoding: bool,
+    /// The paper's ablation "w/o L_M": no assignment loss (KL and entropy); the
+    /// assignment matrix is learned through the correspondence loss only.
+    #[arg(long)]
+    no_assignment_loss: bool,
     /// Start the loss at the weights the official schedule lowers to once the
     /// correspondence loss falls below 0.1 (KL and segmentation 0.01), instead of
-    /// waiting for one batch to get there (the official, sticky trigger).
+    /// waiting for one batch to get there (the official, sticky trigger). Official loss
+    /// only.
     #[arg(long)]
     lowered_start: bool,
     /// Continue an interrupted run from the checkpoint in --output (one is written after
@@ -127,15 +138,27 @@ pub fn config_named(name: &str) -> Result<PerspNetConfig> {
 }
 
 pub fn run(a: TrainArgs) -> Result<ExitCode> {
+    let mut config = config_named(&a.config)?;
+    if let Some(loss) = a.loss {
+        config.loss = loss;
+    }
+    if a.no_position_encoding {
+        config.position_encoding = false;
+    }
+    if a.no_assignment_loss {
+        config.assignment_loss = false;
+    }
+    if a.lowered_start && config.loss == LossVariant::Paper {
+        return Err(Error::invalid(
+            "--lowered-start",
+            "lowers the official schedule's weights; --loss paper holds the paper's fixed weights",
+        ));
+    }
     let topology = super::load_topology(a.resources.as_deref())?;
     let manifest = arkit_tool::dataset::Dataset::open(&a.dataset)?
         .manifest()
         .clone();
     arkit_tool::convert::check_topology(&manifest, &topology)?;
-    let mut config = config_named(&a.config)?;
-    if let Some(loss) = a.loss {
-        config.loss = loss;
-    }
     let targets = a.targets.clone().unwrap_or_else(|| a.dataset.clone());
     let split = (a.split != "all").then_some(a.split.as_str());
     let source = ShardedExamples::open(&a.dataset, &targets, &config, split)?;

@@ -42,6 +42,18 @@ pub struct PerspNetConfig {
     /// Which reading of the loss to train with (older configs: the official code's).
     #[serde(default)]
     pub loss: LossVariant,
+    /// Whether the points' local features carry the 2D position encoding (the paper's
+    /// ablation "w/o PE" turns it off: the local feature is the image feature alone).
+    #[serde(default = "yes")]
+    pub position_encoding: bool,
+    /// Whether the loss has the assignment term `L_M` (KL and entropy; the paper's
+    /// ablation "w/o L_M" turns it off, leaving M supervised through `L_corr` only).
+    #[serde(default = "yes")]
+    pub assignment_loss: bool,
+}
+
+fn yes() -> bool {
+    true
 }
 
 /// The two readings of PerspNet's loss: the official code's (the default) and the
@@ -93,6 +105,8 @@ impl PerspNetConfig {
             bn_eps: 1e-5,
             bn_momentum: 0.1,
             loss: LossVariant::Official,
+            position_encoding: true,
+            assignment_loss: true,
         }
     }
 
@@ -118,12 +132,20 @@ impl PerspNetConfig {
             bn_eps: 1e-5,
             bn_momentum: 0.1,
             loss: LossVariant::Official,
+            position_encoding: true,
+            assignment_loss: true,
         }
     }
 
-    /// Channels of the per-point local feature (`color_channels + pos_channels`, 128 in the paper).
+    /// Channels of the per-point local feature (`color_channels + pos_channels`, 128 in
+    /// the paper; `color_channels` without the position encoding).
     pub fn local_channels(&self) -> usize {
-        self.color_channels + self.pos_channels
+        self.color_channels
+            + if self.position_encoding {
+                self.pos_channels
+            } else {
+                0
+            }
     }
 
     /// Input channels of the assignment MLP (local + 2D global + 3D global, 2176 in the paper).

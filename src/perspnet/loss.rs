@@ -15,10 +15,26 @@
 //! includes its weight. [`PerspNetLoss`] also reproduces the official schedule that
 //! lowers the weights once `L_corr` falls below 0.1 and 0.01 (the change is sticky).
 //!
-//! [`LossVariant::Paper`] is the paper's description instead, where it departs from
-//! the code in a way that has one clear reading: `L_corr` a plain L1 on `X_corr`
-//! (summed over xyz, mean over points; no quadratic zone below 0.01) and the weights
-//! held at their starting values (no schedule). The other terms are the same in both.
+//! [`LossVariant::Paper`] is the paper's text (Kao et al., TIP 2023, section III-A and
+//! the implementation details of section V-A; equations numbered in order of
+//! appearance): `L = 0.5 L_S + 0.01 L_M + 1.0 L_corr + 0.01 L_seg` (eq. 8) with
+//! * `L_S` (eq. 4): the L1 between the ground-truth and predicted UV position maps,
+//!   weighted 1 at the vertices' UV coordinates and 0 elsewhere. At a vertex's UV
+//!   coordinate the ground-truth map holds the vertex itself (eq. 3 renders the mesh
+//!   there), so this is the L1 between X read from the predicted map at the vertex UVs
+//!   and `9 x` the mesh: the same term as the official `L_S`, at weight 0.5.
+//! * `L_M` (eq. 6): `(1/m) (sum_i KL_i + lambda sum_i H(M_i))` with `lambda = 0.1`, the
+//!   KL taken from the barycentric rows to the predicted rows (the other direction is
+//!   infinite wherever the ground-truth row is zero); weighted 0.01, it is the KL
+//!   summed over the points over `B x M` at 0.01 plus the mean row entropy at 0.001.
+//! * `L_corr` (eq. 7): a plain L1 on `X_corr = M X` (summed over xyz, mean over points;
+//!   no quadratic zone).
+//! * `L_seg`: 2-class softmax cross-entropy, weight 0.01.
+//!
+//! The weights are fixed (no schedule). The paper writes `L_S` and `L_corr` as sums;
+//! they are averaged here over the vertices and the points, as the official code does
+//! (its lowered weights 0.5 / 0.01 / 0.001 are the paper's `lambda_1`, `lambda_2` and
+//! `lambda_2 lambda`, so the paper's weights were set at these normalisations).
 
 use candle_core::{D, DType, Result, Tensor};
 use serde::{Deserialize, Serialize};
@@ -92,6 +108,29 @@ impl Default for LossWeights {
 }
 
 impl LossWeights {
+    /// The paper's fixed weights (section V-A): `lambda_1 = 0.5` on `L_S`,
+    /// `lambda_2 = 0.01` on `L_M` (so 0.01 on the KL and `0.01 x lambda = 0.001` on the
+    /// entropy, `lambda = 0.1`), `lambda_3 = 1.0` on `L_corr`, `lambda_4 = 0.01` on
+    /// `L_seg`. The UV weight (a reported term, never in the total) stays 1.
+    pub fn paper() -> Self {
+        Self {
+            corr: 1.0,
+            shape: 0.5,
+            kl: 0.01,
+            seg: 0.01,
+            entropy: 0.01 * 0.1,
+            uv: 1.0,
+        }
+    }
+
+    /// The weights of `variant` at the start of a run.
+    pub fn initial(variant: LossVariant) -> Self {
+        match variant {
+            LossVariant::Official => Self::default(),
+            LossVariant::Paper => Self::paper(),
+        }
+    }
+
     /// The official schedule, applied with the current (weighted) `L_corr`:
     /// below 0.01 the KL weight becomes 0.001 and the shape and UV weights 0.5;
     /// otherwise below 0.1 KL and segmentation become 0.01 and shape 1.0.
@@ -151,6 +190,9 @@ pub struct PerspNetLoss {
     pub threshold: f64,
     /// Whether to apply [`LossWeights::update_schedule`] on every call.
     pub schedule: bool,
+    /// Whether `L_M` (KL and entropy) is in the loss; without it (the paper's "w/o
+    /// L_M" ablation) both terms are computed at weight 0, whatever the schedule says.
+    pub assignment: bool,
 }
 
 impl Default for PerspNetLoss {
@@ -164,10 +206,30 @@ impl PerspNetLoss {
     pub fn new(variant: LossVariant) -> Self {
         let official = variant == LossVariant::Official;
         Self {
-            weights: LossWeights::default(),
+            weights: LossWeights::initial(variant),
             threshold: if official { 0.01 } else { 0.0 },
             schedule: official,
+            assignment: true,
         }
+    }
+
+    /// The loss a network of `cfg` trains with: its variant, with or without `L_M`.
+    pub fn for_config(cfg: &super::PerspNetConfig) -> Self {
+        Self {
+            assignment: cfg.assignment_loss,
+            ..Self::new(cfg.loss)
+        }
+    }
+
+    /// The weights the terms are computed with: [`Self::weights`], with the KL and
+    /// entropy weights 0 when `L_M` is off.
+    pub fn effective_weights(&self) -> LossWeights {
+        let mut w = self.weights;
+        if !self.assignment {
+            w.kl = 0.0;
+            w.entropy = 0.0;
+        }
+        w
     }
 
     /// Computes the loss terms, first updating the weights from `L_corr` when the
@@ -178,7 +240,7 @@ impl PerspNetLoss {
             let c = corr.to_dtype(DType::F64)?.to_scalar::<f64>()?;
             self.weights.update_schedule(c);
         }
-        perspnet_loss_with_corr(out, t, &self.weights, corr)
+        perspnet_loss_with_corr(out, t, &self.effective_weights(), corr)
     }
 }
 
@@ -198,29 +260,58 @@ fn perspnet_loss_with_corr(
     w: &LossWeights,
     corr: Tensor,
 ) -> Result<LossTerms> {
-    let (b, m, _v) = out.assign_logits.dims3()?;
-    let log_p = super::layers::log_softmax_last(&out.assign_logits)?;
+    loss_terms_with_corr(
+        &out.assign_logits,
+        &out.vertices,
+        &out.dense.seg_logits,
+        &out.dense.uv_map,
+        t,
+        w,
+        corr,
+    )
+}
+
+/// The loss terms from the network's raw outputs (assignment logits `B x M x V`,
+/// vertices X `B x V x 3` in UV-map units, segmentation logits `B x 2 x H x W`, UV map
+/// `B x 3 x H x W`) with fixed weights `w` and `L_corr`'s smooth-L1 `threshold` (0: the
+/// paper's plain L1). [`PerspNetLoss::compute`] is this plus the official schedule.
+pub fn loss_terms(
+    assign_logits: &Tensor,
+    vertices: &Tensor,
+    seg_logits: &Tensor,
+    uv_map: &Tensor,
+    t: &LossTargets,
+    w: &LossWeights,
+    threshold: f64,
+) -> Result<LossTerms> {
+    let corr = corr_loss_parts(assign_logits, vertices, t.nocs, threshold)?.affine(w.corr, 0.0)?;
+    loss_terms_with_corr(assign_logits, vertices, seg_logits, uv_map, t, w, corr)
+}
+
+fn loss_terms_with_corr(
+    assign_logits: &Tensor,
+    vertices: &Tensor,
+    seg_logits: &Tensor,
+    uv_map: &Tensor,
+    t: &LossTargets,
+    w: &LossWeights,
+    corr: Tensor,
+) -> Result<LossTerms> {
+    let (b, m, _v) = assign_logits.dims3()?;
+    let log_p = super::layers::log_softmax_last(assign_logits)?;
 
     let kl = kl_loss(&log_p, t.corr)?.affine(w.kl / (b * m) as f64, 0.0)?;
     let entropy = super::layers::row_entropy(&log_p)?
         .mean_all()?
         .affine(w.entropy, 0.0)?;
-    let model = t
-        .model
-        .to_dtype(out.vertices.dtype())?
-        .affine(UV_SCALE, 0.0)?;
-    let shape = (&out.vertices - model)?
+    let model = t.model.to_dtype(vertices.dtype())?.affine(UV_SCALE, 0.0)?;
+    let shape = (vertices - model)?
         .abs()?
         .mean_all()?
         .affine(w.shape, 0.0)?;
-    let seg = seg_cross_entropy(&out.dense.seg_logits, t.seg_mask)?.affine(w.seg, 0.0)?;
+    let seg = seg_cross_entropy(seg_logits, t.seg_mask)?.affine(w.seg, 0.0)?;
     let uv = match t.uv_map {
-        Some(gt) => Some(
-            (&out.dense.uv_map - gt)?
-                .abs()?
-                .mean_all()?
-                .affine(w.uv, 0.0)?,
-        ),
+        Some(gt) => Some((uv_map - gt)?.abs()?.mean_all()?.affine(w.uv, 0.0)?),
         None => None,
     };
     let total = (((&corr + &shape)? + &kl)? + &seg)?.add(&entropy)?;
@@ -237,7 +328,19 @@ fn perspnet_loss_with_corr(
 
 /// Unweighted `L_corr`: smooth L1 between `softmax(A) X / 2` and `nocs`.
 pub fn corr_loss(out: &PerspNetOutput, nocs: &Tensor, threshold: f64) -> Result<Tensor> {
-    let coords = out.correspondences()?.affine(NOCS_SCALE / UV_SCALE, 0.0)?;
+    corr_loss_parts(&out.assign_logits, &out.vertices, nocs, threshold)
+}
+
+/// [`corr_loss`] from the assignment logits and the vertices.
+pub fn corr_loss_parts(
+    assign_logits: &Tensor,
+    vertices: &Tensor,
+    nocs: &Tensor,
+    threshold: f64,
+) -> Result<Tensor> {
+    let coords = super::layers::softmax_last(assign_logits)?
+        .matmul(vertices)?
+        .affine(NOCS_SCALE / UV_SCALE, 0.0)?;
     smooth_l1_sum_mean(&coords, nocs, threshold)
 }
 
@@ -280,4 +383,106 @@ pub fn seg_cross_entropy(logits: &Tensor, mask: &Tensor) -> Result<Tensor> {
     let lp1 = log_p.narrow(1, 1, 1)?.squeeze(1)?;
     let ll = ((&m * lp1)? + (m.affine(-1.0, 1.0)? * lp0)?)?;
     ll.mean_all()?.neg()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use candle_core::Device;
+
+    /// Every term of `--loss paper` on a 1 x 2-point x 3-vertex input, each worked out
+    /// by hand, and the weighted total 0.5 L_S + 0.01 L_M + 1.0 L_corr + 0.01 L_seg.
+    #[test]
+    fn paper_loss_terms_by_hand() -> Result<()> {
+        let dev = Device::Cpu;
+        let (ln2, ln3) = (2f64.ln(), 3f64.ln());
+        // Rows of M: softmax([0, ln2, 0]) = [1/4, 1/2, 1/4]; softmax([ln3, 0, 0]) = [3/5, 1/5, 1/5].
+        let logits = Tensor::new(&[[[0f32, ln2 as f32, 0.0], [ln3 as f32, 0.0, 0.0]]], &dev)?;
+        // X in UV-map units (9 x canonical): 9 times the identity.
+        let vertices = Tensor::new(&[[[9f32, 0., 0.], [0., 9., 0.], [0., 0., 9.]]], &dev)?;
+        // M X / 9 * 4.5 = 4.5 M: [1.125, 2.25, 1.125] and [2.7, 0.9, 0.9].
+        let nocs = Tensor::new(&[[[1f32, 2., 1.], [3., 1., 1.]]], &dev)?;
+        // L1 per point: 0.125 + 0.25 + 0.125 = 0.5 and 0.3 + 0.1 + 0.1 = 0.5; mean 0.5.
+        let l_corr = 0.5;
+        // 9 x mesh differs from X by 4.5 in one of 9 coordinates: mean L1 0.5.
+        let model = Tensor::new(&[[[1f32, 0., 0.], [0., 1., 0.], [0., 0., 0.5]]], &dev)?;
+        let l_s = 0.5;
+        // Barycentric rows: the first equals M's row (KL 0), the second is all on
+        // vertex 0 (KL ln(1 / (3/5)) = ln(5/3)).
+        let ids = Tensor::new(&[[[0u32, 1, 2], [0, 1, 2]]], &dev)?;
+        let weights = Tensor::new(&[[[0.25f32, 0.5, 0.25], [1., 0., 0.]]], &dev)?;
+        let corr_t = CorrTarget::Sparse { ids, weights };
+        let kl_mean = (5f64 / 3.0).ln() / 2.0;
+        let h0 = 1.5 * ln2;
+        let h1 = -(0.6 * 0.6f64.ln() + 0.4 * 0.2f64.ln());
+        let l_m = kl_mean + 0.1 * (h0 + h1) / 2.0;
+        // Segmentation: class-1 logits ln3, ln3, 0, 0 against class-0 zeros; mask 1 0 1 1.
+        let seg_logits = Tensor::new(
+            &[[[[0f32, 0.], [0., 0.]], [[ln3 as f32, ln3 as f32], [0., 0.]]]],
+            &dev,
+        )?;
+        let mask = Tensor::new(&[[[1f32, 0.], [1., 1.]]], &dev)?;
+        // -ln(3/4), -ln(1/4), -ln(1/2), -ln(1/2): mean.
+        let l_seg = ((4f64 / 3.0).ln() + 4f64.ln() + 2.0 * ln2) / 4.0;
+        let uv_map = Tensor::zeros((1, 3, 2, 2), DType::F32, &dev)?;
+        let t = LossTargets {
+            nocs: &nocs,
+            model: &model,
+            seg_mask: &mask,
+            corr: &corr_t,
+            uv_map: None,
+        };
+        let loss = PerspNetLoss::new(LossVariant::Paper);
+        assert_eq!((loss.threshold, loss.schedule), (0.0, false));
+        let terms = loss_terms(
+            &logits,
+            &vertices,
+            &seg_logits,
+            &uv_map,
+            &t,
+            &loss.weights,
+            loss.threshold,
+        )?;
+        let [total, corr, shape, kl, entropy, seg] = terms.values()?.map(f64::from);
+        let close = |a: f64, b: f64, what: &str| {
+            assert!(
+                (a - b).abs() < 1e-6 * b.abs().max(1.0),
+                "{what}: {a} vs {b}"
+            )
+        };
+        close(corr, l_corr, "L_corr");
+        close(shape, 0.5 * l_s, "0.5 L_S");
+        close(kl + entropy, 0.01 * l_m, "0.01 L_M");
+        close(entropy, 0.01 * 0.1 * (h0 + h1) / 2.0, "entropy");
+        close(seg, 0.01 * l_seg, "0.01 L_seg");
+        close(
+            total,
+            0.5 * l_s + 0.01 * l_m + l_corr + 0.01 * l_seg,
+            "total",
+        );
+        // Without L_M (the "w/o L_M" ablation): the KL and entropy are 0 and the total
+        // is the other three terms.
+        let mut cfg = crate::perspnet::PerspNetConfig::tiny();
+        cfg.loss = LossVariant::Paper;
+        cfg.assignment_loss = false;
+        let off = PerspNetLoss::for_config(&cfg);
+        let terms = loss_terms(
+            &logits,
+            &vertices,
+            &seg_logits,
+            &uv_map,
+            &t,
+            &off.effective_weights(),
+            off.threshold,
+        )?;
+        let [total, corr, _, kl, entropy, _] = terms.values()?.map(f64::from);
+        assert_eq!((kl, entropy), (0.0, 0.0));
+        close(corr, l_corr, "L_corr without L_M");
+        close(
+            total,
+            0.5 * l_s + l_corr + 0.01 * l_seg,
+            "total without L_M",
+        );
+        Ok(())
+    }
 }

@@ -12,6 +12,7 @@ pub mod conv;
 pub mod layers;
 pub mod loss;
 pub mod model;
+pub mod weights;
 
 pub use adam::Adam;
 pub use config::{LossVariant, PerspNetConfig};

@@ -98,8 +98,8 @@ impl BasicBlock {
 /// The encoder's outputs (all `B x C x h x w`).
 #[derive(Debug, Clone)]
 pub struct EncoderFeatures {
-    /// Stride 2: the stem conv's output (before BN/ReLU/max-pool, as in the
-    /// PVNet `resnet.py` the official code imports), `encoder_widths[0]` channels.
+    /// Stride 2: the stem (conv, BN, ReLU) before the max-pool, as the official
+    /// `models/resnet.py` returns it, `encoder_widths[0]` channels.
     pub x2s: Tensor,
     /// Stride 4: `layer1`, `encoder_widths[0]` channels.
     pub x4s: Tensor,
@@ -292,9 +292,10 @@ impl PerspNet {
 
     /// Runs the encoder on a normalised `B x 3 x H x W` image.
     pub fn encode(&self, x: &Tensor, train: bool) -> Result<EncoderFeatures> {
-        let x2s = self.conv1.forward(x)?;
-        let y = self.bn1.forward_act(&x2s, train, Act::Relu)?;
-        let mut y = max_pool_3x3_s2_p1(&y)?;
+        let x2s = self
+            .bn1
+            .forward_act(&self.conv1.forward(x)?, train, Act::Relu)?;
+        let mut y = max_pool_3x3_s2_p1(&x2s)?;
         let mut outs = Vec::with_capacity(4);
         for layer in &self.layers {
             for block in layer {
@@ -387,9 +388,13 @@ impl PerspNet {
         // Local 2D features: sampled image features (1x1 conv + ReLU) ++ position encoding.
         let emb = gather_pixels(&dense.image_features, choose)?; // B x M x F
         let color = relu(&self.instance_color.forward(&emb)?)?;
-        let pos = positional_encoding_points(choose, self.cfg.pos_channels, w, img.device())?
-            .to_dtype(color.dtype())?;
-        let local = Tensor::cat(&[&color, &pos], 2)?; // B x M x 128
+        let local = if self.cfg.position_encoding {
+            let pos = positional_encoding_points(choose, self.cfg.pos_channels, w, img.device())?
+                .to_dtype(color.dtype())?;
+            Tensor::cat(&[&color, &pos], 2)? // B x M x 128
+        } else {
+            color
+        };
         let g2 = mlp_global(&self.instance_global, &local)?; // B x 1 x 1024
 
         // 3D global feature from the UV features read at the vertex UVs.

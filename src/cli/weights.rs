@@ -1,0 +1,74 @@
+//! `import-weights` and `export-weights`: the network's weights to and from PyTorch.
+
+use arkit_tool::Result;
+use arkit_tool::training;
+use clap::Args;
+use std::path::PathBuf;
+use std::process::ExitCode;
+
+/// Read a PyTorch state_dict of the official PerspNet into a model folder.
+///
+/// FILE is what `torch.save(net.state_dict(), FILE)` writes (PyTorch's zip format, as
+/// the official checkpoint `latest_net_R.pth`; a `module.` prefix from DataParallel is
+/// removed), or a safetensors file written by `export-weights`. Every tensor is matched
+/// by name and shape with the network of --config, the batch norms' running statistics
+/// and `num_batches_tracked` included; a missing, extra or misshapen tensor is an error
+/// that lists all of them, and nothing is written. The folder is read by `predict
+/// --model` like one written by `train`.
+///
+/// Example: arkit-tool import-weights checkpoint/run1/latest_net_R.pth --config paper --output official-model/
+#[derive(Args, Debug)]
+pub struct ImportWeightsArgs {
+    /// The state_dict file (torch.save zip or safetensors).
+    file: PathBuf,
+    /// The network the weights belong to: `paper` (the official shapes), `tiny`, or a
+    /// JSON file of settings (as `train --config`).
+    #[arg(long, default_value = "paper")]
+    config: String,
+    /// The model folder to write.
+    #[arg(long)]
+    output: PathBuf,
+    /// The release's resource folder (real topology: its vertex UVs, which `predict`
+    /// reads the UV map at); the built-in face without it.
+    #[arg(long)]
+    resources: Option<PathBuf>,
+}
+
+/// Write a model folder's weights as the official PerspNet's PyTorch state_dict.
+///
+/// Writes a safetensors file with the official names and shapes (the per-point layers'
+/// weights as Conv1d's `c_out x c_in x 1`) and every buffer that a strict
+/// `load_state_dict` asks for, batch norm's `num_batches_tracked` included (206 entries
+/// for `paper`). In Python:
+///   from safetensors.torch import load_file
+///   net = DeformNetUV2(grid)   # models/network.py of the official code
+///   net.load_state_dict(load_file("weights.safetensors"), strict=True)
+///
+/// Example: arkit-tool export-weights model/ --output weights.safetensors
+#[derive(Args, Debug)]
+pub struct ExportWeightsArgs {
+    /// A model folder written by `train` or `import-weights`.
+    model: PathBuf,
+    /// The safetensors file to write.
+    #[arg(long)]
+    output: PathBuf,
+}
+
+pub fn run_import(a: ImportWeightsArgs) -> Result<ExitCode> {
+    let config = super::train::config_named(&a.config)?;
+    let topology = super::load_topology(a.resources.as_deref())?;
+    let c = training::import_weights(&a.file, &config, &topology, &a.output)?;
+    eprintln!(
+        "imported {} ({} batch-norm steps) -> {}",
+        a.file.display(),
+        c.steps,
+        a.output.display()
+    );
+    Ok(ExitCode::SUCCESS)
+}
+
+pub fn run_export(a: ExportWeightsArgs) -> Result<ExitCode> {
+    let n = training::export_weights(&a.model, &a.output)?;
+    eprintln!("wrote {} state_dict entries -> {}", n, a.output.display());
+    Ok(ExitCode::SUCCESS)
+}

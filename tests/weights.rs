@@ -1,0 +1,377 @@
+//! `import-weights` / `export-weights`: the official `state_dict` names, shapes and
+//! buffers; a bit-exact round trip; mismatched files refused with the list of what is
+//! wrong; and (when a Python with torch is at hand) a file written by `torch.save`.
+
+use arkit_tool::perspnet::weights::{export_state_dict, state_dict_entries};
+use arkit_tool::perspnet::{PerspNet, PerspNetConfig};
+use arkit_tool::training;
+use candle_core::{DType, Device, Tensor};
+use candle_nn::{VarBuilder, VarMap};
+use std::collections::HashMap;
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+fn tool() -> Command {
+    Command::new(env!("CARGO_BIN_EXE_arkit-tool"))
+}
+
+/// A tiny network with seeded weights and batch-norm statistics that are not the
+/// defaults (so the buffers are carried, not re-created).
+fn random_varmap(cfg: &PerspNetConfig, seed: u64) -> VarMap {
+    let vm = VarMap::new();
+    let vb = VarBuilder::from_varmap(&vm, DType::F32, &Device::Cpu);
+    let topo = &arkit_tool::synthetic_face::builtin().topology;
+    PerspNet::new(cfg, &training::vertex_uv(topo, &Device::Cpu).unwrap(), vb).unwrap();
+    training::reseed(&vm, seed, 0.05).unwrap();
+    let data = vm.data().lock().unwrap();
+    let mut k = 0f32;
+    let mut names: Vec<&String> = data.keys().collect();
+    names.sort();
+    for name in names {
+        if name.contains("running_") {
+            let v = &data[name];
+            let n = v.elem_count();
+            let vals: Vec<f32> = (0..n)
+                .map(|i| 0.5 + ((i as f32 + k) * 0.37).sin().abs())
+                .collect();
+            v.set(&Tensor::from_vec(vals, n, &Device::Cpu).unwrap())
+                .unwrap();
+            k += 1.0;
+        }
+    }
+    drop(data);
+    vm
+}
+
+fn save(entries: &[(String, Tensor)], path: &Path) {
+    let map: HashMap<String, Tensor> = entries.iter().cloned().collect();
+    candle_core::safetensors::save(&map, path).unwrap();
+}
+
+fn bits(t: &Tensor) -> Vec<u8> {
+    match t.dtype() {
+        DType::I64 => t
+            .flatten_all()
+            .unwrap()
+            .to_vec1::<i64>()
+            .unwrap()
+            .iter()
+            .flat_map(|v| v.to_le_bytes())
+            .collect(),
+        _ => t
+            .to_dtype(DType::F32)
+            .unwrap()
+            .flatten_all()
+            .unwrap()
+            .to_vec1::<f32>()
+            .unwrap()
+            .iter()
+            .flat_map(|v| v.to_bits().to_le_bytes())
+            .collect(),
+    }
+}
+
+fn same_files(a: &Path, b: &Path) {
+    let x = candle_core::safetensors::load(a, &Device::Cpu).unwrap();
+    let y = candle_core::safetensors::load(b, &Device::Cpu).unwrap();
+    assert_eq!(x.len(), y.len());
+    for (k, t) in &x {
+        let u = &y[k];
+        assert_eq!((t.dims(), t.dtype()), (u.dims(), u.dtype()), "{k}");
+        assert!(bits(t) == bits(u), "{k} differs");
+    }
+}
+
+/// The model folder's weights equal `vm`'s, bit for bit.
+fn same_weights(dir: &Path, vm: &VarMap) {
+    let got = candle_core::safetensors::load(dir.join("model.safetensors"), &Device::Cpu).unwrap();
+    let data = vm.data().lock().unwrap();
+    assert_eq!(got.len(), data.len());
+    for (k, v) in data.iter() {
+        assert!(bits(&got[k]) == bits(v.as_tensor()), "{k} differs");
+    }
+}
+
+#[test]
+fn export_import_export_is_bit_exact() {
+    let dir = tempfile::tempdir().unwrap();
+    let cfg = PerspNetConfig::tiny();
+    let vm = random_varmap(&cfg, 7);
+    let first = dir.path().join("first.safetensors");
+    let entries = export_state_dict(&vm, 1234).unwrap();
+    assert_eq!(entries.len(), state_dict_entries(&vm).len());
+    save(&entries, &first);
+    let model = dir.path().join("model");
+    let out = tool()
+        .args([
+            "import-weights",
+            first.to_str().unwrap(),
+            "--config",
+            "tiny",
+        ])
+        .args(["--output", model.to_str().unwrap()])
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    same_weights(&model, &vm);
+    let c: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(model.join("perspnet.json")).unwrap())
+            .unwrap();
+    assert_eq!(c["steps"], 1234);
+    let second = dir.path().join("second.safetensors");
+    let out = tool()
+        .args(["export-weights", model.to_str().unwrap(), "--output"])
+        .arg(&second)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    same_files(&first, &second);
+    // The imported folder predicts like any other: it loads as a trained model.
+    let topo = &arkit_tool::synthetic_face::builtin().topology;
+    training::load(&model, topo).unwrap();
+}
+
+#[test]
+fn mismatched_files_are_refused_with_the_list() {
+    let dir = tempfile::tempdir().unwrap();
+    let cfg = PerspNetConfig::tiny();
+    let vm = random_varmap(&cfg, 3);
+    let mut entries = export_state_dict(&vm, 0).unwrap();
+    entries.retain(|(n, _)| n != "cnn.seg.bias");
+    for (n, t) in entries.iter_mut() {
+        if n == "assignment.4.weight" {
+            *t = t.squeeze(2).unwrap();
+        }
+    }
+    entries.push((
+        "cnn.extra.weight".into(),
+        Tensor::zeros(3, DType::F32, &Device::Cpu).unwrap(),
+    ));
+    let bad = dir.path().join("bad.safetensors");
+    save(&entries, &bad);
+    let model = dir.path().join("model");
+    let run = |file: &Path, config: &str| {
+        tool()
+            .args(["import-weights", file.to_str().unwrap(), "--config", config])
+            .args(["--output", model.to_str().unwrap()])
+            .output()
+            .unwrap()
+    };
+    let out = run(&bad, "tiny");
+    assert!(!out.status.success());
+    let e = String::from_utf8_lossy(&out.stderr);
+    assert!(e.contains("1 missing: cnn.seg.bias"), "{e}");
+    assert!(e.contains("1 extra: cnn.extra.weight"), "{e}");
+    assert!(
+        e.contains("assignment.4.weight is [1220, 64], expected [1220, 64, 1]"),
+        "{e}"
+    );
+    assert!(!model.exists(), "nothing is written");
+    // The right file for another network: every shape that differs is listed.
+    let good = dir.path().join("good.safetensors");
+    save(&export_state_dict(&vm, 0).unwrap(), &good);
+    let e = String::from_utf8_lossy(&run(&good, "paper").stderr).into_owned();
+    assert!(
+        e.contains("misshapen: ") && e.contains("expected [512, 2176, 1]"),
+        "{e}"
+    );
+    assert!(!model.exists());
+    // Not weights at all.
+    let junk = dir.path().join("junk.pth");
+    std::fs::write(&junk, b"PK\x03\x04 this is no zip archive").unwrap();
+    let e = String::from_utf8_lossy(&run(&junk, "tiny").stderr).into_owned();
+    assert!(e.contains("not a PyTorch state_dict"), "{e}");
+    std::fs::write(&junk, [7u8; 64]).unwrap();
+    let e = String::from_utf8_lossy(&run(&junk, "tiny").stderr).into_owned();
+    assert!(e.contains("neither a PyTorch zip"), "{e}");
+    assert!(!model.exists());
+}
+
+/// A Python with torch: `ARKIT_TORCH_PYTHON`, else /tmp/tv2/bin/python, else python3.
+fn torch_python() -> Option<PathBuf> {
+    let candidates = [
+        std::env::var_os("ARKIT_TORCH_PYTHON").map(PathBuf::from),
+        Some(PathBuf::from("/tmp/tv2/bin/python")),
+        Some(PathBuf::from("python3")),
+    ];
+    candidates.into_iter().flatten().find(|p| {
+        Command::new(p)
+            .args(["-c", "import torch"])
+            .output()
+            .is_ok_and(|o| o.status.success())
+    })
+}
+
+/// `torch.save` of a state_dict (PyTorch's zip and pickle, with a `module.` prefix as
+/// DataParallel writes it) imports to the same weights, bit for bit.
+#[test]
+fn a_torch_saved_state_dict_imports() {
+    let Some(python) = torch_python() else {
+        eprintln!(
+            "SKIPPED a_torch_saved_state_dict_imports: no Python with torch (set ARKIT_TORCH_PYTHON)"
+        );
+        return;
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let cfg = PerspNetConfig::tiny();
+    let vm = random_varmap(&cfg, 11);
+    let st = dir.path().join("w.safetensors");
+    save(&export_state_dict(&vm, 42).unwrap(), &st);
+    let pth = dir.path().join("w.pth");
+    let script =
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/python/torch_save_state_dict.py");
+    let out = Command::new(&python)
+        .arg(&script)
+        .arg(&st)
+        .arg(&pth)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let model = dir.path().join("model");
+    let out = tool()
+        .args(["import-weights", pth.to_str().unwrap(), "--config", "tiny"])
+        .args(["--output", model.to_str().unwrap()])
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    same_weights(&model, &vm);
+    let c: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(model.join("perspnet.json")).unwrap())
+            .unwrap();
+    assert_eq!(c["steps"], 42);
+}
+
+/// `predict --dump`: every predicted sample's inputs and raw outputs, consistent with
+/// each other (rows of M sum to 1, `points` is `M X`), and the dumped inputs fed to the
+/// network again give the dumped outputs.
+#[test]
+fn predict_dump_holds_inputs_and_outputs() {
+    let dir = tempfile::tempdir().unwrap();
+    let p = |n: &str| dir.path().join(n).to_str().unwrap().to_string();
+    let ok = |args: &[&str]| {
+        let out = tool().args(args).output().unwrap();
+        assert!(
+            out.status.success(),
+            "{args:?}: {}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+    };
+    let cfg = PerspNetConfig::tiny();
+    let vm = random_varmap(&cfg, 5);
+    let w = dir.path().join("w.safetensors");
+    save(&export_state_dict(&vm, 0).unwrap(), &w);
+    ok(&[
+        "import-weights",
+        w.to_str().unwrap(),
+        "--config",
+        "tiny",
+        "--output",
+        &p("model"),
+    ]);
+    ok(&[
+        "synth",
+        "--output",
+        &p("synth"),
+        "--subjects",
+        "2",
+        "--images-per-subject",
+        "2",
+        "--size",
+        "128x128",
+    ]);
+    ok(&["convert", "--input", &p("synth"), "--output", &p("pq")]);
+    // --dump needs a network.
+    let out = tool()
+        .args([
+            "predict",
+            "--oracle",
+            "--dataset",
+            &p("pq"),
+            "--output",
+            &p("o.parquet"),
+            "--dump",
+            &p("x.npz"),
+        ])
+        .output()
+        .unwrap();
+    assert_eq!(out.status.code(), Some(2));
+    assert!(String::from_utf8_lossy(&out.stderr).contains("invalid --dump"));
+    ok(&[
+        "predict",
+        "--model",
+        &p("model"),
+        "--dataset",
+        &p("pq"),
+        "--split",
+        "all",
+        "--output",
+        &p("pred.parquet"),
+        "--dump",
+        &p("dump.npz"),
+    ]);
+    let npz = arkit_core::npy::read_npz(&dir.path().join("dump.npz")).unwrap();
+    let samples: std::collections::BTreeSet<String> = npz
+        .keys()
+        .filter_map(|k| k.strip_suffix("/image").map(str::to_string))
+        .collect();
+    assert_eq!(samples.len(), 4);
+    assert_eq!(npz.require("vertex_uv").unwrap().shape(), &[1220, 2]);
+    let (s, m, v) = (cfg.input_size, cfg.points, cfg.vertices);
+    let topo = &arkit_tool::synthetic_face::builtin().topology;
+    let model = training::load(&dir.path().join("model"), topo).unwrap();
+    for key in &samples {
+        let get = |n: &str| npz.require(&format!("{key}/{n}")).unwrap();
+        assert_eq!(get("image").shape(), &[3, s, s]);
+        assert_eq!(get("seg_logits").shape(), &[2, s, s]);
+        assert_eq!(get("uv_map").shape(), &[3, s, s]);
+        assert_eq!(get("assignment").shape(), &[m, v]);
+        assert_eq!(get("points").shape(), &[m, 3]);
+        let a = get("assignment").to_f32_vec();
+        let x = get("vertices").to_f32_vec();
+        let pts = get("points").to_f32_vec();
+        for i in 0..m {
+            let row = &a[i * v..(i + 1) * v];
+            assert!((row.iter().sum::<f32>() - 1.0).abs() < 1e-4);
+            for c in 0..3 {
+                let mx: f32 = row.iter().enumerate().map(|(j, r)| r * x[j * 3 + c]).sum();
+                assert!(
+                    (mx - pts[i * 3 + c]).abs() < 1e-4 * (1.0 + mx.abs()),
+                    "{key} point {i}"
+                );
+            }
+        }
+        let choose: Vec<u32> = match get("choose").data() {
+            arkit_core::npy::ArrayData::I64(c) => c.iter().map(|&c| c as u32).collect(),
+            other => panic!("choose is {other:?}"),
+        };
+        assert!(choose.iter().all(|&c| (c as usize) < s * s));
+        // The dumped inputs reproduce the dumped outputs.
+        let img = Tensor::from_vec(get("image").to_f32_vec(), (1, 3, s, s), &Device::Cpu).unwrap();
+        let ch = Tensor::from_vec(choose, (1, m), &Device::Cpu).unwrap();
+        let out = model.net.forward(&img, &ch, false).unwrap();
+        let flat = |t: &Tensor| t.flatten_all().unwrap().to_vec1::<f32>().unwrap();
+        assert_eq!(
+            flat(&out.dense.seg_logits),
+            get("seg_logits").to_f32_vec(),
+            "{key}"
+        );
+        assert_eq!(flat(&out.dense.uv_map), get("uv_map").to_f32_vec(), "{key}");
+        assert_eq!(flat(&out.assignment().unwrap()), a, "{key}");
+    }
+}
