@@ -205,6 +205,10 @@ struct IndexRow {
     verts: Option<Vec<f32>>,
 }
 
+/// The release's UV layout: `tris_2500x3_202110.npy` and the 1,279 rows of
+/// `uv_coords_std_202109.npy`.
+pub type ReleaseUvLayout = (Vec<[u32; 3]>, Vec<[f32; 2]>);
+
 /// The official UV layout rasterized once for one map size: per texel the UV triangle
 /// and its screen-space weights, by the official rasterizer's rules at `uv * (S - 1)`.
 #[derive(Clone, Debug)]
@@ -227,7 +231,7 @@ impl OfficialUvLayout {
     /// ([`OfficialUvLayout::release_order`]).
     pub fn new(
         uv: &UvMapper,
-        release: Option<(Vec<[u32; 3]>, Vec<[f32; 2]>)>,
+        release: Option<ReleaseUvLayout>,
         vertex_count: usize,
         size: u32,
     ) -> Result<Self> {
@@ -864,11 +868,13 @@ impl FaceLoader {
         rng: &mut Rng,
     ) -> Result<LoaderItem> {
         let mut buffer = self.take_buffer();
-        let full_mask = self
-            .renderer
-            .render_full_mask(verts, pose, row.width, row.height, &mut buffer);
+        let full_mask =
+            self.renderer
+                .render_full_mask(verts, pose, row.width, row.height, &mut buffer);
         let result = full_mask.and_then(|full_mask| {
-            self.official_from(row, verts, image, landmarks, train, rng, &buffer, &full_mask)
+            self.official_from(
+                row, verts, image, landmarks, train, rng, &buffer, &full_mask,
+            )
         });
         self.buffers
             .lock()
@@ -992,8 +998,9 @@ impl FaceLoader {
                 let p = verts[v as usize];
                 [p.x, p.y, p.z].map(|q| ((q as f64 * 4.5 + 0.5) * 255.0) as f32)
             });
-            for k in 0..3 {
-                let v = wt[0] * attr[0][k] + wt[1] * attr[1][k] + wt[2] * attr[2][k];
+            let [a0, a1, a2] = attr;
+            for ((x0, x1), x2) in a0.iter().zip(a1).zip(a2) {
+                let v = wt[0] * x0 + wt[1] * x1 + wt[2] * x2;
                 nocs.push(v / 255.0 - 0.5);
             }
             corr_vertices.push(tri);

@@ -109,10 +109,11 @@ pub fn affine_transform(src: [[f32; 2]; 3], dst: [[f32; 2]; 3]) -> Option<[f64; 
             b.swap(i, k);
         }
         let d = -1.0 / a[i][i];
+        let pivot = a[i];
         for j in i + 1..6 {
             let alpha = a[j][i] * d;
-            for c in i + 1..6 {
-                a[j][c] += alpha * a[i][c];
+            for (x, p) in a[j][i + 1..].iter_mut().zip(&pivot[i + 1..]) {
+                *x += alpha * p;
             }
             b[j] += alpha * b[i];
         }

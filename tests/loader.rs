@@ -2,6 +2,8 @@
 //! paths of the library: `render`'s stored targets, the crop and the official crop
 //! computed independently, and the official rules derived by hand.
 
+#![allow(clippy::needless_range_loop)] // index loops over x, y, z read plainest here
+
 use arkit_tool::conventions::Camera;
 use arkit_tool::convert::{self, ConvertOptions, ValidationContext};
 use arkit_tool::loader::{Compat, FaceLoader, LoaderMode, LoaderOptions};

@@ -38,6 +38,7 @@ pub fn run(a: InspectArgs) -> Result<ExitCode> {
     let m = data.manifest().clone();
     let (mut yaw, mut pitch, mut roll, mut dist) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
     let (mut subjects, mut actions) = (BTreeSet::new(), BTreeSet::new());
+    let mut official_failures = 0usize;
     for s in &m.shards {
         let path = data.samples_path(s)?;
         let df = read_parquet_columns(
@@ -49,8 +50,19 @@ pub fn run(a: InspectArgs) -> Result<ExitCode> {
                 "pitch_deg",
                 "roll_deg",
                 "tz_m",
+                "face_box_x0",
+                "face_box_y0",
             ],
         )?;
+        // The official loader fails where int() of its box's left or top edge is
+        // negative (the slice from a negative index is empty): docs/python.md.
+        let x0 = f64_values(&df, "face_box_x0", &path)?;
+        let y0 = f64_values(&df, "face_box_y0", &path)?;
+        official_failures += x0
+            .iter()
+            .zip(&y0)
+            .filter(|&(x, y)| x.trunc() < 0.0 || y.trunc() < 0.0)
+            .count();
         subjects.extend(str_values(&df, "subject_id", &path)?);
         actions.extend(str_values(&df, "facial_action", &path)?);
         yaw.extend(f64_values(&df, "yaw_deg", &path)?);
@@ -69,6 +81,7 @@ pub fn run(a: InspectArgs) -> Result<ExitCode> {
             serde_json::to_string_pretty(&serde_json::json!({
                 "subjects": subjects.len(), "images": yaw.len(), "facial_actions": actions.len(),
                 "skipped": m.skipped, "listing_problems": m.listing_problems, "shards": m.shards.len(),
+                "official_loader_failures": official_failures,
                 "histograms": h,
             }))
             .expect("json")
@@ -85,6 +98,9 @@ pub fn run(a: InspectArgs) -> Result<ExitCode> {
         println!(
             "  {} samples skipped, {} listing problems (see errors/)",
             m.skipped, m.listing_problems
+        );
+        println!(
+            "  {official_failures} samples the official loader fails on (its crop box leaves the image's top or left edge; docs/python.md)"
         );
         for (name, h) in &hists {
             println!("\n{name}");

@@ -506,6 +506,9 @@ fn project<'py>(
     Ok(out.into_pyarray(py).reshape([n, 2])?.into_any())
 }
 
+/// One prediction from Python: `(subject_id, facial_action, img_id, R_t or None)`.
+type PredictionRow = (String, String, String, Option<Vec<f64>>);
+
 /// The paper's metrics of `predictions` (`(subject_id, facial_action, img_id, R_t as 16
 /// numbers or None)` rows, or a Parquet/CSV file's path) on `dir`: `eval --json`'s
 /// output as JSON text.
@@ -514,7 +517,7 @@ fn project<'py>(
 fn evaluate(
     py: Python<'_>,
     dir: PathBuf,
-    predictions: Option<Vec<(String, String, String, Option<Vec<f64>>)>>,
+    predictions: Option<Vec<PredictionRow>>,
     predictions_path: Option<PathBuf>,
     split: Option<String>,
 ) -> PyResult<String> {
