@@ -10,7 +10,9 @@
 
 use crate::error::{Error, Result};
 use crate::eval::Summary;
-use crate::plot::{Histogram, Series, histogram_panel, log_line_chart};
+use crate::plot::{Histogram, histogram_panel};
+#[cfg(feature = "model")]
+use crate::plot::{Series, log_line_chart};
 use crate::samples_table::SampleRecord;
 use crate::targets_table::TargetsRecord;
 use image::{Rgb, RgbImage};

@@ -161,6 +161,7 @@ pub fn open_unit_interval(s: &str) -> Result<f64, String> {
 }
 
 /// A learning rate in (0, 1].
+#[cfg(feature = "model")]
 pub fn learning_rate(s: &str) -> Result<f64, String> {
     float_in(s, 0.0, false, 1.0, true)
 }

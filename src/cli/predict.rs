@@ -4,6 +4,7 @@ use arkit_tool::Result;
 use arkit_tool::pnp::RansacParams;
 use arkit_tool::predict::{self, OracleOptions};
 use arkit_tool::predictions_table::write_predictions;
+#[cfg(feature = "model")]
 use arkit_tool::render::CropRule;
 use clap::{ArgGroup, Args};
 use std::path::PathBuf;

@@ -533,7 +533,11 @@ fn evaluate(
                             facial_action: a,
                             img_id: id,
                         },
-                        rt: arkit_core_rt(rt.as_deref(), i)?,
+                        rt: arkit_tool::predictions_table::rt_of(
+                            rt.as_deref(),
+                            Path::new("predictions"),
+                            i,
+                        )?,
                         verts: None,
                         mask_rle: None,
                     })
@@ -565,21 +569,6 @@ fn evaluate(
         })
         .to_string())
     })
-}
-
-fn arkit_core_rt(rt: Option<&[f64]>, row: usize) -> arkit_tool::Result<Option<[f64; 16]>> {
-    match rt {
-        None => Ok(None),
-        Some(v) if v.len() == 16 => {
-            let mut m = [0.0; 16];
-            m.copy_from_slice(v);
-            Ok(Some(m))
-        }
-        Some(v) => Err(Error::invalid(
-            "predictions",
-            format!("row {row}: R_t has {} numbers, expected 16", v.len()),
-        )),
-    }
 }
 
 /// An image file decoded as the loader decodes it (the `image` crate): `(H, W, 3)` uint8 RGB.
