@@ -212,3 +212,13 @@ def test_real_topology_items(real_dataset, compat):
     d = ds[0]
     assert d["img"].shape == (3, 192, 192) and d["corr_mat"].shape == (1024, 1220)
     np.testing.assert_allclose(d["nocs"], 4.5 * d["corr_mat"] @ d["model"], atol=2e-4)
+
+
+def test_the_samples_table_is_the_shards_read_by_arrow(dataset):
+    pa = pytest.importorskip("pyarrow", reason="SKIPPED: neither polars nor pyarrow is installed")
+    data = arkit_tool.open_dataset(dataset)
+    table = data.samples
+    n = table.num_rows if isinstance(table, pa.Table) else table.height
+    assert n == len(data)
+    col = table["img_id"].to_pylist() if isinstance(table, pa.Table) else table["img_id"].to_list()
+    assert col == [k[2] for k in data.keys]
