@@ -14,8 +14,8 @@
 //!
 //! Two rule sets ([`Compat`]):
 //! - [`Compat::Official`]: every value by the official loader's rules: its integer box
-//!   ([`official_box`]: `int()` of the landmarks' box edges), the `cv2` affine map and
-//!   `cv2.warpAffine` resampling ([`crate::official_crop`]), its rasterizer over the whole
+//!   ([`crate::official_crop::official_box`]: `int()` of the landmarks' box edges), the
+//!   `cv2` affine map and `cv2.warpAffine` resampling ([`crate::official_crop`]), its rasterizer over the whole
 //!   image (screen-space weights), its point choice (face pixels of the full-resolution
 //!   mask sliced `mask[top:bottom+1, left:right+1]` with Python's slice rules, drawn
 //!   without repetition or repeated cyclically, mapped to crop pixels by the affine map
@@ -45,7 +45,9 @@
 use crate::conventions::{Camera, Pose};
 use crate::dataset::Dataset;
 use crate::error::{Error, Result};
-use crate::official_crop::{affine_transform, box_crop, warp_affine, warp_mask};
+use crate::official_crop::{
+    LandmarkExtent, affine_transform, box_crop, official_box, warp_affine, warp_mask,
+};
 use crate::raster::{ScreenVertex, VisibilityBuffer};
 use crate::release::SampleKey;
 use crate::render::{
@@ -142,10 +144,10 @@ impl LoaderOptions {
 /// How often a training box jitter is drawn again when the official box fails.
 pub const JITTER_DRAWS: usize = 10;
 
-/// ImageNet mean and standard deviation, the official `Normalize`.
-pub const IMAGE_MEAN: [f32; 3] = [0.485, 0.456, 0.406];
-/// See [`IMAGE_MEAN`].
-pub const IMAGE_STD: [f32; 3] = [0.229, 0.224, 0.225];
+/// ImageNet channel means (RGB), the official `Normalize`'s (and the network's input).
+pub const IMAGENET_MEAN: [f32; 3] = [0.485, 0.456, 0.406];
+/// ImageNet channel standard deviations (RGB), see [`IMAGENET_MEAN`].
+pub const IMAGENET_STD: [f32; 3] = [0.229, 0.224, 0.225];
 
 /// One sample as the official loader returns it (see the module docs). Arrays are
 /// row-major and channels first where the official tensors are.
@@ -193,16 +195,13 @@ pub struct LoaderItem {
 /// One row of the index [`FaceLoader`] keeps per sample (the mesh is read per item).
 #[derive(Clone, Debug)]
 struct IndexRow {
-    key: SampleKey,
+    /// The samples table's row, without its landmarks and without its mesh unless the
+    /// image is embedded (the release may then be gone).
+    sample: crate::samples_table::SampleRecord,
+    /// The split served (`split`'s assignment, else the listed one).
     split: String,
-    image_path: String,
+    /// The sample's `_info.npz`.
     info_path: PathBuf,
-    width: u32,
-    height: u32,
-    rt: [f64; 16],
-    jpeg: Option<Vec<u8>>,
-    /// The mesh, kept only with an embedded image (the release may be gone).
-    verts: Option<Vec<f32>>,
 }
 
 /// The release's UV layout: `tris_2500x3_202110.npy` and the 1,279 rows of
@@ -365,34 +364,6 @@ impl OfficialUvLayout {
     }
 }
 
-/// The official integer box around landmarks `(u, v)`, with the training jitter
-/// `(dx, dy, scale)` (`None` in evaluation): `[left, top, right, bottom]`, each
-/// `int(centre -/+ 0.75 scale size)` (truncation toward zero, as Python's `int`), where
-/// `size` is the larger side of the landmarks' box.
-pub fn official_box(landmarks: &[(f64, f64)], jitter: Option<(f64, f64, f64)>) -> [i64; 4] {
-    let (mut x0, mut y0, mut x1, mut y1) = (f64::MAX, f64::MAX, f64::MIN, f64::MIN);
-    for &(u, v) in landmarks {
-        x0 = x0.min(u);
-        x1 = x1.max(u);
-        y0 = y0.min(v);
-        y1 = y1.max(v);
-    }
-    let size = (x1 - x0).max(y1 - y0);
-    let (mut cx, mut cy) = (0.5 * (x1 + x0), 0.5 * (y1 + y0));
-    let mut ss = 0.75;
-    if let Some((dx, dy, scale)) = jitter {
-        cx += dx;
-        cy += dy;
-        ss *= scale;
-    }
-    [
-        (cx - ss * size).trunc() as i64,
-        (cy - ss * size).trunc() as i64,
-        (cx + ss * size).trunc() as i64,
-        (cy + ss * size).trunc() as i64,
-    ]
-}
-
 /// Python's `range(len)[start:stop]` for a step of 1: the clipped, wrapped bounds.
 pub fn python_slice(start: i64, stop: i64, len: i64) -> std::ops::Range<i64> {
     let fix = |i: i64| {
@@ -517,14 +488,14 @@ fn shift_hue(p: &mut [u8], h: f32) {
     }
 }
 
-/// `ToTensor` then `Normalize(IMAGE_MEAN, IMAGE_STD)` of an interleaved RGB crop:
+/// `ToTensor` then `Normalize(IMAGENET_MEAN, IMAGENET_STD)` of an interleaved RGB crop:
 /// channels first.
 pub fn normalise(rgb: &[u8]) -> Vec<f32> {
     let n = rgb.len() / 3;
     let mut out = vec![0f32; 3 * n];
     for (i, p) in rgb.chunks_exact(3).enumerate() {
         for k in 0..3 {
-            out[k * n + i] = (p[k] as f32 / 255.0 - IMAGE_MEAN[k]) / IMAGE_STD[k];
+            out[k * n + i] = (p[k] as f32 / 255.0 - IMAGENET_MEAN[k]) / IMAGENET_STD[k];
         }
     }
     out
@@ -569,23 +540,22 @@ impl FaceLoader {
         };
         let mut rows = Vec::new();
         for shard in dataset.shards() {
-            for r in dataset.read_samples(shard)? {
+            for mut r in dataset.read_samples(shard)? {
                 let split = splits.of(&r);
                 if options.split.as_deref().is_some_and(|s| s != split) {
                     continue;
                 }
+                let info_path = dataset
+                    .image_root()
+                    .join(layout.info_relative(&r.split, &r.key));
+                r.landmarks_2d = Vec::new();
+                if r.jpeg.is_none() {
+                    r.verts = Vec::new();
+                }
                 rows.push(IndexRow {
-                    info_path: dataset
-                        .image_root()
-                        .join(layout.info_relative(&r.split, &r.key)),
-                    key: r.key,
+                    sample: r,
                     split,
-                    image_path: r.image_path,
-                    width: r.image_width,
-                    height: r.image_height,
-                    rt: r.rt,
-                    verts: r.jpeg.is_some().then_some(r.verts),
-                    jpeg: r.jpeg,
+                    info_path,
                 });
             }
         }
@@ -639,7 +609,9 @@ impl FaceLoader {
 
     /// The key and split of sample `index`.
     pub fn key(&self, index: usize) -> Option<(&SampleKey, &str)> {
-        self.rows.get(index).map(|r| (&r.key, r.split.as_str()))
+        self.rows
+            .get(index)
+            .map(|r| (&r.sample.key, r.split.as_str()))
     }
 
     /// The dataset.
@@ -652,19 +624,21 @@ impl FaceLoader {
     /// dataset with embedded images.
     pub fn mesh(&self, index: usize) -> Result<Vec<Point3<f32>>> {
         let row = self.row(index)?;
-        if let Some(v) = &row.verts {
-            return Ok(v
+        if row.sample.jpeg.is_some() {
+            return Ok(row
+                .sample
+                .verts
                 .chunks_exact(3)
                 .map(|c| Point3::new(c[0], c[1], c[2]))
                 .collect());
         }
         let info = crate::release::read_info(&row.info_path)?;
-        if info.rt != row.rt {
+        if info.rt != row.sample.rt {
             return Err(Error::format(
                 &row.info_path,
                 format!(
                     "R_t differs from the samples table's for {}: the file changed since convert",
-                    row.key
+                    row.sample.key
                 ),
             ));
         }
@@ -690,39 +664,23 @@ impl FaceLoader {
         })
     }
 
-    fn image(&self, row: &IndexRow) -> Result<image::RgbImage> {
-        let record = crate::samples_table::SampleRecord {
-            key: row.key.clone(),
-            split: row.split.clone(),
-            image_path: row.image_path.clone(),
-            image_width: row.width,
-            image_height: row.height,
-            jpeg: row.jpeg.clone(),
-            verts: Vec::new(),
-            rt: row.rt,
-            yaw_deg: 0.0,
-            pitch_deg: 0.0,
-            roll_deg: 0.0,
-            translation_m: [0.0; 3],
-            landmarks_2d: Vec::new(),
-            face_box: [0.0; 4],
-        };
-        self.dataset.image(&record)
-    }
-
     /// Sample `index` of epoch `epoch` (the epoch matters in training mode only).
     pub fn item(&self, index: usize, epoch: u64) -> Result<LoaderItem> {
         let row = self.row(index)?;
         let verts = self.mesh(index)?;
-        let image = self.image(row)?;
-        let pose = Pose::from_release_rt(&row.rt)?;
+        let image = self.dataset.image(&row.sample)?;
+        let pose = Pose::from_release_rt(&row.sample.rt)?;
         let epoch = match self.options.mode {
             LoaderMode::Train => epoch,
             LoaderMode::Eval => 0,
         };
         let stream = (epoch << 40) ^ index as u64;
         let mut rng = Rng::for_stream(self.options.seed, stream);
-        let camera = Camera::new(self.camera_projection, row.width, row.height)?;
+        let camera = Camera::new(
+            self.camera_projection,
+            row.sample.image_width,
+            row.sample.image_height,
+        )?;
         let landmark_points: Vec<Point3<f64>> = self
             .renderer
             .topology()
@@ -755,9 +713,9 @@ impl FaceLoader {
     }
 
     fn image_path(&self, row: &IndexRow) -> PathBuf {
-        match row.jpeg {
+        match row.sample.jpeg {
             Some(_) => self.dataset.dir().to_path_buf(),
-            None => self.dataset.image_root().join(&row.image_path),
+            None => self.dataset.image_root().join(&row.sample.image_path),
         }
     }
 
@@ -797,14 +755,19 @@ impl FaceLoader {
             };
         }
         let mut buffer = VisibilityBuffer::new(s, s);
-        let t = self
-            .renderer
-            .render(verts, pose, row.width, row.height, &crop, &mut buffer)?;
+        let t = self.renderer.render(
+            verts,
+            pose,
+            row.sample.image_width,
+            row.sample.image_height,
+            &crop,
+            &mut buffer,
+        )?;
         let pixels = t.mask_pixels();
         if pixels.is_empty() {
             return Err(Error::invalid(
                 "crop",
-                format!("no face pixel in the crop of {}", row.key),
+                format!("no face pixel in the crop of {}", row.sample.key),
             ));
         }
         let chosen = sample_points(pixels.len(), self.options.n_pts, rng.next_u64());
@@ -828,7 +791,7 @@ impl FaceLoader {
         let o = crop.sampling.offset();
         let (sx, sy) = (crop.side / s as f64, crop.side_y / s as f64);
         Ok(LoaderItem {
-            key: row.key.clone(),
+            key: row.sample.key.clone(),
             image_path: self.image_path(row),
             img: normalise(&rgb),
             choose: chosen.iter().map(|&c| pixels[c as usize] as i64).collect(),
@@ -848,7 +811,7 @@ impl FaceLoader {
                 .collect(),
             corr_weights: chosen.iter().map(|&c| t.corr_weights[c as usize]).collect(),
             tform_inv: [sx, 0.0, crop.x0 + o * sx, 0.0, sy, crop.y0 + o * sy],
-            rt: row.rt,
+            rt: row.sample.rt,
             crop,
             official_box: None,
             choose_box: Vec::new(),
@@ -868,9 +831,13 @@ impl FaceLoader {
         rng: &mut Rng,
     ) -> Result<LoaderItem> {
         let mut buffer = self.take_buffer();
-        let full_mask =
-            self.renderer
-                .render_full_mask(verts, pose, row.width, row.height, &mut buffer);
+        let full_mask = self.renderer.render_full_mask(
+            verts,
+            pose,
+            row.sample.image_width,
+            row.sample.image_height,
+            &mut buffer,
+        );
         let result = full_mask.and_then(|full_mask| {
             self.official_from(
                 row, verts, image, landmarks, train, rng, &buffer, &full_mask,
@@ -901,12 +868,12 @@ impl FaceLoader {
         full_mask: &[bool],
     ) -> Result<LoaderItem> {
         let s = self.options.img_size;
-        let (w, h) = (row.width as i64, row.height as i64);
-        let (x0, x1, y0, y1) = landmarks.iter().fold(
-            (f64::MAX, f64::MIN, f64::MAX, f64::MIN),
-            |(a, b, c, d), &(u, v)| (a.min(u), b.max(u), c.min(v), d.max(v)),
+        let (w, h) = (
+            row.sample.image_width as i64,
+            row.sample.image_height as i64,
         );
-        let size = (x1 - x0).max(y1 - y0);
+        let extent = LandmarkExtent::of(landmarks.iter().copied());
+        let box_of = |jitter| official_box(extent, jitter).map(|v| v as i64);
         // The face pixels of the official slice of the full mask, or why there are none.
         let choose_in = |b: [i64; 4]| -> std::result::Result<(Vec<i64>, i64, i64, i64), String> {
             let [left, top, right, bottom] = b;
@@ -936,11 +903,11 @@ impl FaceLoader {
             }
             Ok((nz, rows.start, cols.start, width))
         };
-        let mut chosen_box = official_box(landmarks, None);
+        let mut chosen_box = box_of(None);
         let mut found = None;
         if train {
             for _ in 0..JITTER_DRAWS {
-                let b = official_box(landmarks, Some(Self::draw_jitter(rng, size)));
+                let b = box_of(Some(Self::draw_jitter(rng, extent.size)));
                 if let Ok(c) = choose_in(b) {
                     chosen_box = b;
                     found = Some(c);
@@ -950,8 +917,9 @@ impl FaceLoader {
         }
         let (nz, row0, col0, slice_w) = match found {
             Some(c) => c,
-            None => choose_in(chosen_box)
-                .map_err(|why| Error::invalid("official box", format!("{}: {why}", row.key)))?,
+            None => choose_in(chosen_box).map_err(|why| {
+                Error::invalid("official box", format!("{}: {why}", row.sample.key))
+            })?,
         };
         let [left, top, right, bottom] = chosen_box;
         let crop = box_crop(left as f64, top as f64, right as f64, bottom as f64, s);
@@ -967,7 +935,7 @@ impl FaceLoader {
         let singular = || {
             Error::invalid(
                 "official box",
-                format!("{}: the box {chosen_box:?} is degenerate", row.key),
+                format!("{}: the box {chosen_box:?} is degenerate", row.sample.key),
             )
         };
         let tform = affine_transform(box_corners, corners).ok_or_else(singular)?;
@@ -1020,14 +988,25 @@ impl FaceLoader {
                 }
             }
         }
-        let mut rgb = warp_affine(image.as_raw(), row.width, row.height, 3, &crop);
+        let mut rgb = warp_affine(
+            image.as_raw(),
+            row.sample.image_width,
+            row.sample.image_height,
+            3,
+            &crop,
+        );
         if train {
             jitter_colour(&mut rgb, rng);
         }
-        let mask = warp_mask(full_mask, row.width, row.height, &crop);
+        let mask = warp_mask(
+            full_mask,
+            row.sample.image_width,
+            row.sample.image_height,
+            &crop,
+        );
         let box_clipped = left < 0 || top < 0 || right >= w || bottom >= h || replaced;
         Ok(LoaderItem {
-            key: row.key.clone(),
+            key: row.sample.key.clone(),
             image_path: self.image_path(row),
             img: normalise(&rgb),
             choose,
@@ -1038,7 +1017,7 @@ impl FaceLoader {
             corr_vertices,
             corr_weights,
             tform_inv,
-            rt: row.rt,
+            rt: row.sample.rt,
             crop,
             official_box: Some(chosen_box),
             choose_box,
@@ -1096,11 +1075,12 @@ mod tests {
     #[test]
     fn the_official_box_truncates_toward_zero_with_and_without_jitter() {
         // Landmarks spanning x 100..200, y 50..130: size 100, centre (150, 90).
-        let l = [(100.0, 50.0), (200.0, 130.0), (150.0, 90.0)];
-        assert_eq!(official_box(&l, None), [75, 15, 225, 165]);
+        let l = LandmarkExtent::of([(100.0, 50.0), (200.0, 130.0), (150.0, 90.0)]);
+        assert_eq!((l.cx, l.cy, l.size), (150.0, 90.0, 100.0));
+        assert_eq!(official_box(l, None), [75.0, 15.0, 225.0, 165.0]);
         // Centre moved by (10.5, -20.25), half-side 0.75 * 1.02 * 100 = 76.5.
-        let b = official_box(&l, Some((10.5, -20.25, 1.02)));
-        assert_eq!(b, [84, -6, 237, 146]);
+        let b = official_box(l, Some((10.5, -20.25, 1.02)));
+        assert_eq!(b, [84.0, -6.0, 237.0, 146.0]);
         // int() truncates toward zero: -6.75 -> -6, not -7.
         assert_eq!((90.0f64 - 20.25 - 76.5).trunc(), -6.0);
     }

@@ -42,24 +42,64 @@ pub fn official_crop(
     landmarks: impl IntoIterator<Item = (f64, f64)>,
     size: u32,
 ) -> Option<CropTransform> {
-    let (mut x0, mut y0, mut x1, mut y1) = (f64::MAX, f64::MAX, f64::MIN, f64::MIN);
-    for (u, v) in landmarks {
-        x0 = x0.min(u);
-        x1 = x1.max(u);
-        y0 = y0.min(v);
-        y1 = y1.max(v);
-    }
-    let side = (x1 - x0).max(y1 - y0);
-    let (cx, cy) = (0.5 * (x0 + x1), 0.5 * (y0 + y1));
-    // Python's int(): truncation toward zero.
-    let left = (cx - 0.75 * side).trunc();
-    let right = (cx + 0.75 * side).trunc();
-    let top = (cy - 0.75 * side).trunc();
-    let bottom = (cy + 0.75 * side).trunc();
+    let [left, top, right, bottom] = official_box(LandmarkExtent::of(landmarks), None);
     if !(right > left && bottom > top) || size < 2 {
         return None;
     }
     Some(box_crop(left, top, right, bottom, size))
+}
+
+/// The centre and the larger side of the bounding box of landmarks `(u, v)`.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct LandmarkExtent {
+    /// Centre, x.
+    pub cx: f64,
+    /// Centre, y.
+    pub cy: f64,
+    /// The larger side.
+    pub size: f64,
+}
+
+impl LandmarkExtent {
+    /// The extent of `landmarks`.
+    pub fn of(landmarks: impl IntoIterator<Item = (f64, f64)>) -> Self {
+        let (mut x0, mut y0, mut x1, mut y1) = (f64::MAX, f64::MAX, f64::MIN, f64::MIN);
+        for (u, v) in landmarks {
+            x0 = x0.min(u);
+            x1 = x1.max(u);
+            y0 = y0.min(v);
+            y1 = y1.max(v);
+        }
+        LandmarkExtent {
+            cx: 0.5 * (x0 + x1),
+            cy: 0.5 * (y0 + y1),
+            size: (x1 - x0).max(y1 - y0),
+        }
+    }
+}
+
+/// The official box (module docs, step 1) `[left, top, right, bottom]`: each
+/// `int(centre -/+ 0.75 size)`, Python's `int` (truncation toward zero), with the
+/// training jitter `(dx, dy, scale)` when given (the centre moved, 0.75 scaled, as the
+/// official loader's `ss *= uniform(0.95, 1.05)`).
+pub fn official_box(extent: LandmarkExtent, jitter: Option<(f64, f64, f64)>) -> [f64; 4] {
+    let LandmarkExtent {
+        mut cx,
+        mut cy,
+        size,
+    } = extent;
+    let mut ss = 0.75;
+    if let Some((dx, dy, scale)) = jitter {
+        cx += dx;
+        cy += dy;
+        ss *= scale;
+    }
+    [
+        (cx - ss * size).trunc(),
+        (cy - ss * size).trunc(),
+        (cx + ss * size).trunc(),
+        (cy + ss * size).trunc(),
+    ]
 }
 
 /// The crop `cv2.getAffineTransform` makes of the box `left..right` x `top..bottom`

@@ -265,15 +265,7 @@ fn jitter_colour(image: &[f32], n: usize, c: f32, rng: &mut Rng) -> Vec<f32> {
 /// The crop of a sample's image, as the network's input: `3 x S x S` floats,
 /// ImageNet-normalised.
 pub fn network_input(image: &image::RgbImage, crop: &CropTransform) -> Vec<f32> {
-    let c = crop.crop_image(image);
-    let s = (crop.size * crop.size) as usize;
-    let mut out = vec![0f32; 3 * s];
-    for (i, p) in c.pixels().enumerate() {
-        for k in 0..3 {
-            out[k * s + i] = (p[k] as f32 / 255.0 - IMAGENET_MEAN[k]) / IMAGENET_STD[k];
-        }
-    }
-    out
+    crate::loader::normalise(crop.crop_image(image).as_raw())
 }
 
 /// Builds an example from a sample and its targets row for a network of `cfg`.

@@ -21,10 +21,9 @@ use candle_core::{D, DType, Device, Module, ModuleT, Result, Tensor};
 use candle_nn::{BatchNorm, Init, Linear, VarBuilder};
 use rayon::prelude::*;
 
-/// ImageNet channel means (RGB) used by [`imagenet_normalize`].
-pub const IMAGENET_MEAN: [f32; 3] = [0.485, 0.456, 0.406];
-/// ImageNet channel standard deviations (RGB) used by [`imagenet_normalize`].
-pub const IMAGENET_STD: [f32; 3] = [0.229, 0.224, 0.225];
+/// ImageNet channel means and standard deviations (RGB) used by [`imagenet_normalize`]:
+/// the loader's, one definition.
+pub use crate::loader::{IMAGENET_MEAN, IMAGENET_STD};
 
 /// Normalises a `B x 3 x H x W` RGB batch with values in `[0, 1]` by the
 /// ImageNet mean and standard deviation.
