@@ -20,15 +20,14 @@
 //! Tested in `tests/hostile.rs`: a moved release is an error naming the file and the
 //! root (no grey image), the override finds it again, a rewritten shard is refused.
 
-use crate::convert::{Manifest, ShardEntry, check_shard_file, read_manifest};
 use crate::error::{Error, Result};
+use crate::manifest::{Manifest, ShardEntry, check_shard_file, read_manifest};
 use crate::release::SampleKey;
 use crate::samples_table::{self, SampleRecord};
 use image::RgbImage;
 use std::path::{Path, PathBuf};
 
-/// The manifest's file name in a converted dataset.
-pub const MANIFEST_FILE: &str = "dataset.json";
+pub use crate::manifest::MANIFEST_FILE;
 
 /// The environment variable that overrides the input root recorded in a manifest.
 pub const INPUT_ROOT_ENV: &str = "ARKIT_INPUT_ROOT";

@@ -46,14 +46,16 @@ pub mod augment;
 pub mod augment_dataset;
 pub mod biwi;
 pub mod convert;
+pub mod crop;
 pub mod dataset;
 #[cfg(feature = "model")]
 pub mod demo;
 pub mod eval;
 pub mod eval_dataset;
+pub mod face_targets;
 pub mod import_arkit;
 pub mod loader;
-pub mod official_crop;
+pub mod manifest;
 pub mod overlay;
 #[cfg(feature = "model")]
 pub mod perspnet;
@@ -72,6 +74,8 @@ pub mod targets_table;
 pub mod topology;
 #[cfg(feature = "model")]
 pub mod training;
+
+pub use crop::official as official_crop;
 
 pub use arkit_core::{
     atomic_file, conventions, error, limits, npy, raster, release, rng, target_codec,

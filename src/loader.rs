@@ -14,8 +14,8 @@
 //!
 //! Two rule sets ([`Compat`]):
 //! - [`Compat::Official`]: every value by the official loader's rules: its integer box
-//!   ([`crate::official_crop::official_box`]: `int()` of the landmarks' box edges), the
-//!   `cv2` affine map and `cv2.warpAffine` resampling ([`crate::official_crop`]), its rasterizer over the whole
+//!   ([`crate::crop::official::official_box`]: `int()` of the landmarks' box edges), the
+//!   `cv2` affine map and `cv2.warpAffine` resampling ([`crate::crop::official`]), its rasterizer over the whole
 //!   image (screen-space weights), its point choice (face pixels of the full-resolution
 //!   mask sliced `mask[top:bottom+1, left:right+1]` with Python's slice rules, drawn
 //!   without repetition or repeated cyclically, mapped to crop pixels by the affine map
@@ -43,11 +43,11 @@
 //! Python package's tests against a numpy re-implementation of the official formulas.
 
 use crate::conventions::{Camera, Pose};
-use crate::dataset::Dataset;
-use crate::error::{Error, Result};
-use crate::official_crop::{
+use crate::crop::official::{
     LandmarkExtent, affine_transform, box_crop, official_box, warp_affine, warp_mask,
 };
+use crate::dataset::Dataset;
+use crate::error::{Error, Result};
 use crate::raster::{ScreenVertex, VisibilityBuffer};
 use crate::release::SampleKey;
 use crate::render::{

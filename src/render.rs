@@ -28,539 +28,10 @@ use crate::error::{Error, Result};
 use crate::raster::{ScreenVertex, VisibilityBuffer};
 use crate::rng::Rng;
 use crate::topology::{FaceTopology, HoleFill, LoopRole};
-use image::RgbImage;
+
+pub use crate::crop::{CropRule, CropSampling, CropTransform};
+pub use crate::face_targets::FaceTargets;
 use nalgebra::Point3;
-
-/// The affine map from image pixels to a square crop (see module docs, stage 1).
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub struct CropTransform {
-    /// Left edge of the box in image pixels.
-    pub x0: f64,
-    /// Top edge of the box in image pixels.
-    pub y0: f64,
-    /// Width of the box in image pixels.
-    pub side: f64,
-    /// Height of the box in image pixels: `side` for our square box; the official box
-    /// ([`crate::official_crop`]) can be a pixel taller or wider.
-    pub side_y: f64,
-    /// Side of the crop in pixels.
-    pub size: u32,
-    /// Where a crop pixel samples the box.
-    pub sampling: CropSampling,
-}
-
-/// Where crop pixel `(i, j)` sits in the crop's continuous coordinates.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize)]
-#[serde(rename_all = "snake_case")]
-pub enum CropSampling {
-    /// At its centre `(i + 0.5, j + 0.5)`: the crate's pixel-centre rule (`render`'s
-    /// default).
-    #[default]
-    Centres,
-    /// At the integer point `(i, j)`, as OpenCV and the official loader put it
-    /// (`render --compat official`).
-    Corners,
-}
-
-/// Whose crop box is cut around a face: ours ([`CropTransform::around_landmarks`]) or
-/// the official loader's ([`crate::official_crop::official_crop`]).
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize)]
-#[serde(rename_all = "snake_case")]
-pub enum CropRule {
-    /// Ours: the square box, pixel centres, our bilinear crop.
-    #[default]
-    Ours,
-    /// The official loader's: integer box, pixel corners, `cv2.warpAffine`.
-    Official,
-}
-
-impl CropRule {
-    /// The crop of this rule around projected landmarks `[u0, v0, u1, v1, ...]`;
-    /// `None` when the official box is empty.
-    pub fn around_landmarks(self, landmarks_2d: &[f32], size: u32) -> Option<CropTransform> {
-        match self {
-            CropRule::Ours => Some(CropTransform::around_landmarks(landmarks_2d, size)),
-            CropRule::Official => crate::official_crop::official_crop(
-                landmarks_2d
-                    .chunks_exact(2)
-                    .map(|p| (p[0] as f64, p[1] as f64)),
-                size,
-            ),
-        }
-    }
-}
-
-impl CropSampling {
-    /// The offset of a pixel's sample point from its index.
-    pub fn offset(self) -> f64 {
-        match self {
-            CropSampling::Centres => 0.5,
-            CropSampling::Corners => 0.0,
-        }
-    }
-
-    /// The name stored in the `crop_sampling` column.
-    pub fn name(self) -> &'static str {
-        match self {
-            CropSampling::Centres => "centre",
-            CropSampling::Corners => "corner",
-        }
-    }
-}
-
-impl CropTransform {
-    /// The official box around projected landmarks `[u0, v0, u1, v1, ...]` (an odd
-    /// last value is ignored; no landmarks give a box that renders nothing).
-    pub fn around_landmarks(landmarks_2d: &[f32], size: u32) -> Self {
-        let (mut x0, mut y0, mut x1, mut y1) = (f64::MAX, f64::MAX, f64::MIN, f64::MIN);
-        for p in landmarks_2d.chunks_exact(2) {
-            let (u, v) = (p[0] as f64, p[1] as f64);
-            x0 = x0.min(u);
-            x1 = x1.max(u);
-            y0 = y0.min(v);
-            y1 = y1.max(v);
-        }
-        let half = 0.75 * (x1 - x0).max(y1 - y0);
-        let (cx, cy) = ((x0 + x1) / 2.0, (y0 + y1) / 2.0);
-        CropTransform {
-            x0: cx - half,
-            y0: cy - half,
-            side: 2.0 * half,
-            side_y: 2.0 * half,
-            size,
-            sampling: CropSampling::Centres,
-        }
-    }
-
-    /// Crop scales: crop pixels per image pixel, horizontally and vertically.
-    pub fn scales(&self) -> (f64, f64) {
-        (self.size as f64 / self.side, self.size as f64 / self.side_y)
-    }
-
-    /// Image point to crop point.
-    pub fn to_crop(&self, u: f64, v: f64) -> (f64, f64) {
-        let (sx, sy) = self.scales();
-        ((u - self.x0) * sx, (v - self.y0) * sy)
-    }
-
-    /// Crop point to image point.
-    pub fn to_image(&self, cu: f64, cv: f64) -> (f64, f64) {
-        let (sx, sy) = self.scales();
-        (self.x0 + cu / sx, self.y0 + cv / sy)
-    }
-
-    /// The image point crop pixel `(i, j)` samples (its centre or its corner, by
-    /// [`CropTransform::sampling`]).
-    pub fn pixel_to_image(&self, i: u32, j: u32) -> (f64, f64) {
-        let o = self.sampling.offset();
-        self.to_image(i as f64 + o, j as f64 + o)
-    }
-
-    /// The map as a 2x3 row-major affine matrix, image to crop: `[a, b, c, d, e, f]` with
-    /// `cu = a u + b v + c`, `cv = d u + e v + f`.
-    pub fn affine(&self) -> [f64; 6] {
-        let (sx, sy) = self.scales();
-        [sx, 0.0, -self.x0 * sx, 0.0, sy, -self.y0 * sy]
-    }
-
-    /// Resamples `image` into the crop (bilinear, each crop pixel centre mapped to the
-    /// image; outside the image reads as black).
-    ///
-    /// The map is an axis-aligned scale, so the bilinear taps and weights of a column
-    /// depend only on its x and those of a row only on its y: they are computed once per
-    /// column and row (`Taps`, [`ColumnTaps`]), a tap outside the image getting weight 0.
-    /// Each crop row then blends its two source rows over the span the columns read
-    /// (contiguous, so it vectorises) and reads its pixels from that blend with two taps
-    /// each. Measured with `cargo bench --bench render -- stages`: per-pixel lookups with
-    /// bounds checks were about 6x slower than four taps per pixel from the tables, and
-    /// four taps with a branch per tap for the image border 1.2x slower than without.
-    /// The two taps write a float row and a second loop rounds it to bytes
-    /// ([`round_to_u8`], vectorised): 2.66 -> 2.37 M instructions, 0.21 -> 0.18 ms,
-    /// the same bytes. Reading the blended row as `[f32; 3]` pixels by precomputed
-    /// index (one bounds check per tap, not two per byte range): 2.37 -> 2.15 M,
-    /// 0.17 -> 0.165 ms. Rounding sixteen floats at a time with SSE2 truncation and
-    /// saturating packs ([`round_row_to_u8`]): 2.15 -> 1.73 M, 0.149-0.155 -> 0.113-0.117
-    /// ms (best of 8 alternated runs). Blending the two source rows sixteen bytes at a
-    /// time ([`blend_rows`]): 1.73 -> 1.65 M, 6% less time in alternated runs on a busy
-    /// machine. The horizontal taps as one four-float SSE2 operation per pixel on an
-    /// adjacent pair, the blended span padded with a zero pixel on each side so that no
-    /// tap is tested for the border ([`ColumnTaps`]): 1.65 -> 1.01 M, 0.114-0.119 ->
-    /// 0.089-0.093 ms (8 alternated runs), the same bytes. (The same SSE2 operation with
-    /// two independent taps per pixel, a bounds check each and weights broadcast per
-    /// pixel, had been slower: 0.149 -> 0.166 ms.) The vertical blend in AVX2 where the
-    /// CPU has it (detected at run time, [`blend_rows`]): over 400 varied crops 1.08 ->
-    /// 0.75 M instructions, 0.102-0.120 -> 0.072-0.091 ms (8 alternated runs on a busy
-    /// machine), the same bytes.
-    ///
-    /// A crop with [`CropSampling::Corners`] is resampled as `cv2.warpAffine` does
-    /// instead ([`crate::official_crop::warp_affine`]).
-    pub fn crop_image(&self, image: &RgbImage) -> RgbImage {
-        if self.sampling == CropSampling::Corners {
-            let (w, h) = image.dimensions();
-            let out = crate::official_crop::warp_affine(image.as_raw(), w, h, 3, self);
-            return RgbImage::from_raw(self.size, self.size, out).expect("size matches");
-        }
-        let n = self.size as usize;
-        let mut out = vec![0u8; n * n * 3];
-        if image.width() == 0 || image.height() == 0 || n == 0 {
-            return RgbImage::from_raw(self.size, self.size, out).expect("size matches");
-        }
-        let stride = image.width() as usize * 3;
-        let (sx, sy) = self.scales();
-        let cols = ColumnTaps::new(n, self.x0, sx, image.width());
-        let rows = Taps::new(n, self.y0, sy, image.height(), stride);
-        // The blended span: pixels `cols.first..=cols.last` of the two source rows, one
-        // float more for the last four-float read, and zero where a pixel is off the
-        // image (at most the pads at -1 and `width`).
-        let mut blend = vec![0f32; cols.span_floats()];
-        let (real_lo, real_hi) = cols.on_image(image.width());
-        let real_at = 3 * (real_lo - cols.first) as usize;
-        let (lo, hi) = (3 * real_lo as usize, 3 * (real_hi as usize + 1));
-        let mut row = vec![0f32; n * 3 + 1];
-        let src = image.as_raw();
-        for (dst, r) in out.chunks_exact_mut(n * 3).zip(&rows.0) {
-            let (ra, rb) = (&src[r.a + lo..r.a + hi], &src[r.b + lo..r.b + hi]);
-            blend_rows(ra, rb, r.wa, r.wb, &mut blend[real_at..]);
-            cols.blend_columns(&blend, &mut row);
-            round_row_to_u8(&row, dst);
-        }
-        RgbImage::from_raw(self.size, self.size, out).expect("size matches")
-    }
-}
-
-/// `floor(v + 0.5)` clamped to 255, for a non-negative `v`: the value rounded half
-/// up, as truncating `(v + 0.5).min(255.0) as u8` does. Float arithmetic only, so a
-/// loop over a row vectorises with plain SSE2: adding 2^23 leaves the integer nearest
-/// `y` (ties to even) in the low mantissa bits, and one is taken off when that rounded
-/// up. The saturating `as u8` (or `as i32`) cast compiled to scalar code with a branch
-/// per value, a third of the crop's instructions.
-#[inline]
-fn round_to_u8(v: f32) -> u8 {
-    const MAGIC: f32 = 8_388_608.0; // 2^23
-    let y = (v + 0.5).min(255.0);
-    let t = y + MAGIC;
-    let t = if t - MAGIC > y { t - 1.0 } else { t };
-    t.to_bits() as u8
-}
-
-/// The vertical pass of [`CropTransform::crop_image`]: `out[i] = a[i] * wa + b[i] *
-/// wb` over the shortest of the three. On x86-64, sixteen bytes of each row at a time:
-/// in AVX2 where the CPU has it ([`blend_rows_avx2`], detected at run time), else in
-/// SSE2 (part of the x86-64 baseline; [`blend_rows_sse2`]), where the compiler's own
-/// vectorisation loaded four bytes at a time. The same products and sums in every
-/// path (no fused multiply-add), so the same bits (tested).
-#[inline]
-fn blend_rows(a: &[u8], b: &[u8], wa: f32, wb: f32, out: &mut [f32]) {
-    let n = a.len().min(b.len()).min(out.len());
-    let (a, b, out) = (&a[..n], &b[..n], &mut out[..n]);
-    #[cfg(not(target_arch = "x86_64"))]
-    let done = 0;
-    #[cfg(target_arch = "x86_64")]
-    let done = if std::arch::is_x86_feature_detected!("avx2") {
-        // SAFETY: the CPU has AVX2 (detected just above).
-        unsafe { blend_rows_avx2(a, b, wa, wb, out) }
-    } else {
-        blend_rows_sse2(a, b, wa, wb, out)
-    };
-    blend_rows_scalar(&a[done..], &b[done..], wa, wb, &mut out[done..]);
-}
-
-/// [`blend_rows`] one value at a time (the vector paths' tail).
-fn blend_rows_scalar(a: &[u8], b: &[u8], wa: f32, wb: f32, out: &mut [f32]) {
-    for ((o, &a), &b) in out.iter_mut().zip(a).zip(b) {
-        *o = a as f32 * wa + b as f32 * wb;
-    }
-}
-
-/// [`blend_rows`] in SSE2 over the whole sixteen-byte chunks of `a`, `b` and `out`
-/// (of equal lengths); returns how many values it wrote. One load and six unpacks
-/// widen sixteen bytes, then four four-float products and sums: 38 instructions per
-/// sixteen bytes of each row.
-#[cfg(target_arch = "x86_64")]
-#[inline]
-fn blend_rows_sse2(a: &[u8], b: &[u8], wa: f32, wb: f32, out: &mut [f32]) -> usize {
-    use std::arch::x86_64::*;
-    let chunks = a.chunks_exact(16).zip(b.chunks_exact(16));
-    for ((a, b), o) in chunks.zip(out.chunks_exact_mut(16)) {
-        // SAFETY: SSE2 is part of the x86-64 baseline; each load reads the 16 bytes
-        // of a 16-byte chunk and each store writes 4 of the 16 floats of `o`.
-        unsafe {
-            let zero = _mm_setzero_si128();
-            let widen = |p: &[u8]| {
-                let v = _mm_loadu_si128(p.as_ptr().cast());
-                let (lo, hi) = (_mm_unpacklo_epi8(v, zero), _mm_unpackhi_epi8(v, zero));
-                [
-                    _mm_unpacklo_epi16(lo, zero),
-                    _mm_unpackhi_epi16(lo, zero),
-                    _mm_unpacklo_epi16(hi, zero),
-                    _mm_unpackhi_epi16(hi, zero),
-                ]
-                .map(|i| _mm_cvtepi32_ps(i))
-            };
-            let (pa, pb) = (widen(a), widen(b));
-            let (va, vb) = (_mm_set1_ps(wa), _mm_set1_ps(wb));
-            for k in 0..4 {
-                let v = _mm_add_ps(_mm_mul_ps(pa[k], va), _mm_mul_ps(pb[k], vb));
-                _mm_storeu_ps(o.as_mut_ptr().add(4 * k), v);
-            }
-        }
-    }
-    a.len() - a.len() % 16
-}
-
-/// [`blend_rows_sse2`] in AVX2: eight bytes widen to eight floats in two instructions
-/// (`vpmovzxbd`, `vcvtdq2ps`), so sixteen bytes of each row take 16 instructions
-/// instead of 38. The same products and sums, in the same order.
-///
-/// # Safety
-/// The CPU must have AVX2.
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2")]
-unsafe fn blend_rows_avx2(a: &[u8], b: &[u8], wa: f32, wb: f32, out: &mut [f32]) -> usize {
-    use std::arch::x86_64::*;
-    let (va, vb) = (_mm256_set1_ps(wa), _mm256_set1_ps(wb));
-    let chunks = a.chunks_exact(16).zip(b.chunks_exact(16));
-    for ((a, b), o) in chunks.zip(out.chunks_exact_mut(16)) {
-        for h in 0..2 {
-            // SAFETY: each load reads 8 of the 16 bytes of a chunk, the store writes 8
-            // of the 16 floats of `o`; the CPU has AVX2 (the caller's promise).
-            unsafe {
-                let widen = |p: &[u8]| {
-                    let v = _mm_loadl_epi64(p.as_ptr().add(8 * h).cast());
-                    _mm256_cvtepi32_ps(_mm256_cvtepu8_epi32(v))
-                };
-                let v = _mm256_add_ps(_mm256_mul_ps(widen(a), va), _mm256_mul_ps(widen(b), vb));
-                _mm256_storeu_ps(o.as_mut_ptr().add(8 * h), v);
-            }
-        }
-    }
-    a.len() - a.len() % 16
-}
-
-/// [`round_to_u8`] over a row: `dst[i]` from `src[i]`, for the shorter of the two. On
-/// x86-64, sixteen values at a time in SSE2 (part of the x86-64 baseline): truncating
-/// `fl(v + 0.5)` (`cvttps2dq`) is its floor, the same number `round_to_u8` finds, and
-/// the saturating packs clamp to 255. 18 instructions per four values in
-/// `round_to_u8`'s vectorised loop, 17 per sixteen here; the same bytes (tested).
-#[inline]
-fn round_row_to_u8(src: &[f32], dst: &mut [u8]) {
-    let n = src.len().min(dst.len());
-    let (src, dst) = (&src[..n], &mut dst[..n]);
-    // Values before `done` are written by the vector loop.
-    #[cfg(not(target_arch = "x86_64"))]
-    let done = 0;
-    #[cfg(target_arch = "x86_64")]
-    let done = {
-        use std::arch::x86_64::*;
-        for (s, d) in src.chunks_exact(16).zip(dst.chunks_exact_mut(16)) {
-            // SAFETY: SSE2 is part of the x86-64 baseline; the loads read 16 floats of
-            // `s` and the store writes 16 bytes of `d`, both exactly 16 long.
-            unsafe {
-                let half = _mm_set1_ps(0.5);
-                let q = |k: usize| {
-                    _mm_cvttps_epi32(_mm_add_ps(_mm_loadu_ps(s.as_ptr().add(4 * k)), half))
-                };
-                let lo = _mm_packs_epi32(q(0), q(1));
-                let hi = _mm_packs_epi32(q(2), q(3));
-                _mm_storeu_si128(d.as_mut_ptr().cast(), _mm_packus_epi16(lo, hi));
-            }
-        }
-        n - n % 16
-    };
-    for (d, &v) in dst[done..].iter_mut().zip(&src[done..]) {
-        *d = round_to_u8(v);
-    }
-}
-
-/// The two bilinear taps of one crop row (columns have [`ColumnTaps`]): byte offsets of
-/// the source rows in the image and their weights; a tap outside the image has weight 0
-/// and offset 0, so reading it is always in bounds and adds nothing.
-#[derive(Clone, Copy, Debug)]
-struct Tap {
-    a: usize,
-    b: usize,
-    wa: f32,
-    wb: f32,
-}
-
-/// The taps of every crop row.
-struct Taps(Vec<Tap>);
-
-impl Taps {
-    /// For `n` crop pixels whose centres look at `origin + (i + 0.5) / scale` along an
-    /// image axis of `count` pixels, `step` bytes apart.
-    fn new(n: usize, origin: f64, scale: f64, count: u32, step: usize) -> Self {
-        Taps(
-            (0..n)
-                .map(|i| {
-                    let (x, t) = bilinear_position(i, origin, scale);
-                    let tap = |x: i64, w: f32| {
-                        if (0..count as i64).contains(&x) {
-                            (x as usize * step, w)
-                        } else {
-                            (0, 0.0)
-                        }
-                    };
-                    let ((a, wa), (b, wb)) = (tap(x, 1.0 - t), tap(x + 1, t));
-                    Tap { a, b, wa, wb }
-                })
-                .collect(),
-        )
-    }
-}
-
-/// Crop pixel `i`'s centre along an image axis, `origin + (i + 0.5) / scale`, as the
-/// pixel `x` left of (or above) it and the fraction `t` past that pixel's centre: the
-/// bilinear weights are `1 - t` for `x` and `t` for `x + 1`.
-fn bilinear_position(i: usize, origin: f64, scale: f64) -> (i64, f32) {
-    let f = origin + (i as f64 + 0.5) / scale - 0.5;
-    let x = f.floor() as i64;
-    (x, (f - x as f64) as f32)
-}
-
-/// The horizontal taps of every crop column, read from a row of blended pixels (the
-/// vertical pass's output, three floats per pixel) that covers image pixels `first` to
-/// `last` and reads as zero off the image: column `i` is `pixel(x) * (1 - t) +
-/// pixel(x + 1) * t`, and a pair wholly off the image has weights 0. As the pair is
-/// adjacent, one column is two four-float reads (the pair's pixels and the next
-/// float), two products and a sum in SSE2 on x86-64, whose fourth lane is junk that
-/// the next column's store overwrites; the same products and sums as
-/// [`ColumnTaps::blend_columns_scalar`], so the same bits (tested).
-struct ColumnTaps {
-    /// The span's first pixel: -1 when a column reads the zero left of the image.
-    first: i64,
-    /// The span's last pixel: the image width when a column reads the zero right of it.
-    last: i64,
-    /// Per column, the float offset of its pair's first pixel in the span.
-    starts: Vec<usize>,
-    /// Per column, the pair's two weights, each in four lanes.
-    weights: Vec<PairWeights>,
-}
-
-/// The two weights of a column's pixel pair, each repeated for a four-float operation.
-#[derive(Clone, Copy, Debug)]
-#[repr(C, align(16))]
-struct PairWeights {
-    a: [f32; 4],
-    b: [f32; 4],
-}
-
-impl ColumnTaps {
-    /// For `n` crop columns whose centres look at `origin + (i + 0.5) / scale` along an
-    /// image row of `width` (at least 1) pixels.
-    fn new(n: usize, origin: f64, scale: f64, width: u32) -> Self {
-        let w = width as i64;
-        let pairs: Vec<(i64, f32, f32)> = (0..n)
-            .map(|i| {
-                let (x, t) = bilinear_position(i, origin, scale);
-                if (-1..w).contains(&x) {
-                    (x, 1.0 - t, t)
-                } else {
-                    (x.clamp(-1, w - 1), 0.0, 0.0)
-                }
-            })
-            .collect();
-        let first = pairs.iter().map(|p| p.0).min().unwrap_or(0);
-        let last = pairs.iter().map(|p| p.0 + 1).max().unwrap_or(1);
-        ColumnTaps {
-            first,
-            last,
-            starts: pairs.iter().map(|p| 3 * (p.0 - first) as usize).collect(),
-            weights: pairs
-                .iter()
-                .map(|&(_, a, b)| PairWeights {
-                    a: [a; 4],
-                    b: [b; 4],
-                })
-                .collect(),
-        }
-    }
-
-    /// Floats in the blended span: three per pixel and one for the last column's read.
-    fn span_floats(&self) -> usize {
-        3 * (self.last - self.first + 1) as usize + 1
-    }
-
-    /// The span's pixels on an image `width` pixels wide (never empty: each pair has
-    /// at least one).
-    fn on_image(&self, width: u32) -> (i64, i64) {
-        (self.first.max(0), self.last.min(width as i64 - 1))
-    }
-
-    /// Fills `row` (three floats per column and one spare) from the blended span.
-    #[inline]
-    fn blend_columns(&self, blend: &[f32], row: &mut [f32]) {
-        assert!(blend.len() >= self.span_floats() && row.len() > 3 * self.starts.len());
-        #[cfg(not(target_arch = "x86_64"))]
-        self.blend_columns_scalar(blend, row);
-        #[cfg(target_arch = "x86_64")]
-        {
-            use std::arch::x86_64::*;
-            let (blend, out) = (blend.as_ptr(), row.as_mut_ptr());
-            for (i, (&s, w)) in self.starts.iter().zip(&self.weights).enumerate() {
-                // SAFETY: SSE2 is part of the x86-64 baseline. A start is at most
-                // `3 * (last - 1 - first)`, so the reads end by `span_floats()` floats,
-                // within `blend` (asserted); the store writes floats `3i..3i + 4` of
-                // `row`, which has `3n + 1` (asserted); `w` is 16-byte aligned.
-                unsafe {
-                    let p = blend.add(s);
-                    let v = _mm_add_ps(
-                        _mm_mul_ps(_mm_loadu_ps(p), _mm_load_ps(w.a.as_ptr())),
-                        _mm_mul_ps(_mm_loadu_ps(p.add(3)), _mm_load_ps(w.b.as_ptr())),
-                    );
-                    _mm_storeu_ps(out.add(3 * i), v);
-                }
-            }
-        }
-    }
-
-    /// [`ColumnTaps::blend_columns`] one float at a time.
-    #[cfg_attr(target_arch = "x86_64", allow(dead_code))]
-    fn blend_columns_scalar(&self, blend: &[f32], row: &mut [f32]) {
-        for ((d, &s), w) in row.chunks_exact_mut(3).zip(&self.starts).zip(&self.weights) {
-            for (k, d) in d.iter_mut().enumerate() {
-                *d = blend[s + k] * w.a[0] + blend[s + 3 + k] * w.b[0];
-            }
-        }
-    }
-}
-
-/// The targets of one sample at crop resolution.
-#[derive(Clone, Debug, PartialEq)]
-pub struct FaceTargets {
-    /// The crop.
-    pub crop: CropTransform,
-    /// Face mask, row-major `size * size`.
-    pub mask: Vec<bool>,
-    /// For each mask pixel in row-major order: the visible triangle's vertex ids.
-    pub corr_vertices: Vec<[u16; 3]>,
-    /// For each mask pixel: perspective-correct barycentric weights (sum 1).
-    pub corr_weights: Vec<[f32; 3]>,
-}
-
-impl FaceTargets {
-    /// Row-major indices of the mask pixels (the rows of the correspondence matrix).
-    pub fn mask_pixels(&self) -> Vec<u32> {
-        crate::targets_table::mask_pixel_indices(&self.mask)
-    }
-
-    /// The coordinate map at the mask pixels: the canonical position under each pixel,
-    /// `sum_k w_k V_k`.
-    pub fn coordinate_map(&self, verts: &[Point3<f32>]) -> Vec<Point3<f32>> {
-        self.corr_vertices
-            .iter()
-            .zip(&self.corr_weights)
-            .map(|(v, w)| {
-                Point3::from(
-                    verts[v[0] as usize].coords * w[0]
-                        + verts[v[1] as usize].coords * w[1]
-                        + verts[v[2] as usize].coords * w[2],
-                )
-            })
-            .collect()
-    }
-}
-
 /// Renders masks and correspondences for one topology (see module docs).
 #[derive(Clone, Debug)]
 pub struct FaceRenderer {
@@ -579,7 +50,7 @@ pub enum RasterMode {
     /// Ours: pixel centres, the top-left fill rule, perspective-correct weights.
     #[default]
     Exact,
-    /// The official loader's pipeline ([`crate::official_crop`]): its crop box and
+    /// The official loader's pipeline ([`crate::crop::official`]): its crop box and
     /// `cv2` affine map (corner sampling), its rasterizer over the whole image
     /// ([`crate::raster::rasterize_mesh_official`]: integer sample points, its inside
     /// test, screen-space weights, earlier triangle on ties), its mask warped into the
@@ -640,7 +111,7 @@ impl FaceRenderer {
         })
     }
 
-    /// The official loader's crop ([`crate::official_crop::official_crop`]) of `verts`
+    /// The official loader's crop ([`crate::crop::official::official_crop`]) of `verts`
     /// at `pose` in a `width x height` image: its box around the landmarks projected in
     /// `f64`, as the official loader projects them.
     pub fn official_crop(
@@ -664,12 +135,12 @@ impl FaceRenderer {
             })
             .collect::<Result<_>>()?;
         let projected = camera.project_all(pose, &points);
-        crate::official_crop::official_crop(projected.iter().map(|p| (p.u, p.v)), size)
+        crate::crop::official::official_crop(projected.iter().map(|p| (p.u, p.v)), size)
             .ok_or_else(|| Error::invalid("landmarks", "the official crop box is empty"))
     }
 
     /// [`FaceRenderer::render`] in [`RasterMode::Official`]: the official loader's
-    /// pipeline ([`crate::official_crop`]): rasterize over the whole image with its
+    /// pipeline ([`crate::crop::official`]): rasterize over the whole image with its
     /// rules, warp the mask into the crop as `cv2.warpAffine` does, and take each crop
     /// mask pixel's correspondence from the heaviest face pixel among its bilinear taps.
     fn render_official(
@@ -695,7 +166,7 @@ impl FaceRenderer {
             let i = (y * w + x) as usize;
             (inside && buffer.triangle[i] < n_mesh).then_some(i)
         };
-        let taps = crate::official_crop::warp_taps(crop);
+        let taps = crate::crop::official::warp_taps(crop);
         let mut mask = vec![false; taps.len()];
         let mut corr_vertices = Vec::new();
         let mut corr_weights = Vec::new();
@@ -709,11 +180,11 @@ impl FaceRenderer {
                 .map(|(_, wt)| wt)
                 .sum();
             // cv2's rounding of the warped 0/1 mask: face from one half up.
-            if face_weight < crate::official_crop::HALF_WEIGHT {
+            if face_weight < crate::crop::official::HALF_WEIGHT {
                 continue;
             }
             let (cx, cy) =
-                crate::official_crop::nearest_face_tap(*t, |cx, cy| face_at(cx, cy).is_some())
+                crate::crop::official::nearest_face_tap(*t, |cx, cy| face_at(cx, cy).is_some())
                     .expect("a tap weighs at least one half");
             let i = face_at(cx, cy).expect("a face pixel");
             let tri = self.triangles[buffer.triangle[i] as usize];
@@ -1396,7 +867,6 @@ unsafe fn store_texel(d: *mut f32, q: std::arch::x86_64::__m128) {
 mod tests {
     use super::*;
     use crate::conventions::EulerAngles;
-    use image::Rgb;
     use nalgebra::Vector3;
 
     fn face() -> (FaceRenderer, Vec<Point3<f32>>) {
@@ -1418,189 +888,6 @@ mod tests {
                 [p.u as f32, p.v as f32]
             })
             .collect()
-    }
-
-    #[test]
-    fn crop_transform_round_trip_and_affine() {
-        let c = CropTransform {
-            x0: 100.0,
-            y0: 50.0,
-            side: 300.0,
-            side_y: 300.0,
-            size: 192,
-            sampling: crate::render::CropSampling::Centres,
-        };
-        let (cu, cv) = c.to_crop(250.0, 200.0);
-        assert!((cu - 96.0).abs() < 1e-12 && (cv - 96.0).abs() < 1e-12);
-        let (u, v) = c.to_image(cu, cv);
-        assert!((u - 250.0).abs() < 1e-12 && (v - 200.0).abs() < 1e-12);
-        let a = c.affine();
-        assert!((a[0] * 250.0 + a[1] * 200.0 + a[2] - cu).abs() < 1e-12);
-        assert!((a[3] * 250.0 + a[4] * 200.0 + a[5] - cv).abs() < 1e-12);
-        // Cropping a constant image inside its bounds gives the constant.
-        let img = RgbImage::from_pixel(640, 480, Rgb([10, 20, 30]));
-        assert!(c.crop_image(&img).pixels().all(|p| p.0 == [10, 20, 30]));
-        // A horizontal ramp is resampled linearly: crop pixel i looks at image u.
-        let ramp = RgbImage::from_fn(640, 480, |x, _| Rgb([(x / 3) as u8, 0, 0]));
-        let out = c.crop_image(&ramp);
-        let (u, _) = c.to_image(10.5, 10.5);
-        let expected = (u - 0.5) / 3.0;
-        assert!((out.get_pixel(10, 10).0[0] as f64 - expected).abs() <= 1.0);
-    }
-
-    #[test]
-    fn round_to_u8_equals_the_saturating_cast() {
-        // Every 61st float in [0, 300], plus the halves and their neighbours, where
-        // rounding ties would show.
-        let mut values: Vec<f32> = (0..=300.0f32.to_bits())
-            .step_by(61)
-            .map(f32::from_bits)
-            .collect();
-        for k in 0..=600 {
-            let h = k as f32 * 0.5;
-            values.extend([h, h.next_down(), h.next_up()]);
-        }
-        values.retain(|v| *v >= 0.0);
-        for &v in &values {
-            assert_eq!(round_to_u8(v), (v + 0.5).min(255.0) as u8, "{v}");
-        }
-        // The row version (sixteen at a time on x86-64, then a tail) gives the same.
-        let mut row = vec![0u8; values.len()];
-        round_row_to_u8(&values, &mut row);
-        for (&v, &r) in values.iter().zip(&row) {
-            assert_eq!(r, round_to_u8(v), "{v}");
-        }
-    }
-
-    #[test]
-    fn blend_rows_equals_the_scalar_blend() {
-        // The sixteen-byte vector steps (on x86-64: the path this CPU takes, and each
-        // of SSE2 and AVX2 alone where it has them) and the tail against the plain sum.
-        let a: Vec<u8> = (0..203u32).map(|i| (i * 37 % 256) as u8).collect();
-        let b: Vec<u8> = (0..203u32).map(|i| (i * 101 % 256) as u8).collect();
-        type Blend = fn(&[u8], &[u8], f32, f32, &mut [f32]);
-        let mut paths: Vec<(&str, Blend)> = vec![("dispatch", blend_rows)];
-        #[cfg(target_arch = "x86_64")]
-        {
-            paths.push(("sse2", |a, b, wa, wb, out| {
-                let done = blend_rows_sse2(a, b, wa, wb, out);
-                blend_rows_scalar(&a[done..], &b[done..], wa, wb, &mut out[done..]);
-            }));
-            if std::arch::is_x86_feature_detected!("avx2") {
-                paths.push(("avx2", |a, b, wa, wb, out| {
-                    // SAFETY: the CPU has AVX2 (checked above).
-                    let done = unsafe { blend_rows_avx2(a, b, wa, wb, out) };
-                    blend_rows_scalar(&a[done..], &b[done..], wa, wb, &mut out[done..]);
-                }));
-            } else {
-                eprintln!("skipping the AVX2 blend: this CPU has no AVX2");
-            }
-        }
-        for (name, blend) in paths {
-            for (wa, wb) in [(0.3f32, 0.7f32), (1.0, 0.0), (0.123_456_79, 0.876_543_2)] {
-                let mut out = vec![0f32; 203];
-                blend(&a, &b, wa, wb, &mut out);
-                for i in 0..203 {
-                    let want = a[i] as f32 * wa + b[i] as f32 * wb;
-                    assert_eq!(out[i].to_bits(), want.to_bits(), "{name} {i}");
-                }
-            }
-        }
-    }
-
-    #[test]
-    fn crop_image_equals_per_pixel_bilinear_across_the_border() {
-        // Straightforward per-pixel bilinear sampling with black outside, against the
-        // table-driven crop, for a box hanging over the image's top-left corner.
-        let img = RgbImage::from_fn(97, 61, |x, y| {
-            Rgb([
-                (x * 7 + y * 3) as u8,
-                (x * y % 251) as u8,
-                ((x ^ y) * 5) as u8,
-            ])
-        });
-        // Over the top-left corner, over the bottom-right one (reading the zero pads on
-        // both sides of the blended span), inside and downscaled, wholly off the image.
-        for (x0, y0, side) in [
-            (-13.3, -7.9, 83.7),
-            (41.6, 20.2, 70.1),
-            (3.2, 4.9, 91.0),
-            (120.0, -90.0, 40.0),
-        ] {
-            let c = CropTransform {
-                x0,
-                y0,
-                side,
-                side_y: side,
-                size: 50,
-                sampling: crate::render::CropSampling::Centres,
-            };
-            assert_crop_is_bilinear(&img, &c);
-        }
-        // An empty image crops to black.
-        let c = CropTransform {
-            x0: -13.3,
-            y0: -7.9,
-            side: 83.7,
-            side_y: 83.7,
-            size: 50,
-            sampling: crate::render::CropSampling::Centres,
-        };
-        assert!(
-            c.crop_image(&RgbImage::new(0, 0))
-                .pixels()
-                .all(|p| p.0 == [0; 3])
-        );
-    }
-
-    /// Asserts `c.crop_image(img)` is, byte for byte, plain per-pixel bilinear sampling
-    /// (black off the image) rounded.
-    fn assert_crop_is_bilinear(img: &RgbImage, c: &CropTransform) {
-        let out = c.crop_image(img);
-        let (w, h) = (img.width() as i64, img.height() as i64);
-        let texel = |x: i64, y: i64, k: usize| -> f32 {
-            if (0..w).contains(&x) && (0..h).contains(&y) {
-                img.get_pixel(x as u32, y as u32).0[k] as f32
-            } else {
-                0.0
-            }
-        };
-        for j in 0..50u32 {
-            for i in 0..50u32 {
-                let (u, v) = c.to_image(i as f64 + 0.5, j as f64 + 0.5);
-                let (fx, fy) = (u - 0.5, v - 0.5);
-                let (x, y) = (fx.floor() as i64, fy.floor() as i64);
-                let (tx, ty) = ((fx - x as f64) as f32, (fy - y as f64) as f32);
-                for k in 0..3 {
-                    let v = texel(x, y, k) * ((1.0 - tx) * (1.0 - ty))
-                        + texel(x + 1, y, k) * (tx * (1.0 - ty))
-                        + texel(x, y + 1, k) * ((1.0 - tx) * ty)
-                        + texel(x + 1, y + 1, k) * (tx * ty);
-                    let got = out.get_pixel(i, j).0[k] as f32;
-                    assert!(
-                        (got - v).abs() <= 0.5 + 1e-3,
-                        "{c:?} ({i}, {j}, {k}): {got} vs {v}"
-                    );
-                }
-            }
-        }
-    }
-
-    #[test]
-    fn column_taps_equal_the_scalar_taps() {
-        // The four-float SSE2 columns (on x86-64) against one float at a time, for a
-        // downscale, an upscale and columns reading both pads and beyond.
-        for (origin, scale, width) in [(10.3, 0.51, 400u32), (-3.7, 2.3, 20), (-30.0, 0.8, 45)] {
-            let cols = ColumnTaps::new(64, origin, scale, width);
-            let blend: Vec<f32> = (0..cols.span_floats())
-                .map(|i| (i * 37 % 255) as f32 * 0.731)
-                .collect();
-            let (mut fast, mut slow) = (vec![0f32; 64 * 3 + 1], vec![0f32; 64 * 3 + 1]);
-            cols.blend_columns(&blend, &mut fast);
-            cols.blend_columns_scalar(&blend, &mut slow);
-            let bits = |v: &[f32]| v[..64 * 3].iter().map(|x| x.to_bits()).collect::<Vec<_>>();
-            assert_eq!(bits(&fast), bits(&slow), "{origin} {scale} {width}");
-        }
     }
 
     #[test]
@@ -1799,7 +1086,7 @@ mod tests {
         let from_f32 = lm.chunks(2).map(|p| (p[0] as f64, p[1] as f64));
         assert_eq!(
             Some(crop),
-            crate::official_crop::official_crop(from_f32, 192),
+            crate::crop::official::official_crop(from_f32, 192),
             "float32 landmarks give the same box here"
         );
         let mut vb = VisibilityBuffer::new(192, 192);
@@ -1816,7 +1103,7 @@ mod tests {
             .unwrap();
         assert_eq!(
             official.mask,
-            crate::official_crop::warp_mask(&full, 800, 800, &crop)
+            crate::crop::official::warp_mask(&full, 800, 800, &crop)
         );
         // The official render leaves the full-image raster in the buffer.
         assert_eq!(kept, full);

@@ -30,10 +30,11 @@
 //! [`dense`] checks every point and the matrix size before allocating. Tested below with
 //! crafted files and records.
 
+use crate::crop::{CropSampling, CropTransform};
 use crate::error::{Error, Result};
+use crate::face_targets::FaceTargets;
 use crate::limits;
 use crate::release::SampleKey;
-use crate::render::{CropSampling, CropTransform, FaceTargets};
 use half::f16;
 use polars::prelude::*;
 use std::path::Path;
@@ -347,15 +348,7 @@ pub fn read_skipped_keys(dir: &Path, index: usize) -> Result<std::collections::H
         .collect())
 }
 
-/// The row-major indices of a mask's set pixels, in order (the rows of the stored
-/// correspondences follow this order).
-pub fn mask_pixel_indices(mask: &[bool]) -> Vec<u32> {
-    mask.iter()
-        .enumerate()
-        .filter(|(_, m)| **m)
-        .map(|(i, _)| i as u32)
-        .collect()
-}
+pub use crate::face_targets::mask_pixel_indices;
 
 /// Dense tensors for one sample, ready for the network.
 #[derive(Clone, Debug, PartialEq)]

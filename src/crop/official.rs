@@ -31,7 +31,7 @@
 //! bottom-right on a tie): every stored row is one the official loader computes, at the
 //! image pixel nearest to where the crop pixel looks.
 
-use crate::render::{CropSampling, CropTransform};
+use super::{CropSampling, CropTransform};
 
 /// The official crop box and its affine map (module docs, steps 1-2) around the
 /// projected landmarks `(u, v)`, or `None` when the box is empty (the official loader
