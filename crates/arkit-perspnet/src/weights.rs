@@ -335,7 +335,7 @@ impl WeightFile {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::perspnet::{PerspNet, PerspNetConfig, model::synthetic_vertex_uv};
+    use crate::{PerspNet, PerspNetConfig, model::synthetic_vertex_uv};
     use candle_nn::VarBuilder;
 
     fn varmap(cfg: &PerspNetConfig) -> VarMap {

@@ -415,7 +415,7 @@ mod tests {
     }
 
     fn values(len: usize, seed: u64) -> Vec<f32> {
-        let mut rng = crate::rng::Rng::new(seed);
+        let mut rng = arkit_data::rng::Rng::new(seed);
         (0..len)
             .map(|_| rng.next_f64() as f32 * 2.0 - 1.0)
             .collect()

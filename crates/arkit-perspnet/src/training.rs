@@ -13,19 +13,19 @@
 //! trained), `model.safetensors` (the weights, batch-norm statistics included) and
 //! `loss.csv` (one row per step). Files are written atomically.
 
-use crate::conventions::Pose;
-use crate::dataset::Dataset;
-use crate::error::{Error, Result};
-use crate::eval_dataset::SplitLookup;
-use crate::perspnet::layers::{IMAGENET_MEAN, IMAGENET_STD};
-use crate::perspnet::loss::PerspNetLoss;
-use crate::perspnet::model::named_trainable_vars;
-use crate::perspnet::{Adam, CorrTarget, LossTargets, LossWeights, PerspNet, PerspNetConfig};
-use crate::render::CropTransform;
-use crate::rng::Rng;
-use crate::samples_table::SampleRecord;
-use crate::targets_table::{self, TargetsRecord};
-use crate::topology::FaceTopology;
+use crate::layers::{IMAGENET_MEAN, IMAGENET_STD};
+use crate::loss::PerspNetLoss;
+use crate::model::named_trainable_vars;
+use crate::{Adam, CorrTarget, LossTargets, LossWeights, PerspNet, PerspNetConfig};
+use arkit_data::conventions::Pose;
+use arkit_data::dataset::Dataset;
+use arkit_data::error::{Error, Result};
+use arkit_data::eval_dataset::SplitLookup;
+use arkit_data::render::CropTransform;
+use arkit_data::rng::Rng;
+use arkit_data::samples_table::SampleRecord;
+use arkit_data::targets_table::{self, TargetsRecord};
+use arkit_data::topology::FaceTopology;
 use candle_core::{DType, Device, Tensor};
 use candle_nn::{VarBuilder, VarMap};
 use serde::{Deserialize, Serialize};
@@ -167,7 +167,7 @@ impl Example {
             return self.stored_view();
         }
         let points: Vec<u32> = if aug.resample_points {
-            crate::render::sample_points(kept.len(), m, rng.next_u64())
+            arkit_data::render::sample_points(kept.len(), m, rng.next_u64())
                 .into_iter()
                 .map(|i| kept[i as usize])
                 .collect()
@@ -265,7 +265,7 @@ fn jitter_colour(image: &[f32], n: usize, c: f32, rng: &mut Rng) -> Vec<f32> {
 /// The crop of a sample's image, as the network's input: `3 x S x S` floats,
 /// ImageNet-normalised.
 pub fn network_input(image: &image::RgbImage, crop: &CropTransform) -> Vec<f32> {
-    crate::loader::normalise(crop.crop_image(image).as_raw())
+    arkit_data::loader::normalise(crop.crop_image(image).as_raw())
 }
 
 /// Builds an example from a sample and its targets row for a network of `cfg`.
@@ -430,7 +430,7 @@ pub struct ShardedExamples {
     /// `(shard index, samples file, examples in the split)`.
     shards: Vec<(usize, String, usize)>,
     /// Samples left out because their image could not be read, with the reason.
-    unreadable: Vec<(crate::release::SampleKey, String)>,
+    unreadable: Vec<(arkit_data::release::SampleKey, String)>,
 }
 
 impl ShardedExamples {
@@ -463,7 +463,7 @@ impl ShardedExamples {
                 .into_iter()
                 .filter(|r| splits.keeps(r, split) && !skipped.contains(&r.key))
                 .collect();
-            let checks: Vec<Option<(crate::release::SampleKey, String)>> = {
+            let checks: Vec<Option<(arkit_data::release::SampleKey, String)>> = {
                 use rayon::prelude::*;
                 kept.par_iter()
                     .map(|r| {
@@ -496,7 +496,7 @@ impl ShardedExamples {
 impl ShardedExamples {
     /// The samples left out because their image could not be read (key, reason naming
     /// the file), in shard order.
-    pub fn unreadable(&self) -> &[(crate::release::SampleKey, String)] {
+    pub fn unreadable(&self) -> &[(arkit_data::release::SampleKey, String)] {
         &self.unreadable
     }
 }
@@ -517,7 +517,7 @@ impl ExampleShards for ShardedExamples {
         // Samples `render` reported it could not render have no row: leave them out.
         let skipped = targets_table::read_skipped_keys(&self.targets_dir, *index)?;
         let mut out = Vec::with_capacity(*n);
-        let unreadable: std::collections::HashSet<&crate::release::SampleKey> =
+        let unreadable: std::collections::HashSet<&arkit_data::release::SampleKey> =
             self.unreadable.iter().map(|(k, _)| k).collect();
         let shard = self
             .data
@@ -775,7 +775,7 @@ impl TrainOptions {
                 format!("{} is not a fraction in [0, 1]", self.lr_hold),
             );
         }
-        if self.lowered_start && self.config.loss == crate::perspnet::LossVariant::Paper {
+        if self.lowered_start && self.config.loss == crate::LossVariant::Paper {
             return bad(
                 "--lowered-start",
                 "lowers the official schedule's weights; --loss paper holds the paper's fixed weights".into(),
@@ -1180,9 +1180,9 @@ fn write_checkpoint(
             s.step, s.epoch, s.total, s.corr, s.shape, s.kl, s.entropy, s.seg
         );
     }
-    crate::atomic_file::write_bytes(&dir.join("loss.csv"), csv.as_bytes())?;
+    arkit_data::atomic_file::write_bytes(&dir.join("loss.csv"), csv.as_bytes())?;
     let json = serde_json::to_string_pretty(c).expect("checkpoint json");
-    crate::atomic_file::write_bytes(&dir.join("perspnet.json"), json.as_bytes())
+    arkit_data::atomic_file::write_bytes(&dir.join("perspnet.json"), json.as_bytes())
 }
 
 /// Reads a PyTorch `state_dict` (a `torch.save` zip, or the safetensors file
@@ -1196,7 +1196,7 @@ pub fn import_weights(
     topology: &FaceTopology,
     output: &Path,
 ) -> Result<Checkpoint> {
-    use crate::perspnet::weights::{WeightError, WeightFile};
+    use crate::weights::{WeightError, WeightFile};
     let weights = WeightFile::open(file).map_err(|e| Error::format(file, e.to_string()))?;
     let device = Device::Cpu;
     let varmap = VarMap::new();
@@ -1233,7 +1233,7 @@ pub fn import_weights(
     std::fs::create_dir_all(output).map_err(|e| Error::io(output, e))?;
     save_renamed(&output.join("model.safetensors"), &|p| varmap.save(p))?;
     let json = serde_json::to_string_pretty(&checkpoint).expect("checkpoint json");
-    crate::atomic_file::write_bytes(&output.join("perspnet.json"), json.as_bytes())?;
+    arkit_data::atomic_file::write_bytes(&output.join("perspnet.json"), json.as_bytes())?;
     Ok(checkpoint)
 }
 
@@ -1252,14 +1252,14 @@ pub fn export_weights(model_dir: &Path, output: &Path) -> Result<usize> {
     let mut varmap = VarMap::new();
     let vb = VarBuilder::from_varmap(&varmap, DType::F32, &device);
     // The vertex UV table is not a weight: any table of the right size builds the network.
-    let uv = crate::perspnet::model::synthetic_vertex_uv(cfg.vertices, &device)
+    let uv = crate::model::synthetic_vertex_uv(cfg.vertices, &device)
         .map_err(|e| candle_err("network", e))?;
     PerspNet::new(cfg, &uv, vb).map_err(|e| candle_err("network", e))?;
     let w = model_dir.join("model.safetensors");
     varmap
         .load(&w)
         .map_err(|e| Error::format(&w, e.to_string()))?;
-    let entries = crate::perspnet::weights::export_state_dict(&varmap, checkpoint.steps as i64)
+    let entries = crate::weights::export_state_dict(&varmap, checkpoint.steps as i64)
         .map_err(|e| candle_err("export", e))?;
     let n = entries.len();
     let map: HashMap<String, Tensor> = entries.into_iter().collect();
@@ -1281,9 +1281,9 @@ pub fn write_dump(
     path: &Path,
     cfg: &PerspNetConfig,
     topology: &FaceTopology,
-    dump: &[(crate::release::SampleKey, RawOutputs)],
+    dump: &[(arkit_data::release::SampleKey, RawOutputs)],
 ) -> Result<()> {
-    use arkit_core::npy::{NpyArray, NpzCompression, write_npz};
+    use arkit_data::npy::{NpyArray, NpzCompression, write_npz};
     let (s, m, v) = (cfg.input_size, cfg.points, cfg.vertices);
     let uv: Vec<f32> = topology.uv[..v].iter().flat_map(|t| [t[0], t[1]]).collect();
     let mut arrays: Vec<(String, NpyArray)> =
@@ -1322,7 +1322,7 @@ pub fn write_dump(
     let members: Vec<(&str, &NpyArray)> = arrays.iter().map(|(k, a)| (k.as_str(), a)).collect();
     let mut buf = std::io::Cursor::new(Vec::new());
     write_npz(&mut buf, &members, NpzCompression::Deflated)?;
-    crate::atomic_file::write_bytes(path, buf.get_ref())
+    arkit_data::atomic_file::write_bytes(path, buf.get_ref())
 }
 
 /// A trained network loaded from a checkpoint folder.
@@ -1439,13 +1439,13 @@ pub fn predict_crop_raw(
         if candidates.is_empty() {
             candidates = (0..mask.len() as u32).collect();
         }
-        let picks = crate::render::sample_points(candidates.len(), cfg.points, seed);
+        let picks = arkit_data::render::sample_points(candidates.len(), cfg.points, seed);
         let pixels: Vec<u32> = picks.iter().map(|&k| candidates[k as usize]).collect();
         let choose = Tensor::from_slice(&pixels, (1, cfg.points), &device)?;
         let out = model.net.forward(&img, &choose, false)?;
         let corr = out
             .correspondences()?
-            .affine(1.0 / crate::perspnet::model::UV_SCALE, 0.0)?
+            .affine(1.0 / crate::model::UV_SCALE, 0.0)?
             .squeeze(0)?
             .to_vec2::<f32>()?;
         let verts = out.vertices_canonical()?.flatten_all()?.to_vec1::<f32>()?;
@@ -1483,9 +1483,9 @@ pub fn pose_of(
     crop: &CropTransform,
     width: u32,
     height: u32,
-    ransac: &crate::pnp::RansacParams,
+    ransac: &arkit_data::pnp::RansacParams,
 ) -> Option<Pose> {
-    use crate::predict::crop_pixel_to_image;
+    use arkit_data::predict::crop_pixel_to_image;
     let mut seen = std::collections::HashSet::new();
     let (mut object, mut image) = (Vec::new(), Vec::new());
     for (px, p) in prediction.pixels.iter().zip(&prediction.points) {
@@ -1494,8 +1494,8 @@ pub fn pose_of(
             image.push(crop_pixel_to_image(crop, *px));
         }
     }
-    let k = crate::predict::intrinsics(width, height);
-    crate::predict::pose_from_correspondences(&object, &image, &k, ransac)
+    let k = arkit_data::predict::intrinsics(width, height);
+    arkit_data::predict::pose_from_correspondences(&object, &image, &k, ransac)
         .ok()
         .map(|(p, _)| p)
 }
@@ -1512,7 +1512,7 @@ pub struct ModelPredictSummary {
     pub without_true_mask: usize,
     /// Samples left out because their image could not be read (key, reason naming the
     /// file): no prediction is written for them, so `eval` counts them missing.
-    pub unreadable: Vec<(crate::release::SampleKey, String)>,
+    pub unreadable: Vec<(arkit_data::release::SampleKey, String)>,
 }
 
 /// Runs a trained network over the samples of `split` (`None`: all): the crop box of
@@ -1527,13 +1527,13 @@ pub fn model_predictions(
     dataset: &Path,
     model: &TrainedModel,
     split: Option<&str>,
-    crop_rule: crate::render::CropRule,
+    crop_rule: arkit_data::render::CropRule,
     true_masks: Option<&Path>,
     seed: u64,
-    ransac: &crate::pnp::RansacParams,
+    ransac: &arkit_data::pnp::RansacParams,
     progress: &dyn Fn(usize),
 ) -> Result<(
-    Vec<crate::predictions_table::PredictionRecord>,
+    Vec<arkit_data::predictions_table::PredictionRecord>,
     ModelPredictSummary,
 )> {
     model_predictions_dump(
@@ -1548,14 +1548,14 @@ pub fn model_predictions_dump(
     dataset: &Path,
     model: &TrainedModel,
     split: Option<&str>,
-    crop_rule: crate::render::CropRule,
+    crop_rule: arkit_data::render::CropRule,
     true_masks: Option<&Path>,
     seed: u64,
-    ransac: &crate::pnp::RansacParams,
+    ransac: &arkit_data::pnp::RansacParams,
     progress: &dyn Fn(usize),
-    mut dump: Option<&mut Vec<(crate::release::SampleKey, RawOutputs)>>,
+    mut dump: Option<&mut Vec<(arkit_data::release::SampleKey, RawOutputs)>>,
 ) -> Result<(
-    Vec<crate::predictions_table::PredictionRecord>,
+    Vec<arkit_data::predictions_table::PredictionRecord>,
     ModelPredictSummary,
 )> {
     let data = Dataset::open(dataset)?;
@@ -1564,7 +1564,7 @@ pub fn model_predictions_dump(
     let mut out = Vec::new();
     let mut summary = ModelPredictSummary::default();
     for shard in data.shards() {
-        let truth: HashMap<crate::release::SampleKey, TargetsRecord> = match true_masks {
+        let truth: HashMap<arkit_data::release::SampleKey, TargetsRecord> = match true_masks {
             Some(dir) => {
                 targets_table::read_targets_by_key(&targets_table::shard_path(dir, shard.index))?
             }
@@ -1633,7 +1633,7 @@ pub fn model_predictions_dump(
             let pose = pose_of(&p, &crop, r.image_width, r.image_height, ransac);
             summary.samples += 1;
             summary.failures += pose.is_none() as usize;
-            out.push(crate::predictions_table::PredictionRecord {
+            out.push(arkit_data::predictions_table::PredictionRecord {
                 key: r.key.clone(),
                 rt: pose.map(|p| p.to_release_rt()),
                 verts: Some(p.verts),
@@ -1662,7 +1662,7 @@ mod tests {
         let ids: Vec<u32> = pixels.iter().flat_map(|&p| [p, p + 1, p + 2]).collect();
         let weights: Vec<f32> = pixels.iter().flat_map(|_| [0.5, 0.25, 0.25]).collect();
         let sample = SampleRecord {
-            key: crate::release::SampleKey {
+            key: arkit_data::release::SampleKey {
                 subject_id: "1".into(),
                 facial_action: "01_Neutral".into(),
                 img_id: "1".into(),

@@ -462,7 +462,7 @@ mod tests {
         );
         // Without L_M (the "w/o L_M" ablation): the KL and entropy are 0 and the total
         // is the other three terms.
-        let mut cfg = crate::perspnet::PerspNetConfig::tiny();
+        let mut cfg = crate::PerspNetConfig::tiny();
         cfg.loss = LossVariant::Paper;
         cfg.assignment_loss = false;
         let off = PerspNetLoss::for_config(&cfg);

@@ -1,4 +1,4 @@
-//! Serde-serialisable hyper-parameters of [`crate::perspnet::PerspNet`].
+//! Serde-serialisable hyper-parameters of [`crate::PerspNet`].
 
 use serde::{Deserialize, Serialize};
 
@@ -58,7 +58,7 @@ fn yes() -> bool {
 
 /// The two readings of PerspNet's loss: the official code's (the default) and the
 /// paper's text. Both have the same five terms (correspondence, shape, KL with entropy,
-/// segmentation); see [`crate::perspnet::loss`] for each.
+/// segmentation); see [`crate::loss`] for each.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum LossVariant {

@@ -183,7 +183,7 @@ pub struct PerspNet {
     category_global: [PointLinear; 2],
     assignment: [PointLinear; 3],
     sampler: PointSampler,
-    dropout_rng: std::sync::Arc<std::sync::Mutex<crate::rng::Rng>>,
+    dropout_rng: std::sync::Arc<std::sync::Mutex<arkit_data::rng::Rng>>,
 }
 
 impl PerspNet {
@@ -265,7 +265,7 @@ impl PerspNet {
             PointSampler::from_uv(&uv, cfg.input_size, cfg.input_size, vb.device())?
         };
         Ok(Self {
-            dropout_rng: std::sync::Arc::new(std::sync::Mutex::new(crate::rng::Rng::new(0))),
+            dropout_rng: std::sync::Arc::new(std::sync::Mutex::new(arkit_data::rng::Rng::new(0))),
             cfg: cfg.clone(),
             conv1,
             bn1,
@@ -324,7 +324,7 @@ impl PerspNet {
     /// Restarts the dropout generator from `seed` (training calls it every step, so a
     /// run, and a resumed run, follow from its seed).
     pub fn seed_dropout(&self, seed: u64) {
-        *self.dropout_rng.lock().expect("dropout generator") = crate::rng::Rng::new(seed);
+        *self.dropout_rng.lock().expect("dropout generator") = arkit_data::rng::Rng::new(seed);
     }
 
     /// Runs the encoder and both decoders (the official `Resnet18_8s.forward`).

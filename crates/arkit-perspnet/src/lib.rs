@@ -4,6 +4,12 @@
 //!
 //! Shapes follow the official PyTorch code (`models/model_repository.py`
 //! `Resnet18_8s`, `models/network.py` `DeformNetUV2`, `models/loss.py` `Loss8`).
+//!
+//! The crate `arkit-perspnet` of the workspace: the only one that needs candle. The
+//! model and its layers here; [`training`]: examples from a converted dataset, the
+//! training loop, checkpoints, the network's predictions.
+
+#![warn(missing_docs)]
 
 pub mod adam;
 mod blas;
@@ -12,6 +18,7 @@ pub mod conv;
 pub mod layers;
 pub mod loss;
 pub mod model;
+pub mod training;
 pub mod weights;
 
 pub use adam::Adam;
