@@ -301,13 +301,9 @@ impl TriangleSetup {
 
     /// [`TriangleSetup::walk`] for a box up to 64 pixels wide: each row's coverage as a
     /// bit mask ([`RowCoverage`]), then the run between its first and last set bits.
-    /// Against [`TriangleSetup::walk_pixels`] on a 192x192 face crop (boxes 3.6 pixels
-    /// wide on average, 42% of box pixels inside): 14% more instructions but 12% less
-    /// time (0.378 -> 0.330 ms for the visibility stage, best of 8 alternated runs), from
-    /// fewer mispredicted branches (callgrind's branch model: 23.4 k -> 14.7 k per
-    /// sample in the walk). Stepping the run's edge values as `f64` (exact: integers
-    /// below 2^53) instead of converting them at each pixel ran 4% fewer instructions
-    /// in the mesh loop but took 2% longer (the `f64` additions chain along the run).
+    /// Visits the same pixels in the same order as [`TriangleSetup::walk_pixels`]
+    /// (tested); chosen for a face crop's small boxes because it mispredicts fewer
+    /// branches (measurements: `docs/performance.md`, "The rasterizer's stages").
     #[inline(always)]
     fn walk_rows(&self, mut visit: impl FnMut(u32, u32, [i64; 3])) {
         let mut row = self.e0;
@@ -449,14 +445,10 @@ impl RowCoverage {
     /// The current row's mask; moves to the next row.
     ///
     /// A box up to four or up to eight pixels wide (most of a face crop's) takes two or
-    /// four pairs of pixels in straight-line code, the pixels past the box masked off:
-    /// the pair loop's trip count changes from triangle to triangle and its exit was
-    /// mispredicted about once per triangle. Over 400 varied poses: 2.28 -> 2.07 M
-    /// instructions and 12.5 k -> 11.1 k mispredicted branches per sample in the mesh
-    /// loop (callgrind's and cachegrind's models), about 3% less time (0.305-0.325 ->
-    /// 0.293-0.313 ms, alternated runs); with the four-pixel case alone, 2.12 M and about
-    /// 1%. Eight pixels per trip for every box was slower (0.308 -> 0.332 ms): most
-    /// boxes need two pairs.
+    /// four pairs of pixels in straight-line code, the pixels past the box masked off,
+    /// so that the pair loop's exit is not mispredicted once per triangle; wider boxes
+    /// loop over pairs. Every width gives the same mask (tested through the walks'
+    /// equality).
     #[inline(always)]
     fn next_row(&mut self) -> u64 {
         let outside = match self.width {

@@ -683,19 +683,13 @@ impl UvTexels {
     /// triangle covers the texel. Panics if `extended` has not one position per UV
     /// vertex of the layout.
     ///
-    /// Each covered texel is `(p0 * w0 + p1 * w1) + p2 * w2`, per coordinate. On x86-64
-    /// that is one four-float SSE2 operation per texel, with the positions padded to
-    /// four floats: per texel one aligned load of its weights, three shuffles, three
-    /// products, two sums and a three-float store, the triangle's positions loaded
-    /// once per group. The same bits as one coordinate at a time (tested). Per texel
-    /// with its three vertex ids and a four-float store over the next texel (in
-    /// row-major order) this was 26 instructions and 0.059-0.062 ms at 192x192;
-    /// grouped by triangle 20 and 0.052-0.054 ms (8 alternated runs). Filling the
-    /// output with zeros (a memset) and NaN only over the uncovered runs was not
-    /// faster than filling it all with NaN. Where the CPU has AVX (detected at run
-    /// time) two texels of a group share one eight-float operation
-    /// ([`UvTexels::fill_avx`]): over the bench's 192x192 map 0.75 -> 0.50 M
-    /// instructions, 0.054-0.056 -> 0.044-0.047 ms (8 alternated runs), the same bits.
+    /// Each covered texel is `(p0 * w0 + p1 * w1) + p2 * w2`, per coordinate, its
+    /// texels grouped by triangle so that the triangle's positions are loaded once. On
+    /// x86-64 one four-float SSE2 operation per texel (positions padded to four
+    /// floats), or one eight-float AVX operation per two texels where the CPU has AVX
+    /// ([`UvTexels::fill_avx`], detected at run time). Invariant: every path gives the
+    /// bits of one coordinate at a time (tested). Measurements: `docs/performance.md`
+    /// ("The UV position map").
     pub fn position_map(&self, extended: &[Point3<f32>]) -> Vec<[f32; 3]> {
         assert_eq!(
             extended.len(),

@@ -162,27 +162,13 @@ impl CropTransform {
     /// depend only on its x and those of a row only on its y: they are computed once per
     /// column and row (`Taps`, [`ColumnTaps`]), a tap outside the image getting weight 0.
     /// Each crop row then blends its two source rows over the span the columns read
-    /// (contiguous, so it vectorises) and reads its pixels from that blend with two taps
-    /// each. Measured with `cargo bench --bench render -- stages`: per-pixel lookups with
-    /// bounds checks were about 6x slower than four taps per pixel from the tables, and
-    /// four taps with a branch per tap for the image border 1.2x slower than without.
-    /// The two taps write a float row and a second loop rounds it to bytes
-    /// ([`round_to_u8`], vectorised): 2.66 -> 2.37 M instructions, 0.21 -> 0.18 ms,
-    /// the same bytes. Reading the blended row as `[f32; 3]` pixels by precomputed
-    /// index (one bounds check per tap, not two per byte range): 2.37 -> 2.15 M,
-    /// 0.17 -> 0.165 ms. Rounding sixteen floats at a time with SSE2 truncation and
-    /// saturating packs ([`round_row_to_u8`]): 2.15 -> 1.73 M, 0.149-0.155 -> 0.113-0.117
-    /// ms (best of 8 alternated runs). Blending the two source rows sixteen bytes at a
-    /// time ([`blend_rows`]): 1.73 -> 1.65 M, 6% less time in alternated runs on a busy
-    /// machine. The horizontal taps as one four-float SSE2 operation per pixel on an
-    /// adjacent pair, the blended span padded with a zero pixel on each side so that no
-    /// tap is tested for the border ([`ColumnTaps`]): 1.65 -> 1.01 M, 0.114-0.119 ->
-    /// 0.089-0.093 ms (8 alternated runs), the same bytes. (The same SSE2 operation with
-    /// two independent taps per pixel, a bounds check each and weights broadcast per
-    /// pixel, had been slower: 0.149 -> 0.166 ms.) The vertical blend in AVX2 where the
-    /// CPU has it (detected at run time, [`blend_rows`]): over 400 varied crops 1.08 ->
-    /// 0.75 M instructions, 0.102-0.120 -> 0.072-0.091 ms (8 alternated runs on a busy
-    /// machine), the same bytes.
+    /// ([`blend_rows`]: SSE2, or AVX2 where the CPU has it), reads its pixels from that
+    /// blend with two taps each (one four-float operation per pixel, the span padded
+    /// with a zero pixel on each side so that no tap is tested for the border), and
+    /// rounds the float row to bytes ([`round_row_to_u8`]). Invariant: every vector path
+    /// gives the scalar path's bits (tested), and the whole equals per-pixel bilinear
+    /// sampling with black outside (tested across the image border). The measurements
+    /// that chose this shape are in `docs/performance.md` ("The crop").
     ///
     /// A crop with [`CropSampling::Corners`] is resampled as `cv2.warpAffine` does
     /// instead ([`official::warp_affine`]).
