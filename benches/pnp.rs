@@ -26,8 +26,12 @@ struct Surface {
 
 impl Surface {
     fn load() -> Surface {
-        let dir =
-            std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/arkitface-resources");
+        let dir = std::env::var_os("ARKIT_RESOURCES")
+            .map(std::path::PathBuf::from)
+            .unwrap_or_else(|| {
+                std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+                    .join("../shared/arkitface-resources")
+            });
         let topology = match arkit_tool::FaceTopology::from_resources(&dir) {
             Ok(t) => {
                 println!("face: the real ARKit face from {}", dir.display());

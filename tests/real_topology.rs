@@ -1,5 +1,6 @@
-//! Checks against the real ARKit topology in `../shared/arkitface-resources/`.
-//! Every test skips, saying so, when that folder is absent (a fresh clone alone).
+//! Checks against the real ARKit topology in `$ARKIT_RESOURCES` (default
+//! `../shared/arkitface-resources/`). Every test skips, saying so, when that folder is
+//! absent (a fresh clone alone).
 
 use arkit_tool::FaceTopology;
 use arkit_tool::conventions::{Camera, EulerAngles, Pose};
@@ -10,7 +11,12 @@ use std::collections::HashSet;
 use std::path::PathBuf;
 
 fn resources() -> Option<PathBuf> {
-    let dir = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared/arkitface-resources");
+    // ARKIT_RESOURCES points at another copy (the release's own files, for one).
+    let dir = std::env::var_os("ARKIT_RESOURCES")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| {
+            PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared/arkitface-resources")
+        });
     if dir.join("triangles.npy").exists() {
         Some(dir)
     } else {

@@ -75,3 +75,15 @@ pub use arkit_core::{
 pub use conventions::{Camera, EulerAngles, Pose};
 pub use error::{Error, ErrorKind, Result};
 pub use topology::FaceTopology;
+
+// The types a pipeline is written with, at the crate root.
+pub use crop::{CropRule, CropSampling, CropTransform};
+pub use dataset::Dataset;
+pub use eval::Summary as EvalSummary;
+pub use face_targets::FaceTargets;
+pub use loader::{FaceLoader, LoaderItem, LoaderOptions};
+pub use manifest::{Manifest, ShardEntry};
+pub use pnp::{Intrinsics, PnpSolution, RansacParams};
+pub use release::SampleKey;
+pub use render::{FaceRenderer, UvMapper, UvTexels};
+pub use samples_table::{ErrorRecord, SampleRecord};
