@@ -131,3 +131,35 @@ def test_a_row_of_the_wrong_width_raises_naming_the_file_and_column(dataset, tmp
     with pytest.raises(DataError) as e:
         arkit_tool.open_dataset(bad).sample(0)
     assert "part-00000.parquet" in str(e.value) and "'verts'" in str(e.value)
+
+
+def test_decode_targets_gives_what_the_loader_computes(dataset, tmp_path):
+    """`render`'s compact targets, decoded with plain numpy, equal what ARKitFaceDataset
+    computes for the same samples (compat exact, 192 x 192)."""
+    from conftest import BIN, run
+
+    out = tmp_path / "rendered"
+    run(BIN, "render", "--dataset", dataset, "--output", out)
+    rows = []
+    for f in sorted((out / "targets").glob("part-*.parquet")):
+        rows.extend(pq.read_table(f).to_pylist())
+    ds = ARKitFaceDataset(dataset, split=None, mode="eval", corr="sparse", n_pts=64)
+    assert len(rows) == len(ds)
+    for i in (0, len(ds) - 1):
+        t = arkit_tool.decode_targets(rows[i])
+        assert (t["subject_id"], t["facial_action"], t["img_id"]) == ds.key(i)[:3]
+        d = ds.item(i)
+        assert t["mask"].sum() > 1000
+        np.testing.assert_array_equal(t["mask"].astype(np.int64), d["mask"])
+        face = np.flatnonzero(t["mask"].reshape(-1))
+        rank = np.searchsorted(face, d["choose"])
+        np.testing.assert_array_equal(face[rank], d["choose"])
+        np.testing.assert_array_equal(t["corr_vertices"][rank].astype(np.int64), d["corr_ids"])
+        np.testing.assert_allclose(t["corr_weights"][rank], d["corr_weights"], atol=2.0 / 65535)
+        assert t["uv_map"].shape == (192, 192, 3) and t["uv_map"].dtype == np.float16
+        assert len(t["points"]) == 1024 and t["points"].max() < len(face)
+    bad = dict(rows[0], mask_rle=rows[0]["mask_rle"][:-4])
+    with pytest.raises(DataError, match="mask_rle"):
+        arkit_tool.decode_targets(bad)
+    with pytest.raises(DataError, match="uv_size"):
+        arkit_tool.decode_targets(dict(rows[0], uv_size=1 << 20))
