@@ -391,12 +391,163 @@ fn written_tables_match_the_schema_files() {
             .map(|c| {
                 (
                     c.name.to_string(),
-                    format!("{:?}", samples_table::polars_dtype(c.dtype).unwrap()),
+                    format!(
+                        "{:?}",
+                        samples_table::polars_dtype_with(c.dtype, 1220).unwrap()
+                    ),
                 )
             })
             .collect();
         assert_eq!(got, want);
     }
+}
+
+#[test]
+fn samples_have_fixed_shapes_recorded_for_datasets_and_old_files_still_read() {
+    use polars::prelude::{DataType, NamedFrom};
+    let input = tempfile::tempdir().unwrap();
+    make_release(input.path(), 2, 2);
+    let out = tempfile::tempdir().unwrap();
+    let m = run(&options(input.path(), out.path(), 10), 1);
+    let file = out.path().join(&m.shards[0].samples_file);
+    // Fixed-size lists of fixed-size lists, with the right widths.
+    let df = samples_table::read_parquet(&file).unwrap();
+    let shape = |name: &str| match df.column(name).unwrap().dtype() {
+        DataType::Array(row, outer) => match row.as_ref() {
+            DataType::Array(leaf, inner) => (leaf.as_ref().clone(), *outer, *inner),
+            t => panic!("{name}: {t:?}"),
+        },
+        t => panic!("{name}: {t:?}"),
+    };
+    assert_eq!(shape("verts"), (DataType::Float32, 1220, 3));
+    assert_eq!(shape("R_t"), (DataType::Float64, 4, 4));
+    assert_eq!(shape("landmarks_2d"), (DataType::Float32, 68, 2));
+    // The `huggingface` record: Array2D features with these shapes, Value features for
+    // every other column, all columns in order.
+    let kv = samples_table::parquet_key_value_metadata(&file).unwrap();
+    let hf = kv.iter().find(|(k, _)| k == "huggingface").unwrap();
+    let v: serde_json::Value = serde_json::from_str(hf.1.as_deref().unwrap()).unwrap();
+    let features = v["info"]["features"].as_object().unwrap();
+    assert_eq!(features.len(), SAMPLES_COLUMNS.len());
+    for c in &SAMPLES_COLUMNS {
+        let f = &features[c.name];
+        match c.name {
+            "verts" | "R_t" | "landmarks_2d" => assert_eq!(f["_type"], "Array2D", "{}", c.name),
+            _ => {
+                assert_eq!(f["_type"], "Value", "{}", c.name);
+                assert_eq!(f["dtype"], c.dtype, "{}", c.name);
+            }
+        }
+    }
+    assert_eq!(features["verts"]["shape"], serde_json::json!([1220, 3]));
+    assert_eq!(features["verts"]["dtype"], "float32");
+    assert_eq!(features["R_t"]["shape"], serde_json::json!([4, 4]));
+    assert_eq!(features["R_t"]["dtype"], "float64");
+    assert_eq!(
+        features["landmarks_2d"]["shape"],
+        serde_json::json!([68, 2])
+    );
+    let shapes = samples_table::huggingface_shapes(&file).unwrap().unwrap();
+    assert_eq!(
+        shapes,
+        vec![
+            ("R_t".to_string(), [4, 4]),
+            ("landmarks_2d".to_string(), [68, 2]),
+            ("verts".to_string(), [1220, 3]),
+        ]
+    );
+    // Arrow readers (pyarrow, so `datasets`) take schema metadata from `ARROW:schema`:
+    // it carries both records too, and without them it is exactly what polars writes.
+    let arrow = kv.iter().find(|(k, _)| k == "ARROW:schema").unwrap();
+    let with_meta =
+        samples_table::arrow_schema_value(&df, &samples_table::huggingface_metadata(1220));
+    assert_eq!(arrow.1.as_deref(), Some(with_meta.as_str()));
+    let plain = out.path().join("plain.parquet");
+    samples_table::write_parquet(&plain, &mut df.clone()).unwrap();
+    let polars_own = samples_table::parquet_key_value_metadata(&plain).unwrap();
+    assert_eq!(
+        polars_own,
+        vec![(
+            "ARROW:schema".to_string(),
+            Some(samples_table::arrow_schema_value(&df, &[]))
+        )]
+    );
+    let ours = kv.iter().find(|(k, _)| k == "arkit_tool").unwrap();
+    let ours: serde_json::Value = serde_json::from_str(ours.1.as_deref().unwrap()).unwrap();
+    assert_eq!(ours["samples_format"], samples_table::SAMPLES_FORMAT);
+    // What was written reads back, with the topology's N or without it; another N is
+    // refused, naming the file and the column.
+    let rows = samples_table::read_samples(&file).unwrap();
+    assert!(rows.len() >= 2 && rows.len() == m.converted);
+    assert!(
+        rows.iter()
+            .all(|r| r.verts.len() == 3660 && r.landmarks_2d.len() == 136)
+    );
+    assert_eq!(
+        samples_table::read_samples_expecting(&file, Some(1220)).unwrap(),
+        rows
+    );
+    let e = samples_table::read_samples_expecting(&file, Some(1219))
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains(&file.display().to_string()) && e.contains("'verts'"),
+        "{e}"
+    );
+    // A file written before (variable-length lists, no metadata) reads as the same rows.
+    let old = out.path().join("old.parquet");
+    samples_table::write_parquet(
+        &old,
+        &mut samples_table::samples_frame_format1(&rows).unwrap(),
+    )
+    .unwrap();
+    assert_eq!(
+        samples_table::read_parquet(&old).unwrap()["verts"].dtype(),
+        &DataType::List(Box::new(DataType::Float32))
+    );
+    assert!(samples_table::huggingface_shapes(&old).unwrap().is_none());
+    assert_eq!(samples_table::read_samples(&old).unwrap(), rows);
+    // ... and its widths are checked as well: a row of another N than the others, an R_t
+    // of 15 numbers, each name the file and the column.
+    for (k, column) in [(0, "verts"), (1, "R_t")] {
+        let mut broken = rows.clone();
+        if k == 0 {
+            broken[1].verts.truncate(3 * 1219);
+        }
+        let mut df = samples_table::samples_frame_format1(&broken).unwrap();
+        if k == 1 {
+            let short: Vec<polars::prelude::Series> = broken
+                .iter()
+                .map(|r| polars::prelude::Series::new("".into(), &r.rt[..15]))
+                .collect();
+            df.replace("R_t", polars::prelude::Column::new("R_t".into(), short))
+                .unwrap();
+        }
+        samples_table::write_parquet(&old, &mut df).unwrap();
+        let e = samples_table::read_samples(&old).unwrap_err().to_string();
+        assert!(
+            e.contains(&old.display().to_string()) && e.contains(&format!("column '{column}'")),
+            "{e}"
+        );
+    }
+    // An empty shard still has the shapes.
+    let empty = out.path().join("empty.parquet");
+    samples_table::write_samples(&empty, &[], 1220).unwrap();
+    assert_eq!(
+        samples_table::read_parquet(&empty).unwrap()["verts"].dtype(),
+        &samples_table::polars_dtype_with("float32[N,3]", 1220).unwrap()
+    );
+    assert!(samples_table::read_samples(&empty).unwrap().is_empty());
+    // A file whose metadata and column disagree is refused.
+    let lying = out.path().join("lying.parquet");
+    samples_table::write_parquet_with_metadata(
+        &lying,
+        &mut samples_table::samples_frame(&rows, 1220).unwrap(),
+        samples_table::huggingface_metadata(1000),
+    )
+    .unwrap();
+    let e = samples_table::read_samples(&lying).unwrap_err().to_string();
+    assert!(e.contains("lying.parquet") && e.contains("'verts'"), "{e}");
 }
 
 #[test]
@@ -601,8 +752,7 @@ fn render_reports_and_skips_a_sample_it_cannot_render() {
     for i in [0, 1, 2, 4, 5, 6, 8, 9, 10] {
         rows[1].rt[i] *= 2.0;
     }
-    samples_table::write_parquet(&shard0, &mut samples_table::samples_frame(&rows).unwrap())
-        .unwrap();
+    samples_table::write_samples(&shard0, &rows, 1220).unwrap();
     // Readers refuse a shard that differs from the manifest; this test wants the broken
     // row read, as if convert had written it, so the manifest forgets the shard's size.
     let mut m = convert::read_manifest(&out.path().join("dataset.json")).unwrap();

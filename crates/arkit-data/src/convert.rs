@@ -536,6 +536,11 @@ pub struct ConversionFingerprint {
     pub embed_images: bool,
     /// The tool's version.
     pub version: String,
+    /// [`samples_table::SAMPLES_FORMAT`] (0 in records written before it was recorded,
+    /// whose shards are format 1): an output of another format is another conversion,
+    /// so one dataset never mixes formats.
+    #[serde(default)]
+    pub samples_format: u32,
 }
 
 impl ConversionFingerprint {
@@ -560,6 +565,7 @@ impl ConversionFingerprint {
             rows_per_shard: options.rows_per_shard,
             embed_images: options.embed_images,
             version: env!("CARGO_PKG_VERSION").into(),
+            samples_format: samples_table::SAMPLES_FORMAT,
         })
     }
 
@@ -647,6 +653,11 @@ fn claim_output(output: &Path, fingerprint: &ConversionFingerprint, overwrite: b
                 Some(e) if e.topology_sha256 != fingerprint.topology_sha256 => {
                     format!("a conversion with another topology ({})", e.topology)
                 }
+                Some(e) if e.samples_format != fingerprint.samples_format => format!(
+                    "a conversion in samples format {} (this version writes format {})",
+                    e.samples_format.max(1),
+                    fingerprint.samples_format
+                ),
                 Some(_) => "a conversion with other options or another version".to_string(),
                 None => "samples without a conversion record".to_string(),
             };
@@ -766,6 +777,7 @@ pub fn convert_planned(
         )?;
     }
     let mut shards = Vec::new();
+    let vertices = ctx.topology.vertex_count;
     // Validation of shard k+1 (rayon) overlaps the writing of shard k (one writer
     // thread), so the sequential Parquet encoding does not leave a core idle.
     std::thread::scope(|scope| -> Result<()> {
@@ -817,10 +829,7 @@ pub fn convert_planned(
                     &errors_path,
                     &mut samples_table::errors_frame(&bad)?,
                 )?;
-                samples_table::write_parquet(
-                    &samples_path,
-                    &mut samples_table::samples_frame(&good)?,
-                )?;
+                samples_table::write_samples(&samples_path, &good, vertices)?;
                 let entry = ShardEntry {
                     index,
                     samples_file: samples_rel,
