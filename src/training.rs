@@ -1249,16 +1249,15 @@ pub fn export_weights(model_dir: &Path, output: &Path) -> Result<usize> {
         serde_json::from_str(&text).map_err(|e| Error::format(&p, e.to_string()))?;
     let cfg = &checkpoint.config;
     let device = Device::Cpu;
-    let mut varmap = VarMap::new();
+    let varmap = VarMap::new();
     let vb = VarBuilder::from_varmap(&varmap, DType::F32, &device);
     // The vertex UV table is not a weight: any table of the right size builds the network.
     let uv = crate::perspnet::model::synthetic_vertex_uv(cfg.vertices, &device)
         .map_err(|e| candle_err("network", e))?;
     PerspNet::new(cfg, &uv, vb).map_err(|e| candle_err("network", e))?;
     let w = model_dir.join("model.safetensors");
-    varmap
-        .load(&w)
-        .map_err(|e| Error::format(&w, e.to_string()))?;
+    let bytes = std::fs::read(&w).map_err(|e| Error::io(&w, e))?;
+    load_weights(&varmap, &bytes, &w)?;
     let entries = crate::perspnet::weights::export_state_dict(&varmap, checkpoint.steps as i64)
         .map_err(|e| candle_err("export", e))?;
     let n = entries.len();
@@ -1350,20 +1349,100 @@ pub fn load(dir: &Path, topology: &FaceTopology) -> Result<TrainedModel> {
             ),
         ));
     }
+    let w = dir.join("model.safetensors");
+    let bytes = std::fs::read(&w).map_err(|e| Error::io(&w, e))?;
+    model_from_parts(checkpoint, &bytes, &w, topology)
+}
+
+/// The network of `checkpoint` with the weights of the safetensors `bytes` (read from
+/// `file`, named in errors), float32 or float16 ([`load_weights`]).
+fn model_from_parts(
+    checkpoint: Checkpoint,
+    bytes: &[u8],
+    file: &Path,
+    topology: &FaceTopology,
+) -> Result<TrainedModel> {
     let device = Device::Cpu;
-    let mut varmap = VarMap::new();
+    let varmap = VarMap::new();
     let vb = VarBuilder::from_varmap(&varmap, DType::F32, &device);
     let net = PerspNet::new(&checkpoint.config, &vertex_uv(topology, &device)?, vb)
         .map_err(|e| candle_err("network", e))?;
-    let w = dir.join("model.safetensors");
-    varmap
-        .load(&w)
-        .map_err(|e| Error::format(&w, e.to_string()))?;
+    load_weights(&varmap, bytes, file)?;
     Ok(TrainedModel {
         checkpoint,
         net,
         varmap,
     })
+}
+
+/// Sets every variable of `varmap` from the safetensors file `bytes` (read from `file`,
+/// which errors name), matched by name and shape and converted to float32: a model
+/// folder may hold float32 weights (`train`) or float16 ones ([`write_half_model`]).
+/// A missing, misshapen or extra tensor is an error that names it.
+pub fn load_weights(varmap: &VarMap, bytes: &[u8], file: &Path) -> Result<()> {
+    let tensors = candle_core::safetensors::load_buffer(bytes, &Device::Cpu)
+        .map_err(|e| Error::format(file, e.to_string()))?;
+    let data = varmap.data().lock().expect("varmap lock");
+    let mut names: Vec<&String> = data.keys().collect();
+    names.sort();
+    for name in names {
+        let var = &data[name];
+        let t = tensors
+            .get(name)
+            .ok_or_else(|| Error::format(file, format!("no tensor {name}")))?;
+        if t.dims() != var.dims() {
+            return Err(Error::format(
+                file,
+                format!("{name} is {:?}, the network has {:?}", t.dims(), var.dims()),
+            ));
+        }
+        let t = t
+            .to_dtype(DType::F32)
+            .map_err(|e| Error::format(file, format!("{name}: {e}")))?;
+        var.set(&t)
+            .map_err(|e| Error::format(file, format!("{name}: {e}")))?;
+    }
+    let mut extra: Vec<&String> = tensors.keys().filter(|k| !data.contains_key(*k)).collect();
+    if !extra.is_empty() {
+        extra.sort();
+        return Err(Error::format(
+            file,
+            format!("tensors the network does not have: {extra:?}"),
+        ));
+    }
+    Ok(())
+}
+
+/// Copies the model folder `model_dir` (`perspnet.json`, `model.safetensors` and
+/// `loss.csv` when there is one) to `output` with its weights stored as float16: half
+/// the bytes, read back as float32 by [`load`] (each weight then differs from the
+/// original by at most its float16 rounding, a relative 2^-11). Returns the bytes of
+/// the weights file written.
+pub fn write_half_model(model_dir: &Path, output: &Path) -> Result<u64> {
+    let p = model_dir.join("perspnet.json");
+    let json = std::fs::read_to_string(&p).map_err(|e| Error::io(&p, e))?;
+    serde_json::from_str::<Checkpoint>(&json).map_err(|e| Error::format(&p, e.to_string()))?;
+    let w = model_dir.join("model.safetensors");
+    let bytes = std::fs::read(&w).map_err(|e| Error::io(&w, e))?;
+    let tensors = candle_core::safetensors::load_buffer(&bytes, &Device::Cpu)
+        .map_err(|e| Error::format(&w, e.to_string()))?;
+    let half = tensors
+        .into_iter()
+        .map(|(k, t)| Ok((k, t.to_dtype(DType::F16)?)))
+        .collect::<candle_core::Result<HashMap<String, Tensor>>>()
+        .map_err(|e| Error::format(&w, e.to_string()))?;
+    std::fs::create_dir_all(output).map_err(|e| Error::io(output, e))?;
+    let out = output.join("model.safetensors");
+    save_renamed(&out, &|p| candle_core::safetensors::save(&half, p))?;
+    let csv = model_dir.join("loss.csv");
+    if csv.exists() {
+        let text = std::fs::read(&csv).map_err(|e| Error::io(&csv, e))?;
+        crate::atomic_file::write_bytes(&output.join("loss.csv"), &text)?;
+    }
+    crate::atomic_file::write_bytes(&output.join("perspnet.json"), json.as_bytes())?;
+    std::fs::metadata(&out)
+        .map(|m| m.len())
+        .map_err(|e| Error::io(&out, e))
 }
 
 /// What the network predicts for one crop.
