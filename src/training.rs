@@ -20,7 +20,9 @@ use crate::eval_dataset::SplitLookup;
 use crate::perspnet::layers::{IMAGENET_MEAN, IMAGENET_STD};
 use crate::perspnet::loss::PerspNetLoss;
 use crate::perspnet::model::named_trainable_vars;
-use crate::perspnet::{Adam, CorrTarget, LossTargets, LossWeights, PerspNet, PerspNetConfig};
+use crate::perspnet::{
+    Adam, Architecture, CorrTarget, DirectNet, LossTargets, LossWeights, PerspNet, PerspNetConfig,
+};
 use crate::render::CropTransform;
 use crate::rng::Rng;
 use crate::samples_table::SampleRecord;
@@ -94,6 +96,9 @@ pub struct View {
     pub ids: Vec<u32>,
     /// `M x 3` barycentric weights.
     pub weights: Vec<f32>,
+    /// How far the crop was shifted, pixels `(dx, dy)` (the direct model's
+    /// translation target moves with it).
+    pub shift: (i64, i64),
 }
 
 /// Training-time augmentation, drawn per example and step from the run's seed.
@@ -201,6 +206,7 @@ impl Example {
             nocs: Vec::with_capacity(3 * points.len()),
             ids: Vec::with_capacity(3 * points.len()),
             weights: Vec::with_capacity(3 * points.len()),
+            shift: (dx, dy),
         };
         for &i in points {
             let i = i as usize;
@@ -563,6 +569,9 @@ pub struct Batch {
     pub mask: Tensor,
     /// Barycentric targets.
     pub corr: CorrTarget,
+    /// The direct model's `B x 12` targets ([`crate::perspnet::direct::direct_target`]),
+    /// for that architecture only.
+    pub direct: Option<Tensor>,
 }
 
 /// Stacks examples' views into a batch (`views[i]` is a view of `examples[i]`).
@@ -602,7 +611,22 @@ pub fn batch(
             format!("each of the {b} views needs {m} points"),
         ));
     }
+    let direct = match cfg.architecture {
+        Architecture::PerspNet => None,
+        Architecture::Direct => {
+            let mut d = Vec::with_capacity(12 * b);
+            for (e, w) in examples.iter().zip(views) {
+                let pose = Pose::from_release_rt(&e.sample.rt)?;
+                let k = crate::predict::intrinsics(e.sample.image_width, e.sample.image_height);
+                d.extend(crate::perspnet::direct::direct_target(
+                    &pose, &e.crop, &k, w.shift,
+                ));
+            }
+            Some(t(d, &[b, 12])?)
+        }
+    };
     Ok(Batch {
+        direct,
         image: t(cat_f(&|e| &e.image), &[b, 3, s, s])?,
         choose: Tensor::from_vec(cat_u(&|e| &e.choose), (b, m), device)
             .map_err(|e| candle_err("batch", e))?,
@@ -634,6 +658,43 @@ pub fn vertex_uv(topology: &FaceTopology, device: &Device) -> Result<Tensor> {
     let v = topology.vertex_count;
     let flat: Vec<f32> = topology.uv[..v].iter().flat_map(|t| [t[0], t[1]]).collect();
     Tensor::from_vec(flat, (v, 2), device).map_err(|e| candle_err("vertex UVs", e))
+}
+
+/// The network of a config: PerspNet or the direct baseline (its `architecture`).
+#[derive(Debug, Clone)]
+pub enum Network {
+    /// PerspNet (correspondences, then PnP).
+    PerspNet(Box<PerspNet>),
+    /// The paper's "Direct 6DoF Regress" baseline.
+    Direct(Box<DirectNet>),
+}
+
+impl Network {
+    /// Builds the network of `cfg` with fresh variables in `vb` (`vertex_uv`: see
+    /// [`PerspNet::new`]; the direct baseline does not use it).
+    pub fn new(
+        cfg: &PerspNetConfig,
+        vertex_uv: &Tensor,
+        vb: VarBuilder,
+    ) -> candle_core::Result<Self> {
+        Ok(match cfg.architecture {
+            Architecture::PerspNet => {
+                Network::PerspNet(Box::new(PerspNet::new(cfg, vertex_uv, vb)?))
+            }
+            Architecture::Direct => Network::Direct(Box::new(DirectNet::new(cfg, vb)?)),
+        })
+    }
+
+    /// The PerspNet, or an error naming what needs one.
+    pub fn perspnet(&self, what: &str) -> Result<&PerspNet> {
+        match self {
+            Network::PerspNet(n) => Ok(n),
+            Network::Direct(_) => Err(Error::invalid(
+                what,
+                "needs a PerspNet; this model is the direct baseline (no correspondences, mask or mesh)",
+            )),
+        }
+    }
 }
 
 /// How a checkpoint was made (`perspnet.json`).
@@ -852,7 +913,7 @@ pub fn train<S: ExampleShards + ?Sized>(
     let device = Device::Cpu;
     let varmap = VarMap::new();
     let vb = VarBuilder::from_varmap(&varmap, DType::F32, &device);
-    let net = PerspNet::new(cfg, &vertex_uv(topology, &device)?, vb)
+    let net = Network::new(cfg, &vertex_uv(topology, &device)?, vb)
         .map_err(|e| candle_err("network", e))?;
     reseed(&varmap, options.seed, cfg.init_std).map_err(|e| candle_err("initial weights", e))?;
     let epoch_steps = options.epochs * steps_per_epoch(examples, options.batch);
@@ -959,9 +1020,11 @@ pub fn train<S: ExampleShards + ?Sized>(
                         .map(|e| e.augmented_view(cfg.points, &options.augmentation, &mut aug_rng))
                         .collect();
                     let b = batch(&refs, &views, cfg, &device)?;
-                    net.seed_dropout(
-                        Rng::for_stream(options.seed, 2 << 40 | log.len() as u64).next_u64(),
-                    );
+                    if let Network::PerspNet(net) = &net {
+                        net.seed_dropout(
+                            Rng::for_stream(options.seed, 2 << 40 | log.len() as u64).next_u64(),
+                        );
+                    }
                     opt.learning_rate = learning_rate_at(
                         log.len(),
                         total_steps,
@@ -969,6 +1032,27 @@ pub fn train<S: ExampleShards + ?Sized>(
                         options.lr_hold,
                     );
                     let step = (|| -> candle_core::Result<StepLoss> {
+                        let net = match &net {
+                            Network::PerspNet(net) => net,
+                            Network::Direct(direct) => {
+                                let out = direct.forward(&b.image, true)?;
+                                let target = b.direct.as_ref().expect("direct targets");
+                                let (total, rot, trans) =
+                                    crate::perspnet::direct::direct_loss(&out, target)?;
+                                opt.backward_step(&total)?;
+                                let v = |t: &Tensor| t.to_scalar::<f32>();
+                                return Ok(StepLoss {
+                                    step: log.len(),
+                                    epoch,
+                                    total: v(&total)?,
+                                    corr: v(&rot)?,
+                                    shape: v(&trans)?,
+                                    kl: 0.0,
+                                    entropy: 0.0,
+                                    seg: 0.0,
+                                });
+                            }
+                        };
                         let out = net.forward(&b.image, &b.choose, true)?;
                         let terms = loss.compute(
                             &out,
@@ -1173,7 +1257,11 @@ fn write_checkpoint(
     // perspnet.json last, so a folder whose json says N steps has both files of step N.
     save_renamed(&dir.join("model.safetensors"), &|p| varmap.save(p))?;
     save_renamed(&dir.join(ADAM_FILE), &|p| opt.save(p))?;
-    let mut csv = String::from("step,epoch,total,corr,shape,kl,entropy,seg\n");
+    // The direct model's two terms take the first two loss columns.
+    let mut csv = String::from(match c.config.architecture {
+        Architecture::PerspNet => "step,epoch,total,corr,shape,kl,entropy,seg\n",
+        Architecture::Direct => "step,epoch,total,rotation,translation,unused,unused,unused\n",
+    });
     for s in log {
         csv += &format!(
             "{},{},{},{},{},{},{},{}\n",
@@ -1197,6 +1285,12 @@ pub fn import_weights(
     output: &Path,
 ) -> Result<Checkpoint> {
     use crate::perspnet::weights::{WeightError, WeightFile};
+    if config.architecture == Architecture::Direct {
+        return Err(Error::invalid(
+            "--config",
+            "the direct baseline is not the official network: its weights have no PyTorch counterpart to import",
+        ));
+    }
     let weights = WeightFile::open(file).map_err(|e| Error::format(file, e.to_string()))?;
     let device = Device::Cpu;
     let varmap = VarMap::new();
@@ -1248,6 +1342,12 @@ pub fn export_weights(model_dir: &Path, output: &Path) -> Result<usize> {
     let checkpoint: Checkpoint =
         serde_json::from_str(&text).map_err(|e| Error::format(&p, e.to_string()))?;
     let cfg = &checkpoint.config;
+    if cfg.architecture == Architecture::Direct {
+        return Err(Error::format(
+            &p,
+            "a direct-baseline model: the official network has no such head, so there is no state_dict to export",
+        ));
+    }
     let device = Device::Cpu;
     let varmap = VarMap::new();
     let vb = VarBuilder::from_varmap(&varmap, DType::F32, &device);
@@ -1329,7 +1429,7 @@ pub struct TrainedModel {
     /// How it was made.
     pub checkpoint: Checkpoint,
     /// The network.
-    pub net: PerspNet,
+    pub net: Network,
     /// Its variables.
     pub varmap: VarMap,
 }
@@ -1365,7 +1465,7 @@ fn model_from_parts(
     let device = Device::Cpu;
     let varmap = VarMap::new();
     let vb = VarBuilder::from_varmap(&varmap, DType::F32, &device);
-    let net = PerspNet::new(&checkpoint.config, &vertex_uv(topology, &device)?, vb)
+    let net = Network::new(&checkpoint.config, &vertex_uv(topology, &device)?, vb)
         .map_err(|e| candle_err("network", e))?;
     load_weights(&varmap, bytes, file)?;
     Ok(TrainedModel {
@@ -1501,9 +1601,10 @@ pub fn predict_crop_raw(
     let cfg = &model.checkpoint.config;
     let s = cfg.input_size;
     let device = Device::Cpu;
+    let net = model.net.perspnet("predicting correspondences")?;
     let run = || -> candle_core::Result<(NetworkPrediction, Option<RawOutputs>)> {
         let img = Tensor::from_slice(input, (1, 3, s, s), &device)?;
-        let dense = model.net.forward_dense(&img, false)?;
+        let dense = net.forward_dense(&img, false)?;
         let logits = dense.seg_logits.squeeze(0)?; // 2 x S x S
         let face = logits
             .get(1)?
@@ -1521,7 +1622,7 @@ pub fn predict_crop_raw(
         let picks = crate::render::sample_points(candidates.len(), cfg.points, seed);
         let pixels: Vec<u32> = picks.iter().map(|&k| candidates[k as usize]).collect();
         let choose = Tensor::from_slice(&pixels, (1, cfg.points), &device)?;
-        let out = model.net.forward(&img, &choose, false)?;
+        let out = net.forward(&img, &choose, false)?;
         let corr = out
             .correspondences()?
             .affine(1.0 / crate::perspnet::model::UV_SCALE, 0.0)?
@@ -1553,6 +1654,26 @@ pub fn predict_crop_raw(
         ))
     };
     run().map_err(|e| candle_err("network forward", e))
+}
+
+/// The direct baseline's pose for one crop (`3 x S x S` normalised) cut by `crop` from
+/// an image of `width` x `height`, or `None` when its output is not a pose in front of
+/// the camera ([`crate::perspnet::direct::pose_from_output`]).
+pub fn direct_pose(
+    net: &DirectNet,
+    input: &[f32],
+    crop: &CropTransform,
+    width: u32,
+    height: u32,
+) -> Result<Option<Pose>> {
+    let s = net.config().input_size;
+    let out = (|| -> candle_core::Result<Vec<f32>> {
+        let img = Tensor::from_slice(input, (1, 3, s, s), &Device::Cpu)?;
+        net.forward(&img, false)?.flatten_all()?.to_vec1::<f32>()
+    })()
+    .map_err(|e| candle_err("network forward", e))?;
+    let k = crate::predict::intrinsics(width, height);
+    Ok(crate::perspnet::direct::pose_from_output(&out, crop, &k))
 }
 
 /// The pose of a sample predicted from the network's correspondences (crop pixels
@@ -1597,7 +1718,8 @@ pub struct ModelPredictSummary {
 /// Runs a trained network over the samples of `split` (`None`: all): the crop box of
 /// `crop_rule` from the sample's landmarks (as the official evaluation does), the
 /// network, our PnP; the predictions carry `R_t`, the predicted mesh and the predicted
-/// crop mask. With `true_masks` (a folder with `render`'s targets at the network's
+/// crop mask (the direct baseline's carry its regressed `R_t` only: no PnP, mesh or
+/// mask, so `eval` prints `-` for those scores). With `true_masks` (a folder with `render`'s targets at the network's
 /// input size), the points are sampled from the true face mask instead of the
 /// predicted one, which separates segmentation errors from correspondence errors; the
 /// crop is then the targets' own.
@@ -1637,6 +1759,17 @@ pub fn model_predictions_dump(
     Vec<crate::predictions_table::PredictionRecord>,
     ModelPredictSummary,
 )> {
+    if let Network::Direct(_) = &model.net {
+        if true_masks.is_some() {
+            return Err(Error::invalid(
+                "--mask truth",
+                "chooses the pixels of a PerspNet's correspondences; the direct baseline has none",
+            ));
+        }
+        if dump.is_some() {
+            model.net.perspnet("--dump")?;
+        }
+    }
     let data = Dataset::open(dataset)?;
     let splits = SplitLookup::read(dataset)?;
     let size = model.checkpoint.config.input_size as u32;
@@ -1699,6 +1832,19 @@ pub fn model_predictions_dump(
                 }
             };
             let input = network_input(&image, &crop);
+            if let Network::Direct(net) = &model.net {
+                let pose = direct_pose(net, &input, &crop, r.image_width, r.image_height)?;
+                summary.samples += 1;
+                summary.failures += pose.is_none() as usize;
+                out.push(crate::predictions_table::PredictionRecord {
+                    key: r.key.clone(),
+                    rt: pose.map(|p| p.to_release_rt()),
+                    verts: None,
+                    mask_rle: None,
+                });
+                progress(1);
+                continue;
+            }
             let (p, raw) = predict_crop_raw(
                 model,
                 &input,

@@ -364,7 +364,12 @@ fn predict_dump_holds_inputs_and_outputs() {
         // The dumped inputs reproduce the dumped outputs.
         let img = Tensor::from_vec(get("image").to_f32_vec(), (1, 3, s, s), &Device::Cpu).unwrap();
         let ch = Tensor::from_vec(choose, (1, m), &Device::Cpu).unwrap();
-        let out = model.net.forward(&img, &ch, false).unwrap();
+        let out = model
+            .net
+            .perspnet("test")
+            .unwrap()
+            .forward(&img, &ch, false)
+            .unwrap();
         let flat = |t: &Tensor| t.flatten_all().unwrap().to_vec1::<f32>().unwrap();
         assert_eq!(
             flat(&out.dense.seg_logits),
