@@ -1454,6 +1454,45 @@ pub fn load(dir: &Path, topology: &FaceTopology) -> Result<TrainedModel> {
     model_from_parts(checkpoint, &bytes, &w, topology)
 }
 
+/// Where the shipped model's folder is in the repository: a `tiny` PerspNet trained by
+/// `train` on synthetic data (docs/train.md, "The shipped model", has the commands and
+/// seed that made it), its weights stored as float16 (`half-model`).
+pub const SHIPPED_MODEL_DIR: &str = "models/tiny-synthetic";
+
+/// The shipped model's `perspnet.json` and weights, compiled into the binary so that
+/// `demo` needs no path to find them.
+const SHIPPED_JSON: &str = include_str!("../models/tiny-synthetic/perspnet.json");
+const SHIPPED_WEIGHTS: &[u8] = include_bytes!("../models/tiny-synthetic/model.safetensors");
+
+/// How the shipped model was made (its `perspnet.json`).
+pub fn shipped_checkpoint() -> Result<Checkpoint> {
+    let p = Path::new(SHIPPED_MODEL_DIR).join("perspnet.json");
+    serde_json::from_str(SHIPPED_JSON).map_err(|e| Error::format(&p, e.to_string()))
+}
+
+/// The shipped model ([`SHIPPED_MODEL_DIR`]), from the copy compiled into the binary;
+/// it was trained on the built-in face's topology, and another `topology` is refused
+/// as [`load`] refuses it.
+pub fn shipped_model(topology: &FaceTopology) -> Result<TrainedModel> {
+    let dir = Path::new(SHIPPED_MODEL_DIR);
+    let checkpoint = shipped_checkpoint()?;
+    if checkpoint.topology != topology.source {
+        return Err(Error::invalid(
+            "--resources",
+            format!(
+                "the shipped model was trained with the topology '{}', not '{}'",
+                checkpoint.topology, topology.source
+            ),
+        ));
+    }
+    model_from_parts(
+        checkpoint,
+        SHIPPED_WEIGHTS,
+        &dir.join("model.safetensors"),
+        topology,
+    )
+}
+
 /// The network of `checkpoint` with the weights of the safetensors `bytes` (read from
 /// `file`, named in errors), float32 or float16 ([`load_weights`]).
 fn model_from_parts(
