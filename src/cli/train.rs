@@ -7,7 +7,7 @@ use clap::Args;
 use std::path::PathBuf;
 use std::process::ExitCode;
 
-/// Train the reference PerspNet (candle, CPU) on a rendered dataset.
+/// Train the reference PerspNet (or the paper's direct baseline) on a rendered dataset, CPU.
 ///
 /// Reads the crops, masks, sampled pixels and barycentric correspondences that `render`
 /// stored (render at the network's input size and with at least its number of points:
