@@ -1,6 +1,6 @@
 //! The whole pipeline on data it makes itself: synth -> convert -> split -> render ->
-//! augment -> train -> predict (the model and the mean-pose baseline) -> eval ->
-//! report. Each stage calls the same library function as its command, so the demo
+//! augment -> train -> predict (the model, the shipped model and the mean-pose
+//! baseline) -> eval -> report. Each stage calls the same library function as its command, so the demo
 //! checks the commands' code, not a copy of it.
 //!
 //! Output folder layout:
@@ -8,7 +8,10 @@
 //! - `dataset/`: `convert`'s Parquet, `split`'s lists, `render`'s targets;
 //! - `augmented/`: profiled samples in the release layout;
 //! - `model/`: the checkpoint (`perspnet.json`, `model.safetensors`, `loss.csv`);
-//! - `predictions.parquet`, `baseline.parquet`: model and mean-pose predictions;
+//! - `predictions.parquet`, `shipped.parquet`, `baseline.parquet`: the predictions of
+//!   the model trained here, of the shipped model ([`training::SHIPPED_MODEL_DIR`],
+//!   compiled into the binary; left out for another topology than the built-in face's)
+//!   and of the mean pose;
 //! - `report/index.html` and its pictures; `demo.json`: timings and eval summaries.
 
 use crate::augment_dataset::{self, AugmentOptions, AxisChoice, ProfilingRule};
@@ -118,8 +121,9 @@ impl DemoPlan {
     pub fn units(&self) -> u64 {
         let n = self.images() as u64;
         let test = (self.test_subjects * self.images_per_subject) as u64;
-        // synth, convert, render, augment; split; train; predict; eval, report.
-        4 * n + 1 + self.train_steps() as u64 + test + 2
+        // synth, convert, render, augment; split; train; predict (two models); eval,
+        // report.
+        4 * n + 1 + self.train_steps() as u64 + 2 * test + 2
     }
 
     fn check(&self) -> Result<()> {
@@ -159,8 +163,15 @@ pub struct DemoSummary {
     pub plan: DemoPlan,
     /// Wall time per stage.
     pub stages: Vec<StageTiming>,
-    /// The trained model on the held-out subjects.
+    /// The model trained by this run on the held-out subjects.
     pub model: Summary,
+    /// Its training steps.
+    pub trained_steps: usize,
+    /// The shipped model ([`training::SHIPPED_MODEL_DIR`]) on the same samples (none
+    /// with another topology than the built-in face's, on which it was trained).
+    pub shipped: Option<Summary>,
+    /// Training steps of the shipped model.
+    pub shipped_steps: usize,
     /// The mean-pose baseline on the same samples.
     pub baseline: Summary,
     /// Training loss of the first and last step.
@@ -408,6 +419,25 @@ pub fn run_demo(
         &tick,
     )?;
     write_predictions(&output.join("predictions.parquet"), &rows)?;
+    let shipped_checkpoint = training::shipped_checkpoint()?;
+    let shipped_rows = if shipped_checkpoint.topology == topology.source {
+        let shipped = training::shipped_model(topology)?;
+        let (shipped_rows, _) = training::model_predictions(
+            &dataset,
+            &shipped,
+            Some("test"),
+            crate::render::CropRule::Ours,
+            None,
+            plan.seed,
+            &RansacParams::default(),
+            &tick,
+        )?;
+        write_predictions(&output.join("shipped.parquet"), &shipped_rows)?;
+        Some(shipped_rows)
+    } else {
+        tick(predicted.samples);
+        None
+    };
     let (baseline_rows, mean) =
         crate::predict::mean_pose_predictions(&dataset, Some("train"), Some("test"))?;
     write_predictions(&output.join("baseline.parquet"), &baseline_rows)?;
@@ -428,13 +458,23 @@ pub fn run_demo(
     };
     let ev = eval_dataset::evaluate(&dataset, &rows, &options)?;
     let base = eval_dataset::evaluate(&dataset, &baseline_rows, &options)?;
+    let shipped = shipped_rows
+        .map(|r| eval_dataset::evaluate(&dataset, &r, &options).map(|e| e.summary))
+        .transpose()?;
     eval_dataset::write_report(&report_dir, &ev, topology)?;
     tick(1);
     clock.done(
         "eval",
         format!(
-            "MAE_r {:.2} deg, ADD {:.1} mm (mean pose: {:.2} deg, {:.1} mm)",
-            ev.summary.mae_r_deg, ev.summary.add_mm, base.summary.mae_r_deg, base.summary.add_mm
+            "MAE_r {:.2} deg, ADD {:.1} mm ({}mean pose: {:.2} deg, {:.1} mm)",
+            ev.summary.mae_r_deg,
+            ev.summary.add_mm,
+            shipped.as_ref().map_or(String::new(), |s| format!(
+                "shipped model: {:.2} deg, {:.1} mm; ",
+                s.mae_r_deg, s.add_mm
+            )),
+            base.summary.mae_r_deg,
+            base.summary.add_mm
         ),
     );
 
@@ -498,13 +538,25 @@ pub fn run_demo(
         "The whole pipeline on {} synthetic images of {} subjects ({} held out), made by \
          `arkit-tool synth` with seed {}: convert, a subject-disjoint split, render, \
          augment, a tiny PerspNet trained for {} steps on the CPU, predict with PnP, \
-         and eval against the mean-pose baseline.",
+         and eval against the mean-pose baseline and the tiny PerspNet shipped with \
+         arkit-tool (trained for longer on other synthetic subjects).",
         plan.images(),
         plan.subjects,
         plan.test_subjects,
         plan.seed,
         checkpoint.steps
     );
+    let shipped_name = format!(
+        "tiny PerspNet, shipped ({} steps)",
+        shipped_checkpoint.steps
+    );
+    let trained_name = format!("tiny PerspNet, trained here ({} steps)", checkpoint.steps);
+    let mut results: Vec<(&str, &Summary)> = Vec::new();
+    if let Some(s) = &shipped {
+        results.push((&shipped_name, s));
+    }
+    results.push((&trained_name, &ev.summary));
+    results.push(("mean pose", &base.summary));
     clock.done("report", "this page and its pictures".into());
     let page_path = report::write_page(
         &report_dir,
@@ -512,7 +564,7 @@ pub fn run_demo(
             title,
             intro: &intro,
             stages: &clock.stages,
-            results: &[("tiny PerspNet", &ev.summary), ("mean pose", &base.summary)],
+            results: &results,
             figures: &figures,
         },
     )?;
@@ -521,6 +573,9 @@ pub fn run_demo(
         plan: plan.clone(),
         stages: clock.stages,
         model: ev.summary,
+        trained_steps: checkpoint.steps,
+        shipped,
+        shipped_steps: shipped_checkpoint.steps,
         baseline: base.summary,
         loss: [checkpoint.first_loss, checkpoint.last_loss],
         report: page_path,
@@ -532,6 +587,37 @@ pub fn run_demo(
             .as_bytes(),
     )?;
     Ok(summary)
+}
+
+/// Eval summaries as one aligned table: a header of the paper's columns (as
+/// [`Summary::columns`]), then one row per named summary, with the PnP failures.
+pub fn results_table(rows: &[(&str, &Summary)]) -> String {
+    let name_w = rows.iter().map(|(n, _)| n.len()).max().unwrap_or(0);
+    let cols: Vec<_> = rows.iter().map(|(_, s)| s.columns()).collect();
+    let Some(first) = cols.first() else {
+        return String::new();
+    };
+    let widths: Vec<usize> = (0..first.len())
+        .map(|i| {
+            cols.iter()
+                .map(|c| c[i].0.len().max(c[i].1.len()))
+                .max()
+                .unwrap_or(0)
+        })
+        .collect();
+    let mut out = format!("{:name_w$}", "");
+    for (c, w) in first.iter().zip(&widths) {
+        out += &format!("  {:>w$}", c.0);
+    }
+    out += "  PnP failures\n";
+    for ((name, s), c) in rows.iter().zip(&cols) {
+        out += &format!("{name:name_w$}");
+        for (v, w) in c.iter().zip(&widths) {
+            out += &format!("  {:>w$}", v.1);
+        }
+        out += &format!("  {:>12}\n", s.pose_failures);
+    }
+    out
 }
 
 /// The targets of four samples of shard `shard` (whose `samples` rows are given) as

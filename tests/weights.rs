@@ -364,7 +364,12 @@ fn predict_dump_holds_inputs_and_outputs() {
         // The dumped inputs reproduce the dumped outputs.
         let img = Tensor::from_vec(get("image").to_f32_vec(), (1, 3, s, s), &Device::Cpu).unwrap();
         let ch = Tensor::from_vec(choose, (1, m), &Device::Cpu).unwrap();
-        let out = model.net.forward(&img, &ch, false).unwrap();
+        let out = model
+            .net
+            .perspnet("test")
+            .unwrap()
+            .forward(&img, &ch, false)
+            .unwrap();
         let flat = |t: &Tensor| t.flatten_all().unwrap().to_vec1::<f32>().unwrap();
         assert_eq!(
             flat(&out.dense.seg_logits),
@@ -374,4 +379,97 @@ fn predict_dump_holds_inputs_and_outputs() {
         assert_eq!(flat(&out.dense.uv_map), get("uv_map").to_f32_vec(), "{key}");
         assert_eq!(flat(&out.assignment().unwrap()), a, "{key}");
     }
+}
+
+/// `half-model` writes float16 weights that load back as float32 within float16's
+/// rounding of the originals, at half the size; a weights file missing a tensor is
+/// refused with the tensor and the file named.
+#[test]
+fn half_model_loads_within_float16_rounding() {
+    let dir = tempfile::tempdir().unwrap();
+    let cfg = PerspNetConfig::tiny();
+    let vm = random_varmap(&cfg, 11);
+    let file = dir.path().join("w.safetensors");
+    save(&export_state_dict(&vm, 5).unwrap(), &file);
+    let model = dir.path().join("model");
+    let half = dir.path().join("half");
+    for args in [
+        vec![
+            "import-weights",
+            file.to_str().unwrap(),
+            "--config",
+            "tiny",
+            "--output",
+            model.to_str().unwrap(),
+        ],
+        vec![
+            "half-model",
+            model.to_str().unwrap(),
+            "--output",
+            half.to_str().unwrap(),
+        ],
+    ] {
+        let out = tool().args(&args).output().unwrap();
+        assert!(
+            out.status.success(),
+            "{args:?}: {}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+    }
+    let size = |d: &Path| {
+        std::fs::metadata(d.join("model.safetensors"))
+            .unwrap()
+            .len()
+    };
+    let (full, small) = (size(&model), size(&half));
+    assert!(
+        small * 2 <= full + 64 * 1024 && small * 2 >= full - 64 * 1024,
+        "{small} vs {full}"
+    );
+    let stored =
+        candle_core::safetensors::load(half.join("model.safetensors"), &Device::Cpu).unwrap();
+    assert!(stored.values().all(|t| t.dtype() == DType::F16));
+    assert_eq!(
+        std::fs::read(model.join("perspnet.json")).unwrap(),
+        std::fs::read(half.join("perspnet.json")).unwrap()
+    );
+    let topo = &arkit_tool::synthetic_face::builtin().topology;
+    let (a, b) = (
+        training::load(&model, topo).unwrap(),
+        training::load(&half, topo).unwrap(),
+    );
+    let (da, db) = (
+        a.varmap.data().lock().unwrap(),
+        b.varmap.data().lock().unwrap(),
+    );
+    let mut changed = 0;
+    for (k, v) in da.iter() {
+        let x = v
+            .as_tensor()
+            .flatten_all()
+            .unwrap()
+            .to_vec1::<f32>()
+            .unwrap();
+        let w = db[k].as_tensor();
+        assert_eq!(w.dtype(), DType::F32, "{k}");
+        let y = w.flatten_all().unwrap().to_vec1::<f32>().unwrap();
+        for (p, q) in x.iter().zip(&y) {
+            // float16: 11 significant bits; below 2^-14 a fixed step of 2^-24.
+            assert!((p - q).abs() <= p.abs() / 2048.0 + 6e-8, "{k}: {p} -> {q}");
+            changed += (p != q) as usize;
+        }
+    }
+    assert!(changed > 0, "nothing was rounded: the file was not float16");
+    drop((da, db));
+
+    // A weights file without one of the network's tensors names it and the file.
+    let mut tensors =
+        candle_core::safetensors::load(model.join("model.safetensors"), &Device::Cpu).unwrap();
+    tensors.remove("cnn.seg.bias");
+    candle_core::safetensors::save(&tensors, model.join("model.safetensors")).unwrap();
+    let e = training::load(&model, topo).err().unwrap().to_string();
+    assert!(
+        e.contains("cnn.seg.bias") && e.contains("model.safetensors"),
+        "{e}"
+    );
 }

@@ -9,8 +9,9 @@ use std::process::ExitCode;
 /// Run the whole pipeline on synthetic data and write a report to look at.
 ///
 /// synth -> convert -> split -> render -> augment -> train (tiny PerspNet) -> predict
-/// (the network with PnP, and the mean-pose baseline) -> eval -> report, each stage the
-/// library code of its own command. Ends with the eval table and OUTPUT/report/index.html:
+/// (the network with PnP, the tiny PerspNet shipped with arkit-tool, and the mean-pose
+/// baseline) -> eval -> report, each stage the library code of its own command. Ends
+/// with the eval table of the three and OUTPUT/report/index.html:
 /// pose histograms, crops with their masks, correspondences and UV maps, augmented
 /// samples, the loss curve, errors by pose and the worst predictions drawn. The page
 /// works offline.
@@ -79,10 +80,29 @@ pub fn run(a: DemoArgs) -> Result<ExitCode> {
     }
     let total: f64 = summary.stages.iter().map(|s| s.seconds).sum();
     println!("{:<8} {:>8.1}\n", "total", total);
-    println!("tiny PerspNet on the held-out subjects:");
-    print!("{}", summary.model.table());
-    println!("\nmean-pose baseline on the same samples:");
-    print!("{}", summary.baseline.table());
+    let shipped_name = format!("tiny PerspNet, shipped ({} steps)", summary.shipped_steps);
+    let trained_name = format!(
+        "tiny PerspNet, trained here ({} steps)",
+        summary.trained_steps
+    );
+    let mut rows = Vec::new();
+    if let Some(s) = &summary.shipped {
+        rows.push((shipped_name.as_str(), s));
+    }
+    rows.push((trained_name.as_str(), &summary.model));
+    rows.push(("mean pose", &summary.baseline));
+    println!(
+        "on the {} images of the held-out subjects (angles in degrees, distances in mm, rates in %):",
+        summary.model.samples
+    );
+    print!("{}", demo::results_table(&rows));
+    if summary.shipped.is_some() {
+        println!(
+            "the shipped model is {} (trained by `arkit-tool train` on other synthetic \
+             subjects, see docs/train.md); the other was trained by this run.",
+            arkit_tool::training::SHIPPED_MODEL_DIR
+        );
+    }
     println!("\nreport: {}", summary.report.display());
     Ok(ExitCode::SUCCESS)
 }

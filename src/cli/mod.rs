@@ -53,6 +53,8 @@ enum Command {
     ImportWeights(weights::ImportWeightsArgs),
     #[cfg(feature = "model")]
     ExportWeights(weights::ExportWeightsArgs),
+    #[cfg(feature = "model")]
+    HalfModel(weights::HalfModelArgs),
     Predict(predict::PredictArgs),
     Eval(eval::EvalArgs),
     Augment(augment::AugmentArgs),
@@ -78,6 +80,8 @@ pub fn run(cli: Cli) -> Result<ExitCode> {
         Command::ImportWeights(a) => weights::run_import(a),
         #[cfg(feature = "model")]
         Command::ExportWeights(a) => weights::run_export(a),
+        #[cfg(feature = "model")]
+        Command::HalfModel(a) => weights::run_half(a),
         Command::Predict(a) => predict::run(a),
         Command::Eval(a) => eval::run(a),
         Command::Augment(a) => augment::run(a),

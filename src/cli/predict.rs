@@ -23,7 +23,10 @@ use std::process::ExitCode;
 /// landmarks (as the official evaluation does), the predicted face mask, --points
 /// pixels sampled from it, their predicted 3D points through the same PnP; the
 /// predictions also carry the predicted mesh and crop mask, for `eval`'s 3D
-/// reconstruction and mask scores.
+/// reconstruction and mask scores. A direct baseline (`train --architecture direct`)
+/// gives its regressed pose instead: no points, no PnP, no mesh or mask (`eval` then
+/// prints '-' for 3DRecon). models/tiny-synthetic is a trained tiny PerspNet shipped
+/// with arkit-tool (for the built-in synthetic face).
 ///
 /// --mean-pose: the training split's mean pose for every sample, the baseline a model
 /// must beat (no mesh or mask, so `eval` scores the pose only).
@@ -45,7 +48,8 @@ pub struct PredictArgs {
     /// Use the stored ground-truth correspondences.
     #[arg(long)]
     oracle: bool,
-    /// Use a network trained by `train` (its checkpoint folder).
+    /// Use a network trained by `train` (its checkpoint folder; PerspNet or the direct
+    /// baseline, as its perspnet.json says).
     #[arg(long)]
     model: Option<PathBuf>,
     /// The trivial baseline: the training split's mean pose (chordal mean rotation,

@@ -1,13 +1,13 @@
 //! `arkit-tool train`.
 
-use arkit_tool::perspnet::{LossVariant, PerspNetConfig};
+use arkit_tool::perspnet::{Architecture, LossVariant, PerspNetConfig};
 use arkit_tool::training::{self, ExampleShards, ShardedExamples, TrainOptions};
 use arkit_tool::{Error, Result};
 use clap::Args;
 use std::path::PathBuf;
 use std::process::ExitCode;
 
-/// Train the reference PerspNet (candle, CPU) on a rendered dataset.
+/// Train the reference PerspNet (or the paper's direct baseline) on a rendered dataset, CPU.
 ///
 /// Reads the crops, masks, sampled pixels and barycentric correspondences that `render`
 /// stored (render at the network's input size and with at least its number of points:
@@ -26,6 +26,14 @@ use std::process::ExitCode;
 ///
 /// `tiny` trains in minutes on two CPU cores; `paper` has the official shapes (16.97 M
 /// parameters) and is for GPUs or patience.
+///
+/// --architecture direct trains the paper's "Direct 6DoF Regress" baseline instead: the
+/// same ResNet-18 encoder (--config's widths and input size) and a head regressing the
+/// rotation (6D: two columns of R, made orthonormal) and the translation (where the
+/// face's origin is in the crop box, and its depth as the box's width in units of
+/// 0.2 m), with an L1 loss on R's entries and on those three numbers. `predict --model`
+/// and `eval` score it like any model (no PnP; no mesh or mask, so 3DRecon and the mask
+/// scores are '-').
 ///
 /// Example: arkit-tool render --dataset data/pq --size 64 --points 256 --output data/t64
 ///          arkit-tool train --dataset data/pq --targets data/t64 --config tiny --loss paper --epochs 5 --output model/
@@ -46,6 +54,12 @@ pub struct TrainArgs {
     /// file's `loss`.
     #[arg(long, value_name = "official|paper")]
     loss: Option<LossVariant>,
+    /// `perspnet` (correspondences, then PnP) or `direct` (the paper's "Direct 6DoF
+    /// Regress" baseline: the encoder and a head regressing the pose; --loss, the
+    /// ablation switches and --lowered-start do not apply to it). Overrides the config
+    /// file's `architecture`.
+    #[arg(long, value_name = "perspnet|direct")]
+    architecture: Option<Architecture>,
     /// Train on this split (`all` for every sample).
     #[arg(long, default_value = "train")]
     split: String,
@@ -147,6 +161,23 @@ pub fn run(a: TrainArgs) -> Result<ExitCode> {
     }
     if a.no_assignment_loss {
         config.assignment_loss = false;
+    }
+    if let Some(arch) = a.architecture {
+        config.architecture = arch;
+    }
+    if config.architecture == Architecture::Direct {
+        let perspnet_only = [
+            ("--loss", a.loss.is_some()),
+            ("--no-position-encoding", a.no_position_encoding),
+            ("--no-assignment-loss", a.no_assignment_loss),
+            ("--lowered-start", a.lowered_start),
+        ];
+        if let Some((flag, _)) = perspnet_only.iter().find(|(_, given)| *given) {
+            return Err(Error::invalid(
+                *flag,
+                "is a PerspNet option; the direct baseline has one loss (L1 on the rotation matrix and on the crop-frame translation)",
+            ));
+        }
     }
     if a.lowered_start && config.loss == LossVariant::Paper {
         return Err(Error::invalid(

@@ -54,6 +54,36 @@ pub struct ExportWeightsArgs {
     output: PathBuf,
 }
 
+/// Copy a model folder with its weights stored as float16 (half the size).
+///
+/// Writes OUTPUT/perspnet.json and OUTPUT/loss.csv as they are and
+/// OUTPUT/model.safetensors with every tensor rounded to float16. `predict --model`,
+/// `eval` and `demo` read such a folder like any other (the weights are turned back
+/// into float32 on load); the rounding changes each weight by at most 1 part in 2048.
+/// The optimiser's state (adam.safetensors) is left out: a half model is for
+/// predicting, not for `train --resume`. This is how models/tiny-synthetic was made
+/// (docs/train.md).
+///
+/// Example: arkit-tool half-model model/ --output model-f16/
+#[derive(Args, Debug)]
+pub struct HalfModelArgs {
+    /// A model folder written by `train` or `import-weights`.
+    model: PathBuf,
+    /// The model folder to write.
+    #[arg(long)]
+    output: PathBuf,
+}
+
+pub fn run_half(a: HalfModelArgs) -> Result<ExitCode> {
+    let bytes = training::write_half_model(&a.model, &a.output)?;
+    eprintln!(
+        "wrote {} with float16 weights ({:.2} MB)",
+        a.output.display(),
+        bytes as f64 / 1e6
+    );
+    Ok(ExitCode::SUCCESS)
+}
+
 pub fn run_import(a: ImportWeightsArgs) -> Result<ExitCode> {
     let config = super::train::config_named(&a.config)?;
     let topology = super::load_topology(a.resources.as_deref())?;

@@ -50,6 +50,38 @@ pub struct PerspNetConfig {
     /// ablation "w/o L_M" turns it off, leaving M supervised through `L_corr` only).
     #[serde(default = "yes")]
     pub assignment_loss: bool,
+    /// Which network: PerspNet (the default; older configs) or the paper's "Direct
+    /// 6DoF Regress" baseline ([`crate::direct`]), which uses the encoder's
+    /// settings (`input_size`, `encoder_widths`, `fc_channels` as its head's width,
+    /// `init_std`, `bn_eps`, `bn_momentum`) and ignores the rest.
+    #[serde(default)]
+    pub architecture: Architecture,
+}
+
+/// The network a config builds.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Architecture {
+    /// PerspNet: dense correspondences, then PnP.
+    #[default]
+    PerspNet,
+    /// The paper's "Direct 6DoF Regress": the ResNet-18 encoder and a head regressing
+    /// the rotation (6D) and the translation (in the crop's frame).
+    Direct,
+}
+
+impl std::str::FromStr for Architecture {
+    type Err = String;
+
+    fn from_str(s: &str) -> Result<Self, String> {
+        match s {
+            "perspnet" => Ok(Self::PerspNet),
+            "direct" => Ok(Self::Direct),
+            other => Err(format!(
+                "unknown architecture '{other}': perspnet or direct"
+            )),
+        }
+    }
 }
 
 fn yes() -> bool {
@@ -107,6 +139,7 @@ impl PerspNetConfig {
             loss: LossVariant::Official,
             position_encoding: true,
             assignment_loss: true,
+            architecture: Architecture::PerspNet,
         }
     }
 
@@ -134,6 +167,7 @@ impl PerspNetConfig {
             loss: LossVariant::Official,
             position_encoding: true,
             assignment_loss: true,
+            architecture: Architecture::PerspNet,
         }
     }
 
@@ -252,6 +286,29 @@ mod tests {
             let e = c.validate().unwrap_err();
             assert!(e.starts_with(field), "{field}: {e}");
         }
+    }
+
+    /// Older configs are PerspNet's; `"direct"` and the flag's spelling select the
+    /// baseline; anything else is refused by name.
+    #[test]
+    fn architecture_from_json_and_flag() {
+        let mut v = serde_json::to_value(PerspNetConfig::tiny()).unwrap();
+        assert_eq!(v["architecture"], "perspnet");
+        v.as_object_mut().unwrap().remove("architecture");
+        let old: PerspNetConfig = serde_json::from_value(v.clone()).unwrap();
+        assert_eq!(old.architecture, Architecture::PerspNet);
+        v["architecture"] = "direct".into();
+        let direct: PerspNetConfig = serde_json::from_value(v.clone()).unwrap();
+        assert_eq!(direct.architecture, Architecture::Direct);
+        v["architecture"] = "resnet".into();
+        assert!(serde_json::from_value::<PerspNetConfig>(v).is_err());
+        assert_eq!("direct".parse::<Architecture>(), Ok(Architecture::Direct));
+        assert!(
+            "Direct"
+                .parse::<Architecture>()
+                .unwrap_err()
+                .contains("perspnet or direct")
+        );
     }
 
     #[test]

@@ -95,6 +95,55 @@ impl BasicBlock {
     }
 }
 
+/// The ResNet-18 trunk shared by PerspNet and the direct baseline: the stem (7x7
+/// conv, BN, ReLU), the max-pool and the four stages of two basic blocks, under the
+/// official names (`cnn.resnet18_8s.conv1`, `.bn1`, `.layer1.0.conv1`, ...).
+#[derive(Debug, Clone)]
+pub(crate) struct ResNetTrunk {
+    conv1: Conv2d,
+    bn1: BatchNorm2d,
+    layers: Vec<Vec<BasicBlock>>,
+}
+
+impl ResNetTrunk {
+    /// The trunk's variables under `rn` (`cnn.resnet18_8s`).
+    pub(crate) fn new(rn: VarBuilder, cfg: &PerspNetConfig) -> Result<Self> {
+        let (s, e, m) = (cfg.init_std, cfg.bn_eps, cfg.bn_momentum);
+        let w0 = cfg.encoder_widths[0];
+        let conv1 = Conv2d::new(rn.pp("conv1"), 3, w0, 7, 2, 3, false, s)?;
+        let bn1 = BatchNorm2d::new(rn.pp("bn1"), w0, s, e, m)?;
+        let mut layers = Vec::new();
+        let mut c_in = w0;
+        for (i, &w) in cfg.encoder_widths.iter().enumerate() {
+            let stride = if i == 0 { 1 } else { 2 };
+            let lv = rn.pp(format!("layer{}", i + 1));
+            let b0 = BasicBlock::new(lv.pp("0"), c_in, w, stride, cfg)?;
+            let b1 = BasicBlock::new(lv.pp("1"), w, w, 1, cfg)?;
+            layers.push(vec![b0, b1]);
+            c_in = w;
+        }
+        Ok(Self { conv1, bn1, layers })
+    }
+
+    /// The stem's output (stride 2, after its BN and ReLU) and the four stages'
+    /// outputs (strides 4, 8, 16, 32).
+    pub(crate) fn forward(&self, x: &Tensor, train: bool) -> Result<(Tensor, [Tensor; 4])> {
+        let x2s = self
+            .bn1
+            .forward_act(&self.conv1.forward(x)?, train, Act::Relu)?;
+        let mut y = max_pool_3x3_s2_p1(&x2s)?;
+        let mut outs = Vec::with_capacity(4);
+        for layer in &self.layers {
+            for block in layer {
+                y = block.forward_t(&y, train)?;
+            }
+            outs.push(y.clone());
+        }
+        let outs: [Tensor; 4] = outs.try_into().expect("4 stages");
+        Ok((x2s, outs))
+    }
+}
+
 /// The encoder's outputs (all `B x C x h x w`).
 #[derive(Debug, Clone)]
 pub struct EncoderFeatures {
@@ -168,9 +217,7 @@ impl PerspNetOutput {
 #[derive(Debug, Clone)]
 pub struct PerspNet {
     cfg: PerspNetConfig,
-    conv1: Conv2d,
-    bn1: BatchNorm2d,
-    layers: Vec<Vec<BasicBlock>>,
+    trunk: ResNetTrunk,
     fc: ConvBn,
     dec_2d: Vec<ConvBn>,
     final_2d: ConvBn,
@@ -209,18 +256,7 @@ impl PerspNet {
 
         let cnn = vb.pp("cnn");
         let rn = cnn.pp("resnet18_8s");
-        let conv1 = Conv2d::new(rn.pp("conv1"), 3, w0, 7, 2, 3, false, s)?;
-        let bn1 = BatchNorm2d::new(rn.pp("bn1"), w0, s, e, m)?;
-        let mut layers = Vec::new();
-        let mut c_in = w0;
-        for (i, &w) in cfg.encoder_widths.iter().enumerate() {
-            let stride = if i == 0 { 1 } else { 2 };
-            let lv = rn.pp(format!("layer{}", i + 1));
-            let b0 = BasicBlock::new(lv.pp("0"), c_in, w, stride, cfg)?;
-            let b1 = BasicBlock::new(lv.pp("1"), w, w, 1, cfg)?;
-            layers.push(vec![b0, b1]);
-            c_in = w;
-        }
+        let trunk = ResNetTrunk::new(rn.clone(), cfg)?;
         let fc = ConvBn::new(rn.pp("fc"), w3, cfg.fc_channels, 3, 1, Act::Relu, s, e, m)?;
 
         let cb = |name: &str, ci: usize, co: usize| {
@@ -267,9 +303,7 @@ impl PerspNet {
         Ok(Self {
             dropout_rng: std::sync::Arc::new(std::sync::Mutex::new(arkit_data::rng::Rng::new(0))),
             cfg: cfg.clone(),
-            conv1,
-            bn1,
-            layers,
+            trunk,
             fc,
             dec_2d,
             final_2d,
@@ -292,25 +326,8 @@ impl PerspNet {
 
     /// Runs the encoder on a normalised `B x 3 x H x W` image.
     pub fn encode(&self, x: &Tensor, train: bool) -> Result<EncoderFeatures> {
-        let x2s = self
-            .bn1
-            .forward_act(&self.conv1.forward(x)?, train, Act::Relu)?;
-        let mut y = max_pool_3x3_s2_p1(&x2s)?;
-        let mut outs = Vec::with_capacity(4);
-        for layer in &self.layers {
-            for block in layer {
-                y = block.forward_t(&y, train)?;
-            }
-            outs.push(y.clone());
-        }
-        let fc = self.fc.forward_t(&y, train)?;
-        let mut it = outs.into_iter();
-        let (x4s, x8s, x16s, x32s) = (
-            it.next().expect("4 stages"),
-            it.next().expect("4 stages"),
-            it.next().expect("4 stages"),
-            it.next().expect("4 stages"),
-        );
+        let (x2s, [x4s, x8s, x16s, x32s]) = self.trunk.forward(x, train)?;
+        let fc = self.fc.forward_t(&x32s, train)?;
         Ok(EncoderFeatures {
             x2s,
             x4s,

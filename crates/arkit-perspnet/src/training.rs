@@ -13,14 +13,16 @@
 //! trained), `model.safetensors` (the weights, batch-norm statistics included) and
 //! `loss.csv` (one row per step). Files are written atomically.
 
-use crate::layers::{IMAGENET_MEAN, IMAGENET_STD};
-use crate::loss::PerspNetLoss;
-use crate::model::named_trainable_vars;
-use crate::{Adam, CorrTarget, LossTargets, LossWeights, PerspNet, PerspNetConfig};
 use arkit_data::conventions::Pose;
 use arkit_data::dataset::Dataset;
 use arkit_data::error::{Error, Result};
 use arkit_data::eval_dataset::SplitLookup;
+use crate::layers::{IMAGENET_MEAN, IMAGENET_STD};
+use crate::loss::PerspNetLoss;
+use crate::model::named_trainable_vars;
+use crate::{
+    Adam, Architecture, CorrTarget, DirectNet, LossTargets, LossWeights, PerspNet, PerspNetConfig,
+};
 use arkit_data::render::CropTransform;
 use arkit_data::rng::Rng;
 use arkit_data::samples_table::SampleRecord;
@@ -94,6 +96,9 @@ pub struct View {
     pub ids: Vec<u32>,
     /// `M x 3` barycentric weights.
     pub weights: Vec<f32>,
+    /// How far the crop was shifted, pixels `(dx, dy)` (the direct model's
+    /// translation target moves with it).
+    pub shift: (i64, i64),
 }
 
 /// Training-time augmentation, drawn per example and step from the run's seed.
@@ -201,6 +206,7 @@ impl Example {
             nocs: Vec::with_capacity(3 * points.len()),
             ids: Vec::with_capacity(3 * points.len()),
             weights: Vec::with_capacity(3 * points.len()),
+            shift: (dx, dy),
         };
         for &i in points {
             let i = i as usize;
@@ -563,6 +569,9 @@ pub struct Batch {
     pub mask: Tensor,
     /// Barycentric targets.
     pub corr: CorrTarget,
+    /// The direct model's `B x 12` targets ([`crate::direct::direct_target`]),
+    /// for that architecture only.
+    pub direct: Option<Tensor>,
 }
 
 /// Stacks examples' views into a batch (`views[i]` is a view of `examples[i]`).
@@ -602,7 +611,22 @@ pub fn batch(
             format!("each of the {b} views needs {m} points"),
         ));
     }
+    let direct = match cfg.architecture {
+        Architecture::PerspNet => None,
+        Architecture::Direct => {
+            let mut d = Vec::with_capacity(12 * b);
+            for (e, w) in examples.iter().zip(views) {
+                let pose = Pose::from_release_rt(&e.sample.rt)?;
+                let k = arkit_data::predict::intrinsics(e.sample.image_width, e.sample.image_height);
+                d.extend(crate::direct::direct_target(
+                    &pose, &e.crop, &k, w.shift,
+                ));
+            }
+            Some(t(d, &[b, 12])?)
+        }
+    };
     Ok(Batch {
+        direct,
         image: t(cat_f(&|e| &e.image), &[b, 3, s, s])?,
         choose: Tensor::from_vec(cat_u(&|e| &e.choose), (b, m), device)
             .map_err(|e| candle_err("batch", e))?,
@@ -634,6 +658,43 @@ pub fn vertex_uv(topology: &FaceTopology, device: &Device) -> Result<Tensor> {
     let v = topology.vertex_count;
     let flat: Vec<f32> = topology.uv[..v].iter().flat_map(|t| [t[0], t[1]]).collect();
     Tensor::from_vec(flat, (v, 2), device).map_err(|e| candle_err("vertex UVs", e))
+}
+
+/// The network of a config: PerspNet or the direct baseline (its `architecture`).
+#[derive(Debug, Clone)]
+pub enum Network {
+    /// PerspNet (correspondences, then PnP).
+    PerspNet(Box<PerspNet>),
+    /// The paper's "Direct 6DoF Regress" baseline.
+    Direct(Box<DirectNet>),
+}
+
+impl Network {
+    /// Builds the network of `cfg` with fresh variables in `vb` (`vertex_uv`: see
+    /// [`PerspNet::new`]; the direct baseline does not use it).
+    pub fn new(
+        cfg: &PerspNetConfig,
+        vertex_uv: &Tensor,
+        vb: VarBuilder,
+    ) -> candle_core::Result<Self> {
+        Ok(match cfg.architecture {
+            Architecture::PerspNet => {
+                Network::PerspNet(Box::new(PerspNet::new(cfg, vertex_uv, vb)?))
+            }
+            Architecture::Direct => Network::Direct(Box::new(DirectNet::new(cfg, vb)?)),
+        })
+    }
+
+    /// The PerspNet, or an error naming what needs one.
+    pub fn perspnet(&self, what: &str) -> Result<&PerspNet> {
+        match self {
+            Network::PerspNet(n) => Ok(n),
+            Network::Direct(_) => Err(Error::invalid(
+                what,
+                "needs a PerspNet; this model is the direct baseline (no correspondences, mask or mesh)",
+            )),
+        }
+    }
 }
 
 /// How a checkpoint was made (`perspnet.json`).
@@ -852,7 +913,7 @@ pub fn train<S: ExampleShards + ?Sized>(
     let device = Device::Cpu;
     let varmap = VarMap::new();
     let vb = VarBuilder::from_varmap(&varmap, DType::F32, &device);
-    let net = PerspNet::new(cfg, &vertex_uv(topology, &device)?, vb)
+    let net = Network::new(cfg, &vertex_uv(topology, &device)?, vb)
         .map_err(|e| candle_err("network", e))?;
     reseed(&varmap, options.seed, cfg.init_std).map_err(|e| candle_err("initial weights", e))?;
     let epoch_steps = options.epochs * steps_per_epoch(examples, options.batch);
@@ -959,9 +1020,11 @@ pub fn train<S: ExampleShards + ?Sized>(
                         .map(|e| e.augmented_view(cfg.points, &options.augmentation, &mut aug_rng))
                         .collect();
                     let b = batch(&refs, &views, cfg, &device)?;
-                    net.seed_dropout(
-                        Rng::for_stream(options.seed, 2 << 40 | log.len() as u64).next_u64(),
-                    );
+                    if let Network::PerspNet(net) = &net {
+                        net.seed_dropout(
+                            Rng::for_stream(options.seed, 2 << 40 | log.len() as u64).next_u64(),
+                        );
+                    }
                     opt.learning_rate = learning_rate_at(
                         log.len(),
                         total_steps,
@@ -969,6 +1032,27 @@ pub fn train<S: ExampleShards + ?Sized>(
                         options.lr_hold,
                     );
                     let step = (|| -> candle_core::Result<StepLoss> {
+                        let net = match &net {
+                            Network::PerspNet(net) => net,
+                            Network::Direct(direct) => {
+                                let out = direct.forward(&b.image, true)?;
+                                let target = b.direct.as_ref().expect("direct targets");
+                                let (total, rot, trans) =
+                                    crate::direct::direct_loss(&out, target)?;
+                                opt.backward_step(&total)?;
+                                let v = |t: &Tensor| t.to_scalar::<f32>();
+                                return Ok(StepLoss {
+                                    step: log.len(),
+                                    epoch,
+                                    total: v(&total)?,
+                                    corr: v(&rot)?,
+                                    shape: v(&trans)?,
+                                    kl: 0.0,
+                                    entropy: 0.0,
+                                    seg: 0.0,
+                                });
+                            }
+                        };
                         let out = net.forward(&b.image, &b.choose, true)?;
                         let terms = loss.compute(
                             &out,
@@ -1173,7 +1257,11 @@ fn write_checkpoint(
     // perspnet.json last, so a folder whose json says N steps has both files of step N.
     save_renamed(&dir.join("model.safetensors"), &|p| varmap.save(p))?;
     save_renamed(&dir.join(ADAM_FILE), &|p| opt.save(p))?;
-    let mut csv = String::from("step,epoch,total,corr,shape,kl,entropy,seg\n");
+    // The direct model's two terms take the first two loss columns.
+    let mut csv = String::from(match c.config.architecture {
+        Architecture::PerspNet => "step,epoch,total,corr,shape,kl,entropy,seg\n",
+        Architecture::Direct => "step,epoch,total,rotation,translation,unused,unused,unused\n",
+    });
     for s in log {
         csv += &format!(
             "{},{},{},{},{},{},{},{}\n",
@@ -1197,6 +1285,12 @@ pub fn import_weights(
     output: &Path,
 ) -> Result<Checkpoint> {
     use crate::weights::{WeightError, WeightFile};
+    if config.architecture == Architecture::Direct {
+        return Err(Error::invalid(
+            "--config",
+            "the direct baseline is not the official network: its weights have no PyTorch counterpart to import",
+        ));
+    }
     let weights = WeightFile::open(file).map_err(|e| Error::format(file, e.to_string()))?;
     let device = Device::Cpu;
     let varmap = VarMap::new();
@@ -1248,17 +1342,22 @@ pub fn export_weights(model_dir: &Path, output: &Path) -> Result<usize> {
     let checkpoint: Checkpoint =
         serde_json::from_str(&text).map_err(|e| Error::format(&p, e.to_string()))?;
     let cfg = &checkpoint.config;
+    if cfg.architecture == Architecture::Direct {
+        return Err(Error::format(
+            &p,
+            "a direct-baseline model: the official network has no such head, so there is no state_dict to export",
+        ));
+    }
     let device = Device::Cpu;
-    let mut varmap = VarMap::new();
+    let varmap = VarMap::new();
     let vb = VarBuilder::from_varmap(&varmap, DType::F32, &device);
     // The vertex UV table is not a weight: any table of the right size builds the network.
     let uv = crate::model::synthetic_vertex_uv(cfg.vertices, &device)
         .map_err(|e| candle_err("network", e))?;
     PerspNet::new(cfg, &uv, vb).map_err(|e| candle_err("network", e))?;
     let w = model_dir.join("model.safetensors");
-    varmap
-        .load(&w)
-        .map_err(|e| Error::format(&w, e.to_string()))?;
+    let bytes = std::fs::read(&w).map_err(|e| Error::io(&w, e))?;
+    load_weights(&varmap, &bytes, &w)?;
     let entries = crate::weights::export_state_dict(&varmap, checkpoint.steps as i64)
         .map_err(|e| candle_err("export", e))?;
     let n = entries.len();
@@ -1330,7 +1429,7 @@ pub struct TrainedModel {
     /// How it was made.
     pub checkpoint: Checkpoint,
     /// The network.
-    pub net: PerspNet,
+    pub net: Network,
     /// Its variables.
     pub varmap: VarMap,
 }
@@ -1350,20 +1449,139 @@ pub fn load(dir: &Path, topology: &FaceTopology) -> Result<TrainedModel> {
             ),
         ));
     }
-    let device = Device::Cpu;
-    let mut varmap = VarMap::new();
-    let vb = VarBuilder::from_varmap(&varmap, DType::F32, &device);
-    let net = PerspNet::new(&checkpoint.config, &vertex_uv(topology, &device)?, vb)
-        .map_err(|e| candle_err("network", e))?;
     let w = dir.join("model.safetensors");
-    varmap
-        .load(&w)
-        .map_err(|e| Error::format(&w, e.to_string()))?;
+    let bytes = std::fs::read(&w).map_err(|e| Error::io(&w, e))?;
+    model_from_parts(checkpoint, &bytes, &w, topology)
+}
+
+/// Where the shipped model's folder is in the repository: a `tiny` PerspNet trained by
+/// `train` on synthetic data (docs/train.md, "The shipped model", has the commands and
+/// seed that made it), its weights stored as float16 (`half-model`).
+pub const SHIPPED_MODEL_DIR: &str = "models/tiny-synthetic";
+
+/// The shipped model's `perspnet.json` and weights, compiled into the binary so that
+/// `demo` needs no path to find them.
+const SHIPPED_JSON: &str = include_str!("../../../models/tiny-synthetic/perspnet.json");
+const SHIPPED_WEIGHTS: &[u8] = include_bytes!("../../../models/tiny-synthetic/model.safetensors");
+
+/// How the shipped model was made (its `perspnet.json`).
+pub fn shipped_checkpoint() -> Result<Checkpoint> {
+    let p = Path::new(SHIPPED_MODEL_DIR).join("perspnet.json");
+    serde_json::from_str(SHIPPED_JSON).map_err(|e| Error::format(&p, e.to_string()))
+}
+
+/// The shipped model ([`SHIPPED_MODEL_DIR`]), from the copy compiled into the binary;
+/// it was trained on the built-in face's topology, and another `topology` is refused
+/// as [`load`] refuses it.
+pub fn shipped_model(topology: &FaceTopology) -> Result<TrainedModel> {
+    let dir = Path::new(SHIPPED_MODEL_DIR);
+    let checkpoint = shipped_checkpoint()?;
+    if checkpoint.topology != topology.source {
+        return Err(Error::invalid(
+            "--resources",
+            format!(
+                "the shipped model was trained with the topology '{}', not '{}'",
+                checkpoint.topology, topology.source
+            ),
+        ));
+    }
+    model_from_parts(
+        checkpoint,
+        SHIPPED_WEIGHTS,
+        &dir.join("model.safetensors"),
+        topology,
+    )
+}
+
+/// The network of `checkpoint` with the weights of the safetensors `bytes` (read from
+/// `file`, named in errors), float32 or float16 ([`load_weights`]).
+fn model_from_parts(
+    checkpoint: Checkpoint,
+    bytes: &[u8],
+    file: &Path,
+    topology: &FaceTopology,
+) -> Result<TrainedModel> {
+    let device = Device::Cpu;
+    let varmap = VarMap::new();
+    let vb = VarBuilder::from_varmap(&varmap, DType::F32, &device);
+    let net = Network::new(&checkpoint.config, &vertex_uv(topology, &device)?, vb)
+        .map_err(|e| candle_err("network", e))?;
+    load_weights(&varmap, bytes, file)?;
     Ok(TrainedModel {
         checkpoint,
         net,
         varmap,
     })
+}
+
+/// Sets every variable of `varmap` from the safetensors file `bytes` (read from `file`,
+/// which errors name), matched by name and shape and converted to float32: a model
+/// folder may hold float32 weights (`train`) or float16 ones ([`write_half_model`]).
+/// A missing, misshapen or extra tensor is an error that names it.
+pub fn load_weights(varmap: &VarMap, bytes: &[u8], file: &Path) -> Result<()> {
+    let tensors = candle_core::safetensors::load_buffer(bytes, &Device::Cpu)
+        .map_err(|e| Error::format(file, e.to_string()))?;
+    let data = varmap.data().lock().expect("varmap lock");
+    let mut names: Vec<&String> = data.keys().collect();
+    names.sort();
+    for name in names {
+        let var = &data[name];
+        let t = tensors
+            .get(name)
+            .ok_or_else(|| Error::format(file, format!("no tensor {name}")))?;
+        if t.dims() != var.dims() {
+            return Err(Error::format(
+                file,
+                format!("{name} is {:?}, the network has {:?}", t.dims(), var.dims()),
+            ));
+        }
+        let t = t
+            .to_dtype(DType::F32)
+            .map_err(|e| Error::format(file, format!("{name}: {e}")))?;
+        var.set(&t)
+            .map_err(|e| Error::format(file, format!("{name}: {e}")))?;
+    }
+    let mut extra: Vec<&String> = tensors.keys().filter(|k| !data.contains_key(*k)).collect();
+    if !extra.is_empty() {
+        extra.sort();
+        return Err(Error::format(
+            file,
+            format!("tensors the network does not have: {extra:?}"),
+        ));
+    }
+    Ok(())
+}
+
+/// Copies the model folder `model_dir` (`perspnet.json`, `model.safetensors` and
+/// `loss.csv` when there is one) to `output` with its weights stored as float16: half
+/// the bytes, read back as float32 by [`load`] (each weight then differs from the
+/// original by at most its float16 rounding, a relative 2^-11). Returns the bytes of
+/// the weights file written.
+pub fn write_half_model(model_dir: &Path, output: &Path) -> Result<u64> {
+    let p = model_dir.join("perspnet.json");
+    let json = std::fs::read_to_string(&p).map_err(|e| Error::io(&p, e))?;
+    serde_json::from_str::<Checkpoint>(&json).map_err(|e| Error::format(&p, e.to_string()))?;
+    let w = model_dir.join("model.safetensors");
+    let bytes = std::fs::read(&w).map_err(|e| Error::io(&w, e))?;
+    let tensors = candle_core::safetensors::load_buffer(&bytes, &Device::Cpu)
+        .map_err(|e| Error::format(&w, e.to_string()))?;
+    let half = tensors
+        .into_iter()
+        .map(|(k, t)| Ok((k, t.to_dtype(DType::F16)?)))
+        .collect::<candle_core::Result<HashMap<String, Tensor>>>()
+        .map_err(|e| Error::format(&w, e.to_string()))?;
+    std::fs::create_dir_all(output).map_err(|e| Error::io(output, e))?;
+    let out = output.join("model.safetensors");
+    save_renamed(&out, &|p| candle_core::safetensors::save(&half, p))?;
+    let csv = model_dir.join("loss.csv");
+    if csv.exists() {
+        let text = std::fs::read(&csv).map_err(|e| Error::io(&csv, e))?;
+        arkit_data::atomic_file::write_bytes(&output.join("loss.csv"), &text)?;
+    }
+    arkit_data::atomic_file::write_bytes(&output.join("perspnet.json"), json.as_bytes())?;
+    std::fs::metadata(&out)
+        .map(|m| m.len())
+        .map_err(|e| Error::io(&out, e))
 }
 
 /// What the network predicts for one crop.
@@ -1422,9 +1640,10 @@ pub fn predict_crop_raw(
     let cfg = &model.checkpoint.config;
     let s = cfg.input_size;
     let device = Device::Cpu;
+    let net = model.net.perspnet("predicting correspondences")?;
     let run = || -> candle_core::Result<(NetworkPrediction, Option<RawOutputs>)> {
         let img = Tensor::from_slice(input, (1, 3, s, s), &device)?;
-        let dense = model.net.forward_dense(&img, false)?;
+        let dense = net.forward_dense(&img, false)?;
         let logits = dense.seg_logits.squeeze(0)?; // 2 x S x S
         let face = logits
             .get(1)?
@@ -1442,7 +1661,7 @@ pub fn predict_crop_raw(
         let picks = arkit_data::render::sample_points(candidates.len(), cfg.points, seed);
         let pixels: Vec<u32> = picks.iter().map(|&k| candidates[k as usize]).collect();
         let choose = Tensor::from_slice(&pixels, (1, cfg.points), &device)?;
-        let out = model.net.forward(&img, &choose, false)?;
+        let out = net.forward(&img, &choose, false)?;
         let corr = out
             .correspondences()?
             .affine(1.0 / crate::model::UV_SCALE, 0.0)?
@@ -1474,6 +1693,26 @@ pub fn predict_crop_raw(
         ))
     };
     run().map_err(|e| candle_err("network forward", e))
+}
+
+/// The direct baseline's pose for one crop (`3 x S x S` normalised) cut by `crop` from
+/// an image of `width` x `height`, or `None` when its output is not a pose in front of
+/// the camera ([`crate::direct::pose_from_output`]).
+pub fn direct_pose(
+    net: &DirectNet,
+    input: &[f32],
+    crop: &CropTransform,
+    width: u32,
+    height: u32,
+) -> Result<Option<Pose>> {
+    let s = net.config().input_size;
+    let out = (|| -> candle_core::Result<Vec<f32>> {
+        let img = Tensor::from_slice(input, (1, 3, s, s), &Device::Cpu)?;
+        net.forward(&img, false)?.flatten_all()?.to_vec1::<f32>()
+    })()
+    .map_err(|e| candle_err("network forward", e))?;
+    let k = arkit_data::predict::intrinsics(width, height);
+    Ok(crate::direct::pose_from_output(&out, crop, &k))
 }
 
 /// The pose of a sample predicted from the network's correspondences (crop pixels
@@ -1518,7 +1757,8 @@ pub struct ModelPredictSummary {
 /// Runs a trained network over the samples of `split` (`None`: all): the crop box of
 /// `crop_rule` from the sample's landmarks (as the official evaluation does), the
 /// network, our PnP; the predictions carry `R_t`, the predicted mesh and the predicted
-/// crop mask. With `true_masks` (a folder with `render`'s targets at the network's
+/// crop mask (the direct baseline's carry its regressed `R_t` only: no PnP, mesh or
+/// mask, so `eval` prints `-` for those scores). With `true_masks` (a folder with `render`'s targets at the network's
 /// input size), the points are sampled from the true face mask instead of the
 /// predicted one, which separates segmentation errors from correspondence errors; the
 /// crop is then the targets' own.
@@ -1558,6 +1798,17 @@ pub fn model_predictions_dump(
     Vec<arkit_data::predictions_table::PredictionRecord>,
     ModelPredictSummary,
 )> {
+    if let Network::Direct(_) = &model.net {
+        if true_masks.is_some() {
+            return Err(Error::invalid(
+                "--mask truth",
+                "chooses the pixels of a PerspNet's correspondences; the direct baseline has none",
+            ));
+        }
+        if dump.is_some() {
+            model.net.perspnet("--dump")?;
+        }
+    }
     let data = Dataset::open(dataset)?;
     let splits = SplitLookup::read(dataset)?;
     let size = model.checkpoint.config.input_size as u32;
@@ -1620,6 +1871,19 @@ pub fn model_predictions_dump(
                 }
             };
             let input = network_input(&image, &crop);
+            if let Network::Direct(net) = &model.net {
+                let pose = direct_pose(net, &input, &crop, r.image_width, r.image_height)?;
+                summary.samples += 1;
+                summary.failures += pose.is_none() as usize;
+                out.push(arkit_data::predictions_table::PredictionRecord {
+                    key: r.key.clone(),
+                    rt: pose.map(|p| p.to_release_rt()),
+                    verts: None,
+                    mask_rle: None,
+                });
+                progress(1);
+                continue;
+            }
             let (p, raw) = predict_crop_raw(
                 model,
                 &input,
