@@ -13,16 +13,16 @@
 //! trained), `model.safetensors` (the weights, batch-norm statistics included) and
 //! `loss.csv` (one row per step). Files are written atomically.
 
-use arkit_data::conventions::Pose;
-use arkit_data::dataset::Dataset;
-use arkit_data::error::{Error, Result};
-use arkit_data::eval_dataset::SplitLookup;
 use crate::layers::{IMAGENET_MEAN, IMAGENET_STD};
 use crate::loss::PerspNetLoss;
 use crate::model::named_trainable_vars;
 use crate::{
     Adam, Architecture, CorrTarget, DirectNet, LossTargets, LossWeights, PerspNet, PerspNetConfig,
 };
+use arkit_data::conventions::Pose;
+use arkit_data::dataset::Dataset;
+use arkit_data::error::{Error, Result};
+use arkit_data::eval_dataset::SplitLookup;
 use arkit_data::render::CropTransform;
 use arkit_data::rng::Rng;
 use arkit_data::samples_table::SampleRecord;
@@ -617,10 +617,9 @@ pub fn batch(
             let mut d = Vec::with_capacity(12 * b);
             for (e, w) in examples.iter().zip(views) {
                 let pose = Pose::from_release_rt(&e.sample.rt)?;
-                let k = arkit_data::predict::intrinsics(e.sample.image_width, e.sample.image_height);
-                d.extend(crate::direct::direct_target(
-                    &pose, &e.crop, &k, w.shift,
-                ));
+                let k =
+                    arkit_data::predict::intrinsics(e.sample.image_width, e.sample.image_height);
+                d.extend(crate::direct::direct_target(&pose, &e.crop, &k, w.shift));
             }
             Some(t(d, &[b, 12])?)
         }
@@ -1037,8 +1036,7 @@ pub fn train<S: ExampleShards + ?Sized>(
                             Network::Direct(direct) => {
                                 let out = direct.forward(&b.image, true)?;
                                 let target = b.direct.as_ref().expect("direct targets");
-                                let (total, rot, trans) =
-                                    crate::direct::direct_loss(&out, target)?;
+                                let (total, rot, trans) = crate::direct::direct_loss(&out, target)?;
                                 opt.backward_step(&total)?;
                                 let v = |t: &Tensor| t.to_scalar::<f32>();
                                 return Ok(StepLoss {
