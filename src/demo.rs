@@ -407,31 +407,26 @@ pub fn run_demo(
     );
 
     clock.start("predict");
-    let model = training::load(&model_dir, topology)?;
-    let (rows, predicted) = training::model_predictions(
-        &dataset,
-        &model,
-        Some("test"),
-        crate::render::CropRule::Ours,
-        None,
-        plan.seed,
-        &RansacParams::default(),
-        &tick,
-    )?;
-    write_predictions(&output.join("predictions.parquet"), &rows)?;
-    let shipped_checkpoint = training::shipped_checkpoint()?;
-    let shipped_rows = if shipped_checkpoint.topology == topology.source {
-        let shipped = training::shipped_model(topology)?;
-        let (shipped_rows, _) = training::model_predictions(
+    // The test split through a network and PnP, as `predict --model` does.
+    let predict_test = |model| {
+        training::model_predictions(
             &dataset,
-            &shipped,
+            model,
             Some("test"),
             crate::render::CropRule::Ours,
             None,
             plan.seed,
             &RansacParams::default(),
             &tick,
-        )?;
+        )
+    };
+    let model = training::load(&model_dir, topology)?;
+    let (rows, predicted) = predict_test(&model)?;
+    write_predictions(&output.join("predictions.parquet"), &rows)?;
+    let shipped_checkpoint = training::shipped_checkpoint()?;
+    let shipped_rows = if shipped_checkpoint.topology == topology.source {
+        let shipped = training::shipped_model(topology)?;
+        let (shipped_rows, _) = predict_test(&shipped)?;
         write_predictions(&output.join("shipped.parquet"), &shipped_rows)?;
         Some(shipped_rows)
     } else {
