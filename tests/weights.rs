@@ -15,6 +15,31 @@ fn tool() -> Command {
     Command::new(env!("CARGO_BIN_EXE_arkit-tool"))
 }
 
+/// Runs `cmd` and asserts that it succeeded, showing its stderr otherwise.
+fn run_ok(cmd: &mut Command) {
+    let out = cmd.output().unwrap();
+    assert!(
+        out.status.success(),
+        "{cmd:?}: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+}
+
+/// `import-weights FILE --config tiny --output MODEL`, then checks that the model folder
+/// holds `vm`'s weights and records `steps`.
+fn import_tiny(file: &Path, model: &Path, vm: &VarMap, steps: u64) {
+    run_ok(
+        tool()
+            .args(["import-weights", file.to_str().unwrap(), "--config", "tiny"])
+            .args(["--output", model.to_str().unwrap()]),
+    );
+    same_weights(model, vm);
+    let c: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(model.join("perspnet.json")).unwrap())
+            .unwrap();
+    assert_eq!(c["steps"], steps);
+}
+
 /// A tiny network with seeded weights and batch-norm statistics that are not the
 /// defaults (so the buffers are carried, not re-created).
 fn random_varmap(cfg: &PerspNetConfig, seed: u64) -> VarMap {
@@ -102,36 +127,12 @@ fn export_import_export_is_bit_exact() {
     assert_eq!(entries.len(), state_dict_entries(&vm).len());
     save(&entries, &first);
     let model = dir.path().join("model");
-    let out = tool()
-        .args([
-            "import-weights",
-            first.to_str().unwrap(),
-            "--config",
-            "tiny",
-        ])
-        .args(["--output", model.to_str().unwrap()])
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    same_weights(&model, &vm);
-    let c: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(model.join("perspnet.json")).unwrap())
-            .unwrap();
-    assert_eq!(c["steps"], 1234);
+    import_tiny(&first, &model, &vm, 1234);
     let second = dir.path().join("second.safetensors");
-    let out = tool()
-        .args(["export-weights", model.to_str().unwrap(), "--output"])
-        .arg(&second)
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
+    run_ok(
+        tool()
+            .args(["export-weights", model.to_str().unwrap(), "--output"])
+            .arg(&second),
     );
     same_files(&first, &second);
     // The imported folder predicts like any other: it loads as a trained model.
@@ -228,33 +229,8 @@ fn a_torch_saved_state_dict_imports() {
     let pth = dir.path().join("w.pth");
     let script =
         Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/python/torch_save_state_dict.py");
-    let out = Command::new(&python)
-        .arg(&script)
-        .arg(&st)
-        .arg(&pth)
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let model = dir.path().join("model");
-    let out = tool()
-        .args(["import-weights", pth.to_str().unwrap(), "--config", "tiny"])
-        .args(["--output", model.to_str().unwrap()])
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    same_weights(&model, &vm);
-    let c: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(model.join("perspnet.json")).unwrap())
-            .unwrap();
-    assert_eq!(c["steps"], 42);
+    run_ok(Command::new(&python).arg(&script).arg(&st).arg(&pth));
+    import_tiny(&pth, &dir.path().join("model"), &vm, 42);
 }
 
 /// `predict --dump`: every predicted sample's inputs and raw outputs, consistent with
@@ -264,14 +240,7 @@ fn a_torch_saved_state_dict_imports() {
 fn predict_dump_holds_inputs_and_outputs() {
     let dir = tempfile::tempdir().unwrap();
     let p = |n: &str| dir.path().join(n).to_str().unwrap().to_string();
-    let ok = |args: &[&str]| {
-        let out = tool().args(args).output().unwrap();
-        assert!(
-            out.status.success(),
-            "{args:?}: {}",
-            String::from_utf8_lossy(&out.stderr)
-        );
-    };
+    let ok = |args: &[&str]| run_ok(tool().args(args));
     let cfg = PerspNetConfig::tiny();
     let vm = random_varmap(&cfg, 5);
     let w = dir.path().join("w.safetensors");
@@ -409,12 +378,7 @@ fn half_model_loads_within_float16_rounding() {
             half.to_str().unwrap(),
         ],
     ] {
-        let out = tool().args(&args).output().unwrap();
-        assert!(
-            out.status.success(),
-            "{args:?}: {}",
-            String::from_utf8_lossy(&out.stderr)
-        );
+        run_ok(tool().args(&args));
     }
     let size = |d: &Path| {
         std::fs::metadata(d.join("model.safetensors"))
