@@ -4,13 +4,13 @@
 
 #![allow(clippy::needless_range_loop)] // index loops over x, y, z read plainest here
 
+mod support;
+
 use arkit_tool::conventions::Camera;
-use arkit_tool::convert::{self, ConvertOptions, ValidationContext};
 use arkit_tool::loader::{Compat, FaceLoader, LoaderMode, LoaderOptions};
 use arkit_tool::official_crop;
 use arkit_tool::render::{CropTransform, FaceRenderer, RasterMode};
 use arkit_tool::render_dataset::{self, RenderOptions};
-use arkit_tool::synth::{self, FaceSource, SynthOptions};
 use arkit_tool::{Pose, targets_table};
 use nalgebra::Point3;
 use std::collections::HashMap;
@@ -21,32 +21,7 @@ const S: u32 = 192;
 /// Synthetic release in `release`, converted into `dir` (images not embedded, so the
 /// loader reads the release's files as the official loader does).
 fn converted(release: &Path, dir: &Path) {
-    let options = SynthOptions {
-        subjects: 3,
-        images_per_subject: 3,
-        width: 400,
-        height: 400,
-        seed: 23,
-        ..SynthOptions::default()
-    };
-    synth::generate(&FaceSource::builtin(), &options, release, &|| {}).unwrap();
-    let topology = arkit_tool::synthetic_face::builtin().topology.clone();
-    let ctx = ValidationContext {
-        projection: Camera::release_projection(),
-        topology,
-        embed_images: false,
-    };
-    let copts = ConvertOptions {
-        input: release.to_path_buf(),
-        output: dir.to_path_buf(),
-        resources: None,
-        rows_per_shard: 4,
-        embed_images: false,
-        shard_index: 0,
-        shard_count: 1,
-        overwrite: false,
-    };
-    convert::convert(&copts, &ctx, &|_| {}).unwrap();
+    support::converted::converted_synthetic(release, dir, 3, 3, 400, 23);
 }
 
 fn loader(dir: &Path, mode: LoaderMode, compat: Compat, n_pts: usize) -> FaceLoader {

@@ -6,8 +6,10 @@ the JPEG-decode floor, printed as `ratio:` lines against the official loader.
 Makes an 800x800 synthetic dataset with the arkit-tool binary (the real topology when
 the resource files are there), then, in one process on one core (torch threads 1,
 num_workers 0), times: decoding the dataset's JPEGs with Pillow (libjpeg-turbo: the floor
-of any loader that decodes the full image), and the DataLoader over the dataset (batch
-64, 1,024 points) for compat exact and official, dense and sparse correspondences. The
+of any loader that decodes the full image), `arkit-tool crops` (the crop store, made
+once), and the DataLoader over the dataset (batch 64, 1,024 points) for compat exact and
+official, from the crop store with sparse and dense correspondences, and from the JPEGs
+with sparse ones. The
 official `ARKitDataset.get_item` costs 19-31 ms a sample on this kind of machine
 (../shared/measurements.md, measured side by side on 2026-12-01); the ratios use 19 ms
 (its fastest, test mode) and 31 ms (train mode with colour jitter).
@@ -60,10 +62,19 @@ def main():
     floor_ms = (time.perf_counter() - t) / len(paths) * 1e3
     print(f"JPEG decode (Pillow): {floor_ms:.2f} ms a sample")
 
+    t = time.perf_counter()
+    for compat in ["exact", "official"]:
+        subprocess.run([a.bin, "crops", "--dataset", data, "--compat", compat, *res],
+                       check=True, stdout=subprocess.DEVNULL)
+    store_ms = (time.perf_counter() - t) / len(paths) / 2 * 1e3
+    print(f"arkit-tool crops: {store_ms:.2f} ms a sample (once, all cores)")
+
     for mode in ["eval", "train"]:
         for compat in ["exact", "official"]:
-            for corr in ["dense", "sparse"]:
-                ds = arkit_tool.ARKitFaceDataset(data, split=None, mode=mode, compat=compat, corr=corr)
+            for source, corr in [("store", "sparse"), ("store", "dense"), ("jpeg", "sparse")]:
+                ds = arkit_tool.ARKitFaceDataset(data, split=None, mode=mode, compat=compat, corr=corr,
+                                                 crop_store="auto" if source == "store" else None)
+                assert (ds.crop_store is not None) == (source == "store")
                 loader = torch.utils.data.DataLoader(ds, batch_size=64, shuffle=True, num_workers=0)
                 next(iter(loader))  # warm
                 t = time.perf_counter()
@@ -71,7 +82,7 @@ def main():
                 for batch in loader:
                     n += batch["img"].shape[0]
                 ms = (time.perf_counter() - t) / n * 1e3
-                name = f"{mode}/{compat}/{corr}"
+                name = f"{mode}/{compat}/{corr}/{source}"
                 print(f"{name}: {ms:.2f} ms a sample, {1e3 / ms:.0f} samples/s/core")
                 print(f"ratio: official get_item {OFFICIAL_MS[mode]:.0f} ms / arkit_tool {name} = "
                       f"{OFFICIAL_MS[mode] / ms:.1f}x")

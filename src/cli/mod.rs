@@ -3,6 +3,7 @@
 
 mod augment;
 mod convert;
+mod crops;
 #[cfg(feature = "model")]
 mod demo;
 mod eval;
@@ -47,6 +48,7 @@ enum Command {
     Split(split::SplitArgs),
     Inspect(inspect::InspectArgs),
     Render(render::RenderArgs),
+    Crops(crops::CropsArgs),
     #[cfg(feature = "model")]
     Train(train::TrainArgs),
     #[cfg(feature = "model")]
@@ -74,6 +76,7 @@ pub fn run(cli: Cli) -> Result<ExitCode> {
         Command::Split(a) => split::run(a),
         Command::Inspect(a) => inspect::run(a),
         Command::Render(a) => render::run(a),
+        Command::Crops(a) => crops::run(a),
         #[cfg(feature = "model")]
         Command::Train(a) => train::run(a),
         #[cfg(feature = "model")]

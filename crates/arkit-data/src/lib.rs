@@ -34,7 +34,9 @@
 //! - [`atomic_file`]: writes that never leave a half-written file.
 //! - [`manifest`]: `dataset.json` and the checks of shards and topology it carries;
 //!   [`dataset`]: a converted dataset opened once: manifest, checked shards, images;
-//!   [`loader`]: one sample as the official PyTorch loader returns it, on the fly.
+//!   [`loader`]: one sample as the official PyTorch loader returns it, on the fly;
+//!   [`crop_store`]: each sample's crop pixels and mesh stored once for the loader;
+//!   [`crops_dataset`]: the store of a whole dataset.
 //! - [`limits`]: every bound on what the readers accept (re-exported from `arkit_core`);
 //!   [`target_codec`]: the byte codecs of the `targets` blobs.
 
@@ -46,6 +48,8 @@ pub mod augment_dataset;
 pub mod biwi;
 pub mod convert;
 pub mod crop;
+pub mod crop_store;
+pub mod crops_dataset;
 pub mod dataset;
 pub mod eval;
 pub mod eval_dataset;

@@ -45,8 +45,9 @@
 
 use crate::conventions::{Camera, Pose};
 use crate::crop::official::{
-    LandmarkExtent, affine_transform, box_crop, official_box, warp_affine, warp_mask_of,
+    LandmarkExtent, affine_transform, box_crop, official_box, warp_mask_of,
 };
+use crate::crop_store::{CropStore, StoredCrop};
 use crate::dataset::Dataset;
 use crate::error::{Error, Result};
 use crate::raster::{ScreenVertex, VisibilityBuffer};
@@ -79,6 +80,14 @@ impl Compat {
                 "compat",
                 format!("'{s}': expected 'exact' or 'official'"),
             )),
+        }
+    }
+
+    /// `"exact"` or `"official"`.
+    pub fn name(self) -> &'static str {
+        match self {
+            Compat::Exact => "exact",
+            Compat::Official => "official",
         }
     }
 }
@@ -204,6 +213,38 @@ struct IndexRow {
     split: String,
     /// The sample's `_info.npz`.
     info_path: PathBuf,
+    /// Its samples shard and row there (its record in a crop store).
+    location: (usize, usize),
+}
+
+/// Where an item's crop pixels come from.
+enum PixelSource {
+    /// The decoded full-resolution image.
+    Image(image::RgbImage),
+    /// A crop store's window around the evaluation crop.
+    Stored(StoredCrop),
+}
+
+impl PixelSource {
+    /// The pixels of `crop` (interleaved RGB, `S x S`). From a store, an evaluation
+    /// crop must be the stored box (else the store does not belong to this loader).
+    fn crop(&self, crop: &CropTransform, train: bool, key: &SampleKey) -> Result<Vec<u8>> {
+        match self {
+            PixelSource::Image(image) => Ok(crop.crop_image(image).into_raw()),
+            PixelSource::Stored(stored) => {
+                if !train && *crop != stored.eval_crop {
+                    return Err(Error::invalid(
+                        "crop store",
+                        format!(
+                            "{key}: the stored box {:?} is not the evaluation box {crop:?} computed from its mesh: the store was made with other rules or another topology; run `arkit-tool crops` again",
+                            stored.eval_crop
+                        ),
+                    ));
+                }
+                Ok(stored.crop_pixels(crop))
+            }
+        }
+    }
 }
 
 /// The release's UV layout: `tris_2500x3_202110.npy` and the 1,279 rows of
@@ -416,21 +457,27 @@ impl ColourJitter {
     /// bytes as PIL does between operations. Brightness blends with black, contrast with
     /// the grey of the image's mean luma (ITU-R 601 integer luma, as PIL's `L`),
     /// saturation with each pixel's luma; the hue shift rotates the HSV hue.
+    ///
+    /// Brightness and contrast map each byte alone, so they go through a 256-entry
+    /// table of the same formula; every rounding is [`round_half_away`], `f32::round`'s
+    /// values without its library call.
     pub fn apply(&self, rgb: &mut [u8]) {
         let luma = |p: &[u8]| (p[0] as u32 * 299 + p[1] as u32 * 587 + p[2] as u32 * 114) / 1000;
-        let blend =
-            |v: f32, grey: f32, f: f32| (grey + f * (v - grey)).round().clamp(0.0, 255.0) as u8;
+        let blend = |v: f32, grey: f32, f: f32| {
+            round_half_away(grey + f * (v - grey)).clamp(0.0, 255.0) as u8
+        };
+        let through_table = |rgb: &mut [u8], grey: f32, f: f32| {
+            let table: [u8; 256] = std::array::from_fn(|v| blend(v as f32, grey, f));
+            rgb.iter_mut().for_each(|v| *v = table[*v as usize]);
+        };
         for op in self.order {
             match op {
-                0 => rgb
-                    .iter_mut()
-                    .for_each(|v| *v = blend(*v as f32, 0.0, self.brightness)),
+                0 => through_table(rgb, 0.0, self.brightness),
                 1 => {
                     let n = (rgb.len() / 3).max(1) as f64;
                     let mean = rgb.chunks_exact(3).map(|p| luma(p) as f64).sum::<f64>() / n;
                     let grey = (mean + 0.5).floor() as f32;
-                    rgb.iter_mut()
-                        .for_each(|v| *v = blend(*v as f32, grey, self.contrast));
+                    through_table(rgb, grey, self.contrast);
                 }
                 2 => rgb.chunks_exact_mut(3).for_each(|p| {
                     let grey = luma(p) as f32;
@@ -452,7 +499,36 @@ pub fn jitter_colour(rgb: &mut [u8], rng: &mut Rng) {
     ColourJitter::draw(rng).apply(rgb)
 }
 
-/// Rotates one pixel's HSV hue by `h` turns.
+/// `v.round()` (nearest, halves away from zero) for `|v| < 2^23`, by truncation and a
+/// comparison: `f32::round` is a library call in the x86-64 baseline, and was most of
+/// the colour jitter's time. `v - trunc(v)` is exact, so the halfway test is too.
+#[inline]
+fn round_half_away(v: f32) -> f32 {
+    let t = v as i32 as f32;
+    let f = v - t;
+    if f >= 0.5 {
+        t + 1.0
+    } else if f <= -0.5 {
+        t - 1.0
+    } else {
+        t.copysign(v)
+    }
+}
+
+/// `x.rem_euclid(m)` for `x` in `[-m, 2m)`: `x % m` is then `x` or `x - m`, both exact,
+/// and a negative remainder gets `m` added, as `rem_euclid` adds it.
+#[inline]
+fn wrap_once(x: f32, m: f32) -> f32 {
+    if x < 0.0 {
+        x + m
+    } else if x >= m {
+        x - m
+    } else {
+        x
+    }
+}
+
+/// Rotates one pixel's HSV hue by `h` turns (`|h| <= 0.5`).
 fn shift_hue(p: &mut [u8], h: f32) {
     let [r, g, b] = [p[0], p[1], p[2]].map(|v| v as f32 / 255.0);
     let max = r.max(g).max(b);
@@ -461,16 +537,18 @@ fn shift_hue(p: &mut [u8], h: f32) {
     if d == 0.0 {
         return;
     }
+    // (g - b) / d is in [-1, 1], the hue in [0, 1): one wrap each is rem_euclid.
     let mut hue = if max == r {
-        ((g - b) / d).rem_euclid(6.0)
+        wrap_once((g - b) / d, 6.0)
     } else if max == g {
         (b - r) / d + 2.0
     } else {
         (r - g) / d + 4.0
     } / 6.0;
-    hue = (hue + h).rem_euclid(1.0);
+    hue = wrap_once(hue + h, 1.0);
     let (sat, val) = (d / max, max);
-    let i = (hue * 6.0).floor();
+    // hue * 6 is in [0, 6): truncation is floor.
+    let i = (hue * 6.0) as i32 as f32;
     let f = hue * 6.0 - i;
     let (pp, q, t) = (
         val * (1.0 - sat),
@@ -486,7 +564,7 @@ fn shift_hue(p: &mut [u8], h: f32) {
         _ => (val, pp, q),
     };
     for (o, v) in p.iter_mut().zip([r, g, b]) {
-        *o = (v * 255.0).round().clamp(0.0, 255.0) as u8;
+        *o = round_half_away(v * 255.0).clamp(0.0, 255.0) as u8;
     }
 }
 
@@ -519,6 +597,8 @@ pub struct FaceLoader {
     options: LoaderOptions,
     /// Visibility buffers kept between items (an 800x800 buffer is 13 MB to allocate).
     buffers: std::sync::Mutex<Vec<VisibilityBuffer>>,
+    /// The crop store items read their pixels and meshes from, when opened.
+    store: Option<CropStore>,
 }
 
 impl FaceLoader {
@@ -542,7 +622,7 @@ impl FaceLoader {
         };
         let mut rows = Vec::new();
         for shard in dataset.shards() {
-            for mut r in dataset.read_samples(shard)? {
+            for (position, mut r) in dataset.read_samples(shard)?.into_iter().enumerate() {
                 let split = splits.of(&r);
                 if options.split.as_deref().is_some_and(|s| s != split) {
                     continue;
@@ -558,6 +638,7 @@ impl FaceLoader {
                     sample: r,
                     split,
                     info_path,
+                    location: (shard.index, position),
                 });
             }
         }
@@ -591,7 +672,111 @@ impl FaceLoader {
             official_uv,
             options,
             buffers: std::sync::Mutex::new(Vec::new()),
+            store: None,
         })
+    }
+
+    /// Where `crops` writes the store of a dataset for these options by default:
+    /// `DIR/crops/<compat>-<S>`.
+    pub fn default_crop_store(dir: &Path, compat: Compat, img_size: u32) -> PathBuf {
+        dir.join("crops")
+            .join(format!("{}-{img_size}", compat.name()))
+    }
+
+    /// Reads pixels and meshes from the crop store in `dir` from now on (checked
+    /// against this loader's dataset, rules, crop side and topology: see
+    /// [`CropStore::open`]).
+    pub fn open_crop_store(&mut self, dir: &Path) -> Result<()> {
+        self.store = Some(CropStore::open(
+            dir,
+            &self.dataset,
+            self.options.compat.name(),
+            self.options.img_size,
+            self.renderer.topology().vertex_count,
+        )?);
+        Ok(())
+    }
+
+    /// The crop store in use, if any.
+    pub fn crop_store(&self) -> Option<&CropStore> {
+        self.store.as_ref()
+    }
+
+    /// Vertices of the meshes served (the topology's).
+    pub fn mesh_vertex_count(&self) -> usize {
+        self.renderer.topology().vertex_count
+    }
+
+    /// The samples shard and row of sample `index`.
+    pub fn location(&self, index: usize) -> Option<(usize, usize)> {
+        self.rows.get(index).map(|r| r.location)
+    }
+
+    /// What a crop store keeps of sample `index` (read from the release, not from a
+    /// store): its mesh, its evaluation box and the crop window around it.
+    pub fn stored_crop(&self, index: usize) -> Result<StoredCrop> {
+        let row = self.row(index)?;
+        let verts = self.mesh(index)?;
+        let image = self.dataset.image(&row.sample)?;
+        let pose = Pose::from_release_rt(&row.sample.rt)?;
+        let landmarks = self.landmarks(row, &verts, &pose)?;
+        let eval_crop = self.eval_crop(row, &landmarks)?;
+        let s = self.options.img_size;
+        let first = -(crate::crop_store::margin(s) as i64);
+        Ok(StoredCrop {
+            eval_crop,
+            verts,
+            window: eval_crop.crop_window(&image, first, crate::crop_store::window_side(s)),
+        })
+    }
+
+    /// The 68 landmarks of `verts` at `pose` in image pixels.
+    fn landmarks(
+        &self,
+        row: &IndexRow,
+        verts: &[Point3<f32>],
+        pose: &Pose,
+    ) -> Result<Vec<(f64, f64)>> {
+        let camera = Camera::new(
+            self.camera_projection,
+            row.sample.image_width,
+            row.sample.image_height,
+        )?;
+        let points: Vec<Point3<f64>> = self
+            .renderer
+            .topology()
+            .landmarks
+            .iter()
+            .map(|&i| verts[i as usize].cast())
+            .collect();
+        Ok(camera
+            .project_all(pose, &points)
+            .iter()
+            .map(|p| (p.u, p.v))
+            .collect())
+    }
+
+    /// The evaluation crop of these landmarks under the loader's rules: ours, or the
+    /// official integer box (an error when that box is empty).
+    fn eval_crop(&self, row: &IndexRow, landmarks: &[(f64, f64)]) -> Result<CropTransform> {
+        let s = self.options.img_size;
+        match self.options.compat {
+            Compat::Exact => Ok(CropTransform::around_landmarks(
+                &flat_landmarks(landmarks),
+                s,
+            )),
+            Compat::Official => {
+                let [l, t, r, b] =
+                    official_box(LandmarkExtent::of(landmarks.iter().copied()), None);
+                if r <= l || b <= t {
+                    return Err(Error::invalid(
+                        "official box",
+                        format!("{}: the box {:?} is empty", row.sample.key, [l, t, r, b]),
+                    ));
+                }
+                Ok(box_crop(l, t, r, b, s))
+            }
+        }
     }
 
     /// Samples served.
@@ -669,8 +854,20 @@ impl FaceLoader {
     /// Sample `index` of epoch `epoch` (the epoch matters in training mode only).
     pub fn item(&self, index: usize, epoch: u64) -> Result<LoaderItem> {
         let row = self.row(index)?;
-        let verts = self.mesh(index)?;
-        let image = self.dataset.image(&row.sample)?;
+        let (verts, source) = match &self.store {
+            Some(store) => {
+                let (shard, r) = row.location;
+                let mut stored = store.read(shard, r)?;
+                (
+                    std::mem::take(&mut stored.verts),
+                    PixelSource::Stored(stored),
+                )
+            }
+            None => (
+                self.mesh(index)?,
+                PixelSource::Image(self.dataset.image(&row.sample)?),
+            ),
+        };
         let pose = Pose::from_release_rt(&row.sample.rt)?;
         let epoch = match self.options.mode {
             LoaderMode::Train => epoch,
@@ -678,28 +875,14 @@ impl FaceLoader {
         };
         let stream = (epoch << 40) ^ index as u64;
         let mut rng = Rng::for_stream(self.options.seed, stream);
-        let camera = Camera::new(
-            self.camera_projection,
-            row.sample.image_width,
-            row.sample.image_height,
-        )?;
-        let landmark_points: Vec<Point3<f64>> = self
-            .renderer
-            .topology()
-            .landmarks
-            .iter()
-            .map(|&i| verts[i as usize].cast())
-            .collect();
-        let landmarks: Vec<(f64, f64)> = camera
-            .project_all(&pose, &landmark_points)
-            .iter()
-            .map(|p| (p.u, p.v))
-            .collect();
+        let landmarks = self.landmarks(row, &verts, &pose)?;
         let train = self.options.mode == LoaderMode::Train;
         let mut item = match self.options.compat {
-            Compat::Exact => self.exact(row, &verts, &pose, &image, &landmarks, train, &mut rng)?,
+            Compat::Exact => {
+                self.exact(row, &verts, &pose, &source, &landmarks, train, &mut rng)?
+            }
             Compat::Official => {
-                self.official(row, &verts, &pose, &image, &landmarks, train, &mut rng)?
+                self.official(row, &verts, &pose, &source, &landmarks, train, &mut rng)?
             }
         };
         item.model = verts.iter().flat_map(|p| [p.x, p.y, p.z]).collect();
@@ -727,17 +910,13 @@ impl FaceLoader {
         row: &IndexRow,
         verts: &[Point3<f32>],
         pose: &Pose,
-        image: &image::RgbImage,
+        source: &PixelSource,
         landmarks: &[(f64, f64)],
         train: bool,
         rng: &mut Rng,
     ) -> Result<LoaderItem> {
         let s = self.options.img_size;
-        let flat: Vec<f32> = landmarks
-            .iter()
-            .flat_map(|&(u, v)| [u as f32, v as f32])
-            .collect();
-        let mut crop = CropTransform::around_landmarks(&flat, s);
+        let mut crop = CropTransform::around_landmarks(&flat_landmarks(landmarks), s);
         if train {
             // The landmarks' box size is 2/3 of the crop's side (half-side 0.75 size).
             let size = crop.side / 1.5;
@@ -774,7 +953,7 @@ impl FaceLoader {
         }
         let chosen = sample_points(pixels.len(), self.options.n_pts, rng.next_u64());
         let coords = t.coordinate_map(verts);
-        let mut rgb = crop.crop_image(image).into_raw();
+        let mut rgb = source.crop(&crop, train, &row.sample.key)?;
         if train {
             jitter_colour(&mut rgb, rng);
         }
@@ -827,7 +1006,7 @@ impl FaceLoader {
         row: &IndexRow,
         verts: &[Point3<f32>],
         pose: &Pose,
-        image: &image::RgbImage,
+        source: &PixelSource,
         landmarks: &[(f64, f64)],
         train: bool,
         rng: &mut Rng,
@@ -843,7 +1022,7 @@ impl FaceLoader {
             &mut buffer,
         );
         let result = face.and_then(|face| {
-            self.official_from(row, verts, image, landmarks, train, rng, &buffer, &face)
+            self.official_from(row, verts, source, landmarks, train, rng, &buffer, &face)
         });
         self.buffers
             .lock()
@@ -862,7 +1041,7 @@ impl FaceLoader {
         &self,
         row: &IndexRow,
         verts: &[Point3<f32>],
-        image: &image::RgbImage,
+        source: &PixelSource,
         landmarks: &[(f64, f64)],
         train: bool,
         rng: &mut Rng,
@@ -986,13 +1165,7 @@ impl FaceLoader {
                 }
             }
         }
-        let mut rgb = warp_affine(
-            image.as_raw(),
-            row.sample.image_width,
-            row.sample.image_height,
-            3,
-            &crop,
-        );
+        let mut rgb = source.crop(&crop, train, &row.sample.key)?;
         if train {
             jitter_colour(&mut rgb, rng);
         }
@@ -1017,6 +1190,14 @@ impl FaceLoader {
             box_clipped,
         })
     }
+}
+
+/// Landmarks `(u, v)` as the flat `[u0, v0, u1, v1, ...]` float32 list the crop takes.
+fn flat_landmarks(landmarks: &[(f64, f64)]) -> Vec<f32> {
+    landmarks
+        .iter()
+        .flat_map(|&(u, v)| [u as f32, v as f32])
+        .collect()
 }
 
 /// The release's UV triangles (`tris_2500x3_202110.npy`) from a resources folder, when
@@ -1125,6 +1306,37 @@ mod tests {
         }
         .apply(&mut p);
         assert_eq!(p, [0, 255, 0]);
+    }
+
+    #[test]
+    fn the_fast_roundings_equal_the_library_ones() {
+        let mut rng = Rng::new(3);
+        let mut values: Vec<f32> = vec![0.0, -0.0, 0.5, -0.5, 1.5, 2.5, -2.5, 254.5, 255.49998];
+        values.push(0.5f32.next_down()); // 0.49999997: rounds to 0, though + 0.5 gives 1
+        values.push((-0.5f32).next_up());
+        for _ in 0..200_000 {
+            values.push(rng.uniform(-400.0, 700.0) as f32);
+            let k = rng.below(512) as f32;
+            values.push(k + 0.5);
+            values.push(-k - 0.5);
+        }
+        for v in values {
+            assert_eq!(round_half_away(v).to_bits(), v.round().to_bits(), "{v}");
+        }
+        for _ in 0..200_000 {
+            let x = rng.uniform(-1.0, 2.0) as f32;
+            assert_eq!(
+                wrap_once(x, 1.0).to_bits(),
+                x.rem_euclid(1.0).to_bits(),
+                "{x}"
+            );
+            let y = rng.uniform(-6.0, 12.0) as f32;
+            assert_eq!(
+                wrap_once(y, 6.0).to_bits(),
+                y.rem_euclid(6.0).to_bits(),
+                "{y}"
+            );
+        }
     }
 
     #[test]

@@ -80,7 +80,9 @@ struct Loader {
 #[pymethods]
 impl Loader {
     #[new]
-    #[pyo3(signature = (dir, split, mode, compat, img_size, n_pts, seed, resources=None))]
+    /// `crop_store`: a store folder `arkit-tool crops` wrote (pixels and meshes read
+    /// from it), or None (the release's images decoded).
+    #[pyo3(signature = (dir, split, mode, compat, img_size, n_pts, seed, resources=None, crop_store=None))]
     #[allow(clippy::too_many_arguments)]
     fn new(
         py: Python<'_>,
@@ -92,6 +94,7 @@ impl Loader {
         n_pts: usize,
         seed: u64,
         resources: Option<PathBuf>,
+        crop_store: Option<PathBuf>,
     ) -> PyResult<Self> {
         let options = LoaderOptions {
             split,
@@ -107,13 +110,23 @@ impl Loader {
                 Some(r) => arkit_data::loader::read_uv_triangles(r)?,
                 None => None,
             };
-            FaceLoader::open(&dir, topology, uv_triangles, options)
+            let mut loader = FaceLoader::open(&dir, topology, uv_triangles, options)?;
+            if let Some(store) = &crop_store {
+                loader.open_crop_store(store)?;
+            }
+            Ok(loader)
         })?;
         Ok(Loader { inner })
     }
 
     fn __len__(&self) -> usize {
         self.inner.len()
+    }
+
+    /// The crop store folder items are read from, or None.
+    #[getter]
+    fn crop_store(&self) -> Option<PathBuf> {
+        self.inner.crop_store().map(|s| s.dir().to_path_buf())
     }
 
     /// `(subject_id, facial_action, img_id, split)` of sample `index`.

@@ -142,6 +142,14 @@ class ARKitFaceDataset:
     `split` is a split name (`"train"`, `"test"`, ...) or None for every sample;
     `resources` the release's resource folder when the dataset was converted with it and
     that folder moved (by default the folder the conversion recorded).
+
+    `crop_store`: where the crop pixels and meshes come from. `"auto"` (the default):
+    the store `arkit-tool crops` writes for this `compat` and `img_size`
+    (`DIR/crops/<compat>-<img_size>`) when it is there, else the release's JPEGs and
+    `_info.npz` files; a folder: that store (an error when it does not fit the dataset,
+    the rules or the size); None: always the release's files. From a store, evaluation
+    crops are bit for bit the same; training crops are resampled from the stored window
+    around the box (slightly smoother), their geometry the same. See docs/python.md.
     """
 
     def __init__(
@@ -156,6 +164,7 @@ class ARKitFaceDataset:
         resources: Optional[Union[str, os.PathLike]] = None,
         corr: str = "dense",
         tensors: bool = False,
+        crop_store: Optional[Union[str, os.PathLike]] = "auto",
     ):
         if corr not in ("dense", "sparse", "both"):
             raise DataError(f"corr: {corr!r}: expected 'dense', 'sparse' or 'both'")
@@ -169,10 +178,19 @@ class ARKitFaceDataset:
         self.resources = None if resources is None else os.fspath(resources)
         self.corr = corr
         self.tensors = bool(tensors)
+        self.crop_store = self._find_store(crop_store)
         self.epoch = 0
         self._loader = self._open()
         if self.tensors:
             import torch  # noqa: F401  (fail now, not in a worker)
+
+    def _find_store(self, crop_store) -> Optional[str]:
+        if crop_store is None:
+            return None
+        if isinstance(crop_store, str) and crop_store == "auto":
+            folder = os.path.join(self.path, "crops", f"{self.compat}-{self.img_size}")
+            return folder if os.path.isfile(os.path.join(folder, "crops.json")) else None
+        return os.fspath(crop_store)
 
     def _open(self):
         return _native.Loader(
@@ -184,6 +202,7 @@ class ARKitFaceDataset:
             self.n_pts,
             self.seed,
             self.resources,
+            self.crop_store,
         )
 
     # Pickled for spawn-started workers: the native loader is reopened there.

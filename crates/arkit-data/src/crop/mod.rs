@@ -173,20 +173,30 @@ impl CropTransform {
     /// A crop with [`CropSampling::Corners`] is resampled as `cv2.warpAffine` does
     /// instead ([`official::warp_affine`]).
     pub fn crop_image(&self, image: &RgbImage) -> RgbImage {
+        let out = self.crop_window(image, 0, self.size as usize);
+        RgbImage::from_raw(self.size, self.size, out).expect("size matches")
+    }
+
+    /// Crop pixels `first..first + count` in both axes (interleaved RGB, row-major,
+    /// `count x count`): the crop grid extended past its edges (`first` may be
+    /// negative) with every pixel computed by the same formula as in
+    /// [`CropTransform::crop_image`], so the pixels the two share are bit for bit the
+    /// same. `crop_image` is `crop_window(image, 0, size)`; the crop store keeps such a
+    /// window around each sample's evaluation crop (`crate::crop_store`).
+    pub fn crop_window(&self, image: &RgbImage, first: i64, count: usize) -> Vec<u8> {
         if self.sampling == CropSampling::Corners {
             let (w, h) = image.dimensions();
-            let out = official::warp_affine(image.as_raw(), w, h, 3, self);
-            return RgbImage::from_raw(self.size, self.size, out).expect("size matches");
+            return official::warp_affine_window(image.as_raw(), w, h, 3, self, first, count);
         }
-        let n = self.size as usize;
+        let n = count;
         let mut out = vec![0u8; n * n * 3];
         if image.width() == 0 || image.height() == 0 || n == 0 {
-            return RgbImage::from_raw(self.size, self.size, out).expect("size matches");
+            return out;
         }
         let stride = image.width() as usize * 3;
         let (sx, sy) = self.scales();
-        let cols = ColumnTaps::new(n, self.x0, sx, image.width());
-        let rows = Taps::new(n, self.y0, sy, image.height(), stride);
+        let cols = ColumnTaps::new(first, n, self.x0, sx, image.width());
+        let rows = Taps::new(first, n, self.y0, sy, image.height(), stride);
         // The blended span: pixels `cols.first..=cols.last` of the two source rows, one
         // float more for the last four-float read, and zero where a pixel is off the
         // image (at most the pads at -1 and `width`).
@@ -202,7 +212,28 @@ impl CropTransform {
             cols.blend_columns(&blend, &mut row);
             round_row_to_u8(&row, dst);
         }
-        RgbImage::from_raw(self.size, self.size, out).expect("size matches")
+        out
+    }
+
+    /// This crop in the pixel grid of `window`'s crop window `first..first + count`
+    /// (see [`CropTransform::crop_window`]): the transform that cuts the same box out
+    /// of the window image that `self` cuts out of the image, for the same sampling.
+    /// A window pixel `j` sits at image position `window.x0 + (first + j + o) * p`
+    /// (`p = window.side / size`, `o` the sampling offset), so a box edge `x` is at
+    /// `(x - window.x0) / p - first` in the window, and a side `s` is `s / p` there.
+    pub fn in_window(&self, window: &CropTransform, first: i64) -> CropTransform {
+        let (px, py) = (
+            window.side / window.size as f64,
+            window.side_y / window.size as f64,
+        );
+        CropTransform {
+            x0: (self.x0 - window.x0) / px - first as f64,
+            y0: (self.y0 - window.y0) / py - first as f64,
+            side: self.side / px,
+            side_y: self.side_y / py,
+            size: self.size,
+            sampling: self.sampling,
+        }
     }
 }
 
@@ -365,11 +396,11 @@ struct Tap {
 struct Taps(Vec<Tap>);
 
 impl Taps {
-    /// For `n` crop pixels whose centres look at `origin + (i + 0.5) / scale` along an
-    /// image axis of `count` pixels, `step` bytes apart.
-    fn new(n: usize, origin: f64, scale: f64, count: u32, step: usize) -> Self {
+    /// For crop pixels `i` in `first..first + n` whose centres look at `origin + (i +
+    /// 0.5) / scale` along an image axis of `count` pixels, `step` bytes apart.
+    fn new(first: i64, n: usize, origin: f64, scale: f64, count: u32, step: usize) -> Self {
         Taps(
-            (0..n)
+            (first..first + n as i64)
                 .map(|i| {
                     let (x, t) = bilinear_position(i, origin, scale);
                     let tap = |x: i64, w: f32| {
@@ -390,7 +421,7 @@ impl Taps {
 /// Crop pixel `i`'s centre along an image axis, `origin + (i + 0.5) / scale`, as the
 /// pixel `x` left of (or above) it and the fraction `t` past that pixel's centre: the
 /// bilinear weights are `1 - t` for `x` and `t` for `x + 1`.
-fn bilinear_position(i: usize, origin: f64, scale: f64) -> (i64, f32) {
+fn bilinear_position(i: i64, origin: f64, scale: f64) -> (i64, f32) {
     let f = origin + (i as f64 + 0.5) / scale - 0.5;
     let x = f.floor() as i64;
     (x, (f - x as f64) as f32)
@@ -424,11 +455,11 @@ struct PairWeights {
 }
 
 impl ColumnTaps {
-    /// For `n` crop columns whose centres look at `origin + (i + 0.5) / scale` along an
-    /// image row of `width` (at least 1) pixels.
-    fn new(n: usize, origin: f64, scale: f64, width: u32) -> Self {
+    /// For crop columns `i` in `first..first + n` whose centres look at `origin + (i +
+    /// 0.5) / scale` along an image row of `width` (at least 1) pixels.
+    fn new(first: i64, n: usize, origin: f64, scale: f64, width: u32) -> Self {
         let w = width as i64;
-        let pairs: Vec<(i64, f32, f32)> = (0..n)
+        let pairs: Vec<(i64, f32, f32)> = (first..first + n as i64)
             .map(|i| {
                 let (x, t) = bilinear_position(i, origin, scale);
                 if (-1..w).contains(&x) {
@@ -507,6 +538,64 @@ impl ColumnTaps {
 mod tests {
     use super::*;
     use image::Rgb;
+
+    #[test]
+    fn a_crop_window_holds_the_crop_and_a_box_cut_from_it_matches_the_image() {
+        // Smooth, as faces are at the crop's scale (a second resampling of fine
+        // texture differs by its aliasing, not by a fault).
+        let img = RgbImage::from_fn(300, 260, |x, y| {
+            let (x, y) = (x as f32, y as f32);
+            let v = |a: f32| (128.0 + 100.0 * a.sin()) as u8;
+            Rgb([v(x / 17.0), v(y / 23.0 + x / 41.0), v((x - y) / 29.0)])
+        });
+        for sampling in [CropSampling::Centres, CropSampling::Corners] {
+            // Near the image's corner, so the window runs off the image.
+            let c = CropTransform {
+                x0: -12.3,
+                y0: 30.7,
+                side: 141.9,
+                side_y: 143.2,
+                size: 37,
+                sampling,
+            };
+            let (first, count) = (-7i64, 51usize);
+            let window = c.crop_window(&img, first, count);
+            let crop = c.crop_image(&img).into_raw();
+            for r in 0..37 {
+                let w = 3 * ((r + 7) * count + 7);
+                assert_eq!(
+                    &window[w..w + 3 * 37],
+                    &crop[3 * r * 37..3 * (r + 1) * 37],
+                    "{sampling:?} row {r}"
+                );
+            }
+            // The crop itself, cut from the window, is the window's centre again up to
+            // the second resampling's rounding; a shifted box is close to its crop from
+            // the image.
+            let as_image = RgbImage::from_raw(count as u32, count as u32, window).unwrap();
+            for (dx, scale) in [(0.0, 1.0), (9.4, 1.04)] {
+                let moved = CropTransform {
+                    x0: c.x0 + dx,
+                    y0: c.y0 - dx / 2.0,
+                    side: c.side * scale,
+                    side_y: c.side_y * scale,
+                    ..c
+                };
+                let direct = moved.crop_image(&img).into_raw();
+                let via = moved.in_window(&c, first).crop_window(&as_image, 0, 37);
+                let mean = direct
+                    .iter()
+                    .zip(&via)
+                    .map(|(a, b)| (*a as f64 - *b as f64).abs())
+                    .sum::<f64>()
+                    / direct.len() as f64;
+                assert!(
+                    mean < if dx == 0.0 { 0.01 } else { 6.0 },
+                    "{sampling:?} {dx}: {mean}"
+                );
+            }
+        }
+    }
 
     #[test]
     fn crop_transform_round_trip_and_affine() {
@@ -679,7 +768,7 @@ mod tests {
         // The four-float SSE2 columns (on x86-64) against one float at a time, for a
         // downscale, an upscale and columns reading both pads and beyond.
         for (origin, scale, width) in [(10.3, 0.51, 400u32), (-3.7, 2.3, 20), (-30.0, 0.8, 45)] {
-            let cols = ColumnTaps::new(64, origin, scale, width);
+            let cols = ColumnTaps::new(0, 64, origin, scale, width);
             let blend: Vec<f32> = (0..cols.span_floats())
                 .map(|i| (i * 37 % 255) as f32 * 0.731)
                 .collect();

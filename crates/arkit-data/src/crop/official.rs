@@ -217,7 +217,14 @@ fn cv_round(v: f64) -> i64 {
 /// The taps of every crop pixel, row-major, as `cv2.warpAffine` computes them for
 /// `crop` (which should have [`CropSampling::Corners`]).
 pub fn warp_taps(crop: &CropTransform) -> Vec<WarpTap> {
-    let n = crop.size as usize;
+    warp_taps_window(crop, 0, crop.size as usize)
+}
+
+/// The taps of crop pixels `first..first + count` in both axes (`first` may be
+/// negative: the crop grid extended past its edges), row-major, each computed by
+/// `cv2.warpAffine`'s formula for its output position, so the pixels shared with
+/// [`warp_taps`] get the same taps.
+pub fn warp_taps_window(crop: &CropTransform, first: i64, count: usize) -> Vec<WarpTap> {
     // The forward map as cv2.getAffineTransform gives it, then its inverse as
     // cv2.invertAffineTransform computes it (the map is axis-aligned).
     let (a, e) = crop.scales();
@@ -227,9 +234,13 @@ pub fn warp_taps(crop: &CropTransform) -> Vec<WarpTap> {
     let (ic, if_) = (-ia * c, -ie * f);
     let one = (1i64 << AB_BITS) as f64;
     let round_delta = 1i64 << (AB_BITS - INTER_BITS - 1);
-    let adelta: Vec<i64> = (0..n).map(|x| cv_round(ia * x as f64 * one)).collect();
-    let mut taps = Vec::with_capacity(n * n);
-    for y in 0..n {
+    let span = first..first + count as i64;
+    let adelta: Vec<i64> = span
+        .clone()
+        .map(|x| cv_round(ia * x as f64 * one))
+        .collect();
+    let mut taps = Vec::with_capacity(count * count);
+    for y in span {
         let x0 = cv_round(ic * one) + round_delta;
         let y0 = cv_round((ie * y as f64 + if_) * one) + round_delta;
         let yy = y0 >> (AB_BITS - INTER_BITS);
@@ -255,9 +266,23 @@ pub fn warp_affine(
     channels: usize,
     crop: &CropTransform,
 ) -> Vec<u8> {
+    warp_affine_window(src, width, height, channels, crop, 0, crop.size as usize)
+}
+
+/// [`warp_affine`] over the crop window `first..first + count` (see
+/// [`warp_taps_window`]): `count x count` pixels, those shared with the crop equal.
+pub fn warp_affine_window(
+    src: &[u8],
+    width: u32,
+    height: u32,
+    channels: usize,
+    crop: &CropTransform,
+    first: i64,
+    count: usize,
+) -> Vec<u8> {
     let (w, h) = (width as i64, height as i64);
     let stride = w as usize * channels;
-    let taps = warp_taps(crop);
+    let taps = warp_taps_window(crop, first, count);
     let mut out = vec![0u8; taps.len() * channels];
     for (o, t) in out.chunks_exact_mut(channels).zip(&taps) {
         let wts = t.weights();

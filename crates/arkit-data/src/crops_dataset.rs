@@ -1,0 +1,164 @@
+//! `crops_dataset`: the crop store ([`crate::crop_store`]) of a whole converted
+//! dataset, written shard by shard: what `arkit-tool crops` runs.
+//!
+//! Every sample is read as the loader reads it without a store (its `_info.npz`, checked
+//! against the samples table, and its image), its evaluation box computed by the
+//! loader's own rules ([`FaceLoader::stored_crop`]), and its crop window resampled from
+//! the full-resolution image. Parallel over the samples of a shard, in chunks, written
+//! in row order; the output does not depend on the number of threads. A sample that
+//! cannot be read (a missing or damaged image, a changed `_info.npz`) never stops the
+//! run: its record has no pixels, `crops.json` lists it with the reason, and the loader
+//! raises that reason when it is asked for the sample. `crops.json` is removed before
+//! the first file is written and written after the last, so a store is complete
+//! whenever it has one.
+//!
+//! Tested in `tests/crop_store.rs`.
+
+use crate::crop_store::{
+    self, CropStoreManifest, FORMAT, MissingCrop, encode_record, margin, record_bytes,
+};
+use crate::error::{Error, Result};
+use crate::loader::{Compat, FaceLoader};
+use rayon::prelude::*;
+use serde::Serialize;
+use std::path::{Path, PathBuf};
+use std::sync::Mutex;
+
+/// Samples computed in parallel before they are written.
+const CHUNK: usize = 64;
+
+/// What [`write_crop_store`] did.
+#[derive(Clone, Debug, Serialize)]
+pub struct CropStoreSummary {
+    /// The store folder.
+    pub output: PathBuf,
+    /// `"exact"` or `"official"`.
+    pub compat: String,
+    /// Crop side.
+    pub img_size: u32,
+    /// Window side (`S + 2m`).
+    pub window: usize,
+    /// Samples in the dataset.
+    pub samples: usize,
+    /// Samples stored without pixels.
+    pub missing: usize,
+    /// The first few of them, `key: reason`.
+    pub missing_examples: Vec<String>,
+    /// Bytes written (all `part-K.bin`).
+    pub bytes: u64,
+    /// Bytes per sample.
+    pub bytes_per_sample: u64,
+}
+
+/// Writes the crop store of the dataset `loader` serves (opened with no split, in
+/// evaluation mode, with the rules and crop side wanted) into `output`; `progress` is
+/// called with the number of samples done since its last call.
+pub fn write_crop_store(
+    loader: &FaceLoader,
+    output: &Path,
+    progress: &(dyn Fn(usize) + Sync),
+) -> Result<CropStoreSummary> {
+    let options = loader.options();
+    if options.split.is_some() {
+        return Err(Error::invalid(
+            "crop store",
+            "the loader must serve every sample (no split)",
+        ));
+    }
+    let (compat, s) = (options.compat, options.img_size);
+    let vertex_count = loader.mesh_vertex_count();
+    let dataset = loader.dataset();
+    std::fs::create_dir_all(output).map_err(|e| Error::io(output, e))?;
+    let manifest_path = output.join(crop_store::MANIFEST_FILE);
+    if manifest_path.exists() {
+        std::fs::remove_file(&manifest_path).map_err(|e| Error::io(&manifest_path, e))?;
+    }
+    let mut manifest = CropStoreManifest {
+        format: FORMAT,
+        compat: compat.name().to_string(),
+        img_size: s,
+        margin: margin(s),
+        vertex_count,
+        dataset_fingerprint: crate::render_dataset::dataset_fingerprint(dataset.manifest()),
+        record_bytes: record_bytes(s, vertex_count),
+        shards: Vec::new(),
+        missing: Vec::new(),
+    };
+    let missing = Mutex::new(Vec::new());
+    let mut next = 0usize;
+    for shard in dataset.shards() {
+        let indices: Vec<usize> = (next..next + shard.rows).collect();
+        next += shard.rows;
+        for &i in &indices {
+            if loader.location(i).map(|l| l.0) != Some(shard.index) {
+                return Err(Error::invalid(
+                    "crop store",
+                    format!(
+                        "sample {i} is not in samples shard {} as expected",
+                        shard.index
+                    ),
+                ));
+            }
+        }
+        let mut records = indices.chunks(CHUNK).flat_map(|chunk| {
+            let done: Vec<Result<Vec<u8>>> = chunk
+                .par_iter()
+                .map(|&i| {
+                    let (_, row) = loader.location(i).expect("checked above");
+                    let record = match loader.stored_crop(i) {
+                        Ok(c) => encode_record(&manifest, row, Ok(&c)),
+                        Err(e) => {
+                            let (key, _) = loader.key(i).expect("in range");
+                            missing
+                                .lock()
+                                .unwrap_or_else(|p| p.into_inner())
+                                .push(MissingCrop {
+                                    shard: shard.index,
+                                    row,
+                                    key: key.to_string(),
+                                    reason: e.to_string(),
+                                });
+                            encode_record(&manifest, row, Err(()))
+                        }
+                    };
+                    Ok(record)
+                })
+                .collect();
+            progress(chunk.len());
+            done
+        });
+        let entry =
+            crop_store::write_shard_file(output, &manifest, shard.index, &mut records, shard.rows)?;
+        manifest.shards.push(entry);
+    }
+    let mut missing = missing.into_inner().unwrap_or_else(|p| p.into_inner());
+    missing.sort_by_key(|m| (m.shard, m.row));
+    manifest.missing = missing;
+    crop_store::write_manifest(output, &manifest)?;
+    let bytes: u64 = manifest
+        .shards
+        .iter()
+        .map(|c| crop_store::HEADER_BYTES + c.records as u64 * manifest.record_bytes)
+        .sum();
+    Ok(CropStoreSummary {
+        output: output.to_path_buf(),
+        compat: manifest.compat.clone(),
+        img_size: s,
+        window: crop_store::window_side(s),
+        samples: loader.len(),
+        missing: manifest.missing.len(),
+        missing_examples: manifest
+            .missing
+            .iter()
+            .take(5)
+            .map(|m| format!("{}: {}", m.key, m.reason))
+            .collect(),
+        bytes,
+        bytes_per_sample: manifest.record_bytes,
+    })
+}
+
+/// The default store folder of `dir` for `compat` and crop side `img_size`.
+pub fn default_output(dir: &Path, compat: Compat, img_size: u32) -> PathBuf {
+    FaceLoader::default_crop_store(dir, compat, img_size)
+}
