@@ -30,6 +30,13 @@
 //!    (triangle id, barycentrics, depth key) that callers turn into masks, colours,
 //!    correspondences or coordinate maps.
 //!
+//! The official loader's rasterizer ([`rasterize_mesh_official`], for the official-compat
+//! paths) is a separate, plain loop. It can fill a buffer holding only a window of the
+//! image ([`rasterize_mesh_official_in`], [`PixelWindow`]): every value is computed in
+//! image coordinates and only the walked boxes are clamped to the window, so the window
+//! holds the whole image's values, and [`PixelWindow::official_extent`] is a window
+//! outside which the whole image gets nothing (tested against whole-image buffers on
+//! random meshes and windows).//!
 //! # Conventions (the crate's contract; see also `conventions::camera`)
 //! - Image coordinates: x right, y **down**, in pixels; pixel `(i, j)` covers
 //!   `[i, i+1) x [j, j+1)` and is sampled at its centre `(i + 0.5, j + 0.5)`.
@@ -755,6 +762,22 @@ impl VisibilityBuffer {
         self.inv_w.fill(0.0);
     }
 
+    /// Resizes the buffer to `width x height`, keeping its allocation (a buffer reused
+    /// for windows of varying sizes reallocates only when one outgrows it), and empties
+    /// it as [`VisibilityBuffer::clear`] does. Panics as [`VisibilityBuffer::new`] does.
+    pub fn reset(&mut self, width: u32, height: u32) {
+        assert!(
+            width <= MAX_VIEWPORT && height <= MAX_VIEWPORT,
+            "viewport {width}x{height} exceeds {MAX_VIEWPORT}"
+        );
+        let n = width as usize * height as usize;
+        (self.width, self.height) = (width, height);
+        self.triangle.resize(n, Self::EMPTY);
+        self.bary.resize(n, [0.0; 3]);
+        self.inv_w.resize(n, 0.0);
+        self.clear();
+    }
+
     /// Index of pixel `(x, y)` in the flat arrays.
     pub fn index(&self, x: u32, y: u32) -> usize {
         y as usize * self.width as usize + x as usize
@@ -821,6 +844,87 @@ impl VisibilityBuffer {
     }
 }
 
+/// A rectangle of image pixels, `[x0, x0 + width) x [y0, y0 + height)`: the part of an
+/// image a windowed buffer holds ([`rasterize_mesh_official_in`]), row-major.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct PixelWindow {
+    /// First column.
+    pub x0: u32,
+    /// First row.
+    pub y0: u32,
+    /// Columns (0 for an empty window).
+    pub width: u32,
+    /// Rows (0 for an empty window).
+    pub height: u32,
+}
+
+impl PixelWindow {
+    /// The whole `width x height` image.
+    pub fn whole(width: u32, height: u32) -> Self {
+        PixelWindow {
+            x0: 0,
+            y0: 0,
+            width,
+            height,
+        }
+    }
+
+    /// The pixels [`rasterize_mesh_official`] can write for `vertices` in a `width x
+    /// height` image: the integer points from the ceiling of the smallest to the floor
+    /// of the largest coordinate of the vertices it draws ([`official_vertex_ok`]),
+    /// clamped to the image. Each triangle's clamped box is its box clamped to the
+    /// image, so rasterizing into this window writes exactly what the whole image gets.
+    /// Empty (zero-sized) when no pixel can be written.
+    pub fn official_extent(vertices: &[ScreenVertex], width: u32, height: u32) -> Self {
+        let drawn = vertices.iter().filter(|p| official_vertex_ok(p));
+        let (mut x_lo, mut x_hi, mut y_lo, mut y_hi) = (f32::MAX, f32::MIN, f32::MAX, f32::MIN);
+        for p in drawn {
+            (x_lo, x_hi) = (x_lo.min(p.x), x_hi.max(p.x));
+            (y_lo, y_hi) = (y_lo.min(p.y), y_hi.max(p.y));
+        }
+        let span = |lo: f32, hi: f32, n: u32| {
+            let first = (lo.ceil() as i64).max(0);
+            let last = (hi.floor() as i64).min(n as i64 - 1);
+            if last < first {
+                (0, 0)
+            } else {
+                (first as u32, (last - first + 1) as u32)
+            }
+        };
+        let ((x0, width), (y0, height)) = (span(x_lo, x_hi, width), span(y_lo, y_hi, height));
+        PixelWindow {
+            x0,
+            y0,
+            width,
+            height,
+        }
+    }
+
+    /// The row-major index in the window of image pixel `(x, y)`, `None` outside it.
+    #[inline]
+    pub fn index(&self, x: i64, y: i64) -> Option<usize> {
+        let (dx, dy) = (x - self.x0 as i64, y - self.y0 as i64);
+        let inside = (0..self.width as i64).contains(&dx) && (0..self.height as i64).contains(&dy);
+        inside.then(|| dy as usize * self.width as usize + dx as usize)
+    }
+
+    /// Number of pixels.
+    pub fn len(&self) -> usize {
+        self.width as usize * self.height as usize
+    }
+
+    /// Whether the window holds no pixel.
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+}
+
+/// Whether [`rasterize_mesh_official`] draws triangles using vertex `p`: finite
+/// coordinates in front of the camera (`inv_w > 0`).
+pub fn official_vertex_ok(p: &ScreenVertex) -> bool {
+    p.x.is_finite() && p.y.is_finite() && p.inv_w > 0.0
+}
+
 /// The official loader's rasterizer, reproduced for comparison (`face3d`'s
 /// `render_colors` as the release's code uses it): pixel `(i, j)` is sampled at the
 /// integer point `(i, j)` (our pixel's top-left corner, half a pixel from our sample
@@ -835,27 +939,46 @@ pub fn rasterize_mesh_official(
     vertices: &[ScreenVertex],
     triangles: &[[u32; 3]],
 ) -> Result<(), BadTriangle> {
+    let whole = PixelWindow::whole(buffer.width, buffer.height);
+    rasterize_mesh_official_in(buffer, whole, vertices, triangles)
+}
+
+/// [`rasterize_mesh_official`] of an image into a buffer holding only `window` of it
+/// (`buffer` is `window.width x window.height`; vertices are in image coordinates).
+/// Every sample point, weight and depth is computed in image coordinates as over the
+/// whole image and only the box each triangle walks is clamped to the window, so the
+/// buffer holds the whole image's values over the window; with
+/// [`PixelWindow::official_extent`] that is every pixel the whole image gets.
+pub fn rasterize_mesh_official_in(
+    buffer: &mut VisibilityBuffer,
+    window: PixelWindow,
+    vertices: &[ScreenVertex],
+    triangles: &[[u32; 3]],
+) -> Result<(), BadTriangle> {
+    assert_eq!(
+        (buffer.width, buffer.height),
+        (window.width, window.height),
+        "the buffer must be the window's size"
+    );
     check_indices(vertices.len(), triangles)?;
     buffer.triangle.fill(VisibilityBuffer::EMPTY);
     buffer.inv_w.fill(f32::NEG_INFINITY);
-    let (w, h) = (buffer.width as i64, buffer.height as i64);
+    let (ox, oy) = (window.x0 as i64, window.y0 as i64);
+    let (w, h) = (window.width as i64, window.height as i64);
     for (ti, t) in triangles.iter().enumerate() {
         let [p0, p1, p2] = [
             vertices[t[0] as usize],
             vertices[t[1] as usize],
             vertices[t[2] as usize],
         ];
-        if [p0, p1, p2]
-            .iter()
-            .any(|p| !(p.x.is_finite() && p.y.is_finite() && p.inv_w > 0.0))
-        {
+        if ![p0, p1, p2].iter().all(official_vertex_ok) {
             continue;
         }
         let depth = [-1.0 / p0.inv_w, -1.0 / p1.inv_w, -1.0 / p2.inv_w];
-        let x_min = (p0.x.min(p1.x).min(p2.x).ceil() as i64).max(0);
-        let x_max = (p0.x.max(p1.x).max(p2.x).floor() as i64).min(w - 1);
-        let y_min = (p0.y.min(p1.y).min(p2.y).ceil() as i64).max(0);
-        let y_max = (p0.y.max(p1.y).max(p2.y).floor() as i64).min(h - 1);
+        let x_min = (p0.x.min(p1.x).min(p2.x).ceil() as i64).max(ox);
+        let x_max = (p0.x.max(p1.x).max(p2.x).floor() as i64).min(ox + w - 1);
+        let y_min = (p0.y.min(p1.y).min(p2.y).ceil() as i64).max(oy);
+        let y_max = (p0.y.max(p1.y).max(p2.y).floor() as i64).min(oy + h - 1);
         if x_max < x_min || y_max < y_min {
             continue;
         }
@@ -878,7 +1001,7 @@ pub fn rasterize_mesh_official(
                 }
                 let wts = [1.0 - u - v, v, u];
                 let z = wts[0] * depth[0] + wts[1] * depth[1] + wts[2] * depth[2];
-                let idx = (y * w + x) as usize;
+                let idx = ((y - oy) * w + (x - ox)) as usize;
                 if z > buffer.inv_w[idx] {
                     buffer.inv_w[idx] = z;
                     buffer.triangle[idx] = ti as u32;
@@ -1290,6 +1413,76 @@ mod tests {
             (b[0] - 0.5).abs() < 1e-6 && (b[1] - 0.25).abs() < 1e-6 && (b[2] - 0.25).abs() < 1e-6,
             "{b:?}"
         );
+    }
+
+    #[test]
+    fn official_raster_in_a_window_is_the_whole_images_over_it() {
+        // Random overlapping meshes, some vertices off the image or behind the camera:
+        // a buffer over any window holds the whole image's values there, and the
+        // official extent holds every pixel the whole image gets.
+        let mut r = Rng::new(13);
+        let (w, h) = (48u32, 40u32);
+        for case in 0..300 {
+            let (cx, cy, spread) = (
+                r.uniform(-20.0, 70.0),
+                r.uniform(-20.0, 60.0),
+                r.uniform(1.0, 40.0),
+            );
+            let vertices: Vec<ScreenVertex> = (0..12)
+                .map(|_| ScreenVertex {
+                    x: (cx + r.uniform(-spread, spread)) as f32,
+                    y: (cy + r.uniform(-spread, spread)) as f32,
+                    inv_w: if r.below(40) == 0 {
+                        -1.0
+                    } else {
+                        r.uniform(0.5, 2.0) as f32
+                    },
+                })
+                .collect();
+            let triangles: Vec<[u32; 3]> = (0..10)
+                .map(|_| [0; 3].map(|_| r.below(12) as u32))
+                .collect();
+            let mut whole = VisibilityBuffer::new(w, h);
+            rasterize_mesh_official(&mut whole, &vertices, &triangles).unwrap();
+            let extent = PixelWindow::official_extent(&vertices, w, h);
+            let x0 = r.below(w as u64) as u32;
+            let y0 = r.below(h as u64) as u32;
+            let other = PixelWindow {
+                x0,
+                y0,
+                width: r.below((w - x0) as u64 + 1) as u32,
+                height: r.below((h - y0) as u64 + 1) as u32,
+            };
+            for window in [extent, other] {
+                let mut part = VisibilityBuffer::new(1, 1);
+                part.reset(window.width, window.height);
+                rasterize_mesh_official_in(&mut part, window, &vertices, &triangles).unwrap();
+                for (y, x) in (0..h as i64).flat_map(|y| (0..w as i64).map(move |x| (y, x))) {
+                    let i = whole.index(x as u32, y as u32);
+                    let Some(j) = window.index(x, y) else {
+                        if window == extent {
+                            assert_eq!(whole.triangle[i], VisibilityBuffer::EMPTY, "{case}");
+                        }
+                        continue;
+                    };
+                    assert_eq!(part.triangle[j], whole.triangle[i], "{case} ({x}, {y})");
+                    assert_eq!(part.inv_w[j].to_bits(), whole.inv_w[i].to_bits());
+                    if whole.triangle[i] != VisibilityBuffer::EMPTY {
+                        assert_eq!(
+                            part.bary[j].map(f32::to_bits),
+                            whole.bary[i].map(f32::to_bits)
+                        );
+                    }
+                }
+            }
+        }
+        // No vertex to draw: an empty window.
+        let behind = [ScreenVertex {
+            x: 1.0,
+            y: 1.0,
+            inv_w: 0.0,
+        }; 3];
+        assert!(PixelWindow::official_extent(&behind, w, h).is_empty());
     }
 
     #[test]

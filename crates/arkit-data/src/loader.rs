@@ -16,7 +16,8 @@
 //! - [`Compat::Official`]: every value by the official loader's rules: its integer box
 //!   ([`crate::crop::official::official_box`]: `int()` of the landmarks' box edges), the
 //!   `cv2` affine map and `cv2.warpAffine` resampling ([`crate::crop::official`]), its rasterizer over the whole
-//!   image (screen-space weights), its point choice (face pixels of the full-resolution
+//!   image (screen-space weights; held only over the window the face can cover,
+//!   [`FaceRenderer::render_window_mask`], the rest being no face), its point choice (face pixels of the full-resolution
 //!   mask sliced `mask[top:bottom+1, left:right+1]` with Python's slice rules, drawn
 //!   without repetition or repeated cyclically, mapped to crop pixels by the affine map
 //!   and `floor`), its UV map (the UV triangles drawn at `uv * (S - 1)`, the ring at 1.1
@@ -43,14 +44,17 @@
 //! Python package's tests against a numpy re-implementation of the official formulas.
 
 use crate::conventions::{Camera, Pose};
-use crate::crop::official::{LandmarkExtent, affine_transform, box_crop, official_box, warp_mask};
+use crate::crop::official::{
+    LandmarkExtent, affine_transform, box_crop, official_box, warp_mask_of,
+};
 use crate::crop_store::{CropStore, StoredCrop};
 use crate::dataset::Dataset;
 use crate::error::{Error, Result};
 use crate::raster::{ScreenVertex, VisibilityBuffer};
 use crate::release::SampleKey;
 use crate::render::{
-    CropSampling, CropTransform, FaceRenderer, RasterMode, UvMapper, UvTexels, sample_points,
+    CropSampling, CropTransform, FaceRenderer, RasterMode, UvMapper, UvTexels, WindowMask,
+    sample_points,
 };
 use crate::rng::Rng;
 use crate::topology::FaceTopology;
@@ -1130,17 +1134,17 @@ impl FaceLoader {
         rng: &mut Rng,
     ) -> Result<LoaderItem> {
         let mut buffer = self.take_buffer();
-        let full_mask = self.renderer.render_full_mask(
+        // Only the window of the image the face can cover is rasterized and kept: the
+        // slice, the lookups and the warp below read through it.
+        let face = self.renderer.render_window_mask(
             verts,
             pose,
             row.sample.image_width,
             row.sample.image_height,
             &mut buffer,
         );
-        let result = full_mask.and_then(|full_mask| {
-            self.official_from(
-                row, verts, source, landmarks, train, rng, &buffer, &full_mask,
-            )
+        let result = face.and_then(|face| {
+            self.official_from(row, verts, source, landmarks, train, rng, &buffer, &face)
         });
         self.buffers
             .lock()
@@ -1164,7 +1168,7 @@ impl FaceLoader {
         train: bool,
         rng: &mut Rng,
         buffer: &VisibilityBuffer,
-        full_mask: &[bool],
+        face: &WindowMask,
     ) -> Result<LoaderItem> {
         let s = self.options.img_size;
         let (w, h) = (
@@ -1182,14 +1186,7 @@ impl FaceLoader {
             let rows = python_slice(top, bottom + 1, h);
             let cols = python_slice(left, right + 1, w);
             let width = cols.end - cols.start;
-            let mut nz = Vec::new();
-            for (k, y) in rows.clone().enumerate() {
-                for (j, x) in cols.clone().enumerate() {
-                    if full_mask[(y * w + x) as usize] {
-                        nz.push(k as i64 * width + j as i64);
-                    }
-                }
-            }
+            let nz = face.face_offsets(rows.clone(), cols.clone());
             if nz.is_empty() {
                 return Err(format!(
                     "the official box {b:?} (left, top, right, bottom) of a {w}x{h} image holds no face pixel of mask[top:bottom+1, left:right+1]{}: the official loader raises on this sample and trains on a random other one",
@@ -1256,7 +1253,10 @@ impl FaceLoader {
             choose.push(k);
             // The full-resolution pixel the slice index names.
             let (y, x) = (row0 + cb / slice_w, col0 + cb % slice_w);
-            let i = (y * w + x) as usize;
+            let i = face
+                .window
+                .index(x, y)
+                .expect("a face pixel is in the window");
             let t = buffer.triangle[i];
             debug_assert!(t < n_mesh);
             let tri = triangles[t as usize];
@@ -1291,12 +1291,7 @@ impl FaceLoader {
         if train {
             jitter_colour(&mut rgb, rng);
         }
-        let mask = warp_mask(
-            full_mask,
-            row.sample.image_width,
-            row.sample.image_height,
-            &crop,
-        );
+        let mask = warp_mask_of(&crop, |x, y| face.is_face(x, y));
         let box_clipped = left < 0 || top < 0 || right >= w || bottom >= h || replaced;
         Ok(LoaderItem {
             key: row.sample.key.clone(),

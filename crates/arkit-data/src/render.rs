@@ -22,16 +22,23 @@
 //!    ARKit). It depends only on the mesh, so callers cache it per distinct mesh.
 //! 5. **Points** ([`sample_points`]): `M` mask pixels drawn from a seed, repeated
 //!    cyclically when the face has fewer than `M` pixels, as the official training does.
+//!
+//! The face mask over the whole image ([`FaceRenderer::render_full_mask`]) also comes
+//! held over a window ([`FaceRenderer::render_window_mask`], [`WindowMask`]): in
+//! official mode only the pixels the face's vertices can cover are rasterized, with the
+//! whole image's values there (tested against the whole-image raster on a face cut by
+//! the image's edges and one in the middle).
 
 use crate::conventions::{Camera, Pose};
 use crate::error::{Error, Result};
-use crate::raster::{ScreenVertex, VisibilityBuffer};
+use crate::raster::{PixelWindow, ScreenVertex, VisibilityBuffer};
 use crate::rng::Rng;
 use crate::topology::{FaceTopology, HoleFill, LoopRole};
 
 pub use crate::crop::{CropRule, CropSampling, CropTransform};
 pub use crate::face_targets::FaceTargets;
 use nalgebra::Point3;
+use std::ops::Range;
 /// Renders masks and correspondences for one topology (see module docs).
 #[derive(Clone, Debug)]
 pub struct FaceRenderer {
@@ -255,6 +262,37 @@ impl FaceRenderer {
         Ok(self.face_pixels(buffer))
     }
 
+    /// [`FaceRenderer::render_full_mask`] held over a window of the image: in
+    /// [`RasterMode::Official`] the official rasterizer fills `buffer` only over the
+    /// window of every pixel the face's vertices can cover
+    /// ([`PixelWindow::official_extent`]), so the cost follows the face's extent, not
+    /// the image's; the mask is the whole-image one over the window and no face
+    /// outside it. In [`RasterMode::Exact`] the window is the whole image. `buffer`
+    /// (reused between calls, keeping its allocation) is left holding the window's
+    /// raster, pixel `(x, y)` at `window.index(x, y)`.
+    pub fn render_window_mask(
+        &self,
+        verts: &[Point3<f32>],
+        pose: &Pose,
+        width: u32,
+        height: u32,
+        buffer: &mut VisibilityBuffer,
+    ) -> Result<WindowMask> {
+        if self.mode == RasterMode::Exact {
+            let mask = self.render_full_mask(verts, pose, width, height, buffer)?;
+            let window = PixelWindow::whole(width, height);
+            return Ok(WindowMask { window, mask });
+        }
+        let screen = self.project(verts, pose, width, height)?;
+        check_viewport(width, height, "image size")?;
+        let window = PixelWindow::official_extent(&screen, width, height);
+        buffer.reset(window.width, window.height);
+        crate::raster::rasterize_mesh_official_in(buffer, window, &screen, &self.triangles)
+            .map_err(|e| Error::invalid("mesh", e.to_string()))?;
+        let mask = self.face_pixels(buffer);
+        Ok(WindowMask { window, mask })
+    }
+
     /// The face mask of a buffer this renderer filled (row-major): pixels whose
     /// visible triangle is a mesh triangle, not a hole fan. After
     /// [`FaceRenderer::render`] in [`RasterMode::Official`] the buffer holds the whole
@@ -316,19 +354,15 @@ impl FaceRenderer {
             }
             None => (width, height),
         };
-        // The rasterizer's buffer panics beyond its limit: a crop size or an image size
-        // read from a file must fail here instead.
-        let max = crate::raster::MAX_VIEWPORT;
-        if !(1..=max).contains(&bw) || !(1..=max).contains(&bh) {
-            return Err(Error::invalid(
-                if crop.is_some() {
-                    "crop size"
-                } else {
-                    "image size"
-                },
-                format!("{bw}x{bh}: each side must be 1..={max} pixels"),
-            ));
-        }
+        check_viewport(
+            bw,
+            bh,
+            if crop.is_some() {
+                "crop size"
+            } else {
+                "image size"
+            },
+        )?;
         if buffer.width != bw || buffer.height != bh {
             *buffer = VisibilityBuffer::new(bw, bh);
         } else {
@@ -341,6 +375,71 @@ impl FaceRenderer {
             }
         }
         .map_err(|e| Error::invalid("mesh", e.to_string()))
+    }
+}
+
+/// A `width x height` viewport's sides as an error naming `what` unless each is
+/// `1..=MAX_VIEWPORT`: the rasterizer's buffer panics beyond its limit, and a crop size
+/// or an image size read from a file must fail instead.
+fn check_viewport(width: u32, height: u32, what: &str) -> Result<()> {
+    let max = crate::raster::MAX_VIEWPORT;
+    if !(1..=max).contains(&width) || !(1..=max).contains(&height) {
+        return Err(Error::invalid(
+            what,
+            format!("{width}x{height}: each side must be 1..={max} pixels"),
+        ));
+    }
+    Ok(())
+}
+
+/// A face mask over a window of a `width x height` image
+/// ([`FaceRenderer::render_window_mask`]): row-major over `window`; every pixel outside
+/// the window is not face.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct WindowMask {
+    /// The image pixels held.
+    pub window: PixelWindow,
+    /// Per window pixel, whether it shows the face.
+    pub mask: Vec<bool>,
+}
+
+impl WindowMask {
+    /// Whether image pixel `(x, y)` shows the face (never outside the window, nor
+    /// outside the image).
+    #[inline]
+    pub fn is_face(&self, x: i64, y: i64) -> bool {
+        self.window.index(x, y).is_some_and(|i| self.mask[i])
+    }
+
+    /// The mask over the whole `width x height` image (row-major), as
+    /// [`FaceRenderer::render_full_mask`] returns it.
+    pub fn to_full(&self, width: u32, height: u32) -> Vec<bool> {
+        let w = width as i64;
+        (0..width as usize * height as usize)
+            .map(|i| self.is_face(i as i64 % w, i as i64 / w))
+            .collect()
+    }
+
+    /// The face pixels of the image rectangle `rows x cols` (image pixels, within the
+    /// image), as row-major offsets in the rectangle: numpy's
+    /// `np.nonzero(mask[rows, cols].ravel())`. Only the rectangle's part inside the
+    /// window is visited.
+    pub fn face_offsets(&self, rows: Range<i64>, cols: Range<i64>) -> Vec<i64> {
+        let w = &self.window;
+        let clip = |r: &Range<i64>, start: u32, len: u32| {
+            r.start.max(start as i64)..r.end.min(start as i64 + len as i64)
+        };
+        let (inner_rows, inner_cols) = (clip(&rows, w.y0, w.height), clip(&cols, w.x0, w.width));
+        let width = cols.end - cols.start;
+        let mut offsets = Vec::new();
+        for y in inner_rows {
+            for x in inner_cols.clone() {
+                if self.is_face(x, y) {
+                    offsets.push((y - rows.start) * width + (x - cols.start));
+                }
+            }
+        }
+        offsets
     }
 }
 
@@ -1125,6 +1224,68 @@ mod tests {
         };
         let (a, b) = (area(&exact), area(&official));
         assert!((a - b).abs() < 0.03 * a, "{a} vs {b}");
+    }
+
+    #[test]
+    fn the_windowed_full_mask_is_the_whole_images() {
+        // Two paths: the official raster of the whole image, and of the window the
+        // vertices can cover. A face cut by the image's left and top edges, and one in
+        // the middle: the same mask, and the same triangle and weights on every pixel.
+        let (mut r, verts) = face();
+        r.mode = RasterMode::Official;
+        let at = |x: f64, y: f64| {
+            Pose::from_euler(EulerAngles::new(20.0, -5.0, 10.0), Vector3::new(x, y, -0.5))
+        };
+        let (w, h) = (800u32, 640u32);
+        let (mut whole, mut part) = (VisibilityBuffer::new(1, 1), VisibilityBuffer::new(1, 1));
+        for (name, pose) in [("edge", at(-0.27, 0.25)), ("middle", at(0.0, 0.0))] {
+            let full = r.render_full_mask(&verts, &pose, w, h, &mut whole).unwrap();
+            let face = r
+                .render_window_mask(&verts, &pose, w, h, &mut part)
+                .unwrap();
+            assert_eq!(face.to_full(w, h), full, "{name}");
+            let win = face.window;
+            assert_eq!((part.width, part.height), (win.width, win.height));
+            for (i, &t) in whole.triangle.iter().enumerate() {
+                let (x, y) = ((i % w as usize) as i64, (i / w as usize) as i64);
+                let Some(j) = win.index(x, y) else {
+                    assert_eq!(t, VisibilityBuffer::EMPTY, "{name} ({x}, {y})");
+                    continue;
+                };
+                assert_eq!(part.triangle[j], t, "{name} ({x}, {y})");
+                if t != VisibilityBuffer::EMPTY {
+                    assert_eq!(part.bary[j], whole.bary[i], "{name} ({x}, {y})");
+                }
+            }
+            let face_on = |x: u32, y: u32| full[(y * w + x) as usize];
+            let touches_edges = (0..h).any(|y| face_on(0, y)) && (0..w).any(|x| face_on(x, 0));
+            match name {
+                "edge" => assert!(touches_edges && (win.x0, win.y0) == (0, 0), "{win:?}"),
+                _ => assert!(!touches_edges && win.x0 > 0 && win.len() * 4 < full.len()),
+            }
+            // A slice starting inside the window and ending past it: numpy's nonzero of
+            // mask[rows, cols].
+            let (x0, y0) = (win.x0 as i64 + 17, win.y0 as i64 + 23);
+            let (rows, cols) = (y0..(y0 + 300).min(h as i64), x0..(x0 + 400).min(w as i64));
+            let want: Vec<i64> = rows
+                .clone()
+                .flat_map(|y| cols.clone().map(move |x| (y, x)))
+                .enumerate()
+                .filter(|&(_, (y, x))| face_on(x as u32, y as u32))
+                .map(|(k, _)| k as i64)
+                .collect();
+            assert!(!want.is_empty());
+            assert_eq!(face.face_offsets(rows, cols), want, "{name}");
+        }
+        // In exact mode the window is the whole image.
+        r.mode = RasterMode::Exact;
+        let pose = at(0.0, 0.0);
+        let face = r
+            .render_window_mask(&verts, &pose, w, h, &mut part)
+            .unwrap();
+        assert_eq!(face.window, PixelWindow::whole(w, h));
+        let full = r.render_full_mask(&verts, &pose, w, h, &mut whole).unwrap();
+        assert_eq!(face.mask, full);
     }
 
     #[test]

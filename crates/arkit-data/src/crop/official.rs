@@ -23,7 +23,9 @@
 //!    of 2^-10 (exact), and a pixel is `(sum w p + 2^14) >> 15` in units of 2^-15. For a
 //!    0/1 mask that makes a crop pixel face when the face taps' weights sum to at least
 //!    one half. (OpenCV 4.11 and later compute the coordinates in float; they differ
-//!    from this only on a few boundary pixels.)
+//!    from this only on a few boundary pixels.) [`warp_mask_of`] takes that rule
+//!    directly on a mask given as a predicate (a mask held over a window of the image),
+//!    tested against [`warp_mask`]'s resampling of the 0/1 image.
 //!
 //! The correspondences of a crop mask pixel are the official full-resolution buffer's
 //! (triangle, screen-space weights) at the face pixel among its four bilinear taps with
@@ -309,6 +311,28 @@ pub fn warp_mask(full_mask: &[bool], width: u32, height: u32, crop: &CropTransfo
         .collect()
 }
 
+/// [`warp_mask`] of the mask `is_face(x, y)` (called only for pixels some tap weighs,
+/// which may be outside the image: answer `false` there): a crop pixel is face when
+/// its face taps weigh at least [`HALF_WEIGHT`], which is where `cv2.warpAffine`'s
+/// rounding of the warped 0/1 mask is above 0. For a mask held over a window of the
+/// image, without the whole image's mask.
+pub fn warp_mask_of(crop: &CropTransform, is_face: impl Fn(i64, i64) -> bool) -> Vec<bool> {
+    warp_taps(crop)
+        .iter()
+        .map(|t| {
+            let (x, y) = (t.x as i64, t.y as i64);
+            let corners = [(x, y), (x + 1, y), (x, y + 1), (x + 1, y + 1)];
+            let face_weight: u32 = corners
+                .iter()
+                .zip(t.weights())
+                .filter(|&(&(cx, cy), wt)| wt > 0 && is_face(cx, cy))
+                .map(|(_, wt)| wt)
+                .sum();
+            face_weight >= HALF_WEIGHT
+        })
+        .collect()
+}
+
 /// For crop pixel tap `t`, the image pixel (row-major index) the official correspondence
 /// is taken from: the face pixel among the four taps with the largest weight, the
 /// first on a tie; `None` when no tap is a face pixel.
@@ -420,6 +444,27 @@ mod tests {
         assert_eq!(&m[..3], &[false, true, true]);
         assert!(!m[3] && !m[6]);
         assert!(!m[4], "a quarter is not enough");
+    }
+
+    #[test]
+    fn warp_mask_of_a_predicate_is_the_warped_full_mask() {
+        // Random masks and boxes, some leaving the image: the weight rule against
+        // cv2's resampling of the 0/1 image (warp_affine), tap by tap.
+        let mut r = crate::rng::Rng::new(3);
+        let (w, h) = (40u32, 30u32);
+        for _ in 0..200 {
+            let mask: Vec<bool> = (0..w * h).map(|_| r.below(3) == 0).collect();
+            let left = r.uniform(-15.0, 30.0).trunc();
+            let top = r.uniform(-15.0, 20.0).trunc();
+            let side = r.uniform(2.0, 40.0).trunc();
+            let c = crop(left, top, left + side, top + side + r.below(2) as f64, 23);
+            let face = |x: i64, y: i64| {
+                (0..w as i64).contains(&x)
+                    && (0..h as i64).contains(&y)
+                    && mask[(y * w as i64 + x) as usize]
+            };
+            assert_eq!(warp_mask_of(&c, face), warp_mask(&mask, w, h, &c), "{c:?}");
+        }
     }
 
     #[test]
