@@ -1,7 +1,7 @@
 """Throughput of ARKitFaceDataset through torch's DataLoader, per core, side by side with
 the JPEG-decode floor, printed as `ratio:` lines against the official loader.
 
-    python python/bench/dataloader.py [--samples 256] [--resources DIR]
+    python python/bench/dataloader.py [--samples 256] [--resources DIR] [--official DIR]
 
 Makes an 800x800 synthetic dataset with the arkit-tool binary (the real topology when
 the resource files are there), then, in one process on one core (torch threads 1,
@@ -12,7 +12,9 @@ official, from the crop store with sparse and dense correspondences, and from th
 with sparse ones. The
 official `ARKitDataset.get_item` costs 19-31 ms a sample on this kind of machine
 (../shared/measurements.md, measured side by side on 2026-12-01); the ratios use 19 ms
-(its fastest, test mode) and 31 ms (train mode with colour jitter).
+(its fastest, test mode) and 31 ms (train mode with colour jitter), or, with
+`--official DIR` (a checkout of the official code, not part of this repository), its
+get_item timed on the same samples in this run.
 """
 
 import argparse
@@ -33,6 +35,10 @@ def main():
     p.add_argument("--samples", type=int, default=256)
     p.add_argument("--resources", default=str(ROOT.parent / "shared" / "arkitface-resources"))
     p.add_argument("--bin", default=str(ROOT / "target" / "release" / "arkit-tool"))
+    p.add_argument("--official", metavar="DIR",
+                   help="a checkout of the official code (cbsropenproject/6dof_face, its Cython "
+                        "rasterizers built; not part of this repository) to time its get_item on "
+                        "the same samples in this run (needs cv2 and its other requirements)")
     a = p.parse_args()
     os.environ.setdefault("OMP_NUM_THREADS", "1")
     import torch
@@ -62,6 +68,14 @@ def main():
     floor_ms = (time.perf_counter() - t) / len(paths) * 1e3
     print(f"JPEG decode (Pillow): {floor_ms:.2f} ms a sample")
 
+    official_ms = dict(OFFICIAL_MS)
+    source = "measured here on 2026-12-01, ../shared/measurements.md"
+    if a.official:
+        official_ms = time_official(pathlib.Path(a.official), tmp / "release")
+        source = "measured in this run"
+    for mode, ms in official_ms.items():
+        print(f"official get_item, {mode}: {ms:.2f} ms a sample ({source})")
+
     t = time.perf_counter()
     for compat in ["exact", "official"]:
         subprocess.run([a.bin, "crops", "--dataset", data, "--compat", compat, *res],
@@ -84,9 +98,46 @@ def main():
                 ms = (time.perf_counter() - t) / n * 1e3
                 name = f"{mode}/{compat}/{corr}/{source}"
                 print(f"{name}: {ms:.2f} ms a sample, {1e3 / ms:.0f} samples/s/core")
-                print(f"ratio: official get_item {OFFICIAL_MS[mode]:.0f} ms / arkit_tool {name} = "
-                      f"{OFFICIAL_MS[mode] / ms:.1f}x")
+                print(f"ratio: official get_item {official_ms[mode]:.1f} ms / arkit_tool {name} = "
+                      f"{official_ms[mode] / ms:.1f}x")
                 print(f"ratio: arkit_tool {name} / JPEG decode floor = {ms / floor_ms:.2f}")
+
+
+def time_official(code, release):
+    """The official `ARKitDataset.get_item` per sample, one thread, eval and train, on the
+    release-layout dataset `release` (its train list): imported from `code`, whose data
+    module reads `<data_root>/image` and `<data_root>/info`, linked here."""
+    import sys
+    import types
+
+    import cv2
+
+    cv2.setNumThreads(1)
+    flat = release / "official_root"
+    flat.mkdir(exist_ok=True)
+    for k in ("image", "info"):
+        if not (flat / k).exists():
+            (flat / k).symlink_to(release / f"ARKitFace_{k}_train" / k)
+    csv = str(release / "ARKitFace_list" / "list" / "ARKitFace_train.csv")
+    cwd = os.getcwd()
+    os.chdir(code)
+    sys.path.insert(0, str(code))
+    try:
+        import data.arkit_dataset as official
+
+        official.data_root = flat
+        out = {}
+        for mode in ["eval", "train"]:
+            opt = types.SimpleNamespace(isTrain=mode == "train", img_size=192, n_pts=1024, debug=False,
+                                        eval=True, csv_path_test=csv, csv_path_train=csv)
+            ds = official.ARKitDataset(opt)
+            t = time.perf_counter()
+            for i in range(len(ds)):
+                ds.get_item(i)
+            out[mode] = (time.perf_counter() - t) / len(ds) * 1e3
+        return out
+    finally:
+        os.chdir(cwd)
 
 
 if __name__ == "__main__":
