@@ -436,12 +436,19 @@ impl CropStore {
             .and_then(|f| f.as_ref())
             .ok_or_else(|| Error::invalid("crop store", format!("no samples shard {shard}")))?;
         let m = &self.manifest;
-        let size = m.record_bytes as usize;
-        let mut r = vec![0u8; size];
-        read_exact_at(file, &mut r, HEADER_BYTES + row as u64 * m.record_bytes)
-            .map_err(|e| Error::io(path, e))?;
+        // The head (CRC to mesh) and the window read into their own buffers, so the
+        // window is returned as read, not moved out of the record.
+        let verts_end = RECORD_PREFIX + 12 * m.vertex_count;
+        let at = HEADER_BYTES + row as u64 * m.record_bytes;
+        let mut r = vec![0u8; verts_end];
+        let mut window = vec![0u8; m.record_bytes as usize - verts_end];
+        read_exact_at(file, &mut r, at).map_err(|e| Error::io(path, e))?;
+        read_exact_at(file, &mut window, at + verts_end as u64).map_err(|e| Error::io(path, e))?;
         let u32_at = |i: usize| u32::from_le_bytes(r[i..i + 4].try_into().expect("4 bytes"));
-        if crc32fast::hash(&r[4..]) != u32_at(0) {
+        let mut crc = crc32fast::Hasher::new();
+        crc.update(&r[4..]);
+        crc.update(&window);
+        if crc.finalize() != u32_at(0) {
             return Err(Error::format(
                 path,
                 format!(
@@ -479,7 +486,6 @@ impl CropStore {
             size: m.img_size,
             sampling: sampling_of(&m.compat)?,
         };
-        let verts_end = RECORD_PREFIX + 12 * m.vertex_count;
         let verts = r[RECORD_PREFIX..verts_end]
             .chunks_exact(12)
             .map(|c| {
@@ -487,11 +493,10 @@ impl CropStore {
                 Point3::new(f(0), f(4), f(8))
             })
             .collect();
-        r.drain(..verts_end);
         Ok(StoredCrop {
             eval_crop,
             verts,
-            window: r,
+            window,
         })
     }
 }
