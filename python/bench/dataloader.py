@@ -8,9 +8,8 @@ the resource files are there), then, in one process on one core (torch threads 1
 num_workers 0), times: decoding the dataset's JPEGs with Pillow (libjpeg-turbo: the floor
 of any loader that decodes the full image), `arkit-tool crops` (the crop store, made
 once), and the DataLoader over the dataset (batch 64, 1,024 points) for compat exact and
-official, from the crop store with sparse and dense correspondences and with sparse
-ones in `compact` form (uint8 `img` and `mask`, float16 `uvmap`: the DataLoader copies a
-third of the bytes), and from the JPEGs with sparse ones. The
+official, from the crop store with sparse and dense correspondences, and from the JPEGs
+with sparse ones. The
 official `ARKitDataset.get_item` costs 19-31 ms a sample on this kind of machine
 (../shared/measurements.md, measured side by side on 2026-12-01); the ratios use 19 ms
 (its fastest, test mode) and 31 ms (train mode with colour jitter), or, with
@@ -86,11 +85,9 @@ def main():
 
     for mode in ["eval", "train"]:
         for compat in ["exact", "official"]:
-            for source, corr, compact in [("store", "sparse", False), ("store", "sparse", True),
-                                          ("store", "dense", False), ("jpeg", "sparse", False)]:
+            for source, corr in [("store", "sparse"), ("store", "dense"), ("jpeg", "sparse")]:
                 ds = arkit_tool.ARKitFaceDataset(data, split=None, mode=mode, compat=compat, corr=corr,
-                                                 crop_store="auto" if source == "store" else None,
-                                                 compact=compact)
+                                                 crop_store="auto" if source == "store" else None)
                 assert (ds.crop_store is not None) == (source == "store")
                 loader = torch.utils.data.DataLoader(ds, batch_size=64, shuffle=True, num_workers=0)
                 next(iter(loader))  # warm
@@ -99,7 +96,7 @@ def main():
                 for batch in loader:
                     n += batch["img"].shape[0]
                 ms = (time.perf_counter() - t) / n * 1e3
-                name = f"{mode}/{compat}/{corr}/{source}" + ("/compact" if compact else "")
+                name = f"{mode}/{compat}/{corr}/{source}"
                 print(f"{name}: {ms:.2f} ms a sample, {1e3 / ms:.0f} samples/s/core")
                 print(f"ratio: official get_item {official_ms[mode]:.1f} ms / arkit_tool {name} = "
                       f"{official_ms[mode] / ms:.1f}x")

@@ -84,25 +84,3 @@ def test_two_workers_give_the_batches_of_none_from_the_store(dataset, tmp_path):
     for a, b in zip(got, reference):
         for k in a:
             assert torch.equal(a[k], b[k]), k
-
-
-@pytest.mark.parametrize("compat", ["exact", "official"])
-def test_compact_items_hold_the_same_values_in_fewer_bytes(dataset, compat):
-    from arkit_tool import normalise_img
-
-    full = ARKitFaceDataset(dataset, split=None, mode="train", compat=compat, n_pts=64, corr="sparse")
-    small = ARKitFaceDataset(dataset, split=None, mode="train", compat=compat, n_pts=64, corr="sparse",
-                             compact=True)
-    for i in range(len(full)):
-        a, b = full[i], small[i]
-        assert b["img"].dtype == np.uint8 and b["mask"].dtype == np.uint8
-        assert b["uvmap"].dtype == np.float16 and b["uvmap"].shape == a["uvmap"].shape
-        np.testing.assert_array_equal(normalise_img(b["img"]), a["img"])
-        np.testing.assert_array_equal(b["mask"], a["mask"])
-        np.testing.assert_array_equal(b["uvmap"], a["uvmap"].astype(np.float16))
-        for k in set(a) - {"img", "mask", "uvmap"}:
-            np.testing.assert_array_equal(a[k], b[k])
-    # In torch, for a batch, the same normalisation.
-    torch = pytest.importorskip("torch", reason="SKIPPED: torch is not installed")
-    batch = torch.from_numpy(np.stack([small[0]["img"], small[1]["img"]]))
-    np.testing.assert_array_equal(normalise_img(batch).numpy(), np.stack([full[0]["img"], full[1]["img"]]))

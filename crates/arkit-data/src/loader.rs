@@ -170,9 +170,6 @@ pub struct LoaderItem {
     pub image_path: PathBuf,
     /// `3 x S x S`, normalised.
     pub img: Vec<f32>,
-    /// The crop `img` is normalised from: `S x S x 3` interleaved RGB bytes, after the
-    /// colour jitter in training.
-    pub rgb: Vec<u8>,
     /// `n_pts` crop pixel indices (`row * S + col`).
     pub choose: Vec<i64>,
     /// The mesh, `1220 x 3` (metres, canonical frame).
@@ -1100,7 +1097,6 @@ impl FaceLoader {
             key: row.sample.key.clone(),
             image_path: self.image_path(row),
             img: normalise(&rgb),
-            rgb,
             choose: chosen.iter().map(|&c| pixels[c as usize] as i64).collect(),
             model: Vec::new(),
             uvmap,
@@ -1301,7 +1297,6 @@ impl FaceLoader {
             key: row.sample.key.clone(),
             image_path: self.image_path(row),
             img: normalise(&rgb),
-            rgb,
             choose,
             model: Vec::new(),
             uvmap: self.official_uv.uv_map(verts),

@@ -147,10 +147,7 @@ impl Loader {
 
     /// Sample `index` of `epoch` as a dict of numpy arrays; `corr` is `"dense"`,
     /// `"sparse"` or `"both"`; `extras` adds the official box and pre-mapping points.
-    /// `compact`: `img` as the crop's bytes (3 x S x S uint8, not normalised), `mask` as
-    /// uint8 and `uvmap` as float16 bits (uint16; the Python layer views them as float16).
-    #[pyo3(signature = (index, epoch=0, corr="dense", eval_keys=false, extras=false, compact=false))]
-    #[allow(clippy::too_many_arguments)]
+    #[pyo3(signature = (index, epoch=0, corr="dense", eval_keys=false, extras=false))]
     fn item<'py>(
         &self,
         py: Python<'py>,
@@ -159,7 +156,6 @@ impl Loader {
         corr: &str,
         eval_keys: bool,
         extras: bool,
-        compact: bool,
     ) -> PyResult<Bound<'py, PyDict>> {
         let (dense, sparse) = match corr {
             "dense" => (true, false),
@@ -182,7 +178,7 @@ impl Loader {
             let corr_mat = dense.then(|| dense_correspondences(&item));
             Ok((item, corr_mat))
         })?;
-        item_dict(py, item, corr_mat, sparse, eval_keys, extras, compact)
+        item_dict(py, item, corr_mat, sparse, eval_keys, extras)
     }
 }
 
@@ -210,39 +206,22 @@ fn item_dict<'py>(
     sparse: bool,
     eval_keys: bool,
     extras: bool,
-    compact: bool,
 ) -> PyResult<Bound<'py, PyDict>> {
     let s = (item.mask.len() as f64).sqrt() as usize;
     let n = item.choose.len();
     let v = item.model.len() / 3;
     let d = PyDict::new(py);
-    if compact {
-        // Channels first, as `img`.
-        let planes: Vec<u8> = (0..3)
-            .flat_map(|k| item.rgb.iter().skip(k).step_by(3).copied())
-            .collect();
-        d.set_item("img", planes.into_pyarray(py).reshape([3, s, s])?)?;
-        d.set_item("mask", item.mask.into_pyarray(py).reshape([s, s])?)?;
-        let us = ((item.uvmap.len() / 3) as f64).sqrt() as usize;
-        let bits: Vec<u16> = item
-            .uvmap
-            .iter()
-            .map(|&x| half::f16::from_f32(x).to_bits())
-            .collect();
-        d.set_item("uvmap", bits.into_pyarray(py).reshape([3, us, us])?)?;
-    } else {
-        d.set_item("img", item.img.into_pyarray(py).reshape([3, s, s])?)?;
-        d.set_item("uvmap", {
-            let u = item.uvmap;
-            let us = ((u.len() / 3) as f64).sqrt() as usize;
-            u.into_pyarray(py).reshape([3, us, us])?
-        })?;
-        let mask: Vec<i64> = item.mask.iter().map(|&m| m as i64).collect();
-        d.set_item("mask", mask.into_pyarray(py).reshape([s, s])?)?;
-    }
+    d.set_item("img", item.img.into_pyarray(py).reshape([3, s, s])?)?;
     d.set_item("choose", item.choose.into_pyarray(py))?;
     d.set_item("model", item.model.into_pyarray(py).reshape([v, 3])?)?;
+    d.set_item("uvmap", {
+        let u = item.uvmap;
+        let us = ((u.len() / 3) as f64).sqrt() as usize;
+        u.into_pyarray(py).reshape([3, us, us])?
+    })?;
     d.set_item("nocs", item.nocs.into_pyarray(py).reshape([n, 3])?)?;
+    let mask: Vec<i64> = item.mask.iter().map(|&m| m as i64).collect();
+    d.set_item("mask", mask.into_pyarray(py).reshape([s, s])?)?;
     if let Some(m) = corr_mat {
         d.set_item("corr_mat", m.into_pyarray(py).reshape([n, v])?)?;
     }

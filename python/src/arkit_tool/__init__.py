@@ -32,7 +32,6 @@ __all__ = [
     "DataError",
     "decode_targets",
     "evaluate",
-    "normalise_img",
     "open_dataset",
     "project",
     "read_image",
@@ -151,12 +150,6 @@ class ARKitFaceDataset:
     the rules or the size); None: always the release's files. From a store, evaluation
     crops are bit for bit the same; training crops are resampled from the stored window
     around the box (slightly smoother), their geometry the same. See docs/python.md.
-
-    `compact=True` returns a third of the bytes, for the DataLoader to copy and the GPU
-    to finish: `img` as the crop's bytes (3 x S x S uint8, before `normalise_img`),
-    `mask` as uint8 and `uvmap` as float16 (`uvmap.float()` is the float32 map rounded
-    to float16); the other keys unchanged. `normalise_img(batch["img"])` then gives the
-    float32 `img` of `compact=False`, bit for bit, on any device.
     """
 
     def __init__(
@@ -172,7 +165,6 @@ class ARKitFaceDataset:
         corr: str = "dense",
         tensors: bool = False,
         crop_store: Optional[Union[str, os.PathLike]] = "auto",
-        compact: bool = False,
     ):
         if corr not in ("dense", "sparse", "both"):
             raise DataError(f"corr: {corr!r}: expected 'dense', 'sparse' or 'both'")
@@ -187,7 +179,6 @@ class ARKitFaceDataset:
         self.corr = corr
         self.tensors = bool(tensors)
         self.crop_store = self._find_store(crop_store)
-        self.compact = bool(compact)
         self.epoch = 0
         self._loader = self._open()
         if self.tensors:
@@ -247,10 +238,7 @@ class ARKitFaceDataset:
             self.corr,
             self.mode == "eval",
             extras,
-            self.compact,
         )
-        if self.compact:
-            d["uvmap"] = d["uvmap"].view(np.float16)
         if self.tensors:
             import torch
 
@@ -259,30 +247,6 @@ class ARKitFaceDataset:
 
     def __getitem__(self, index: int) -> Dict[str, Any]:
         return self.item(index)
-
-
-_MEAN = (0.485, 0.456, 0.406)
-_STD = (0.229, 0.224, 0.225)
-
-
-def normalise_img(img):
-    """`img` of `compact=True` (uint8, channels first: `(3, S, S)` or a batch `(B, 3,
-    S, S)`; numpy or torch, on any device) as `compact=False` returns it: `ToTensor` then
-    `Normalize(ImageNet mean, std)` in float32, the same operations as the loader's, so
-    the same values bit for bit."""
-    try:
-        import torch
-
-        if isinstance(img, torch.Tensor):
-            mean = torch.tensor(_MEAN, dtype=torch.float32, device=img.device).view(3, 1, 1)
-            std = torch.tensor(_STD, dtype=torch.float32, device=img.device).view(3, 1, 1)
-            return (img.to(torch.float32) / 255.0 - mean) / std
-    except ImportError:
-        pass
-    a = np.asarray(img)
-    mean = np.array(_MEAN, dtype=np.float32).reshape(3, 1, 1)
-    std = np.array(_STD, dtype=np.float32).reshape(3, 1, 1)
-    return (a.astype(np.float32) / np.float32(255.0) - mean) / std
 
 
 # Largest mask and UV map a targets row may describe (arkit_core::limits).
