@@ -19,12 +19,12 @@ use std::process::ExitCode;
 /// the JPEG; in training the jittered crop is resampled from the window (a second
 /// bilinear pass, slightly smoother; the mask, points and correspondences are the
 /// same). One store serves one rule set (--compat) and one crop side (--size):
-/// 187 KiB per sample for 192 pixels and 1,220 vertices.
+/// 188.8 KiB per sample for 192 pixels and 1,220 vertices.
 ///
 /// A sample whose image or annotation cannot be read is stored without pixels and
 /// listed with the reason in crops.json (the loader raises that reason for it); the
-/// run goes on. The store is tied to the dataset: after `convert` runs again the
-/// loader refuses it until `crops` runs again.
+/// run goes on, and exits 1. The store is tied to the dataset: after `convert` runs
+/// again the loader refuses it until `crops` runs again.
 ///
 /// Example: arkit-tool crops --dataset data/pq --resources ../arkitface-resources
 ///          (writes data/pq/crops/exact-192/, which ARKitFaceDataset finds by itself)
