@@ -5,7 +5,7 @@
 mod support;
 
 use arkit_tool::crop_store::{self, CropStore};
-use arkit_tool::crops_dataset::{self, write_crop_store};
+use arkit_tool::crops_dataset::write_crop_store;
 use arkit_tool::dataset::Dataset;
 use arkit_tool::loader::{Compat, FaceLoader, LoaderMode, LoaderOptions};
 use std::path::Path;
@@ -27,7 +27,7 @@ fn loader(dir: &Path, mode: LoaderMode, compat: Compat) -> FaceLoader {
 
 /// The store of `dir` for `compat`, in its default folder.
 fn store(dir: &Path, compat: Compat) -> std::path::PathBuf {
-    let out = crops_dataset::default_output(dir, compat, S);
+    let out = FaceLoader::default_crop_store(dir, compat, S);
     let summary = write_crop_store(&loader(dir, LoaderMode::Eval, compat), &out, &|_| {}).unwrap();
     assert_eq!(summary.missing, 0, "{:?}", summary.missing_examples);
     assert_eq!(
@@ -161,7 +161,7 @@ fn a_sample_without_an_image_is_stored_without_pixels_and_named() {
     let plain = loader(dir.path(), LoaderMode::Eval, Compat::Exact);
     let gone = plain.item(2, 0).unwrap().image_path;
     std::fs::remove_file(&gone).unwrap();
-    let out = crops_dataset::default_output(dir.path(), Compat::Exact, S);
+    let out = FaceLoader::default_crop_store(dir.path(), Compat::Exact, S);
     let summary = write_crop_store(&plain, &out, &|_| {}).unwrap();
     assert_eq!((summary.samples, summary.missing), (4, 1));
     let name = gone.file_name().unwrap().to_string_lossy().into_owned();

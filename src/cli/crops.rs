@@ -81,7 +81,7 @@ pub fn run(a: CropsArgs) -> Result<ExitCode> {
     let output = a
         .output
         .clone()
-        .unwrap_or_else(|| crops_dataset::default_output(&a.dataset, compat, a.size));
+        .unwrap_or_else(|| FaceLoader::default_crop_store(&a.dataset, compat, a.size));
     let bar = super::progress_bar(loader.len() as u64, "crops", "samples");
     let pool = super::thread_pool(a.jobs)?;
     let summary =

@@ -213,15 +213,15 @@ fn header(manifest: &CropStoreManifest, records: usize) -> Result<[u8; 64]> {
     Ok(h)
 }
 
-/// One record's bytes: `Ok` a stored crop, `Err` a sample without pixels (status 0).
+/// One record's bytes: a stored crop, or `None` for a sample without pixels (status 0).
 pub fn encode_record(
     manifest: &CropStoreManifest,
     row: usize,
-    crop: std::result::Result<&StoredCrop, ()>,
+    crop: Option<&StoredCrop>,
 ) -> Vec<u8> {
     let mut r = vec![0u8; manifest.record_bytes as usize];
     r[8..16].copy_from_slice(&(row as u64).to_le_bytes());
-    if let Ok(c) = crop {
+    if let Some(c) = crop {
         r[4..8].copy_from_slice(&1u32.to_le_bytes());
         let b = &c.eval_crop;
         for (i, v) in [b.x0, b.y0, b.side, b.side_y].iter().enumerate() {
@@ -246,7 +246,7 @@ pub fn write_shard_file(
     dir: &Path,
     manifest: &CropStoreManifest,
     index: usize,
-    records: &mut dyn Iterator<Item = Result<Vec<u8>>>,
+    records: &mut dyn Iterator<Item = Vec<u8>>,
     count: usize,
 ) -> Result<CropShard> {
     let file = format!("part-{index}.bin");
@@ -256,7 +256,7 @@ pub fn write_shard_file(
         w.write_all(&head).map_err(|e| Error::io(&path, e))?;
         let mut written = 0;
         for r in records {
-            w.write_all(&r?).map_err(|e| Error::io(&path, e))?;
+            w.write_all(&r).map_err(|e| Error::io(&path, e))?;
             written += 1;
         }
         if written != count {
@@ -570,17 +570,17 @@ mod tests {
             verts: vec![Point3::new(0.1, -0.2, 0.3), Point3::new(1.0, 2.0, 3.0)],
             window: (0..w * w * 3).map(|i| (i * 7 % 251) as u8).collect(),
         };
-        let bytes = encode_record(&m, 5, Ok(&crop));
+        let bytes = encode_record(&m, 5, Some(&crop));
         assert_eq!(bytes.len() as u64, m.record_bytes);
         assert_eq!(crc32fast::hash(&bytes[4..]).to_le_bytes(), bytes[..4]);
         // Decode through a one-shard store file.
         let dir = tempfile::tempdir().unwrap();
         let mut records = (0..6).map(|r| {
-            Ok(if r == 5 {
+            if r == 5 {
                 bytes.clone()
             } else {
-                encode_record(&m, r, Err(()))
-            })
+                encode_record(&m, r, None)
+            }
         });
         write_shard_file(dir.path(), &m, 0, &mut records, 6).unwrap();
         let path = dir.path().join("part-0.bin");

@@ -18,7 +18,7 @@ use crate::crop_store::{
     self, CropStoreManifest, FORMAT, MissingCrop, encode_record, margin, record_bytes,
 };
 use crate::error::{Error, Result};
-use crate::loader::{Compat, FaceLoader};
+use crate::loader::FaceLoader;
 use rayon::prelude::*;
 use serde::Serialize;
 use std::path::{Path, PathBuf};
@@ -101,12 +101,12 @@ pub fn write_crop_store(
             }
         }
         let mut records = indices.chunks(CHUNK).flat_map(|chunk| {
-            let done: Vec<Result<Vec<u8>>> = chunk
+            let done: Vec<Vec<u8>> = chunk
                 .par_iter()
                 .map(|&i| {
                     let (_, row) = loader.location(i).expect("checked above");
-                    let record = match loader.stored_crop(i) {
-                        Ok(c) => encode_record(&manifest, row, Ok(&c)),
+                    match loader.stored_crop(i) {
+                        Ok(c) => encode_record(&manifest, row, Some(&c)),
                         Err(e) => {
                             let (key, _) = loader.key(i).expect("in range");
                             missing
@@ -118,10 +118,9 @@ pub fn write_crop_store(
                                     key: key.to_string(),
                                     reason: e.to_string(),
                                 });
-                            encode_record(&manifest, row, Err(()))
+                            encode_record(&manifest, row, None)
                         }
-                    };
-                    Ok(record)
+                    }
                 })
                 .collect();
             progress(chunk.len());
@@ -156,9 +155,4 @@ pub fn write_crop_store(
         bytes,
         bytes_per_sample: manifest.record_bytes,
     })
-}
-
-/// The default store folder of `dir` for `compat` and crop side `img_size`.
-pub fn default_output(dir: &Path, compat: Compat, img_size: u32) -> PathBuf {
-    FaceLoader::default_crop_store(dir, compat, img_size)
 }

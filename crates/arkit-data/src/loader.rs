@@ -551,10 +551,10 @@ const SEXTANT: [[usize; 3]; 6] = [
 ];
 
 /// Rotates one pixel's HSV hue by `h` turns (`|h| <= 0.5`): RGB to HSV, the hue moved,
-/// back to RGB, rounded to bytes. Written with selections and table lookups instead of
-/// branches on which channel is largest and which sextant the hue falls in (those
-/// branches mispredicted on most pixels); the arithmetic is the textbook conversion's,
-/// operation for operation, so the bytes are its bytes (tested against it).
+/// back to RGB, rounded to bytes. The scalar path of [`shift_hue_all`] (the last
+/// pixels, and targets without SSE2): the textbook conversion's arithmetic, operation
+/// for operation, with the sextant's channels from a table, so the bytes are its bytes
+/// (tested against it).
 fn shift_hue(p: &mut [u8], h: f32) {
     let [r, g, b] = [p[0], p[1], p[2]].map(|v| UNIT[v as usize]);
     let max = r.max(g).max(b);
@@ -696,7 +696,7 @@ unsafe fn shift_hue_sse2(rgb: &mut [u8], h: f32) {
 /// values, without two divisions per value.
 pub fn normalise(rgb: &[u8]) -> Vec<f32> {
     let table: [[f32; 256]; 3] = std::array::from_fn(|k| {
-        std::array::from_fn(|v| (v as f32 / 255.0 - IMAGENET_MEAN[k]) / IMAGENET_STD[k])
+        std::array::from_fn(|v| (UNIT[v] - IMAGENET_MEAN[k]) / IMAGENET_STD[k])
     });
     let n = rgb.len() / 3;
     let mut out = vec![0f32; 3 * n];

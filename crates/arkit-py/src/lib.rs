@@ -585,6 +585,17 @@ fn evaluate(
 }
 
 /// An image file decoded as the loader decodes it (the `image` crate): `(H, W, 3)` uint8 RGB.
+/// The folder `arkit-tool crops` writes the store of dataset `dir` to for `compat` and
+/// crop side `img_size` (where `ARKitFaceDataset(crop_store="auto")` looks).
+#[pyfunction]
+fn default_crop_store(dir: PathBuf, compat: &str, img_size: u32) -> PyResult<PathBuf> {
+    Ok(FaceLoader::default_crop_store(
+        &dir,
+        Compat::parse(compat).map_err(py_err)?,
+        img_size,
+    ))
+}
+
 #[pyfunction]
 fn read_image<'py>(py: Python<'py>, path: PathBuf) -> PyResult<Bound<'py, PyAny>> {
     let img = run(py, || {
@@ -609,6 +620,7 @@ fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(project, m)?)?;
     m.add_function(wrap_pyfunction!(evaluate, m)?)?;
     m.add_function(wrap_pyfunction!(read_image, m)?)?;
+    m.add_function(wrap_pyfunction!(default_crop_store, m)?)?;
     m.add("DataError", m.py().get_type::<DataError>())?;
     m.add("__version__", env!("CARGO_PKG_VERSION"))?;
     Ok(())

@@ -188,7 +188,7 @@ class ARKitFaceDataset:
         if crop_store is None:
             return None
         if isinstance(crop_store, str) and crop_store == "auto":
-            folder = os.path.join(self.path, "crops", f"{self.compat}-{self.img_size}")
+            folder = os.fspath(_native.default_crop_store(self.path, self.compat, self.img_size))
             return folder if os.path.isfile(os.path.join(folder, "crops.json")) else None
         return os.fspath(crop_store)
 
