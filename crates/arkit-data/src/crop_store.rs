@@ -133,8 +133,8 @@ pub struct StoredCrop {
     pub eval_crop: CropTransform,
     /// The mesh.
     pub verts: Vec<Point3<f32>>,
-    /// The window, `W x W` RGB bytes (`W =` [`window_side`]).
-    pub window: Vec<u8>,
+    /// The window, `W x W` RGB (`W =` [`window_side`]).
+    pub window: image::RgbImage,
 }
 
 impl StoredCrop {
@@ -157,7 +157,7 @@ impl StoredCrop {
         );
         let mut out = Vec::with_capacity(s * s * 3);
         for r in m..m + s {
-            out.extend_from_slice(&self.window[3 * (r * w + m)..3 * (r * w + m + s)]);
+            out.extend_from_slice(&self.window.as_raw()[3 * (r * w + m)..3 * (r * w + m + s)]);
         }
         out
     }
@@ -168,10 +168,11 @@ impl StoredCrop {
         if *crop == self.eval_crop {
             return self.centre();
         }
-        let w = self.side() as u32;
-        let window = image::RgbImage::from_raw(w, w, self.window.clone()).expect("window size");
-        crop.in_window(&self.eval_crop, self.first())
-            .crop_window(&window, 0, crop.size as usize)
+        crop.in_window(&self.eval_crop, self.first()).crop_window(
+            &self.window,
+            0,
+            crop.size as usize,
+        )
     }
 }
 
@@ -234,7 +235,7 @@ pub fn encode_record(
                 at += 4;
             }
         }
-        r[at..at + c.window.len()].copy_from_slice(&c.window);
+        r[at..at + c.window.len()].copy_from_slice(c.window.as_raw());
     }
     let crc = crc32fast::hash(&r[4..]);
     r[..4].copy_from_slice(&crc.to_le_bytes());
@@ -493,10 +494,11 @@ impl CropStore {
                 Point3::new(f(0), f(4), f(8))
             })
             .collect();
+        let w = window_side(m.img_size) as u32;
         Ok(StoredCrop {
             eval_crop,
             verts,
-            window,
+            window: image::RgbImage::from_raw(w, w, window).expect("the record's window size"),
         })
     }
 }
@@ -568,7 +570,12 @@ mod tests {
                 sampling: CropSampling::Corners,
             },
             verts: vec![Point3::new(0.1, -0.2, 0.3), Point3::new(1.0, 2.0, 3.0)],
-            window: (0..w * w * 3).map(|i| (i * 7 % 251) as u8).collect(),
+            window: image::RgbImage::from_raw(
+                w as u32,
+                w as u32,
+                (0..w * w * 3).map(|i| (i * 7 % 251) as u8).collect(),
+            )
+            .unwrap(),
         };
         let bytes = encode_record(&m, 5, Some(&crop));
         assert_eq!(bytes.len() as u64, m.record_bytes);

@@ -852,10 +852,12 @@ impl FaceLoader {
         let eval_crop = self.eval_crop(row, &landmarks)?;
         let s = self.options.img_size;
         let first = -(crate::crop_store::margin(s) as i64);
+        let w = crate::crop_store::window_side(s);
+        let window = eval_crop.crop_window(&image, first, w);
         Ok(StoredCrop {
             eval_crop,
             verts,
-            window: eval_crop.crop_window(&image, first, crate::crop_store::window_side(s)),
+            window: image::RgbImage::from_raw(w as u32, w as u32, window).expect("window size"),
         })
     }
 
