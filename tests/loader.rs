@@ -7,7 +7,7 @@
 mod support;
 
 use arkit_tool::conventions::Camera;
-use arkit_tool::loader::{Compat, FaceLoader, LoaderMode, LoaderOptions};
+use arkit_tool::loader::{Compat, FaceLoader, ItemPlanes, LoaderMode, LoaderOptions};
 use arkit_tool::official_crop;
 use arkit_tool::render::{CropTransform, FaceRenderer, RasterMode};
 use arkit_tool::render_dataset::{self, RenderOptions};
@@ -251,6 +251,45 @@ fn training_items_are_a_function_of_seed_epoch_and_index() {
         // Evaluation ignores the epoch.
         let e = loader(dir.path(), LoaderMode::Eval, compat, 128);
         assert_eq!(e.item(3, 1).unwrap(), e.item(3, 7).unwrap());
+    }
+}
+
+#[test]
+fn items_written_into_planes_equal_items_allocated() {
+    let (release, dir) = (tempfile::tempdir().unwrap(), tempfile::tempdir().unwrap());
+    converted(release.path(), dir.path());
+    for compat in [Compat::Exact, Compat::Official] {
+        for mode in [LoaderMode::Eval, LoaderMode::Train] {
+            let l = loader(dir.path(), mode, compat, 64);
+            let (s, u) = (S as usize, l.uvmap_size() as usize);
+            assert_eq!(u, s);
+            // Planes holding other values first: every value must be written.
+            let mut img = vec![f32::NAN; 3 * s * s];
+            let mut uvmap = vec![7.0f32; 3 * u * u];
+            for index in [0, 4, 8] {
+                let whole = l.item(index, 2).unwrap();
+                let planes = ItemPlanes {
+                    img: &mut img,
+                    uvmap: &mut uvmap,
+                };
+                let mut into = l.item_into(index, 2, planes).unwrap();
+                assert!(into.img.is_empty() && into.uvmap.is_empty());
+                let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+                assert_eq!(bits(&img), bits(&whole.img), "{compat:?} {mode:?} {index}");
+                assert_eq!(bits(&uvmap), bits(&whole.uvmap), "{compat:?} {mode:?} {index}");
+                assert!(uvmap.contains(&-1.0) && uvmap.iter().any(|&v| v != -1.0));
+                (into.img, into.uvmap) = (whole.img.clone(), whole.uvmap.clone());
+                assert_eq!(into, whole);
+            }
+            // Planes of the wrong size are refused, not written past.
+            let mut short = vec![0f32; 3 * s * s - 1];
+            let planes = ItemPlanes {
+                img: &mut short,
+                uvmap: &mut uvmap,
+            };
+            let err = l.item_into(0, 0, planes).unwrap_err().to_string();
+            assert!(err.contains("expected"), "{err}");
+        }
     }
 }
 

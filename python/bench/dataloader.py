@@ -9,7 +9,8 @@ num_workers 0), times: decoding the dataset's JPEGs with Pillow (libjpeg-turbo: 
 of any loader that decodes the full image), `arkit-tool crops` (the crop store, made
 once), and the DataLoader over the dataset (batch 64, 1,024 points) for compat exact and
 official, from the crop store with sparse and dense correspondences, and from the JPEGs
-with sparse ones. The
+with sparse ones; batched (`ds.loader`: whole batches computed in place) and, from the
+store with sparse correspondences, also through torch's default collate. The
 official `ARKitDataset.get_item` costs 19-31 ms a sample on this kind of machine
 (../shared/measurements.md, measured side by side on 2026-12-01); the ratios use 19 ms
 (its fastest, test mode) and 31 ms (train mode with colour jitter), or, with
@@ -83,20 +84,27 @@ def main():
     store_ms = (time.perf_counter() - t) / len(paths) / 2 * 1e3
     print(f"arkit-tool crops: {store_ms:.2f} ms a sample (once, all cores)")
 
+    # `batched`: ds.loader (batches computed in place, arkit_tool.collate); `default`:
+    # DataLoader(ds) with torch's default collate, which stacks the samples again.
+    runs = [("store", "sparse", "batched"), ("store", "sparse", "default"),
+            ("store", "dense", "batched"), ("jpeg", "sparse", "batched")]
     for mode in ["eval", "train"]:
         for compat in ["exact", "official"]:
-            for source, corr in [("store", "sparse"), ("store", "dense"), ("jpeg", "sparse")]:
+            for source, corr, collate in runs:
                 ds = arkit_tool.ARKitFaceDataset(data, split=None, mode=mode, compat=compat, corr=corr,
                                                  crop_store="auto" if source == "store" else None)
                 assert (ds.crop_store is not None) == (source == "store")
-                loader = torch.utils.data.DataLoader(ds, batch_size=64, shuffle=True, num_workers=0)
+                if collate == "batched":
+                    loader = ds.loader(64, shuffle=True, num_workers=0)
+                else:
+                    loader = torch.utils.data.DataLoader(ds, batch_size=64, shuffle=True, num_workers=0)
                 next(iter(loader))  # warm
                 t = time.perf_counter()
                 n = 0
                 for batch in loader:
                     n += batch["img"].shape[0]
                 ms = (time.perf_counter() - t) / n * 1e3
-                name = f"{mode}/{compat}/{corr}/{source}"
+                name = f"{mode}/{compat}/{corr}/{source}/{collate}"
                 print(f"{name}: {ms:.2f} ms a sample, {1e3 / ms:.0f} samples/s/core")
                 print(f"ratio: official get_item {official_ms[mode]:.1f} ms / arkit_tool {name} = "
                       f"{official_ms[mode] / ms:.1f}x")

@@ -168,13 +168,15 @@ pub struct LoaderItem {
     pub key: SampleKey,
     /// The image file (absolute), or the dataset folder for an embedded image.
     pub image_path: PathBuf,
-    /// `3 x S x S`, normalised.
+    /// `3 x S x S`, normalised (empty from [`FaceLoader::item_into`], which writes it
+    /// into the caller's plane).
     pub img: Vec<f32>,
     /// `n_pts` crop pixel indices (`row * S + col`).
     pub choose: Vec<i64>,
     /// The mesh, `1220 x 3` (metres, canonical frame).
     pub model: Vec<f32>,
-    /// `3 x S x S` in [-1, 1] (`-1` where no UV triangle covers the texel).
+    /// `3 x S x S` in [-1, 1] (`-1` where no UV triangle covers the texel; empty from
+    /// [`FaceLoader::item_into`], which writes it into the caller's plane).
     pub uvmap: Vec<f32>,
     /// `n_pts x 3`: each point's canonical position times 4.5.
     pub nocs: Vec<f32>,
@@ -201,6 +203,54 @@ pub struct LoaderItem {
     /// and the official mapping of points to crop pixels misplaces them (points mapped
     /// outside the crop are then replaced by a random pixel, as the official loader does).
     pub box_clipped: bool,
+}
+
+/// Where [`FaceLoader::item_into`] writes an item's two image-sized arrays instead of
+/// allocating them: slices of a caller's batch arrays, for instance, so that a batch is
+/// computed in place with no copy per sample.
+#[derive(Debug)]
+pub struct ItemPlanes<'a> {
+    /// `3 x S x S`: what [`LoaderItem::img`] would hold.
+    pub img: &'a mut [f32],
+    /// `3 x U x U` ([`FaceLoader::uvmap_size`]): what [`LoaderItem::uvmap`] would hold.
+    pub uvmap: &'a mut [f32],
+}
+
+/// An item's image-sized arrays: in the item, or in a caller's [`ItemPlanes`].
+enum Planes<'a> {
+    Owned,
+    Borrowed(ItemPlanes<'a>),
+}
+
+impl Planes<'_> {
+    /// The normalised crop `rgb`: returned, or written into the caller's plane (then
+    /// an empty vector is returned).
+    fn img(&mut self, rgb: &[u8]) -> Vec<f32> {
+        match self {
+            Planes::Owned => normalise(rgb),
+            Planes::Borrowed(p) => {
+                normalise_into(rgb, p.img);
+                Vec::new()
+            }
+        }
+    }
+
+    /// A `len`-value UV map: `fill` writes it over `-1` (the uncovered value); returned,
+    /// or written into the caller's plane (then an empty vector is returned).
+    fn uvmap(&mut self, len: usize, fill: impl FnOnce(&mut [f32])) -> Vec<f32> {
+        match self {
+            Planes::Owned => {
+                let mut v = vec![-1f32; len];
+                fill(&mut v);
+                v
+            }
+            Planes::Borrowed(p) => {
+                p.uvmap.fill(-1.0);
+                fill(p.uvmap);
+                Vec::new()
+            }
+        }
+    }
 }
 
 /// One row of the index [`FaceLoader`] keeps per sample (the mesh is read per item).
@@ -372,6 +422,22 @@ impl OfficialUvLayout {
     /// space, the hole centroids their loops' means, interpolated with the layout's
     /// weights, clipped to [0, 1] and mapped by `2 x - 1` (uncovered texels -1).
     pub fn uv_map(&self, verts: &[Point3<f32>]) -> Vec<f32> {
+        let mut out = vec![-1f32; 3 * (self.size * self.size) as usize];
+        self.uv_map_into(verts, &mut out);
+        out
+    }
+
+    /// The side, in texels, of the maps [`OfficialUvLayout::uv_map`] draws.
+    pub fn size(&self) -> u32 {
+        self.size
+    }
+
+    /// [`OfficialUvLayout::uv_map`] over `out`, which holds `-1` (uncovered) already:
+    /// only covered texels are written.
+    ///
+    /// # Panics
+    /// When `out` is not `3 x size x size` values.
+    pub fn uv_map_into(&self, verts: &[Point3<f32>], out: &mut [f32]) {
         let mut colors: Vec<[f32; 3]> = verts
             .iter()
             .map(|p| [p.x * 4.5 + 0.5, p.y * 4.5 + 0.5, p.z * 4.5 + 0.5])
@@ -392,7 +458,7 @@ impl OfficialUvLayout {
         }
         debug_assert_eq!(colors.len(), self.extended);
         let n = (self.size * self.size) as usize;
-        let mut out = vec![-1f32; 3 * n];
+        assert_eq!(out.len(), 3 * n, "a 3 x size x size map");
         for (i, (&t, w)) in self.triangle.iter().zip(&self.bary).enumerate() {
             if t == VisibilityBuffer::EMPTY {
                 continue;
@@ -403,7 +469,6 @@ impl OfficialUvLayout {
                 out[k * n + i] = v.clamp(0.0, 1.0) * 2.0 - 1.0;
             }
         }
-        out
     }
 }
 
@@ -695,11 +760,21 @@ unsafe fn shift_hue_sse2(rgb: &mut [u8], h: f32) {
 /// evaluated once per byte value and channel (a 3 x 256 table) and looked up: the same
 /// values, without two divisions per value.
 pub fn normalise(rgb: &[u8]) -> Vec<f32> {
+    let mut out = vec![0f32; rgb.len()];
+    normalise_into(rgb, &mut out);
+    out
+}
+
+/// [`normalise`] into `out` (`rgb.len()` values, channels first).
+///
+/// # Panics
+/// When `out.len() != rgb.len()`.
+pub fn normalise_into(rgb: &[u8], out: &mut [f32]) {
+    assert_eq!(out.len(), rgb.len(), "one value per byte");
     let table: [[f32; 256]; 3] = std::array::from_fn(|k| {
         std::array::from_fn(|v| (UNIT[v] - IMAGENET_MEAN[k]) / IMAGENET_STD[k])
     });
     let n = rgb.len() / 3;
-    let mut out = vec![0f32; 3 * n];
     let (r, rest) = out.split_at_mut(n);
     let (g, b) = rest.split_at_mut(n);
     for (((p, r), g), b) in rgb.chunks_exact(3).zip(r).zip(g).zip(b) {
@@ -707,7 +782,6 @@ pub fn normalise(rgb: &[u8]) -> Vec<f32> {
         *g = table[1][p[1] as usize];
         *b = table[2][p[2] as usize];
     }
-    out
 }
 
 /// A converted dataset served sample by sample (see the module docs). Holds a small
@@ -984,6 +1058,45 @@ impl FaceLoader {
 
     /// Sample `index` of epoch `epoch` (the epoch matters in training mode only).
     pub fn item(&self, index: usize, epoch: u64) -> Result<LoaderItem> {
+        self.item_with(index, epoch, Planes::Owned)
+    }
+
+    /// As [`FaceLoader::item`], with `img` and `uvmap` written into `planes` (the
+    /// item's own two vectors are left empty): the same values, bit for bit (tested),
+    /// without allocating them. The planes must hold `3 x S x S` and `3 x U x U` values
+    /// ([`FaceLoader::uvmap_size`]); other lengths are refused.
+    pub fn item_into(
+        &self,
+        index: usize,
+        epoch: u64,
+        planes: ItemPlanes<'_>,
+    ) -> Result<LoaderItem> {
+        let s = self.options.img_size as usize;
+        let u = self.uvmap_size() as usize;
+        if planes.img.len() != 3 * s * s || planes.uvmap.len() != 3 * u * u {
+            return Err(Error::invalid(
+                "item planes",
+                format!(
+                    "{} and {} values given for img and uvmap; expected {} and {}",
+                    planes.img.len(),
+                    planes.uvmap.len(),
+                    3 * s * s,
+                    3 * u * u
+                ),
+            ));
+        }
+        self.item_with(index, epoch, Planes::Borrowed(planes))
+    }
+
+    /// The side, in texels, of an item's `uvmap` (`S` under both rule sets).
+    pub fn uvmap_size(&self) -> u32 {
+        match self.options.compat {
+            Compat::Exact => self.options.img_size,
+            Compat::Official => self.official_uv.size(),
+        }
+    }
+
+    fn item_with(&self, index: usize, epoch: u64, planes: Planes<'_>) -> Result<LoaderItem> {
         let row = self.row(index)?;
         let (verts, source) = match &self.store {
             Some(store) => {
@@ -1009,12 +1122,12 @@ impl FaceLoader {
         let landmarks = self.landmarks(row, &verts, &pose)?;
         let train = self.options.mode == LoaderMode::Train;
         let mut item = match self.options.compat {
-            Compat::Exact => {
-                self.exact(row, &verts, &pose, &source, &landmarks, train, &mut rng)?
-            }
-            Compat::Official => {
-                self.official(row, &verts, &pose, &source, &landmarks, train, &mut rng)?
-            }
+            Compat::Exact => self.exact(
+                row, &verts, &pose, &source, &landmarks, train, &mut rng, planes,
+            )?,
+            Compat::Official => self.official(
+                row, &verts, &pose, &source, &landmarks, train, &mut rng, planes,
+            )?,
         };
         item.model = verts.iter().flat_map(|p| [p.x, p.y, p.z]).collect();
         Ok(item)
@@ -1045,6 +1158,7 @@ impl FaceLoader {
         landmarks: &[(f64, f64)],
         train: bool,
         rng: &mut Rng,
+        mut planes: Planes<'_>,
     ) -> Result<LoaderItem> {
         let s = self.options.img_size;
         let mut crop = CropTransform::around_landmarks(&flat_landmarks(landmarks), s);
@@ -1091,21 +1205,22 @@ impl FaceLoader {
         let extended = self.uv.extended_positions(verts);
         let map = self.uv_texels.position_map(&extended);
         let n = (s * s) as usize;
-        let mut uvmap = vec![-1f32; 3 * n];
-        for (i, p) in map.iter().enumerate() {
-            if p[0].is_nan() {
-                continue;
+        let uvmap = planes.uvmap(3 * n, |uvmap| {
+            for (i, p) in map.iter().enumerate() {
+                if p[0].is_nan() {
+                    continue;
+                }
+                for k in 0..3 {
+                    uvmap[k * n + i] = (p[k] * 9.0).clamp(-1.0, 1.0);
+                }
             }
-            for k in 0..3 {
-                uvmap[k * n + i] = (p[k] * 9.0).clamp(-1.0, 1.0);
-            }
-        }
+        });
         let o = crop.sampling.offset();
         let (sx, sy) = (crop.side / s as f64, crop.side_y / s as f64);
         Ok(LoaderItem {
             key: row.sample.key.clone(),
             image_path: self.image_path(row),
-            img: normalise(&rgb),
+            img: planes.img(&rgb),
             choose: chosen.iter().map(|&c| pixels[c as usize] as i64).collect(),
             model: Vec::new(),
             uvmap,
@@ -1141,6 +1256,7 @@ impl FaceLoader {
         landmarks: &[(f64, f64)],
         train: bool,
         rng: &mut Rng,
+        planes: Planes<'_>,
     ) -> Result<LoaderItem> {
         let mut buffer = self.take_buffer();
         // Only the window of the image the face can cover is rasterized and kept: the
@@ -1153,7 +1269,9 @@ impl FaceLoader {
             &mut buffer,
         );
         let result = face.and_then(|face| {
-            self.official_from(row, verts, source, landmarks, train, rng, &buffer, &face)
+            self.official_from(
+                row, verts, source, landmarks, train, rng, &buffer, &face, planes,
+            )
         });
         self.buffers
             .lock()
@@ -1178,6 +1296,7 @@ impl FaceLoader {
         rng: &mut Rng,
         buffer: &VisibilityBuffer,
         face: &WindowMask,
+        mut planes: Planes<'_>,
     ) -> Result<LoaderItem> {
         let s = self.options.img_size;
         let (w, h) = (
@@ -1305,10 +1424,12 @@ impl FaceLoader {
         Ok(LoaderItem {
             key: row.sample.key.clone(),
             image_path: self.image_path(row),
-            img: normalise(&rgb),
+            img: planes.img(&rgb),
             choose,
             model: Vec::new(),
-            uvmap: self.official_uv.uv_map(verts),
+            uvmap: planes.uvmap(3 * (self.official_uv.size() as usize).pow(2), |out| {
+                self.official_uv.uv_map_into(verts, out)
+            }),
             nocs,
             mask: mask.iter().map(|&m| m as u8).collect(),
             corr_vertices,

@@ -19,7 +19,7 @@ use arkit_data::release::SampleKey;
 use arkit_data::samples_table::SampleRecord;
 use arkit_data::{Camera, Error, FaceTopology, Pose};
 use nalgebra::{Point2, Point3};
-use numpy::{IntoPyArray, PyArrayMethods, PyReadonlyArray2};
+use numpy::{IntoPyArray, PyArray, PyArrayMethods, PyReadonlyArray2};
 use pyo3::create_exception;
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
@@ -157,16 +157,7 @@ impl Loader {
         eval_keys: bool,
         extras: bool,
     ) -> PyResult<Bound<'py, PyDict>> {
-        let (dense, sparse) = match corr {
-            "dense" => (true, false),
-            "sparse" => (false, true),
-            "both" => (true, true),
-            _ => {
-                return Err(DataError::new_err(format!(
-                    "corr: '{corr}': expected 'dense', 'sparse' or 'both'"
-                )));
-            }
-        };
+        let (dense, sparse) = corr_forms(corr)?;
         if index >= self.inner.len() {
             return Err(pyo3::exceptions::PyIndexError::new_err(format!(
                 "index {index} out of range for {} samples",
@@ -180,12 +171,209 @@ impl Loader {
         })?;
         item_dict(py, item, corr_mat, sparse, eval_keys, extras)
     }
+
+    /// Samples `indices` of `epoch` as one dict of batch arrays: `item`'s keys, dtypes
+    /// and values with a leading batch axis (strings as lists), written in place by
+    /// Rust without the GIL, so a batch costs no per-sample array and no stacking copy.
+    /// The first sample that fails raises, naming it.
+    #[pyo3(signature = (indices, epoch=0, corr="dense", eval_keys=false))]
+    fn batch<'py>(
+        &self,
+        py: Python<'py>,
+        indices: Vec<usize>,
+        epoch: u64,
+        corr: &str,
+        eval_keys: bool,
+    ) -> PyResult<Bound<'py, PyDict>> {
+        let (dense, sparse) = corr_forms(corr)?;
+        if let Some(&bad) = indices.iter().find(|&&i| i >= self.inner.len()) {
+            return Err(pyo3::exceptions::PyIndexError::new_err(format!(
+                "index {bad} out of range for {} samples",
+                self.inner.len()
+            )));
+        }
+        let loader = &self.inner;
+        let (b, s, u) = (
+            indices.len(),
+            loader.options().img_size as usize,
+            loader.uvmap_size() as usize,
+        );
+        let (n, v) = (loader.options().n_pts, loader.mesh_vertex_count());
+        // SAFETY: every element of the arrays made by `new` is written below before
+        // Python sees them (each sample's slices are filled whole, or the batch is
+        // dropped on an error), and nothing else holds them while Rust writes.
+        let img = unsafe { PyArray::<f32, _>::new(py, [b, 3, s, s], false) };
+        let uvmap = unsafe { PyArray::<f32, _>::new(py, [b, 3, u, u], false) };
+        let mask = unsafe { PyArray::<i64, _>::new(py, [b, s, s], false) };
+        let choose = unsafe { PyArray::<i64, _>::new(py, [b, n], false) };
+        let model = unsafe { PyArray::<f32, _>::new(py, [b, v, 3], false) };
+        let nocs = unsafe { PyArray::<f32, _>::new(py, [b, n, 3], false) };
+        let ids = unsafe { PyArray::<i64, _>::new(py, [b, if sparse { n } else { 0 }, 3], false) };
+        let weights =
+            unsafe { PyArray::<f32, _>::new(py, [b, if sparse { n } else { 0 }, 3], false) };
+        let corr_mat = PyArray::<f32, _>::zeros(py, [b, if dense { n } else { 0 }, v], false);
+        let tform = unsafe { PyArray::<f64, _>::new(py, [b, 2, 3], false) };
+        let rt = unsafe { PyArray::<f64, _>::new(py, [b, 4, 4], false) };
+        let keys = {
+            // SAFETY: the arrays were just made here, C-contiguous, and are not shared.
+            let out = unsafe {
+                BatchSlices {
+                    img: img.as_slice_mut()?,
+                    uvmap: uvmap.as_slice_mut()?,
+                    mask: mask.as_slice_mut()?,
+                    choose: choose.as_slice_mut()?,
+                    model: model.as_slice_mut()?,
+                    nocs: nocs.as_slice_mut()?,
+                    ids: ids.as_slice_mut()?,
+                    weights: weights.as_slice_mut()?,
+                    corr_mat: corr_mat.as_slice_mut()?,
+                    tform: tform.as_slice_mut()?,
+                    rt: rt.as_slice_mut()?,
+                }
+            };
+            run(py, || out.fill(loader, &indices, epoch))?
+        };
+        let d = PyDict::new(py);
+        d.set_item("img", img)?;
+        d.set_item("choose", choose)?;
+        d.set_item("model", model)?;
+        d.set_item("uvmap", uvmap)?;
+        d.set_item("nocs", nocs)?;
+        d.set_item("mask", mask)?;
+        if dense {
+            d.set_item("corr_mat", corr_mat)?;
+        }
+        if sparse {
+            d.set_item("corr_ids", ids)?;
+            d.set_item("corr_weights", weights)?;
+        }
+        if eval_keys {
+            d.set_item("tform_inv", tform)?;
+            d.set_item("R_t", rt)?;
+            let column = |f: fn(&(PathBuf, SampleKey)) -> String| -> Vec<String> {
+                keys.iter().map(f).collect()
+            };
+            d.set_item("img_path", column(|k| k.0.to_string_lossy().into_owned()))?;
+            d.set_item("subjectid", column(|k| k.1.subject_id.clone()))?;
+            d.set_item("imgid", column(|k| k.1.img_id.clone()))?;
+            d.set_item("facial_action", column(|k| k.1.facial_action.clone()))?;
+        }
+        Ok(d)
+    }
+}
+
+/// `(dense, sparse)` for the `corr` argument.
+fn corr_forms(corr: &str) -> PyResult<(bool, bool)> {
+    match corr {
+        "dense" => Ok((true, false)),
+        "sparse" => Ok((false, true)),
+        "both" => Ok((true, true)),
+        _ => Err(DataError::new_err(format!(
+            "corr: '{corr}': expected 'dense', 'sparse' or 'both'"
+        ))),
+    }
+}
+
+/// A batch's arrays as flat slices, the batch axis first; the correspondence arrays
+/// are empty when their form was not asked for.
+struct BatchSlices<'a> {
+    img: &'a mut [f32],
+    uvmap: &'a mut [f32],
+    mask: &'a mut [i64],
+    choose: &'a mut [i64],
+    model: &'a mut [f32],
+    nocs: &'a mut [f32],
+    ids: &'a mut [i64],
+    weights: &'a mut [f32],
+    corr_mat: &'a mut [f32],
+    tform: &'a mut [f64],
+    rt: &'a mut [f64],
+}
+
+impl BatchSlices<'_> {
+    /// Computes the samples `indices` into the slices, one after another; returns each
+    /// sample's image path and key.
+    fn fill(
+        self,
+        loader: &FaceLoader,
+        indices: &[usize],
+        epoch: u64,
+    ) -> arkit_data::Result<Vec<(PathBuf, SampleKey)>> {
+        let b = indices.len().max(1);
+        let per = |len: usize| len / b;
+        let (img_n, uv_n, mask_n) = (
+            per(self.img.len()),
+            per(self.uvmap.len()),
+            per(self.mask.len()),
+        );
+        let (choose_n, model_n, corr_n) = (
+            per(self.choose.len()),
+            per(self.model.len()),
+            per(self.corr_mat.len()),
+        );
+        let v = loader.mesh_vertex_count();
+        let mut keys = Vec::with_capacity(indices.len());
+        for (k, &index) in indices.iter().enumerate() {
+            let at = |len: usize| k * len..(k + 1) * len;
+            let item = loader.item_into(
+                index,
+                epoch,
+                arkit_data::loader::ItemPlanes {
+                    img: &mut self.img[at(img_n)],
+                    uvmap: &mut self.uvmap[at(uv_n)],
+                },
+            )?;
+            let lengths_fit = item.mask.len() == mask_n
+                && item.choose.len() == choose_n
+                && item.model.len() == model_n
+                && item.nocs.len() == 3 * choose_n
+                && item.corr_vertices.len() == choose_n;
+            if !lengths_fit {
+                return Err(Error::invalid(
+                    "batch",
+                    format!(
+                        "{}: the item's arrays do not have the batch's shapes (a bug in arkit_tool)",
+                        item.key
+                    ),
+                ));
+            }
+            for (o, &m) in self.mask[at(mask_n)].iter_mut().zip(&item.mask) {
+                *o = m as i64;
+            }
+            self.choose[at(choose_n)].copy_from_slice(&item.choose);
+            self.model[at(model_n)].copy_from_slice(&item.model);
+            self.nocs[at(3 * choose_n)].copy_from_slice(&item.nocs);
+            if !self.ids.is_empty() {
+                let ids = &mut self.ids[at(3 * choose_n)];
+                for (o, &x) in ids.iter_mut().zip(item.corr_vertices.iter().flatten()) {
+                    *o = x as i64;
+                }
+                let w = &mut self.weights[at(3 * choose_n)];
+                for (o, &x) in w.iter_mut().zip(item.corr_weights.iter().flatten()) {
+                    *o = x;
+                }
+            }
+            if !self.corr_mat.is_empty() {
+                dense_correspondences_into(&item, v, &mut self.corr_mat[at(corr_n)]);
+            }
+            self.tform[at(6)].copy_from_slice(&item.tform_inv);
+            self.rt[at(16)].copy_from_slice(&item.rt);
+            keys.push((item.image_path, item.key));
+        }
+        Ok(keys)
+    }
 }
 
 /// The dense `n_pts x V` correspondence matrix of an item (`V` from its mesh).
 fn dense_correspondences(item: &LoaderItem) -> Vec<f32> {
     let v = item.model.len() / 3;
     let mut m = vec![0f32; item.corr_vertices.len() * v];
+    dense_correspondences_into(item, v, &mut m);
+    m
+}
+
+/// [`dense_correspondences`] into `m`, `n_pts x v` zeros.
+fn dense_correspondences_into(item: &LoaderItem, v: usize, m: &mut [f32]) {
     for (r, (ids, w)) in item
         .corr_vertices
         .iter()
@@ -196,7 +384,6 @@ fn dense_correspondences(item: &LoaderItem) -> Vec<f32> {
             m[r * v + ids[k] as usize] = w[k];
         }
     }
-    m
 }
 
 fn item_dict<'py>(

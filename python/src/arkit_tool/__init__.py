@@ -5,7 +5,8 @@
 - `ARKitFaceDataset(DIR, ...)`: a map-style dataset returning what the official
   `ARKitDataset.get_item` returns (same keys, shapes, dtypes and meaning), computed on
   the fly from the release's images and meshes; `compat="official"` follows the official
-  loader's rules, `compat="exact"` ours.
+  loader's rules, `compat="exact"` ours. `ds.loader(batch_size, ...)` is a
+  `torch.utils.data.DataLoader` over it whose batches are computed in place (`collate`).
 - `solve_pnp_ransac`, `project`, `evaluate`: PnP with OpenCV's conventions, the release's
   projection, the paper's metrics.
 - `decode_targets(row)`: one row of `arkit-tool render`'s compact targets table as numpy
@@ -30,6 +31,8 @@ __all__ = [
     "ARKitFaceDataset",
     "ConvertedDataset",
     "DataError",
+    "ItemBatch",
+    "collate",
     "decode_targets",
     "evaluate",
     "open_dataset",
@@ -247,6 +250,56 @@ class ARKitFaceDataset:
 
     def __getitem__(self, index: int) -> Dict[str, Any]:
         return self.item(index)
+
+    def __getitems__(self, indices: Sequence[int]) -> "ItemBatch":
+        """Samples `indices` of the current epoch, computed together into batch arrays
+        (what torch's DataLoader calls, since torch 2.0, for a whole batch of a map-style
+        dataset). The result is a list of per-sample dicts equal to `self[i]`, as the
+        default collate expects, whose arrays are views of the batch arrays: `collate`
+        returns those arrays without stacking them again."""
+        n = len(self)
+        idx = [int(i) + n if int(i) < 0 else int(i) for i in indices]
+        arrays = self._loader.batch(idx, self.epoch, self.corr, self.mode == "eval")
+        return ItemBatch(arrays, self.tensors)
+
+    def loader(self, batch_size: int = 64, shuffle: bool = False, **kwargs):
+        """`torch.utils.data.DataLoader(self, batch_size, shuffle, collate_fn=collate,
+        **kwargs)`: batches computed in place, the same tensors as the default collate
+        gives (`num_workers`, `drop_last`, `sampler`, ... pass through)."""
+        import torch
+
+        kwargs.setdefault("collate_fn", collate)
+        return torch.utils.data.DataLoader(self, batch_size=batch_size, shuffle=shuffle, **kwargs)
+
+
+class ItemBatch(list):
+    """The samples of one batch (`ARKitFaceDataset.__getitems__`): a list of per-sample
+    dicts, as torch's default collate expects, whose arrays are views of one set of batch
+    arrays, `arrays` (the batch axis first; strings as lists)."""
+
+    def __init__(self, arrays: Dict[str, Any], tensors: bool = False):
+        if tensors:
+            import torch
+
+            arrays = {k: torch.from_numpy(v) if isinstance(v, np.ndarray) else v for k, v in arrays.items()}
+        self.arrays = arrays
+        b = len(arrays["img"])
+        super().__init__({k: v[i] for k, v in arrays.items()} for i in range(b))
+
+
+def collate(batch):
+    """A DataLoader `collate_fn`: for an `ItemBatch` its batch arrays as torch tensors
+    (no copy; strings as lists), the same keys, shapes, dtypes and values as
+    `torch.utils.data.default_collate` of its samples; anything else goes to
+    `default_collate`."""
+    import torch
+
+    if isinstance(batch, ItemBatch):
+        return {
+            k: torch.as_tensor(v) if isinstance(v, np.ndarray) else v if torch.is_tensor(v) else list(v)
+            for k, v in batch.arrays.items()
+        }
+    return torch.utils.data.default_collate(batch)
 
 
 # Largest mask and UV map a targets row may describe (arkit_core::limits).

@@ -1,0 +1,108 @@
+"""Whole batches computed in place (`ARKitFaceDataset.__getitems__`, `collate`,
+`ds.loader`): the same samples as one at a time, the same batches as torch's default
+collate of those samples, with 0 and 2 workers; a bad sample in a batch raises."""
+
+import pathlib
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch", reason="SKIPPED: torch is not installed")
+
+import arkit_tool  # noqa: E402
+from arkit_tool import ARKitFaceDataset, DataError, ItemBatch  # noqa: E402
+
+
+class OneByOne(torch.utils.data.Dataset):
+    """The dataset seen without `__getitems__`: torch then asks for samples one by one."""
+
+    def __init__(self, ds):
+        self.ds = ds
+
+    def __len__(self):
+        return len(self.ds)
+
+    def __getitem__(self, i):
+        return self.ds[i]
+
+
+def assert_same_sample(a, b, where):
+    assert a.keys() == b.keys(), where
+    for k in a:
+        if isinstance(a[k], (np.ndarray, torch.Tensor)):
+            x, y = np.asarray(a[k]), np.asarray(b[k])
+            assert x.dtype == y.dtype and x.shape == y.shape, (where, k)
+            np.testing.assert_array_equal(x, y, err_msg=f"{where} {k}")
+        else:
+            assert a[k] == b[k], (where, k)
+
+
+def assert_same_batch(a, b, where):
+    assert a.keys() == b.keys(), where
+    for k in a:
+        if torch.is_tensor(a[k]):
+            assert a[k].dtype == b[k].dtype and a[k].shape == b[k].shape, (where, k)
+            assert torch.equal(a[k], b[k]), (where, k)
+        else:
+            assert a[k] == b[k], (where, k)
+
+
+@pytest.mark.parametrize("compat", ["exact", "official"])
+@pytest.mark.parametrize("mode", ["eval", "train"])
+@pytest.mark.parametrize("corr", ["dense", "sparse", "both"])
+def test_a_batch_holds_the_samples_one_at_a_time_gives(dataset, compat, mode, corr):
+    ds = ARKitFaceDataset(dataset, split=None, mode=mode, compat=compat, corr=corr, n_pts=64)
+    ds.set_epoch(4)
+    indices = [3, 0, len(ds) - 1, 3, -2]
+    batch = ds.__getitems__(indices)
+    assert isinstance(batch, ItemBatch) and len(batch) == len(indices)
+    one_by_one = [ds[i] for i in indices]
+    for i, a, b in zip(indices, batch, one_by_one):
+        assert_same_sample(a, b, (compat, mode, corr, i))
+    # Our collate hands out the batch arrays; the default one stacks the samples.
+    where = (compat, mode, corr)
+    assert_same_batch(arkit_tool.collate(batch), torch.utils.data.default_collate(one_by_one), where)
+    assert_same_batch(arkit_tool.collate(batch), torch.utils.data.default_collate(list(batch)), where)
+    assert arkit_tool.collate(batch)["img"].shape == (len(indices), 3, 192, 192)
+
+
+def test_tensor_datasets_batch_as_tensors(dataset):
+    ds = ARKitFaceDataset(dataset, split=None, mode="eval", n_pts=32, tensors=True, corr="sparse")
+    batch = ds.__getitems__([1, 2])
+    assert torch.is_tensor(batch[0]["img"]) and batch[0]["img"].shape == (3, 192, 192)
+    assert_same_sample(batch[1], ds[2], "tensors")
+    assert_same_batch(arkit_tool.collate(batch), torch.utils.data.default_collate([ds[1], ds[2]]), "tensors")
+
+
+@pytest.mark.parametrize("compat", ["exact", "official"])
+def test_the_loader_gives_the_default_batches_with_and_without_workers(dataset, compat):
+    ds = ARKitFaceDataset(dataset, split=None, mode="train", compat=compat, n_pts=64, corr="sparse")
+    ds.set_epoch(1)
+
+    def run(loader_of):
+        return list(loader_of(generator=torch.Generator().manual_seed(5)))
+
+    reference = run(lambda **kw: torch.utils.data.DataLoader(OneByOne(ds), batch_size=3, shuffle=True, **kw))
+    assert len(reference) == (len(ds) + 2) // 3
+    for workers in [0, 2]:
+        got = run(lambda **kw: ds.loader(3, shuffle=True, num_workers=workers, **kw))
+        assert len(got) == len(reference)
+        for a, b in zip(got, reference):
+            assert_same_batch(a, b, (compat, workers))
+
+
+def test_a_bad_sample_in_a_batch_raises_naming_the_file(dataset):
+    ds = ARKitFaceDataset(dataset, split=None, mode="eval", n_pts=16, crop_store=None)
+    path = pathlib.Path(ds[2]["img_path"])
+    moved = path.with_suffix(".moved")
+    path.rename(moved)
+    try:
+        with pytest.raises(DataError, match=str(path)):
+            ds.__getitems__([0, 1, 2, 3])
+        with pytest.raises(DataError, match=str(path)):
+            list(ds.loader(4))
+        assert len(ds.__getitems__([0, 1, 3])) == 3  # the others are unaffected
+    finally:
+        moved.rename(path)
+    with pytest.raises(IndexError):
+        ds.__getitems__([0, len(ds)])
