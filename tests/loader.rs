@@ -276,7 +276,11 @@ fn items_written_into_planes_equal_items_allocated() {
                 assert!(into.img.is_empty() && into.uvmap.is_empty());
                 let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
                 assert_eq!(bits(&img), bits(&whole.img), "{compat:?} {mode:?} {index}");
-                assert_eq!(bits(&uvmap), bits(&whole.uvmap), "{compat:?} {mode:?} {index}");
+                assert_eq!(
+                    bits(&uvmap),
+                    bits(&whole.uvmap),
+                    "{compat:?} {mode:?} {index}"
+                );
                 assert!(uvmap.contains(&-1.0) && uvmap.iter().any(|&v| v != -1.0));
                 (into.img, into.uvmap) = (whole.img.clone(), whole.uvmap.clone());
                 assert_eq!(into, whole);

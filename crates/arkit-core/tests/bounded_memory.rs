@@ -1,7 +1,8 @@
 //! Hostile `.npy` / `.npz` files are refused with an error naming the file, and reading
 //! them costs bounded memory: every case runs under a counting global allocator and the
-//! peak of live heap bytes during the call is asserted (other tests of this binary run
-//! in parallel, but each allocates well under a megabyte, far below the bounds checked).
+//! peak of live heap bytes during the call is asserted. The tests of this binary take
+//! turns ([`one_at_a_time`]): the allocator counts every thread, and one test's inputs
+//! (an 8 MiB member, say) would otherwise count in another's peak.
 //!
 //! The files are crafted in memory (or as sparse files, which take no disk space).
 
@@ -47,6 +48,12 @@ unsafe impl GlobalAlloc for Counting {
 
 #[global_allocator]
 static GLOBAL: Counting = Counting;
+
+/// Held for the whole of each test, so that only one test allocates at a time.
+fn one_at_a_time() -> std::sync::MutexGuard<'static, ()> {
+    static TURN: std::sync::Mutex<()> = std::sync::Mutex::new(());
+    TURN.lock().unwrap_or_else(|e| e.into_inner())
+}
 
 /// Runs `f` and returns its result with the peak heap growth (bytes) during the call.
 fn peak_during<T>(f: impl FnOnce() -> T) -> (T, usize) {
@@ -169,6 +176,7 @@ fn zip_members(members: &[(String, Vec<u8>)], deflate: bool) -> Vec<u8> {
 
 #[test]
 fn case1_a_member_claiming_100_gb_is_read_as_it_is() {
+    let _turn = one_at_a_time();
     let (a, bytes) = verts_npy();
     let z = zip_claiming("verts.npy", &bytes, 100_000_000_000);
     let (res, peak) = peak_during(|| npy::parse_npz(&z, Path::new("claim.npz")));
@@ -179,6 +187,7 @@ fn case1_a_member_claiming_100_gb_is_read_as_it_is() {
 
 #[test]
 fn case2_a_deflate_bomb_is_refused_from_its_header_before_inflating() {
+    let _turn = one_at_a_time();
     // A header declaring 2^30 float32 (4 GiB), then 8 MiB of zeros (deflated to ~8 KB).
     let mut member = header_only("(1073741824,)");
     member.resize(member.len() + 8 * MIB, 0);
@@ -211,6 +220,7 @@ fn case2_a_deflate_bomb_is_refused_from_its_header_before_inflating() {
 
 #[test]
 fn case2_members_add_up_to_the_archive_limit() {
+    let _turn = one_at_a_time();
     // A deflated member of 200 MiB (uint8 zeros, decoded without a copy) is read; a
     // second declaring 100 MiB passes the per-array limit but not the archive's total.
     let mut first = header_of("|u1", &format!("({},)", 200 * MIB));
@@ -228,6 +238,7 @@ fn case2_members_add_up_to_the_archive_limit() {
 
 #[test]
 fn case3_trailing_bytes_are_bounded() {
+    let _turn = one_at_a_time();
     let (a, bytes) = verts_npy();
     let mut ok = bytes.clone();
     ok.resize(bytes.len() + limits::MAX_NPY_TRAILING_BYTES as usize, 7);
@@ -279,6 +290,7 @@ fn case3_trailing_bytes_are_bounded() {
 
 #[test]
 fn case4_npz_files_are_capped_before_reading() {
+    let _turn = one_at_a_time();
     let dir = tempfile::tempdir().unwrap();
     let p = dir.path().join("huge_info.npz");
     let f = std::fs::File::create(&p).unwrap();
@@ -300,6 +312,7 @@ fn case4_npz_files_are_capped_before_reading() {
 
 #[test]
 fn case5_header_length_is_capped() {
+    let _turn = one_at_a_time();
     let mut b = b"\x93NUMPY\x02\x00".to_vec();
     b.extend(0xFFFF_FFF0u32.to_le_bytes());
     let (res, peak) = peak_during(|| npy::parse_npy(&b, Path::new("h.npy")));
@@ -326,6 +339,7 @@ fn case5_header_length_is_capped() {
 
 #[test]
 fn case6_member_count_is_capped() {
+    let _turn = one_at_a_time();
     let small = {
         let a = NpyArray::from_f64(vec![1], vec![1.0]).unwrap();
         let mut b = Vec::new();

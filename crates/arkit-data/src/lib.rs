@@ -46,6 +46,7 @@ pub mod allocator;
 pub mod augment;
 pub mod augment_dataset;
 pub mod biwi;
+pub mod colour_jitter;
 pub mod convert;
 pub mod crop;
 pub mod crop_store;
