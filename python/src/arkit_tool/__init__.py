@@ -153,6 +153,10 @@ class ARKitFaceDataset:
     the rules or the size); None: always the release's files. From a store, evaluation
     crops are bit for bit the same; training crops are resampled from the stored window
     around the box (slightly smoother), their geometry the same. See docs/python.md.
+
+    Batches: torch's DataLoader asks for a whole batch at once (`__getitems__`), which
+    Rust computes into one set of batch arrays; `ds.loader(batch_size, ...)` is a
+    DataLoader whose `collate` hands those arrays to torch without copying them again.
     """
 
     def __init__(
