@@ -106,3 +106,11 @@ def test_a_bad_sample_in_a_batch_raises_naming_the_file(dataset):
         moved.rename(path)
     with pytest.raises(IndexError):
         ds.__getitems__([0, len(ds)])
+
+
+def test_a_batch_too_large_for_memory_raises_memory_error(dataset):
+    ds = ARKitFaceDataset(dataset, split=None, mode="eval", n_pts=16, corr="sparse")
+    # 10^7 samples of 3 x 192 x 192 float32: 4.4 TB for img alone, refused by numpy
+    # before any sample is computed.
+    with pytest.raises(MemoryError):
+        ds.__getitems__([0] * 10**7)

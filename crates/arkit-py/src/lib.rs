@@ -19,7 +19,7 @@ use arkit_data::release::SampleKey;
 use arkit_data::samples_table::SampleRecord;
 use arkit_data::{Camera, Error, FaceTopology, Pose};
 use nalgebra::{Point2, Point3};
-use numpy::{IntoPyArray, PyArray, PyArrayMethods, PyReadonlyArray2};
+use numpy::{IntoPyArray, PyArrayDyn, PyArrayMethods, PyReadonlyArray2};
 use pyo3::create_exception;
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
@@ -199,23 +199,24 @@ impl Loader {
             loader.uvmap_size() as usize,
         );
         let (n, v) = (loader.options().n_pts, loader.mesh_vertex_count());
-        // SAFETY: every element of the arrays made by `new` is written below before
-        // Python sees them (each sample's slices are filled whole, or the batch is
-        // dropped on an error), and nothing else holds them while Rust writes.
-        let img = unsafe { PyArray::<f32, _>::new(py, [b, 3, s, s], false) };
-        let uvmap = unsafe { PyArray::<f32, _>::new(py, [b, 3, u, u], false) };
-        let mask = unsafe { PyArray::<i64, _>::new(py, [b, s, s], false) };
-        let choose = unsafe { PyArray::<i64, _>::new(py, [b, n], false) };
-        let model = unsafe { PyArray::<f32, _>::new(py, [b, v, 3], false) };
-        let nocs = unsafe { PyArray::<f32, _>::new(py, [b, n, 3], false) };
-        let ids = unsafe { PyArray::<i64, _>::new(py, [b, if sparse { n } else { 0 }, 3], false) };
-        let weights =
-            unsafe { PyArray::<f32, _>::new(py, [b, if sparse { n } else { 0 }, 3], false) };
-        let corr_mat = PyArray::<f32, _>::zeros(py, [b, if dense { n } else { 0 }, v], false);
-        let tform = unsafe { PyArray::<f64, _>::new(py, [b, 2, 3], false) };
-        let rt = unsafe { PyArray::<f64, _>::new(py, [b, 4, 4], false) };
+        let np = py.import("numpy")?;
+        let img = new_array::<f32>(&np, "empty", &[b, 3, s, s])?;
+        let uvmap = new_array::<f32>(&np, "empty", &[b, 3, u, u])?;
+        let mask = new_array::<i64>(&np, "empty", &[b, s, s])?;
+        let choose = new_array::<i64>(&np, "empty", &[b, n])?;
+        let model = new_array::<f32>(&np, "empty", &[b, v, 3])?;
+        let nocs = new_array::<f32>(&np, "empty", &[b, n, 3])?;
+        let sparse_n = if sparse { n } else { 0 };
+        let ids = new_array::<i64>(&np, "empty", &[b, sparse_n, 3])?;
+        let weights = new_array::<f32>(&np, "empty", &[b, sparse_n, 3])?;
+        let corr_mat = new_array::<f32>(&np, "zeros", &[b, if dense { n } else { 0 }, v])?;
+        let tform = new_array::<f64>(&np, "empty", &[b, 2, 3])?;
+        let rt = new_array::<f64>(&np, "empty", &[b, 4, 4])?;
         let keys = {
-            // SAFETY: the arrays were just made here, C-contiguous, and are not shared.
+            // SAFETY: the arrays were just made here by numpy, C-contiguous, and nothing
+            // else holds them while Rust writes. Every element of the `empty` ones is
+            // written before Python sees them (each sample's slices are filled whole, or
+            // the batch is dropped on an error).
             let out = unsafe {
                 BatchSlices {
                     img: img.as_slice_mut()?,
@@ -260,6 +261,18 @@ impl Loader {
         }
         Ok(d)
     }
+}
+
+/// A new C-ordered array of `shape` made by numpy's `make` (`empty` or `zeros`), so
+/// that a batch too large for memory raises `MemoryError` in Python.
+fn new_array<'py, T: numpy::Element>(
+    np: &Bound<'py, PyModule>,
+    make: &str,
+    shape: &[usize],
+) -> PyResult<Bound<'py, PyArrayDyn<T>>> {
+    let shape = pyo3::types::PyTuple::new(np.py(), shape)?;
+    let array = np.getattr(make)?.call1((shape, T::get_dtype(np.py())))?;
+    Ok(array.cast_into::<PyArrayDyn<T>>()?)
 }
 
 /// `(dense, sparse)` for the `corr` argument.
