@@ -59,10 +59,6 @@ impl ColourJitter {
     /// values without its library call. Saturation and hue run eight pixels at a time
     /// where the CPU has AVX2 ([`saturate_all`], [`shift_hue_all`]).
     pub fn apply(&self, rgb: &mut [u8]) {
-        let luma = |p: &[u8]| (p[0] as u32 * 299 + p[1] as u32 * 587 + p[2] as u32 * 114) / 1000;
-        let blend = |v: f32, grey: f32, f: f32| {
-            round_half_away(grey + f * (v - grey)).clamp(0.0, 255.0) as u8
-        };
         let through_table = |rgb: &mut [u8], grey: f32, f: f32| {
             let table: [u8; 256] = std::array::from_fn(|v| blend(v as f32, grey, f));
             rgb.iter_mut().for_each(|v| *v = table[*v as usize]);
@@ -85,6 +81,17 @@ impl ColourJitter {
             }
         }
     }
+}
+
+/// PIL's integer luma of one RGB pixel (ITU-R 601, `L` mode): `(299 R + 587 G + 114 B)
+/// / 1000`.
+fn luma(p: &[u8]) -> u32 {
+    (p[0] as u32 * 299 + p[1] as u32 * 587 + p[2] as u32 * 114) / 1000
+}
+
+/// PIL's enhancer blend of a value `v` with `grey` by factor `f`, rounded back to a byte.
+fn blend(v: f32, grey: f32, f: f32) -> u8 {
+    round_half_away(grey + f * (v - grey)).clamp(0.0, 255.0) as u8
 }
 
 /// [`ColourJitter::draw`] then [`ColourJitter::apply`].
@@ -217,9 +224,9 @@ fn shift_hue_all(rgb: &mut [u8], h: f32) {
 /// luma) by `f`, each channel rounded back to a byte: PIL's `Color` enhancement, the
 /// scalar path of [`saturate_all`].
 fn saturate(p: &mut [u8], f: f32) {
-    let grey = ((p[0] as u32 * 299 + p[1] as u32 * 587 + p[2] as u32 * 114) / 1000) as f32;
+    let grey = luma(p) as f32;
     for v in p.iter_mut() {
-        *v = round_half_away(grey + f * (*v as f32 - grey)).clamp(0.0, 255.0) as u8;
+        *v = blend(*v as f32, grey, f);
     }
 }
 

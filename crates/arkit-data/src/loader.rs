@@ -1183,7 +1183,7 @@ impl FaceLoader {
             img: planes.img(&rgb),
             choose,
             model: Vec::new(),
-            uvmap: planes.uvmap(3 * (self.official_uv.size() as usize).pow(2), |out| {
+            uvmap: planes.uvmap(3 * (self.uvmap_size() as usize).pow(2), |out| {
                 self.official_uv.uv_map_into(verts, out)
             }),
             nocs,

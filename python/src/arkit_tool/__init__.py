@@ -299,10 +299,8 @@ def collate(batch):
     import torch
 
     if isinstance(batch, ItemBatch):
-        return {
-            k: torch.as_tensor(v) if isinstance(v, np.ndarray) else v if torch.is_tensor(v) else list(v)
-            for k, v in batch.arrays.items()
-        }
+        # torch.as_tensor shares a numpy array's memory and returns a tensor as it is.
+        return {k: list(v) if isinstance(v, list) else torch.as_tensor(v) for k, v in batch.arrays.items()}
     return torch.utils.data.default_collate(batch)
 
 
