@@ -7,6 +7,7 @@ import ast
 import json
 import os
 import pathlib
+import pickle
 import re
 import shutil
 import subprocess
@@ -137,6 +138,9 @@ def test_splits_and_keys_follow_the_official_options(dataset):
         assert k in batch[0], k
     assert batch[0]["corr_mat"].shape == (64, 1220)
     assert len(Generated(opt(dataset, False, debug=True))) == min(1394, len(val))
+    # Picklable for spawn-started workers, the same samples after the round trip.
+    again = pickle.loads(pickle.dumps(val))
+    np.testing.assert_array_equal(again.__getitems__([1])[0]["img"], batch[1]["img"])
     with pytest.raises(SystemExit, match="--arkittool_dataset"):
         Generated(opt(dataset, True, arkittool_dataset=None))
     with pytest.raises(SystemExit, match="no samples"):
