@@ -157,3 +157,64 @@ fn shard_processes_side_by_side_equal_a_single_run() {
     }
     assert_eq!(a["converted"], 40);
 }
+
+/// The Slurm recipe under a real Slurm: `deploy/slurm/local-cluster.sh` starts a
+/// one-node cluster (munged, slurmctld, slurmd on this host), submits
+/// `deploy/slurm/submit.sh` (a convert array of 3 tasks, the merge, a render array of
+/// 3 tasks) with sbatch, waits, and compares every Parquet file and `inspect --json`
+/// with a single-machine run byte for byte. Skipped without Slurm, root or the
+/// release's resources (CI installs Debian's slurm-wlm and munge).
+#[test]
+fn slurm_job_arrays_equal_a_single_run() {
+    let have = |tool: &str| {
+        Command::new("sh")
+            .args(["-c", &format!("command -v {tool}")])
+            .output()
+            .is_ok_and(|o| o.status.success())
+    };
+    if !["sbatch", "slurmctld", "slurmd", "munged"]
+        .iter()
+        .all(|t| have(t))
+    {
+        eprintln!("SKIPPED: Slurm is not installed (apt-get install slurm-wlm munge)");
+        return;
+    }
+    let root = Command::new("id")
+        .arg("-u")
+        .output()
+        .is_ok_and(|o| o.stdout.trim_ascii() == b"0");
+    if !root {
+        eprintln!("SKIPPED: starting slurmd needs root");
+        return;
+    }
+    let resources = std::env::var_os("ARKIT_RESOURCES")
+        .map(std::path::PathBuf::from)
+        .unwrap_or_else(|| {
+            Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/arkitface-resources")
+        });
+    if !resources.is_dir() {
+        eprintln!("SKIPPED: no release resources at {}", resources.display());
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("deploy/slurm/local-cluster.sh");
+    let out = Command::new("bash")
+        .arg(script)
+        .arg(dir.path())
+        .env("ARKIT_TOOL", BIN)
+        .env("ARKIT_RESOURCES", &resources)
+        .output()
+        .expect("run deploy/slurm/local-cluster.sh");
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        out.status.success(),
+        "local Slurm run failed:\n{stdout}\n{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(stdout.contains("slurm: 7 job tasks done"), "{stdout}");
+    assert!(
+        stdout.contains("slurm: samples:") && stdout.contains("slurm: targets:"),
+        "{stdout}"
+    );
+    assert!(stdout.lines().any(|l| l == "slurm: ok"), "{stdout}");
+}

@@ -1,0 +1,183 @@
+#!/usr/bin/env bash
+# Runs the Slurm recipe (deploy/slurm/submit.sh) for real on a one-node Slurm cluster
+# started on this machine, and checks what it wrote against a single-machine run.
+#
+#   deploy/slurm/local-cluster.sh [WORK_DIR]
+#
+# Needs Debian's `slurm-wlm` and `munge` (apt-get install slurm-wlm munge) and root (the
+# daemons run as root here; a real cluster's are already running). It
+#   1. writes a munge key and a slurm.conf for one node (this host, all its CPUs) into
+#      WORK_DIR (default: a new temporary folder), starts munged, slurmctld and slurmd
+#      on them (nothing in /etc is touched: SLURM_CONF points the clients at that file);
+#   2. makes a small synthetic release with `arkit-tool synth`;
+#   3. submits deploy/slurm/submit.sh with sbatch: a convert array of N tasks, the merge
+#      job, a render array of N tasks, chained with afterok; waits for all three;
+#   4. converts and renders the same release on this machine in one process each, and
+#      checks that every Parquet file and the manifest's samples agree byte for byte;
+#   5. stops the daemons (also on failure) and prints `slurm: ok` on success.
+# ARKIT_TOOL names the binary (default target/release/arkit-tool of this checkout);
+# ARKIT_RESOURCES the release's resource folder (default ../shared/arkitface-resources
+# beside the checkout: the recipe converts with the real topology); ARRAY_SIZE the
+# number of tasks per array (3).
+# Exit status: 0 when everything matched, 1 on a difference or a failed job, 2 when a
+# prerequisite is missing (the message says which).
+set -euo pipefail
+here=$(cd "$(dirname "$0")/../.." && pwd)
+bin=${ARKIT_TOOL:-$here/target/release/arkit-tool}
+n=${ARRAY_SIZE:-3}
+for tool in sbatch squeue sacct slurmctld slurmd munged mungekey; do
+  command -v "$tool" >/dev/null 2>&1 || { echo "slurm: '$tool' not found (apt-get install slurm-wlm munge)" >&2; exit 2; }
+done
+[ -x "$bin" ] || { echo "slurm: no arkit-tool binary at $bin (cargo build --release, or set ARKIT_TOOL)" >&2; exit 2; }
+[ "$(id -u)" = 0 ] || { echo "slurm: starting slurmd needs root" >&2; exit 2; }
+resources=${ARKIT_RESOURCES:-$here/../shared/arkitface-resources}
+[ -d "$resources" ] || { echo "slurm: no resource folder at $resources (set ARKIT_RESOURCES)" >&2; exit 2; }
+resources=$(cd "$resources" && pwd)
+
+work=${1:-$(mktemp -d)}
+mkdir -p "$work"
+work=$(cd "$work" && pwd)
+state="$work/state"
+mkdir -p "$state/ctld" "$state/d" "$state/munge" "$state/log"
+chmod 700 "$state/munge"
+pids=()
+stop() {
+  for p in ${pids[@]+"${pids[@]}"}; do kill "$p" 2>/dev/null || true; done
+  # slurmd and slurmctld fork their own children (job steps): end what is left of them.
+  pkill -f "$state/slurm.conf" 2>/dev/null || true
+}
+trap stop EXIT
+
+# 1. munge and a one-node Slurm.
+mungekey --create --keyfile="$state/munge/munge.key" --force >/dev/null
+chmod 400 "$state/munge/munge.key"
+socket="$state/munge/munge.socket"
+munged --force --key-file="$state/munge/munge.key" --socket="$socket" \
+  --pid-file="$state/munge/munged.pid" --log-file="$state/log/munged.log" \
+  --seed-file="$state/munge/munged.seed"
+pids+=("$(cat "$state/munge/munged.pid")")
+host=$(hostname -s)
+cpus=$(nproc)
+mem_mb=$(( $(awk '/MemTotal/ {print $2}' /proc/meminfo) / 1024 - 512 ))
+cat >"$state/slurm.conf" <<EOF
+# One node, written by deploy/slurm/local-cluster.sh.
+ClusterName=arkit-local
+SlurmctldHost=$host
+SlurmctldPort=${SLURMCTLD_PORT:-16817}
+SlurmdPort=${SLURMD_PORT:-16818}
+AuthType=auth/munge
+CredType=cred/munge
+AuthInfo=socket=$socket
+SlurmUser=root
+SlurmdUser=root
+StateSaveLocation=$state/ctld
+SlurmdSpoolDir=$state/d
+SlurmctldPidFile=$state/slurmctld.pid
+SlurmdPidFile=$state/slurmd.pid
+SlurmctldLogFile=$state/log/slurmctld.log
+SlurmdLogFile=$state/log/slurmd.log
+ProctrackType=proctrack/pgid
+TaskPlugin=task/none
+SelectType=select/cons_tres
+SelectTypeParameters=CR_Core_Memory
+SchedulerType=sched/backfill
+JobCompType=jobcomp/none
+JobAcctGatherType=jobacct_gather/none
+AccountingStorageType=accounting_storage/none
+MpiDefault=none
+ReturnToService=2
+MaxArraySize=1001
+NodeName=$host CPUs=$cpus RealMemory=$mem_mb State=UNKNOWN
+PartitionName=local Nodes=$host Default=YES MaxTime=INFINITE State=UP
+EOF
+export SLURM_CONF="$state/slurm.conf"
+slurmctld -f "$SLURM_CONF"
+slurmd -f "$SLURM_CONF"
+for _ in $(seq 1 60); do
+  if sinfo -h -o '%t' 2>/dev/null | grep -qE '^(idle|mix|alloc)'; then break; fi
+  sleep 1
+done
+sinfo -h -o '%t' | grep -qE '^(idle|mix|alloc)' || {
+  echo "slurm: the node did not come up; logs in $state/log" >&2
+  tail -n 20 "$state/log/slurmctld.log" "$state/log/slurmd.log" >&2 || true
+  exit 1
+}
+echo "slurm: one-node cluster up ($host, $cpus CPUs, ${mem_mb} MB)"
+
+# 2. A small release.
+release="$work/release"
+"$bin" synth --output "$release" --subjects 6 --images-per-subject 8 --size 256x256 \
+  --seed 3 --resources "$resources" >/dev/null
+# Small shards, so that each of the N tasks has several to do.
+convert_options="--rows-per-shard 6"
+render_options="--size 48 --points 64 --uv-size 16"
+
+# 3. The recipe, submitted as a user would (smaller tasks for one small node).
+out="$work/slurm-out"
+submitted=$(cd "$work" && CPUS=1 MEM=1G TIME=00:20:00 ARKIT_TOOL="$bin" \
+  CONVERT_OPTIONS="$convert_options" RENDER_OPTIONS="$render_options" \
+  "$here/deploy/slurm/submit.sh" "$release" "$out" "$resources" "$n")
+echo "$submitted"
+ids=$(echo "$submitted" | sed -n 's/^submitted: convert array \([0-9]*\) -> merge \([0-9]*\) -> render array \([0-9]*\)$/\1 \2 \3/p')
+[ -n "$ids" ] || { echo "slurm: could not read the job ids from submit.sh's output" >&2; exit 1; }
+deadline=$(( $(date +%s) + ${SLURM_WAIT_SECONDS:-600} ))
+while squeue -h -o '%i' | grep -q .; do
+  if [ "$(date +%s)" -gt "$deadline" ]; then
+    echo "slurm: jobs still queued after ${SLURM_WAIT_SECONDS:-600} s:" >&2
+    squeue >&2
+    exit 1
+  fi
+  sleep 2
+done
+# Without accounting, a job's end state is in slurmctld's log ("done status 0" per task).
+failed=$(grep -E '_job_complete: JobId=[0-9_]+ WEXITSTATUS [1-9]|_job_complete: JobId=.* WTERMSIG' "$state/log/slurmctld.log" || true)
+cancelled=$(grep -E 'DependencyNeverSatisfied|cancelled' "$state/log/slurmctld.log" || true)
+if [ -n "$failed$cancelled" ]; then
+  echo "slurm: a job failed:" >&2
+  echo "$failed$cancelled" >&2
+  tail -n 30 "$work"/slurm-*.out >&2 2>/dev/null || true
+  exit 1
+fi
+done_tasks=$(grep -cE '_job_complete: JobId=[0-9_]+.* done' "$state/log/slurmctld.log" || true)
+echo "slurm: $done_tasks job tasks done ($n convert, 1 merge, $n render expected)"
+[ "$done_tasks" -eq $((2 * n + 1)) ] || { echo "slurm: expected $((2 * n + 1)) finished tasks" >&2; exit 1; }
+
+# 4. The same on one machine, and the comparison.
+single="$work/single"
+# shellcheck disable=SC2086 # the options are words
+"$bin" convert --input "$release" --output "$single" --resources "$resources" $convert_options >/dev/null
+# shellcheck disable=SC2086
+"$bin" render --dataset "$single" --resources "$resources" $render_options >/dev/null
+status=0
+compare() { # the files under $1 of both outputs, byte for byte
+  local a="$single/$1" b="$out/$1" listed_a listed_b
+  listed_a=$(cd "$a" && find . -type f -name '*.parquet' | sort)
+  listed_b=$(cd "$b" && find . -type f -name '*.parquet' | sort)
+  if [ "$listed_a" != "$listed_b" ]; then
+    echo "slurm: $1: different files:" >&2
+    diff <(echo "$listed_a") <(echo "$listed_b") >&2 || true
+    status=1
+    return
+  fi
+  local count=0
+  while read -r f; do
+    if ! cmp -s "$a/$f" "$b/$f"; then
+      echo "slurm: $1/$f differs from the single-machine run" >&2
+      status=1
+    fi
+    count=$((count + 1))
+  done <<<"$listed_a"
+  echo "slurm: $1: $count Parquet files identical to the single-machine run"
+}
+compare samples
+compare targets
+if [ -d "$single/errors" ] || [ -d "$out/errors" ]; then compare errors; fi
+"$bin" inspect --dataset "$out" --json >"$work/slurm-inspect.json"
+"$bin" inspect --dataset "$single" --json >"$work/single-inspect.json"
+if ! cmp -s "$work/slurm-inspect.json" "$work/single-inspect.json"; then
+  echo "slurm: inspect differs between the Slurm run and the single-machine run" >&2
+  diff "$work/single-inspect.json" "$work/slurm-inspect.json" >&2 || true
+  status=1
+fi
+[ "$status" -eq 0 ] && echo "slurm: ok"
+exit "$status"
