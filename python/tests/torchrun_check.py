@@ -4,9 +4,11 @@ resumes its own shard; DistributedDataParallel's gradients agree across ranks.
 Arguments: DATASET OUT_DIR. Each rank writes OUT_DIR/rank<r>.json; any failed check
 raises (torchrun then exits non-zero)."""
 
+import gc
 import json
 import os
 import sys
+import time
 
 import torch
 import torch.distributed as dist
@@ -14,6 +16,7 @@ import torch.distributed as dist
 from arkit_tool import ARKitFaceDataset
 
 BATCH = 2
+T0 = time.time()
 
 
 def equal_to_items(ds, batches, indices, epoch):
@@ -26,6 +29,7 @@ def equal_to_items(ds, batches, indices, epoch):
 
 def main():
     dataset, out = sys.argv[1], sys.argv[2]
+    print(f"rank start {time.time() - T0:.1f} s", file=sys.stderr)
     dist.init_process_group("gloo")
     rank, world = dist.get_rank(), dist.get_world_size()
     report = {"rank": rank, "world": world}
@@ -54,6 +58,10 @@ def main():
             if epoch == 0:
                 first = batches
         report[str(split)] = {"size": len(ds), "remainder": remainder, "epochs": epochs}
+        # Persistent workers end with their loader (before the next loader forks).
+        del loader
+        gc.collect()
+        print(f"rank {rank}: {split} {time.time() - T0:.1f} s", file=sys.stderr)
 
     # Resume: k batches of epoch 0 with 2 workers, then a new loader without workers.
     ds = ARKitFaceDataset(dataset, split=None, mode="train", n_pts=32, corr="sparse")
@@ -71,6 +79,7 @@ def main():
     for x, y in zip(head + rest, first):
         for key in x:
             assert torch.equal(x[key], y[key]), key
+    print(f"rank {rank}: resume {time.time() - T0:.1f} s", file=sys.stderr)
     report["resume"] = {"k": k, "remaining": len(rest), "position": state["position"]}
 
     # DistributedDataParallel on a tiny model: the gradients after backward are the same
@@ -105,10 +114,12 @@ def main():
     assert not torch.allclose(own, mean), "the ranks' batches differ, so must their own gradients"
     report["ddp"] = {"grad_norm": float(grads.norm()), "own_norm": float(own.norm())}
 
+    print(f"rank {rank}: ddp {time.time() - T0:.1f} s", file=sys.stderr)
     with open(os.path.join(out, f"rank{rank}.json"), "w") as f:
         json.dump(report, f)
     dist.barrier()
     dist.destroy_process_group()
+    print(f"rank {rank}: end {time.time() - T0:.1f} s", file=sys.stderr)
 
 
 if __name__ == "__main__":

@@ -195,14 +195,20 @@ class EpochSampler:
         self._claimed = None
 
 
+class _Pass:
+    """Where one pass of an `EpochLoader` stands: its epoch, start and batches handed out."""
+
+    def __init__(self, epoch: int, start: int):
+        self.epoch, self.start, self.batches, self.finished = epoch, start, 0, False
+
+
 class _PassIterator:
     """One pass of an `EpochLoader`: the DataLoader's iterator, counting the batches
-    handed out."""
+    handed out (in `pass_`, which the loader keeps; the loader does not keep this
+    iterator, so dropping it shuts the workers down as torch's would)."""
 
-    def __init__(self, loader: "EpochLoader", inner, epoch: int, start: int):
-        self.loader, self.inner = loader, inner
-        self.epoch, self.start, self.batches = epoch, start, 0
-        self.finished = False
+    def __init__(self, inner, pass_: _Pass):
+        self.inner, self.pass_ = inner, pass_
 
     def __iter__(self):
         return self
@@ -214,13 +220,10 @@ class _PassIterator:
         try:
             batch = next(self.inner)
         except StopIteration:
-            self.finished = True
+            self.pass_.finished = True
             raise
-        self.batches += 1
+        self.pass_.batches += 1
         return batch
-
-    def position(self) -> int:
-        return min(self.start + self.batches * self.loader.batch_size, self.loader.sampler.shard_size)
 
 
 def _make_loader_class():
@@ -248,8 +251,8 @@ def _make_loader_class():
             except BaseException:
                 sampler._claimed = None
                 raise
-            self._pass = _PassIterator(self, inner, epoch, start)
-            return self._pass
+            self._pass = _Pass(epoch, start)
+            return _PassIterator(inner, self._pass)
 
         def set_epoch(self, epoch: int) -> None:
             """The next pass is epoch `epoch`, from its start."""
@@ -258,9 +261,10 @@ def _make_loader_class():
         def state_dict(self) -> Dict[str, Any]:
             """Where the data stands: the next batch to hand out (see the class)."""
             sampler: EpochSampler = self.sampler
-            p: Optional[_PassIterator] = getattr(self, "_pass", None)
-            if p is not None and not p.finished and p.position() < sampler.shard_size:
-                state = sampler._state(p.epoch, p.position())
+            p: Optional[_Pass] = getattr(self, "_pass", None)
+            position = None if p is None else min(p.start + p.batches * self.batch_size, sampler.shard_size)
+            if p is not None and not p.finished and position < sampler.shard_size:
+                state = sampler._state(p.epoch, position)
             else:
                 state = sampler._state(*sampler._next)
             state["batch_size"] = self.batch_size
