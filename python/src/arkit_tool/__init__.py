@@ -37,7 +37,6 @@ __all__ = [
     "ARKitFaceDataset",
     "ConvertedDataset",
     "DataError",
-    "EpochLoader",
     "EpochSampler",
     "ItemBatch",
     "collate",
@@ -54,7 +53,7 @@ __version__ = _native.__version__
 
 def __getattr__(name):
     # EpochLoader subclasses torch's DataLoader: made on first use, so that importing
-    # arkit_tool does not import torch.
+    # arkit_tool does not import torch (not in __all__ for the same reason).
     if name == "EpochLoader":
         from .sampling import loader_class
 

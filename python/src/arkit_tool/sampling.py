@@ -22,7 +22,7 @@ from typing import Any, Dict, Iterator, List, Optional, Tuple
 
 import numpy as np
 
-__all__ = ["EpochSampler", "EpochLoader", "distributed_rank"]
+__all__ = ["EpochSampler", "distributed_rank"]  # and EpochLoader, made on first use (torch)
 
 _STATE_VERSION = 1
 
@@ -281,6 +281,8 @@ def _make_loader_class():
             self.sampler.load_state_dict({k: v for k, v in state.items() if k != "batch_size"})
             self._pass = None
 
+    EpochLoader.__qualname__ = "EpochLoader"
+    EpochLoader.__module__ = __name__
     return EpochLoader
 
 
