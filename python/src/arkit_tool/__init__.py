@@ -6,7 +6,9 @@
   `ARKitDataset.get_item` returns (same keys, shapes, dtypes and meaning), computed on
   the fly from the release's images and meshes; `compat="official"` follows the official
   loader's rules, `compat="exact"` ours. `ds.loader(batch_size, ...)` is a
-  `torch.utils.data.DataLoader` over it whose batches are computed in place (`collate`).
+  `torch.utils.data.DataLoader` over it whose batches are computed in place (`collate`),
+  whose epochs reach every worker, which shards by rank under `torchrun` and which
+  resumes mid-epoch (`state_dict` / `load_state_dict`): `EpochLoader`, `EpochSampler`.
 - `solve_pnp_ransac`, `project`, `evaluate`: PnP with OpenCV's conventions, the release's
   projection, the paper's metrics.
 - `decode_targets(row)`: one row of `arkit-tool render`'s compact targets table as numpy
@@ -19,21 +21,27 @@ See docs/python.md in the repository.
 from __future__ import annotations
 
 import json
+import multiprocessing
+import multiprocessing.context
 import os
+import weakref
 from typing import Any, Dict, Iterable, List, Optional, Sequence, Tuple, Union
 
 import numpy as np
 
 from . import _native
 from ._native import DataError
+from .sampling import EpochSampler, _check_u64, distributed_rank
 
 __all__ = [
     "ARKitFaceDataset",
     "ConvertedDataset",
     "DataError",
+    "EpochSampler",
     "ItemBatch",
     "collate",
     "decode_targets",
+    "distributed_rank",
     "evaluate",
     "open_dataset",
     "project",
@@ -41,6 +49,16 @@ __all__ = [
     "solve_pnp_ransac",
 ]
 __version__ = _native.__version__
+
+
+def __getattr__(name):
+    # EpochLoader subclasses torch's DataLoader: made on first use, so that importing
+    # arkit_tool does not import torch (not in __all__ for the same reason).
+    if name == "EpochLoader":
+        from .sampling import loader_class
+
+        return loader_class()
+    raise AttributeError(f"module 'arkit_tool' has no attribute {name!r}")
 
 Key = Tuple[str, str, str]
 
@@ -93,8 +111,8 @@ class ConvertedDataset:
 
     def sample(self, which: Union[int, Key]) -> Dict[str, Any]:
         """One sample's row: verts (1220x3), R_t (4x4), image path and size, keys, pose."""
-        index = which if isinstance(which, (int, np.integer)) else self.index_of(which)
-        return self._native.sample(int(index))
+        index = _position(which, len(self)) if isinstance(which, (int, np.integer)) else self.index_of(which)
+        return self._native.sample(index)
 
     @property
     def shard_files(self) -> List[str]:
@@ -139,8 +157,17 @@ class ARKitFaceDataset:
     `compat="official"` follows the official loader's rules (its integer box, cv2's
     affine warp, its rasterizer's screen-space weights, its UV map and point choice);
     `"exact"` follows ours. In `mode="train"` the official augmentation (box jitter,
-    colour jitter) is drawn from `(seed, epoch, index)`: call `set_epoch` each epoch; the
-    same batches come out whatever the number of DataLoader workers.
+    colour jitter) is drawn from `(seed, epoch, index)`; the same batches come out
+    whatever the number of DataLoader workers.
+
+    Epochs: `ds[i]` is `ds.item(i, ds.current_epoch())`, and `ds[epoch, i]` (what
+    `EpochSampler` yields, the epoch travelling with the index) is `ds.item(i, epoch)`.
+    With `ds.loader(...)` the epoch advances by itself at each pass (or
+    `loader.set_epoch(e)`). With a DataLoader of your own, call `ds.set_epoch(e)` before
+    each epoch's pass: the epoch is held in shared memory, so worker processes see it,
+    persistent or not, fork or spawn. A subclass may override `current_epoch()` to
+    derive the epoch otherwise (from the worker's seed, say); indices that carry an epoch
+    are not affected.
 
     `split` is a split name (`"train"`, `"test"`, ...) or None for every sample;
     `resources` the release's resource folder when the dataset was converted with it and
@@ -175,6 +202,13 @@ class ARKitFaceDataset:
     ):
         if corr not in ("dense", "sparse", "both"):
             raise DataError(f"corr: {corr!r}: expected 'dense', 'sparse' or 'both'")
+        for name, value, low, high in (("img_size", img_size, 1, 1 << 32), ("n_pts", n_pts, 0, 1 << 63)):
+            if not isinstance(value, (int, np.integer)) or not low <= value < high:
+                raise DataError(f"{name}: {value!r}: expected an integer in [{low}, 2^{(high - 1).bit_length()})")
+        try:
+            seed = _check_u64("seed", seed)
+        except ValueError as e:
+            raise DataError(str(e)) from None
         self.path = os.fspath(path)
         self.split = split
         self.mode = mode
@@ -186,7 +220,10 @@ class ARKitFaceDataset:
         self.corr = corr
         self.tensors = bool(tensors)
         self.crop_store = self._find_store(crop_store)
-        self.epoch = 0
+        # The epoch of `ds[i]`, in shared memory: worker processes (forked or spawned,
+        # persistent or not) read the value `set_epoch` wrote.
+        self._epoch = multiprocessing.RawValue("Q", 0)
+        self._samplers: "weakref.WeakSet[EpochSampler]" = weakref.WeakSet()
         self._loader = self._open()
         if self.tensors:
             import torch  # noqa: F401  (fail now, not in a worker)
@@ -212,36 +249,91 @@ class ARKitFaceDataset:
             self.crop_store,
         )
 
-    # Pickled for spawn-started workers: the native loader is reopened there.
+    # Pickled for spawn-started workers: the native loader is reopened there, the
+    # epoch's shared memory is passed on (only possible while a process is started;
+    # any other copy, e.g. copy.deepcopy, gets the value).
     def __getstate__(self):
         state = dict(self.__dict__)
         state["_loader"] = None
+        state["_samplers"] = None
+        if multiprocessing.context.get_spawning_popen() is None:
+            state["_epoch"] = int(self._epoch.value)
         return state
 
     def __setstate__(self, state):
         self.__dict__.update(state)
+        if isinstance(self._epoch, int):
+            self._epoch = multiprocessing.RawValue("Q", self._epoch)
+        self._samplers = weakref.WeakSet()
         self._loader = self._open()
 
     def __len__(self) -> int:
         return len(self._loader)
 
+    @property
+    def epoch(self) -> int:
+        """The epoch of `ds[i]` (`set_epoch`)."""
+        return int(self._epoch.value)
+
+    @epoch.setter
+    def epoch(self, epoch: int) -> None:
+        self.set_epoch(epoch)
+
     def set_epoch(self, epoch: int) -> None:
-        """The epoch whose random draws `__getitem__` uses (training mode)."""
-        self.epoch = int(epoch)
+        """The epoch whose random draws `ds[i]` uses (training mode), seen by worker
+        processes too (shared memory). Also the next pass of the `EpochSampler`s made
+        for this dataset (`ds.loader`), so either call works. Call it before the pass
+        (before `iter(loader)`: persistent workers start prefetching then)."""
+        try:
+            e = _check_u64("epoch", epoch)
+        except ValueError as err:
+            raise DataError(str(err)) from None
+        self._epoch.value = e
+        for sampler in list(self._samplers or ()):
+            sampler.set_epoch(e)
+
+    def current_epoch(self) -> int:
+        """The epoch of an index that carries none (`ds[i]`, a plain DataLoader's
+        sampler): `set_epoch`'s. Override to derive it otherwise."""
+        return int(self._epoch.value)
+
+    def _attach_sampler(self, sampler: EpochSampler) -> None:
+        if self._samplers is not None:
+            self._samplers.add(sampler)
+
+    def _split(self, index) -> Tuple[int, int]:
+        """`(epoch, position)` of an index: `i` (the current epoch) or `(epoch, i)`."""
+        if isinstance(index, tuple):
+            if len(index) != 2:
+                raise IndexError(f"index {index!r}: expected a position or (epoch, position)")
+            epoch, index = index
+            try:
+                epoch = _check_u64("epoch", epoch)
+            except ValueError as err:
+                raise IndexError(f"index: {err}") from None
+        else:
+            epoch = self.current_epoch()
+        return epoch, _position(index, len(self))
 
     def key(self, index: int) -> Tuple[str, str, str, str]:
         """`(subject_id, facial_action, img_id, split)` of sample `index`."""
-        return self._loader.key(index)
+        return self._loader.key(_position(index, len(self)))
 
     def item(self, index: int, epoch: Optional[int] = None, extras: bool = False) -> Dict[str, Any]:
         """Sample `index` (of `epoch`, default the current one). `extras` adds, for
         checks: `choose_box` and `box` (official: the points before mapping, the integer
         box), `box_clipped`, `crop` (x0, y0, side_x, side_y) and `image_path`."""
-        if index < 0:
-            index += len(self)
+        index = _position(index, len(self))
+        if epoch is None:
+            epoch = self.current_epoch()
+        else:
+            try:
+                epoch = _check_u64("epoch", epoch)
+            except ValueError as err:
+                raise DataError(str(err)) from None
         d = self._loader.item(
-            int(index),
-            self.epoch if epoch is None else int(epoch),
+            index,
+            epoch,
             self.corr,
             self.mode == "eval",
             extras,
@@ -252,28 +344,89 @@ class ARKitFaceDataset:
             d = {k: torch.from_numpy(v) if isinstance(v, np.ndarray) else v for k, v in d.items()}
         return d
 
-    def __getitem__(self, index: int) -> Dict[str, Any]:
-        return self.item(index)
+    def __getitem__(self, index) -> Dict[str, Any]:
+        """`ds[i]`: sample `i` of the current epoch; `ds[epoch, i]`: of `epoch`."""
+        epoch, index = self._split(index)
+        return self.item(index, epoch)
 
-    def __getitems__(self, indices: Sequence[int]) -> "ItemBatch":
-        """Samples `indices` of the current epoch, computed together into batch arrays
-        (what torch's DataLoader calls, since torch 2.0, for a whole batch of a map-style
-        dataset). The result is a list of per-sample dicts equal to `self[i]`, as the
-        default collate expects, whose arrays are views of the batch arrays: `collate`
-        returns those arrays without stacking them again."""
-        n = len(self)
-        idx = [int(i) + n if int(i) < 0 else int(i) for i in indices]
-        arrays = self._loader.batch(idx, self.epoch, self.corr, self.mode == "eval")
+    def __getitems__(self, indices: Sequence) -> "ItemBatch":
+        """Samples `indices` (positions, of the current epoch, or `(epoch, position)`
+        pairs, as `EpochSampler` yields; one epoch per batch), computed together into
+        batch arrays (what torch's DataLoader calls, since torch 2.0, for a whole batch
+        of a map-style dataset). The result is a list of per-sample dicts equal to
+        `self[i]`, as the default collate expects, whose arrays are views of the batch
+        arrays: `collate` returns those arrays without stacking them again."""
+        pairs = [self._split(i) for i in indices]
+        epochs = {e for e, _ in pairs}
+        if len(epochs) > 1:
+            raise ValueError(f"a batch of indices of several epochs {sorted(epochs)}: one epoch per batch")
+        epoch = epochs.pop() if epochs else self.current_epoch()
+        arrays = self._loader.batch([i for _, i in pairs], epoch, self.corr, self.mode == "eval")
         return ItemBatch(arrays, self.tensors)
 
-    def loader(self, batch_size: int = 64, shuffle: bool = False, **kwargs):
-        """`torch.utils.data.DataLoader(self, batch_size, shuffle, collate_fn=collate,
-        **kwargs)`: batches computed in place, the same tensors as the default collate
-        gives (`num_workers`, `drop_last`, `sampler`, ... pass through)."""
+    def sampler(
+        self,
+        shuffle: bool = True,
+        seed: Optional[int] = None,
+        num_replicas: Optional[int] = None,
+        rank: Optional[int] = None,
+        remainder: str = "pad",
+        epoch: Optional[int] = None,
+    ) -> EpochSampler:
+        """An `EpochSampler` over this dataset (seed: the dataset's by default; shard:
+        from `torch.distributed` when initialised; first epoch: the dataset's current
+        one). `ds.set_epoch` reaches it too."""
+        return EpochSampler(
+            self,
+            shuffle=shuffle,
+            seed=self.seed if seed is None else seed,
+            num_replicas=num_replicas,
+            rank=rank,
+            remainder=remainder,
+            epoch=self.current_epoch() if epoch is None else epoch,
+        )
+
+    def loader(
+        self,
+        batch_size: int = 64,
+        shuffle: bool = False,
+        *,
+        seed: Optional[int] = None,
+        num_replicas: Optional[int] = None,
+        rank: Optional[int] = None,
+        remainder: str = "pad",
+        **kwargs,
+    ):
+        """An `EpochLoader`: `torch.utils.data.DataLoader(self, batch_size,
+        sampler=self.sampler(shuffle, ...), collate_fn=collate, **kwargs)` (`num_workers`,
+        `persistent_workers`, `drop_last`, `multiprocessing_context`, ... pass through).
+
+        - Batches are computed in place: the same tensors as the default collate gives.
+        - Epochs: every index carries its epoch to the worker that computes it; each pass
+          over the loader is the next epoch (the first: the dataset's current epoch),
+          or call `loader.set_epoch(e)` (or `ds.set_epoch(e)`) before a pass.
+        - Shards: under `torchrun` (`torch.distributed` initialised) each rank gets its
+          shard of every epoch's order (`num_replicas`, `rank` override), the same
+          number of samples, hence of batches, on every rank. `remainder="pad"` (the
+          default, as `DistributedSampler`) repeats the order's first `-len % ranks`
+          samples; `"drop"` leaves out its last `len % ranks` samples. With
+          `drop_last=True` a rank's incomplete last batch is left out too.
+        - Resume: save `loader.state_dict()` with the checkpoint (each rank its own);
+          after the restart `loader.load_state_dict(state)` on a loader made the same
+          way (any `num_workers`) gives the remaining batches of that epoch, bit for bit
+          those of the uninterrupted run, then the next epochs.
+        - `shuffle`: a permutation per epoch from `(seed, epoch)` (the dataset's seed by
+          default). A `sampler` or `batch_sampler` of your own makes a plain
+          DataLoader (no epochs carried, no shards, no resume: call `ds.set_epoch`)."""
         import torch
 
         kwargs.setdefault("collate_fn", collate)
-        return torch.utils.data.DataLoader(self, batch_size=batch_size, shuffle=shuffle, **kwargs)
+        if "sampler" in kwargs or "batch_sampler" in kwargs:
+            return torch.utils.data.DataLoader(self, batch_size=batch_size, shuffle=shuffle, **kwargs)
+        from .sampling import loader_class
+
+        sampler = self.sampler(shuffle, seed, num_replicas, rank, remainder)
+        return loader_class()(self, batch_size=batch_size, sampler=sampler, **kwargs)
 
 
 class ItemBatch(list):
@@ -302,6 +455,16 @@ def collate(batch):
         # torch.as_tensor shares a numpy array's memory and returns a tensor as it is.
         return {k: list(v) if isinstance(v, list) else torch.as_tensor(v) for k, v in batch.arrays.items()}
     return torch.utils.data.default_collate(batch)
+
+
+def _position(index, n: int) -> int:
+    """A sample position from a Python index (negative counts from the end)."""
+    if not isinstance(index, (int, np.integer)) or isinstance(index, bool):
+        raise TypeError(f"index {index!r}: expected an integer")
+    i = int(index)
+    if not -n <= i < n:
+        raise IndexError(f"index {i} out of range for {n} samples")
+    return i + n if i < 0 else i
 
 
 # Largest mask and UV map a targets row may describe (arkit_core::limits).
@@ -386,17 +549,44 @@ def solve_pnp_ransac(
     seed: int = 0,
 ):
     """PnP with RANSAC, OpenCV's conventions (`cv2.solvePnPRansac`'s arguments and
-    result): `X_cam = R X + t`. Returns `(success, rvec, tvec, inliers)`, rvec and tvec
-    (3, 1) float64, inliers (k, 1) int32; `(False, None, None, None)` on failure.
+    result): `X_cam = R X + t`. `object_points` (N, 3), `image_points` (N, 2) (or
+    OpenCV's (N, 1, 3) and (N, 1, 2)); any other shape, a transposed (3, N) among
+    them, is refused (`DataError`). Returns `(success, rvec, tvec, inliers)`, rvec and
+    tvec (3, 1) float64, inliers (k, 1) int32; `(False, None, None, None)` on failure.
     Distortion is not modelled: `dist_coeffs` must be None or zeros."""
     if dist_coeffs is not None and np.any(np.asarray(dist_coeffs) != 0):
         raise DataError("dist_coeffs: lens distortion is not supported; undistort the points first")
-    obj = np.ascontiguousarray(np.asarray(object_points, dtype=np.float64).reshape(-1, 3))
-    img = np.ascontiguousarray(np.asarray(image_points, dtype=np.float64).reshape(-1, 2))
+    obj = _points("object_points", object_points, 3)
+    img = _points("image_points", image_points, 2)
+    if len(obj) != len(img):
+        raise DataError(f"object_points and image_points: {len(obj)} and {len(img)} points; expected as many of each")
     k = np.ascontiguousarray(np.asarray(camera_matrix, dtype=np.float64))
+    if k.shape != (3, 3):
+        raise DataError(f"camera_matrix: shape {k.shape}; expected (3, 3)")
     return _native.solve_pnp_ransac(
         obj, img, k, float(reprojection_error), int(iterations_count), float(confidence), int(seed)
     )
+
+
+def _points(name: str, value, width: int) -> np.ndarray:
+    """(N, width) float64 points; OpenCV's (N, 1, width) accepted; anything else refused."""
+    a = np.asarray(value, dtype=np.float64)
+    if a.ndim == 3 and a.shape[1] == 1:
+        a = a[:, 0, :]
+    if a.ndim != 2 or a.shape[1] != width:
+        hint = " (transposed? pass the points as rows)" if a.ndim == 2 and a.shape[0] == width else ""
+        raise DataError(f"{name}: shape {a.shape}; expected (N, {width}){hint}")
+    return np.ascontiguousarray(a)
+
+
+def _pose(name: str, value) -> np.ndarray:
+    """A 4x4 float64 pose from (4, 4) or its 16 values row by row."""
+    a = np.asarray(value, dtype=np.float64)
+    if a.shape == (16,):
+        a = a.reshape(4, 4)
+    if a.shape != (4, 4):
+        raise DataError(f"{name}: shape {a.shape}; expected (4, 4) or 16 values row by row")
+    return np.ascontiguousarray(a)
 
 
 def read_image(path: Union[str, os.PathLike]) -> np.ndarray:
@@ -406,9 +596,11 @@ def read_image(path: Union[str, os.PathLike]) -> np.ndarray:
 
 def project(verts, R_t, width: int, height: int) -> np.ndarray:
     """Canonical points (N, 3) to image pixels (N, 2) with the release's row-vector
-    `R_t` and camera, for a `width x height` image."""
-    v = np.ascontiguousarray(np.asarray(verts, dtype=np.float64).reshape(-1, 3))
-    m = np.ascontiguousarray(np.asarray(R_t, dtype=np.float64))
+    `R_t` (4, 4), or its 16 values row by row (the samples table's flat form), and
+    camera, for a `width x height` image. Any other shape (transposed points among
+    them) is refused (`DataError`)."""
+    v = _points("verts", verts, 3)
+    m = _pose("R_t", R_t)
     return _native.project(v, m, int(width), int(height))
 
 
@@ -419,8 +611,8 @@ def evaluate(
 ) -> Dict[str, Any]:
     """The paper's metrics (what `arkit-tool eval --json` prints) of `predictions`: a
     predictions file (Parquet or CSV), a dict `{(subject_id, facial_action, img_id):
-    R_t}` or rows `(subject_id, facial_action, img_id, R_t)`; an `R_t` of None is a
-    failed prediction."""
+    R_t}` or rows `(subject_id, facial_action, img_id, R_t)`; an `R_t` (4 x 4, or its
+    16 values row by row) of None is a failed prediction."""
     if isinstance(predictions, (str, os.PathLike)):
         text = _native.evaluate(os.fspath(dataset), None, os.fspath(predictions), split)
         return json.loads(text)
@@ -431,6 +623,6 @@ def evaluate(
             (s, a, i), rt = item
         else:
             s, a, i, rt = item
-        flat = None if rt is None else [float(x) for x in np.asarray(rt, dtype=np.float64).reshape(-1)]
+        flat = None if rt is None else [float(x) for x in _pose(f"R_t of {(s, a, i)}", rt).reshape(-1)]
         rows.append((str(s), str(a), str(i), flat))
     return json.loads(_native.evaluate(os.fspath(dataset), rows, None, split))
