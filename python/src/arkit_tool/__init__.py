@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import json
 import os
+import sys
 from typing import Any, Dict, Iterable, List, Optional, Sequence, Tuple, Union
 
 import numpy as np
@@ -216,6 +217,7 @@ class ARKitFaceDataset:
     def __getstate__(self):
         state = dict(self.__dict__)
         state["_loader"] = None
+        state.pop("_batch_pool", None)
         return state
 
     def __setstate__(self, state):
@@ -263,7 +265,11 @@ class ARKitFaceDataset:
         returns those arrays without stacking them again."""
         n = len(self)
         idx = [int(i) + n if int(i) < 0 else int(i) for i in indices]
-        arrays = self._loader.batch(idx, self.epoch, self.corr, self.mode == "eval")
+        pool = self.__dict__.setdefault("_batch_pool", [])
+        reuse = _free_batch(pool, len(idx))
+        arrays = self._loader.batch(idx, self.epoch, self.corr, self.mode == "eval", reuse)
+        if reuse is None:
+            _keep_batch(pool, arrays)
         return ItemBatch(arrays, self.tensors)
 
     def loader(self, batch_size: int = 64, shuffle: bool = False, **kwargs):
@@ -274,6 +280,34 @@ class ARKitFaceDataset:
 
         kwargs.setdefault("collate_fn", collate)
         return torch.utils.data.DataLoader(self, batch_size=batch_size, shuffle=shuffle, **kwargs)
+
+
+# Batch arrays written over again once nobody holds them (`__getitems__`): arrays of a
+# batch's size are fresh pages from the kernel, and touching them (a page fault per 4 KiB,
+# 80,000 for a dense batch of 64) cost more than computing the samples. Two batches are
+# kept: a training loop holds the previous batch while the next one is computed.
+_REUSED = ("img", "uvmap", "mask", "choose", "model", "nocs", "corr_ids", "corr_weights", "corr_mat")
+_POOL_SIZE = 2
+
+
+def _free_batch(pool, b):
+    """A kept batch of `b` samples none of whose arrays is referenced outside `pool`, or
+    None. Every view (numpy's, torch's tensors from `collate`) holds a reference to the array
+    that owns the memory, so an owner referenced only by the pool is free; the probe, held
+    the same way, gives the pool's own count."""
+    for kept in pool:
+        if kept["img"].shape[0] != b:
+            continue
+        if all(sys.getrefcount(kept[k]) <= sys.getrefcount(kept["_probe"]) for k in kept if k != "_probe"):
+            return kept
+    return None
+
+
+def _keep_batch(pool, arrays):
+    kept = {k: arrays[k] for k in _REUSED if k in arrays}
+    kept["_probe"] = np.empty(0)
+    pool.insert(0, kept)
+    del pool[_POOL_SIZE:]
 
 
 class ItemBatch(list):
