@@ -129,6 +129,15 @@ fn official_items_follow_the_official_rules() {
     let topology = arkit_tool::synthetic_face::builtin().topology.clone();
     let mut renderer = FaceRenderer::new(topology.clone(), Camera::release_projection()).unwrap();
     renderer.mode = RasterMode::Official;
+    // The holes closed as the official mask closes them: eyes first, then the mouth.
+    let loops = arkit_tool::render::UvMapper::derive(&topology)
+        .unwrap()
+        .centroid_loops;
+    let organs = arkit_tool::loader::official_organ_triangles(
+        [&loops[1], &loops[2], &loops[0]],
+        &topology.uv,
+    );
+    renderer.set_hole_triangles(&organs).unwrap();
     for n_pts in [256, 20_000] {
         let l = loader(dir.path(), LoaderMode::Eval, Compat::Official, n_pts);
         for (i, sample) in samples.iter().enumerate() {

@@ -86,8 +86,10 @@ def main():
 
     # `batched`: ds.loader (batches computed in place, arkit_tool.collate); `default`:
     # DataLoader(ds) with torch's default collate, which stacks the samples again.
+    # (store, dense, default) is the official train.py's path: its DataLoader keeps the
+    # default collate.
     runs = [("store", "sparse", "batched"), ("store", "sparse", "default"),
-            ("store", "dense", "batched"), ("jpeg", "sparse", "batched")]
+            ("store", "dense", "batched"), ("store", "dense", "default"), ("jpeg", "sparse", "batched")]
     for mode in ["eval", "train"]:
         for compat in ["exact", "official"]:
             for source, corr, collate in runs:

@@ -114,3 +114,26 @@ def test_a_batch_too_large_for_memory_raises_memory_error(dataset):
     # before any sample is computed.
     with pytest.raises(MemoryError):
         ds.__getitems__([0] * 10**7)
+
+
+@pytest.mark.parametrize("compat", ["exact", "official"])
+def test_batch_arrays_are_reused_only_once_nobody_holds_them(dataset, compat):
+    ds = ARKitFaceDataset(dataset, split=None, mode="train", compat=compat, corr="both", n_pts=48)
+    ds.set_epoch(2)
+    n = len(ds)
+    orders = [[0, 1, 2], [n - 1, n - 2, 3], [2, 0, n - 1], [1, 3, 0]]
+    held = arkit_tool.collate(ds.__getitems__(orders[0]))  # the user keeps this batch
+    kept = {k: v.clone() for k, v in held.items()}
+    pointers = set()
+    for order in orders[1:] * 2:
+        batch = arkit_tool.collate(ds.__getitems__(order))
+        pointers.add(batch["corr_mat"].data_ptr())
+        # Every value is the sample's own, whatever the reused arrays held before
+        # (corr_mat's rows of another sample among them).
+        assert_same_batch(batch, torch.utils.data.default_collate([ds[i] for i in order]), order)
+        del batch
+    assert held["corr_mat"].data_ptr() not in pointers  # never written over while held
+    assert_same_batch(held, kept, "held")
+    assert len(pointers) == 1  # dropped batches are written over again
+    # A batch of another size gets arrays of its own.
+    assert len(ds.__getitems__([0, 1])) == 2

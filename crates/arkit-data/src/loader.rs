@@ -503,6 +503,55 @@ impl OfficialUvLayout {
     }
 }
 
+/// The official loader's eye and mouth triangles (`vert_index[face_em]` of its
+/// `lib/eyemouth_index.py`), which it draws after the mesh, with attribute 0, into the
+/// full-resolution mask (`arkit_dataset.py:146-151`). `loops` are the two eyes' and the
+/// mouth's boundary loops in that order and in the official direction (the release's
+/// hole fans list them so, [`OfficialUvLayout::release_order`]); `uv` the topology's UV
+/// coordinates. Each loop starts at its vertex of smallest `u` (an eye or mouth corner)
+/// and is closed by a strip between its two ends: `[0, 1, n-1]`, then alternately `[a,
+/// a+1, b]` and `[a, b, b-1]`. The official list departs from that pattern in the vertex
+/// order of three triangles (each eye's third is `[2, n-2, n-1]`, the mouth's last
+/// `[17, 19, 18]`); the order changes the float32 rounding of the depth, so it is kept.
+/// With the release's files this gives the official 78 triangles exactly (checked beside
+/// the official code).
+pub fn official_organ_triangles(loops: [&[u32]; 3], uv: &[[f32; 2]]) -> Vec<[u32; 3]> {
+    let mut out = Vec::new();
+    for (k, lp) in loops.into_iter().enumerate() {
+        let n = lp.len();
+        if n < 3 {
+            continue;
+        }
+        // numpy's argmin: the first smallest.
+        let start = (0..n).fold(0, |best, i| {
+            if uv[lp[i] as usize][0] < uv[lp[best] as usize][0] {
+                i
+            } else {
+                best
+            }
+        });
+        let at = |i: usize| lp[(start + i) % n];
+        let mut local = vec![[0, 1, n - 1]];
+        let (mut a, mut b, mut step_a) = (1, n - 1, true);
+        while local.len() < n - 2 {
+            if step_a {
+                local.push([a, a + 1, b]);
+                a += 1;
+            } else {
+                local.push([a, b, b - 1]);
+                b -= 1;
+            }
+            step_a = !step_a;
+        }
+        let odd = if k < 2 { 2 } else { local.len() - 1 };
+        if let Some(t) = local.get_mut(odd) {
+            t.swap(1, 2);
+        }
+        out.extend(local.into_iter().map(|t| t.map(at)));
+    }
+    out
+}
+
 /// Python's `range(len)[start:stop]` for a step of 1: the clipped, wrapped bounds.
 pub fn python_slice(start: i64, stop: i64, len: i64) -> std::ops::Range<i64> {
     let fix = |i: i64| {
@@ -618,11 +667,21 @@ impl FaceLoader {
             Compat::Exact => Camera::release_projection(),
             Compat::Official => Camera::release_projection().map(|x| x as f32 as f64),
         };
+        let topology_uv = topology.uv.clone();
         let mut renderer = FaceRenderer::new(topology, projection)?;
         renderer.mode = match options.compat {
             Compat::Exact => RasterMode::Exact,
             Compat::Official => RasterMode::Official,
         };
+        if options.compat == Compat::Official {
+            // The holes as the official mask closes them. The layout's loops are the
+            // mouth's and the two eyes'; the official list has the eyes first.
+            let l = &official_uv.centroid_loops;
+            if l.len() == 3 {
+                let organs = official_organ_triangles([&l[1], &l[2], &l[0]], &topology_uv);
+                renderer.set_hole_triangles(&organs)?;
+            }
+        }
         Ok(FaceLoader {
             dataset,
             rows,
@@ -1252,6 +1311,24 @@ mod tests {
         // ... unless the stop is past it.
         assert_eq!(python_slice(-5, 900, 800), 795..800);
         assert_eq!(python_slice(-900, 5, 800), 0..5);
+    }
+
+    #[test]
+    fn organ_strips_start_at_the_smallest_u_and_keep_the_official_vertex_order() {
+        // A six-vertex loop whose smallest u is its third vertex (12): local 0..5 are
+        // 12, 13, 14, 15, 10, 11. The strip [0,1,5], [1,2,5], [2,5,4], [2,3,4]; an eye's
+        // third triangle is listed [2,4,5], the mouth's last [2,4,3] (the official order).
+        let lp = [10u32, 11, 12, 13, 14, 15];
+        let mut uv = vec![[0.5f32, 0.5]; 16];
+        for (k, &v) in lp.iter().enumerate() {
+            uv[v as usize] = [[0.3, 0.2, 0.1, 0.4, 0.6, 0.5][k], 0.5];
+        }
+        let t = official_organ_triangles([&lp, &lp, &lp], &uv);
+        let eye = [[12, 13, 11], [13, 14, 11], [14, 10, 11], [14, 15, 10]];
+        let mouth = [[12, 13, 11], [13, 14, 11], [14, 11, 10], [14, 10, 15]];
+        assert_eq!(t[..4], eye);
+        assert_eq!(t[4..8], eye);
+        assert_eq!(t[8..], mouth);
     }
 
     #[test]

@@ -87,6 +87,30 @@ impl FaceRenderer {
         })
     }
 
+    /// Closes the eye and mouth holes with `holes` (triangles over the mesh's own
+    /// vertices, drawn after the mesh) instead of the centroid fans: in
+    /// [`RasterMode::Official`], the official loader's organ triangles
+    /// ([`crate::loader::official_organ_triangles`]). Which fill is drawn decides, where
+    /// a fill triangle overlaps the mesh on screen, which pixels are face: the fans and
+    /// the official strips cover a non-convex hole outline differently.
+    pub fn set_hole_triangles(&mut self, holes: &[[u32; 3]]) -> Result<()> {
+        if let Some(t) = holes
+            .iter()
+            .find(|t| t.iter().any(|&v| v as usize >= self.topology.vertex_count))
+        {
+            return Err(Error::invalid(
+                "hole triangles",
+                format!(
+                    "{t:?} refers to a vertex beyond the mesh's {}",
+                    self.topology.vertex_count
+                ),
+            ));
+        }
+        self.triangles.truncate(self.topology.triangles.len());
+        self.triangles.extend_from_slice(holes);
+        Ok(())
+    }
+
     /// The topology.
     pub fn topology(&self) -> &FaceTopology {
         &self.topology

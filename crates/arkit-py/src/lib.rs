@@ -19,7 +19,7 @@ use arkit_data::release::SampleKey;
 use arkit_data::samples_table::SampleRecord;
 use arkit_data::{Camera, Error, FaceTopology, Pose};
 use nalgebra::{Point2, Point3};
-use numpy::{IntoPyArray, PyArrayDyn, PyArrayMethods, PyReadonlyArray2};
+use numpy::{IntoPyArray, PyArrayDyn, PyArrayMethods, PyReadonlyArray2, PyUntypedArrayMethods};
 use pyo3::create_exception;
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
@@ -176,7 +176,14 @@ impl Loader {
     /// and values with a leading batch axis (strings as lists), written in place by
     /// Rust without the GIL, so a batch costs no per-sample array and no stacking copy.
     /// The first sample that fails raises, naming it.
-    #[pyo3(signature = (indices, epoch=0, corr="dense", eval_keys=false))]
+    ///
+    /// `reuse`: the arrays of an earlier batch of the same size and options that nobody
+    /// holds any more (a dict of this method's array keys; the Python layer keeps a few
+    /// and checks that they are free). They are written over, every element, instead of
+    /// making new ones: fresh arrays of a batch's size come from the kernel as untouched
+    /// pages, and touching them (a page fault per 4 KiB: 80,000 for the dense
+    /// `corr_mat` of 64 samples) cost more than computing the samples.
+    #[pyo3(signature = (indices, epoch=0, corr="dense", eval_keys=false, reuse=None))]
     fn batch<'py>(
         &self,
         py: Python<'py>,
@@ -184,6 +191,7 @@ impl Loader {
         epoch: u64,
         corr: &str,
         eval_keys: bool,
+        reuse: Option<Bound<'py, PyDict>>,
     ) -> PyResult<Bound<'py, PyDict>> {
         let (dense, sparse) = corr_forms(corr)?;
         if let Some(&bad) = indices.iter().find(|&&i| i >= self.inner.len()) {
@@ -200,16 +208,21 @@ impl Loader {
         );
         let (n, v) = (loader.options().n_pts, loader.mesh_vertex_count());
         let np = py.import("numpy")?;
-        let img = new_array::<f32>(&np, "empty", &[b, 3, s, s])?;
-        let uvmap = new_array::<f32>(&np, "empty", &[b, 3, u, u])?;
-        let mask = new_array::<i64>(&np, "empty", &[b, s, s])?;
-        let choose = new_array::<i64>(&np, "empty", &[b, n])?;
-        let model = new_array::<f32>(&np, "empty", &[b, v, 3])?;
-        let nocs = new_array::<f32>(&np, "empty", &[b, n, 3])?;
+        let reuse = reuse.as_ref();
+        let img = array_for::<f32>(&np, reuse, "img", "empty", &[b, 3, s, s])?;
+        let uvmap = array_for::<f32>(&np, reuse, "uvmap", "empty", &[b, 3, u, u])?;
+        let mask = array_for::<i64>(&np, reuse, "mask", "empty", &[b, s, s])?;
+        let choose = array_for::<i64>(&np, reuse, "choose", "empty", &[b, n])?;
+        let model = array_for::<f32>(&np, reuse, "model", "empty", &[b, v, 3])?;
+        let nocs = array_for::<f32>(&np, reuse, "nocs", "empty", &[b, n, 3])?;
         let sparse_n = if sparse { n } else { 0 };
-        let ids = new_array::<i64>(&np, "empty", &[b, sparse_n, 3])?;
-        let weights = new_array::<f32>(&np, "empty", &[b, sparse_n, 3])?;
-        let corr_mat = new_array::<f32>(&np, "zeros", &[b, if dense { n } else { 0 }, v])?;
+        let ids = array_for::<i64>(&np, reuse, "corr_ids", "empty", &[b, sparse_n, 3])?;
+        let weights = array_for::<f32>(&np, reuse, "corr_weights", "empty", &[b, sparse_n, 3])?;
+        // numpy's zeros are the kernel's zero pages; a reused matrix is cleared row by
+        // row as it is filled.
+        let dense_n = if dense { n } else { 0 };
+        let corr_reused = reuse.is_some_and(|r| r.contains("corr_mat").unwrap_or(false));
+        let corr_mat = array_for::<f32>(&np, reuse, "corr_mat", "zeros", &[b, dense_n, v])?;
         let tform = new_array::<f64>(&np, "empty", &[b, 2, 3])?;
         let rt = new_array::<f64>(&np, "empty", &[b, 4, 4])?;
         let keys = {
@@ -228,6 +241,7 @@ impl Loader {
                     ids: ids.as_slice_mut()?,
                     weights: weights.as_slice_mut()?,
                     corr_mat: corr_mat.as_slice_mut()?,
+                    corr_mat_zeroed: !corr_reused,
                     tform: tform.as_slice_mut()?,
                     rt: rt.as_slice_mut()?,
                 }
@@ -261,6 +275,33 @@ impl Loader {
         }
         Ok(d)
     }
+}
+
+/// `reuse[key]` when it is given and holds that key (it must then be a C-contiguous,
+/// writeable array of `shape`), else a new array made by numpy's `make`.
+fn array_for<'py, T: numpy::Element>(
+    np: &Bound<'py, PyModule>,
+    reuse: Option<&Bound<'py, PyDict>>,
+    key: &str,
+    make: &str,
+    shape: &[usize],
+) -> PyResult<Bound<'py, PyArrayDyn<T>>> {
+    let Some(given) = reuse.map(|r| r.get_item(key)).transpose()?.flatten() else {
+        return new_array(np, make, shape);
+    };
+    let a = given.cast_into::<PyArrayDyn<T>>().map_err(|_| {
+        DataError::new_err(format!(
+            "reuse['{key}']: not an array of this batch's dtype"
+        ))
+    })?;
+    let writeable: bool = a.getattr("flags")?.getattr("writeable")?.extract()?;
+    if a.shape() != shape || !a.is_c_contiguous() || !writeable {
+        return Err(DataError::new_err(format!(
+            "reuse['{key}']: shape {:?}, expected a C-contiguous writeable {shape:?}",
+            a.shape()
+        )));
+    }
+    Ok(a)
 }
 
 /// A new C-ordered array of `shape` made by numpy's `make` (`empty` or `zeros`), so
@@ -299,6 +340,8 @@ struct BatchSlices<'a> {
     ids: &'a mut [i64],
     weights: &'a mut [f32],
     corr_mat: &'a mut [f32],
+    /// Whether `corr_mat` holds zeros already (else each sample's rows are cleared).
+    corr_mat_zeroed: bool,
     tform: &'a mut [f64],
     rt: &'a mut [f64],
 }
@@ -367,7 +410,11 @@ impl BatchSlices<'_> {
                 }
             }
             if !self.corr_mat.is_empty() {
-                dense_correspondences_into(&item, v, &mut self.corr_mat[at(corr_n)]);
+                let rows = &mut self.corr_mat[at(corr_n)];
+                if !self.corr_mat_zeroed {
+                    rows.fill(0.0);
+                }
+                dense_correspondences_into(&item, v, rows);
             }
             self.tform[at(6)].copy_from_slice(&item.tform_inv);
             self.rt[at(16)].copy_from_slice(&item.rt);

@@ -24,6 +24,7 @@ import json
 import multiprocessing
 import multiprocessing.context
 import os
+import sys
 import weakref
 from typing import Any, Dict, Iterable, List, Optional, Sequence, Tuple, Union
 
@@ -258,6 +259,7 @@ class ARKitFaceDataset:
         state["_samplers"] = None
         if multiprocessing.context.get_spawning_popen() is None:
             state["_epoch"] = int(self._epoch.value)
+        state.pop("_batch_pool", None)
         return state
 
     def __setstate__(self, state):
@@ -361,7 +363,11 @@ class ARKitFaceDataset:
         if len(epochs) > 1:
             raise ValueError(f"a batch of indices of several epochs {sorted(epochs)}: one epoch per batch")
         epoch = epochs.pop() if epochs else self.current_epoch()
-        arrays = self._loader.batch([i for _, i in pairs], epoch, self.corr, self.mode == "eval")
+        pool = self.__dict__.setdefault("_batch_pool", [])
+        reuse = _free_batch(pool, len(pairs))
+        arrays = self._loader.batch([i for _, i in pairs], epoch, self.corr, self.mode == "eval", reuse)
+        if reuse is None:
+            _keep_batch(pool, arrays)
         return ItemBatch(arrays, self.tensors)
 
     def sampler(
@@ -427,6 +433,34 @@ class ARKitFaceDataset:
 
         sampler = self.sampler(shuffle, seed, num_replicas, rank, remainder)
         return loader_class()(self, batch_size=batch_size, sampler=sampler, **kwargs)
+
+
+# Batch arrays written over again once nobody holds them (`__getitems__`): arrays of a
+# batch's size are fresh pages from the kernel, and touching them (a page fault per 4 KiB,
+# 80,000 for a dense batch of 64) cost more than computing the samples. Two batches are
+# kept: a training loop holds the previous batch while the next one is computed.
+_REUSED = ("img", "uvmap", "mask", "choose", "model", "nocs", "corr_ids", "corr_weights", "corr_mat")
+_POOL_SIZE = 2
+
+
+def _free_batch(pool, b):
+    """A kept batch of `b` samples none of whose arrays is referenced outside `pool`, or
+    None. Every view (numpy's, torch's tensors from `collate`) holds a reference to the array
+    that owns the memory, so an owner referenced only by the pool is free; the probe, held
+    the same way, gives the pool's own count."""
+    for kept in pool:
+        if kept["img"].shape[0] != b:
+            continue
+        if all(sys.getrefcount(kept[k]) <= sys.getrefcount(kept["_probe"]) for k in kept if k != "_probe"):
+            return kept
+    return None
+
+
+def _keep_batch(pool, arrays):
+    kept = {k: arrays[k] for k in _REUSED if k in arrays}
+    kept["_probe"] = np.empty(0)
+    pool.insert(0, kept)
+    del pool[_POOL_SIZE:]
 
 
 class ItemBatch(list):
