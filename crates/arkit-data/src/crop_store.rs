@@ -477,7 +477,7 @@ impl CropStore {
         )?;
         if manifest.key_bytes == 0
             || manifest.key_bytes > MAX_KEY_BYTES
-            || manifest.key_bytes % 8 != 0
+            || !manifest.key_bytes.is_multiple_of(8)
         {
             return Err(Error::format(
                 &mpath,
