@@ -302,6 +302,8 @@ fn shard_parts_merge_to_the_single_run() {
     }
     // Not all parts present yet? All three are; merge.
     let merged = convert::merge(parts.path()).unwrap();
+    assert!(merged.ignored.is_empty());
+    let merged = merged.manifest;
     assert_eq!(merged.shards, whole.shards);
     assert_eq!(
         (merged.converted, merged.skipped),
@@ -315,6 +317,114 @@ fn shard_parts_merge_to_the_single_run() {
     std::fs::remove_file(parts.path().join(convert::manifest_name(1, 3))).unwrap();
     let e = convert::merge(parts.path()).unwrap_err().to_string();
     assert!(e.contains("part 1 of 3 is missing"), "{e}");
+}
+
+/// A `--shard I/2` conversion of 3 x 4 samples, 2 rows per shard, into a new folder.
+fn two_parts(input: &Path) -> tempfile::TempDir {
+    let parts = tempfile::tempdir().unwrap();
+    for i in 0..2 {
+        let mut o = options(input, parts.path(), 2);
+        (o.shard_index, o.shard_count) = (i, 2);
+        run(&o, 1);
+    }
+    parts
+}
+
+#[test]
+fn merge_reads_only_the_parts_the_conversion_names() {
+    let input = tempfile::tempdir().unwrap();
+    make_release(input.path(), 3, 4);
+    let single = tempfile::tempdir().unwrap();
+    let whole = run(&options(input.path(), single.path(), 2), 2);
+    let parts = two_parts(input.path());
+    let p = |name: &str| parts.path().join("manifest").join(name);
+    // A copy of part 0 beside it (what a file manager makes): not read, listed; the
+    // count is the distinct samples', as a single run's.
+    std::fs::copy(
+        p("part-0000-of-0002.json"),
+        p("part-0000-of-0002 (copy).json"),
+    )
+    .unwrap();
+    std::fs::copy(p("part-0001-of-0002.json"), p("part-1-of-2.json")).unwrap();
+    let merged = convert::merge(parts.path()).unwrap();
+    assert_eq!(
+        merged.ignored,
+        vec![p("part-0000-of-0002 (copy).json"), p("part-1-of-2.json")]
+    );
+    assert_eq!(merged.manifest.shards, whole.shards);
+    assert_eq!(merged.manifest.converted, whole.converted);
+    assert_eq!(merged.manifest.converted, 12);
+    // A copy under another part's canonical name (of another split count): refused,
+    // never a guess.
+    std::fs::copy(p("part-0000-of-0002.json"), p("part-0002-of-0003.json")).unwrap();
+    let e = convert::merge(parts.path()).unwrap_err().to_string();
+    assert!(e.contains("split 2 and 3 ways"), "{e}");
+    std::fs::remove_file(p("part-0002-of-0003.json")).unwrap();
+    // Part 0's manifest copied over part 1's: it says it is part 0.
+    let part1 = std::fs::read(p("part-0001-of-0002.json")).unwrap();
+    std::fs::copy(p("part-0000-of-0002.json"), p("part-0001-of-0002.json")).unwrap();
+    let e = convert::merge(parts.path()).unwrap_err().to_string();
+    assert!(
+        e.contains("part-0001-of-0002.json") && e.contains("says it is part 0 of 2"),
+        "{e}"
+    );
+    // A part that lists a shard twice, or drops one.
+    let mut m: convert::Manifest = serde_json::from_slice(&part1).unwrap();
+    let write = |m: &convert::Manifest| {
+        std::fs::write(p("part-0001-of-0002.json"), serde_json::to_vec(m).unwrap()).unwrap()
+    };
+    let kept = m.shards.clone();
+    m.shards.push(m.shards[0].clone());
+    write(&m);
+    let e = convert::merge(parts.path()).unwrap_err().to_string();
+    assert!(e.contains("lists shard 1 twice"), "{e}");
+    m.shards = kept[1..].to_vec();
+    write(&m);
+    let e = convert::merge(parts.path()).unwrap_err().to_string();
+    assert!(e.contains("does not list shard 1"), "{e}");
+    // A part of another conversion (its fingerprint is not conversion.json's).
+    m.shards = kept;
+    m.fingerprint = "0".repeat(64);
+    write(&m);
+    let e = convert::merge(parts.path()).unwrap_err().to_string();
+    assert!(
+        e.contains("another conversion than the one conversion.json records"),
+        "{e}"
+    );
+    std::fs::write(p("part-0001-of-0002.json"), &part1).unwrap();
+    assert_eq!(convert::merge(parts.path()).unwrap().manifest.converted, 12);
+}
+
+#[test]
+fn merge_refuses_a_sample_key_in_two_shards() {
+    let input = tempfile::tempdir().unwrap();
+    make_release(input.path(), 3, 4);
+    let parts = two_parts(input.path());
+    // Shard 3 (part 1) rewritten with shard 0's rows, and its part manifest updated to
+    // match the new file: every file agrees with its record, yet two shards hold the
+    // same samples.
+    let part = parts.path().join(convert::manifest_name(1, 2));
+    let mut m = convert::read_manifest(&part).unwrap();
+    let shard0 = parts.path().join("samples/part-00000.parquet");
+    let rows = samples_table::read_samples(&shard0).unwrap();
+    let entry = m.shards.iter_mut().find(|s| s.index == 3).unwrap();
+    let path = parts.path().join(&entry.samples_file);
+    samples_table::write_samples(&path, &rows, context().topology.vertex_count).unwrap();
+    entry.rows = rows.len();
+    entry.bytes = std::fs::metadata(&path).unwrap().len();
+    entry.sha256 = convert::sha256_file(&path).unwrap();
+    entry.tail_sha256 = convert::tail_sha256(&path).unwrap();
+    std::fs::write(&part, serde_json::to_vec(&m).unwrap()).unwrap();
+    let e = convert::merge(parts.path()).unwrap_err().to_string();
+    assert!(
+        e.contains("part-00003.parquet")
+            && e.contains(&format!(
+                "sample {} is in shard 0 and again in shard 3",
+                rows[0].key
+            )),
+        "{e}"
+    );
+    assert!(!parts.path().join("dataset.json").exists());
 }
 
 #[test]

@@ -1,6 +1,8 @@
 //! The crop store (`arkit-tool crops`, `crop_store`, `crops_dataset`): the loader's
 //! items read from it against the same items decoded from the release, and every way a
-//! store can be wrong refused with the file named.
+//! store can be wrong (damaged, stale, another dataset's, parts swapped or mixed, an
+//! earlier format) refused with the file named, in training as in evaluation; one
+//! writer per store, and no temporaries of killed runs left after a rerun.
 
 mod support;
 
@@ -126,7 +128,7 @@ fn a_damaged_stale_or_foreign_store_is_refused_naming_the_file() {
     // A flipped byte: the record's CRC, naming the file, and only that sample.
     let part = out.join("part-0.bin");
     let mut bytes = std::fs::read(&part).unwrap();
-    let record = crop_store::record_bytes(S, l.mesh_vertex_count());
+    let record = crop_store::read_manifest(&out).unwrap().record_bytes;
     let at = (crop_store::HEADER_BYTES + record + 5000) as usize;
     bytes[at] ^= 0x10;
     std::fs::write(&part, &bytes).unwrap();
@@ -177,4 +179,217 @@ fn a_sample_without_an_image_is_stored_without_pixels_and_named() {
     for i in [0, 1, 3] {
         assert_eq!(l.item(i, 0).unwrap(), plain.item(i, 0).unwrap());
     }
+}
+
+/// Every item of `dir`'s loader in `mode`, from the store `out`: `Err` when the store is
+/// refused at open, else each item's result as text (the error's, or the item's debug
+/// form minus the image for training items, whose pixels are resampled).
+fn served(dir: &Path, out: &Path, mode: LoaderMode) -> Result<Vec<String>, String> {
+    let mut l = loader(dir, mode, Compat::Exact);
+    l.open_crop_store(out).map_err(|e| e.to_string())?;
+    Ok((0..l.len())
+        .map(|i| match l.item(i, 2) {
+            Ok(mut item) => {
+                item.img.clear();
+                format!("{item:?}")
+            }
+            Err(e) => format!("error: {e}"),
+        })
+        .collect())
+}
+
+/// The items of `dir`'s loader without a store, as [`served`] gives them.
+fn plain_items(dir: &Path, mode: LoaderMode) -> Vec<String> {
+    let l = loader(dir, mode, Compat::Exact);
+    (0..l.len())
+        .map(|i| {
+            let mut item = l.item(i, 2).unwrap();
+            item.img.clear();
+            format!("{item:?}")
+        })
+        .collect()
+}
+
+#[test]
+fn part_files_swapped_by_hand_are_refused_in_training_and_evaluation() {
+    let (release, dir) = (tempfile::tempdir().unwrap(), tempfile::tempdir().unwrap());
+    // Two shards of four rows: part files of one size.
+    support::converted::converted_synthetic(release.path(), dir.path(), 2, 4, 256, 12);
+    assert_eq!(dir_shards(dir.path()), 2);
+    let out = store(dir.path(), Compat::Exact);
+    let (p0, p1) = (out.join("part-0.bin"), out.join("part-1.bin"));
+    let (b0, b1) = (std::fs::read(&p0).unwrap(), std::fs::read(&p1).unwrap());
+    assert_eq!(b0.len(), b1.len());
+    // Whole files swapped: each names the shard it holds.
+    std::fs::write(&p0, &b1).unwrap();
+    std::fs::write(&p1, &b0).unwrap();
+    for mode in [LoaderMode::Train, LoaderMode::Eval] {
+        let e = served(dir.path(), &out, mode).unwrap_err();
+        assert!(
+            e.contains("part-0.bin")
+                && e.contains(
+                    "holds the records of samples shard 1, but crops.json names it for shard 0"
+                ),
+            "{e}"
+        );
+    }
+    // Part 1's records under part 0's header (a header check alone would pass): every
+    // item of shard 0 refused in both modes, naming the sample it holds; shard 1's
+    // (restored) items served as without the store.
+    let h = crop_store::HEADER_BYTES as usize;
+    let mut hybrid = b0[..h].to_vec();
+    hybrid.extend_from_slice(&b1[h..]);
+    std::fs::write(&p0, &hybrid).unwrap();
+    std::fs::write(&p1, &b1).unwrap();
+    let l = loader(dir.path(), LoaderMode::Eval, Compat::Exact);
+    for mode in [LoaderMode::Train, LoaderMode::Eval] {
+        let items = served(dir.path(), &out, mode).unwrap();
+        let plain = plain_items(dir.path(), mode);
+        assert_eq!(items.len(), 8);
+        for (i, (item, plain)) in items.iter().zip(&plain).enumerate() {
+            if i < 4 {
+                let (want, _) = l.key(i).unwrap();
+                let (holds, _) = l.key(i + 4).unwrap();
+                assert!(
+                    item.contains("part-0.bin")
+                        && item.contains(&format!(
+                            "should be sample {want}, but it holds sample {holds} (row {i} of shard 1)"
+                        )),
+                    "{mode:?} {i}: {item}"
+                );
+            } else {
+                assert_eq!(item, plain, "{mode:?} {i}");
+            }
+        }
+    }
+}
+
+#[test]
+fn two_crops_into_one_store_never_mix() {
+    // Two datasets of the same shape (so their part files are interchangeable by size).
+    let (ra, a) = (tempfile::tempdir().unwrap(), tempfile::tempdir().unwrap());
+    let (rb, b) = (tempfile::tempdir().unwrap(), tempfile::tempdir().unwrap());
+    support::converted::converted_synthetic(ra.path(), a.path(), 2, 4, 256, 21);
+    support::converted::converted_synthetic(rb.path(), b.path(), 2, 4, 256, 22);
+    let out = tempfile::tempdir().unwrap();
+    let out = out.path().join("store");
+    let la = loader(a.path(), LoaderMode::Eval, Compat::Exact);
+    let lb = loader(b.path(), LoaderMode::Eval, Compat::Exact);
+
+    // While one run holds the store, a second (of another dataset) is refused at once
+    // and writes nothing.
+    let held = arkit_tool::atomic_file::FolderLock::acquire(&out, "crops", "crops").unwrap();
+    let e = write_crop_store(&lb, &out, &|_| {})
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("another crops is writing"), "{e}");
+    assert!(!out.join("crops.json").exists() && !out.join("part-0.bin").exists());
+    drop(held);
+
+    // Both at once: whichever order they take, the store ends as one dataset's whole
+    // store, and the other dataset's loader refuses it.
+    let (res_a, res_b) = std::thread::scope(|s| {
+        let x = s.spawn(|| write_crop_store(&la, &out, &|_| {}).map(|_| ()));
+        let y = s.spawn(|| write_crop_store(&lb, &out, &|_| {}).map(|_| ()));
+        (x.join().unwrap(), y.join().unwrap())
+    });
+    assert!(res_a.is_ok() || res_b.is_ok(), "{res_a:?} {res_b:?}");
+    for r in [&res_a, &res_b] {
+        if let Err(e) = r {
+            assert!(e.to_string().contains("another crops is writing"), "{e}");
+        }
+    }
+    let mut owners = 0;
+    for dir in [a.path(), b.path()] {
+        for mode in [LoaderMode::Train, LoaderMode::Eval] {
+            match served(dir, &out, mode) {
+                Ok(items) => {
+                    assert_eq!(items, plain_items(dir, mode), "{mode:?}");
+                    owners += 1;
+                }
+                Err(e) => assert!(e.contains("another dataset"), "{e}"),
+            }
+        }
+    }
+    assert_eq!(owners, 2, "one dataset's store, served in both modes");
+
+    // What the unlocked runs of before left: the same folder holding a's crops.json
+    // and one of b's parts. The part is refused by its header; b's records under a's
+    // header are refused record by record, in both modes.
+    write_crop_store(&la, &out, &|_| {}).unwrap();
+    let bstore = tempfile::tempdir().unwrap();
+    write_crop_store(&lb, bstore.path(), &|_| {}).unwrap();
+    let theirs = std::fs::read(bstore.path().join("part-1.bin")).unwrap();
+    let ours = std::fs::read(out.join("part-1.bin")).unwrap();
+    assert_eq!(theirs.len(), ours.len());
+    std::fs::write(out.join("part-1.bin"), &theirs).unwrap();
+    let e = served(a.path(), &out, LoaderMode::Train).unwrap_err();
+    assert!(
+        e.contains("part-1.bin") && e.contains("made from another dataset than crops.json says"),
+        "{e}"
+    );
+    let h = crop_store::HEADER_BYTES as usize;
+    let mut hybrid = ours[..h].to_vec();
+    hybrid.extend_from_slice(&theirs[h..]);
+    std::fs::write(out.join("part-1.bin"), &hybrid).unwrap();
+    for mode in [LoaderMode::Train, LoaderMode::Eval] {
+        let items = served(a.path(), &out, mode).unwrap();
+        let plain = plain_items(a.path(), mode);
+        assert_eq!(items[..4], plain[..4]);
+        for item in &items[4..] {
+            assert!(
+                item.contains("part-1.bin") && item.contains("of another dataset (fingerprint"),
+                "{mode:?}: {item}"
+            );
+        }
+    }
+}
+
+#[test]
+fn a_rerun_removes_killed_runs_temporaries_and_an_old_store_is_refused() {
+    let (release, dir) = (tempfile::tempdir().unwrap(), tempfile::tempdir().unwrap());
+    support::converted::converted_synthetic(release.path(), dir.path(), 2, 4, 256, 31);
+    let out = FaceLoader::default_crop_store(dir.path(), Compat::Exact, S);
+    std::fs::create_dir_all(&out).unwrap();
+    // What a killed run leaves: its part under the temporary name (nobody holds it),
+    // and a part of a shard the dataset no longer has.
+    let stale = out.join(".part-0.bin.tmp-4242");
+    std::fs::write(&stale, vec![7u8; 100_000]).unwrap();
+    std::fs::write(out.join("part-7.bin"), b"old").unwrap();
+    let kept = out.join("notes.txt");
+    std::fs::write(&kept, b"mine").unwrap();
+    store(dir.path(), Compat::Exact);
+    let mut left: Vec<String> = std::fs::read_dir(&out)
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .collect();
+    left.sort();
+    assert_eq!(
+        left,
+        [
+            ".crops.lock",
+            "crops.json",
+            "notes.txt",
+            "part-0.bin",
+            "part-1.bin"
+        ]
+    );
+    // A store of the earlier format (its crops.json says format 1): refused with what
+    // to do, in Rust as in Python.
+    let manifest = out.join("crops.json");
+    let text = std::fs::read_to_string(&manifest).unwrap();
+    let old = text.replacen(
+        &format!("\"format\": {}", crop_store::FORMAT),
+        "\"format\": 1",
+        1,
+    );
+    assert_ne!(old, text);
+    std::fs::write(&manifest, old).unwrap();
+    let e = served(dir.path(), &out, LoaderMode::Train).unwrap_err();
+    assert!(
+        e.contains("crops.json")
+            && e.contains("format 1")
+            && e.contains("rerun `arkit-tool crops`"),
+        "{e}"
+    );
 }

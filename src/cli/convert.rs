@@ -238,6 +238,14 @@ fn convert_with(
 
 /// Join the parts of a `convert --shard I/N` run into dataset.json.
 ///
+/// Reads exactly the part manifests the conversion names,
+/// manifest/part-IIII-of-NNNN.json for I in 0..N, each checked against conversion.json
+/// (the conversion's fingerprint) and against its name. Other files in manifest/ (a
+/// copy such as `part-0000-of-0002 (copy).json`) are not read: they are listed on
+/// stderr and left alone. Fails, naming the file, when a part is missing, renamed or
+/// of another conversion, when parts of two different N are there, when a shard is in
+/// two parts or in none, or when a sample key is in two shards.
+///
 /// Example: arkit-tool merge --dataset data/parquet
 #[derive(Args, Debug)]
 pub struct MergeArgs {
@@ -247,7 +255,14 @@ pub struct MergeArgs {
 }
 
 pub fn run_merge(a: MergeArgs) -> Result<ExitCode> {
-    let m = convert::merge(&a.dataset)?;
+    let merged = convert::merge(&a.dataset)?;
+    for path in &merged.ignored {
+        eprintln!(
+            "ignored {}: not a part manifest's name (part-IIII-of-NNNN.json), not read",
+            path.display()
+        );
+    }
+    let m = &merged.manifest;
     println!(
         "merged {} shards: {} samples converted, {} skipped -> {}",
         m.shards.len(),

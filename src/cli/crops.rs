@@ -24,7 +24,14 @@ use std::process::ExitCode;
 /// A sample whose image or annotation cannot be read is stored without pixels and
 /// listed with the reason in crops.json (the loader raises that reason for it); the
 /// run goes on, and exits 1. The store is tied to the dataset: after `convert` runs
-/// again the loader refuses it until `crops` runs again.
+/// again the loader refuses it until `crops` runs again. Every part file and record
+/// carries the dataset's fingerprint, its shard and its sample's key, checked on every
+/// read in both modes: parts of another store or swapped by hand are refused by name,
+/// never served as other samples.
+///
+/// One `crops` per store folder: the run holds its lock (.crops.lock), so a second
+/// run into the same folder is refused at once; the temporaries of killed runs are
+/// removed when it starts.
 ///
 /// Example: arkit-tool crops --dataset data/pq --resources ../arkitface-resources
 ///          (writes data/pq/crops/exact-192/, which ARKitFaceDataset finds by itself)

@@ -895,35 +895,128 @@ fn write_manifest(path: &Path, m: &Manifest) -> Result<()> {
     crate::atomic_file::write_bytes(path, format!("{text}\n").as_bytes())
 }
 
-/// Joins the parts of a `--shard I/N` conversion into `dataset.json`. Errors if a part
-/// is missing or the parts disagree.
-pub fn merge(dataset: &Path) -> Result<Manifest> {
+/// What [`merge`] did.
+#[derive(Clone, Debug)]
+pub struct Merged {
+    /// The dataset's manifest, as written to `dataset.json`.
+    pub manifest: Manifest,
+    /// Files in `manifest/` that are not named like a part (`part-IIII-of-NNNN.json`;
+    /// a copy such as `part-0000-of-0002 (copy).json`): not read, left where they are.
+    pub ignored: Vec<PathBuf>,
+}
+
+/// `(I, N)` of a part manifest's file name `part-IIII-of-NNNN.json`, exactly as
+/// [`manifest_name`] writes it (so `part-0-of-2.json` or a copy's name is not one).
+fn part_of_name(name: &str) -> Option<(usize, usize)> {
+    let (i, n) = name
+        .strip_prefix("part-")?
+        .strip_suffix(".json")?
+        .split_once("-of-")?;
+    let digits = |s: &str| s.len() >= 4 && s.bytes().all(|b| b.is_ascii_digit());
+    if !digits(i) || !digits(n) {
+        return None;
+    }
+    let (i, n) = (i.parse().ok()?, n.parse().ok()?);
+    (i < n && n > 1 && manifest_name(i, n) == format!("manifest/{name}")).then_some((i, n))
+}
+
+/// Joins the parts of a `--shard I/N` conversion into `dataset.json`.
+///
+/// Only the parts the conversion names are read: `manifest/part-IIII-of-NNNN.json` for
+/// `I` in `0..N`, each of which must say it is part `I` of `N` and carry the
+/// fingerprint of the conversion that `conversion.json` records. Any other file in
+/// `manifest/` (a copy made by hand, say) is ignored and listed in [`Merged::ignored`];
+/// parts of two different `N` are refused. Errors, naming the file: a part missing, a
+/// part of another conversion or renamed, parts that disagree, a shard in two parts or
+/// in none (every shard of the conversion's rows must be there once), a samples file
+/// that is not the one its part records, and a sample key found twice (the error names
+/// both shards).
+pub fn merge(dataset: &Path) -> Result<Merged> {
+    let record = dataset.join(CONVERSION_FILE);
+    let conversion: ConversionFingerprint = match std::fs::read_to_string(&record) {
+        Ok(text) => serde_json::from_str(&text)
+            .map_err(|e| Error::format(&record, format!("not a conversion record: {e}")))?,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
+            return Err(Error::format(
+                dataset,
+                format!(
+                    "no {CONVERSION_FILE}: not a folder that `arkit-tool convert --shard I/N` wrote"
+                ),
+            ));
+        }
+        Err(e) => return Err(Error::io(&record, e)),
+    };
+    let digest = conversion.digest();
     let dir = dataset.join("manifest");
-    let mut parts: Vec<Manifest> = Vec::new();
-    let entries = std::fs::read_dir(&dir).map_err(|e| Error::io(&dir, e))?;
-    let mut paths: Vec<PathBuf> = entries
-        .filter_map(|e| e.ok().map(|e| e.path()))
-        .filter(|p| p.extension().is_some_and(|x| x == "json"))
-        .collect();
-    paths.sort();
-    for p in &paths {
-        parts.push(read_manifest(p)?);
+    let mut named: Vec<(usize, usize)> = Vec::new();
+    let mut ignored = Vec::new();
+    for entry in std::fs::read_dir(&dir).map_err(|e| Error::io(&dir, e))? {
+        let entry = entry.map_err(|e| Error::io(&dir, e))?;
+        let name = entry.file_name().to_string_lossy().into_owned();
+        if crate::atomic_file::is_temporary_name(&name) {
+            continue;
+        }
+        match part_of_name(&name) {
+            Some(part) => named.push(part),
+            None => ignored.push(entry.path()),
+        }
     }
-    let first = parts
-        .first()
-        .ok_or_else(|| Error::format(&dir, "no manifest parts to merge"))?
-        .clone();
-    let n = first.part[1];
-    let have: BTreeSet<usize> = parts.iter().map(|p| p.part[0]).collect();
-    if let Some(missing) = (0..n).find(|i| !have.contains(i)) {
-        return Err(Error::format(
-            &dir,
-            format!("part {missing} of {n} is missing: run `convert --shard {missing}/{n}`"),
-        ));
+    ignored.sort();
+    let counts: BTreeSet<usize> = named.iter().map(|p| p.1).collect();
+    let n = match counts.len() {
+        0 => {
+            return Err(Error::format(
+                &dir,
+                "no part manifests (part-IIII-of-NNNN.json) to merge: run `convert --shard I/N` first",
+            ));
+        }
+        1 => *counts.first().expect("one"),
+        _ => {
+            return Err(Error::format(
+                &dir,
+                format!(
+                    "holds the parts of conversions split {} ways: remove the part manifests of the split you do not want, or convert into a new folder",
+                    counts
+                        .iter()
+                        .map(|c| c.to_string())
+                        .collect::<Vec<_>>()
+                        .join(" and ")
+                ),
+            ));
+        }
+    };
+    let mut parts: Vec<(Manifest, PathBuf)> = Vec::new();
+    for i in 0..n {
+        let path = dataset.join(manifest_name(i, n));
+        if !path.exists() {
+            return Err(Error::format(
+                &dir,
+                format!("part {i} of {n} is missing: run `convert --shard {i}/{n}`"),
+            ));
+        }
+        let p = read_manifest(&path)?;
+        if p.part != [i, n] {
+            return Err(Error::format(
+                &path,
+                format!(
+                    "says it is part {} of {}, but its name is part {i} of {n}: renamed or copied by hand; run `convert --shard {i}/{n}` again",
+                    p.part[0], p.part[1]
+                ),
+            ));
+        }
+        if p.fingerprint != digest {
+            return Err(Error::format(
+                &path,
+                format!(
+                    "this part comes from another conversion than the one {CONVERSION_FILE} records (other input, lists or options): run `convert --shard {i}/{n}` again"
+                ),
+            ));
+        }
+        parts.push((p, path));
     }
-    for (p, path) in parts.iter().zip(&paths) {
+    let (first, first_path) = parts[0].clone();
+    for (p, path) in &parts {
         let differs = [
-            ("shard count", p.part[1] != n),
             ("listed rows", p.listed != first.listed),
             ("shard size", p.rows_per_shard != first.rows_per_shard),
             (
@@ -935,30 +1028,102 @@ pub fn merge(dataset: &Path) -> Result<Manifest> {
                 p.topology != first.topology || p.topology_sha256 != first.topology_sha256,
             ),
             ("embedded images", p.embed_images != first.embed_images),
-            ("conversion fingerprint", p.fingerprint != first.fingerprint),
         ];
         if let Some((what, _)) = differs.iter().find(|(_, d)| *d) {
             return Err(Error::format(
                 path,
                 format!(
                     "this part comes from a different conversion than {} ({what} differs): rerun every part with the same input and options",
-                    paths[0].display()
+                    first_path.display()
                 ),
             ));
         }
     }
-    let mut shards: Vec<ShardEntry> = parts.iter().flat_map(|p| p.shards.clone()).collect();
+    // Every shard of the conversion's rows once, in the part that owns it.
+    let expected = first.listed.div_ceil(first.rows_per_shard.max(1));
+    let mut owner: Vec<Option<usize>> = vec![None; expected];
+    let mut shards: Vec<ShardEntry> = Vec::new();
+    for (i, (p, path)) in parts.iter().enumerate() {
+        for s in &p.shards {
+            if s.index >= expected || s.index % n != i {
+                return Err(Error::format(
+                    path,
+                    format!(
+                        "lists shard {}, which is not one of part {i} of {n} (shards k < {expected} with k % {n} == {i}): run `convert --shard {i}/{n}` again",
+                        s.index
+                    ),
+                ));
+            }
+            if owner[s.index].replace(i).is_some() {
+                return Err(Error::format(
+                    path,
+                    format!(
+                        "lists shard {} twice: run `convert --shard {i}/{n}` again",
+                        s.index
+                    ),
+                ));
+            }
+            shards.push(s.clone());
+        }
+    }
+    if let Some(k) = owner.iter().position(|o| o.is_none()) {
+        return Err(Error::format(
+            &parts[k % n].1,
+            format!(
+                "does not list shard {k} of the conversion's {expected}: run `convert --shard {}/{n}` again",
+                k % n
+            ),
+        ));
+    }
     shards.sort_by_key(|s| s.index);
+    check_unique_keys(dataset, &shards)?;
     let merged = Manifest {
         part: [0, 1],
-        converted: parts.iter().map(|p| p.converted).sum(),
-        skipped: parts.iter().map(|p| p.skipped).sum(),
-        listing_problems: parts.iter().map(|p| p.listing_problems).sum(),
+        converted: shards.iter().map(|s| s.rows).sum(),
+        skipped: shards.iter().map(|s| s.error_rows).sum(),
+        listing_problems: parts.iter().map(|(p, _)| p.listing_problems).sum(),
         shards,
         ..first
     };
     write_manifest(&dataset.join(MANIFEST_FILE), &merged)?;
-    Ok(merged)
+    Ok(Merged {
+        manifest: merged,
+        ignored,
+    })
+}
+
+/// Checks each shard's samples file against its entry (size, footer checksum, rows)
+/// and that no sample key is in two rows; reads the key columns only.
+fn check_unique_keys(dataset: &Path, shards: &[ShardEntry]) -> Result<()> {
+    let mut seen: std::collections::HashMap<String, usize> = std::collections::HashMap::new();
+    for s in shards {
+        let path = dataset.join(&s.samples_file);
+        check_shard_file(&path, s.bytes, &s.tail_sha256)?;
+        let keys = samples_table::read_sample_keys(&path)?;
+        if keys.len() != s.rows {
+            return Err(Error::format(
+                &path,
+                format!(
+                    "{} rows, its part manifest says {}: rerun `arkit-tool convert`",
+                    keys.len(),
+                    s.rows
+                ),
+            ));
+        }
+        for (key, _) in keys {
+            let name = key.to_string();
+            if let Some(other) = seen.insert(name, s.index) {
+                return Err(Error::format(
+                    &path,
+                    format!(
+                        "sample {key} is in shard {other} and again in shard {}: a dataset holds each sample once; convert again into a new folder",
+                        s.index
+                    ),
+                ));
+            }
+        }
+    }
+    Ok(())
 }
 
 /// Reads every `samples` shard of a converted dataset named by its `dataset.json`, each

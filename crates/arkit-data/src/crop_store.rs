@@ -18,26 +18,37 @@
 //!   correspondences are the same.
 //!
 //! Layout of a store folder (`DATA/crops/<compat>-<S>/` by default): `crops.json`
-//! ([`CropStoreManifest`]: the rules, `S`, the margin, the vertex count, the dataset's
-//! fingerprint, the files, the samples without pixels and why) and, per samples shard
-//! `K`, `part-K.bin`: a 64-byte header (magic `ARKCROP1`, format, the rules, `S`, `m`,
-//! `V`, record count, record size) and one record per row of `samples/part-K.parquet`,
-//! in order, all of one size: CRC-32 of the rest, status (1: pixels, 0: none), the row,
-//! the box (four float64), the mesh, the window (`(S + 2m)^2 x 3` bytes, RGB). Fixed
-//! records need no index: record `r` is at `64 + r * size`.
+//! ([`CropStoreManifest`]: the format, the rules, `S`, the margin, the vertex count, the
+//! key field's width, the dataset's fingerprint, the files, the samples without pixels
+//! and why) and, per samples shard `K`, `part-K.bin`: a [`HEADER_BYTES`]-byte header
+//! (magic `ARKCROP2`, format, the rules, `S`, `m`, `V`, record count, record size, the
+//! shard index `K`, the key field's width, the dataset's fingerprint) and one record per
+//! row of `samples/part-K.parquet`, in order, all of one size: CRC-32 of the rest,
+//! status (1: pixels, 0: none), the row, the shard index, the key's length, the
+//! dataset's fingerprint, the sample's key (`subject/action/img_id`, zero-padded), the
+//! box (four float64), the mesh, the window (`(S + 2m)^2 x 3` bytes, RGB). Fixed
+//! records need no index: record `r` is at `HEADER_BYTES + r * size`.
 //!
-//! Nothing read is trusted before it is checked: [`CropStore::open`] checks the
-//! manifest against the dataset (its fingerprint: a store of another or a re-converted
-//! dataset is refused, never served stale), the rules, `S` and `V` the loader asks for,
-//! and every file's header and length; [`CropStore::read`] checks each record's CRC,
-//! status and row. A record whose sample had no readable image when the store was made
-//! has status 0, and reading it is an error naming the sample and the recorded reason.
-//! Files are written under a temporary name and renamed; `crops.json` last.
+//! Nothing read is trusted before it is checked, and nothing is served from another
+//! place than the one asked for: [`CropStore::open`] checks the manifest against the
+//! dataset (its fingerprint, [`crate::render_dataset::dataset_fingerprint`]: the
+//! checksums of its samples shards, so a store of another or a re-converted dataset is
+//! refused, never served stale), the rules, `S` and `V` the loader asks for, and every
+//! file's length and header (a part of another store, of another dataset or of another
+//! shard, swapped or renamed, is refused by name); [`CropStore::read`] checks each
+//! record, in training and in evaluation alike: its CRC, then that it is the record of
+//! this dataset, this shard, this row and this sample's key (a comparison of a few
+//! dozen bytes, no hashing of the data), then its status. A record whose sample had no
+//! readable image when the store was made has status 0, and reading it is an error
+//! naming the sample and the recorded reason. A store of an earlier format is refused
+//! with "rerun `arkit-tool crops`". Files are written under a temporary name and
+//! renamed; `crops.json` last; `crops` holds the folder's lock while it writes.
 //!
 //! Tested in `tests/crop_store.rs`: every field of every item equal with and without the
 //! store in evaluation (both rule sets), the training items' geometry equal and their
-//! pixels close, a truncated file, a flipped byte, a stale dataset and a missing image
-//! each refused with the file named.
+//! pixels close, a truncated file, a flipped byte, a stale dataset, a missing image,
+//! part files swapped by hand, a record of another sample, parts of two datasets mixed
+//! and a store of the earlier format each refused with the file named, in both modes.
 
 use crate::crop::{CropSampling, CropTransform};
 use crate::error::{Error, Result};
@@ -48,15 +59,37 @@ use std::path::{Path, PathBuf};
 
 /// The manifest's file name in a store folder.
 pub const MANIFEST_FILE: &str = "crops.json";
-/// The store format written here.
-pub const FORMAT: u32 = 1;
+/// The store format written and read here (1: before the records carried their
+/// dataset, shard and key).
+pub const FORMAT: u32 = 2;
 /// Bytes of a `part-K.bin` header.
-pub const HEADER_BYTES: u64 = 64;
-const MAGIC: &[u8; 8] = b"ARKCROP1";
+pub const HEADER_BYTES: u64 = 128;
+const MAGIC: &[u8; 8] = b"ARKCROP2";
 /// Largest `crops.json` read (its list of samples without pixels is what can grow).
 const MAX_MANIFEST_BYTES: u64 = 256 << 20;
-/// Bytes of a record before the mesh: CRC, status, row, the box.
-const RECORD_PREFIX: usize = 4 + 4 + 8 + 4 * 8;
+/// Bytes of a dataset fingerprint (SHA-256, lower-case hex) in headers and records.
+pub const FINGERPRINT_BYTES: usize = 64;
+/// Widest key field a store has (a key longer than this is refused by `crops`).
+pub const MAX_KEY_BYTES: usize = 1024;
+/// Where a record's fields start: CRC, status, row, shard, key length, fingerprint, key.
+const AT_STATUS: usize = 4;
+const AT_ROW: usize = 8;
+const AT_SHARD: usize = 16;
+const AT_KEY_LEN: usize = 20;
+const AT_FINGERPRINT: usize = 24;
+const AT_KEY: usize = AT_FINGERPRINT + FINGERPRINT_BYTES;
+
+/// Bytes of a record before the mesh: CRC, status, row, shard, key length, fingerprint,
+/// the key field (`key_bytes` wide), the box.
+fn record_prefix(key_bytes: usize) -> usize {
+    AT_KEY + key_bytes + 4 * 8
+}
+
+/// The key field's width for a dataset whose longest key has `longest` bytes: a
+/// multiple of 8, at least 8.
+pub fn key_field_bytes(longest: usize) -> usize {
+    longest.max(1).div_ceil(8) * 8
+}
 
 /// Crop pixels kept beyond each edge of an `S`-pixel evaluation crop: the training
 /// jitter moves the box centre by up to 0.15 of the landmarks' box size (0.1 of the
@@ -73,10 +106,11 @@ pub fn window_side(size: u32) -> usize {
     (size + 2 * margin(size)) as usize
 }
 
-/// Bytes of one record for crop side `size` and `vertex_count` vertices.
-pub fn record_bytes(size: u32, vertex_count: usize) -> u64 {
+/// Bytes of one record for crop side `size`, `vertex_count` vertices and a key field of
+/// `key_bytes` ([`key_field_bytes`]).
+pub fn record_bytes(size: u32, vertex_count: usize, key_bytes: usize) -> u64 {
     let w = window_side(size) as u64;
-    RECORD_PREFIX as u64 + 12 * vertex_count as u64 + 3 * w * w
+    record_prefix(key_bytes) as u64 + 12 * vertex_count as u64 + 3 * w * w
 }
 
 /// `crops.json`: what a store holds and what it was made from.
@@ -92,6 +126,8 @@ pub struct CropStoreManifest {
     pub margin: u32,
     /// Vertices per mesh.
     pub vertex_count: usize,
+    /// Width of each record's key field ([`key_field_bytes`] of the longest key).
+    pub key_bytes: usize,
     /// [`crate::render_dataset::dataset_fingerprint`] of the dataset stored.
     pub dataset_fingerprint: String,
     /// [`record_bytes`].
@@ -195,9 +231,19 @@ fn compat_code(compat: &str) -> Result<u32> {
     })
 }
 
-/// The 64-byte header of a `part-K.bin` with `records` records.
-fn header(manifest: &CropStoreManifest, records: usize) -> Result<[u8; 64]> {
-    let mut h = [0u8; 64];
+/// The header of the `part-K.bin` of samples shard `index`, with `records` records.
+fn header(manifest: &CropStoreManifest, index: usize, records: usize) -> Result<[u8; 128]> {
+    let fingerprint = manifest.dataset_fingerprint.as_bytes();
+    if fingerprint.len() != FINGERPRINT_BYTES {
+        return Err(Error::invalid(
+            "crop store",
+            format!(
+                "dataset fingerprint '{}' is not {FINGERPRINT_BYTES} hex digits",
+                manifest.dataset_fingerprint
+            ),
+        ));
+    }
+    let mut h = [0u8; HEADER_BYTES as usize];
     h[..8].copy_from_slice(MAGIC);
     let fields = [
         manifest.format,
@@ -211,24 +257,77 @@ fn header(manifest: &CropStoreManifest, records: usize) -> Result<[u8; 64]> {
     }
     h[28..36].copy_from_slice(&(records as u64).to_le_bytes());
     h[36..44].copy_from_slice(&manifest.record_bytes.to_le_bytes());
+    h[44..48].copy_from_slice(&(index as u32).to_le_bytes());
+    h[48..52].copy_from_slice(&(manifest.key_bytes as u32).to_le_bytes());
+    h[52..52 + FINGERPRINT_BYTES].copy_from_slice(fingerprint);
     Ok(h)
 }
 
-/// One record's bytes: a stored crop, or `None` for a sample without pixels (status 0).
+/// Why the header `found` of `path` is not `want` (the header [`header`] gives for it),
+/// most telling difference first.
+fn header_mismatch(path: &Path, found: &[u8], want: &[u8], manifest: &CropStoreManifest) -> Error {
+    let u32_at = |h: &[u8], i: usize| u32::from_le_bytes(h[i..i + 4].try_into().expect("4 bytes"));
+    let fp_end = 52 + FINGERPRINT_BYTES;
+    let why = if &found[..8] == b"ARKCROP1" {
+        "a part of a store of format 1, which this version no longer reads: rerun `arkit-tool crops`"
+            .to_string()
+    } else if found[..8] != want[..8] {
+        "not a crop store part (its first bytes are not ARKCROP2)".to_string()
+    } else if found[52..fp_end] != want[52..fp_end] {
+        format!(
+            "made from another dataset than {MANIFEST_FILE} says (its fingerprint {}, {MANIFEST_FILE}'s {}): parts of two stores were mixed in this folder; rerun `arkit-tool crops`",
+            String::from_utf8_lossy(&found[52..fp_end]),
+            manifest.dataset_fingerprint
+        )
+    } else if found[44..48] != want[44..48] {
+        format!(
+            "holds the records of samples shard {}, but {MANIFEST_FILE} names it for shard {}: part files were swapped or renamed; rerun `arkit-tool crops`",
+            u32_at(found, 44),
+            u32_at(want, 44)
+        )
+    } else {
+        format!(
+            "its header does not match {MANIFEST_FILE} (format, rules, size, margin, vertices, records, key width): the file is not this store's; rerun `arkit-tool crops`"
+        )
+    };
+    Error::format(path, why)
+}
+
+/// One record's bytes: row `row` of samples shard `shard`, sample `key`; a stored crop,
+/// or `None` for a sample without pixels (status 0). A key wider than the manifest's
+/// key field is an error.
 pub fn encode_record(
     manifest: &CropStoreManifest,
+    shard: usize,
     row: usize,
+    key: &str,
     crop: Option<&StoredCrop>,
-) -> Vec<u8> {
+) -> Result<Vec<u8>> {
+    let fingerprint = manifest.dataset_fingerprint.as_bytes();
+    if key.len() > manifest.key_bytes || fingerprint.len() != FINGERPRINT_BYTES {
+        return Err(Error::invalid(
+            "crop store",
+            format!(
+                "{key}: a key of {} bytes does not fit the store's {}-byte key field (or the fingerprint is not {FINGERPRINT_BYTES} hex digits)",
+                key.len(),
+                manifest.key_bytes
+            ),
+        ));
+    }
     let mut r = vec![0u8; manifest.record_bytes as usize];
-    r[8..16].copy_from_slice(&(row as u64).to_le_bytes());
+    r[AT_ROW..AT_ROW + 8].copy_from_slice(&(row as u64).to_le_bytes());
+    r[AT_SHARD..AT_SHARD + 4].copy_from_slice(&(shard as u32).to_le_bytes());
+    r[AT_KEY_LEN..AT_KEY_LEN + 4].copy_from_slice(&(key.len() as u32).to_le_bytes());
+    r[AT_FINGERPRINT..AT_KEY].copy_from_slice(fingerprint);
+    r[AT_KEY..AT_KEY + key.len()].copy_from_slice(key.as_bytes());
     if let Some(c) = crop {
-        r[4..8].copy_from_slice(&1u32.to_le_bytes());
+        r[AT_STATUS..AT_STATUS + 4].copy_from_slice(&1u32.to_le_bytes());
         let b = &c.eval_crop;
+        let at_box = AT_KEY + manifest.key_bytes;
         for (i, v) in [b.x0, b.y0, b.side, b.side_y].iter().enumerate() {
-            r[16 + 8 * i..24 + 8 * i].copy_from_slice(&v.to_le_bytes());
+            r[at_box + 8 * i..at_box + 8 * (i + 1)].copy_from_slice(&v.to_le_bytes());
         }
-        let mut at = RECORD_PREFIX;
+        let mut at = record_prefix(manifest.key_bytes);
         for p in &c.verts {
             for v in [p.x, p.y, p.z] {
                 r[at..at + 4].copy_from_slice(&v.to_le_bytes());
@@ -239,7 +338,7 @@ pub fn encode_record(
     }
     let crc = crc32fast::hash(&r[4..]);
     r[..4].copy_from_slice(&crc.to_le_bytes());
-    r
+    Ok(r)
 }
 
 /// Writes `dir/part-K.bin` (atomically) from its records, in row order.
@@ -247,17 +346,17 @@ pub fn write_shard_file(
     dir: &Path,
     manifest: &CropStoreManifest,
     index: usize,
-    records: &mut dyn Iterator<Item = Vec<u8>>,
+    records: &mut dyn Iterator<Item = Result<Vec<u8>>>,
     count: usize,
 ) -> Result<CropShard> {
-    let file = format!("part-{index}.bin");
+    let file = shard_file_name(index);
     let path = dir.join(&file);
-    let head = header(manifest, count)?;
+    let head = header(manifest, index, count)?;
     crate::atomic_file::write_atomically(&path, |w| {
         w.write_all(&head).map_err(|e| Error::io(&path, e))?;
         let mut written = 0;
         for r in records {
-            w.write_all(&r).map_err(|e| Error::io(&path, e))?;
+            w.write_all(&r?).map_err(|e| Error::io(&path, e))?;
             written += 1;
         }
         if written != count {
@@ -275,13 +374,19 @@ pub fn write_shard_file(
     })
 }
 
+/// The file name of samples shard `index`'s records: `part-K.bin`.
+pub fn shard_file_name(index: usize) -> String {
+    format!("part-{index}.bin")
+}
+
 /// Writes `crops.json` (atomically; last, after every shard file).
 pub fn write_manifest(dir: &Path, manifest: &CropStoreManifest) -> Result<()> {
     let text = serde_json::to_string_pretty(manifest).expect("manifest serialises");
     crate::atomic_file::write_bytes(&dir.join(MANIFEST_FILE), text.as_bytes())
 }
 
-/// Reads and parses `dir/crops.json`.
+/// Reads and parses `dir/crops.json`; a store of another format is refused first, with
+/// what to do.
 pub fn read_manifest(dir: &Path) -> Result<CropStoreManifest> {
     let path = dir.join(MANIFEST_FILE);
     let meta = std::fs::metadata(&path).map_err(|e| {
@@ -297,7 +402,26 @@ pub fn read_manifest(dir: &Path) -> Result<CropStoreManifest> {
         ));
     }
     let text = std::fs::read_to_string(&path).map_err(|e| Error::io(&path, e))?;
-    serde_json::from_str(&text)
+    let value: serde_json::Value = serde_json::from_str(&text)
+        .map_err(|e| Error::format(&path, format!("not a crop store manifest: {e}")))?;
+    match value.get("format").and_then(|f| f.as_u64()) {
+        Some(f) if f == FORMAT as u64 => {}
+        Some(f) => {
+            return Err(Error::format(
+                &path,
+                format!(
+                    "a crop store of format {f}; this version reads format {FORMAT} (whose records carry their dataset, shard and key): rerun `arkit-tool crops`"
+                ),
+            ));
+        }
+        None => {
+            return Err(Error::format(
+                &path,
+                "not a crop store manifest: no format number",
+            ));
+        }
+    }
+    serde_json::from_value(value)
         .map_err(|e| Error::format(&path, format!("not a crop store manifest: {e}")))
 }
 
@@ -335,7 +459,6 @@ impl CropStore {
                 ))
             }
         };
-        expect("format", manifest.format.to_string(), FORMAT.to_string())?;
         expect("compat", manifest.compat.clone(), compat.to_string())?;
         expect(
             "img_size",
@@ -352,10 +475,22 @@ impl CropStore {
             manifest.vertex_count.to_string(),
             vertex_count.to_string(),
         )?;
+        if manifest.key_bytes == 0
+            || manifest.key_bytes > MAX_KEY_BYTES
+            || !manifest.key_bytes.is_multiple_of(8)
+        {
+            return Err(Error::format(
+                &mpath,
+                format!(
+                    "key_bytes is {}, not a multiple of 8 in 8..={MAX_KEY_BYTES}",
+                    manifest.key_bytes
+                ),
+            ));
+        }
         expect(
             "record_bytes",
             manifest.record_bytes.to_string(),
-            record_bytes(img_size, vertex_count).to_string(),
+            record_bytes(img_size, vertex_count, manifest.key_bytes).to_string(),
         )?;
         let fingerprint = crate::render_dataset::dataset_fingerprint(dataset.manifest());
         if manifest.dataset_fingerprint != fingerprint {
@@ -380,7 +515,7 @@ impl CropStore {
                 .ok_or_else(|| {
                     Error::format(&mpath, format!("no file for samples shard {}", s.index))
                 })?;
-            if entry.records != s.rows || entry.file != format!("part-{}.bin", s.index) {
+            if entry.records != s.rows || entry.file != shard_file_name(s.index) {
                 return Err(Error::format(
                     &mpath,
                     format!(
@@ -392,6 +527,16 @@ impl CropStore {
             let path = dir.join(&entry.file);
             let file = File::open(&path).map_err(|e| Error::io(&path, e))?;
             let len = file.metadata().map_err(|e| Error::io(&path, e))?.len();
+            let mut head = [0u8; HEADER_BYTES as usize];
+            if len >= HEADER_BYTES {
+                read_exact_at(&file, &mut head, 0).map_err(|e| Error::io(&path, e))?;
+            }
+            let want_head = header(&manifest, s.index, entry.records)?;
+            // The header first: a file of another store, dataset or shard is named as
+            // such, whatever its length.
+            if len >= HEADER_BYTES && head != want_head {
+                return Err(header_mismatch(&path, &head, &want_head, &manifest));
+            }
             let want = HEADER_BYTES + entry.records as u64 * manifest.record_bytes;
             if len != want {
                 return Err(Error::format(
@@ -400,14 +545,6 @@ impl CropStore {
                         "{len} bytes, expected {want} (a header and {} records): the file is truncated or not this store's",
                         entry.records
                     ),
-                ));
-            }
-            let mut head = [0u8; 64];
-            read_exact_at(&file, &mut head, 0).map_err(|e| Error::io(&path, e))?;
-            if head != header(&manifest, entry.records)? {
-                return Err(Error::format(
-                    &path,
-                    "its header does not match crops.json (magic, format, rules, size, margin, vertices, records)",
                 ));
             }
             files[s.index] = Some((file, path));
@@ -429,8 +566,10 @@ impl CropStore {
         &self.manifest
     }
 
-    /// The record of row `row` of samples shard `shard`.
-    pub fn read(&self, shard: usize, row: usize) -> Result<StoredCrop> {
+    /// The record of row `row` of samples shard `shard`, which must be that of sample
+    /// `key` (`subject/action/img_id`) of this store's dataset: checked, with the
+    /// record's CRC, before anything of it is returned.
+    pub fn read(&self, shard: usize, row: usize, key: &str) -> Result<StoredCrop> {
         let (file, path) = self
             .files
             .get(shard)
@@ -439,7 +578,8 @@ impl CropStore {
         let m = &self.manifest;
         // The head (CRC to mesh) and the window read into their own buffers, so the
         // window is returned as read, not moved out of the record.
-        let verts_end = RECORD_PREFIX + 12 * m.vertex_count;
+        let prefix = record_prefix(m.key_bytes);
+        let verts_end = prefix + 12 * m.vertex_count;
         let at = HEADER_BYTES + row as u64 * m.record_bytes;
         let mut r = vec![0u8; verts_end];
         let mut window = vec![0u8; m.record_bytes as usize - verts_end];
@@ -457,14 +597,34 @@ impl CropStore {
                 ),
             ));
         }
-        let stored_row = u64::from_le_bytes(r[8..16].try_into().expect("8 bytes"));
-        if stored_row != row as u64 {
+        // Whose record it is: this dataset's, this shard's, this row's, this sample's.
+        let stored_row = u64::from_le_bytes(r[AT_ROW..AT_ROW + 8].try_into().expect("8 bytes"));
+        let stored_shard = u32_at(AT_SHARD) as u64;
+        let key_len = (u32_at(AT_KEY_LEN) as usize).min(m.key_bytes);
+        let stored_key = &r[AT_KEY..AT_KEY + key_len];
+        let stored_fingerprint = &r[AT_FINGERPRINT..AT_KEY];
+        if stored_row != row as u64
+            || stored_shard != shard as u64
+            || stored_key != key.as_bytes()
+            || stored_fingerprint != m.dataset_fingerprint.as_bytes()
+        {
+            let other_dataset = if stored_fingerprint != m.dataset_fingerprint.as_bytes() {
+                format!(
+                    " of another dataset (fingerprint {})",
+                    String::from_utf8_lossy(stored_fingerprint)
+                )
+            } else {
+                String::new()
+            };
             return Err(Error::format(
                 path,
-                format!("record {row} says it is row {stored_row}"),
+                format!(
+                    "record {row} of shard {shard} should be sample {key}, but it holds sample {} (row {stored_row} of shard {stored_shard}{other_dataset}): the store's files were mixed, swapped or edited; run `arkit-tool crops` again",
+                    String::from_utf8_lossy(stored_key)
+                ),
             ));
         }
-        if u32_at(4) != 1 {
+        if u32_at(AT_STATUS) != 1 {
             let why = m
                 .missing
                 .iter()
@@ -478,16 +638,17 @@ impl CropStore {
                 ),
             ));
         }
+        let at_box = AT_KEY + m.key_bytes;
         let f64_at = |i: usize| f64::from_le_bytes(r[i..i + 8].try_into().expect("8 bytes"));
         let eval_crop = CropTransform {
-            x0: f64_at(16),
-            y0: f64_at(24),
-            side: f64_at(32),
-            side_y: f64_at(40),
+            x0: f64_at(at_box),
+            y0: f64_at(at_box + 8),
+            side: f64_at(at_box + 16),
+            side_y: f64_at(at_box + 24),
             size: m.img_size,
             sampling: sampling_of(&m.compat)?,
         };
-        let verts = r[RECORD_PREFIX..verts_end]
+        let verts = r[prefix..verts_end]
             .chunks_exact(12)
             .map(|c| {
                 let f = |k: usize| f32::from_le_bytes(c[k..k + 4].try_into().expect("4 bytes"));
@@ -546,16 +707,18 @@ mod tests {
         assert_eq!(window_side(192), 192 + 2 * 26);
     }
 
-    #[test]
-    fn a_record_round_trips_and_its_crc_catches_a_flipped_byte() {
+    /// A one-shard store of six records (row 5 with pixels, the others without) of
+    /// samples `s/a/<row>`, and the crop of row 5.
+    fn six_records(dir: &Path) -> (CropStore, StoredCrop, PathBuf) {
         let m = CropStoreManifest {
             format: FORMAT,
             compat: "official".into(),
             img_size: 16,
             margin: margin(16),
             vertex_count: 2,
-            dataset_fingerprint: String::new(),
-            record_bytes: record_bytes(16, 2),
+            key_bytes: key_field_bytes(5),
+            dataset_fingerprint: "ab".repeat(32),
+            record_bytes: record_bytes(16, 2, key_field_bytes(5)),
             shards: Vec::new(),
             missing: Vec::new(),
         };
@@ -577,39 +740,106 @@ mod tests {
             )
             .unwrap(),
         };
-        let bytes = encode_record(&m, 5, Some(&crop));
+        let bytes = encode_record(&m, 0, 5, "s/a/5", Some(&crop)).unwrap();
         assert_eq!(bytes.len() as u64, m.record_bytes);
         assert_eq!(crc32fast::hash(&bytes[4..]).to_le_bytes(), bytes[..4]);
-        // Decode through a one-shard store file.
-        let dir = tempfile::tempdir().unwrap();
         let mut records = (0..6).map(|r| {
             if r == 5 {
-                bytes.clone()
+                Ok(bytes.clone())
             } else {
-                encode_record(&m, r, None)
+                encode_record(&m, 0, r, &format!("s/a/{r}"), None)
             }
         });
-        write_shard_file(dir.path(), &m, 0, &mut records, 6).unwrap();
-        let path = dir.path().join("part-0.bin");
+        write_shard_file(dir, &m, 0, &mut records, 6).unwrap();
+        let path = dir.join("part-0.bin");
         let file = File::open(&path).unwrap();
         let store = CropStore {
-            dir: dir.path().to_path_buf(),
-            manifest: m.clone(),
+            dir: dir.to_path_buf(),
+            manifest: m,
             files: vec![Some((file, path.clone()))],
         };
-        assert_eq!(store.read(0, 5).unwrap(), crop);
-        let e = store.read(0, 2).unwrap_err().to_string();
+        (store, crop, path)
+    }
+
+    fn reopen(store: CropStore, path: &Path) -> CropStore {
+        CropStore {
+            files: vec![Some((File::open(path).unwrap(), path.to_path_buf()))],
+            ..store
+        }
+    }
+
+    #[test]
+    fn a_record_round_trips_and_its_crc_catches_a_flipped_byte() {
+        let dir = tempfile::tempdir().unwrap();
+        let (store, crop, path) = six_records(dir.path());
+        assert_eq!(store.read(0, 5, "s/a/5").unwrap(), crop);
+        let e = store.read(0, 2, "s/a/2").unwrap_err().to_string();
         assert!(e.contains("part-0.bin") && e.contains("no pixels"), "{e}");
         // One byte of the window flipped: refused, naming the file.
         let mut all = std::fs::read(&path).unwrap();
-        let at = (HEADER_BYTES + 5 * m.record_bytes) as usize + 100;
+        let at = (HEADER_BYTES + 5 * store.manifest.record_bytes) as usize + 100;
         all[at] ^= 1;
         std::fs::write(&path, &all).unwrap();
-        let store = CropStore {
-            files: vec![Some((File::open(&path).unwrap(), path.clone()))],
-            ..store
-        };
-        let e = store.read(0, 5).unwrap_err().to_string();
+        let store = reopen(store, &path);
+        let e = store.read(0, 5, "s/a/5").unwrap_err().to_string();
         assert!(e.contains("part-0.bin") && e.contains("CRC"), "{e}");
+    }
+
+    #[test]
+    fn a_record_of_another_sample_row_shard_or_dataset_is_refused() {
+        let dir = tempfile::tempdir().unwrap();
+        let (store, crop, path) = six_records(dir.path());
+        let size = store.manifest.record_bytes as usize;
+        // Asked as another sample: the key differs.
+        let e = store.read(0, 5, "s/a/6").unwrap_err().to_string();
+        assert!(
+            e.contains("part-0.bin")
+                && e.contains("should be sample s/a/6, but it holds sample s/a/5"),
+            "{e}"
+        );
+        // Record 5 copied over record 3 (each CRC intact): row 3 is refused, with
+        // what it holds; the other records are still served.
+        let mut all = std::fs::read(&path).unwrap();
+        let (r3, r5) = (
+            HEADER_BYTES as usize + 3 * size,
+            HEADER_BYTES as usize + 5 * size,
+        );
+        all.copy_within(r5..r5 + size, r3);
+        std::fs::write(&path, &all).unwrap();
+        let store = reopen(store, &path);
+        let e = store.read(0, 3, "s/a/3").unwrap_err().to_string();
+        assert!(e.contains("holds sample s/a/5 (row 5 of shard 0)"), "{e}");
+        assert_eq!(store.read(0, 5, "s/a/5").unwrap(), crop);
+        // Another shard's or another dataset's record of the same row and key.
+        for (shard, fingerprint, says) in [
+            (1, "ab".repeat(32), "row 5 of shard 1)"),
+            (
+                0,
+                "cd".repeat(32),
+                &*format!("of another dataset (fingerprint {})", "cd".repeat(32)),
+            ),
+        ] {
+            let other = CropStoreManifest {
+                dataset_fingerprint: fingerprint,
+                ..store.manifest.clone()
+            };
+            let bytes = encode_record(&other, shard, 5, "s/a/5", Some(&crop)).unwrap();
+            let mut all = std::fs::read(&path).unwrap();
+            all[r5..r5 + size].copy_from_slice(&bytes);
+            std::fs::write(&path, &all).unwrap();
+            let store = reopen(
+                CropStore {
+                    manifest: store.manifest.clone(),
+                    dir: store.dir.clone(),
+                    files: Vec::new(),
+                },
+                &path,
+            );
+            let e = store.read(0, 5, "s/a/5").unwrap_err().to_string();
+            assert!(e.contains("part-0.bin") && e.contains(says), "{e}");
+        }
+        // A key longer than the key field is refused when written, never cut.
+        let e = encode_record(&store.manifest, 0, 0, "s/a/123456", None).unwrap_err();
+        assert!(e.to_string().contains("does not fit"), "{e}");
     }
 }

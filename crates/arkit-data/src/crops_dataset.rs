@@ -12,6 +12,14 @@
 //! the first file is written and written after the last, so a store is complete
 //! whenever it has one.
 //!
+//! One writer per store: the run holds the folder's lock (`.crops.lock`, the
+//! [`crate::atomic_file::FolderLock`] that `convert`, `render` and `augment` take)
+//! from before it touches anything until it has written `crops.json`, so a second
+//! `crops` into the same folder (another dataset's, or the same) is refused at once
+//! instead of mixing its parts with the first's. Under the lock it removes what killed
+//! runs left ([`crate::atomic_file::remove_stale_temporaries`]: a `.part-K.bin.tmp-PID`
+//! per killed run), and after `crops.json` the `part-K.bin` files it no longer names.
+//!
 //! Tested in `tests/crop_store.rs`.
 
 use crate::crop_store::{
@@ -68,7 +76,27 @@ pub fn write_crop_store(
     let (compat, s) = (options.compat, options.img_size);
     let vertex_count = loader.mesh_vertex_count();
     let dataset = loader.dataset();
-    std::fs::create_dir_all(output).map_err(|e| Error::io(output, e))?;
+    // Every sample's key fits the records' key field (checked before anything is
+    // written).
+    let mut longest = 0;
+    for i in 0..loader.len() {
+        let (key, _) = loader.key(i).expect("in range");
+        let len = key.to_string().len();
+        if len > crop_store::MAX_KEY_BYTES {
+            return Err(Error::invalid(
+                "crop store",
+                format!(
+                    "{key}: a key of {len} bytes; a store's records hold keys of up to {} bytes",
+                    crop_store::MAX_KEY_BYTES
+                ),
+            ));
+        }
+        longest = longest.max(len);
+    }
+    let key_bytes = crop_store::key_field_bytes(longest);
+    // One writer per store, from here until crops.json is written.
+    let _lock = crate::atomic_file::FolderLock::acquire(output, "crops", "crops")?;
+    crate::atomic_file::remove_stale_temporaries(output, false)?;
     let manifest_path = output.join(crop_store::MANIFEST_FILE);
     if manifest_path.exists() {
         std::fs::remove_file(&manifest_path).map_err(|e| Error::io(&manifest_path, e))?;
@@ -79,8 +107,9 @@ pub fn write_crop_store(
         img_size: s,
         margin: margin(s),
         vertex_count,
+        key_bytes,
         dataset_fingerprint: crate::render_dataset::dataset_fingerprint(dataset.manifest()),
-        record_bytes: record_bytes(s, vertex_count),
+        record_bytes: record_bytes(s, vertex_count, key_bytes),
         shards: Vec::new(),
         missing: Vec::new(),
     };
@@ -101,24 +130,25 @@ pub fn write_crop_store(
             }
         }
         let mut records = indices.chunks(CHUNK).flat_map(|chunk| {
-            let done: Vec<Vec<u8>> = chunk
+            let done: Vec<Result<Vec<u8>>> = chunk
                 .par_iter()
                 .map(|&i| {
                     let (_, row) = loader.location(i).expect("checked above");
+                    let (key, _) = loader.key(i).expect("in range");
+                    let name = key.to_string();
                     match loader.stored_crop(i) {
-                        Ok(c) => encode_record(&manifest, row, Some(&c)),
+                        Ok(c) => encode_record(&manifest, shard.index, row, &name, Some(&c)),
                         Err(e) => {
-                            let (key, _) = loader.key(i).expect("in range");
                             missing
                                 .lock()
                                 .unwrap_or_else(|p| p.into_inner())
                                 .push(MissingCrop {
                                     shard: shard.index,
                                     row,
-                                    key: key.to_string(),
+                                    key: name.clone(),
                                     reason: e.to_string(),
                                 });
-                            encode_record(&manifest, row, None)
+                            encode_record(&manifest, shard.index, row, &name, None)
                         }
                     }
                 })
@@ -134,6 +164,7 @@ pub fn write_crop_store(
     missing.sort_by_key(|m| (m.shard, m.row));
     manifest.missing = missing;
     crop_store::write_manifest(output, &manifest)?;
+    remove_unnamed_parts(output, &manifest)?;
     let bytes: u64 = manifest
         .shards
         .iter()
@@ -155,4 +186,25 @@ pub fn write_crop_store(
         bytes,
         bytes_per_sample: manifest.record_bytes,
     })
+}
+
+/// Removes the `part-K.bin` files of `dir` that `manifest` does not name (left by an
+/// earlier store of a dataset with more shards): never read, but they take space.
+fn remove_unnamed_parts(dir: &Path, manifest: &CropStoreManifest) -> Result<()> {
+    let named: std::collections::HashSet<&str> =
+        manifest.shards.iter().map(|s| s.file.as_str()).collect();
+    let entries = std::fs::read_dir(dir).map_err(|e| Error::io(dir, e))?;
+    for entry in entries {
+        let entry = entry.map_err(|e| Error::io(dir, e))?;
+        let name = entry.file_name().to_string_lossy().into_owned();
+        let is_part = name
+            .strip_prefix("part-")
+            .and_then(|n| n.strip_suffix(".bin"))
+            .is_some_and(|k| !k.is_empty() && k.bytes().all(|b| b.is_ascii_digit()));
+        if is_part && !named.contains(name.as_str()) {
+            let path = entry.path();
+            std::fs::remove_file(&path).map_err(|e| Error::io(&path, e))?;
+        }
+    }
+    Ok(())
 }

@@ -176,18 +176,21 @@ fn split_map(dataset: &Path) -> Result<Option<HashMap<SampleKey, String>>> {
     ))
 }
 
-fn target_masks(dir: &Path, wanted: &HashSet<&SampleKey>) -> Result<HashMap<SampleKey, Vec<bool>>> {
+/// The rendered masks of the samples `wanted`, read from the targets files of the
+/// dataset's shards under `dir` (`targets/part-KKKKK.parquet` for each shard `K` of
+/// `data`; none when absent): only those files, never another `*.parquet` found there
+/// (a copy made by hand would otherwise be read too).
+fn target_masks(
+    dir: &Path,
+    data: &Dataset,
+    wanted: &HashSet<&SampleKey>,
+) -> Result<HashMap<SampleKey, Vec<bool>>> {
     let mut out = HashMap::new();
-    let tdir = dir.join("targets");
-    let Ok(entries) = std::fs::read_dir(&tdir) else {
-        return Ok(out);
-    };
-    let mut files: Vec<PathBuf> = entries
-        .filter_map(|e| e.ok().map(|e| e.path()))
-        .filter(|p| p.extension().is_some_and(|e| e == "parquet"))
-        .collect();
-    files.sort();
-    for f in files {
+    for shard in data.shards() {
+        let f = targets_table::shard_path(dir, shard.index);
+        if !f.exists() {
+            continue;
+        }
         for r in targets_table::read_targets(&f)? {
             if wanted.contains(&r.key) {
                 let m = r.mask()?;
@@ -223,7 +226,11 @@ pub fn evaluate(
     let masks = if with_masks.is_empty() {
         HashMap::new()
     } else {
-        target_masks(options.targets.as_deref().unwrap_or(dataset), &with_masks)?
+        target_masks(
+            options.targets.as_deref().unwrap_or(dataset),
+            &data,
+            &with_masks,
+        )?
     };
     // A dataset of another head mesh than ARKit's (`convert --format biwi`).
     let other_mesh = data

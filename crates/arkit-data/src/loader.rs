@@ -918,7 +918,8 @@ impl FaceLoader {
         let (verts, source) = match &self.store {
             Some(store) => {
                 let (shard, r) = row.location;
-                let mut stored = store.read(shard, r)?;
+                // The record must be this sample's (checked in every mode).
+                let mut stored = store.read(shard, r, &row.sample.key.to_string())?;
                 (
                     std::mem::take(&mut stored.verts),
                     PixelSource::Stored(stored),
