@@ -178,14 +178,19 @@ pub fn targets_blobs(data: &[u8]) -> bool {
 /// tensor lies in its storage, and its data read is exactly `numel` elements.
 pub fn torch_pickle(data: &[u8]) -> bool {
     if data.starts_with(b"PK") {
-        let Ok(mut z) = torch_pickle::TorchZip::new(std::io::Cursor::new(data), Path::new("fuzz.pth"))
+        let Ok(mut z) =
+            torch_pickle::TorchZip::new(std::io::Cursor::new(data), Path::new("fuzz.pth"))
         else {
             return false;
         };
         for i in 0..z.tensors().len() {
             let t = z.tensors()[i].clone();
             match z.read(i) {
-                Ok(b) => assert!(b.len() == t.numel() * t.dtype.size(), "{}: wrong length", t.name),
+                Ok(b) => assert!(
+                    b.len() == t.numel() * t.dtype.size(),
+                    "{}: wrong length",
+                    t.name
+                ),
                 Err(_) => return false,
             }
         }
@@ -203,7 +208,11 @@ pub fn torch_pickle(data: &[u8]) -> bool {
                     .zip(&t.stride)
                     .map(|(&n, &s)| (n as u64 - 1) * s as u64)
                     .sum::<u64>();
-            assert!(last < t.storage_numel, "{} reaches beyond its storage", t.name);
+            assert!(
+                last < t.storage_numel,
+                "{} reaches beyond its storage",
+                t.name
+            );
         }
     }
     true

@@ -147,7 +147,11 @@ enum Node {
     RebuildTensor,
     RebuildParameter,
     StorageClass(TorchDType),
-    Storage { dtype: TorchDType, key: String, numel: u64 },
+    Storage {
+        dtype: TorchDType,
+        key: String,
+        numel: u64,
+    },
     Tensor(Box<TensorRef>),
 }
 
@@ -320,7 +324,8 @@ impl<'a> Machine<'a> {
             .take(256)
             .position(|&b| b == b'\n')
             .ok_or_else(|| self.err("a GLOBAL name longer than 256 bytes or unterminated"))?;
-        let s = std::str::from_utf8(&rest[..n]).map_err(|_| self.err("a GLOBAL name that is not UTF-8"))?;
+        let s = std::str::from_utf8(&rest[..n])
+            .map_err(|_| self.err("a GLOBAL name that is not UTF-8"))?;
         self.pos += n + 1;
         Ok(s)
     }
@@ -365,13 +370,16 @@ impl<'a> Machine<'a> {
             .map(|x| match x {
                 V::Int(i) if *i >= 0 => usize::try_from(*i)
                     .map_err(|_| self.err(format!("a tensor's {what} is too large"))),
-                _ => Err(self.err(format!("a tensor's {what} holds a value that is not a size"))),
+                _ => Err(self.err(format!(
+                    "a tensor's {what} holds a value that is not a size"
+                ))),
             })
             .collect()
     }
 
     fn persistent_load(&mut self, pid: V) -> Result<V> {
-        let bad = |m: &Self| m.err("a persistent id that is not ('storage', type, key, location, numel)");
+        let bad =
+            |m: &Self| m.err("a persistent id that is not ('storage', type, key, location, numel)");
         let Some(Node::Tuple(t)) = self.node(pid) else {
             return Err(bad(self));
         };
@@ -411,10 +419,7 @@ impl<'a> Machine<'a> {
             }
         } else {
             if self.storages.len() >= limits::MAX_TORCH_TENSORS {
-                return Err(self.err(format!(
-                    "more than {} storages",
-                    limits::MAX_TORCH_TENSORS
-                )));
+                return Err(self.err(format!("more than {} storages", limits::MAX_TORCH_TENSORS)));
             }
             self.storages.insert(key.clone(), (dtype, numel));
         }
@@ -467,7 +472,8 @@ impl<'a> Machine<'a> {
                 let mut last: u64 = offset as u64;
                 for (&n, &s) in shape.iter().zip(&stride) {
                     numel_view = numel_view.saturating_mul(n as u64);
-                    last = last.saturating_add((n as u64).saturating_sub(1).saturating_mul(s as u64));
+                    last =
+                        last.saturating_add((n as u64).saturating_sub(1).saturating_mul(s as u64));
                 }
                 if numel_view > 0 && last >= numel {
                     return Err(self.err(format!(
@@ -816,7 +822,10 @@ pub fn parse_state_dict_pickle(data: &[u8], source: &Path) -> Result<Vec<TorchTe
         let Some(name) = m.str_of(k) else {
             return Err(Error::format(
                 source,
-                format!("the state_dict has a key that is {}, not a name", kind(&m, k)),
+                format!(
+                    "the state_dict has a key that is {}, not a name",
+                    kind(&m, k)
+                ),
             ));
         };
         let Some(Node::Tensor(t)) = m.node(v) else {
@@ -829,7 +838,10 @@ pub fn parse_state_dict_pickle(data: &[u8], source: &Path) -> Result<Vec<TorchTe
             ));
         };
         if !seen.insert(name.to_string()) {
-            return Err(Error::format(source, format!("entry '{name}' is given twice")));
+            return Err(Error::format(
+                source,
+                format!("entry '{name}' is given twice"),
+            ));
         }
         out.push(TorchTensor {
             name: name.to_string(),
@@ -858,7 +870,12 @@ pub struct TorchZip<R: Read + Seek> {
 
 impl std::fmt::Debug for TorchZip<std::fs::File> {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        write!(f, "TorchZip({}, {} tensors)", self.source.display(), self.tensors.len())
+        write!(
+            f,
+            "TorchZip({}, {} tensors)",
+            self.source.display(),
+            self.tensors.len()
+        )
     }
 }
 
@@ -881,11 +898,17 @@ fn read_member<R: Read + Seek>(
         ));
     }
     let mut out = Vec::new();
-    f.take(max + 1)
-        .read_to_end(&mut out)
-        .map_err(|e| Error::format(&member, format!("cannot read the member (truncated or corrupt): {e}")))?;
+    f.take(max + 1).read_to_end(&mut out).map_err(|e| {
+        Error::format(
+            &member,
+            format!("cannot read the member (truncated or corrupt): {e}"),
+        )
+    })?;
     if out.len() as u64 > max {
-        return Err(Error::format(&member, format!("more than the {max} bytes expected")));
+        return Err(Error::format(
+            &member,
+            format!("more than the {max} bytes expected"),
+        ));
     }
     Ok(out)
 }
@@ -898,13 +921,19 @@ impl<R: Read + Seek> TorchZip<R> {
         let mut zip = zip::ZipArchive::new(reader).map_err(|e| {
             Error::format(
                 source,
-                format!("not a PyTorch state_dict (torch.save zip format): not a valid zip archive: {e}"),
+                format!(
+                    "not a PyTorch state_dict (torch.save zip format): not a valid zip archive: {e}"
+                ),
             )
         })?;
         if zip.len() > limits::MAX_TORCH_TENSORS + 16 {
             return Err(Error::format(
                 source,
-                format!("{} members, more than a state_dict of at most {} tensors has", zip.len(), limits::MAX_TORCH_TENSORS),
+                format!(
+                    "{} members, more than a state_dict of at most {} tensors has",
+                    zip.len(),
+                    limits::MAX_TORCH_TENSORS
+                ),
             ));
         }
         let pkls: Vec<String> = zip
@@ -948,7 +977,10 @@ impl<R: Read + Seek> TorchZip<R> {
             let member = format!("{}:{name}", source.display());
             let want = t.storage_numel * t.dtype.size() as u64;
             let f = zip.by_name(&name).map_err(|e| {
-                Error::format(&member, format!("the storage of '{}' is missing: {e}", t.name))
+                Error::format(
+                    &member,
+                    format!("the storage of '{}' is missing: {e}", t.name),
+                )
             })?;
             if f.size() != want {
                 return Err(Error::format(
@@ -1063,7 +1095,11 @@ mod tests {
         let e = parse_state_dict_pickle(data, Path::new("x.pth"))
             .expect_err("refused")
             .to_string();
-        assert!(t.elapsed() < Duration::from_secs(1), "{e}: {:?}", t.elapsed());
+        assert!(
+            t.elapsed() < Duration::from_secs(1),
+            "{e}: {:?}",
+            t.elapsed()
+        );
         assert!(e.starts_with("x.pth"), "{e}");
         e
     }
@@ -1077,7 +1113,10 @@ mod tests {
         let names: Vec<&str> = z.tensors().iter().map(|t| t.name.as_str()).collect();
         assert_eq!(names, ["a.weight", "a.num_batches_tracked", "b", "c.half"]);
         let t = &z.tensors()[2];
-        assert_eq!((t.dtype, t.shape.as_slice(), t.stride.as_slice()), (TorchDType::F32, &[4, 3][..], &[1, 4][..]));
+        assert_eq!(
+            (t.dtype, t.shape.as_slice(), t.stride.as_slice()),
+            (TorchDType::F32, &[4, 3][..], &[1, 4][..])
+        );
         assert_eq!(f32s(&z.read(0).unwrap()), [0.0, 1.0, 2.0, 3.0, 4.0, 5.0]);
         assert_eq!(z.tensors()[1].dtype, TorchDType::I64);
         assert!(z.tensors()[1].shape.is_empty());
@@ -1098,7 +1137,15 @@ mod tests {
         let names: Vec<&str> = z.tensors().iter().map(|t| t.name.as_str()).collect();
         assert_eq!(
             names,
-            ["0.weight", "0.bias", "1.weight", "1.bias", "1.running_mean", "1.running_var", "1.num_batches_tracked"]
+            [
+                "0.weight",
+                "0.bias",
+                "1.weight",
+                "1.bias",
+                "1.running_mean",
+                "1.running_var",
+                "1.num_batches_tracked"
+            ]
         );
         assert_eq!(z.tensors()[0].shape, [3, 2, 1]);
     }
@@ -1167,11 +1214,17 @@ mod tests {
     #[test]
     fn what_is_not_a_state_dict_is_named() {
         let e = open(&seed("non_tensor_entry.pth")).unwrap_err().to_string();
-        assert!(e.contains("entry 'epoch' is an integer, not a tensor"), "{e}");
+        assert!(
+            e.contains("entry 'epoch' is an integer, not a tensor"),
+            "{e}"
+        );
         let e = refused(b"\x80\x02cos\nsystem\nX\x02\x00\x00\x00ls\x85R.");
         assert!(e.contains("refers to os.system"), "{e}");
         let e = open(&seed("beyond_storage.pth")).unwrap_err().to_string();
-        assert!(e.contains("reaches beyond its storage 0 of 2 elements"), "{e}");
+        assert!(
+            e.contains("reaches beyond its storage 0 of 2 elements"),
+            "{e}"
+        );
         let e = open(&seed("memo_doubling.pth")).unwrap_err().to_string();
         assert!(e.contains("nested more than 32 deep"), "{e}");
     }
@@ -1180,9 +1233,15 @@ mod tests {
     #[test]
     fn every_truncation_is_an_error() {
         let p = std::fs::read(seed("module.pkl")).unwrap();
-        assert_eq!(parse_state_dict_pickle(&p, Path::new("m")).unwrap().len(), 7);
+        assert_eq!(
+            parse_state_dict_pickle(&p, Path::new("m")).unwrap().len(),
+            7
+        );
         for n in 0..p.len() {
-            assert!(parse_state_dict_pickle(&p[..n], Path::new("m")).is_err(), "{n}");
+            assert!(
+                parse_state_dict_pickle(&p[..n], Path::new("m")).is_err(),
+                "{n}"
+            );
         }
     }
 }
