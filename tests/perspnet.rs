@@ -1057,6 +1057,12 @@ mod pipeline {
             })
         }));
         assert!(interrupted.is_err());
+        // The checkpoint of epoch 4, kept for the torn-checkpoint case below.
+        let torn = tempfile::tempdir().unwrap();
+        for f in std::fs::read_dir(cut.path()).unwrap() {
+            let f = f.unwrap().path();
+            std::fs::copy(&f, torn.path().join(f.file_name().unwrap())).unwrap();
+        }
         let resumed_opts = TrainOptions {
             resume: true,
             ..cut_opts.clone()
@@ -1080,6 +1086,81 @@ mod pipeline {
         };
         assert_eq!(weights(cut.path()), weights(model_dir.path()));
         assert!(cut.path().join(training::ADAM_FILE).exists());
+        // Torn: what a kill between two renames leaves (the weights of epoch 8, the
+        // rest of epoch 4). --resume refuses it, naming the file and what differs, and
+        // leaves every file as it was; so it does without the record of the files.
+        std::fs::copy(
+            model_dir.path().join("model.safetensors"),
+            torn.path().join("model.safetensors"),
+        )
+        .unwrap();
+        let snapshot = |d: &std::path::Path| {
+            let mut v: Vec<(std::ffi::OsString, Vec<u8>)> = std::fs::read_dir(d)
+                .unwrap()
+                .map(|f| f.unwrap().path())
+                .map(|f| {
+                    (
+                        f.file_name().unwrap().to_owned(),
+                        std::fs::read(&f).unwrap(),
+                    )
+                })
+                .collect();
+            v.sort();
+            v
+        };
+        let before = snapshot(torn.path());
+        let torn_opts = TrainOptions {
+            output: torn.path().to_path_buf(),
+            ..resumed_opts.clone()
+        };
+        let e = match training::train(&examples[..4], &topology, &torn_opts, &|_| {}) {
+            Err(e) => e.to_string(),
+            Ok(_) => panic!("a torn checkpoint was resumed"),
+        };
+        assert!(
+            e.contains("model.safetensors: its SHA-256 is")
+                && e.contains("checkpoint.json records")
+                && e.contains("torn"),
+            "{e}"
+        );
+        assert!(
+            snapshot(torn.path()) == before,
+            "the refused checkpoint was changed"
+        );
+        std::fs::remove_file(torn.path().join(training::CHECKPOINT_RECORD)).unwrap();
+        let e = match training::train(&examples[..4], &topology, &torn_opts, &|_| {}) {
+            Err(e) => e.to_string(),
+            Ok(_) => panic!("a checkpoint without its record was resumed"),
+        };
+        assert!(e.contains("checkpoint.json: cannot be read"), "{e}");
+        // A loss log cut short: its size differs.
+        let cut2 = tempfile::tempdir().unwrap();
+        for f in std::fs::read_dir(cut.path()).unwrap() {
+            let f = f.unwrap().path();
+            std::fs::copy(&f, cut2.path().join(f.file_name().unwrap())).unwrap();
+        }
+        let csv = std::fs::read(cut2.path().join("loss.csv")).unwrap();
+        std::fs::write(cut2.path().join("loss.csv"), &csv[..csv.len() - 10]).unwrap();
+        let e = match training::train(
+            &examples[..4],
+            &topology,
+            &TrainOptions {
+                output: cut2.path().to_path_buf(),
+                ..resumed_opts.clone()
+            },
+            &|_| {},
+        ) {
+            Err(e) => e.to_string(),
+            Ok(_) => panic!("a checkpoint with a cut loss log was resumed"),
+        };
+        assert!(
+            e.contains(&format!(
+                "loss.csv: {} bytes, but checkpoint.json records {}",
+                csv.len() - 10,
+                csv.len()
+            )),
+            "{e}"
+        );
         // A step budget stops part way through an epoch; until then it is the same
         // run (the rate is still held), and a budget the epochs cannot cover is refused.
         let budget = tempfile::tempdir().unwrap();

@@ -8,8 +8,10 @@ use arkit_tool::training;
 use candle_core::{DType, Device, Tensor};
 use candle_nn::{VarBuilder, VarMap};
 use std::collections::HashMap;
+use std::io::{Read, Write};
 use std::path::{Path, PathBuf};
-use std::process::Command;
+use std::process::{Command, Stdio};
+use std::time::{Duration, Instant};
 
 fn tool() -> Command {
     Command::new(env!("CARGO_BIN_EXE_arkit-tool"))
@@ -435,5 +437,181 @@ fn half_model_loads_within_float16_rounding() {
     assert!(
         e.contains("cnn.seg.bias") && e.contains("model.safetensors"),
         "{e}"
+    );
+}
+
+/// Runs `cmd`; returns whether it succeeded, its stderr, its wall time and its peak
+/// resident memory in KiB (the child's own `ru_maxrss`, from `wait4`).
+fn run_measured(cmd: &mut Command) -> (bool, String, Duration, i64) {
+    let t = Instant::now();
+    let mut child = cmd
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let pid = child.id() as libc::pid_t;
+    let mut stderr = child.stderr.take().unwrap();
+    let reader = std::thread::spawn(move || {
+        let mut s = String::new();
+        stderr.read_to_string(&mut s).unwrap();
+        s
+    });
+    let mut status = 0;
+    // SAFETY: a zeroed rusage is a valid value; wait4 fills it for our own child.
+    let mut ru: libc::rusage = unsafe { std::mem::zeroed() };
+    let r = unsafe { libc::wait4(pid, &mut status, 0, &mut ru) };
+    assert_eq!(r, pid);
+    let dt = t.elapsed();
+    let ok = libc::WIFEXITED(status) && libc::WEXITSTATUS(status) == 0;
+    (ok, reader.join().unwrap(), dt, ru.ru_maxrss)
+}
+
+/// A zip laid out as `torch.save` lays it out, with `pickle` as its `data.pkl`.
+fn torch_zip(path: &Path, pickle: &[u8]) {
+    let mut z = zip::ZipWriter::new(std::fs::File::create(path).unwrap());
+    let o =
+        zip::write::SimpleFileOptions::default().compression_method(zip::CompressionMethod::Stored);
+    for (name, data) in [
+        ("archive/data.pkl", pickle),
+        ("archive/byteorder", b"little".as_slice()),
+        ("archive/version", b"3\n".as_slice()),
+    ] {
+        z.start_file(name, o).unwrap();
+        z.write_all(data).unwrap();
+    }
+    z.finish().unwrap();
+}
+
+fn import_args(file: &Path, model: &Path) -> Command {
+    let mut c = tool();
+    c.args(["import-weights", file.to_str().unwrap(), "--config", "tiny"])
+        .args(["--output", model.to_str().unwrap()]);
+    c
+}
+
+/// What a refused file may cost: well under a second, and 150 MiB at most (the tool's
+/// own footprint is about 20 MiB).
+fn refused_cheaply(cmd: &mut Command, wanted: &str) {
+    let (ok, e, dt, rss) = run_measured(cmd);
+    assert!(!ok, "accepted: {cmd:?}");
+    assert!(e.contains(wanted), "{e}");
+    assert!(dt < Duration::from_millis(1500), "{dt:?}: {e}");
+    assert!(rss < 150 * 1024, "peak {rss} KiB: {e}");
+    eprintln!("refused in {dt:?}, peak {} MiB: {}", rss / 1024, e.trim());
+}
+
+/// Pickle bombs in a torch.save archive: 10^6 nested tuples (1 MB, which overflowed
+/// the stack) and a memo entry doubled 40 times (a few hundred bytes, which grew
+/// without bound when memo entries were copied) are refused at once in little memory;
+/// doubled 30 times (2^30 leaves if copied) it is read in no time, and refused for what
+/// it is. An entry that is not a tensor is refused by name. Nothing is written.
+#[test]
+fn pickle_bombs_and_non_tensors_are_refused_quickly() {
+    let dir = tempfile::tempdir().unwrap();
+    let model = dir.path().join("model");
+    let nested = dir.path().join("nested.pth");
+    let mut p = b"\x80\x02)".to_vec();
+    p.extend(std::iter::repeat_n(0x85u8, 1_000_000));
+    p.push(b'.');
+    torch_zip(&nested, &p);
+    assert!(std::fs::metadata(&nested).unwrap().len() > 1_000_000);
+    refused_cheaply(
+        &mut import_args(&nested, &model),
+        "nested more than 32 deep",
+    );
+    let double = |n: usize| {
+        let mut p = b"\x80\x02X\x01\x00\x00\x00aq\x000".to_vec();
+        for _ in 0..n {
+            p.extend(b"h\x00h\x00\x86q\x000");
+        }
+        p.extend(b"h\x00.");
+        p
+    };
+    let memo = dir.path().join("memo.pth");
+    torch_zip(&memo, &double(40));
+    refused_cheaply(&mut import_args(&memo, &model), "nested more than 32 deep");
+    torch_zip(&memo, &double(30));
+    refused_cheaply(
+        &mut import_args(&memo, &model),
+        "the pickle holds a tuple, not a state_dict",
+    );
+    let extra =
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("fuzz/corpus/torch_pickle/non_tensor_entry.pth");
+    refused_cheaply(
+        &mut import_args(&extra, &model),
+        "entry 'epoch' is an integer, not a tensor",
+    );
+    assert!(!model.exists(), "nothing is written");
+}
+
+/// A safetensors header of `entries` (name, shape of float32) over sparse data: the
+/// file is as long as the header says, but holds no data on disk.
+fn sparse_safetensors(path: &Path, entries: &[(&str, u64)]) {
+    let mut at = 0u64;
+    let mut fields = Vec::new();
+    for (name, n) in entries {
+        fields.push(format!(
+            r#""{name}":{{"dtype":"F32","shape":[{n}],"data_offsets":[{at},{}]}}"#,
+            at + 4 * n
+        ));
+        at += 4 * n;
+    }
+    let header = format!("{{{}}}", fields.join(","));
+    let mut f = std::fs::File::create(path).unwrap();
+    f.write_all(&(header.len() as u64).to_le_bytes()).unwrap();
+    f.write_all(header.as_bytes()).unwrap();
+    f.set_len(8 + header.len() as u64 + at).unwrap();
+}
+
+/// A 1.2 GiB sparse safetensors file with the wrong names, as an import and as a model
+/// folder's weights (read by export-weights, half-model and predict's loader), is
+/// refused from its header in well under a second without reading its data; a header
+/// declaring 100 GB in a small file is refused without the allocation.
+#[test]
+fn safetensors_headers_are_checked_before_any_data_is_read() {
+    let dir = tempfile::tempdir().unwrap();
+    let huge = dir.path().join("huge.safetensors");
+    sparse_safetensors(&huge, &[("cnn.wrong.weight", 322_122_547)]);
+    assert!(std::fs::metadata(&huge).unwrap().len() > 1_288_000_000);
+    let model = dir.path().join("imported");
+    refused_cheaply(&mut import_args(&huge, &model), "1 extra: cnn.wrong.weight");
+    assert!(!model.exists());
+    // A good model folder whose weights are then replaced by the huge file.
+    let vm = random_varmap(&PerspNetConfig::tiny(), 5);
+    let good = dir.path().join("good.safetensors");
+    save(&export_state_dict(&vm, 0).unwrap(), &good);
+    import_tiny(&good, &model, &vm, 0);
+    std::fs::copy(&huge, model.join("model.safetensors")).unwrap();
+    let out = dir.path().join("out.safetensors");
+    refused_cheaply(
+        tool()
+            .args(["export-weights", model.to_str().unwrap(), "--output"])
+            .arg(&out),
+        "no tensor ",
+    );
+    refused_cheaply(
+        tool()
+            .args(["half-model", model.to_str().unwrap(), "--output"])
+            .arg(dir.path().join("half")),
+        "no tensor ",
+    );
+    assert!(!out.exists());
+    // 100 GB declared, 16 bytes there.
+    let liar = dir.path().join("liar.safetensors");
+    let header = r#"{"w":{"dtype":"F32","shape":[25000000000],"data_offsets":[0,100000000000]}}"#;
+    let mut b = (header.len() as u64).to_le_bytes().to_vec();
+    b.extend(header.as_bytes());
+    b.extend([0u8; 16]);
+    std::fs::write(&liar, &b).unwrap();
+    refused_cheaply(
+        &mut import_args(&liar, &dir.path().join("m2")),
+        "declares 100000000000 bytes of tensor data, the file holds 16",
+    );
+    std::fs::copy(&liar, model.join("model.safetensors")).unwrap();
+    refused_cheaply(
+        tool()
+            .args(["export-weights", model.to_str().unwrap(), "--output"])
+            .arg(&out),
+        "declares 100000000000 bytes of tensor data",
     );
 }

@@ -18,7 +18,8 @@ use std::process::ExitCode;
 /// the paper's loss, plain L1 correspondences and the fixed weights 0.5 / 0.01 / 1 /
 /// 0.01 on shape / assignment / correspondence / segmentation) and Adam, and
 /// writes DIR/perspnet.json, DIR/model.safetensors, DIR/adam.safetensors and
-/// DIR/loss.csv after every epoch (--resume continues from them exactly). The learning
+/// DIR/loss.csv after every epoch, then DIR/checkpoint.json, the size and SHA-256 of
+/// each (--resume continues from them exactly). The learning
 /// rate is held for --lr-hold of the steps, then falls linearly to zero; each step sees
 /// colour- and crop-jittered crops and fresh face pixels, all drawn from --seed. All
 /// training samples are read into memory first (the size is printed); --stream holds
@@ -115,6 +116,8 @@ pub struct TrainArgs {
     /// Continue an interrupted run from the checkpoint in --output (one is written after
     /// every epoch), given the same options: weights, Adam's moments and the loss
     /// weights are restored, so the resumed run is step for step the uninterrupted one.
+    /// Each file must match the record DIR/checkpoint.json: a checkpoint left torn by a
+    /// run stopped while writing it is refused (naming the file) and left as it is.
     #[arg(long)]
     resume: bool,
     /// Seed of the initial weights and the sample order.

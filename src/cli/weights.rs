@@ -16,6 +16,12 @@ use std::process::ExitCode;
 /// that lists all of them, and nothing is written. The folder is read by `predict
 /// --model` like one written by `train`.
 ///
+/// The zip's pickle is read by a bounded reader of what torch.save writes for a
+/// state_dict: no code from the file is run, any class or function other than
+/// OrderedDict and the tensor rebuilders is refused, nesting, memo and size are
+/// bounded, and an entry that is not a tensor is refused by name. Names and shapes
+/// (from the pickle, or a safetensors header) are checked before any tensor is read.
+///
 /// Example: arkit-tool import-weights checkpoint/run1/latest_net_R.pth --config paper --output official-model/
 #[derive(Args, Debug)]
 pub struct ImportWeightsArgs {

@@ -9,7 +9,7 @@
 //! own invariants, so a panic here is a bug found, not a rejected input.
 
 use crate::conventions::Pose;
-use crate::{npy, predictions_csv, release, target_codec};
+use crate::{npy, predictions_csv, release, target_codec, torch_pickle};
 use std::path::Path;
 
 /// `.npy` bytes through [`npy::parse_npy`]; an accepted array written back and read
@@ -170,4 +170,50 @@ pub fn targets_blobs(data: &[u8]) -> bool {
         accepted = true;
     }
     accepted
+}
+
+/// A `torch.save` archive (input starting with `PK`) through
+/// [`torch_pickle::TorchZip::new`], every tensor then read; or else the bytes as a
+/// bare `data.pkl` through [`torch_pickle::parse_state_dict_pickle`]. An accepted
+/// tensor lies in its storage, and its data read is exactly `numel` elements.
+pub fn torch_pickle(data: &[u8]) -> bool {
+    if data.starts_with(b"PK") {
+        let Ok(mut z) =
+            torch_pickle::TorchZip::new(std::io::Cursor::new(data), Path::new("fuzz.pth"))
+        else {
+            return false;
+        };
+        for i in 0..z.tensors().len() {
+            let t = z.tensors()[i].clone();
+            match z.read(i) {
+                Ok(b) => assert!(
+                    b.len() == t.numel() * t.dtype.size(),
+                    "{}: wrong length",
+                    t.name
+                ),
+                Err(_) => return false,
+            }
+        }
+        return true;
+    }
+    let Ok(tensors) = torch_pickle::parse_state_dict_pickle(data, Path::new("data.pkl")) else {
+        return false;
+    };
+    for t in &tensors {
+        assert!(t.shape.len() == t.stride.len());
+        if t.numel() > 0 {
+            let last = t.offset as u64
+                + t.shape
+                    .iter()
+                    .zip(&t.stride)
+                    .map(|(&n, &s)| (n as u64 - 1) * s as u64)
+                    .sum::<u64>();
+            assert!(
+                last < t.storage_numel,
+                "{} reaches beyond its storage",
+                t.name
+            );
+        }
+    }
+    true
 }

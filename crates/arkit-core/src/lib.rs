@@ -6,6 +6,8 @@
 //! - [`release`]: the release's files: `_info.npz` annotations, list CSVs, layout.
 //! - [`target_codec`]: the byte codecs of the `targets` blobs (masks as run lengths,
 //!   UV-map delta planes, correspondences); [`predictions_csv`]: the predictions CSV.
+//! - [`torch_pickle`]: a bounded reader of `torch.save(state_dict)` archives (no code
+//!   from the file is run).
 //! - [`limits`]: every bound on what the readers accept, documented in one place.
 //! - [`raster`]: the CPU triangle rasterizer core.
 //! - [`rng`]: the seeded random streams that make output reproducible.
@@ -28,6 +30,7 @@ pub mod raster;
 pub mod release;
 pub mod rng;
 pub mod target_codec;
+pub mod torch_pickle;
 
 pub use conventions::{Camera, EulerAngles, Pose};
 pub use error::{Error, ErrorKind, Result};

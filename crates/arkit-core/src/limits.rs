@@ -129,3 +129,56 @@ pub const MIN_FACE_SPAN_PX: f64 = 8.0;
 /// checked on the file's length before it is read. A frame with the anchor's 1,220
 /// vertices written as decimal text is about 100 KB.
 pub const MAX_CAPTURE_JSON_BYTES: u64 = 16 << 20;
+
+// ---------------------------------------------------------------------------------------
+// Weight files: `torch.save` checkpoints (`torch_pickle`) and safetensors headers.
+// The official `paper` network's state_dict has 206 tensors, a 30 KB pickle, a largest
+// tensor of 9.4 MB (`cnn.resnet18_8s.layer4` convolutions) and a 20 KB safetensors header.
+
+/// Largest `data.pkl` of a `torch.save` archive read, in bytes: 16 MiB, checked on the
+/// zip directory's size and again while reading. A state_dict's pickle takes about 150
+/// bytes per tensor (30 KB for `paper`).
+pub const MAX_PICKLE_BYTES: u64 = 16 << 20;
+
+/// Deepest nesting of containers (tuples, lists, dicts) and of MARKs in a pickle: 32.
+/// A state_dict nests 4 deep (the dict, a tensor's arguments, its size tuple; the
+/// `_metadata` dicts). Refusing deeper pickles bounds every walk over the objects.
+pub const MAX_PICKLE_DEPTH: usize = 32;
+
+/// Most memo entries of a pickle: 2^20. A state_dict writes about 8 per tensor.
+pub const MAX_PICKLE_MEMO: usize = 1 << 20;
+
+/// Most objects (strings, tuples, dicts, tensors, ...) a pickle may build: 2^20, about
+/// 12 per tensor in a state_dict.
+pub const MAX_PICKLE_OBJECTS: usize = 1 << 20;
+
+/// Most bytes of objects a pickle may build (strings, container slots, the stack and
+/// the memo, each counted as it is made): 64 MiB, 400 times what `paper` needs.
+/// Objects fetched from the memo are shared, never copied, so this bounds what a pickle
+/// that refers to one entry many times costs.
+pub const MAX_PICKLE_ALLOC_BYTES: u64 = 64 << 20;
+
+/// Most tensors (and storages) in one state_dict: 65 536.
+pub const MAX_TORCH_TENSORS: usize = 65_536;
+
+/// Largest storage of one tensor in a `torch.save` archive, in bytes: 256 MiB (the same
+/// bound as one array, [`MAX_ARRAY_BYTES`]). Checked from the pickle's declared size,
+/// against the member's size in the zip directory, and while reading.
+pub const MAX_TORCH_STORAGE_BYTES: u64 = MAX_ARRAY_BYTES;
+
+/// Largest total of the storages of one `torch.save` archive, in bytes: 4 GiB. The
+/// tensors are read one at a time, after their names and shapes have been matched with
+/// the network's, so memory follows the network's size, not this bound.
+pub const MAX_TORCH_DATA_BYTES: u64 = 4 << 30;
+
+/// Largest JSON header of a safetensors file, in bytes: 16 MiB, checked on the length
+/// field before the header is read (the safetensors library's own bound is 100 MB).
+pub const MAX_SAFETENSORS_HEADER_BYTES: u64 = 16 << 20;
+
+const _: () = {
+    assert!(MAX_PICKLE_BYTES >= 30_000);
+    assert!(MAX_PICKLE_DEPTH >= 4);
+    assert!(MAX_PICKLE_ALLOC_BYTES < 1 << 30);
+    assert!(MAX_TORCH_STORAGE_BYTES >= 9_437_184);
+    assert!(MAX_SAFETENSORS_HEADER_BYTES >= 20_000);
+};

@@ -69,3 +69,8 @@ fn predictions_csv_corpus() {
 fn targets_blobs_corpus() {
     replay("targets_blobs", fuzz_entry::targets_blobs, 4, 3);
 }
+
+#[test]
+fn torch_pickle_corpus() {
+    replay("torch_pickle", fuzz_entry::torch_pickle, 10, 3);
+}

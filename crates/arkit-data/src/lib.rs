@@ -75,7 +75,7 @@ pub mod topology;
 pub use crop::official as official_crop;
 
 pub use arkit_core::{
-    atomic_file, conventions, error, limits, npy, raster, release, rng, target_codec,
+    atomic_file, conventions, error, limits, npy, raster, release, rng, target_codec, torch_pickle,
 };
 pub use conventions::{Camera, EulerAngles, Pose};
 pub use error::{Error, ErrorKind, Result};

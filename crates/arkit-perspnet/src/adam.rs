@@ -131,35 +131,57 @@ impl Adam {
         candle_core::safetensors::save(&map, path)
     }
 
-    /// Reads what [`Adam::save`] wrote. Every variable must have its moments there with
-    /// its shape; an error names the first that does not.
+    /// Reads what [`Adam::save`] wrote. The file's header is checked first (every
+    /// variable's moments there with its shape, a one-element step count, nothing
+    /// else), before any data is read; an error names the first entry that differs.
     pub fn load(&mut self, path: &Path) -> Result<()> {
-        let map = candle_core::safetensors::load(path, &Device::Cpu)?;
-        let step = match map.get("step") {
-            Some(t) => t.to_vec1::<i64>()?.first().copied().unwrap_or(-1),
-            None => -1,
+        let mut st = crate::safetensors_file::open(path).map_err(candle_core::Error::Msg)?;
+        let mut want: HashMap<String, Vec<usize>> = HashMap::new();
+        want.insert("step".to_string(), vec![1]);
+        for s in &self.slots {
+            want.insert(format!("m.{}", s.name), s.var.dims().to_vec());
+            want.insert(format!("v.{}", s.name), s.var.dims().to_vec());
+        }
+        let have: HashMap<&str, &[usize]> = st
+            .entries()
+            .iter()
+            .map(|e| (e.name.as_str(), e.shape.as_slice()))
+            .collect();
+        let mut keys: Vec<&String> = want.keys().collect();
+        keys.sort();
+        for key in keys {
+            match have.get(key.as_str()) {
+                None if key == "step" => candle_core::bail!("no step count"),
+                None => candle_core::bail!("no {key}"),
+                Some(shape) if *shape != want[key].as_slice() => {
+                    candle_core::bail!("{key} has shape {shape:?}, the variable {:?}", want[key])
+                }
+                Some(_) => {}
+            }
+        }
+        if let Some(extra) = have.keys().find(|k| !want.contains_key(**k)) {
+            candle_core::bail!("{extra}: no such variable in the network");
+        }
+        let read = |st: &mut crate::safetensors_file::SafetensorsFile<_>, key: &str| {
+            st.read(key).map_err(candle_core::Error::Msg)
         };
+        let step = read(&mut st, "step")?
+            .to_dtype(DType::I64)?
+            .to_vec1::<i64>()?[0];
         if step < 0 {
             candle_core::bail!("no step count");
         }
         let mut restored = Vec::with_capacity(self.slots.len());
         for s in &self.slots {
-            let read = |key: String| -> Result<Vec<f32>> {
-                match map.get(&key) {
-                    Some(t) if t.shape() == s.var.shape() => {
-                        t.to_dtype(DType::F32)?.flatten_all()?.to_vec1::<f32>()
-                    }
-                    Some(t) => candle_core::bail!(
-                        "{key} has shape {:?}, the variable {:?}",
-                        t.dims(),
-                        s.var.dims()
-                    ),
-                    None => candle_core::bail!("no {key}"),
-                }
+            let mut moment = |key: String| -> Result<Vec<f32>> {
+                read(&mut st, &key)?
+                    .to_dtype(DType::F32)?
+                    .flatten_all()?
+                    .to_vec1::<f32>()
             };
             restored.push((
-                read(format!("m.{}", s.name))?,
-                read(format!("v.{}", s.name))?,
+                moment(format!("m.{}", s.name))?,
+                moment(format!("v.{}", s.name))?,
             ));
         }
         for (s, (m, v)) in self.slots.iter_mut().zip(restored) {

@@ -16,6 +16,7 @@
 use crate::layers::{IMAGENET_MEAN, IMAGENET_STD};
 use crate::loss::PerspNetLoss;
 use crate::model::named_trainable_vars;
+use crate::safetensors_file::SafetensorsFile;
 use crate::{
     Adam, Architecture, CorrTarget, DirectNet, LossTargets, LossWeights, PerspNet, PerspNetConfig,
 };
@@ -1115,6 +1116,7 @@ fn resume_from(
     varmap: &VarMap,
     opt: &mut Adam,
 ) -> Result<Resumed> {
+    verify_checkpoint(dir)?;
     let p = dir.join("perspnet.json");
     let text = std::fs::read_to_string(&p).map_err(|e| Error::io(&p, e))?;
     let old: Checkpoint =
@@ -1135,10 +1137,7 @@ fn resume_from(
         ));
     }
     let w = dir.join("model.safetensors");
-    let mut varmap = varmap.clone();
-    varmap
-        .load(&w)
-        .map_err(|e| Error::format(&w, e.to_string()))?;
+    load_weights(varmap, &mut open_weights(&w)?, &w)?;
     let adam = dir.join(ADAM_FILE);
     if adam.exists() {
         opt.load(&adam)
@@ -1268,7 +1267,121 @@ fn write_checkpoint(
     }
     arkit_data::atomic_file::write_bytes(&dir.join("loss.csv"), csv.as_bytes())?;
     let json = serde_json::to_string_pretty(c).expect("checkpoint json");
-    arkit_data::atomic_file::write_bytes(&dir.join("perspnet.json"), json.as_bytes())
+    arkit_data::atomic_file::write_bytes(&dir.join("perspnet.json"), json.as_bytes())?;
+    // Last, the record of what was written: a folder whose files do not all match it
+    // (a run stopped between two renames) is refused by --resume.
+    write_checkpoint_record(dir)
+}
+
+/// The record a checkpoint folder's files are checked against on `train --resume`:
+/// written last, after every other file, it holds the size and SHA-256 of each.
+pub const CHECKPOINT_RECORD: &str = "checkpoint.json";
+
+/// The files of a checkpoint folder that [`CHECKPOINT_RECORD`] covers.
+const CHECKPOINT_FILES: [&str; 4] = ["model.safetensors", ADAM_FILE, "loss.csv", "perspnet.json"];
+
+/// One file of a checkpoint, as its record holds it.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+struct RecordedFile {
+    name: String,
+    bytes: u64,
+    sha256: String,
+}
+
+#[derive(Debug, Serialize, Deserialize)]
+struct CheckpointRecord {
+    files: Vec<RecordedFile>,
+}
+
+/// The size and SHA-256 (lowercase hex) of `path`, read in pieces.
+fn file_digest(path: &Path) -> Result<(u64, String)> {
+    use sha2::Digest;
+    use std::io::Read;
+    let mut f = std::fs::File::open(path).map_err(|e| Error::io(path, e))?;
+    let mut h = sha2::Sha256::new();
+    let mut buf = vec![0u8; 1 << 16];
+    let mut n = 0u64;
+    loop {
+        let k = f.read(&mut buf).map_err(|e| Error::io(path, e))?;
+        if k == 0 {
+            break;
+        }
+        h.update(&buf[..k]);
+        n += k as u64;
+    }
+    let hex = h.finalize().iter().map(|b| format!("{b:02x}")).collect();
+    Ok((n, hex))
+}
+
+fn write_checkpoint_record(dir: &Path) -> Result<()> {
+    let mut files = Vec::new();
+    for name in CHECKPOINT_FILES {
+        let (bytes, sha256) = file_digest(&dir.join(name))?;
+        files.push(RecordedFile {
+            name: name.to_string(),
+            bytes,
+            sha256,
+        });
+    }
+    let json = serde_json::to_string_pretty(&CheckpointRecord { files }).expect("record json");
+    arkit_data::atomic_file::write_bytes(&dir.join(CHECKPOINT_RECORD), json.as_bytes())
+}
+
+/// Checks that every file of the checkpoint in `dir` is the one its record
+/// ([`CHECKPOINT_RECORD`]) describes; the error names the first that differs and how.
+/// Nothing in the folder is changed.
+pub fn verify_checkpoint(dir: &Path) -> Result<()> {
+    let torn = "the checkpoint is torn (a run was stopped while writing it) and is left as it is: train into another --output, or run again without --resume to start over";
+    let rec = dir.join(CHECKPOINT_RECORD);
+    let meta = std::fs::metadata(&rec).map_err(|e| {
+        Error::format(
+            &rec,
+            format!("cannot be read ({e}): without this record of the checkpoint's files, it cannot be told whole; {torn}"),
+        )
+    })?;
+    if meta.len() > 1 << 16 {
+        return Err(Error::format(
+            &rec,
+            format!("{} bytes: not a checkpoint record", meta.len()),
+        ));
+    }
+    let text = std::fs::read_to_string(&rec).map_err(|e| Error::io(&rec, e))?;
+    let record: CheckpointRecord = serde_json::from_str(&text)
+        .map_err(|e| Error::format(&rec, format!("not a checkpoint record: {e}")))?;
+    for name in CHECKPOINT_FILES {
+        let Some(want) = record.files.iter().find(|f| f.name == name) else {
+            return Err(Error::format(&rec, format!("does not list {name}")));
+        };
+        let p = dir.join(name);
+        let (bytes, sha256) = match std::fs::metadata(&p) {
+            Ok(_) => file_digest(&p)?,
+            Err(e) => {
+                return Err(Error::format(
+                    &p,
+                    format!("missing ({e}), but {CHECKPOINT_RECORD} records it; {torn}"),
+                ));
+            }
+        };
+        if bytes != want.bytes {
+            return Err(Error::format(
+                &p,
+                format!(
+                    "{bytes} bytes, but {CHECKPOINT_RECORD} records {} for it: {torn}",
+                    want.bytes
+                ),
+            ));
+        }
+        if sha256 != want.sha256 {
+            return Err(Error::format(
+                &p,
+                format!(
+                    "its SHA-256 is {sha256}, but {CHECKPOINT_RECORD} records {} (same size, other content): {torn}",
+                    want.sha256
+                ),
+            ));
+        }
+    }
+    Ok(())
 }
 
 /// Reads a PyTorch `state_dict` (a `torch.save` zip, or the safetensors file
@@ -1354,8 +1467,7 @@ pub fn export_weights(model_dir: &Path, output: &Path) -> Result<usize> {
         .map_err(|e| candle_err("network", e))?;
     PerspNet::new(cfg, &uv, vb).map_err(|e| candle_err("network", e))?;
     let w = model_dir.join("model.safetensors");
-    let bytes = std::fs::read(&w).map_err(|e| Error::io(&w, e))?;
-    load_weights(&varmap, &bytes, &w)?;
+    load_weights(&varmap, &mut open_weights(&w)?, &w)?;
     let entries = crate::weights::export_state_dict(&varmap, checkpoint.steps as i64)
         .map_err(|e| candle_err("export", e))?;
     let n = entries.len();
@@ -1448,8 +1560,8 @@ pub fn load(dir: &Path, topology: &FaceTopology) -> Result<TrainedModel> {
         ));
     }
     let w = dir.join("model.safetensors");
-    let bytes = std::fs::read(&w).map_err(|e| Error::io(&w, e))?;
-    model_from_parts(checkpoint, &bytes, &w, topology)
+    let mut st = open_weights(&w)?;
+    model_from_parts(checkpoint, &mut st, &w, topology)
 }
 
 /// Where the shipped model's folder is in the repository: a `tiny` PerspNet trained by
@@ -1483,19 +1595,17 @@ pub fn shipped_model(topology: &FaceTopology) -> Result<TrainedModel> {
             ),
         ));
     }
-    model_from_parts(
-        checkpoint,
-        SHIPPED_WEIGHTS,
-        &dir.join("model.safetensors"),
-        topology,
-    )
+    let w = dir.join("model.safetensors");
+    let mut st =
+        crate::safetensors_file::from_bytes(SHIPPED_WEIGHTS).map_err(|e| Error::format(&w, e))?;
+    model_from_parts(checkpoint, &mut st, &w, topology)
 }
 
-/// The network of `checkpoint` with the weights of the safetensors `bytes` (read from
-/// `file`, named in errors), float32 or float16 ([`load_weights`]).
-fn model_from_parts(
+/// The network of `checkpoint` with the weights of the safetensors file `st` (read
+/// from `file`, named in errors), float32 or float16 ([`load_weights`]).
+fn model_from_parts<R: std::io::Read + std::io::Seek>(
     checkpoint: Checkpoint,
-    bytes: &[u8],
+    st: &mut SafetensorsFile<R>,
     file: &Path,
     topology: &FaceTopology,
 ) -> Result<TrainedModel> {
@@ -1504,7 +1614,7 @@ fn model_from_parts(
     let vb = VarBuilder::from_varmap(&varmap, DType::F32, &device);
     let net = Network::new(&checkpoint.config, &vertex_uv(topology, &device)?, vb)
         .map_err(|e| candle_err("network", e))?;
-    load_weights(&varmap, bytes, file)?;
+    load_weights(&varmap, st, file)?;
     Ok(TrainedModel {
         checkpoint,
         net,
@@ -1512,40 +1622,69 @@ fn model_from_parts(
     })
 }
 
-/// Sets every variable of `varmap` from the safetensors file `bytes` (read from `file`,
+/// Opens the safetensors file `path` ([`crate::safetensors_file`]): its header is read
+/// and checked against the file's length; no tensor data is read yet.
+pub fn open_weights(path: &Path) -> Result<SafetensorsFile<std::io::BufReader<std::fs::File>>> {
+    if let Err(e) = std::fs::metadata(path) {
+        return Err(Error::io(path, e));
+    }
+    crate::safetensors_file::open(path).map_err(|e| Error::format(path, e))
+}
+
+/// Sets every variable of `varmap` from the safetensors file `st` (read from `file`,
 /// which errors name), matched by name and shape and converted to float32: a model
 /// folder may hold float32 weights (`train`) or float16 ones ([`write_half_model`]).
-/// A missing, misshapen or extra tensor is an error that names it.
-pub fn load_weights(varmap: &VarMap, bytes: &[u8], file: &Path) -> Result<()> {
-    let tensors = candle_core::safetensors::load_buffer(bytes, &Device::Cpu)
-        .map_err(|e| Error::format(file, e.to_string()))?;
+/// Every name, shape and type in the header is checked before any tensor is read; a
+/// missing, misshapen, extra or non-float tensor is an error that names it. The
+/// tensors are then read one at a time.
+pub fn load_weights<R: std::io::Read + std::io::Seek>(
+    varmap: &VarMap,
+    st: &mut SafetensorsFile<R>,
+    file: &Path,
+) -> Result<()> {
     let data = varmap.data().lock().expect("varmap lock");
     let mut names: Vec<&String> = data.keys().collect();
     names.sort();
-    for name in names {
-        let var = &data[name];
-        let t = tensors
-            .get(name)
+    let header: HashMap<&str, &crate::safetensors_file::Entry> =
+        st.entries().iter().map(|e| (e.name.as_str(), e)).collect();
+    for name in &names {
+        let var = &data[*name];
+        let e = header
+            .get(name.as_str())
             .ok_or_else(|| Error::format(file, format!("no tensor {name}")))?;
-        if t.dims() != var.dims() {
+        if e.shape != var.dims() {
             return Err(Error::format(
                 file,
-                format!("{name} is {:?}, the network has {:?}", t.dims(), var.dims()),
+                format!("{name} is {:?}, the network has {:?}", e.shape, var.dims()),
             ));
         }
-        let t = t
-            .to_dtype(DType::F32)
-            .map_err(|e| Error::format(file, format!("{name}: {e}")))?;
-        var.set(&t)
-            .map_err(|e| Error::format(file, format!("{name}: {e}")))?;
+        if !matches!(e.dtype, DType::F16 | DType::BF16 | DType::F32 | DType::F64) {
+            return Err(Error::format(
+                file,
+                format!("{name} is {:?}, not floating point", e.dtype),
+            ));
+        }
     }
-    let mut extra: Vec<&String> = tensors.keys().filter(|k| !data.contains_key(*k)).collect();
+    let mut extra: Vec<&str> = header
+        .keys()
+        .filter(|k| !data.contains_key(**k))
+        .copied()
+        .collect();
     if !extra.is_empty() {
         extra.sort();
         return Err(Error::format(
             file,
             format!("tensors the network does not have: {extra:?}"),
         ));
+    }
+    for name in names {
+        let var = &data[name];
+        let t = st
+            .read(name)
+            .and_then(|t| t.to_dtype(DType::F32).map_err(|e| e.to_string()))
+            .map_err(|e| Error::format(file, format!("{name}: {e}")))?;
+        var.set(&t)
+            .map_err(|e| Error::format(file, format!("{name}: {e}")))?;
     }
     Ok(())
 }
@@ -1558,14 +1697,24 @@ pub fn load_weights(varmap: &VarMap, bytes: &[u8], file: &Path) -> Result<()> {
 pub fn write_half_model(model_dir: &Path, output: &Path) -> Result<u64> {
     let p = model_dir.join("perspnet.json");
     let json = std::fs::read_to_string(&p).map_err(|e| Error::io(&p, e))?;
-    serde_json::from_str::<Checkpoint>(&json).map_err(|e| Error::format(&p, e.to_string()))?;
+    let checkpoint =
+        serde_json::from_str::<Checkpoint>(&json).map_err(|e| Error::format(&p, e.to_string()))?;
+    // The weights are read into the network of the checkpoint's config, so that their
+    // names and shapes are checked before any data is read.
+    let device = Device::Cpu;
+    let varmap = VarMap::new();
+    let vb = VarBuilder::from_varmap(&varmap, DType::F32, &device);
+    let uv = crate::model::synthetic_vertex_uv(checkpoint.config.vertices, &device)
+        .map_err(|e| candle_err("network", e))?;
+    Network::new(&checkpoint.config, &uv, vb).map_err(|e| candle_err("network", e))?;
     let w = model_dir.join("model.safetensors");
-    let bytes = std::fs::read(&w).map_err(|e| Error::io(&w, e))?;
-    let tensors = candle_core::safetensors::load_buffer(&bytes, &Device::Cpu)
-        .map_err(|e| Error::format(&w, e.to_string()))?;
-    let half = tensors
-        .into_iter()
-        .map(|(k, t)| Ok((k, t.to_dtype(DType::F16)?)))
+    load_weights(&varmap, &mut open_weights(&w)?, &w)?;
+    let half = varmap
+        .data()
+        .lock()
+        .expect("varmap lock")
+        .iter()
+        .map(|(k, v)| Ok((k.clone(), v.as_tensor().to_dtype(DType::F16)?)))
         .collect::<candle_core::Result<HashMap<String, Tensor>>>()
         .map_err(|e| Error::format(&w, e.to_string()))?;
     std::fs::create_dir_all(output).map_err(|e| Error::io(output, e))?;

@@ -14,8 +14,12 @@
 //! declares a huge tensor under a name we expect with another shape is refused without
 //! reading it), and reports every missing, extra and misshapen entry at once.
 
+use std::cell::RefCell;
 use std::collections::{BTreeMap, HashMap};
 use std::path::Path;
+
+use crate::safetensors_file::{self, SafetensorsFile};
+use arkit_data::torch_pickle::{self, TorchDType, TorchZip};
 
 use candle_core::{DType, Device, Tensor};
 use candle_nn::VarMap;
@@ -194,15 +198,18 @@ pub fn match_entries(expected: &[StateEntry], found: &[(String, Vec<usize>, DTyp
 }
 
 /// A file of weights read for import: the tensors by their names (a `module.` prefix,
-/// which `DataParallel` adds, removed).
+/// which `DataParallel` adds, removed). Opening reads the names, types and shapes only;
+/// [`WeightFile::load_into`] matches them with the network before it reads any data,
+/// then reads the tensors one at a time.
 pub struct WeightFile {
     names: Vec<(String, Vec<usize>, DType)>,
-    source: Source,
+    rename: HashMap<String, String>,
+    source: RefCell<Source>,
 }
 
 enum Source {
-    Pth(candle_core::pickle::PthTensors, HashMap<String, String>),
-    Safetensors(HashMap<String, Tensor>),
+    Pth(TorchZip<std::fs::File>),
+    Safetensors(SafetensorsFile<std::io::BufReader<std::fs::File>>),
 }
 
 /// Reading a weights file failed: the file could not be read, or did not match.
@@ -227,10 +234,25 @@ fn strip_module(name: &str) -> String {
     name.strip_prefix("module.").unwrap_or(name).to_string()
 }
 
+/// The candle type of a PyTorch one; `None` for the types no network weight has.
+fn candle_dtype(d: TorchDType) -> Option<DType> {
+    Some(match d {
+        TorchDType::F64 => DType::F64,
+        TorchDType::F32 => DType::F32,
+        TorchDType::F16 => DType::F16,
+        TorchDType::BF16 => DType::BF16,
+        TorchDType::I64 => DType::I64,
+        TorchDType::U8 => DType::U8,
+        _ => return None,
+    })
+}
+
 impl WeightFile {
-    /// Opens `path`: a `torch.save` zip (PyTorch 1.6 and later; its pickle read by
-    /// candle, which reads only a `state_dict`'s tensors) or a safetensors file (as
-    /// [`export_state_dict`] is written), told apart by their first bytes.
+    /// Opens `path`: a `torch.save` zip (PyTorch 1.6 and later), read by our bounded
+    /// reader of a `state_dict`'s pickle ([`arkit_data::torch_pickle`]: no code from
+    /// the file is run, and an entry that is not a tensor is refused by name), or a
+    /// safetensors file (as [`export_state_dict`] is written), told apart by their
+    /// first bytes. Only the names, types and shapes are read here.
     pub fn open(path: &Path) -> Result<Self, WeightError> {
         let read =
             |e: &dyn std::fmt::Display| WeightError::Read(format!("{}: {e}", path.display()));
@@ -240,45 +262,64 @@ impl WeightFile {
             let mut f = std::fs::File::open(path).map_err(|e| read(&e))?;
             f.read_exact(&mut head).map_err(|e| read(&e))?;
         }
-        if &head == b"PK\x03\x04" {
-            let pth = candle_core::pickle::PthTensors::new(path, None).map_err(|e| {
-                read(&format!(
-                    "not a PyTorch state_dict (torch.save zip format): {e}"
-                ))
+        let mut names = Vec::new();
+        let mut rename = HashMap::new();
+        let mut add = |name: &str, shape: Vec<usize>, dtype: DType| {
+            let ours = strip_module(name);
+            names.push((ours.clone(), shape, dtype));
+            rename.insert(ours, name.to_string());
+        };
+        let source = if &head == b"PK\x03\x04" {
+            let zip = torch_pickle::open(path).map_err(|e| {
+                let e = e.to_string();
+                let prefix = format!("{}: ", path.display());
+                let e = e.strip_prefix(&prefix).unwrap_or(&e);
+                if e.contains("not a PyTorch state_dict") {
+                    read(&e)
+                } else {
+                    read(&format!(
+                        "not a PyTorch state_dict (torch.save zip format): {e}"
+                    ))
+                }
             })?;
-            let mut names = Vec::new();
-            let mut rename = HashMap::new();
-            for (name, info) in pth.tensor_infos() {
-                let ours = strip_module(name);
-                names.push((ours.clone(), info.layout.dims().to_vec(), info.dtype));
-                rename.insert(ours, name.clone());
+            for t in zip.tensors() {
+                let dtype = candle_dtype(t.dtype).ok_or_else(|| {
+                    read(&format!(
+                        "'{}' is {}, a type no weight of the network has",
+                        t.name,
+                        t.dtype.name()
+                    ))
+                })?;
+                add(&t.name, t.shape.clone(), dtype);
             }
-            if names.is_empty() {
+            if zip.tensors().is_empty() {
                 return Err(read(&"no tensors: not a state_dict saved with torch.save"));
             }
-            Ok(Self {
-                names,
-                source: Source::Pth(pth, rename),
-            })
+            Source::Pth(zip)
         } else {
-            let tensors = candle_core::safetensors::load(path, &Device::Cpu).map_err(|e| {
+            let st = safetensors_file::open(path).map_err(|e| {
                 read(&format!(
                     "neither a PyTorch zip (torch.save) nor a safetensors file: {e}"
                 ))
             })?;
-            let tensors: HashMap<String, Tensor> = tensors
-                .into_iter()
-                .map(|(n, t)| (strip_module(&n), t))
-                .collect();
-            let names = tensors
-                .iter()
-                .map(|(n, t)| (n.clone(), t.dims().to_vec(), t.dtype()))
-                .collect();
-            Ok(Self {
-                names,
-                source: Source::Safetensors(tensors),
-            })
+            for e in st.entries() {
+                add(&e.name, e.shape.clone(), e.dtype);
+            }
+            Source::Safetensors(st)
+        };
+        let mut seen = std::collections::HashSet::new();
+        for (n, _, _) in &names {
+            if !seen.insert(n) {
+                return Err(read(&format!(
+                    "'{n}' is there twice (with and without the module. prefix)"
+                )));
+            }
         }
+        Ok(Self {
+            names,
+            rename,
+            source: RefCell::new(source),
+        })
     }
 
     /// The entries' names, shapes and types (names without a `module.` prefix).
@@ -287,15 +328,21 @@ impl WeightFile {
     }
 
     fn get(&self, name: &str) -> candle_core::Result<Tensor> {
-        match &self.source {
-            Source::Safetensors(t) => t
-                .get(name)
-                .cloned()
-                .ok_or_else(|| candle_core::Error::Msg(format!("no tensor {name}"))),
-            Source::Pth(pth, rename) => {
-                let key = rename.get(name).map_or(name, |s| s.as_str());
-                pth.get(key)?
-                    .ok_or_else(|| candle_core::Error::Msg(format!("no tensor {name}")))
+        let key = self.rename.get(name).map_or(name, |s| s.as_str());
+        match &mut *self.source.borrow_mut() {
+            Source::Safetensors(st) => st.read(key).map_err(candle_core::Error::Msg),
+            Source::Pth(zip) => {
+                let i = zip
+                    .tensors()
+                    .iter()
+                    .position(|t| t.name == key)
+                    .ok_or_else(|| candle_core::Error::Msg(format!("no tensor {name}")))?;
+                let t = zip.tensors()[i].clone();
+                let bytes = zip
+                    .read(i)
+                    .map_err(|e| candle_core::Error::Msg(e.reason()))?;
+                let dtype = candle_dtype(t.dtype).expect("checked on open");
+                Tensor::from_raw_buffer(&bytes, dtype, &t.shape, &Device::Cpu)
             }
         }
     }
