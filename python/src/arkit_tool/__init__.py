@@ -388,7 +388,8 @@ def solve_pnp_ransac(
     """PnP with RANSAC, OpenCV's conventions (`cv2.solvePnPRansac`'s arguments and
     result): `X_cam = R X + t`. Returns `(success, rvec, tvec, inliers)`, rvec and tvec
     (3, 1) float64, inliers (k, 1) int32; `(False, None, None, None)` on failure.
-    Distortion is not modelled: `dist_coeffs` must be None or zeros."""
+    Distortion is not modelled: `dist_coeffs` must be None or zeros. Points with a NaN or
+    infinite coordinate are left out (never inliers; indices are the caller's)."""
     if dist_coeffs is not None and np.any(np.asarray(dist_coeffs) != 0):
         raise DataError("dist_coeffs: lens distortion is not supported; undistort the points first")
     obj = np.ascontiguousarray(np.asarray(object_points, dtype=np.float64).reshape(-1, 3))
