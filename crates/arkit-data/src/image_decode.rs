@@ -99,7 +99,7 @@ pub fn read_image_file(path: &Path) -> Result<Vec<u8>> {
     Ok(bytes)
 }
 
-fn decoder(bytes: &[u8], path: &Path) -> Result<(ImageHeader, impl ImageDecoder + '_)> {
+fn decoder<'a>(bytes: &'a [u8], path: &Path) -> Result<(ImageHeader, impl ImageDecoder + 'a)> {
     let format = image::guess_format(bytes)
         .ok()
         .filter(|f| matches!(f, ImageFormat::Png | ImageFormat::Jpeg))
