@@ -296,6 +296,7 @@ fn main() {
             inliers: keep,
             rms_reprojection_error_px: 0.0,
             iterations: 0,
+            non_finite_dropped: 0,
         })
     };
     // OpenCV solvePnPRansac reference (rot deg, trans mm, time us), same setting.

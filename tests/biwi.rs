@@ -13,6 +13,7 @@ use serde_json::Value;
 use std::path::Path;
 use std::process::Command;
 use support::biwi_writer::*;
+use support::png_bomb::png_bomb;
 
 fn key(seq: &str, n: &str) -> SampleKey {
     SampleKey {
@@ -143,7 +144,7 @@ fn bad_files_are_reported_and_the_rest_converted() {
             .clone()
     };
     assert!(why("01/frame_00004_pose.txt").contains("not a rotation"));
-    assert!(why("01/frame_00005_rgb.png").contains("decode"));
+    assert!(why("01/frame_00005_rgb.png").contains("not a PNG or JPEG"));
     assert!(why("02/rgb.cal").contains("distortion"));
     // A folder that is not BIWI's is a clear error naming it.
     let empty = dir.path().join("empty");
@@ -340,4 +341,136 @@ fn cli_convert_biwi_then_eval_scores_add_on_the_subjects_mesh() {
     // The ADD over a random 1,220 x 3 array (the official BIWI loader's `model`) would be
     // another number; ours is the head's.
     assert!(want > 1.0);
+}
+
+#[test]
+fn a_resized_frame_and_an_unreadable_sequence_folder_are_reported() {
+    let dir = tempfile::tempdir().unwrap();
+    let hpdb = dir.path().join("hpdb");
+    write_hpdb(&hpdb);
+    // A frame resized to 320x240 while rgb.cal says 640x480: its intrinsics no longer
+    // match, so its image would not match its pose.
+    let f = hpdb.join("01/frame_00004_rgb.png");
+    image::open(&f)
+        .unwrap()
+        .resize_exact(320, 240, image::imageops::FilterType::Triangle)
+        .save(&f)
+        .unwrap();
+    // A sequence folder that is a symbolic link to itself (a loop).
+    std::os::unix::fs::symlink("03", hpdb.join("03")).unwrap();
+    let (summary, _) = biwi::stage(&hpdb, &dir.path().join("s"), 400, &|| {}).unwrap();
+    assert_eq!(summary.staged, 5, "{:#?}", summary.problems);
+    let why = |f: &str| {
+        summary
+            .problems
+            .iter()
+            .find(|p| p.file == f)
+            .unwrap_or_else(|| panic!("{f}: {:#?}", summary.problems))
+            .reason
+            .clone()
+    };
+    let r = why("01/frame_00004_rgb.png");
+    assert!(
+        r.contains("320x240") && r.contains("640x480") && r.contains("rgb.cal"),
+        "{r}"
+    );
+    let r = why("03");
+    assert!(
+        r.contains("symbolic link") && r.contains("cannot be read"),
+        "{r}"
+    );
+
+    // Without the image size line, the principal point (320, 240.5) on the border of a
+    // 320x240 frame refuses it all the same.
+    let cal = cal_text("0 0 0 0").replace("\n640 480\n", "\n");
+    let parsed = biwi::Calibration::parse(&cal, Path::new("rgb.cal")).unwrap();
+    assert_eq!(parsed.image_size, None);
+    assert!(parsed.check_frame_size(640, 480).is_ok());
+    let e = parsed.check_frame_size(320, 240).unwrap_err();
+    assert!(
+        e.contains("principal point") && e.contains("320x240"),
+        "{e}"
+    );
+    let with = biwi::Calibration::parse(&cal_text("0 0 0 0"), Path::new("rgb.cal")).unwrap();
+    assert_eq!(with.image_size, Some((640, 480)));
+    // A malformed size line is an error naming it.
+    let bad = cal_text("0 0 0 0").replace("\n640 480\n", "\n640.5 480\n");
+    let e = biwi::Calibration::parse(&bad, Path::new("rgb.cal"))
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("image size"), "{e}");
+}
+
+#[test]
+fn the_png_bomb_generator_makes_a_png_that_decodes_to_zeros() {
+    // The generator checked at a small size by an independent decoder (the image crate).
+    let img = image::load_from_memory(&png_bomb(300)).unwrap();
+    assert_eq!((img.width(), img.height()), (300, 300));
+    assert_eq!(img.color(), image::ColorType::L16);
+    assert!(img.into_luma16().pixels().all(|p| p.0 == [0]));
+}
+
+/// Peak resident memory (KiB) of a finished child, from `/usr/bin/time -v`'s report.
+fn peak_rss_kib(stderr: &str) -> u64 {
+    stderr
+        .lines()
+        .find_map(|l| {
+            l.trim()
+                .strip_prefix("Maximum resident set size (kbytes): ")
+        })
+        .and_then(|v| v.trim().parse().ok())
+        .unwrap_or_else(|| panic!("no peak RSS in: {stderr}"))
+}
+
+#[test]
+fn png_bombs_are_refused_before_decoding_in_bounded_memory() {
+    let dir = tempfile::tempdir().unwrap();
+    let hpdb = dir.path().join("hpdb");
+    write_hpdb(&hpdb);
+    // Two 16000x16000 16-bit PNGs of a few MB, in place of two frames.
+    let bomb = png_bomb(16000);
+    assert!(bomb.len() < 4 << 20, "{}", bomb.len());
+    std::fs::write(hpdb.join("01/frame_00004_rgb.png"), &bomb).unwrap();
+    std::fs::write(hpdb.join("02/frame_00005_rgb.png"), &bomb).unwrap();
+    // In sequence 02, rgb.cal claims the bomb's size (principal point at its centre), so
+    // that frame passes the size check and meets the decoded-size limit instead.
+    let cal = cal_text("0 0 0 0")
+        .replace("\n640 480\n", "\n16000 16000\n")
+        .replacen(" 0 320 \n", " 0 8000 \n", 1)
+        .replacen(" 240.5 \n", " 8000 \n", 1);
+    assert!(cal.contains("8000"), "{cal}");
+    std::fs::write(hpdb.join("02/rgb.cal"), cal).unwrap();
+    let out = Command::new("/usr/bin/time")
+        .arg("-v")
+        .arg(env!("CARGO_BIN_EXE_arkit-tool"))
+        .args(["convert", "--format", "biwi", "--json", "--input"])
+        .arg(&hpdb)
+        .arg("--output")
+        .arg(dir.path().join("pq"))
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{stderr}");
+    let v: Value = serde_json::from_slice(&out.stdout).unwrap();
+    let problems = v["biwi"]["problems"].as_array().unwrap();
+    let why = |f: &str| {
+        problems
+            .iter()
+            .find(|p| p["file"] == f)
+            .unwrap_or_else(|| panic!("{f}: {problems:#?}"))["reason"]
+            .as_str()
+            .unwrap()
+            .to_string()
+    };
+    let r = why("01/frame_00004_rgb.png");
+    assert!(r.contains("16000x16000") && r.contains("640x480"), "{r}");
+    let r = why("02/frame_00005_rgb.png");
+    assert!(
+        r.contains("16000x16000 16-bit grey") && r.contains("refused before decoding"),
+        "{r}"
+    );
+    // Before: a 2.4 GiB peak. Now the whole run stays within a few hundred MiB.
+    let peak = peak_rss_kib(&stderr);
+    eprintln!("peak RSS of convert --format biwi with two PNG bombs: {peak} KiB");
+    assert!(peak < 300 * 1024, "peak RSS {peak} KiB");
 }

@@ -12,7 +12,10 @@
 //! - degenerate samples (collapsed mesh, tiny image, image of another size than its
 //!   annotation's `points2d`) are skipped with the reason; bytes after a JPEG's end are
 //!   not mistaken for truncation;
-//! - stale temporaries of killed runs are removed.
+//! - stale temporaries of killed runs are removed;
+//! - a check that skips most of the first samples (an input in another convention)
+//!   stops `convert` with the check's name and the way out (`--skip-check points2d`,
+//!   `--allow-systematic-skips`); half does not.
 
 use arkit_tool::atomic_file::FolderLock;
 use arkit_tool::conventions::Camera;
@@ -508,4 +511,111 @@ fn a_second_render_of_the_same_part_is_refused_and_its_temporaries_are_cleaned()
     render_dataset::render_dataset(out.path(), &renderer, &ro, &|_| {}).unwrap();
     assert!(!stale.exists());
     assert!(arkit_tool::targets_table::shard_path(out.path(), 0).exists());
+}
+
+#[test]
+fn a_check_that_skips_most_samples_stops_convert_with_the_reason_and_the_way_out() {
+    let input = tempfile::tempdir().unwrap();
+    make_release(input.path(), 3, 4, 21);
+    let root = input.path();
+    let layout = ReleaseLayout::new(root);
+    // Every annotation's points2d in another convention (normalised to 0..1 instead of
+    // pixels): the points2d check fails on every sample.
+    let mut n = 0;
+    for split in [Split::Train, Split::Test] {
+        for k in keys(root, split) {
+            let path = layout.info_path(split, &k);
+            let mut info = release::read_info(&path).unwrap();
+            for p in info.points2d.as_mut().unwrap() {
+                *p = [p[0] / 128.0, p[1] / 128.0];
+            }
+            release::write_info(&path, &info, NpzCompression::Deflated).unwrap();
+            n += 1;
+        }
+    }
+    assert_eq!(n, 12);
+    let tool = |out: &str, extra: &[&str]| {
+        Command::new(env!("CARGO_BIN_EXE_arkit-tool"))
+            .args(["convert", "--json", "--systematic-window", "8", "--input"])
+            .arg(root)
+            .arg("--output")
+            .arg(input.path().join(out))
+            .args(extra)
+            .output()
+            .unwrap()
+    };
+    // Stopped, with the check, the count, the first sample and what to do.
+    let out = tool("pq", &[]);
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success(), "{stderr}");
+    assert!(
+        stderr.contains("'points2d' check skipped 8 of the first 8 samples")
+            && stderr.contains("points2d lie a median")
+            && stderr.contains("--skip-check points2d")
+            && stderr.contains("--allow-systematic-skips"),
+        "{stderr}"
+    );
+    assert!(!input.path().join("pq/dataset.json").exists());
+    // A rerun into the same folder with the check off is another conversion.
+    let out = tool("pq", &["--skip-check", "points2d"]);
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        !out.status.success() && stderr.contains("other checks turned off"),
+        "{stderr}"
+    );
+    // With the check off (and --overwrite), every sample converts: the pose and image
+    // still agree through the landmarks.
+    let out = tool("pq", &["--skip-check", "points2d", "--overwrite"]);
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{stderr}");
+    let m: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(
+        (m["converted"].as_u64(), m["skipped"].as_u64()),
+        (Some(12), Some(0))
+    );
+    // --allow-systematic-skips: skipped one by one, each with its reason.
+    let out = tool("pq-each", &["--allow-systematic-skips"]);
+    assert!(out.status.success());
+    let m: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(
+        (m["converted"].as_u64(), m["skipped"].as_u64()),
+        (Some(0), Some(12))
+    );
+    // With the default window (1,000), an input of 12 samples is never stopped.
+    let o = options(root, &input.path().join("pq-lib"), 16);
+    let m = convert(&o).unwrap();
+    assert_eq!(m.skipped, 12);
+    // Only points2d can be turned off.
+    let out = tool("pq-x", &["--skip-check", "pose"]);
+    assert!(!out.status.success());
+    // Half is not "most": 4 of 8 skipped for one check does not stop.
+    let fresh = tempfile::tempdir().unwrap();
+    make_release(fresh.path(), 3, 4, 21);
+    let rows = convert::plan_rows(&convert::discover(fresh.path()).unwrap())
+        .unwrap()
+        .0;
+    for r in rows.iter().take(8).skip(4) {
+        let path = fresh.path().join(&r.info);
+        let mut info = release::read_info(&path).unwrap();
+        for p in info.points2d.as_mut().unwrap() {
+            *p = [p[0] / 128.0, p[1] / 128.0];
+        }
+        release::write_info(&path, &info, NpzCompression::Deflated).unwrap();
+    }
+    let checks = convert::ConvertChecks {
+        skip: Vec::new(),
+        window: 8,
+    };
+    let input2 = convert::discover(fresh.path()).unwrap();
+    let plan = convert::plan_rows(&input2).unwrap();
+    let m = convert::convert_planned_with(
+        &options(fresh.path(), &fresh.path().join("pq"), 16),
+        &context(),
+        &checks,
+        &input2,
+        plan,
+        &|_| {},
+    )
+    .unwrap();
+    assert_eq!(m.skipped, 4);
 }

@@ -14,6 +14,8 @@ use serde_json::{Value, json};
 use std::path::Path;
 use std::process::Command;
 
+mod support;
+
 /// A known scene: the face's pose in the camera of the written (turned) image, the
 /// camera in the world, the capture's intrinsics and resolution, the orientation.
 #[derive(Clone, Debug)]
@@ -155,6 +157,7 @@ fn options(input: &Path, output: &Path) -> ImportOptions {
         size: None,
         jpeg_quality: 95,
         overwrite: false,
+        systematic_window: arkit_tool::systematic::SYSTEMATIC_WINDOW,
     }
 }
 
@@ -529,4 +532,117 @@ fn cli_strict_json_and_clear_errors() {
     let out = tool().args(["import-arkit", "--help"]).output().unwrap();
     let help = String::from_utf8_lossy(&out.stdout);
     assert!(help.contains("face_anchor_transform") && help.contains("column"));
+}
+
+#[test]
+fn intrinsics_of_another_resolution_and_unreadable_folders_are_reported() {
+    let dir = tempfile::tempdir().unwrap();
+    let (input, out) = (dir.path().join("cap"), dir.path().join("rel"));
+    let s = scene(InterfaceOrientation::LandscapeRight, 10.0, 5.0, 0.0);
+    write_frame(&input, "good", &s);
+    // Intrinsics for a capture twice the size (principal point near (630, 488)) with
+    // the 640x480 image and resolution: the image would not match its pose.
+    write_frame(&input, "other_k", &s);
+    let mut v: Value =
+        serde_json::from_str(&std::fs::read_to_string(input.join("other_k.json")).unwrap())
+            .unwrap();
+    v["camera_intrinsics"] = columns3(&Matrix3::new(
+        1000.0, 0.0, 630.4, 0.0, 1010.0, 487.8, 0.0, 0.0, 1.0,
+    ));
+    std::fs::write(input.join("other_k.json"), v.to_string()).unwrap();
+    // A sub-folder (facial action) that is a symbolic link to itself.
+    std::os::unix::fs::symlink("loop", input.join("loop")).unwrap();
+    let summary = import_arkit::import_capture(&options(&input, &out), &|| {}).unwrap();
+    assert_eq!(summary.imported, 1, "{:#?}", summary.skipped);
+    let why = |f: &str| {
+        summary
+            .skipped
+            .iter()
+            .find(|p| p.file == f)
+            .unwrap_or_else(|| panic!("{f}: {:#?}", summary.skipped))
+            .reason
+            .clone()
+    };
+    let r = why("other_k.json");
+    assert!(
+        r.contains("principal point") && r.contains("640x480"),
+        "{r}"
+    );
+    let r = why("loop");
+    assert!(r.contains("symbolic link"), "{r}");
+}
+
+#[test]
+fn a_png_bomb_is_refused_from_its_header() {
+    let dir = tempfile::tempdir().unwrap();
+    let (input, out) = (dir.path().join("cap"), dir.path().join("rel"));
+    let mut s = scene(InterfaceOrientation::LandscapeRight, 10.0, 5.0, 0.0);
+    write_frame(&input, "good", &s);
+    // A frame whose JSON claims the bomb's 16000x16000 (principal point at its centre),
+    // so only the decoded-size limit stands between it and 1.5 GiB.
+    s.resolution = (16000, 16000);
+    s.k = Matrix3::new(500.0, 0.0, 8000.0, 0.0, 505.0, 8000.0, 0.0, 0.0, 1.0);
+    std::fs::write(
+        input.join("bomb.json"),
+        serde_json::to_string(&frame_json(&s)).unwrap(),
+    )
+    .unwrap();
+    std::fs::write(input.join("bomb.png"), support::png_bomb::png_bomb(16000)).unwrap();
+    let summary = import_arkit::import_capture(&options(&input, &out), &|| {}).unwrap();
+    assert_eq!(summary.imported, 1, "{:#?}", summary.skipped);
+    let p = &summary.skipped[0];
+    assert_eq!(p.file, "bomb.png");
+    assert!(
+        p.reason.contains("16000x16000 16-bit grey")
+            && p.reason.contains("refused before decoding"),
+        "{}",
+        p.reason
+    );
+}
+
+#[test]
+fn row_major_matrices_in_most_frames_stop_the_import_and_leave_nothing() {
+    let dir = tempfile::tempdir().unwrap();
+    let (input, out) = (dir.path().join("cap"), dir.path().join("rel"));
+    let s = scene(InterfaceOrientation::LandscapeRight, 10.0, 5.0, 0.0);
+    for i in 0..6 {
+        write_frame(&input, &format!("f{i}"), &s);
+    }
+    // An app that writes its matrices row-major, in 4 of the first 5 frames.
+    for i in 0..4 {
+        let f = input.join(format!("f{i}.json"));
+        let mut v: Value = serde_json::from_str(&std::fs::read_to_string(&f).unwrap()).unwrap();
+        v["camera_transform"] = columns4(&s.camera_world.transpose());
+        std::fs::write(&f, v.to_string()).unwrap();
+    }
+    let mut o = options(&input, &out);
+    o.systematic_window = 5;
+    let e = import_arkit::import_capture(&o, &|| {})
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("'transforms' check skipped 4 of the first 5 frames")
+            && e.contains("f0.json")
+            && e.contains("columns")
+            && e.contains("--allow-systematic-skips"),
+        "{e}"
+    );
+    assert!(
+        std::fs::read_dir(&out).map_or(true, |mut d| d.next().is_none()),
+        "a stopped import left output"
+    );
+    // Not stopping (--allow-systematic-skips): each frame skipped with its reason.
+    o.systematic_window = 0;
+    let summary = import_arkit::import_capture(&o, &|| {}).unwrap();
+    assert_eq!((summary.imported, summary.skipped.len()), (2, 4));
+    // 3 of the first 6 (half) does not stop.
+    let out2 = dir.path().join("rel2");
+    let f = input.join("f0.json");
+    let mut v: Value = serde_json::from_str(&std::fs::read_to_string(&f).unwrap()).unwrap();
+    v["camera_transform"] = columns4(&s.camera_world);
+    std::fs::write(&f, v.to_string()).unwrap();
+    let mut o = options(&input, &out2);
+    o.systematic_window = 6;
+    let summary = import_arkit::import_capture(&o, &|| {}).unwrap();
+    assert_eq!((summary.imported, summary.skipped.len()), (3, 3));
 }

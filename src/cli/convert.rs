@@ -34,6 +34,11 @@ use std::process::ExitCode;
 /// verts = the sequence's own head mesh), then converted as above with the BIWI head's
 /// topology. Images without a pose file are listed, not guessed. See docs/biwi.md.
 ///
+/// When one check skips more than half of the first 1,000 samples, the input is in
+/// another convention rather than full of bad samples: convert stops with the check's
+/// name and what to do (--skip-check points2d, or fix the input; --allow-systematic-skips
+/// to skip them one by one instead). See docs/convert.md, "Systematic refusals".
+///
 /// Example: arkit-tool convert --input data/synth --output data/synth-parquet
 /// Example: arkit-tool convert --format biwi --input BIWI/hpdb --output data/biwi-pq
 /// Cluster: run `convert --shard I/N` for I in 0..N (same --output), then `arkit-tool merge`.
@@ -83,9 +88,42 @@ pub struct ConvertArgs {
     /// with --format biwi also if a frame had no pose file or a sequence was skipped.
     #[arg(long)]
     strict: bool,
+    /// Turn a per-sample check off (repeatable). `points2d`: the annotation's points2d
+    /// must lie on verts projected at R_t into the image; turn it off when a release
+    /// stores points2d in another convention (the pose and image are still checked
+    /// against each other by the 68 landmarks). Other checks cannot be turned off: a
+    /// sample that fails them would be wrong.
+    #[arg(long, value_enum, value_name = "NAME")]
+    skip_check: Vec<SkipCheck>,
+    /// Do not stop when one check skips more than half of the first 1,000 samples (the
+    /// sign of an input in another convention; the message names the check and what to
+    /// do): skip them one by one, each reported. Inputs of fewer than 1,000 samples are
+    /// never stopped.
+    #[arg(long)]
+    allow_systematic_skips: bool,
+    /// The systematic rule's window (tests).
+    #[arg(long, hide = true, default_value_t = arkit_tool::systematic::SYSTEMATIC_WINDOW)]
+    systematic_window: usize,
     /// Print the manifest as JSON.
     #[arg(long)]
     json: bool,
+}
+
+/// A check `--skip-check` turns off.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
+enum SkipCheck {
+    /// The annotation's points2d against verts at R_t projected into the image.
+    Points2d,
+}
+
+impl ConvertArgs {
+    fn window(&self) -> usize {
+        if self.allow_systematic_skips {
+            0
+        } else {
+            self.systematic_window
+        }
+    }
 }
 
 pub fn run(a: ConvertArgs) -> Result<ExitCode> {
@@ -128,8 +166,9 @@ fn run_biwi(a: ConvertArgs) -> Result<ExitCode> {
     let total = arkit_tool::biwi::count_frames(&a.input);
     let bar = super::progress_bar(total as u64, "biwi", "frames");
     let pool = super::thread_pool(a.jobs)?;
-    let (summary, topology) =
-        pool.install(|| arkit_tool::biwi::stage(&a.input, &staging, a.biwi_size, &|| bar.inc(1)))?;
+    let (summary, topology) = pool.install(|| {
+        arkit_tool::biwi::stage_with(&a.input, &staging, a.biwi_size, a.window(), &|| bar.inc(1))
+    })?;
     bar.finish_and_clear();
     eprintln!(
         "BIWI: {} sequences, {} frames, {} staged in {} ({} without a pose file, {} problems; head mesh of {} vertices)",
@@ -185,6 +224,16 @@ fn convert_with(
         topology,
         embed_images: a.embed_images,
     };
+    let checks = convert::ConvertChecks {
+        skip: a
+            .skip_check
+            .iter()
+            .map(|c| match c {
+                SkipCheck::Points2d => arkit_tool::systematic::Check::Points2d,
+            })
+            .collect(),
+        window: a.window(),
+    };
     let input = convert::discover(&a.input)?;
     let plan = convert::plan_rows(&input)?;
     let rows = &plan.0;
@@ -206,7 +255,9 @@ fn convert_with(
     let bar = super::progress_bar(rows.len() as u64, "convert", "samples");
     let pool = super::thread_pool(a.jobs)?;
     let manifest = pool.install(|| {
-        convert::convert_planned(&options, &ctx, &input, plan, &|n| bar.inc(n as u64))
+        convert::convert_planned_with(&options, &ctx, &checks, &input, plan, &|n| {
+            bar.inc(n as u64)
+        })
     })?;
     bar.finish_and_clear();
     if a.json {

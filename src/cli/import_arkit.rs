@@ -35,7 +35,9 @@ enum SplitArg {
 /// points2d. `convert` reads the output as it reads the release. A bad frame (missing
 /// key, wrong vertex count, non-rigid transform, unreadable or resized image, face out
 /// of view) is reported with its file and reason and skipped; the others are written.
-/// Derivation: docs/import-arkit.md.
+/// When one check skips more than half of the first 1,000 frames, the import stops
+/// with the check and what to do, and leaves no output (--allow-systematic-skips
+/// skips them one by one instead). Derivation: docs/import-arkit.md.
 ///
 /// Example: arkit-tool import-arkit --input my_capture --output my_release --preview check.png
 #[derive(Args, Debug)]
@@ -76,6 +78,15 @@ pub struct ImportArkitArgs {
     /// Worker threads, 1..=1024 (default: all cores).
     #[arg(long, allow_negative_numbers = true, value_parser = super::jobs)]
     jobs: Option<usize>,
+    /// Do not stop when one check skips more than half of the first 1,000 frames (the
+    /// sign of a capture app writing another convention: row-major matrices, images
+    /// turned or resized; the message names the check and what to do): skip them one
+    /// by one, each reported. Captures of fewer than 1,000 frames are never stopped.
+    #[arg(long)]
+    allow_systematic_skips: bool,
+    /// The systematic rule's window (tests).
+    #[arg(long, hide = true, default_value_t = arkit_tool::systematic::SYSTEMATIC_WINDOW)]
+    systematic_window: usize,
     /// Print a JSON summary instead of text.
     #[arg(long)]
     json: bool,
@@ -94,6 +105,11 @@ pub fn run(a: ImportArkitArgs) -> Result<ExitCode> {
         size: a.size,
         jpeg_quality: a.jpeg_quality,
         overwrite: a.overwrite,
+        systematic_window: if a.allow_systematic_skips {
+            0
+        } else {
+            a.systematic_window
+        },
     };
     let subject_guess = a.subject.clone().unwrap_or_default();
     let total = import_arkit::find_frames(&a.input, &subject_guess)?.len();
@@ -143,9 +159,7 @@ fn write_preview(a: &ImportArkitArgs, split: Split, path: &std::path::Path) -> R
     let mut images = Vec::new();
     for row in keys.iter().take(6) {
         let img_path = layout.image_path(split, &row.key);
-        let image = image::open(&img_path)
-            .map_err(|e| Error::format(&img_path, e.to_string()))?
-            .to_rgb8();
+        let image = arkit_tool::image_decode::read_rgb8_checked(&img_path, |_| Ok(()))?;
         let info = arkit_tool::release::read_info(&layout.info_path(split, &row.key))?;
         let mut drawn = image.clone();
         arkit_tool::synth::draw_overlay(&mut drawn, &topology, &info)?;

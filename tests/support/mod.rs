@@ -4,3 +4,4 @@
 
 pub mod biwi_writer;
 pub mod converted;
+pub mod png_bomb;

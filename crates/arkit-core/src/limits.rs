@@ -182,3 +182,34 @@ const _: () = {
     assert!(MAX_TORCH_STORAGE_BYTES >= 9_437_184);
     assert!(MAX_SAFETENSORS_HEADER_BYTES >= 20_000);
 };
+
+// ---- Decoded images -------------------------------------------------------------------
+//
+// Every image reader (`convert`'s release JPEGs, `convert --format biwi`'s PNGs,
+// `import-arkit`'s captures, the converted dataset's images for `render`, `crops`,
+// `predict`, the loader and `augment`, Python's `read_image`) decodes through one
+// function (`arkit_data::image_decode`), which reads the size and colour type from the
+// image's header and checks them against these limits *before* any pixel is decoded. A
+// few hundred bytes of PNG can declare 16000 x 16000 16-bit pixels (1.5 GiB decoded);
+// such an image is refused, not decoded. Images are decoded one per thread, so a run's
+// image memory is at most the number of threads times [`MAX_DECODED_IMAGE_BYTES`].
+
+/// Most pixels of one decoded image: 2^24 (16.8 M, for example 4096 x 4096 or 5461 x
+/// 3072). The release's images are 1280 x 720 (0.92 M), BIWI's 640 x 480, an iPhone's
+/// captured frame 1920 x 1440 (2.8 M), a 12 MP photo 4032 x 3024 (12.2 M).
+pub const MAX_DECODED_IMAGE_PIXELS: u64 = 1 << 24;
+
+/// Most bytes one image's decoding may hold: the decoder's output in the file's own
+/// colour type (3 bytes a pixel for 8-bit RGB, 6 for 16-bit RGB, 8 for 16-bit RGBA) plus
+/// the 8-bit RGB copy every reader works on when the file is not already 8-bit RGB:
+/// 128 MiB. An 8-bit RGB image at [`MAX_DECODED_IMAGE_PIXELS`] needs 48 MiB; a 16-bit
+/// RGB one may have at most 14.9 M pixels (9 bytes a pixel).
+pub const MAX_DECODED_IMAGE_BYTES: u64 = 128 << 20;
+
+const _: () = {
+    // The release's images, BIWI's and 12 MP photos fit, in any colour type.
+    assert!(MAX_DECODED_IMAGE_PIXELS >= 4032 * 3024);
+    assert!(4032 * 3024 * (8 + 3) <= MAX_DECODED_IMAGE_BYTES);
+    assert!(MAX_DECODED_IMAGE_PIXELS * 3 <= MAX_DECODED_IMAGE_BYTES);
+    assert!(MAX_DECODED_IMAGE_BYTES < 1 << 30);
+};

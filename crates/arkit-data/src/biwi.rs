@@ -88,6 +88,9 @@ pub struct Calibration {
     pub rotation: Matrix3<f64>,
     /// Depth-to-RGB translation, mm.
     pub translation_mm: Vector3<f64>,
+    /// The image size the intrinsics are for (`width height`, the file's last line), if
+    /// the file gives it (BIWI's do: `640 480`).
+    pub image_size: Option<(u32, u32)>,
 }
 
 fn read_text(path: &Path) -> Result<String> {
@@ -148,8 +151,8 @@ fn check_rotation(r: &Matrix3<f64>, path: &Path, what: &str) -> Result<()> {
 
 impl Calibration {
     /// Parses `rgb.cal`: K (3 lines), distortion (1 line), rotation (3 lines),
-    /// translation (1 line), then optionally the image size (ignored); blank lines
-    /// between them are allowed.
+    /// translation (1 line), then optionally the image size the intrinsics are for (1
+    /// line: width and height); blank lines between them are allowed.
     pub fn parse(text: &str, path: &Path) -> Result<Self> {
         let lines = number_lines(text, path)?;
         if lines.len() < 8 {
@@ -180,11 +183,41 @@ impl Calibration {
                 "the depth-to-RGB translation must be one line of 3 numbers",
             ));
         }
+        if lines.len() > 9 {
+            return Err(Error::format(
+                path,
+                format!(
+                    "{} lines of numbers, at most 9 expected (K, distortion, rotation, translation, image size)",
+                    lines.len()
+                ),
+            ));
+        }
+        let image_size = match lines.get(8) {
+            None => None,
+            Some(l) => {
+                let side = |v: f64| {
+                    (v.fract() == 0.0 && (1.0..=crate::limits::MAX_IMAGE_SIDE as f64).contains(&v))
+                        .then_some(v as u32)
+                };
+                match l.as_slice() {
+                    &[w, h] if side(w).is_some() && side(h).is_some() => Some((w as u32, h as u32)),
+                    _ => {
+                        return Err(Error::format(
+                            path,
+                            format!(
+                                "the image size (last line) must be a width and a height in pixels, found {l:?}"
+                            ),
+                        ));
+                    }
+                }
+            }
+        };
         Ok(Calibration {
             k,
             distortion: lines[3].clone(),
             rotation,
             translation_mm: Vector3::new(lines[7][0], lines[7][1], lines[7][2]),
+            image_size,
         })
     }
 
@@ -192,6 +225,42 @@ impl Calibration {
     pub fn read(path: &Path) -> Result<Self> {
         Self::parse(&read_text(path)?, path)
     }
+
+    /// Checks that a frame of `width x height` pixels is one these intrinsics are for:
+    /// the calibration's image size when it gives one, and in any case the principal
+    /// point within the middle half of the image (a frame resized by 2 puts it on the
+    /// border). A resized or cropped frame no longer matches its intrinsics, so its
+    /// image would not match its pose; the reason says so.
+    pub fn check_frame_size(&self, width: u32, height: u32) -> std::result::Result<(), String> {
+        if let Some((w, h)) = self.image_size
+            && (w, h) != (width, height)
+        {
+            return Err(format!(
+                "the image is {width}x{height} but rgb.cal's intrinsics are for {w}x{h}: a resized or cropped frame does not match its calibration, so its image would not match its pose"
+            ));
+        }
+        principal_point_check(&self.k, width, height).map_err(|m| format!("{m} (rgb.cal)"))
+    }
+}
+
+/// Checks that the principal point of `k` lies in the middle half of a `width x
+/// height` image (`|cx - w/2| <= w/4`, the same for y): true of every real camera's
+/// intrinsics for the image they were calibrated on, false when the image was resized
+/// by a factor of 2 or more, or the intrinsics belong to another resolution. The error
+/// says what was found.
+pub fn principal_point_check(
+    k: &Matrix3<f64>,
+    width: u32,
+    height: u32,
+) -> std::result::Result<(), String> {
+    let (cx, cy) = (k[(0, 2)], k[(1, 2)]);
+    let (w, h) = (width as f64, height as f64);
+    if (cx - w / 2.0).abs() > w / 4.0 || (cy - h / 2.0).abs() > h / 4.0 {
+        return Err(format!(
+            "the intrinsics' principal point ({cx}, {cy}) is far from the centre of this {width}x{height} image: the intrinsics are for another image size (was the image resized?)"
+        ));
+    }
+    Ok(())
 }
 
 /// A frame's head pose in the depth camera: `x_depth = rotation p + translation_mm`.
@@ -434,28 +503,74 @@ pub fn stage(
     side: u32,
     progress: &(dyn Fn() + Sync),
 ) -> Result<(StageSummary, FaceTopology)> {
+    stage_with(
+        input,
+        staging,
+        side,
+        crate::systematic::SYSTEMATIC_WINDOW,
+        progress,
+    )
+}
+
+/// [`stage`] with the systematic rule's window (0: never stop; see
+/// [`crate::systematic`]): when the frame-size check refuses more than half of the
+/// first `window` posed frames, staging stops with the reason and what to do.
+pub fn stage_with(
+    input: &Path,
+    staging: &Path,
+    side: u32,
+    window: usize,
+    progress: &(dyn Fn() + Sync),
+) -> Result<(StageSummary, FaceTopology)> {
     if !input.is_dir() {
         return Err(Error::format(input, "BIWI folder does not exist"));
     }
-    let mut seqs: Vec<PathBuf> = std::fs::read_dir(input)
-        .map_err(|e| Error::io(input, e))?
-        .filter_map(|e| e.ok().map(|e| e.path()))
-        .filter(|p| {
-            p.is_dir()
-                && p.file_name().is_some_and(|n| {
-                    let n = n.to_string_lossy();
-                    !n.is_empty() && n.bytes().all(|b| b.is_ascii_digit())
-                })
-        })
-        .collect();
+    let mut problems = Vec::new();
+    // Sequence folders: the entries named by digits that are folders. One that cannot
+    // be read (a broken or looping symbolic link, no permission) is reported.
+    let mut seqs: Vec<PathBuf> = Vec::new();
+    for e in std::fs::read_dir(input).map_err(|e| Error::io(input, e))? {
+        let p = e.map_err(|e| Error::io(input, e))?.path();
+        let digits = p.file_name().is_some_and(|n| {
+            let n = n.to_string_lossy();
+            !n.is_empty() && n.bytes().all(|b| b.is_ascii_digit())
+        });
+        if !digits {
+            continue;
+        }
+        match std::fs::metadata(&p).and_then(|m| {
+            if m.is_dir() {
+                std::fs::read_dir(&p).map(|_| true)
+            } else {
+                Ok(false)
+            }
+        }) {
+            Ok(true) => seqs.push(p),
+            Ok(false) => {}
+            Err(e) => problems.push(StageProblem {
+                file: rel(input, &p),
+                reason: format!(
+                    "this sequence folder cannot be read ({e}): a broken or looping symbolic link? Its frames are not converted"
+                ),
+            }),
+        }
+    }
     seqs.sort();
+    problems.sort_by(|a, b| a.file.cmp(&b.file));
     if seqs.is_empty() {
+        let unreadable: Vec<String> = problems
+            .iter()
+            .map(|p| format!("{}: {}", p.file, p.reason))
+            .collect();
         return Err(Error::format(
             input,
-            "no sequence folders (01/, 02/, ...): is this BIWI's hpdb folder?",
+            if unreadable.is_empty() {
+                "no sequence folders (01/, 02/, ...): is this BIWI's hpdb folder?".to_string()
+            } else {
+                format!("no readable sequence folder: {}", unreadable.join("; "))
+            },
         ));
     }
-    let mut problems = Vec::new();
     let mut without_pose = Vec::new();
     let mut frames_found = 0;
     let mut frames: Vec<Frame> = Vec::new();
@@ -565,63 +680,84 @@ pub fn stage(
         .collect();
     let layout = ReleaseLayout::new(staging);
     let camera = Camera::release(side, side);
-    let results: Vec<std::result::Result<SampleKey, StageProblem>> = frames
-        .par_iter()
-        .map(|f| {
-            let r = (|| {
-                let (cal, _) = &sequences[&f.sequence];
-                let key = SampleKey {
-                    subject_id: f.sequence.clone(),
-                    facial_action: "biwi".into(),
-                    img_id: f.number.clone(),
-                };
-                let problem = |p: &Path, reason: String| StageProblem {
-                    file: rel(input, p),
-                    reason,
-                };
-                let text = read_text(&f.pose).map_err(|e| problem(&f.pose, e.reason()))?;
-                let fp =
-                    FramePose::parse(&text, &f.pose).map_err(|e| problem(&f.pose, e.reason()))?;
-                let pose = release_pose(&fp, cal);
-                pose.check()
-                    .map_err(|e| problem(&f.pose, format!("the pose: {}", e.reason())))?;
-                let len = std::fs::metadata(&f.image)
-                    .map_err(|e| problem(&f.image, e.to_string()))?
-                    .len();
-                if len > crate::limits::MAX_IMAGE_FILE_BYTES {
-                    return Err(problem(&f.image, format!("{len} bytes: too large")));
-                }
-                let img = image::open(&f.image)
-                    .map_err(|e| problem(&f.image, format!("image does not decode: {e}")))?
-                    .to_rgb8();
-                let written = resample_to_release(&img, &cal.k, &Matrix3::identity(), side);
-                let info = InfoAnnotation::complete(
-                    verts[&f.sequence].clone(),
-                    &pose,
-                    &camera,
-                    Matrix4::identity(),
-                );
-                let write = |e: Error| problem(&f.image, format!("could not write: {e}"));
-                let jpeg = crate::synth::jpeg_bytes(&written, 95).map_err(write)?;
-                atomic_file::write_bytes(&layout.image_path(Split::Test, &key), &jpeg)
-                    .map_err(write)?;
-                release::write_info(
-                    &layout.info_path(Split::Test, &key),
-                    &info,
-                    NpzCompression::Deflated,
-                )
-                .map_err(write)?;
-                Ok(key)
-            })();
-            progress();
-            r
-        })
-        .collect();
+    let stage_frames =
+        |frames: &[Frame]| -> Vec<std::result::Result<SampleKey, (bool, StageProblem)>> {
+            frames
+                .par_iter()
+                .map(|f| {
+                    let mut size_refused = false;
+                    let r = (|| {
+                        let (cal, _) = &sequences[&f.sequence];
+                        let key = SampleKey {
+                            subject_id: f.sequence.clone(),
+                            facial_action: "biwi".into(),
+                            img_id: f.number.clone(),
+                        };
+                        let problem = |p: &Path, reason: String| StageProblem {
+                            file: rel(input, p),
+                            reason,
+                        };
+                        let text = read_text(&f.pose).map_err(|e| problem(&f.pose, e.reason()))?;
+                        let fp = FramePose::parse(&text, &f.pose)
+                            .map_err(|e| problem(&f.pose, e.reason()))?;
+                        let pose = release_pose(&fp, cal);
+                        pose.check()
+                            .map_err(|e| problem(&f.pose, format!("the pose: {}", e.reason())))?;
+                        // The frame's size from its header, against the calibration's, before
+                        // any pixel is decoded (the decode itself is bounded too).
+                        let img = crate::image_decode::read_rgb8_checked(&f.image, |h| {
+                            cal.check_frame_size(h.width, h.height).map_err(|m| {
+                                size_refused = true;
+                                Error::format(&f.image, m)
+                            })
+                        })
+                        .map_err(|e| problem(&f.image, e.reason()))?;
+                        let written = resample_to_release(&img, &cal.k, &Matrix3::identity(), side);
+                        let info = InfoAnnotation::complete(
+                            verts[&f.sequence].clone(),
+                            &pose,
+                            &camera,
+                            Matrix4::identity(),
+                        );
+                        let write = |e: Error| problem(&f.image, format!("could not write: {e}"));
+                        let jpeg = crate::synth::jpeg_bytes(&written, 95).map_err(write)?;
+                        atomic_file::write_bytes(&layout.image_path(Split::Test, &key), &jpeg)
+                            .map_err(write)?;
+                        release::write_info(
+                            &layout.info_path(Split::Test, &key),
+                            &info,
+                            NpzCompression::Deflated,
+                        )
+                        .map_err(write)?;
+                        Ok(key)
+                    })();
+                    progress();
+                    r.map_err(|p| (size_refused, p))
+                })
+                .collect()
+        };
+    // The first frames (the systematic rule's window) first, then the rule, then the rest.
+    let mut tally = crate::systematic::SkipTally::new(window);
+    let first = tally.remaining().min(frames.len());
+    let mut results = stage_frames(&frames[..first]);
+    for r in &results {
+        tally.record(match r {
+            Err((true, p)) => Some((
+                crate::systematic::Check::FrameSize,
+                format!("{}: {}", p.file, p.reason),
+            )),
+            _ => None,
+        });
+    }
+    if let Some((_, message)) = tally.verdict("posed frames") {
+        return Err(Error::format(input, message));
+    }
+    results.extend(stage_frames(&frames[first..]));
     let mut keys = Vec::new();
     for r in results {
         match r {
             Ok(k) => keys.push(k),
-            Err(p) => problems.push(p),
+            Err((_, p)) => problems.push(p),
         }
     }
     release::write_list(&layout.list_path(Split::Test), &keys)?;

@@ -36,6 +36,7 @@ pub use crate::manifest::{
 };
 use crate::release::{self, ListRow, SampleKey};
 use crate::samples_table::{self, ErrorRecord, SampleRecord};
+use crate::systematic::{Check, SkipTally};
 use crate::topology::FaceTopology;
 use nalgebra::{Matrix4, Point3};
 use rayon::prelude::*;
@@ -213,19 +214,65 @@ pub fn find_orphans(input: &DiscoveredInput, rows: &[PlannedRow]) -> Vec<ErrorRe
         .flat_map(|r| [r.image.clone(), r.info.clone()])
         .collect();
     let mut out = Vec::new();
+    let problem = |f: &Path, reason: String| ErrorRecord {
+        key: SampleKey {
+            subject_id: String::new(),
+            facial_action: String::new(),
+            img_id: String::new(),
+        },
+        split: String::new(),
+        file: relative(&input.root, f),
+        reason,
+    };
+    // Each folder is walked once (by its canonical path), so a symbolic link back to
+    // an ancestor is reported, not followed round; an entry that cannot be read (a
+    // broken or looping link) is reported, not taken for a file or skipped silently.
+    let mut walked = HashSet::new();
     for dir in input.data_dirs() {
         let mut stack = vec![input.root.join(&dir)];
         let mut files = Vec::new();
+        let top = stack[0].clone();
         while let Some(d) = stack.pop() {
-            let Ok(entries) = std::fs::read_dir(&d) else {
-                continue;
+            match std::fs::canonicalize(&d) {
+                Ok(c) if !walked.insert(c.clone()) => {
+                    out.push(problem(
+                        &d,
+                        format!(
+                            "a folder already walked (a symbolic link to {}): not walked again",
+                            c.display()
+                        ),
+                    ));
+                    continue;
+                }
+                Ok(_) => {}
+                Err(e) if d == top && e.kind() == std::io::ErrorKind::NotFound => continue,
+                Err(e) => {
+                    out.push(problem(&d, format!("folder cannot be read: {e}")));
+                    continue;
+                }
+            }
+            let entries = match std::fs::read_dir(&d) {
+                Ok(entries) => entries,
+                Err(e) => {
+                    out.push(problem(&d, format!("folder cannot be read: {e}")));
+                    continue;
+                }
             };
-            for e in entries.flatten() {
-                let p = e.path();
-                if p.is_dir() {
-                    stack.push(p);
-                } else {
-                    files.push(p);
+            for e in entries {
+                let p = match e {
+                    Ok(e) => e.path(),
+                    Err(e) => {
+                        out.push(problem(&d, format!("folder cannot be listed: {e}")));
+                        continue;
+                    }
+                };
+                match std::fs::metadata(&p) {
+                    Ok(m) if m.is_dir() => stack.push(p),
+                    Ok(_) => files.push(p),
+                    Err(e) => out.push(problem(
+                        &p,
+                        format!("cannot be read ({e}): a broken or looping symbolic link?"),
+                    )),
                 }
             }
         }
@@ -233,16 +280,7 @@ pub fn find_orphans(input: &DiscoveredInput, rows: &[PlannedRow]) -> Vec<ErrorRe
         for f in files {
             let rel = f.strip_prefix(&input.root).unwrap_or(&f).to_path_buf();
             if !named.contains(&rel) {
-                out.push(ErrorRecord {
-                    key: SampleKey {
-                        subject_id: String::new(),
-                        facial_action: String::new(),
-                        img_id: String::new(),
-                    },
-                    split: String::new(),
-                    file: relative(&input.root, &f),
-                    reason: "file on disk that no list names".into(),
-                });
+                out.push(problem(&f, "file on disk that no list names".into()));
             }
         }
     }
@@ -339,6 +377,65 @@ pub fn validate_sample(
     row: &PlannedRow,
     ctx: &ValidationContext,
 ) -> std::result::Result<SampleRecord, Box<ErrorRecord>> {
+    validate_sample_with(root, row, ctx, &ConvertChecks::default()).map_err(|s| s.record)
+}
+
+/// Which per-sample checks run, and the window of the systematic rule
+/// ([`crate::systematic`]).
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct ConvertChecks {
+    /// Checks turned off (only [`Check::Points2d`] can be).
+    pub skip: Vec<Check>,
+    /// The systematic rule's window ([`crate::systematic::SYSTEMATIC_WINDOW`]; 0: the
+    /// run never stops, `--allow-systematic-skips`).
+    pub window: usize,
+}
+
+impl Default for ConvertChecks {
+    fn default() -> Self {
+        ConvertChecks {
+            skip: Vec::new(),
+            window: crate::systematic::SYSTEMATIC_WINDOW,
+        }
+    }
+}
+
+/// The checks `--skip-check` can turn off: those whose failure does not make the sample
+/// wrong (the pose and image are still checked against each other without them).
+pub const SKIPPABLE_CHECKS: [Check; 1] = [Check::Points2d];
+
+/// A skipped sample: its error row, and the check (if a named one) that skipped it.
+#[derive(Debug)]
+pub struct Skip {
+    /// The named check, for the systematic rule.
+    pub check: Option<Check>,
+    /// The `errors` table's row.
+    pub record: Box<ErrorRecord>,
+}
+
+impl From<Box<ErrorRecord>> for Skip {
+    fn from(record: Box<ErrorRecord>) -> Self {
+        Skip {
+            check: None,
+            record,
+        }
+    }
+}
+
+fn by(check: Check) -> impl FnOnce(Box<ErrorRecord>) -> Skip {
+    move |record| Skip {
+        check: Some(check),
+        record,
+    }
+}
+
+/// [`validate_sample`] with `checks`; a skip says which check made it.
+pub fn validate_sample_with(
+    root: &Path,
+    row: &PlannedRow,
+    ctx: &ValidationContext,
+    checks: &ConvertChecks,
+) -> std::result::Result<SampleRecord, Skip> {
     let fail = |file: &Path, reason: String| {
         Box::new(ErrorRecord {
             key: row.key.clone(),
@@ -359,63 +456,58 @@ pub fn validate_sample(
                 info.verts.len(),
                 ctx.topology.vertex_count
             ),
-        ));
+        )
+        .into());
     }
-    let pose = Pose::from_release_rt(&info.rt).map_err(|e| fail(&row.info, strip(e)))?;
+    let pose =
+        Pose::from_release_rt(&info.rt).map_err(|e| by(Check::Pose)(fail(&row.info, strip(e))))?;
     let image_path = root.join(&row.image);
-    let size = std::fs::metadata(&image_path)
-        .map_err(|e| fail(&row.image, e.to_string()))?
-        .len();
-    if size > MAX_IMAGE_FILE_BYTES {
-        return Err(fail(
-            &row.image,
-            format!(
-                "{size} bytes, more than the {} an image may have",
-                MAX_IMAGE_FILE_BYTES
-            ),
-        ));
-    }
-    let bytes = std::fs::read(&image_path).map_err(|e| fail(&row.image, e.to_string()))?;
+    let bytes = crate::image_decode::read_image_file(&image_path)
+        .map_err(|e| fail(&row.image, e.reason()))?;
     check_jpeg_framing(&bytes).map_err(|m| fail(&row.image, m))?;
-    let image = image::load_from_memory_with_format(&bytes, image::ImageFormat::Jpeg)
-        .map_err(|e| fail(&row.image, format!("JPEG does not decode: {e}")))?;
-    let (width, height) = (image.width(), image.height());
-    drop(image);
-    if width > crate::raster::MAX_VIEWPORT || height > crate::raster::MAX_VIEWPORT {
-        return Err(fail(
-            &row.image,
-            format!(
-                "the image is {width}x{height}: larger than the {} pixels a side the renderer takes",
-                crate::raster::MAX_VIEWPORT
-            ),
-        ));
-    }
-    if width < MIN_IMAGE_SIDE || height < MIN_IMAGE_SIDE {
-        return Err(fail(
-            &row.image,
-            format!(
-                "the image is {width}x{height}: too small for a face crop (at least {MIN_IMAGE_SIDE}x{MIN_IMAGE_SIDE})"
-            ),
-        ));
-    }
+    // The size from the header, checked before any pixel is decoded; the decode then
+    // proves the JPEG whole.
+    let (width, height) = crate::image_decode::decode_rgb8_checked(&bytes, &image_path, |h| {
+        let (width, height) = (h.width, h.height);
+        if width > crate::raster::MAX_VIEWPORT || height > crate::raster::MAX_VIEWPORT {
+            return Err(Error::format(
+                &image_path,
+                format!(
+                    "the image is {width}x{height}: larger than the {} pixels a side the renderer takes",
+                    crate::raster::MAX_VIEWPORT
+                ),
+            ));
+        }
+        if width < MIN_IMAGE_SIDE || height < MIN_IMAGE_SIDE {
+            return Err(Error::format(
+                &image_path,
+                format!(
+                    "the image is {width}x{height}: too small for a face crop (at least {MIN_IMAGE_SIDE}x{MIN_IMAGE_SIDE})"
+                ),
+            ));
+        }
+        Ok(())
+    })
+    .map_err(|e| fail(&row.image, e.reason()))?
+    .dimensions();
     let camera =
         Camera::new(ctx.projection, width, height).map_err(|e| fail(&row.info, strip(e)))?;
     let verts64: Vec<Point3<f64>> = info.verts.iter().map(|p| p.cast()).collect();
     camera
         .check_projectable(&pose, &verts64)
-        .map_err(|e| fail(&row.info, strip(e)))?;
+        .map_err(|e| by(Check::Projection)(fail(&row.info, strip(e))))?;
     let mut landmarks_2d = Vec::with_capacity(136);
     let (mut x0, mut y0, mut x1, mut y1) = (f64::MAX, f64::MAX, f64::MIN, f64::MIN);
     for (k, &v) in ctx.topology.landmarks.iter().enumerate() {
         let p = camera.project(&pose, &verts64[v as usize]);
         if !(0.0..=width as f64).contains(&p.u) || !(0.0..=height as f64).contains(&p.v) {
-            return Err(fail(
+            return Err(by(Check::Projection)(fail(
                 &row.info,
                 format!(
                     "landmark {k} projects to ({:.1}, {:.1}), outside the {width}x{height} image: annotation and image do not match",
                     p.u, p.v
                 ),
-            ));
+            )));
         }
         landmarks_2d.extend([p.u as f32, p.v as f32]);
         x0 = x0.min(p.u);
@@ -424,16 +516,20 @@ pub fn validate_sample(
         y1 = y1.max(p.v);
     }
     if x1 - x0 < MIN_FACE_SPAN_PX || y1 - y0 < MIN_FACE_SPAN_PX {
-        return Err(fail(
+        return Err(by(Check::Projection)(fail(
             &row.info,
             format!(
                 "the 68 landmarks span {:.1}x{:.1} pixels (at least {MIN_FACE_SPAN_PX} each way): a collapsed or all-zero mesh",
                 x1 - x0,
                 y1 - y0
             ),
-        ));
+        )));
     }
-    if let Some(points2d) = &info.points2d {
+    if let Some(points2d) = info
+        .points2d
+        .as_ref()
+        .filter(|_| !checks.skip.contains(&Check::Points2d))
+    {
         let mut off: Vec<f64> = verts64
             .iter()
             .zip(points2d)
@@ -447,12 +543,12 @@ pub fn validate_sample(
         let tolerance =
             POINTS2D_TOLERANCE_PX.max(POINTS2D_TOLERANCE_FRACTION * width.max(height) as f64);
         if median > tolerance {
-            return Err(fail(
+            return Err(by(Check::Points2d)(fail(
                 &row.image,
                 format!(
                     "the annotation's points2d lie a median {median:.1} px from its verts at R_t projected into this {width}x{height} image (tolerance {tolerance:.1} px): the image is not the one the annotation was made for (resized or another sample's)"
                 ),
-            ));
+            )));
         }
     }
     let (cx, cy) = ((x0 + x1) / 2.0, (y0 + y1) / 2.0);
@@ -541,6 +637,10 @@ pub struct ConversionFingerprint {
     /// so one dataset never mixes formats.
     #[serde(default)]
     pub samples_format: u32,
+    /// The per-sample checks turned off (`--skip-check`), sorted: a conversion with a
+    /// check off converts other samples, so it is another conversion. Absent when none.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub skipped_checks: Vec<String>,
 }
 
 impl ConversionFingerprint {
@@ -566,6 +666,7 @@ impl ConversionFingerprint {
             embed_images: options.embed_images,
             version: env!("CARGO_PKG_VERSION").into(),
             samples_format: samples_table::SAMPLES_FORMAT,
+            skipped_checks: Vec::new(),
         })
     }
 
@@ -658,6 +759,11 @@ fn claim_output(output: &Path, fingerprint: &ConversionFingerprint, overwrite: b
                     e.samples_format.max(1),
                     fingerprint.samples_format
                 ),
+                Some(e) if e.skipped_checks != fingerprint.skipped_checks => format!(
+                    "a conversion with other checks turned off (--skip-check: [{}] there, [{}] now)",
+                    e.skipped_checks.join(", "),
+                    fingerprint.skipped_checks.join(", ")
+                ),
                 Some(_) => "a conversion with other options or another version".to_string(),
                 None => "samples without a conversion record".to_string(),
             };
@@ -740,6 +846,38 @@ pub fn convert_planned(
     plan: (Vec<PlannedRow>, Vec<ErrorRecord>),
     progress: Progress,
 ) -> Result<Manifest> {
+    convert_planned_with(
+        options,
+        ctx,
+        &ConvertChecks::default(),
+        input,
+        plan,
+        progress,
+    )
+}
+
+/// [`convert_planned`] with `checks` (checks turned off, the systematic rule's
+/// window). A run that the systematic rule stops ([`crate::systematic`]) returns its
+/// message as the error; the shards finished before it stay (a rerun with the check
+/// turned off is another conversion and replaces them with `--overwrite`).
+pub fn convert_planned_with(
+    options: &ConvertOptions,
+    ctx: &ValidationContext,
+    checks: &ConvertChecks,
+    input: &DiscoveredInput,
+    plan: (Vec<PlannedRow>, Vec<ErrorRecord>),
+    progress: Progress,
+) -> Result<Manifest> {
+    if let Some(c) = checks.skip.iter().find(|c| !SKIPPABLE_CHECKS.contains(c)) {
+        return Err(Error::invalid(
+            "--skip-check",
+            format!(
+                "the '{}' check cannot be turned off (a sample that fails it would be wrong); only {} can",
+                c.name(),
+                SKIPPABLE_CHECKS.map(|c| c.name()).join(", ")
+            ),
+        ));
+    }
     if options.rows_per_shard == 0 {
         return Err(Error::invalid("--rows-per-shard", "must be at least 1"));
     }
@@ -754,7 +892,11 @@ pub fn convert_planned(
     }
     let (rows, mut listing) = plan;
     let out = &options.output;
-    let fingerprint = ConversionFingerprint::new(input, options, ctx)?;
+    let mut fingerprint = ConversionFingerprint::new(input, options, ctx)?;
+    let mut skipped: Vec<String> = checks.skip.iter().map(|c| c.name().to_string()).collect();
+    skipped.sort();
+    skipped.dedup();
+    fingerprint.skipped_checks = skipped;
     let conversion = fingerprint.digest();
     claim_output(out, &fingerprint, options.overwrite)?;
     let _part_lock = crate::atomic_file::FolderLock::acquire(
@@ -778,6 +920,7 @@ pub fn convert_planned(
     }
     let mut shards = Vec::new();
     let vertices = ctx.topology.vertex_count;
+    let mut tally = SkipTally::new(checks.window);
     // Validation of shard k+1 (rayon) overlaps the writing of shard k (one writer
     // thread), so the sequential Parquet encoding does not leave a core idle.
     std::thread::scope(|scope| -> Result<()> {
@@ -806,19 +949,34 @@ pub fn convert_planned(
             if record_path.exists() {
                 std::fs::remove_file(&record_path).map_err(|e| Error::io(&record_path, e))?;
             }
-            let results: Vec<std::result::Result<SampleRecord, Box<ErrorRecord>>> = chunk
-                .par_iter()
-                .map(|row| {
-                    let r = validate_sample(&input.root, row, ctx);
-                    progress(1);
-                    r
-                })
-                .collect();
+            let validate = |rows: &[PlannedRow]| -> Vec<std::result::Result<SampleRecord, Skip>> {
+                rows.par_iter()
+                    .map(|row| {
+                        let r = validate_sample_with(&input.root, row, ctx, checks);
+                        progress(1);
+                        r
+                    })
+                    .collect()
+            };
+            // The first samples of the run (up to the systematic rule's window) are
+            // validated first, and the rule applied, before the rest of the shard.
+            let first = tally.remaining().min(chunk.len());
+            let mut results = validate(&chunk[..first]);
+            for r in &results {
+                tally.record(r.as_ref().err().and_then(|s| {
+                    s.check
+                        .map(|c| (c, format!("{}: {}", s.record.file, s.record.reason)))
+                }));
+            }
+            if let Some((_, message)) = tally.verdict("samples") {
+                return Err(Error::invalid("convert", message));
+            }
+            results.extend(validate(&chunk[first..]));
             let (mut good, mut bad) = (Vec::new(), Vec::new());
             for r in results {
                 match r {
                     Ok(s) => good.push(s),
-                    Err(e) => bad.push(*e),
+                    Err(e) => bad.push(*e.record),
                 }
             }
             if let Some(h) = pending.take() {

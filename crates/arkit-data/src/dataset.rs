@@ -126,37 +126,47 @@ impl Dataset {
     }
 
     /// The decoded image of `sample`, or an error naming the file, the reason and where
-    /// the images are looked for. The image must have the size the table records.
+    /// the images are looked for. The image must have the size the table records,
+    /// checked from its header before it is decoded
+    /// ([`crate::image_decode::decode_rgb8_checked`], which also bounds its size).
     pub fn image(&self, sample: &SampleRecord) -> Result<RgbImage> {
-        let decoded = match &sample.jpeg {
-            Some(bytes) => image::load_from_memory(bytes).map_err(|e| {
-                Error::format(
-                    self.dir.join(&sample.image_path),
-                    format!("the embedded JPEG of {} does not decode: {e}", sample.key),
-                )
-            })?,
+        let (path, read);
+        let bytes: &[u8] = match &sample.jpeg {
+            Some(bytes) => {
+                path = self.dir.join(&sample.image_path);
+                bytes
+            }
             None => {
-                let path = self.image_root.join(&sample.image_path);
-                let bytes = std::fs::read(&path).map_err(|e| self.not_found(&path, e))?;
-                image::load_from_memory(&bytes)
-                    .map_err(|e| Error::format(&path, format!("JPEG does not decode: {e}")))?
+                path = self.image_root.join(&sample.image_path);
+                read = crate::image_decode::read_image_file(&path).map_err(|e| match e {
+                    Error::Io { source, .. } => self.not_found(&path, source),
+                    other => other,
+                })?;
+                &read
             }
         };
-        let image = decoded.to_rgb8();
-        if image.dimensions() != (sample.image_width, sample.image_height) {
-            return Err(Error::format(
-                self.image_path(sample)
-                    .unwrap_or_else(|| self.dir.join(&sample.image_path)),
-                format!(
-                    "the image is {}x{}, the samples table says {}x{}: it changed since convert",
-                    image.width(),
-                    image.height(),
-                    sample.image_width,
-                    sample.image_height
-                ),
-            ));
-        }
-        Ok(image)
+        let what = match sample.jpeg {
+            Some(_) => format!("the embedded JPEG of {}", sample.key),
+            None => "the image".to_string(),
+        };
+        crate::image_decode::decode_rgb8_checked(bytes, &path, |h| {
+            if (h.width, h.height) != (sample.image_width, sample.image_height) {
+                return Err(Error::format(
+                    &path,
+                    format!(
+                        "{what} is {}x{}, the samples table says {}x{}: it changed since convert",
+                        h.width, h.height, sample.image_width, sample.image_height
+                    ),
+                ));
+            }
+            Ok(())
+        })
+        .map_err(|e| match e {
+            Error::Format { message, .. } if sample.jpeg.is_some() && !message.contains(&what) => {
+                Error::format(&path, format!("{what}: {message}"))
+            }
+            other => other,
+        })
     }
 
     /// Checks that the image of `sample` can be found and has the recorded size, from

@@ -50,17 +50,21 @@
 //! nothing guessed: the JSON's size (limit [`MAX_CAPTURE_JSON_BYTES`]), keys, shapes and
 //! finite values; 1,220 vertices; both transforms rigid (last row `(0, 0, 0, 1)`, an
 //! orthonormal right-handed rotation); intrinsics with positive focal lengths and last
-//! row `(0, 0, 1)`; the image present, within [`MAX_IMAGE_FILE_BYTES`], decoding, and
-//! of the stated resolution; the face in front of the camera; every vertex inside the
+//! row `(0, 0, 1)`, and a principal point in the middle half of the stated resolution
+//! (intrinsics of another resolution are refused); the image present, within
+//! [`MAX_IMAGE_FILE_BYTES`](crate::limits::MAX_IMAGE_FILE_BYTES), of the stated
+//! resolution (read from its header, before decoding), within the decoded-size limits
+//! of [`crate::image_decode`], and decoding; the face in front of the camera; every vertex inside the
 //! written image (so `convert`'s checks pass).
 
 use crate::atomic_file;
 use crate::conventions::pose::ORTHONORMAL_TOLERANCE;
 use crate::conventions::{Camera, Pose};
 use crate::error::{Error, Result};
-use crate::limits::{MAX_CAPTURE_JSON_BYTES, MAX_IMAGE_FILE_BYTES, MAX_IMAGE_SIDE};
+use crate::limits::{MAX_CAPTURE_JSON_BYTES, MAX_IMAGE_SIDE};
 use crate::npy::NpzCompression;
 use crate::release::{self, ARKIT_VERTEX_COUNT, InfoAnnotation, ReleaseLayout, SampleKey, Split};
+use crate::systematic::Check;
 use image::{Rgb, RgbImage};
 use nalgebra::{Matrix3, Matrix4, Point3, Vector3};
 use rayon::prelude::*;
@@ -248,6 +252,8 @@ impl CaptureFrame {
             Ok(x as u32)
         };
         let image_resolution = (side(&res[0], "width")?, side(&res[1], "height")?);
+        crate::biwi::principal_point_check(&intrinsics, image_resolution.0, image_resolution.1)
+            .map_err(|m| format!("'camera_intrinsics' and 'image_resolution' disagree: {m}"))?;
         let o = get("interface_orientation")?;
         let orientation = o
             .as_str()
@@ -414,6 +420,10 @@ pub struct FrameProblem {
     pub file: String,
     /// What is wrong.
     pub reason: String,
+    /// The check a convention can break that refused the frame, if one did (for the
+    /// systematic rule, [`crate::systematic`]).
+    #[serde(skip)]
+    pub check: Option<Check>,
 }
 
 /// What to import.
@@ -433,6 +443,9 @@ pub struct ImportOptions {
     pub jpeg_quality: u8,
     /// Replace a release layout already in the output folder.
     pub overwrite: bool,
+    /// The systematic rule's window ([`crate::systematic::SYSTEMATIC_WINDOW`]; 0: never
+    /// stop, `--allow-systematic-skips`).
+    pub systematic_window: usize,
 }
 
 /// What an import did.
@@ -524,6 +537,51 @@ pub fn find_frames(input: &Path, subject: &str) -> Result<Vec<FoundFrame>> {
     Ok(frames)
 }
 
+/// The entries of a capture folder (and of its sub-folders, one level) that cannot be
+/// read, so their frames cannot be found: a broken or looping symbolic link, a folder
+/// without permission. Each is reported (`import_capture` lists them as skipped), not
+/// passed over in silence.
+pub fn unreadable_entries(input: &Path) -> Vec<FrameProblem> {
+    let mut out = Vec::new();
+    let scan = |dir: &Path, depth: usize, out: &mut Vec<FrameProblem>| -> Vec<PathBuf> {
+        let mut subs = Vec::new();
+        let Ok(rd) = std::fs::read_dir(dir) else {
+            return subs;
+        };
+        for e in rd.flatten() {
+            let p = e.path();
+            let hidden = p
+                .file_name()
+                .is_some_and(|n| n.to_string_lossy().starts_with('.'));
+            let readable = std::fs::metadata(&p).and_then(|m| {
+                if m.is_dir() {
+                    std::fs::read_dir(&p).map(|_| true)
+                } else {
+                    Ok(false)
+                }
+            });
+            match readable {
+                Ok(true) if depth == 0 && !hidden => subs.push(p),
+                Ok(_) => {}
+                Err(e) if !hidden => out.push(FrameProblem {
+                    file: relative_string(p.strip_prefix(input).unwrap_or(&p)),
+                    reason: format!(
+                        "cannot be read ({e}): a broken or looping symbolic link? No frame in it is imported"
+                    ),
+                    check: None,
+                }),
+                Err(_) => {}
+            }
+        }
+        subs
+    };
+    for sub in scan(input, 0, &mut out) {
+        scan(&sub, 1, &mut out);
+    }
+    out.sort_by(|a, b| a.file.cmp(&b.file));
+    out
+}
+
 /// A frame made ready to write.
 #[derive(Clone, Debug)]
 pub struct ImportedFrame {
@@ -544,6 +602,13 @@ pub fn import_frame(
     let fail = |file: &Path, reason: String| FrameProblem {
         file: relative_string(file),
         reason,
+        check: None,
+    };
+    let tagged = |check: Check| {
+        move |p: FrameProblem| FrameProblem {
+            check: Some(check),
+            ..p
+        }
     };
     let len = std::fs::metadata(&json_path)
         .map_err(|e| fail(&frame.json, e.to_string()))?
@@ -555,7 +620,21 @@ pub fn import_frame(
         ));
     }
     let text = std::fs::read_to_string(&json_path).map_err(|e| fail(&frame.json, e.to_string()))?;
-    let cf = CaptureFrame::parse(&text).map_err(|r| fail(&frame.json, r))?;
+    let cf = CaptureFrame::parse(&text).map_err(|r| {
+        // The checks of the JSON that a convention breaks (row-major matrices,
+        // intrinsics of another resolution), by the key the reason starts with.
+        let check = if r.contains("is not a rigid transform") {
+            Some(Check::Transforms)
+        } else if r.starts_with("'camera_intrinsics'") {
+            Some(Check::Intrinsics)
+        } else {
+            None
+        };
+        FrameProblem {
+            check,
+            ..fail(&frame.json, r)
+        }
+    })?;
     // The image: named by the JSON, or the JSON's stem with a PNG or JPEG extension.
     let dir = frame.json.parent().unwrap_or(Path::new(""));
     let image_rel = match &cf.image {
@@ -594,35 +673,27 @@ pub fn import_frame(
         }
     };
     let image_path = input.join(&image_rel);
-    let bytes_len = std::fs::metadata(&image_path)
-        .map_err(|e| fail(&image_rel, format!("cannot read the image: {e}")))?
-        .len();
-    if bytes_len > MAX_IMAGE_FILE_BYTES {
-        return Err(fail(
-            &image_rel,
-            format!("{bytes_len} bytes, more than the {MAX_IMAGE_FILE_BYTES} an image may have"),
-        ));
-    }
-    let bytes = std::fs::read(&image_path).map_err(|e| fail(&image_rel, e.to_string()))?;
-    let format = image::guess_format(&bytes)
-        .ok()
-        .filter(|f| matches!(f, image::ImageFormat::Png | image::ImageFormat::Jpeg))
-        .ok_or_else(|| fail(&image_rel, "not a PNG or JPEG file".into()))?;
-    let (iw, ih) = image::ImageReader::with_format(std::io::Cursor::new(&bytes), format)
-        .into_dimensions()
-        .map_err(|e| fail(&image_rel, format!("image does not decode: {e}")))?;
-    if (iw, ih) != cf.image_resolution {
-        return Err(fail(
-            &image_rel,
-            format!(
-                "the image is {iw}x{ih} but the frame's image_resolution is {}x{}: the intrinsics are for the captured size (was the image resized or rotated?)",
-                cf.image_resolution.0, cf.image_resolution.1
-            ),
-        ));
-    }
-    let captured = image::load_from_memory_with_format(&bytes, format)
-        .map_err(|e| fail(&image_rel, format!("image does not decode: {e}")))?
-        .to_rgb8();
+    // The size from the image's header, against the frame's resolution, before any
+    // pixel is decoded (and the decode bounded: crate::image_decode).
+    let captured = crate::image_decode::read_rgb8_checked(&image_path, |h| {
+        if (h.width, h.height) != cf.image_resolution {
+            return Err(Error::format(
+                &image_path,
+                format!(
+                    "the image is {}x{} but the frame's image_resolution is {}x{}: the intrinsics are for the captured size (was the image resized or rotated?)",
+                    h.width, h.height, cf.image_resolution.0, cf.image_resolution.1
+                ),
+            ));
+        }
+        Ok(())
+    })
+    .map_err(|e| match e {
+        Error::Io { source, .. } => fail(&image_rel, format!("cannot read the image: {source}")),
+        e if e.reason().contains("but the frame's image_resolution is") => {
+            tagged(Check::ImageResolution)(fail(&image_rel, e.reason()))
+        }
+        e => fail(&image_rel, e.reason()),
+    })?;
     let side = cf.written_side(size);
     if !(crate::limits::MIN_IMAGE_SIDE..=crate::raster::MAX_VIEWPORT).contains(&side) {
         return Err(fail(
@@ -650,16 +721,16 @@ pub fn import_frame(
     let camera = Camera::release(side, side);
     camera
         .check_projectable(&pose, &cf.vertices)
-        .map_err(|e| fail(&frame.json, e.reason()))?;
+        .map_err(|e| tagged(Check::InView)(fail(&frame.json, e.reason())))?;
     for (i, q) in camera.project_all(&pose, &cf.vertices).iter().enumerate() {
         if !(0.0..=side as f64).contains(&q.u) || !(0.0..=side as f64).contains(&q.v) {
-            return Err(fail(
+            return Err(tagged(Check::InView)(fail(
                 &frame.json,
                 format!(
                     "vertex {i} projects to ({:.1}, {:.1}), outside the written {side}x{side} image: the face is not wholly in view",
                     q.u, q.v
                 ),
-            ));
+            )));
         }
     }
     let image = resample_to_release(&captured, &cf.intrinsics, &cf.orientation.rotation(), side);
@@ -739,44 +810,72 @@ pub fn import_capture(
             }
         })
         .collect();
-    let results: Vec<std::result::Result<SampleKey, FrameProblem>> = frames
-        .par_iter()
-        .zip(&first_of)
-        .map(|(f, first)| {
-            let r = (|| {
-                if let Some(first) = first {
-                    return Err(FrameProblem {
-                        file: relative_string(&f.json),
-                        reason: format!(
-                            "the same sample key ({}) as {}, imported first",
-                            f.key,
-                            relative_string(first)
-                        ),
-                    });
-                }
-                let done = import_frame(&options.input, f, options.size)?;
-                let write_fail = |e: Error| FrameProblem {
-                    file: relative_string(&f.json),
-                    reason: format!("could not write the output: {e}"),
-                };
-                let jpeg = crate::synth::jpeg_bytes(&done.image, options.jpeg_quality)
-                    .map_err(write_fail)?;
-                atomic_file::write_bytes(&layout.image_path(options.split, &f.key), &jpeg)
-                    .map_err(write_fail)?;
-                release::write_info(
-                    &layout.info_path(options.split, &f.key),
-                    &done.info,
-                    NpzCompression::Deflated,
-                )
-                .map_err(write_fail)?;
-                Ok(f.key.clone())
-            })();
-            progress();
-            r
-        })
-        .collect();
+    let import =
+        |range: std::ops::Range<usize>| -> Vec<std::result::Result<SampleKey, FrameProblem>> {
+            frames[range.clone()]
+                .par_iter()
+                .zip(&first_of[range])
+                .map(|(f, first)| {
+                    let r = (|| {
+                        if let Some(first) = first {
+                            return Err(FrameProblem {
+                                check: None,
+                                file: relative_string(&f.json),
+                                reason: format!(
+                                    "the same sample key ({}) as {}, imported first",
+                                    f.key,
+                                    relative_string(first)
+                                ),
+                            });
+                        }
+                        let done = import_frame(&options.input, f, options.size)?;
+                        let write_fail = |e: Error| FrameProblem {
+                            check: None,
+                            file: relative_string(&f.json),
+                            reason: format!("could not write the output: {e}"),
+                        };
+                        let jpeg = crate::synth::jpeg_bytes(&done.image, options.jpeg_quality)
+                            .map_err(write_fail)?;
+                        atomic_file::write_bytes(&layout.image_path(options.split, &f.key), &jpeg)
+                            .map_err(write_fail)?;
+                        release::write_info(
+                            &layout.info_path(options.split, &f.key),
+                            &done.info,
+                            NpzCompression::Deflated,
+                        )
+                        .map_err(write_fail)?;
+                        Ok(f.key.clone())
+                    })();
+                    progress();
+                    r
+                })
+                .collect()
+        };
+    // The first frames (the systematic rule's window) first, then the rule, then the rest.
+    let mut tally = crate::systematic::SkipTally::new(options.systematic_window);
+    let first = tally.remaining().min(frames.len());
+    let mut results = import(0..first);
+    for r in &results {
+        tally.record(
+            r.as_ref()
+                .err()
+                .and_then(|p| p.check.map(|c| (c, format!("{}: {}", p.file, p.reason)))),
+        );
+    }
+    if let Some((_, message)) = tally.verdict("frames") {
+        // Nothing of a stopped import stays: the layout folders are this run's (any
+        // earlier ones were refused or, with --overwrite, removed above).
+        for d in LAYOUT_DIRS {
+            let p = options.output.join(d);
+            if p.exists() {
+                std::fs::remove_dir_all(&p).map_err(|e| Error::io(&p, e))?;
+            }
+        }
+        return Err(Error::format(&options.input, message));
+    }
+    results.extend(import(first..frames.len()));
     let mut keys = Vec::new();
-    let mut skipped = Vec::new();
+    let mut skipped = unreadable_entries(&options.input);
     for r in results {
         match r {
             Ok(k) => keys.push(k),

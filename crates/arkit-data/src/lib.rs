@@ -23,9 +23,11 @@
 //!   histogram pictures.
 //! - [`eval`]: the paper's metrics; [`predictions_table`]: the predictions file;
 //!   [`eval_dataset`]: a dataset's predictions scored, with a report.
+//! - [`systematic`]: the rule that stops a run when one check skips most samples.
 //! - [`biwi`]: the BIWI Kinect Head Pose database into the release's conventions.
 //! - [`import_arkit`]: a user's own ARKit captures into the release's layout.
-//! - [`overlay`]: meshes drawn over images.
+//! - [`overlay`]: meshes drawn over images; [`image_decode`]: every image read, its
+//!   size checked from the header before decoding.
 //! - [`pnp`]: the pose from 2D-3D correspondences (P3P + MSAC + Levenberg-Marquardt);
 //!   [`predict`]: crop pixels to a release pose, and the oracle predictor.
 //! - [`augment`]: face profiling, roll and mirroring of one sample;
@@ -55,6 +57,7 @@ pub mod dataset;
 pub mod eval;
 pub mod eval_dataset;
 pub mod face_targets;
+pub mod image_decode;
 pub mod import_arkit;
 pub mod loader;
 pub mod manifest;
@@ -69,6 +72,7 @@ pub mod samples_table;
 pub mod split;
 pub mod synth;
 pub mod synthetic_face;
+pub mod systematic;
 pub mod targets_table;
 pub mod topology;
 

@@ -142,6 +142,10 @@ pub struct PnpSolution {
     pub rms_reprojection_error_px: f64,
     /// Number of RANSAC samples drawn ([`solve_pnp_ransac`]) or 0 ([`solve_pnp`]).
     pub iterations: usize,
+    /// Correspondences [`solve_pnp_ransac`] left out because a coordinate was NaN or
+    /// infinite (0 for [`solve_pnp`], which refuses them). None of them is in
+    /// `inliers`.
+    pub non_finite_dropped: usize,
 }
 
 impl PnpSolution {
@@ -157,6 +161,16 @@ impl PnpSolution {
 /// Reasons a PnP problem cannot be solved.
 #[derive(Debug, Clone, PartialEq)]
 pub enum PnpError {
+    /// Fewer finite correspondences than the solver needs once the non-finite ones
+    /// are left out ([`solve_pnp_ransac`]).
+    TooFewFinite {
+        /// Number of correspondences given.
+        given: usize,
+        /// How many of them are finite.
+        finite: usize,
+        /// Minimum number required.
+        needed: usize,
+    },
     /// Fewer correspondences than the solver needs.
     TooFewPoints {
         /// Number of correspondences given.
@@ -184,6 +198,14 @@ pub enum PnpError {
 impl fmt::Display for PnpError {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         match self {
+            PnpError::TooFewFinite {
+                given,
+                finite,
+                needed,
+            } => write!(
+                f,
+                "too few finite points: {finite} of the {given} given are finite (no NaN or infinity), {needed} needed"
+            ),
             PnpError::TooFewPoints { given, needed } => {
                 write!(f, "too few points: {given} given, {needed} needed")
             }
@@ -962,6 +984,7 @@ pub fn solve_pnp(
         inliers: idx,
         rms_reprojection_error_px: e,
         iterations: 0,
+        non_finite_dropped: 0,
     })
 }
 
@@ -971,11 +994,63 @@ pub fn solve_pnp(
 
 /// Robust PnP: P3P hypotheses in an MSAC loop, then LM refinement on the inliers.
 ///
+/// A correspondence with a NaN or infinite coordinate (object or image point) is an
+/// outlier that no hypothesis can explain: it is left out before solving, counted in
+/// [`PnpSolution::non_finite_dropped`], and never among the `inliers`, whose indices
+/// still refer to the caller's slices. The result is the one the finite
+/// correspondences alone give (same seed, same pose). At least 4 finite
+/// correspondences are needed ([`PnpError::TooFewFinite`] otherwise).
+///
 /// See the module documentation for the algorithm. Errors: [`PnpError::TooFewPoints`]
-/// (< 4), [`PnpError::LengthMismatch`], [`PnpError::NonFinite`], and
-/// [`PnpError::Degenerate`] for coincident/collinear object points or when no
+/// (< 4 given), [`PnpError::TooFewFinite`] (< 4 finite), [`PnpError::LengthMismatch`],
+/// and [`PnpError::Degenerate`] for coincident/collinear object points or when no
 /// hypothesis has at least 4 inliers.
 pub fn solve_pnp_ransac(
+    object: &[Point3<f64>],
+    image: &[Point2<f64>],
+    k: &Intrinsics,
+    params: &RansacParams,
+) -> Result<PnpSolution, PnpError> {
+    if object.len() != image.len() {
+        return Err(PnpError::LengthMismatch {
+            object: object.len(),
+            image: image.len(),
+        });
+    }
+    let finite = |i: usize| {
+        object[i].coords.iter().all(|v| v.is_finite())
+            && image[i].coords.iter().all(|v| v.is_finite())
+    };
+    let kept: Vec<usize> = (0..object.len()).filter(|&i| finite(i)).collect();
+    if kept.len() == object.len() {
+        return solve_finite_ransac(object, image, k, params);
+    }
+    if object.len() < MIN_POINTS {
+        return Err(PnpError::TooFewPoints {
+            given: object.len(),
+            needed: MIN_POINTS,
+        });
+    }
+    if kept.len() < MIN_POINTS {
+        return Err(PnpError::TooFewFinite {
+            given: object.len(),
+            finite: kept.len(),
+            needed: MIN_POINTS,
+        });
+    }
+    let o: Vec<Point3<f64>> = kept.iter().map(|&i| object[i]).collect();
+    let q: Vec<Point2<f64>> = kept.iter().map(|&i| image[i]).collect();
+    let mut s = solve_finite_ransac(&o, &q, k, params)?;
+    // Back to the caller's indexing (ascending stays ascending).
+    for i in &mut s.inliers {
+        *i = kept[*i];
+    }
+    s.non_finite_dropped = object.len() - kept.len();
+    Ok(s)
+}
+
+/// [`solve_pnp_ransac`] on correspondences that are all finite.
+fn solve_finite_ransac(
     object: &[Point3<f64>],
     image: &[Point2<f64>],
     k: &Intrinsics,
@@ -1091,6 +1166,7 @@ pub fn solve_pnp_ransac(
         inliers: inl,
         rms_reprojection_error_px: e,
         iterations,
+        non_finite_dropped: 0,
     })
 }
 
@@ -1333,12 +1409,22 @@ mod tests {
             solve_pnp(&bad, &img, &K).unwrap_err(),
             PnpError::NonFinite { index: 5 }
         );
+        // RANSAC leaves non-finite correspondences out (nan_points_are_dropped...);
+        // with fewer than 4 finite ones left it says so.
         let mut bad_img = img.clone();
-        bad_img[7].x = f64::INFINITY;
+        for q in &mut bad_img[..7] {
+            q.x = f64::INFINITY;
+        }
+        let e = solve_pnp_ransac(&obj, &bad_img, &K, &p).unwrap_err();
         assert_eq!(
-            solve_pnp_ransac(&obj, &bad_img, &K, &p).unwrap_err(),
-            PnpError::NonFinite { index: 7 }
+            e,
+            PnpError::TooFewFinite {
+                given: 10,
+                finite: 3,
+                needed: 4
+            }
         );
+        assert!(e.to_string().contains("3 of the 10"), "{e}");
 
         let collinear: Vec<Point3<f64>> = (0..10)
             .map(|i| Point3::new(0.01 * i as f64, 0.02 * i as f64, 0.003 * i as f64))
@@ -1370,6 +1456,57 @@ mod tests {
             PnpError::Degenerate(_)
         ));
         assert!(!PnpError::Degenerate("x").to_string().is_empty());
+    }
+
+    #[test]
+    fn nan_points_are_dropped_and_the_pose_is_the_one_without_them() {
+        let mut rng = Rng::new(11);
+        let (r, t, obj, img) = scene(&mut rng, 100, false);
+        let img: Vec<Point2<f64>> = img
+            .iter()
+            .map(|q| q + Vector2::new(rng.gauss(), rng.gauss()))
+            .collect();
+        let p = RansacParams::default();
+        let clean = solve_pnp_ransac(&obj, &img, &K, &p).unwrap();
+        assert_eq!(clean.non_finite_dropped, 0);
+        for (bad_object, at) in [(false, 0usize), (true, 37), (false, 99)] {
+            let (mut o, mut q) = (obj.clone(), img.clone());
+            if bad_object {
+                o[at].z = f64::NAN;
+            } else {
+                q[at].y = f64::NAN;
+            }
+            let s = solve_pnp_ransac(&o, &q, &K, &p).unwrap();
+            assert_eq!(s.non_finite_dropped, 1);
+            // The same as solving without that point at all ...
+            let (mut o2, mut q2) = (obj.clone(), img.clone());
+            o2.remove(at);
+            q2.remove(at);
+            let without = solve_pnp_ransac(&o2, &q2, &K, &p).unwrap();
+            assert!(rot_err_deg(&s.rotation, &without.rotation) < 1e-9);
+            assert!((s.translation - without.translation).norm() < 1e-12);
+            // ... its inliers in the caller's indexing: the point's index is absent and
+            // every other index is shifted back past it ...
+            assert!(!s.inliers.contains(&at));
+            let mapped: Vec<usize> = without
+                .inliers
+                .iter()
+                .map(|&i| if i >= at { i + 1 } else { i })
+                .collect();
+            assert_eq!(s.inliers, mapped);
+            assert_eq!(s.inliers.len(), 99);
+            // ... and close to the true pose and to the solution with the point intact.
+            assert!(rot_err_deg(&s.rotation, &r) < 1.0);
+            assert!((s.translation - t).norm() < 0.02);
+            assert!(rot_err_deg(&s.rotation, &clean.rotation) < 0.1);
+        }
+        // solve_pnp (least squares on all points) still refuses them, naming the first.
+        let mut bad = img.clone();
+        bad[3].x = f64::NAN;
+        assert_eq!(
+            solve_pnp(&obj, &bad, &K).unwrap_err(),
+            PnpError::NonFinite { index: 3 }
+        );
     }
 
     #[test]

@@ -646,7 +646,8 @@ impl Dataset {
 /// Robust PnP (P3P + MSAC + Levenberg-Marquardt) with OpenCV's conventions:
 /// `X_cam = R X + t`, pixels, `camera_matrix` 3x3, no distortion. Returns
 /// `(success, rvec (3, 1), tvec (3, 1), inliers (k, 1) int32)`, or
-/// `(False, None, None, None)`.
+/// `(False, None, None, None)`. Correspondences with a NaN or infinite coordinate are
+/// left out (never inliers; the inlier indices are the caller's).
 #[pyfunction]
 #[pyo3(signature = (object_points, image_points, camera_matrix, reprojection_error=8.0, iterations_count=100, confidence=0.99, seed=0))]
 #[allow(clippy::too_many_arguments, clippy::type_complexity)]
@@ -831,7 +832,6 @@ fn evaluate(
     })
 }
 
-/// An image file decoded as the loader decodes it (the `image` crate): `(H, W, 3)` uint8 RGB.
 /// The folder `arkit-tool crops` writes the store of dataset `dir` to for `compat` and
 /// crop side `img_size` (where `ARKitFaceDataset(crop_store="auto")` looks).
 #[pyfunction]
@@ -843,13 +843,13 @@ fn default_crop_store(dir: PathBuf, compat: &str, img_size: u32) -> PyResult<Pat
     ))
 }
 
+/// An image file decoded as the loader decodes it (`arkit_data::image_decode`: PNG or
+/// JPEG, its size checked from the header against the limits before decoding, 16-bit
+/// scaled to 8): `(H, W, 3)` uint8 RGB.
 #[pyfunction]
 fn read_image<'py>(py: Python<'py>, path: PathBuf) -> PyResult<Bound<'py, PyAny>> {
     let img = run(py, || {
-        let bytes = std::fs::read(&path).map_err(|e| Error::io(&path, e))?;
-        image::load_from_memory(&bytes)
-            .map(|i| i.to_rgb8())
-            .map_err(|e| Error::format(&path, format!("does not decode: {e}")))
+        arkit_data::image_decode::read_rgb8_checked(&path, |_| Ok(()))
     })?;
     let (w, h) = img.dimensions();
     Ok(img

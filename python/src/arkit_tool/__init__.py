@@ -587,7 +587,8 @@ def solve_pnp_ransac(
     OpenCV's (N, 1, 3) and (N, 1, 2)); any other shape, a transposed (3, N) among
     them, is refused (`DataError`). Returns `(success, rvec, tvec, inliers)`, rvec and
     tvec (3, 1) float64, inliers (k, 1) int32; `(False, None, None, None)` on failure.
-    Distortion is not modelled: `dist_coeffs` must be None or zeros."""
+    Distortion is not modelled: `dist_coeffs` must be None or zeros. Points with a NaN or
+    infinite coordinate are left out (never inliers; indices are the caller's)."""
     if dist_coeffs is not None and np.any(np.asarray(dist_coeffs) != 0):
         raise DataError("dist_coeffs: lens distortion is not supported; undistort the points first")
     obj = _points("object_points", object_points, 3)
