@@ -442,6 +442,8 @@ fn half_model_loads_within_float16_rounding() {
 
 /// Runs `cmd`; returns whether it succeeded, its stderr, its wall time and its peak
 /// resident memory in KiB (the child's own `ru_maxrss`, from `wait4`).
+// The child is reaped by `wait4` (for its rusage), not by `Child::wait`.
+#[allow(clippy::zombie_processes)]
 fn run_measured(cmd: &mut Command) -> (bool, String, Duration, i64) {
     let t = Instant::now();
     let mut child = cmd

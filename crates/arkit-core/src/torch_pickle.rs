@@ -507,7 +507,7 @@ impl<'a> Machine<'a> {
     }
 
     fn set_items(&mut self, target: V, items: Vec<V>) -> Result<()> {
-        if items.len() % 2 != 0 {
+        if !items.len().is_multiple_of(2) {
             return Err(self.err("SETITEMS with an odd number of values"));
         }
         let d = items.iter().map(|&v| self.depth_of(v)).max().unwrap_or(0) + 1;

@@ -109,7 +109,7 @@ fn decoder<'a>(bytes: &'a [u8], path: &Path) -> Result<(ImageHeader, impl ImageD
     let d = reader.into_decoder().map_err(|e| {
         Error::format(
             path,
-            format!("the image header cannot be read or is over the limits: {e}"),
+            format!("cannot decode the image's header (damaged, or over the limits): {e}"),
         )
     })?;
     let (width, height) = d.dimensions();
