@@ -20,7 +20,7 @@ pub mod direct;
 pub mod layers;
 pub mod loss;
 pub mod model;
-pub mod safetensors_file;
+pub use weights::safetensors_file;
 pub mod training;
 pub mod weights;
 

@@ -1571,8 +1571,9 @@ pub const SHIPPED_MODEL_DIR: &str = "models/tiny-synthetic";
 
 /// The shipped model's `perspnet.json` and weights, compiled into the binary so that
 /// `demo` needs no path to find them.
-const SHIPPED_JSON: &str = include_str!("../../../models/tiny-synthetic/perspnet.json");
-const SHIPPED_WEIGHTS: &[u8] = include_bytes!("../../../models/tiny-synthetic/model.safetensors");
+const SHIPPED_JSON: &str = include_str!("../../../../models/tiny-synthetic/perspnet.json");
+const SHIPPED_WEIGHTS: &[u8] =
+    include_bytes!("../../../../models/tiny-synthetic/model.safetensors");
 
 /// How the shipped model was made (its `perspnet.json`).
 pub fn shipped_checkpoint() -> Result<Checkpoint> {

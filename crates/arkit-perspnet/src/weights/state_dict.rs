@@ -1,6 +1,6 @@
 //! PyTorch `state_dict`s of the official network (`models/network.py` `DeformNetUV2`):
 //! the names and shapes its strict `load_state_dict` asks for, written from a
-//! [`VarMap`] built by [`super::PerspNet::new`] and read back into one.
+//! [`VarMap`] built by [`crate::PerspNet::new`] and read back into one.
 //!
 //! Our variables carry the official names already. The official `state_dict` differs
 //! from them in two ways only: the per-point `Conv1d(c_in, c_out, 1)` weights are
