@@ -9,7 +9,7 @@
 //! - `augmented/`: profiled samples in the release layout;
 //! - `model/`: the checkpoint (`perspnet.json`, `model.safetensors`, `loss.csv`);
 //! - `predictions.parquet`, `shipped.parquet`, `baseline.parquet`: the predictions of
-//!   the model trained here, of the shipped model ([`training::SHIPPED_MODEL_DIR`],
+//!   the model trained here, of the shipped model ([`perspnet::SHIPPED_MODEL_DIR`],
 //!   compiled into the binary; left out for another topology than the built-in face's)
 //!   and of the mean pose;
 //! - `report/index.html` and its pictures; `demo.json`: timings and eval summaries.
@@ -21,6 +21,7 @@ use crate::error::{Error, Result};
 use crate::eval::Summary;
 use crate::eval_dataset::{self, EvalOptions};
 use crate::perspnet::PerspNetConfig;
+use crate::perspnet::{self, Augmentation, TrainOptions};
 use crate::pnp::RansacParams;
 use crate::predictions_table::write_predictions;
 use crate::render::FaceRenderer;
@@ -29,7 +30,6 @@ use crate::report::{self, Figure, Page, StageTiming};
 use crate::split::{self, HoldOut};
 use crate::synth::{self, FaceSource, SynthOptions};
 use crate::topology::FaceTopology;
-use crate::training::{self, Augmentation, TrainOptions};
 use image::RgbImage;
 use serde::Serialize;
 use std::path::{Path, PathBuf};
@@ -113,7 +113,7 @@ impl DemoPlan {
     /// Training steps.
     pub fn train_steps(&self) -> usize {
         let train = (self.subjects - self.test_subjects) * self.images_per_subject;
-        crate::training::total_steps(train, self.epochs, self.batch)
+        crate::perspnet::total_steps(train, self.epochs, self.batch)
     }
 
     /// Work units of the whole run for one progress display: a sample per stage that
@@ -167,7 +167,7 @@ pub struct DemoSummary {
     pub model: Summary,
     /// Its training steps.
     pub trained_steps: usize,
-    /// The shipped model ([`training::SHIPPED_MODEL_DIR`]) on the same samples (none
+    /// The shipped model ([`perspnet::SHIPPED_MODEL_DIR`]) on the same samples (none
     /// with another topology than the built-in face's, on which it was trained).
     pub shipped: Option<Summary>,
     /// Training steps of the shipped model.
@@ -374,8 +374,8 @@ pub fn run_demo(
         points: plan.points,
         ..PerspNetConfig::tiny()
     };
-    let examples = training::read_examples(&dataset, &dataset, &config, Some("train"))?;
-    let (checkpoint, log) = training::train(
+    let examples = perspnet::read_examples(&dataset, &dataset, &config, Some("train"))?;
+    let (checkpoint, log) = perspnet::train(
         &examples,
         topology,
         &TrainOptions {
@@ -409,7 +409,7 @@ pub fn run_demo(
     clock.start("predict");
     // The test split through a network and PnP, as `predict --model` does.
     let predict_test = |model| {
-        training::model_predictions(
+        perspnet::model_predictions(
             &dataset,
             model,
             Some("test"),
@@ -420,12 +420,12 @@ pub fn run_demo(
             &tick,
         )
     };
-    let model = training::load(&model_dir, topology)?;
+    let model = perspnet::load(&model_dir, topology)?;
     let (rows, predicted) = predict_test(&model)?;
     write_predictions(&output.join("predictions.parquet"), &rows)?;
-    let shipped_checkpoint = training::shipped_checkpoint()?;
+    let shipped_checkpoint = perspnet::shipped_checkpoint()?;
     let shipped_rows = if shipped_checkpoint.topology == topology.source {
-        let shipped = training::shipped_model(topology)?;
+        let shipped = perspnet::shipped_model(topology)?;
         let (shipped_rows, _) = predict_test(&shipped)?;
         write_predictions(&output.join("shipped.parquet"), &shipped_rows)?;
         Some(shipped_rows)

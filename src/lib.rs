@@ -6,8 +6,8 @@
 //! - [`arkit_data`] (re-exported module by module, so `arkit_tool::render` is
 //!   `arkit_data::render`): converted datasets, rendering, augmentation, PnP, metrics,
 //!   the loader of the Python package.
-//! - [`perspnet`] and [`training`] (feature `model`, on by default): the reference
-//!   PerspNet in candle, from the `arkit-perspnet` crate.
+//! - [`perspnet`] (feature `model`, on by default): the reference PerspNet in candle,
+//!   its training and its predictions, from the `arkit-perspnet` crate.
 //! - [`report`] and [`demo`]: pictures of each stage in one `index.html`, and the whole
 //!   pipeline on synthetic data.
 //!
@@ -24,5 +24,3 @@ pub mod report;
 
 #[cfg(feature = "model")]
 pub use arkit_perspnet as perspnet;
-#[cfg(feature = "model")]
-pub use arkit_perspnet::training;

@@ -154,8 +154,8 @@ pub fn pose_picture(samples: &[SampleRecord]) -> RgbImage {
 
 /// The loss curve of a training log (`loss.csv` rows): total and each term.
 #[cfg(feature = "model")]
-pub fn loss_picture(log: &[crate::training::StepLoss]) -> RgbImage {
-    let series = |name: &str, f: &dyn Fn(&crate::training::StepLoss) -> f32, c: [u8; 3]| Series {
+pub fn loss_picture(log: &[crate::perspnet::StepLoss]) -> RgbImage {
+    let series = |name: &str, f: &dyn Fn(&crate::perspnet::StepLoss) -> f32, c: [u8; 3]| Series {
         name: name.to_string(),
         values: log.iter().map(|s| f(s) as f64).collect(),
         colour: Rgb(c),

@@ -909,28 +909,28 @@ fn render_reports_and_skips_a_sample_it_cannot_render() {
         points: 64,
         ..arkit_tool::perspnet::PerspNetConfig::tiny()
     };
-    let examples = arkit_tool::training::read_examples(out.path(), out.path(), &cfg, None).unwrap();
+    let examples = arkit_tool::perspnet::read_examples(out.path(), out.path(), &cfg, None).unwrap();
     assert_eq!(examples.len(), 5);
     assert!(examples.iter().all(|e| e.sample.key != broken));
     // predict --mask truth leaves it out too (a one-step model is enough to run it).
     let model_dir = tempfile::tempdir().unwrap();
-    let topts = arkit_tool::training::TrainOptions {
+    let topts = arkit_tool::perspnet::TrainOptions {
         config: cfg,
         epochs: 1,
         max_steps: Some(1),
         batch: 5,
         learning_rate: 1e-3,
         lr_hold: 1.0,
-        augmentation: arkit_tool::training::Augmentation::NONE,
+        augmentation: arkit_tool::perspnet::Augmentation::NONE,
         lowered_start: false,
         seed: 1,
         output: model_dir.path().to_path_buf(),
         resume: false,
     };
     let topology = arkit_tool::synthetic_face::builtin().topology.clone();
-    arkit_tool::training::train(&examples, &topology, &topts, &|_| {}).unwrap();
-    let model = arkit_tool::training::load(model_dir.path(), &topology).unwrap();
-    let (preds, ps) = arkit_tool::training::model_predictions(
+    arkit_tool::perspnet::train(&examples, &topology, &topts, &|_| {}).unwrap();
+    let model = arkit_tool::perspnet::load(model_dir.path(), &topology).unwrap();
+    let (preds, ps) = arkit_tool::perspnet::model_predictions(
         out.path(),
         &model,
         None,
@@ -969,8 +969,8 @@ fn render_reports_and_skips_a_sample_it_cannot_render() {
 #[cfg(feature = "model")]
 fn training_streams_shard_by_shard() {
     use arkit_tool::perspnet::PerspNetConfig;
+    use arkit_tool::perspnet::{self, ExampleShards, ShardedExamples, TrainOptions};
     use arkit_tool::render_dataset::{self, RenderOptions};
-    use arkit_tool::training::{self, ExampleShards, ShardedExamples, TrainOptions};
     let input = tempfile::tempdir().unwrap();
     make_release(input.path(), 2, 3);
     let topology = arkit_tool::synthetic_face::builtin().topology.clone();
@@ -1001,15 +1001,15 @@ fn training_streams_shard_by_shard() {
         (2, 4, 2)
     );
     // read_examples is the shards' examples one after the other.
-    let all = training::read_examples(two.path(), two.path(), &cfg, None).unwrap();
-    let keys = |e: &[training::Example]| e.iter().map(|e| e.sample.key.clone()).collect::<Vec<_>>();
+    let all = perspnet::read_examples(two.path(), two.path(), &cfg, None).unwrap();
+    let keys = |e: &[perspnet::Example]| e.iter().map(|e| e.sample.key.clone()).collect::<Vec<_>>();
     let mut loaded = keys(&source.load(0).unwrap());
     loaded.extend(keys(&source.load(1).unwrap()));
     assert_eq!(loaded, keys(&all));
     // A split's counts (from the keys alone) agree with what loading gives.
     for split in ["train", "test"] {
         let part = ShardedExamples::open(two.path(), two.path(), &cfg, Some(split)).unwrap();
-        let read = training::read_examples(two.path(), two.path(), &cfg, Some(split)).unwrap();
+        let read = perspnet::read_examples(two.path(), two.path(), &cfg, Some(split)).unwrap();
         assert_eq!(part.total(), read.len(), "{split}");
         assert!((1..6).contains(&read.len()), "{split}: {}", read.len());
         assert!(read.iter().all(|e| e.sample.split == split));
@@ -1022,16 +1022,16 @@ fn training_streams_shard_by_shard() {
         batch: 3,
         learning_rate: 1e-3,
         lr_hold: 0.5,
-        augmentation: training::Augmentation::NONE,
+        augmentation: perspnet::Augmentation::NONE,
         lowered_start: false,
         seed: 4,
         output: out.path().to_path_buf(),
         resume: false,
     };
     // Per epoch: ceil(4 / 3) + ceil(2 / 3) = 3 steps (a batch never spans two shards).
-    let (ck, log) = training::train(&source, &topology, &topts, &|_| {}).unwrap();
+    let (ck, log) = perspnet::train(&source, &topology, &topts, &|_| {}).unwrap();
     assert_eq!((ck.steps, ck.example_shards, ck.examples), (6, 2, 6));
-    assert_eq!(training::steps_per_epoch(&source, 3), 3);
+    assert_eq!(perspnet::steps_per_epoch(&source, 3), 3);
     // Interrupted after the first epoch and resumed: the replayed shard and sample
     // orders give the uninterrupted run's losses.
     let cut = tempfile::tempdir().unwrap();
@@ -1040,7 +1040,7 @@ fn training_streams_shard_by_shard() {
         ..topts.clone()
     };
     let stopped = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
-        training::train(&source, &topology, &cut_opts, &|s| {
+        perspnet::train(&source, &topology, &cut_opts, &|s| {
             assert!(s.step < 3, "stop")
         })
     }));
@@ -1049,11 +1049,11 @@ fn training_streams_shard_by_shard() {
         resume: true,
         ..cut_opts
     };
-    let (_, rlog) = training::train(&source, &topology, &resumed, &|_| {}).unwrap();
-    let totals = |l: &[training::StepLoss]| l.iter().map(|s| s.total).collect::<Vec<_>>();
+    let (_, rlog) = perspnet::train(&source, &topology, &resumed, &|_| {}).unwrap();
+    let totals = |l: &[perspnet::StepLoss]| l.iter().map(|s| s.total).collect::<Vec<_>>();
     assert_eq!(totals(&rlog), totals(&log));
     // Resuming that checkpoint with all examples in memory (another order) is refused.
-    let e = match training::train(&all, &topology, &resumed, &|_| {}) {
+    let e = match perspnet::train(&all, &topology, &resumed, &|_| {}) {
         Err(e) => e.to_string(),
         Ok(_) => panic!("resumed a streamed run in memory"),
     };
@@ -1061,14 +1061,14 @@ fn training_streams_shard_by_shard() {
     // With one shard, streaming is the in-memory run exactly.
     let single = ShardedExamples::open(one.path(), one.path(), &cfg, None).unwrap();
     assert_eq!(single.shards(), 1);
-    let in_memory = training::read_examples(one.path(), one.path(), &cfg, None).unwrap();
+    let in_memory = perspnet::read_examples(one.path(), one.path(), &cfg, None).unwrap();
     let run_on = |s: &dyn ExampleShards| {
         let o = tempfile::tempdir().unwrap();
         let opts = TrainOptions {
             output: o.path().to_path_buf(),
             ..topts.clone()
         };
-        totals(&training::train(s, &topology, &opts, &|_| {}).unwrap().1)
+        totals(&perspnet::train(s, &topology, &opts, &|_| {}).unwrap().1)
     };
     assert_eq!(run_on(&single), run_on(&in_memory));
 }

@@ -400,7 +400,7 @@ fn jpeg_framing_walks_the_segments() {
 #[test]
 #[cfg(feature = "model")]
 fn library_options_are_checked_without_the_cli() {
-    use arkit_tool::training::{Augmentation, TrainOptions};
+    use arkit_tool::perspnet::{Augmentation, TrainOptions};
     let base = TrainOptions {
         config: arkit_tool::perspnet::PerspNetConfig::tiny(),
         epochs: 1,
@@ -412,6 +412,7 @@ fn library_options_are_checked_without_the_cli() {
             colour: 0.1,
             shift_px: 0,
             resample_points: true,
+            legacy_colour: None,
         },
         lowered_start: false,
         seed: 0,

@@ -2,9 +2,7 @@
 //! buffers; a bit-exact round trip; mismatched files refused with the list of what is
 //! wrong; and (when a Python with torch is at hand) a file written by `torch.save`.
 
-use arkit_tool::perspnet::weights::{export_state_dict, state_dict_entries};
-use arkit_tool::perspnet::{PerspNet, PerspNetConfig};
-use arkit_tool::training;
+use arkit_tool::perspnet::{self, PerspNet, PerspNetConfig, export_state_dict, state_dict_entries};
 use candle_core::{DType, Device, Tensor};
 use candle_nn::{VarBuilder, VarMap};
 use std::collections::HashMap;
@@ -48,8 +46,8 @@ fn random_varmap(cfg: &PerspNetConfig, seed: u64) -> VarMap {
     let vm = VarMap::new();
     let vb = VarBuilder::from_varmap(&vm, DType::F32, &Device::Cpu);
     let topo = &arkit_tool::synthetic_face::builtin().topology;
-    PerspNet::new(cfg, &training::vertex_uv(topo, &Device::Cpu).unwrap(), vb).unwrap();
-    training::reseed(&vm, seed, 0.05).unwrap();
+    PerspNet::new(cfg, &perspnet::vertex_uv(topo, &Device::Cpu).unwrap(), vb).unwrap();
+    perspnet::reseed(&vm, seed, 0.05).unwrap();
     let data = vm.data().lock().unwrap();
     let mut k = 0f32;
     let mut names: Vec<&String> = data.keys().collect();
@@ -139,7 +137,7 @@ fn export_import_export_is_bit_exact() {
     same_files(&first, &second);
     // The imported folder predicts like any other: it loads as a trained model.
     let topo = &arkit_tool::synthetic_face::builtin().topology;
-    training::load(&model, topo).unwrap();
+    perspnet::load(&model, topo).unwrap();
 }
 
 #[test]
@@ -305,7 +303,7 @@ fn predict_dump_holds_inputs_and_outputs() {
     assert_eq!(npz.require("vertex_uv").unwrap().shape(), &[1220, 2]);
     let (s, m, v) = (cfg.input_size, cfg.points, cfg.vertices);
     let topo = &arkit_tool::synthetic_face::builtin().topology;
-    let model = training::load(&dir.path().join("model"), topo).unwrap();
+    let model = perspnet::load(&dir.path().join("model"), topo).unwrap();
     for key in &samples {
         let get = |n: &str| npz.require(&format!("{key}/{n}")).unwrap();
         assert_eq!(get("image").shape(), &[3, s, s]);
@@ -401,8 +399,8 @@ fn half_model_loads_within_float16_rounding() {
     );
     let topo = &arkit_tool::synthetic_face::builtin().topology;
     let (a, b) = (
-        training::load(&model, topo).unwrap(),
-        training::load(&half, topo).unwrap(),
+        perspnet::load(&model, topo).unwrap(),
+        perspnet::load(&half, topo).unwrap(),
     );
     let (da, db) = (
         a.varmap.data().lock().unwrap(),
@@ -433,7 +431,7 @@ fn half_model_loads_within_float16_rounding() {
         candle_core::safetensors::load(model.join("model.safetensors"), &Device::Cpu).unwrap();
     tensors.remove("cnn.seg.bias");
     candle_core::safetensors::save(&tensors, model.join("model.safetensors")).unwrap();
-    let e = training::load(&model, topo).err().unwrap().to_string();
+    let e = perspnet::load(&model, topo).err().unwrap().to_string();
     assert!(
         e.contains("cnn.seg.bias") && e.contains("model.safetensors"),
         "{e}"

@@ -175,11 +175,11 @@ pub fn run(a: PredictArgs) -> Result<ExitCode> {
     #[cfg(feature = "model")]
     if let Some(dir) = &a.model {
         let topology = super::load_topology(a.resources.as_deref())?;
-        let model = arkit_tool::training::load(dir, &topology)?;
+        let model = arkit_tool::perspnet::load(dir, &topology)?;
         let bar = super::progress_bar(manifest.converted as u64, "predict", "samples");
         let targets = a.targets.clone().unwrap_or_else(|| a.dataset.clone());
         let mut dump = Vec::new();
-        let (rows, summary) = arkit_tool::training::model_predictions_dump(
+        let (rows, summary) = arkit_tool::perspnet::model_predictions_dump(
             &a.dataset,
             &model,
             split,
@@ -196,7 +196,7 @@ pub fn run(a: PredictArgs) -> Result<ExitCode> {
         bar.finish_and_clear();
         write_predictions(&a.output, &rows)?;
         if let Some(path) = &a.dump {
-            arkit_tool::training::write_dump(path, &model.checkpoint.config, &topology, &dump)?;
+            arkit_tool::perspnet::write_dump(path, &model.checkpoint.config, &topology, &dump)?;
             if !a.json {
                 eprintln!(
                     "dumped {} samples' network inputs and outputs -> {}",

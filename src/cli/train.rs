@@ -1,7 +1,7 @@
 //! `arkit-tool train`.
 
+use arkit_tool::perspnet::{self, ExampleShards, ShardedExamples, TrainOptions};
 use arkit_tool::perspnet::{Architecture, LossVariant, PerspNetConfig};
-use arkit_tool::training::{self, ExampleShards, ShardedExamples, TrainOptions};
 use arkit_tool::{Error, Result};
 use clap::Args;
 use std::path::PathBuf;
@@ -83,9 +83,11 @@ pub struct TrainArgs {
     /// step (the paper's schedule). In [0, 1]; 1 keeps it constant.
     #[arg(long, allow_negative_numbers = true, default_value_t = 0.5, value_parser = super::unit_interval)]
     lr_hold: f64,
-    /// Colour jitter strength (brightness and contrast in [1-c, 1+c], channel gains
-    /// in [1-c/2, 1+c/2]), c in [0, 1]; 0 turns it off.
-    #[arg(long, allow_negative_numbers = true, default_value_t = 0.2, value_parser = super::unit_interval)]
+    /// Colour jitter strength c in [0, 1]: torchvision's ColorJitter(c, c, 2c/3, c/30)
+    /// on the crop's bytes (brightness, contrast and saturation factors in [1-c, 1+c],
+    /// [1-c, 1+c], [1-2c/3, 1+2c/3], a hue shift of up to c/30 of a turn, in a random
+    /// order), the Python loader's jitter; 0.3 is the official loader's, 0 turns it off.
+    #[arg(long, allow_negative_numbers = true, default_value_t = 0.3, value_parser = super::unit_interval)]
     colour_jitter: f64,
     /// Crop jitter: shift each crop by up to this many pixels per axis, 0..=64.
     #[arg(long, allow_negative_numbers = true, default_value_t = 2, value_parser = clap::value_parser!(u32).range(0..=64))]
@@ -226,7 +228,7 @@ pub fn run(a: TrainArgs) -> Result<ExitCode> {
         }
         Box::new(examples)
     };
-    let per_epoch = training::steps_per_epoch(source.as_ref(), a.batch).max(1);
+    let per_epoch = perspnet::steps_per_epoch(source.as_ref(), a.batch).max(1);
     let (epochs, steps) = match a.steps {
         Some(n) => (n.div_ceil(per_epoch), n),
         None => (a.epochs, a.epochs * per_epoch),
@@ -239,21 +241,22 @@ pub fn run(a: TrainArgs) -> Result<ExitCode> {
         batch: a.batch,
         learning_rate: a.lr,
         lr_hold: a.lr_hold,
-        augmentation: training::Augmentation {
+        augmentation: perspnet::Augmentation {
             colour: a.colour_jitter as f32,
             shift_px: a.shift_px,
             resample_points: !a.stored_points,
+            legacy_colour: None,
         },
         seed: a.seed,
         output: a.output.clone(),
         resume: a.resume,
         lowered_start: a.lowered_start,
     };
-    let on_step = |s: &training::StepLoss| {
+    let on_step = |s: &perspnet::StepLoss| {
         bar.set_message(format!("loss {:.4}", s.total));
         bar.inc(1);
     };
-    let (checkpoint, _) = training::train(source.as_ref(), &topology, &options, &on_step)?;
+    let (checkpoint, _) = perspnet::train(source.as_ref(), &topology, &options, &on_step)?;
     bar.finish_and_clear();
     if a.json {
         println!(

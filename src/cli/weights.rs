@@ -1,7 +1,7 @@
 //! `import-weights` and `export-weights`: the network's weights to and from PyTorch.
 
 use arkit_tool::Result;
-use arkit_tool::training;
+use arkit_tool::perspnet;
 use clap::Args;
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -81,7 +81,7 @@ pub struct HalfModelArgs {
 }
 
 pub fn run_half(a: HalfModelArgs) -> Result<ExitCode> {
-    let bytes = training::write_half_model(&a.model, &a.output)?;
+    let bytes = perspnet::write_half_model(&a.model, &a.output)?;
     eprintln!(
         "wrote {} with float16 weights ({:.2} MB)",
         a.output.display(),
@@ -93,7 +93,7 @@ pub fn run_half(a: HalfModelArgs) -> Result<ExitCode> {
 pub fn run_import(a: ImportWeightsArgs) -> Result<ExitCode> {
     let config = super::train::config_named(&a.config)?;
     let topology = super::load_topology(a.resources.as_deref())?;
-    let c = training::import_weights(&a.file, &config, &topology, &a.output)?;
+    let c = perspnet::import_weights(&a.file, &config, &topology, &a.output)?;
     eprintln!(
         "imported {} ({} batch-norm steps) -> {}",
         a.file.display(),
@@ -104,7 +104,7 @@ pub fn run_import(a: ImportWeightsArgs) -> Result<ExitCode> {
 }
 
 pub fn run_export(a: ExportWeightsArgs) -> Result<ExitCode> {
-    let n = training::export_weights(&a.model, &a.output)?;
+    let n = perspnet::export_weights(&a.model, &a.output)?;
     eprintln!("wrote {} state_dict entries -> {}", n, a.output.display());
     Ok(ExitCode::SUCCESS)
 }

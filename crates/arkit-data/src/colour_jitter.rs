@@ -1,7 +1,10 @@
 //! `colour_jitter`: torchvision's `ColorJitter(0.3, 0.3, 0.2, 0.01)` (the official
 //! loader's training augmentation) on an interleaved RGB crop, byte for byte as PIL
 //! computes it: brightness, contrast, saturation and hue in a drawn order, each rounded
-//! back to bytes.
+//! back to bytes. The one colour jitter of the workspace: the loader (the Python
+//! package's) draws it in the official ranges, `train` in ranges of its
+//! `--colour-jitter` strength ([`ColourJitterRanges::of_strength`]; the official ones
+//! by default).
 //!
 //! Invariants: every operation gives the bytes of its textbook definition (PIL's
 //! enhancers, the HSV hue rotation with `f32` arithmetic and `round`); the fast paths
@@ -29,13 +32,63 @@ pub struct ColourJitter {
     pub order: [usize; 4],
 }
 
+/// The ranges a [`ColourJitter`] is drawn from: torchvision's `ColorJitter(b, c, s, h)`
+/// draws its brightness, contrast and saturation factors uniform in `[1-b, 1+b]`,
+/// `[1-c, 1+c]`, `[1-s, 1+s]` and its hue shift in `[-h, h]`.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct ColourJitterRanges {
+    /// Brightness factor range.
+    pub brightness: (f64, f64),
+    /// Contrast factor range.
+    pub contrast: (f64, f64),
+    /// Saturation factor range.
+    pub saturation: (f64, f64),
+    /// Hue shift range, turns.
+    pub hue: (f64, f64),
+}
+
+impl ColourJitterRanges {
+    /// The official loader's `ColorJitter(0.3, 0.3, 0.2, 0.01)`.
+    pub const OFFICIAL: ColourJitterRanges = ColourJitterRanges {
+        brightness: (0.7, 1.3),
+        contrast: (0.7, 1.3),
+        saturation: (0.8, 1.2),
+        hue: (-0.01, 0.01),
+    };
+
+    /// `ColorJitter(c, c, 2c/3, c/30)`: the official ranges scaled to strength `c`
+    /// (`train --colour-jitter c`). At `c = 0.3` (as `f32`) they are
+    /// [`ColourJitterRanges::OFFICIAL`] exactly, so the same generator state draws the
+    /// same jitter as the loader's.
+    pub fn of_strength(c: f32) -> Self {
+        if c == 0.3 {
+            return Self::OFFICIAL;
+        }
+        let c = c as f64;
+        let around_one = |r: f64| (1.0 - r, 1.0 + r);
+        ColourJitterRanges {
+            brightness: around_one(c),
+            contrast: around_one(c),
+            saturation: around_one(c * 2.0 / 3.0),
+            hue: (-c / 30.0, c / 30.0),
+        }
+    }
+}
+
 impl ColourJitter {
-    /// One draw from `rng`.
+    /// One draw from `rng` in the official ranges ([`ColourJitterRanges::OFFICIAL`]).
     pub fn draw(rng: &mut Rng) -> Self {
-        let brightness = rng.uniform(0.7, 1.3) as f32;
-        let contrast = rng.uniform(0.7, 1.3) as f32;
-        let saturation = rng.uniform(0.8, 1.2) as f32;
-        let hue = rng.uniform(-0.01, 0.01) as f32;
+        Self::draw_in(rng, &ColourJitterRanges::OFFICIAL)
+    }
+
+    /// One draw from `rng` in `ranges`: brightness, contrast, saturation, hue, then the
+    /// order of the four operations.
+    pub fn draw_in(rng: &mut Rng, ranges: &ColourJitterRanges) -> Self {
+        let mut uniform = |(lo, hi): (f64, f64)| rng.uniform(lo, hi) as f32;
+        let brightness = uniform(ranges.brightness);
+        let contrast = uniform(ranges.contrast);
+        let saturation = uniform(ranges.saturation);
+        let hue = uniform(ranges.hue);
         let mut order = [0usize, 1, 2, 3];
         for k in (1..4).rev() {
             order.swap(k, rng.below(k as u64 + 1) as usize);
@@ -627,6 +680,30 @@ mod tests {
                 "{y}"
             );
         }
+    }
+
+    #[test]
+    fn strength_ranges_are_the_official_ones_scaled() {
+        assert_eq!(
+            ColourJitterRanges::of_strength(0.3),
+            ColourJitterRanges::OFFICIAL
+        );
+        // The same generator state, the same draw as the loader's.
+        assert_eq!(
+            ColourJitter::draw_in(&mut Rng::new(4), &ColourJitterRanges::of_strength(0.3)),
+            ColourJitter::draw(&mut Rng::new(4))
+        );
+        let r = ColourJitterRanges::of_strength(0.15);
+        let c = 0.15f32 as f64;
+        assert_eq!(r.brightness, (1.0 - c, 1.0 + c));
+        assert_eq!(r.contrast, (1.0 - c, 1.0 + c));
+        assert!((r.saturation.1 - 1.1).abs() < 1e-7 && (r.hue.1 - 0.005).abs() < 1e-8);
+        // Strength 0: every factor 1 and no hue shift, so the bytes are unchanged.
+        let zero = ColourJitter::draw_in(&mut Rng::new(9), &ColourJitterRanges::of_strength(0.0));
+        let pixels = [200u8, 100, 50, 10, 20, 30, 0, 255, 128];
+        let mut p = pixels;
+        zero.apply(&mut p);
+        assert_eq!(p, pixels);
     }
 
     #[test]

@@ -178,7 +178,8 @@ pub struct LoaderItem {
     /// The mesh, `1220 x 3` (metres, canonical frame).
     pub model: Vec<f32>,
     /// `3 x S x S` in [-1, 1] (`-1` where no UV triangle covers the texel; empty from
-    /// [`FaceLoader::item_into`], which writes it into the caller's plane).
+    /// [`FaceLoader::item_into`], which writes it into the caller's plane, and in the
+    /// items `train` builds from stored targets, whose loss takes no UV map).
     pub uvmap: Vec<f32>,
     /// `n_pts x 3`: each point's canonical position times 4.5.
     pub nocs: Vec<f32>,
@@ -559,6 +560,15 @@ pub fn python_slice(start: i64, stop: i64, len: i64) -> std::ops::Range<i64> {
     };
     let (a, b) = (fix(start), fix(stop));
     a..b.max(a)
+}
+
+/// The official `tform_inv` of a crop ([`LoaderItem::tform_inv`]): crop pixel
+/// `(col, row)` to image point by the crop's sampling rule.
+pub fn tform_inv(crop: &CropTransform) -> [f64; 6] {
+    let o = crop.sampling.offset();
+    let s = crop.size as f64;
+    let (sx, sy) = (crop.side / s, crop.side_y / s);
+    [sx, 0.0, crop.x0 + o * sx, 0.0, sy, crop.y0 + o * sy]
 }
 
 /// `ToTensor` then `Normalize(IMAGENET_MEAN, IMAGENET_STD)` of an interleaved RGB crop:
@@ -1033,8 +1043,6 @@ impl FaceLoader {
                 }
             }
         });
-        let o = crop.sampling.offset();
-        let (sx, sy) = (crop.side / s as f64, crop.side_y / s as f64);
         Ok(LoaderItem {
             key: row.sample.key.clone(),
             image_path: self.image_path(row),
@@ -1055,7 +1063,7 @@ impl FaceLoader {
                 .map(|&c| t.corr_vertices[c as usize].map(|v| v as u32))
                 .collect(),
             corr_weights: chosen.iter().map(|&c| t.corr_weights[c as usize]).collect(),
-            tform_inv: [sx, 0.0, crop.x0 + o * sx, 0.0, sy, crop.y0 + o * sy],
+            tform_inv: tform_inv(&crop),
             rt: row.sample.rt,
             crop,
             official_box: None,

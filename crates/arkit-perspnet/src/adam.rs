@@ -135,7 +135,8 @@ impl Adam {
     /// variable's moments there with its shape, a one-element step count, nothing
     /// else), before any data is read; an error names the first entry that differs.
     pub fn load(&mut self, path: &Path) -> Result<()> {
-        let mut st = crate::safetensors_file::open(path).map_err(candle_core::Error::Msg)?;
+        let mut st =
+            crate::weights::safetensors_file::open(path).map_err(candle_core::Error::Msg)?;
         let mut want: HashMap<String, Vec<usize>> = HashMap::new();
         want.insert("step".to_string(), vec![1]);
         for s in &self.slots {
@@ -162,7 +163,7 @@ impl Adam {
         if let Some(extra) = have.keys().find(|k| !want.contains_key(**k)) {
             candle_core::bail!("{extra}: no such variable in the network");
         }
-        let read = |st: &mut crate::safetensors_file::SafetensorsFile<_>, key: &str| {
+        let read = |st: &mut crate::weights::safetensors_file::SafetensorsFile<_>, key: &str| {
             st.read(key).map_err(candle_core::Error::Msg)
         };
         let step = read(&mut st, "step")?

@@ -18,13 +18,9 @@
 //! matmul uses), called directly with strides so that no operand is transposed
 //! or copied.
 //!
-//! Measured reason (`cargo bench --bench perspnet -- paper`): the previous
-//! back end built each batch's full patch matrix as a fresh tensor (up to 340 MB
-//! for a batch of 4 at 192x192), and the page faults of zero-filling it were
-//! 18% of a training step's profile, building it another 11%. With these kernels
-//! (and the `gemm` crate's AVX-512 kernels) the `paper` training step went from
-//! 12.5 s to 3.35 s and the forward pass from 484 to 183 ms on this machine's two
-//! cores.
+//! Why: the previous back end built each batch's full patch matrix as a fresh
+//! tensor, and zero-filling and building it dominated a training step's profile
+//! (the figures: docs/performance.md, "Where the PerspNet time goes").
 //!
 //! # Threads and determinism
 //! Work is split by batch element (and, in the forward pass, by block) with
@@ -415,7 +411,7 @@ mod tests {
     }
 
     fn values(len: usize, seed: u64) -> Vec<f32> {
-        let mut rng = arkit_data::rng::Rng::new(seed);
+        let mut rng = arkit_core::rng::Rng::new(seed);
         (0..len)
             .map(|_| rng.next_f64() as f32 * 2.0 - 1.0)
             .collect()

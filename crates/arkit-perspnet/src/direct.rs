@@ -43,9 +43,9 @@ use nalgebra::{Matrix3, Vector3};
 use super::config::PerspNetConfig;
 use super::layers::{linear, relu};
 use super::model::ResNetTrunk;
-use arkit_data::conventions::Pose;
+use arkit_core::conventions::Pose;
+use arkit_data::crop::CropTransform;
 use arkit_data::pnp::Intrinsics;
-use arkit_data::render::CropTransform;
 
 /// The depth unit of `oz`: the box's width at the face's depth, in units of this
 /// many metres.

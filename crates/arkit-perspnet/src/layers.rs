@@ -6,24 +6,26 @@
 //! initialised like the official `init_weights(init_type='normal', 0.02)`.
 //!
 //! On f32 CPU tensors the layers on the training path are single candle ops
-//! with our own kernels and one-pass backwards (convolution via
-//! [`super::conv`], batch norm fused with its activation, ReLU, the residual
-//! join, log-softmax, entropy, per-point linear layers, the up-sampling):
+//! with our own kernels and one-pass backwards (`ops`: convolution, batch norm
+//! fused with its activation, ReLU, the residual join, log-softmax, entropy,
+//! per-point linear layers, the up-sampling, max pooling, the point reads):
 //! candle's backward creates and accumulates a gradient tensor per node, so
 //! every node removed from a large tensor's path saves passes over it. Each
 //! is tested against the candle composition it replaces, which stays the
-//! path on other devices. Measured: the `paper` training step 12.5 -> 2.4 s
-//! (`cargo bench --bench perspnet`, README).
+//! path on other devices (what this saves: docs/performance.md, "Where the
+//! PerspNet time goes").
 
-use super::blas::{self, Mat};
-use super::conv::{self, ConvShape};
+use crate::ops::{
+    Activation, AddRelu, AddRowsRelu, ApplyF32Op, FastConv2d, FusedBn, GatherPixels,
+    LogSoftmaxLast, MaxPool3x3S2, MeanPoints, PointLinearOp, ResizeAlignCorners, RowEntropy,
+    SamplePoints, Taps, with_f32,
+};
 use candle_core::{D, DType, Device, Module, ModuleT, Result, Tensor};
 use candle_nn::{BatchNorm, Init, Linear, VarBuilder};
 use rayon::prelude::*;
 
-/// ImageNet channel means and standard deviations (RGB) used by [`imagenet_normalize`]:
-/// the loader's, one definition.
-pub use arkit_data::loader::{IMAGENET_MEAN, IMAGENET_STD};
+// The loader's ImageNet channel means and standard deviations: one definition.
+use arkit_data::loader::{IMAGENET_MEAN, IMAGENET_STD};
 
 /// Normalises a `B x 3 x H x W` RGB batch with values in `[0, 1]` by the
 /// ImageNet mean and standard deviation.
@@ -75,143 +77,10 @@ pub fn upsample_bilinear_align_corners(x: &Tensor, out_h: usize, out_w: usize) -
         return upsample_bilinear_matmul(x, out_h, out_w);
     }
     let (_b, _c, h, w) = x.dims4()?;
-    x.contiguous()?.apply_op1(ResizeAlignCorners {
+    x.contiguous()?.apply_f32_op1(ResizeAlignCorners {
         rows: Taps::new(h, out_h),
         cols: Taps::new(w, out_w),
     })
-}
-
-/// The two source samples and weights of each output sample of a 1-D linear
-/// resize with `align_corners=True` (the rows of
-/// [`interp_matrix_align_corners`]).
-#[derive(Debug, Clone)]
-struct Taps {
-    n: usize,
-    taps: Vec<(usize, usize, f32, f32)>,
-}
-
-impl Taps {
-    fn new(n: usize, out: usize) -> Self {
-        let m = interp_matrix_align_corners(n, out);
-        let taps = (0..out)
-            .map(|i| {
-                let row = &m[i * n..(i + 1) * n];
-                let i0 = row.iter().position(|v| *v != 0.0).unwrap_or(0);
-                let i1 = (i0 + 1).min(n - 1);
-                if i1 == i0 {
-                    (i0, i1, row[i0], 0.0)
-                } else {
-                    (i0, i1, row[i0], row[i1])
-                }
-            })
-            .collect();
-        Self { n, taps }
-    }
-
-    fn out(&self) -> usize {
-        self.taps.len()
-    }
-
-    /// `dst[o] = w0 src[i0] + w1 src[i1]`.
-    fn resize_line(&self, src: &[f32], dst: &mut [f32]) {
-        for (d, &(i0, i1, w0, w1)) in dst.iter_mut().zip(&self.taps) {
-            *d = w0 * src[i0] + w1 * src[i1];
-        }
-    }
-
-    /// The adjoint of [`Self::resize_line`]: `dst[i] = sum over o of w(o, i) src[o]`.
-    fn scatter_line(&self, src: &[f32], dst: &mut [f32]) {
-        dst.fill(0.0);
-        for (g, &(i0, i1, w0, w1)) in src.iter().zip(&self.taps) {
-            dst[i0] += w0 * g;
-            dst[i1] += w1 * g;
-        }
-    }
-}
-
-/// Separable bilinear resize with `align_corners=True` on `B x C x H x W`
-/// (f32, CPU): along the width, then along the height, each output from two
-/// inputs; the backward pass is the adjoint, in the reverse order. Replaces
-/// two dense matmuls with the interpolation matrices, which cost `H` (resp.
-/// `W`) multiply-adds per output instead of two.
-#[derive(Debug, Clone)]
-struct ResizeAlignCorners {
-    rows: Taps,
-    cols: Taps,
-}
-
-impl ResizeAlignCorners {
-    /// Resizes each `h x w` plane of `x` to `oh x ow` (`forward`), or maps each
-    /// `oh x ow` plane of a gradient back to `h x w` (the adjoint).
-    fn run(&self, x: &[f32], forward: bool) -> Vec<f32> {
-        let (h, w, oh, ow) = (self.rows.n, self.cols.n, self.rows.out(), self.cols.out());
-        let (src_plane, dst_plane) = if forward {
-            (h * w, oh * ow)
-        } else {
-            (oh * ow, h * w)
-        };
-        let planes = x.len() / src_plane;
-        let mut y = vec![0f32; planes * dst_plane];
-        y.par_chunks_mut(dst_plane)
-            .zip(x.par_chunks(src_plane))
-            .for_each(|(dst, src)| {
-                if forward {
-                    // Width first (h x ow), then each output row from two rows.
-                    let mut mid = vec![0f32; h * ow];
-                    for (s, d) in src.chunks(w).zip(mid.chunks_mut(ow)) {
-                        self.cols.resize_line(s, d);
-                    }
-                    for (d, &(i0, i1, w0, w1)) in dst.chunks_mut(ow).zip(&self.rows.taps) {
-                        let (r0, r1) = (&mid[i0 * ow..(i0 + 1) * ow], &mid[i1 * ow..(i1 + 1) * ow]);
-                        for ((d, a), b) in d.iter_mut().zip(r0).zip(r1) {
-                            *d = w0 * a + w1 * b;
-                        }
-                    }
-                } else {
-                    // Adjoint of the height pass (oh x ow -> h x ow), then of the width pass.
-                    let mut mid = vec![0f32; h * ow];
-                    for (g, &(i0, i1, w0, w1)) in src.chunks(ow).zip(&self.rows.taps) {
-                        for (j, gv) in g.iter().enumerate() {
-                            mid[i0 * ow + j] += w0 * gv;
-                            mid[i1 * ow + j] += w1 * gv;
-                        }
-                    }
-                    for (s, d) in mid.chunks(ow).zip(dst.chunks_mut(w)) {
-                        self.cols.scatter_line(s, d);
-                    }
-                }
-            });
-        y
-    }
-}
-
-impl candle_core::CustomOp1 for ResizeAlignCorners {
-    fn name(&self) -> &'static str {
-        "resize-align-corners"
-    }
-
-    fn cpu_fwd(
-        &self,
-        s: &candle_core::CpuStorage,
-        l: &candle_core::Layout,
-    ) -> Result<(candle_core::CpuStorage, candle_core::Shape)> {
-        let (b, c, h, w) = l.shape().dims4()?;
-        if (h, w) != (self.rows.n, self.cols.n) {
-            candle_core::bail!(
-                "resize: input {h}x{w}, op built for {}x{}",
-                self.rows.n,
-                self.cols.n
-            );
-        }
-        let y = self.run(contiguous_f32(s, l)?, true);
-        let shape = candle_core::Shape::from((b, c, self.rows.out(), self.cols.out()));
-        Ok((candle_core::CpuStorage::F32(y), shape))
-    }
-
-    fn bwd(&self, x: &Tensor, _res: &Tensor, grad: &Tensor) -> Result<Option<Tensor>> {
-        let v = with_f32(grad, |g| self.run(g, false))?;
-        Ok(Some(Tensor::from_vec(v, x.shape(), x.device())?))
-    }
 }
 
 /// [`upsample_bilinear_align_corners`] as two matmuls with the fixed
@@ -314,7 +183,7 @@ impl PointSampler {
             );
         }
         if map.dtype() == DType::F32 && map.device().is_cpu() {
-            return map.contiguous()?.apply_op1(SamplePoints {
+            return map.contiguous()?.apply_f32_op1(SamplePoints {
                 taps: self.taps.clone(),
                 points: self.points,
             });
@@ -327,64 +196,6 @@ impl PointSampler {
             .to_dtype(map.dtype())?
             .reshape((1, 1, 4, self.points))?;
         g.broadcast_mul(&wts)?.sum(2)
-    }
-}
-
-/// The CPU op behind [`PointSampler::sample`]: each output is the weighted sum
-/// of its four texels; the backward scatters each output's gradient onto them
-/// (one zeroed map and `4 P` additions per channel, instead of candle's
-/// `index_select` backward, broadcast and strided sum).
-#[derive(Debug, Clone)]
-struct SamplePoints {
-    taps: std::sync::Arc<(Vec<u32>, Vec<f32>)>,
-    points: usize,
-}
-
-impl candle_core::CustomOp1 for SamplePoints {
-    fn name(&self) -> &'static str {
-        "sample-points"
-    }
-
-    fn cpu_fwd(
-        &self,
-        s: &candle_core::CpuStorage,
-        l: &candle_core::Layout,
-    ) -> Result<(candle_core::CpuStorage, candle_core::Shape)> {
-        let x = contiguous_f32(s, l)?;
-        let (b, c, h, w) = l.shape().dims4()?;
-        let (idx, wts) = &*self.taps;
-        let p = self.points;
-        let mut y = vec![0f32; b * c * p];
-        y.par_chunks_mut(p.max(1))
-            .zip(x.par_chunks((h * w).max(1)))
-            .for_each(|(y, plane)| {
-                for (k, y) in y.iter_mut().enumerate() {
-                    *y = (0..4)
-                        .map(|n| wts[n * p + k] * plane[idx[n * p + k] as usize])
-                        .sum();
-                }
-            });
-        Ok((candle_core::CpuStorage::F32(y), (b, c, p).into()))
-    }
-
-    fn bwd(&self, x: &Tensor, _res: &Tensor, grad: &Tensor) -> Result<Option<Tensor>> {
-        let (b, c, h, w) = x.dims4()?;
-        let (idx, wts) = &*self.taps;
-        let p = self.points;
-        let v = with_f32(grad, |g| {
-            let mut dx = vec![0f32; b * c * h * w];
-            dx.par_chunks_mut((h * w).max(1))
-                .zip(g.par_chunks(p.max(1)))
-                .for_each(|(dx, g)| {
-                    for n in 0..4 {
-                        for (k, g) in g.iter().enumerate() {
-                            dx[idx[n * p + k] as usize] += wts[n * p + k] * g;
-                        }
-                    }
-                });
-            dx
-        })?;
-        Ok(Some(Tensor::from_vec(v, x.shape(), x.device())?))
     }
 }
 
@@ -403,7 +214,7 @@ pub fn gather_pixels(feat: &Tensor, choose: &Tensor) -> Result<Tensor> {
         if let Some(bad) = ids.iter().find(|i| **i as usize >= h * w) {
             candle_core::bail!("gather_pixels: pixel {bad} outside a {h}x{w} map");
         }
-        return feat.contiguous()?.apply_op1(GatherPixels {
+        return feat.contiguous()?.apply_f32_op1(GatherPixels {
             ids: std::sync::Arc::new(ids),
             m,
         });
@@ -422,57 +233,6 @@ pub fn gather_pixels(feat: &Tensor, choose: &Tensor) -> Result<Tensor> {
         .broadcast_add(&offs)?
         .flatten_all()?;
     flat.index_select(&ids, 0)?.reshape((b, m, c))
-}
-
-/// The CPU op behind [`gather_pixels`] (`ids`: `B x M` flat pixel indices).
-#[derive(Debug, Clone)]
-struct GatherPixels {
-    ids: std::sync::Arc<Vec<u32>>,
-    m: usize,
-}
-
-impl candle_core::CustomOp1 for GatherPixels {
-    fn name(&self) -> &'static str {
-        "gather-pixels"
-    }
-
-    fn cpu_fwd(
-        &self,
-        s: &candle_core::CpuStorage,
-        l: &candle_core::Layout,
-    ) -> Result<(candle_core::CpuStorage, candle_core::Shape)> {
-        let x = contiguous_f32(s, l)?;
-        let (b, c, h, w) = l.shape().dims4()?;
-        let (m, hw) = (self.m, h * w);
-        let mut y = vec![0f32; b * m * c];
-        for bi in 0..b {
-            for (k, &id) in self.ids[bi * m..(bi + 1) * m].iter().enumerate() {
-                let row = &mut y[(bi * m + k) * c..(bi * m + k + 1) * c];
-                for (ci, v) in row.iter_mut().enumerate() {
-                    *v = x[(bi * c + ci) * hw + id as usize];
-                }
-            }
-        }
-        Ok((candle_core::CpuStorage::F32(y), (b, m, c).into()))
-    }
-
-    fn bwd(&self, x: &Tensor, _res: &Tensor, grad: &Tensor) -> Result<Option<Tensor>> {
-        let (b, c, h, w) = x.dims4()?;
-        let (m, hw) = (self.m, h * w);
-        let v = with_f32(grad, |g| {
-            let mut dx = vec![0f32; b * c * hw];
-            for bi in 0..b {
-                for (k, &id) in self.ids[bi * m..(bi + 1) * m].iter().enumerate() {
-                    let row = &g[(bi * m + k) * c..(bi * m + k + 1) * c];
-                    for (ci, v) in row.iter().enumerate() {
-                        dx[(bi * c + ci) * hw + id as usize] += v;
-                    }
-                }
-            }
-            dx
-        })?;
-        Ok(Some(Tensor::from_vec(v, x.shape(), x.device())?))
-    }
 }
 
 /// The official `positionalencoding2d(d_model, H, W)` evaluated at pixel
@@ -537,75 +297,7 @@ pub fn max_pool_3x3_s2_p1(x: &Tensor) -> Result<Tensor> {
     if x.dtype() != DType::F32 || !x.device().is_cpu() {
         return max_pool_3x3_s2_p1_views(x);
     }
-    x.contiguous()?.apply_op1(MaxPool3x3S2)
-}
-
-/// The op behind [`max_pool_3x3_s2_p1`].
-#[derive(Debug, Clone, Copy)]
-struct MaxPool3x3S2;
-
-impl MaxPool3x3S2 {
-    /// For each output of one `h x w` plane, the flat index of its window's
-    /// first maximum, passed to `out(output index, input index)`.
-    fn scan(x: &[f32], h: usize, w: usize, mut out: impl FnMut(usize, usize)) {
-        let (oh, ow) = (h.div_ceil(2), w.div_ceil(2));
-        for oy in 0..oh {
-            let rows = (2 * oy).saturating_sub(1)..(2 * oy + 2).min(h);
-            for ox in 0..ow {
-                let cols = (2 * ox).saturating_sub(1)..(2 * ox + 2).min(w);
-                let mut best = rows.start * w + cols.start;
-                for iy in rows.clone() {
-                    for ix in cols.clone() {
-                        let i = iy * w + ix;
-                        if x[i] > x[best] {
-                            best = i;
-                        }
-                    }
-                }
-                out(oy * ow + ox, best);
-            }
-        }
-    }
-}
-
-impl candle_core::CustomOp1 for MaxPool3x3S2 {
-    fn name(&self) -> &'static str {
-        "max-pool-3x3-s2-p1"
-    }
-
-    fn cpu_fwd(
-        &self,
-        s: &candle_core::CpuStorage,
-        l: &candle_core::Layout,
-    ) -> Result<(candle_core::CpuStorage, candle_core::Shape)> {
-        let x = contiguous_f32(s, l)?;
-        let (b, c, h, w) = l.shape().dims4()?;
-        let (oh, ow) = (h.div_ceil(2), w.div_ceil(2));
-        let mut y = vec![0f32; b * c * oh * ow];
-        if h * w > 0 {
-            y.par_chunks_mut(oh * ow)
-                .zip(x.par_chunks(h * w))
-                .for_each(|(y, x)| Self::scan(x, h, w, |o, i| y[o] = x[i]));
-        }
-        Ok((candle_core::CpuStorage::F32(y), (b, c, oh, ow).into()))
-    }
-
-    fn bwd(&self, x: &Tensor, _res: &Tensor, grad: &Tensor) -> Result<Option<Tensor>> {
-        let (b, c, h, w) = x.dims4()?;
-        let (oh, ow) = (h.div_ceil(2), w.div_ceil(2));
-        let v = with_f32(x, |xv| {
-            with_f32(grad, |g| {
-                let mut dx = vec![0f32; b * c * h * w];
-                if h * w > 0 {
-                    dx.par_chunks_mut(h * w)
-                        .zip(xv.par_chunks(h * w).zip(g.par_chunks(oh * ow)))
-                        .for_each(|(dx, (x, g))| Self::scan(x, h, w, |o, i| dx[i] += g[o]));
-                }
-                dx
-            })
-        })??;
-        Ok(Some(Tensor::from_vec(v, x.shape(), x.device())?))
-    }
+    x.contiguous()?.apply_f32_op1(MaxPool3x3S2)
 }
 
 /// [`max_pool_3x3_s2_p1`] written with strided views and `maximum` (candle
@@ -643,7 +335,7 @@ pub fn max_pool_3x3_s2_p1_views(x: &Tensor) -> Result<Tensor> {
 /// `B x C x H x W` tensor with probability `p` and rescales the rest by
 /// `1 / (1 - p)`, the channels drawn from `rng` (ours, seeded: candle's CPU generator
 /// cannot be). Identity without a generator (evaluation) or when `p == 0`.
-pub fn dropout2d(x: &Tensor, p: f64, rng: Option<&mut arkit_data::rng::Rng>) -> Result<Tensor> {
+pub fn dropout2d(x: &Tensor, p: f64, rng: Option<&mut arkit_core::rng::Rng>) -> Result<Tensor> {
     let Some(rng) = rng else {
         return Ok(x.clone());
     };
@@ -681,7 +373,7 @@ pub fn activate(x: &Tensor, act: Act) -> Result<Tensor> {
             Act::Leaky(s) => x.relu()?.affine(1.0 - s, 0.0)? + x.affine(s, 0.0)?,
         };
     }
-    x.apply_op1(Activation(act))
+    x.apply_f32_op1(Activation(act))
 }
 
 /// `relu(a + b)` as one op (the ResNet block's residual join); its backward
@@ -690,80 +382,7 @@ pub fn add_relu(a: &Tensor, b: &Tensor) -> Result<Tensor> {
     if a.dtype() != DType::F32 || !a.device().is_cpu() || a.shape() != b.shape() {
         return (a + b)?.relu();
     }
-    a.apply_op2(b, AddRelu)
-}
-
-/// The fused op behind [`activate`].
-#[derive(Debug, Clone, Copy)]
-struct Activation(Act);
-
-/// The masked gradient `grad * act'(y)` from the output `y`.
-fn activation_grad(act: Act, res: &Tensor, grad: &Tensor) -> Result<Tensor> {
-    let v = with_f32(res, |y| {
-        with_f32(grad, |g| {
-            g.par_iter()
-                .zip(y)
-                .map(|(g, y)| g * act.slope(*y))
-                .collect::<Vec<f32>>()
-        })
-    })??;
-    Tensor::from_vec(v, res.shape(), res.device())
-}
-
-impl candle_core::CustomOp1 for Activation {
-    fn name(&self) -> &'static str {
-        "activation"
-    }
-
-    fn cpu_fwd(
-        &self,
-        s: &candle_core::CpuStorage,
-        l: &candle_core::Layout,
-    ) -> Result<(candle_core::CpuStorage, candle_core::Shape)> {
-        let x = contiguous_f32(s, l)?;
-        let y = x.par_iter().map(|v| self.0.apply(*v)).collect();
-        Ok((candle_core::CpuStorage::F32(y), l.shape().clone()))
-    }
-
-    fn bwd(&self, _x: &Tensor, res: &Tensor, grad: &Tensor) -> Result<Option<Tensor>> {
-        Ok(Some(activation_grad(self.0, res, grad)?))
-    }
-}
-
-/// The fused op behind [`add_relu`].
-#[derive(Debug, Clone, Copy)]
-struct AddRelu;
-
-impl candle_core::CustomOp2 for AddRelu {
-    fn name(&self) -> &'static str {
-        "add-relu"
-    }
-
-    fn cpu_fwd(
-        &self,
-        s1: &candle_core::CpuStorage,
-        l1: &candle_core::Layout,
-        s2: &candle_core::CpuStorage,
-        l2: &candle_core::Layout,
-    ) -> Result<(candle_core::CpuStorage, candle_core::Shape)> {
-        let (a, b) = (contiguous_f32(s1, l1)?, contiguous_f32(s2, l2)?);
-        if a.len() != b.len() {
-            candle_core::bail!("add-relu: {:?} and {:?} differ", l1.shape(), l2.shape());
-        }
-        let y = a.par_iter().zip(b).map(|(a, b)| (a + b).max(0.0)).collect();
-        Ok((candle_core::CpuStorage::F32(y), l1.shape().clone()))
-    }
-
-    fn bwd(
-        &self,
-        a: &Tensor,
-        b: &Tensor,
-        res: &Tensor,
-        grad: &Tensor,
-    ) -> Result<(Option<Tensor>, Option<Tensor>)> {
-        let g = activation_grad(Act::Relu, res, grad)?;
-        Ok((a.track_op().then(|| g.clone()), b.track_op().then_some(g)))
-    }
+    a.apply_f32_op2(b, AddRelu)
 }
 
 /// A 2-D convolution (`weight`: `out x in x k x k`, optional bias).
@@ -880,104 +499,6 @@ pub fn conv2d_im2col(x: &Tensor, weight: &Tensor, stride: usize, padding: usize)
     wmat.broadcast_matmul(&cols)?.reshape((b, co, ho, wo))
 }
 
-/// Convolution with its own CPU kernels for the forward pass and both
-/// gradients ([`super::conv`]: im2col + GEMM over cache-sized blocks, col2im
-/// for the input gradient). The input gradient is computed only when the input
-/// is tracked (not for the network's input image).
-#[derive(Debug, Clone, Copy)]
-struct FastConv2d {
-    stride: usize,
-    padding: usize,
-}
-
-impl FastConv2d {
-    fn shape(&self, x: &[usize], w: &[usize]) -> Result<ConvShape> {
-        let (&[b, c, h, wd], &[co, ci, kh, kw]) = (x, w) else {
-            candle_core::bail!("fast-conv2d: 4-D input and kernel expected, got {x:?} and {w:?}");
-        };
-        if ci != c || h + 2 * self.padding < kh || wd + 2 * self.padding < kw {
-            candle_core::bail!("fast-conv2d: input {x:?} does not fit kernel {w:?}");
-        }
-        Ok(ConvShape {
-            b,
-            c,
-            h,
-            w: wd,
-            co,
-            kh,
-            kw,
-            stride: self.stride,
-            pad: self.padding,
-        })
-    }
-}
-
-/// The contiguous f32 values of a CPU storage.
-fn contiguous_f32<'a>(
-    s: &'a candle_core::CpuStorage,
-    l: &candle_core::Layout,
-) -> Result<&'a [f32]> {
-    let data = s.as_slice::<f32>()?;
-    match l.contiguous_offsets() {
-        Some((a, b)) => Ok(&data[a..b]),
-        None => candle_core::bail!("expected a contiguous f32 tensor"),
-    }
-}
-
-/// Runs `f` on the contiguous f32 values of a CPU tensor (copying only when the
-/// tensor is not contiguous).
-fn with_f32<R>(t: &Tensor, f: impl FnOnce(&[f32]) -> R) -> Result<R> {
-    let t = t.contiguous()?;
-    let (storage, layout) = t.storage_and_layout();
-    match &*storage {
-        candle_core::Storage::Cpu(cpu) => Ok(f(contiguous_f32(cpu, layout)?)),
-        _ => candle_core::bail!("expected a CPU tensor"),
-    }
-}
-
-impl candle_core::CustomOp2 for FastConv2d {
-    fn name(&self) -> &'static str {
-        "fast-conv2d"
-    }
-
-    fn cpu_fwd(
-        &self,
-        s1: &candle_core::CpuStorage,
-        l1: &candle_core::Layout,
-        s2: &candle_core::CpuStorage,
-        l2: &candle_core::Layout,
-    ) -> Result<(candle_core::CpuStorage, candle_core::Shape)> {
-        let s = self.shape(l1.dims(), l2.dims())?;
-        let y = conv::forward(contiguous_f32(s1, l1)?, contiguous_f32(s2, l2)?, &s);
-        let shape = candle_core::Shape::from((s.b, s.co, s.ho(), s.wo()));
-        Ok((candle_core::CpuStorage::F32(y), shape))
-    }
-
-    fn bwd(
-        &self,
-        x: &Tensor,
-        w: &Tensor,
-        _res: &Tensor,
-        grad: &Tensor,
-    ) -> Result<(Option<Tensor>, Option<Tensor>)> {
-        let s = self.shape(x.dims(), w.dims())?;
-        let dev = x.device();
-        let gx = if x.track_op() {
-            let v = with_f32(grad, |g| with_f32(w, |wv| conv::input_grad(g, wv, &s)))??;
-            Some(Tensor::from_vec(v, x.shape(), dev)?)
-        } else {
-            None
-        };
-        let gw = if w.track_op() {
-            let v = with_f32(x, |xv| with_f32(grad, |g| conv::kernel_grad(xv, g, &s)))??;
-            Some(Tensor::from_vec(v, w.shape(), dev)?)
-        } else {
-            None
-        };
-        Ok((gx, gw))
-    }
-}
-
 /// `B x (C*kh*kw) x (Ho*Wo)` patches of `x` (the im2col matrix), built from
 /// strided views (differentiable).
 pub fn im2col(x: &Tensor, kh: usize, kw: usize, stride: usize, padding: usize) -> Result<Tensor> {
@@ -1006,7 +527,7 @@ pub fn conv2d_fast(x: &Tensor, weight: &Tensor, stride: usize, padding: usize) -
         return x.conv2d(weight, padding, stride, 1, 1);
     }
     x.contiguous()?
-        .apply_op2(&weight.contiguous()?, FastConv2d { stride, padding })
+        .apply_f32_op2(&weight.contiguous()?, FastConv2d { stride, padding })
 }
 
 /// Convolution back-end used by [`Conv2d`]; chosen once from the
@@ -1108,7 +629,7 @@ pub fn point_linear(x: &Tensor, weight: &Tensor, bias: Option<&Tensor>) -> Resul
         None => Tensor::zeros(weight.dim(0)?, DType::F32, x.device())?,
     };
     x.contiguous()?
-        .apply_op3(&weight.contiguous()?, &bias, PointLinearOp)
+        .apply_f32_op3(&weight.contiguous()?, &bias, PointLinearOp)
 }
 
 /// `relu(h + r)` where `h` is `B x M x C` and `r` (`B x 1 x C`) is added to
@@ -1120,189 +641,7 @@ pub fn add_rows_relu(h: &Tensor, r: &Tensor) -> Result<Tensor> {
     if h.dtype() != DType::F32 || !h.device().is_cpu() || r.dims() != [b, 1, c] {
         return relu(&h.broadcast_add(r)?);
     }
-    h.contiguous()?.apply_op2(&r.contiguous()?, AddRowsRelu)
-}
-
-/// The fused op behind [`add_rows_relu`].
-#[derive(Debug, Clone, Copy)]
-struct AddRowsRelu;
-
-impl candle_core::CustomOp2 for AddRowsRelu {
-    fn name(&self) -> &'static str {
-        "add-rows-relu"
-    }
-
-    fn cpu_fwd(
-        &self,
-        s1: &candle_core::CpuStorage,
-        l1: &candle_core::Layout,
-        s2: &candle_core::CpuStorage,
-        l2: &candle_core::Layout,
-    ) -> Result<(candle_core::CpuStorage, candle_core::Shape)> {
-        let (h, r) = (contiguous_f32(s1, l1)?, contiguous_f32(s2, l2)?);
-        let (b, m, c) = l1.shape().dims3()?;
-        if r.len() != b * c {
-            candle_core::bail!("add-rows-relu: {:?} and {:?}", l1.shape(), l2.shape());
-        }
-        let mut y = vec![0f32; h.len()];
-        y.par_chunks_mut(m * c)
-            .zip(h.par_chunks(m * c).zip(r.par_chunks(c)))
-            .for_each(|(y, (h, r))| {
-                for (yr, hr) in y.chunks_mut(c).zip(h.chunks(c)) {
-                    for ((y, h), r) in yr.iter_mut().zip(hr).zip(r) {
-                        *y = (h + r).max(0.0);
-                    }
-                }
-            });
-        Ok((candle_core::CpuStorage::F32(y), l1.shape().clone()))
-    }
-
-    fn bwd(
-        &self,
-        h: &Tensor,
-        r: &Tensor,
-        res: &Tensor,
-        grad: &Tensor,
-    ) -> Result<(Option<Tensor>, Option<Tensor>)> {
-        let (b, m, c) = h.dims3()?;
-        let gh = activation_grad(Act::Relu, res, grad)?;
-        let gr = if r.track_op() {
-            let v = with_f32(&gh, |g| {
-                let mut sums = vec![0f32; b * c];
-                for (s, gb) in sums.chunks_mut(c).zip(g.chunks(m * c)) {
-                    for row in gb.chunks(c) {
-                        for (s, v) in s.iter_mut().zip(row) {
-                            *s += v;
-                        }
-                    }
-                }
-                sums
-            })?;
-            Some(Tensor::from_vec(v, (b, 1, c), h.device())?)
-        } else {
-            None
-        };
-        Ok((h.track_op().then_some(gh), gr))
-    }
-}
-
-/// The fused op behind [`PointLinear`]: `x` is `R x c_in` (any leading shape).
-#[derive(Debug, Clone, Copy)]
-struct PointLinearOp;
-
-impl candle_core::CustomOp3 for PointLinearOp {
-    fn name(&self) -> &'static str {
-        "point-linear"
-    }
-
-    fn cpu_fwd(
-        &self,
-        s1: &candle_core::CpuStorage,
-        l1: &candle_core::Layout,
-        s2: &candle_core::CpuStorage,
-        l2: &candle_core::Layout,
-        s3: &candle_core::CpuStorage,
-        l3: &candle_core::Layout,
-    ) -> Result<(candle_core::CpuStorage, candle_core::Shape)> {
-        let (x, w, b) = (
-            contiguous_f32(s1, l1)?,
-            contiguous_f32(s2, l2)?,
-            contiguous_f32(s3, l3)?,
-        );
-        let (co, ci) = l2.shape().dims2()?;
-        let dims = l1.dims();
-        if dims.last() != Some(&ci) || b.len() != co {
-            candle_core::bail!(
-                "point-linear: input {dims:?}, weight {co}x{ci}, bias {}",
-                b.len()
-            );
-        }
-        let r = x.len() / ci.max(1);
-        let mut y: Vec<f32> = b.iter().copied().cycle().take(r * co).collect();
-        blas::gemm_par(
-            &mut y,
-            Mat::row_major(r, co, co),
-            x,
-            Mat::row_major(r, ci, ci),
-            w,
-            Mat::row_major(co, ci, ci).transposed(),
-            true,
-        );
-        let mut out = dims.to_vec();
-        *out.last_mut().expect("rank >= 1") = co;
-        Ok((
-            candle_core::CpuStorage::F32(y),
-            candle_core::Shape::from(out),
-        ))
-    }
-
-    fn bwd(
-        &self,
-        x: &Tensor,
-        w: &Tensor,
-        b: &Tensor,
-        _res: &Tensor,
-        grad: &Tensor,
-    ) -> Result<(Option<Tensor>, Option<Tensor>, Option<Tensor>)> {
-        let (co, ci) = w.dims2()?;
-        let r = x.elem_count() / ci.max(1);
-        let dev = x.device();
-        let dx = if x.track_op() {
-            let v = with_f32(grad, |g| {
-                with_f32(w, |wv| {
-                    let mut dx = vec![0f32; r * ci];
-                    blas::gemm_par(
-                        &mut dx,
-                        Mat::row_major(r, ci, ci),
-                        g,
-                        Mat::row_major(r, co, co),
-                        wv,
-                        Mat::row_major(co, ci, ci),
-                        false,
-                    );
-                    dx
-                })
-            })??;
-            Some(Tensor::from_vec(v, x.shape(), dev)?)
-        } else {
-            None
-        };
-        let dw = if w.track_op() {
-            let v = with_f32(grad, |g| {
-                with_f32(x, |xv| {
-                    let mut dw = vec![0f32; co * ci];
-                    blas::gemm_par(
-                        &mut dw,
-                        Mat::row_major(co, ci, ci),
-                        g,
-                        Mat::row_major(r, co, co).transposed(),
-                        xv,
-                        Mat::row_major(r, ci, ci),
-                        false,
-                    );
-                    dw
-                })
-            })??;
-            Some(Tensor::from_vec(v, w.shape(), dev)?)
-        } else {
-            None
-        };
-        let db = if b.track_op() {
-            let v = with_f32(grad, |g| {
-                let mut db = vec![0f32; co];
-                for row in g.chunks(co) {
-                    for (d, v) in db.iter_mut().zip(row) {
-                        *d += v;
-                    }
-                }
-                db
-            })?;
-            Some(Tensor::from_vec(v, co, dev)?)
-        } else {
-            None
-        };
-        Ok((dx, dw, db))
-    }
+    h.contiguous()?.apply_f32_op2(&r.contiguous()?, AddRowsRelu)
 }
 
 /// A per-point linear layer (the official `Conv1d(c_in, c_out, 1)`) applied
@@ -1392,56 +731,7 @@ pub fn mean_points(x: &Tensor) -> Result<Tensor> {
     if x.dtype() != DType::F32 || !x.device().is_cpu() || x.rank() != 3 {
         return x.mean_keepdim(1);
     }
-    x.contiguous()?.apply_op1(MeanPoints)
-}
-
-/// The op behind [`mean_points`] on f32 CPU tensors: contiguous row sums
-/// forward, the gradient over `N` copied to every row backward (candle's
-/// `mean_keepdim(1)` reduces with a strided walk).
-#[derive(Debug, Clone, Copy)]
-struct MeanPoints;
-
-impl candle_core::CustomOp1 for MeanPoints {
-    fn name(&self) -> &'static str {
-        "mean-points"
-    }
-
-    fn cpu_fwd(
-        &self,
-        s: &candle_core::CpuStorage,
-        l: &candle_core::Layout,
-    ) -> Result<(candle_core::CpuStorage, candle_core::Shape)> {
-        let x = contiguous_f32(s, l)?;
-        let (b, n, c) = l.shape().dims3()?;
-        let mut y = vec![0f64; b * c];
-        for (yb, xb) in y.chunks_mut(c).zip(x.chunks(n * c.max(1))) {
-            for row in xb.chunks(c) {
-                for (s, v) in yb.iter_mut().zip(row) {
-                    *s += *v as f64;
-                }
-            }
-        }
-        let y = y
-            .into_iter()
-            .map(|v| (v / n.max(1) as f64) as f32)
-            .collect();
-        Ok((candle_core::CpuStorage::F32(y), (b, 1, c).into()))
-    }
-
-    fn bwd(&self, x: &Tensor, _res: &Tensor, grad: &Tensor) -> Result<Option<Tensor>> {
-        let (b, n, c) = x.dims3()?;
-        let v = with_f32(grad, |g| {
-            let scale = 1.0 / n.max(1) as f32;
-            let mut dx = Vec::with_capacity(b * n * c);
-            for gb in g.chunks(c) {
-                for _ in 0..n {
-                    dx.extend(gb.iter().map(|v| v * scale));
-                }
-            }
-            dx
-        })?;
-        Ok(Some(Tensor::from_vec(v, (b, n, c), x.device())?))
-    }
+    x.contiguous()?.apply_f32_op1(MeanPoints)
 }
 
 /// The entropy `-sum(exp(l) l)` of each row of log-probabilities `l` (last
@@ -1451,53 +741,7 @@ pub fn row_entropy(log_p: &Tensor) -> Result<Tensor> {
     if log_p.dtype() != DType::F32 || !log_p.device().is_cpu() || log_p.rank() == 0 {
         return (log_p.exp()? * log_p)?.sum(D::Minus1)?.neg();
     }
-    log_p.contiguous()?.apply_op1(RowEntropy)
-}
-
-/// The op behind [`row_entropy`].
-#[derive(Debug, Clone, Copy)]
-struct RowEntropy;
-
-impl candle_core::CustomOp1 for RowEntropy {
-    fn name(&self) -> &'static str {
-        "row-entropy"
-    }
-
-    fn cpu_fwd(
-        &self,
-        s: &candle_core::CpuStorage,
-        l: &candle_core::Layout,
-    ) -> Result<(candle_core::CpuStorage, candle_core::Shape)> {
-        let x = contiguous_f32(s, l)?;
-        let dims = l.dims();
-        let n = dims[dims.len() - 1].max(1);
-        let y: Vec<f32> = x
-            .par_chunks(n)
-            .map(|row| -row.iter().map(|l| l.exp() * l).sum::<f32>())
-            .collect();
-        Ok((
-            candle_core::CpuStorage::F32(y),
-            candle_core::Shape::from(&dims[..dims.len() - 1]),
-        ))
-    }
-
-    fn bwd(&self, x: &Tensor, _res: &Tensor, grad: &Tensor) -> Result<Option<Tensor>> {
-        let n = x.dims().last().copied().unwrap_or(1).max(1);
-        let v = with_f32(x, |l| {
-            with_f32(grad, |g| {
-                let mut dx = vec![0f32; l.len()];
-                dx.par_chunks_mut(n)
-                    .zip(l.par_chunks(n).zip(g.par_chunks(1)))
-                    .for_each(|(dx, (l, g))| {
-                        for (d, l) in dx.iter_mut().zip(l) {
-                            *d = -g[0] * l.exp() * (1.0 + l);
-                        }
-                    });
-                dx
-            })
-        })??;
-        Ok(Some(Tensor::from_vec(v, x.shape(), x.device())?))
-    }
+    log_p.contiguous()?.apply_f32_op1(RowEntropy)
 }
 
 /// Softmax over the last dimension computed as `exp(log_softmax)`.
@@ -1513,219 +757,7 @@ pub fn log_softmax_last(x: &Tensor) -> Result<Tensor> {
     if x.dtype() != DType::F32 || !x.device().is_cpu() || x.rank() == 0 {
         return candle_nn::ops::log_softmax(x, D::Minus1);
     }
-    x.contiguous()?.apply_op1(LogSoftmaxLast)
-}
-
-/// The fused op behind [`log_softmax_last`].
-#[derive(Debug, Clone, Copy)]
-struct LogSoftmaxLast;
-
-impl candle_core::CustomOp1 for LogSoftmaxLast {
-    fn name(&self) -> &'static str {
-        "log-softmax-last"
-    }
-
-    fn cpu_fwd(
-        &self,
-        s: &candle_core::CpuStorage,
-        l: &candle_core::Layout,
-    ) -> Result<(candle_core::CpuStorage, candle_core::Shape)> {
-        let x = contiguous_f32(s, l)?;
-        let n = l.dims().last().copied().unwrap_or(1).max(1);
-        let mut y = vec![0f32; x.len()];
-        y.par_chunks_mut(n).zip(x.par_chunks(n)).for_each(|(y, x)| {
-            let max = x.iter().copied().fold(f32::NEG_INFINITY, f32::max);
-            let sum: f32 = x.iter().map(|v| (v - max).exp()).sum();
-            let shift = max + sum.ln();
-            for (y, x) in y.iter_mut().zip(x) {
-                *y = x - shift;
-            }
-        });
-        Ok((candle_core::CpuStorage::F32(y), l.shape().clone()))
-    }
-
-    fn bwd(&self, _x: &Tensor, res: &Tensor, grad: &Tensor) -> Result<Option<Tensor>> {
-        let n = res.dims().last().copied().unwrap_or(1).max(1);
-        let v = with_f32(res, |y| {
-            with_f32(grad, |g| {
-                let mut dx = vec![0f32; g.len()];
-                dx.par_chunks_mut(n)
-                    .zip(y.par_chunks(n).zip(g.par_chunks(n)))
-                    .for_each(|(dx, (y, g))| {
-                        let total: f32 = g.iter().sum();
-                        for ((d, y), g) in dx.iter_mut().zip(y).zip(g) {
-                            *d = g - y.exp() * total;
-                        }
-                    });
-                dx
-            })
-        })??;
-        Ok(Some(Tensor::from_vec(v, res.shape(), res.device())?))
-    }
-}
-
-/// Fused batch-norm kernel over `N x C x H x W` (f32, CPU), with the statistics
-/// computed beforehand. `batch_stats` selects the training-mode backward (the
-/// statistics depend on the batch) or the eval-mode one (constants).
-#[derive(Debug, Clone)]
-struct FusedBn {
-    mean: Vec<f32>,
-    invstd: Vec<f32>,
-    batch_stats: bool,
-    act: Act,
-}
-
-impl Act {
-    /// The activation of one value.
-    #[inline]
-    fn apply(self, z: f32) -> f32 {
-        match self {
-            Act::None => z,
-            Act::Relu => z.max(0.0),
-            Act::Leaky(s) => {
-                if z > 0.0 {
-                    z
-                } else {
-                    z * s as f32
-                }
-            }
-        }
-    }
-
-    /// Its derivative at `z` (PyTorch's: 0, or the slope, at `z = 0`).
-    #[inline]
-    fn slope(self, z: f32) -> f32 {
-        match self {
-            Act::None => 1.0,
-            Act::Relu => {
-                if z > 0.0 {
-                    1.0
-                } else {
-                    0.0
-                }
-            }
-            Act::Leaky(s) => {
-                if z > 0.0 {
-                    1.0
-                } else {
-                    s as f32
-                }
-            }
-        }
-    }
-}
-
-impl FusedBn {
-    /// Scale and shift of channel `ci`: `y = act(x a + sh)`.
-    fn affine(&self, gamma: &[f32], beta: &[f32], ci: usize) -> (f32, f32) {
-        let a = gamma[ci] * self.invstd[ci];
-        (a, beta[ci] - self.mean[ci] * a)
-    }
-}
-
-impl candle_core::CustomOp3 for FusedBn {
-    fn name(&self) -> &'static str {
-        "fused-batch-norm"
-    }
-
-    fn cpu_fwd(
-        &self,
-        s1: &candle_core::CpuStorage,
-        l1: &candle_core::Layout,
-        s2: &candle_core::CpuStorage,
-        l2: &candle_core::Layout,
-        s3: &candle_core::CpuStorage,
-        l3: &candle_core::Layout,
-    ) -> Result<(candle_core::CpuStorage, candle_core::Shape)> {
-        let x = contiguous_f32(s1, l1)?;
-        let g = contiguous_f32(s2, l2)?;
-        let b = contiguous_f32(s3, l3)?;
-        let (_n, c, h, w) = l1.shape().dims4()?;
-        let hw = (h * w).max(1);
-        let mut y = vec![0f32; x.len()];
-        let act = self.act;
-        y.par_chunks_mut(hw)
-            .zip(x.par_chunks(hw))
-            .enumerate()
-            .for_each(|(plane, (y, x))| {
-                let (a, sh) = self.affine(g, b, plane % c);
-                for (yv, xv) in y.iter_mut().zip(x) {
-                    *yv = act.apply(xv * a + sh);
-                }
-            });
-        Ok((candle_core::CpuStorage::F32(y), l1.shape().clone()))
-    }
-
-    fn bwd(
-        &self,
-        x: &Tensor,
-        gamma: &Tensor,
-        beta: &Tensor,
-        _res: &Tensor,
-        grad: &Tensor,
-    ) -> Result<(Option<Tensor>, Option<Tensor>, Option<Tensor>)> {
-        let (n, c, h, w) = x.dims4()?;
-        let hw = (h * w).max(1);
-        let cnt = (n * hw) as f32;
-        let gam = gamma.to_vec1::<f32>()?;
-        let bet = beta.to_vec1::<f32>()?;
-        let act = self.act;
-        // The gradient through the activation (pre-activation recomputed from x).
-        let gz = |g: f32, x: f32, a: f32, sh: f32| g * act.slope(x * a + sh);
-        let (dx, sg, sgx) = with_f32(x, |xv| {
-            with_f32(grad, |gv| {
-                // Per channel: sum of gz and of gz * x_hat, planes in batch order.
-                let (sg, sgx): (Vec<f32>, Vec<f32>) = (0..c)
-                    .into_par_iter()
-                    .map(|ci| {
-                        let (a, sh) = self.affine(&gam, &bet, ci);
-                        let (m, is) = (self.mean[ci], self.invstd[ci]);
-                        let (mut s, mut sx) = (0f32, 0f32);
-                        for ni in 0..n {
-                            let o = (ni * c + ci) * hw;
-                            let (mut ps, mut psx) = (0f32, 0f32);
-                            for (g, xx) in gv[o..o + hw].iter().zip(&xv[o..o + hw]) {
-                                let g = gz(*g, *xx, a, sh);
-                                ps += g;
-                                psx += g * (xx - m) * is;
-                            }
-                            s += ps;
-                            sx += psx;
-                        }
-                        (s, sx)
-                    })
-                    .unzip();
-                let mut dx = vec![0f32; xv.len()];
-                dx.par_chunks_mut(hw)
-                    .zip(xv.par_chunks(hw).zip(gv.par_chunks(hw)))
-                    .enumerate()
-                    .for_each(|(plane, (dx, (xv, gv)))| {
-                        let ci = plane % c;
-                        let (a, sh) = self.affine(&gam, &bet, ci);
-                        let (m, is) = (self.mean[ci], self.invstd[ci]);
-                        let k = gam[ci] * is;
-                        if self.batch_stats {
-                            let (mg, mgx) = (sg[ci] / cnt, sgx[ci] / cnt);
-                            for ((d, x), g) in dx.iter_mut().zip(xv).zip(gv) {
-                                let xh = (x - m) * is;
-                                *d = k * (gz(*g, *x, a, sh) - mg - xh * mgx);
-                            }
-                        } else {
-                            for ((d, x), g) in dx.iter_mut().zip(xv).zip(gv) {
-                                *d = k * gz(*g, *x, a, sh);
-                            }
-                        }
-                    });
-                (dx, sg, sgx)
-            })
-        })??;
-        let dev = x.device();
-        Ok((
-            Some(Tensor::from_vec(dx, (n, c, h, w), dev)?),
-            Some(Tensor::from_vec(sgx, c, dev)?),
-            Some(Tensor::from_vec(sg, c, dev)?),
-        ))
-    }
+    x.contiguous()?.apply_f32_op1(LogSoftmaxLast)
 }
 
 /// 2-D batch norm (PyTorch `BatchNorm2d` semantics: biased batch variance for
@@ -1844,6 +876,6 @@ impl BatchNorm2d {
             batch_stats: train,
             act,
         };
-        x.apply_op3(&self.weight.contiguous()?, &self.bias.contiguous()?, op)
+        x.apply_f32_op3(&self.weight.contiguous()?, &self.bias.contiguous()?, op)
     }
 }

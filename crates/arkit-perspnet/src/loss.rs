@@ -274,8 +274,10 @@ fn perspnet_loss_with_corr(
 /// The loss terms from the network's raw outputs (assignment logits `B x M x V`,
 /// vertices X `B x V x 3` in UV-map units, segmentation logits `B x 2 x H x W`, UV map
 /// `B x 3 x H x W`) with fixed weights `w` and `L_corr`'s smooth-L1 `threshold` (0: the
-/// paper's plain L1). [`PerspNetLoss::compute`] is this plus the official schedule.
-pub fn loss_terms(
+/// paper's plain L1). [`PerspNetLoss::compute`] is this plus the official schedule (the
+/// unit tests' entry).
+#[cfg(test)]
+fn loss_terms(
     assign_logits: &Tensor,
     vertices: &Tensor,
     seg_logits: &Tensor,

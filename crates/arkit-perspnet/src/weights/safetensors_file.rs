@@ -10,7 +10,7 @@
 //! shape whose byte size (overflow-checked) equals its data range, and the ranges
 //! tile the data exactly (no gap, no overlap, nothing after), as the format requires.
 
-use arkit_data::limits;
+use arkit_core::limits;
 use candle_core::{DType, Device, Tensor};
 use std::io::{Read, Seek, SeekFrom};
 use std::path::Path;

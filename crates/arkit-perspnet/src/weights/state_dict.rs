@@ -18,8 +18,8 @@ use std::cell::RefCell;
 use std::collections::{BTreeMap, HashMap};
 use std::path::Path;
 
-use crate::safetensors_file::{self, SafetensorsFile};
-use arkit_data::torch_pickle::{self, TorchDType, TorchZip};
+use super::safetensors_file::{self, SafetensorsFile};
+use arkit_core::torch_pickle::{self, TorchDType, TorchZip};
 
 use candle_core::{DType, Device, Tensor};
 use candle_nn::VarMap;
@@ -249,7 +249,7 @@ fn candle_dtype(d: TorchDType) -> Option<DType> {
 
 impl WeightFile {
     /// Opens `path`: a `torch.save` zip (PyTorch 1.6 and later), read by our bounded
-    /// reader of a `state_dict`'s pickle ([`arkit_data::torch_pickle`]: no code from
+    /// reader of a `state_dict`'s pickle ([`arkit_core::torch_pickle`]: no code from
     /// the file is run, and an entry that is not a tensor is refused by name), or a
     /// safetensors file (as [`export_state_dict`] is written), told apart by their
     /// first bytes. Only the names, types and shapes are read here.
@@ -320,11 +320,6 @@ impl WeightFile {
             rename,
             source: RefCell::new(source),
         })
-    }
-
-    /// The entries' names, shapes and types (names without a `module.` prefix).
-    pub fn entries(&self) -> &[(String, Vec<usize>, DType)] {
-        &self.names
     }
 
     fn get(&self, name: &str) -> candle_core::Result<Tensor> {

@@ -1,12 +1,10 @@
-//! The reference PerspNet (`arkit_tool::perspnet`): layers against hand values and
+//! The reference PerspNet (`arkit_perspnet`): layers against hand values and
 //! candle's own ops, the `paper` shapes and parameter counts, and `tiny` training.
-
-mod support;
 
 mod layers {
     //! Hand-checked tests of the custom differentiable layers.
 
-    use arkit_tool::perspnet::layers::*;
+    use arkit_perspnet::layers::*;
     use candle_core::{Device, Result, Tensor, Var};
 
     fn close(a: &[f32], b: &[f32], tol: f32) {
@@ -210,7 +208,7 @@ mod layers {
     fn dropout2d_drops_whole_channels() -> Result<()> {
         let dev = Device::Cpu;
         let x = Tensor::ones((4, 64, 3, 3), candle_core::DType::F32, &dev)?;
-        let mut rng = arkit_tool::rng::Rng::new(1);
+        let mut rng = arkit_core::rng::Rng::new(1);
         let y = dropout2d(&x, 0.5, Some(&mut rng))?;
         let v: Vec<f32> = y.flatten_all()?.to_vec1()?;
         for ch in v.chunks(9) {
@@ -219,7 +217,7 @@ mod layers {
         // About half of the 256 channels dropped, and the same seed drops the same.
         let dropped = v.chunks(9).filter(|ch| ch[0] == 0.0).count();
         assert!((96..160).contains(&dropped), "{dropped}");
-        let again: Vec<f32> = dropout2d(&x, 0.5, Some(&mut arkit_tool::rng::Rng::new(1)))?
+        let again: Vec<f32> = dropout2d(&x, 0.5, Some(&mut arkit_core::rng::Rng::new(1)))?
             .flatten_all()?
             .to_vec1()?;
         assert_eq!(v, again);
@@ -570,8 +568,8 @@ mod shapes {
     //! One forward pass of the `paper` configuration: checks every intermediate
     //! shape and reports the parameter count against the official numbers.
 
-    use arkit_tool::perspnet::model::{parameter_count, synthetic_vertex_uv};
-    use arkit_tool::perspnet::{PerspNet, PerspNetConfig};
+    use arkit_perspnet::{PerspNet, PerspNetConfig};
+    use arkit_perspnet::{parameter_count, synthetic_vertex_uv};
     use candle_core::{DType, Device, Result, Tensor};
     use candle_nn::{VarBuilder, VarMap};
 
@@ -643,13 +641,13 @@ mod train {
     //! `tiny` configuration: loss terms behave, a few AdamW steps on one fixed
     //! batch reduce the total loss, and weights survive a safetensors round trip.
 
-    use arkit_tool::perspnet::loss::{
-        LossWeights, kl_loss, perspnet_loss, seg_cross_entropy, smooth_l1_sum_mean,
-    };
-    use arkit_tool::perspnet::model::{synthetic_vertex_uv, trainable_vars};
-    use arkit_tool::perspnet::{
+    use arkit_perspnet::{
         CorrTarget, LossTargets, LossVariant, PerspNet, PerspNetConfig, PerspNetLoss,
     };
+    use arkit_perspnet::{
+        LossWeights, kl_loss, perspnet_loss, seg_cross_entropy, smooth_l1_sum_mean,
+    };
+    use arkit_perspnet::{synthetic_vertex_uv, trainable_vars};
     use candle_core::{DType, Device, Result, Tensor};
     use candle_nn::{AdamW, Optimizer, ParamsAdamW, VarBuilder, VarMap};
 
@@ -878,8 +876,8 @@ mod ablations {
     //! "w/o PE": without the position encoding, points whose image features are equal
     //! get equal assignment rows; with it they differ by position.
 
-    use arkit_tool::perspnet::model::synthetic_vertex_uv;
-    use arkit_tool::perspnet::{PerspNet, PerspNetConfig};
+    use arkit_perspnet::synthetic_vertex_uv;
+    use arkit_perspnet::{PerspNet, PerspNetConfig};
     use candle_core::{DType, Device, Result, Tensor};
     use candle_nn::{VarBuilder, VarMap};
 
@@ -936,15 +934,15 @@ mod pipeline {
     //! synth -> convert -> render (64x64, 256 points) -> train (tiny) -> predict
     //! --model -> eval, on a few samples.
 
-    use arkit_tool::conventions::Camera;
-    use arkit_tool::convert::{self, ConvertOptions, ValidationContext};
-    use arkit_tool::eval_dataset::{self, EvalOptions};
-    use arkit_tool::perspnet::PerspNetConfig;
-    use arkit_tool::pnp::RansacParams;
-    use arkit_tool::render::FaceRenderer;
-    use arkit_tool::render_dataset::{self, RenderOptions};
-    use arkit_tool::synth::{self, FaceSource, SynthOptions};
-    use arkit_tool::training::{self, TrainOptions};
+    use arkit_core::conventions::Camera;
+    use arkit_data::convert::{self, ConvertOptions, ValidationContext};
+    use arkit_data::eval_dataset::{self, EvalOptions};
+    use arkit_data::pnp::RansacParams;
+    use arkit_data::render::FaceRenderer;
+    use arkit_data::render_dataset::{self, RenderOptions};
+    use arkit_data::synth::{self, FaceSource, SynthOptions};
+    use arkit_perspnet::PerspNetConfig;
+    use arkit_perspnet::TrainOptions;
     use candle_core::Device;
 
     #[test]
@@ -959,7 +957,7 @@ mod pipeline {
             ..SynthOptions::default()
         };
         synth::generate(&FaceSource::builtin(), &options, release.path(), &|| {}).unwrap();
-        let topology = arkit_tool::synthetic_face::builtin().topology.clone();
+        let topology = arkit_data::synthetic_face::builtin().topology.clone();
         let dir = tempfile::tempdir().unwrap();
         let ctx = ValidationContext {
             projection: Camera::release_projection(),
@@ -992,14 +990,14 @@ mod pipeline {
         };
         render_dataset::render_dataset(dir.path(), &renderer, &ro(96, wrong.path()), &|_| {})
             .unwrap();
-        let e = match training::read_examples(dir.path(), wrong.path(), &cfg, None) {
+        let e = match arkit_perspnet::read_examples(dir.path(), wrong.path(), &cfg, None) {
             Err(e) => e.to_string(),
             Ok(_) => panic!("targets at 96 accepted for a 64 network"),
         };
         assert!(e.contains("--size 64"), "{e}");
         render_dataset::render_dataset(dir.path(), &renderer, &ro(64, dir.path()), &|_| {})
             .unwrap();
-        let examples = training::read_examples(dir.path(), dir.path(), &cfg, None).unwrap();
+        let examples = arkit_perspnet::read_examples(dir.path(), dir.path(), &cfg, None).unwrap();
         assert_eq!(examples.len(), 6);
         // The stored coordinates are the official 4.5x scale of the mesh at the weights.
         let e0 = &examples[0];
@@ -1022,13 +1020,13 @@ mod pipeline {
             batch: 4,
             learning_rate: 5e-3,
             lr_hold: 0.5,
-            augmentation: training::Augmentation::DEFAULT,
+            augmentation: arkit_perspnet::Augmentation::DEFAULT,
             seed: 3,
             resume: false,
             lowered_start: false,
             output: model_dir.path().to_path_buf(),
         };
-        let (ck, log) = training::train(&examples[..4], &topology, &topts, &|_| {}).unwrap();
+        let (ck, log) = arkit_perspnet::train(&examples[..4], &topology, &topts, &|_| {}).unwrap();
         assert_eq!(ck.steps, 8);
         let first = log[0].total;
         let last = log
@@ -1052,7 +1050,7 @@ mod pipeline {
             ..topts.clone()
         };
         let interrupted = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
-            training::train(&examples[..4], &topology, &cut_opts, &|s| {
+            arkit_perspnet::train(&examples[..4], &topology, &cut_opts, &|s| {
                 assert!(s.step < 4, "interrupted");
             })
         }));
@@ -1068,7 +1066,7 @@ mod pipeline {
             ..cut_opts.clone()
         };
         let (rck, rlog) =
-            training::train(&examples[..4], &topology, &resumed_opts, &|_| {}).unwrap();
+            arkit_perspnet::train(&examples[..4], &topology, &resumed_opts, &|_| {}).unwrap();
         assert_eq!((rck.steps, rck.epochs_done), (8, 8));
         assert_eq!(rlog.len(), 8);
         for k in 0..8 {
@@ -1085,7 +1083,7 @@ mod pipeline {
             t
         };
         assert_eq!(weights(cut.path()), weights(model_dir.path()));
-        assert!(cut.path().join(training::ADAM_FILE).exists());
+        assert!(cut.path().join(arkit_perspnet::ADAM_FILE).exists());
         // Torn: what a kill between two renames leaves (the weights of epoch 8, the
         // rest of epoch 4). --resume refuses it, naming the file and what differs, and
         // leaves every file as it was; so it does without the record of the files.
@@ -1113,7 +1111,7 @@ mod pipeline {
             output: torn.path().to_path_buf(),
             ..resumed_opts.clone()
         };
-        let e = match training::train(&examples[..4], &topology, &torn_opts, &|_| {}) {
+        let e = match arkit_perspnet::train(&examples[..4], &topology, &torn_opts, &|_| {}) {
             Err(e) => e.to_string(),
             Ok(_) => panic!("a torn checkpoint was resumed"),
         };
@@ -1127,8 +1125,8 @@ mod pipeline {
             snapshot(torn.path()) == before,
             "the refused checkpoint was changed"
         );
-        std::fs::remove_file(torn.path().join(training::CHECKPOINT_RECORD)).unwrap();
-        let e = match training::train(&examples[..4], &topology, &torn_opts, &|_| {}) {
+        std::fs::remove_file(torn.path().join(arkit_perspnet::CHECKPOINT_RECORD)).unwrap();
+        let e = match arkit_perspnet::train(&examples[..4], &topology, &torn_opts, &|_| {}) {
             Err(e) => e.to_string(),
             Ok(_) => panic!("a checkpoint without its record was resumed"),
         };
@@ -1141,7 +1139,7 @@ mod pipeline {
         }
         let csv = std::fs::read(cut2.path().join("loss.csv")).unwrap();
         std::fs::write(cut2.path().join("loss.csv"), &csv[..csv.len() - 10]).unwrap();
-        let e = match training::train(
+        let e = match arkit_perspnet::train(
             &examples[..4],
             &topology,
             &TrainOptions {
@@ -1170,28 +1168,28 @@ mod pipeline {
             ..topts.clone()
         };
         let (bck, blog) =
-            training::train(&examples[..4], &topology, &budget_opts, &|_| {}).unwrap();
+            arkit_perspnet::train(&examples[..4], &topology, &budget_opts, &|_| {}).unwrap();
         assert_eq!((bck.steps, blog.len(), bck.max_steps), (3, 3, Some(3)));
         assert_eq!(blog[0].total, log[0].total);
         let too_many = TrainOptions {
             max_steps: Some(1000),
             ..budget_opts
         };
-        assert!(training::train(&examples[..4], &topology, &too_many, &|_| {}).is_err());
+        assert!(arkit_perspnet::train(&examples[..4], &topology, &too_many, &|_| {}).is_err());
         // Other settings are refused rather than mixed in.
         let other = TrainOptions {
             learning_rate: 1e-3,
             ..resumed_opts
         };
-        let e = match training::train(&examples[..4], &topology, &other, &|_| {}) {
+        let e = match arkit_perspnet::train(&examples[..4], &topology, &other, &|_| {}) {
             Err(e) => e.to_string(),
             Ok(_) => panic!("resumed with another learning rate"),
         };
         assert!(e.contains("other settings"), "{e}");
         // Load, predict (deterministic), evaluate.
-        let model = training::load(model_dir.path(), &topology).unwrap();
+        let model = arkit_perspnet::load(model_dir.path(), &topology).unwrap();
         let run_with = |rule| {
-            training::model_predictions(
+            arkit_perspnet::model_predictions(
                 dir.path(),
                 &model,
                 None,
@@ -1203,12 +1201,12 @@ mod pipeline {
             )
             .unwrap()
         };
-        let run = || run_with(arkit_tool::render::CropRule::Ours);
+        let run = || run_with(arkit_data::crop::CropRule::Ours);
         let (a, sa) = run();
         let (b, _) = run();
         assert_eq!(a, b);
         // The official crop is another input: the same samples, other predictions.
-        let (c, sc) = run_with(arkit_tool::render::CropRule::Official);
+        let (c, sc) = run_with(arkit_data::crop::CropRule::Official);
         assert_eq!(sc.samples, 6);
         assert!(a.iter().zip(&c).all(|(p, q)| p.key == q.key));
         assert_ne!(a, c);
@@ -1231,11 +1229,11 @@ mod pipeline {
         // mesh's 68 landmarks, poses through PnP, eval's ADD on the subject's head; the
         // predicted 1,220-vertex meshes are not scored against the 6,918-vertex heads.
         let hpdb = tempfile::tempdir().unwrap();
-        super::support::biwi_writer::write_hpdb(hpdb.path());
+        crate::support::biwi_writer::write_hpdb(hpdb.path());
         let biwi_pq = tempfile::tempdir().unwrap();
         let staging = biwi_pq.path().join("biwi-release");
         let (staged, biwi_topology) =
-            arkit_tool::biwi::stage(hpdb.path(), &staging, 256, &|| {}).unwrap();
+            arkit_data::biwi::stage(hpdb.path(), &staging, 256, &|| {}).unwrap();
         assert_eq!(staged.staged, 6);
         let bctx = ValidationContext {
             projection: Camera::release_projection(),
@@ -1249,11 +1247,11 @@ mod pipeline {
         };
         let m = convert::convert(&bopts, &bctx, &|_| {}).unwrap();
         assert_eq!((m.converted, m.skipped), (6, 0));
-        let (rows, summary) = training::model_predictions(
+        let (rows, summary) = arkit_perspnet::model_predictions(
             biwi_pq.path(),
             &model,
             None,
-            arkit_tool::render::CropRule::Ours,
+            arkit_data::crop::CropRule::Ours,
             None,
             5,
             &RansacParams::default(),

@@ -1,27 +1,28 @@
-//! The "Direct 6DoF Regress" baseline (`arkit_tool::perspnet::direct`): shapes, every
+//! The "Direct 6DoF Regress" baseline ([`arkit_perspnet::DirectNet`]): shapes, every
 //! output a rotation, the tensor and scalar Gram-Schmidt agree, the targets' round
 //! trip through the crop and the camera, and a tiny run trained, saved, loaded,
-//! predicted and evaluated (with the options that do not apply to it refused).
+//! predicted and evaluated (the commands on such a model: the root's
+//! `tests/direct_commands.rs`).
 
-use arkit_tool::conventions::{Camera, EulerAngles, Pose};
-use arkit_tool::convert::{self, ConvertOptions, ValidationContext};
-use arkit_tool::eval_dataset::{self, EvalOptions};
-use arkit_tool::perspnet::direct::{
+use arkit_core::conventions::{Camera, EulerAngles, Pose};
+use arkit_core::rng::Rng;
+use arkit_data::convert::{self, ConvertOptions, ValidationContext};
+use arkit_data::crop::CropTransform;
+use arkit_data::eval_dataset::{self, EvalOptions};
+use arkit_data::pnp::RansacParams;
+use arkit_data::render::FaceRenderer;
+use arkit_data::render_dataset::{self, RenderOptions};
+use arkit_data::synth::{self, FaceSource, SynthOptions};
+use arkit_perspnet::TrainOptions;
+use arkit_perspnet::{Architecture, PerspNetConfig};
+use arkit_perspnet::{
     DirectNet, OUTPUT_OFFSET, direct_loss, direct_target, pose_from_output, rotation_from_6d,
     rotation_from_6d_f64,
 };
-use arkit_tool::perspnet::{Architecture, PerspNetConfig};
-use arkit_tool::pnp::RansacParams;
-use arkit_tool::render::{CropTransform, FaceRenderer};
-use arkit_tool::render_dataset::{self, RenderOptions};
-use arkit_tool::rng::Rng;
-use arkit_tool::synth::{self, FaceSource, SynthOptions};
-use arkit_tool::training::{self, TrainOptions};
 use candle_core::{DType, Device, Tensor};
 use candle_nn::{VarBuilder, VarMap};
 use nalgebra::{Matrix3, Vector3};
 use std::path::Path;
-use std::process::Command;
 
 fn direct_tiny() -> PerspNetConfig {
     PerspNetConfig {
@@ -46,7 +47,7 @@ fn forward_shapes_and_every_output_is_a_rotation() {
     let dev = Device::Cpu;
     let vm = VarMap::new();
     let net = DirectNet::new(&cfg, VarBuilder::from_varmap(&vm, DType::F32, &dev)).unwrap();
-    training::reseed(&vm, 1, cfg.init_std).unwrap();
+    arkit_perspnet::reseed(&vm, 1, cfg.init_std).unwrap();
     let img = Tensor::randn(0f32, 1.0, (3, 3, 64, 64), &dev).unwrap();
     let out = net.forward(&img, false).unwrap();
     assert_eq!(out.dims(), &[3, 9]);
@@ -83,7 +84,7 @@ fn forward_shapes_and_every_output_is_a_rotation() {
 
 #[test]
 fn targets_map_back_to_the_pose_through_crop_and_camera() {
-    let k = arkit_tool::predict::intrinsics(256, 256);
+    let k = arkit_data::predict::intrinsics(256, 256);
     let mut rng = Rng::new(9);
     for i in 0..40 {
         let pose = Pose::from_euler(
@@ -138,7 +139,7 @@ fn targets_map_back_to_the_pose_through_crop_and_camera() {
 #[test]
 fn loss_hand_values() {
     let dev = Device::Cpu;
-    let k = arkit_tool::predict::intrinsics(256, 256);
+    let k = arkit_data::predict::intrinsics(256, 256);
     let pose = Pose::from_euler(
         EulerAngles::new(20.0, -10.0, 5.0),
         Vector3::new(0.01, 0.0, -0.5),
@@ -176,10 +177,6 @@ fn loss_hand_values() {
     assert!((rot3.to_scalar::<f32>().unwrap() - 4.0 / 9.0).abs() < 1e-6);
 }
 
-fn tool() -> Command {
-    Command::new(env!("CARGO_BIN_EXE_arkit-tool"))
-}
-
 /// A converted, rendered synthetic dataset of 2 subjects x 4 images, split 1/1.
 fn dataset(dir: &Path) {
     let release = dir.join("release");
@@ -192,7 +189,7 @@ fn dataset(dir: &Path) {
         ..SynthOptions::default()
     };
     synth::generate(&FaceSource::builtin(), &options, &release, &|| {}).unwrap();
-    let topology = arkit_tool::synthetic_face::builtin().topology.clone();
+    let topology = arkit_data::synthetic_face::builtin().topology.clone();
     let ctx = ValidationContext {
         projection: Camera::release_projection(),
         topology: topology.clone(),
@@ -227,9 +224,9 @@ fn trains_saves_loads_predicts_and_evaluates() {
     let dir = tempfile::tempdir().unwrap();
     dataset(dir.path());
     let pq = dir.path().join("pq");
-    let topology = arkit_tool::synthetic_face::builtin().topology.clone();
+    let topology = arkit_data::synthetic_face::builtin().topology.clone();
     let cfg = direct_tiny();
-    let examples = training::read_examples(&pq, &pq, &cfg, None).unwrap();
+    let examples = arkit_perspnet::read_examples(&pq, &pq, &cfg, None).unwrap();
     assert_eq!(examples.len(), 8);
     // Overfit four samples (no augmentation): the loss falls well below its start.
     let model = dir.path().join("model");
@@ -240,13 +237,13 @@ fn trains_saves_loads_predicts_and_evaluates() {
         batch: 4,
         learning_rate: 2e-3,
         lr_hold: 0.5,
-        augmentation: training::Augmentation::NONE,
+        augmentation: arkit_perspnet::Augmentation::NONE,
         seed: 2,
         resume: false,
         lowered_start: false,
         output: model.clone(),
     };
-    let (ck, log) = training::train(&examples[..4], &topology, &topts, &|_| {}).unwrap();
+    let (ck, log) = arkit_perspnet::train(&examples[..4], &topology, &topts, &|_| {}).unwrap();
     assert_eq!(
         (ck.steps, ck.config.architecture),
         (40, Architecture::Direct)
@@ -272,12 +269,12 @@ fn trains_saves_loads_predicts_and_evaluates() {
 
     // Loaded back, it predicts the same every time, valid rotations only.
     let predict = || {
-        let m = training::load(&model, &topology).unwrap();
-        training::model_predictions(
+        let m = arkit_perspnet::load(&model, &topology).unwrap();
+        arkit_perspnet::model_predictions(
             &pq,
             &m,
             None,
-            arkit_tool::render::CropRule::Ours,
+            arkit_data::crop::CropRule::Ours,
             None,
             0,
             &RansacParams::default(),
@@ -311,86 +308,4 @@ fn trains_saves_loads_predicts_and_evaluates() {
     let cols = ev.summary.columns();
     assert_eq!(cols[11], ("3DRecon", "-".to_string()));
     assert!(ev.summary.mae_r_deg.is_finite());
-
-    // Through the commands: eval prints '-' for 3DRecon and no mask line; what does not
-    // apply to the baseline is refused by name.
-    let pred = dir.path().join("pred.parquet");
-    let run = |args: &[&str]| {
-        let out = tool()
-            .args(args)
-            .env("ARKIT_INPUT_ROOT", dir.path().join("release"))
-            .output()
-            .unwrap();
-        (
-            out.status.success(),
-            String::from_utf8_lossy(&out.stdout).to_string()
-                + &String::from_utf8_lossy(&out.stderr),
-        )
-    };
-    let s = |p: &Path| p.to_str().unwrap().to_string();
-    let (ok, text) = run(&[
-        "predict",
-        "--model",
-        &s(&model),
-        "--dataset",
-        &s(&pq),
-        "--split",
-        "all",
-        "--output",
-        &s(&pred),
-    ]);
-    assert!(ok, "{text}");
-    let (ok, text) = run(&[
-        "eval",
-        "--dataset",
-        &s(&pq),
-        "--predictions",
-        &s(&pred),
-        "--split",
-        "all",
-    ]);
-    assert!(ok, "{text}");
-    let header = text.lines().find(|l| l.contains("3DRecon")).unwrap();
-    let values = text
-        .lines()
-        .skip_while(|l| !l.contains("3DRecon"))
-        .nth(1)
-        .unwrap();
-    assert_eq!(
-        header.split_whitespace().count(),
-        values.split_whitespace().count()
-    );
-    assert_eq!(values.split_whitespace().last(), Some("-"), "{text}");
-    assert!(!text.contains("mask:"), "{text}");
-    let (ok, text) = run(&[
-        "predict",
-        "--model",
-        &s(&model),
-        "--dataset",
-        &s(&pq),
-        "--mask",
-        "truth",
-        "--output",
-        &s(&pred),
-    ]);
-    assert!(!ok && text.contains("--mask truth"), "{text}");
-    let (ok, text) = run(&[
-        "export-weights",
-        &s(&model),
-        "--output",
-        &s(&dir.path().join("w.safetensors")),
-    ]);
-    assert!(!ok && text.contains("direct"), "{text}");
-    let (ok, text) = run(&[
-        "train",
-        "--dataset",
-        &s(&pq),
-        "--architecture",
-        "direct",
-        "--loss",
-        "paper",
-        "--output",
-        &s(&dir.path().join("m2")),
-    ]);
-    assert!(!ok && text.contains("--loss"), "{text}");
 }

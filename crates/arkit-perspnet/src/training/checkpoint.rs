@@ -1,0 +1,346 @@
+//! A checkpoint folder holds `perspnet.json` (the network config and how it was
+//! trained), `model.safetensors` (the weights, batch-norm statistics included),
+//! `adam.safetensors` (the optimiser's state), `loss.csv` (one row per step) and,
+//! written last, `checkpoint.json` (the size and SHA-256 of each). Files are written
+//! atomically; `train --resume` checks them against the record first. A model folder
+//! is loaded for prediction by [`load`]; the shipped model is compiled in.
+
+use super::data::Augmentation;
+use super::run::StepLoss;
+use crate::adam::Adam;
+use crate::candle_err;
+use crate::network::{Network, vertex_uv};
+use crate::weights::load_weights;
+use crate::weights::open_weights;
+use crate::weights::safetensors_file::SafetensorsFile;
+use crate::{Architecture, LossWeights, PerspNetConfig};
+use arkit_core::error::{Error, Result};
+use arkit_data::topology::FaceTopology;
+use candle_core::{DType, Device};
+use candle_nn::{VarBuilder, VarMap};
+use serde::{Deserialize, Serialize};
+use std::path::Path;
+
+/// How a checkpoint was made (`perspnet.json`).
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct Checkpoint {
+    /// The network.
+    pub config: PerspNetConfig,
+    /// Topology source (the vertex UVs come from it).
+    pub topology: String,
+    /// Epochs run.
+    pub epochs: usize,
+    /// Batch size.
+    pub batch: usize,
+    /// Learning rate.
+    pub learning_rate: f64,
+    /// Share of the steps at the full learning rate before the linear decay (older
+    /// checkpoints: 1, a constant rate).
+    #[serde(default = "constant_rate")]
+    pub lr_hold: f64,
+    /// Training-time augmentation (older checkpoints: none).
+    #[serde(default = "no_augmentation")]
+    pub augmentation: Augmentation,
+    /// Whether the loss started at the lowered weights.
+    #[serde(default)]
+    pub lowered_start: bool,
+    /// The step budget, when the run had one (`train --steps`).
+    #[serde(default)]
+    pub max_steps: Option<usize>,
+    /// Seed.
+    pub seed: u64,
+    /// The loss weights when this checkpoint was written (the official schedule lowers
+    /// them as `L_corr` falls; a resumed run goes on from these). Older checkpoints:
+    /// none, the run's starting weights.
+    #[serde(default)]
+    pub loss_weights: Option<LossWeights>,
+    /// Epochs finished when this checkpoint was written (`epochs` once training is
+    /// done; a checkpoint is written after every epoch).
+    #[serde(default)]
+    pub epochs_done: usize,
+    /// Training examples.
+    pub examples: usize,
+    /// Shards the examples were taken from, one at a time (1: all in memory; `train
+    /// --stream`: the dataset's shards with examples of the split). The sample order
+    /// depends on it, so a resumed run must match.
+    #[serde(default = "one_shard")]
+    pub example_shards: usize,
+    /// Steps run.
+    pub steps: usize,
+    /// Total loss of the first and last step (NaN, written `null`, without steps).
+    #[serde(deserialize_with = "nan_if_null")]
+    pub first_loss: f32,
+    /// Total loss of the last step.
+    #[serde(deserialize_with = "nan_if_null")]
+    pub last_loss: f32,
+    /// The weights file this model was imported from (`import-weights`), if it was.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub imported_from: Option<String>,
+}
+
+/// A loss written as `null` (JSON has no NaN) reads back as NaN.
+fn nan_if_null<'de, D: serde::Deserializer<'de>>(d: D) -> std::result::Result<f32, D::Error> {
+    Ok(Option::<f32>::deserialize(d)?.unwrap_or(f32::NAN))
+}
+
+fn one_shard() -> usize {
+    1
+}
+
+fn constant_rate() -> f64 {
+    1.0
+}
+
+fn no_augmentation() -> Augmentation {
+    Augmentation::NONE
+}
+
+/// Writes `path` through `save` under a temporary name in the same folder, then renames.
+pub(crate) fn save_renamed(
+    path: &Path,
+    save: &dyn Fn(&Path) -> candle_core::Result<()>,
+) -> Result<()> {
+    let name = path
+        .file_name()
+        .map_or_else(String::new, |n| n.to_string_lossy().into_owned());
+    let tmp = path.with_file_name(format!(".{name}.tmp-{}", std::process::id()));
+    if let Err(e) = save(&tmp) {
+        let _ = std::fs::remove_file(&tmp);
+        return Err(Error::format(path, e.to_string()));
+    }
+    std::fs::rename(&tmp, path).map_err(|e| Error::io(path, e))
+}
+
+/// The optimiser's state in a checkpoint folder ([`Adam::save`]).
+pub const ADAM_FILE: &str = "adam.safetensors";
+
+pub(crate) fn write_checkpoint(
+    dir: &Path,
+    c: &Checkpoint,
+    varmap: &VarMap,
+    opt: &Adam,
+    log: &[StepLoss],
+) -> Result<()> {
+    std::fs::create_dir_all(dir).map_err(|e| Error::io(dir, e))?;
+    // Weights and optimiser state first, each under a temporary name then renamed;
+    // perspnet.json last, so a folder whose json says N steps has both files of step N.
+    save_renamed(&dir.join("model.safetensors"), &|p| varmap.save(p))?;
+    save_renamed(&dir.join(ADAM_FILE), &|p| opt.save(p))?;
+    // The direct model's two terms take the first two loss columns.
+    let mut csv = String::from(match c.config.architecture {
+        Architecture::PerspNet => "step,epoch,total,corr,shape,kl,entropy,seg\n",
+        Architecture::Direct => "step,epoch,total,rotation,translation,unused,unused,unused\n",
+    });
+    for s in log {
+        csv += &format!(
+            "{},{},{},{},{},{},{},{}\n",
+            s.step, s.epoch, s.total, s.corr, s.shape, s.kl, s.entropy, s.seg
+        );
+    }
+    arkit_core::atomic_file::write_bytes(&dir.join("loss.csv"), csv.as_bytes())?;
+    let json = serde_json::to_string_pretty(c).expect("checkpoint json");
+    arkit_core::atomic_file::write_bytes(&dir.join("perspnet.json"), json.as_bytes())?;
+    // Last, the record of what was written: a folder whose files do not all match it
+    // (a run stopped between two renames) is refused by --resume.
+    write_checkpoint_record(dir)
+}
+
+/// The record a checkpoint folder's files are checked against on `train --resume`:
+/// written last, after every other file, it holds the size and SHA-256 of each.
+pub const CHECKPOINT_RECORD: &str = "checkpoint.json";
+
+/// The files of a checkpoint folder that [`CHECKPOINT_RECORD`] covers.
+const CHECKPOINT_FILES: [&str; 4] = ["model.safetensors", ADAM_FILE, "loss.csv", "perspnet.json"];
+
+/// One file of a checkpoint, as its record holds it.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+struct RecordedFile {
+    name: String,
+    bytes: u64,
+    sha256: String,
+}
+
+#[derive(Debug, Serialize, Deserialize)]
+struct CheckpointRecord {
+    files: Vec<RecordedFile>,
+}
+
+/// The size and SHA-256 (lowercase hex) of `path`, read in pieces.
+fn file_digest(path: &Path) -> Result<(u64, String)> {
+    use sha2::Digest;
+    use std::io::Read;
+    let mut f = std::fs::File::open(path).map_err(|e| Error::io(path, e))?;
+    let mut h = sha2::Sha256::new();
+    let mut buf = vec![0u8; 1 << 16];
+    let mut n = 0u64;
+    loop {
+        let k = f.read(&mut buf).map_err(|e| Error::io(path, e))?;
+        if k == 0 {
+            break;
+        }
+        h.update(&buf[..k]);
+        n += k as u64;
+    }
+    let hex = h.finalize().iter().map(|b| format!("{b:02x}")).collect();
+    Ok((n, hex))
+}
+
+fn write_checkpoint_record(dir: &Path) -> Result<()> {
+    let mut files = Vec::new();
+    for name in CHECKPOINT_FILES {
+        let (bytes, sha256) = file_digest(&dir.join(name))?;
+        files.push(RecordedFile {
+            name: name.to_string(),
+            bytes,
+            sha256,
+        });
+    }
+    let json = serde_json::to_string_pretty(&CheckpointRecord { files }).expect("record json");
+    arkit_core::atomic_file::write_bytes(&dir.join(CHECKPOINT_RECORD), json.as_bytes())
+}
+
+/// Checks that every file of the checkpoint in `dir` is the one its record
+/// ([`CHECKPOINT_RECORD`]) describes; the error names the first that differs and how.
+/// Nothing in the folder is changed.
+pub fn verify_checkpoint(dir: &Path) -> Result<()> {
+    let torn = "the checkpoint is torn (a run was stopped while writing it) and is left as it is: train into another --output, or run again without --resume to start over";
+    let rec = dir.join(CHECKPOINT_RECORD);
+    let meta = std::fs::metadata(&rec).map_err(|e| {
+        Error::format(
+            &rec,
+            format!("cannot be read ({e}): without this record of the checkpoint's files, it cannot be told whole; {torn}"),
+        )
+    })?;
+    if meta.len() > 1 << 16 {
+        return Err(Error::format(
+            &rec,
+            format!("{} bytes: not a checkpoint record", meta.len()),
+        ));
+    }
+    let text = std::fs::read_to_string(&rec).map_err(|e| Error::io(&rec, e))?;
+    let record: CheckpointRecord = serde_json::from_str(&text)
+        .map_err(|e| Error::format(&rec, format!("not a checkpoint record: {e}")))?;
+    for name in CHECKPOINT_FILES {
+        let Some(want) = record.files.iter().find(|f| f.name == name) else {
+            return Err(Error::format(&rec, format!("does not list {name}")));
+        };
+        let p = dir.join(name);
+        let (bytes, sha256) = match std::fs::metadata(&p) {
+            Ok(_) => file_digest(&p)?,
+            Err(e) => {
+                return Err(Error::format(
+                    &p,
+                    format!("missing ({e}), but {CHECKPOINT_RECORD} records it; {torn}"),
+                ));
+            }
+        };
+        if bytes != want.bytes {
+            return Err(Error::format(
+                &p,
+                format!(
+                    "{bytes} bytes, but {CHECKPOINT_RECORD} records {} for it: {torn}",
+                    want.bytes
+                ),
+            ));
+        }
+        if sha256 != want.sha256 {
+            return Err(Error::format(
+                &p,
+                format!(
+                    "its SHA-256 is {sha256}, but {CHECKPOINT_RECORD} records {} (same size, other content): {torn}",
+                    want.sha256
+                ),
+            ));
+        }
+    }
+    Ok(())
+}
+
+/// A trained network loaded from a checkpoint folder.
+pub struct TrainedModel {
+    /// How it was made.
+    pub checkpoint: Checkpoint,
+    /// The network.
+    pub net: Network,
+    /// Its variables.
+    pub varmap: VarMap,
+}
+
+/// Loads a checkpoint folder written by [`crate::train`].
+pub fn load(dir: &Path, topology: &FaceTopology) -> Result<TrainedModel> {
+    let p = dir.join("perspnet.json");
+    let text = std::fs::read_to_string(&p).map_err(|e| Error::io(&p, e))?;
+    let checkpoint: Checkpoint =
+        serde_json::from_str(&text).map_err(|e| Error::format(&p, e.to_string()))?;
+    if checkpoint.topology != topology.source {
+        return Err(Error::invalid(
+            "--resources",
+            format!(
+                "the model was trained with the topology '{}', not '{}'",
+                checkpoint.topology, topology.source
+            ),
+        ));
+    }
+    let w = dir.join("model.safetensors");
+    let mut st = open_weights(&w)?;
+    model_from_parts(checkpoint, &mut st, &w, topology)
+}
+
+/// Where the shipped model's folder is in the repository: a `tiny` PerspNet trained by
+/// `train` on synthetic data (docs/train.md, "The shipped model", has the commands and
+/// seed that made it), its weights stored as float16 (`half-model`).
+pub const SHIPPED_MODEL_DIR: &str = "models/tiny-synthetic";
+
+/// The shipped model's `perspnet.json` and weights, compiled into the binary so that
+/// `demo` needs no path to find them.
+const SHIPPED_JSON: &str = include_str!("../../../../models/tiny-synthetic/perspnet.json");
+const SHIPPED_WEIGHTS: &[u8] =
+    include_bytes!("../../../../models/tiny-synthetic/model.safetensors");
+
+/// How the shipped model was made (its `perspnet.json`).
+pub fn shipped_checkpoint() -> Result<Checkpoint> {
+    let p = Path::new(SHIPPED_MODEL_DIR).join("perspnet.json");
+    serde_json::from_str(SHIPPED_JSON).map_err(|e| Error::format(&p, e.to_string()))
+}
+
+/// The shipped model ([`SHIPPED_MODEL_DIR`]), from the copy compiled into the binary;
+/// it was trained on the built-in face's topology, and another `topology` is refused
+/// as [`load`] refuses it.
+pub fn shipped_model(topology: &FaceTopology) -> Result<TrainedModel> {
+    let dir = Path::new(SHIPPED_MODEL_DIR);
+    let checkpoint = shipped_checkpoint()?;
+    if checkpoint.topology != topology.source {
+        return Err(Error::invalid(
+            "--resources",
+            format!(
+                "the shipped model was trained with the topology '{}', not '{}'",
+                checkpoint.topology, topology.source
+            ),
+        ));
+    }
+    let w = dir.join("model.safetensors");
+    let mut st = crate::weights::safetensors_file::from_bytes(SHIPPED_WEIGHTS)
+        .map_err(|e| Error::format(&w, e))?;
+    model_from_parts(checkpoint, &mut st, &w, topology)
+}
+
+/// The network of `checkpoint` with the weights of the safetensors file `st` (read
+/// from `file`, named in errors), float32 or float16 ([`load_weights`]).
+fn model_from_parts<R: std::io::Read + std::io::Seek>(
+    checkpoint: Checkpoint,
+    st: &mut SafetensorsFile<R>,
+    file: &Path,
+    topology: &FaceTopology,
+) -> Result<TrainedModel> {
+    let device = Device::Cpu;
+    let varmap = VarMap::new();
+    let vb = VarBuilder::from_varmap(&varmap, DType::F32, &device);
+    let net = Network::new(&checkpoint.config, &vertex_uv(topology, &device)?, vb)
+        .map_err(|e| candle_err("network", e))?;
+    load_weights(&varmap, st, file)?;
+    Ok(TrainedModel {
+        checkpoint,
+        net,
+        varmap,
+    })
+}

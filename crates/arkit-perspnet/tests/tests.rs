@@ -1,0 +1,9 @@
+//! The integration tests of `arkit-perspnet`, one binary: the network, its layers,
+//! losses and training ([`perspnet`]) and the direct baseline ([`direct`]). The
+//! commands that use the crate (`train`, `predict --model`, the weights commands, the
+//! demo) are tested at the workspace's root.
+
+mod support;
+
+mod direct;
+mod perspnet;
