@@ -555,7 +555,7 @@ pub fn write_report(dir: &Path, ev: &Evaluation, topology: &FaceTopology) -> Res
             draw_outline_or_points(&mut img, topology, &pv, &pose, Rgb([250, 60, 60]))?;
         }
         labels.push(format!(
-            "{}/{}/{}: {:.1} deg",
+            "{} {}\n{}: {:.1} deg",
             sample.key.subject_id, sample.key.facial_action, sample.key.img_id, err
         ));
         cells.push(img);
@@ -590,7 +590,7 @@ pub fn write_report(dir: &Path, ev: &Evaluation, topology: &FaceTopology) -> Res
     if !labels.is_empty() {
         text.push_str("\nworst.png, left to right, top to bottom:\n");
         for l in &labels {
-            text.push_str(&format!("  {l}\n"));
+            text.push_str(&format!("  {}\n", l.replace('\n', " ")));
         }
     }
     if !unreadable.is_empty() {

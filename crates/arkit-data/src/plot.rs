@@ -564,7 +564,8 @@ pub fn log_line_svg(title: &str, x_label: &str, y_label: &str, series: &[Series]
 }
 
 /// Captions for the cells of a contact sheet (`sheet` pixels, cells `cell` pixels,
-/// `columns` per row, in order), drawn by the viewer in its own font: an SVG of the
+/// `columns` per row, in order; a label's lines one under the other), drawn by the
+/// viewer in its own font: an SVG of the
 /// sheet's size. With `href` (the sheet's file name, relative) it shows the picture under
 /// the captions (a file to open on its own); without, it holds only the captions, to lay
 /// over the picture (the report does).
@@ -592,10 +593,21 @@ pub fn sheet_labels_svg(
     for (k, label) in labels.iter().enumerate() {
         let x = (k % columns) as f64 * cell.0 as f64 + 6.0;
         let y = (k / columns) as f64 * cell.1 as f64 + 20.0;
+        // One line per line of the label.
+        let lines: String = label
+            .lines()
+            .enumerate()
+            .map(|(i, line)| {
+                format!(
+                    "<tspan x=\"{x:.1}\" dy=\"{}\">{}</tspan>",
+                    if i == 0 { "0" } else { "1.2em" },
+                    xml_escape(line)
+                )
+            })
+            .collect();
         s += &format!(
             "<text class=\"label\" x=\"{x:.1}\" y=\"{y:.1}\" fill=\"#ffe600\" stroke=\"#000\" \
-             stroke-width=\"3\" paint-order=\"stroke\">{}</text>\n",
-            xml_escape(label)
+             stroke-width=\"3\" paint-order=\"stroke\">{lines}</text>\n"
         );
     }
     s += "</svg>\n";
