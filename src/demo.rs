@@ -456,7 +456,7 @@ pub fn run_demo(
     let shipped = shipped_rows
         .map(|r| eval_dataset::evaluate(&dataset, &r, &options).map(|e| e.summary))
         .transpose()?;
-    eval_dataset::write_report(&report_dir, &ev, topology)?;
+    let eval_report = eval_dataset::write_report(&report_dir, &ev, topology)?;
     tick(1);
     clock.done(
         "eval",
@@ -476,10 +476,10 @@ pub fn run_demo(
     clock.start("report");
     let mut figures = Vec::new();
     let samples = crate::dataset::Dataset::open(&dataset)?.read_samples(&manifest.shards[0])?;
-    figures.push(report::write_figure(
+    figures.push(report::write_chart(
         &report_dir,
-        "poses.png",
-        &report::pose_picture(&samples),
+        "poses.svg",
+        report::pose_svg(&samples),
         "Poses of the synthetic dataset",
         "Histograms of yaw, pitch and roll (degrees) and camera distance (metres) of the \
          first shard's samples, as `arkit-tool inspect --plot` draws them.",
@@ -506,28 +506,36 @@ pub fn run_demo(
              them.",
         )?);
     }
-    figures.push(report::write_figure(
+    figures.push(report::write_chart(
         &report_dir,
-        "loss.png",
-        &report::loss_picture(&log),
+        "loss.svg",
+        report::loss_svg(&log),
         "Training loss",
         "The weighted loss terms per step (log scale): correspondence smooth L1, shape L1, \
          KL to the barycentric rows, segmentation cross-entropy, and their total.",
     )?);
+    let errors_svg = report_dir.join("errors_by_pose.svg");
     figures.push(Figure {
-        file: "errors_by_pose.png".into(),
+        file: "errors_by_pose.svg".into(),
         title: "Errors by pose".into(),
-        caption: "Mean geodesic rotation error per |yaw|, |pitch| and distance bin on the \
-                  held-out subjects."
+        caption: "Mean geodesic rotation error per |yaw| and |pitch| bin, and mean translation \
+                  error per distance bin, on the held-out subjects (as `eval --report` \
+                  draws them; an empty bin has no bar)."
             .into(),
+        svg: Some(std::fs::read_to_string(&errors_svg).map_err(|e| Error::io(&errors_svg, e))?),
+        overlay: None,
     });
-    figures.push(Figure {
-        file: "worst.png".into(),
-        title: "The worst predictions".into(),
-        caption: "The held-out samples with the largest rotation errors: true mesh in green, \
-                  predicted pose in red."
-            .into(),
-    });
+    if eval_report.worst_labels.is_some() {
+        figures.push(Figure {
+            file: "worst.png".into(),
+            title: "The worst predictions".into(),
+            caption: "The held-out samples with the largest rotation errors: true mesh in \
+                      green, predicted pose in red; each labelled with its key and error."
+                .into(),
+            svg: None,
+            overlay: eval_report.worst_labels.clone(),
+        });
+    }
     let title = "arkit-tool demo";
     let intro = format!(
         "The whole pipeline on {} synthetic images of {} subjects ({} held out), made by \

@@ -1,18 +1,21 @@
-//! The pipeline report: pictures of what each stage made (poses, crops with their
-//! masks, correspondences and UV maps, augmented samples, the loss curve) and one
-//! `index.html` that shows them beside the eval table.
+//! The pipeline report: pictures of what each stage made (crops with their masks,
+//! correspondences and UV maps, augmented samples, the worst predictions), charts (the
+//! poses, the loss curve, the errors by pose) and one `index.html` that shows them
+//! beside the eval table.
 //!
-//! The page is self-contained and works offline: relative image links, inline CSS, and
-//! one small inline script that records, in `<body data-images="loaded/total"
-//! data-errors="N">`, whether every image decoded and whether any script error
-//! happened, so a headless browser can check the page without a driver
+//! The page is self-contained and works offline: relative image links, the charts as
+//! inline SVG (the browser draws their text; each is also written as its own `.svg`
+//! file), inline CSS, and one small inline script that records, in `<body
+//! data-images="loaded/total" data-charts="drawn/total" data-errors="N">`, whether
+//! every image decoded, whether every chart's text was laid out and whether any script
+//! error happened, so a headless browser can check the page without a driver
 //! (`tests/report_browser.rs`).
 
 use crate::error::{Error, Result};
 use crate::eval::Summary;
-use crate::plot::{Histogram, histogram_panel};
+use crate::plot::{Bars, Histogram, bars_svg};
 #[cfg(feature = "model")]
-use crate::plot::{Series, log_line_chart};
+use crate::plot::{Series, log_line_svg};
 use crate::samples_table::SampleRecord;
 use crate::targets_table::TargetsRecord;
 use image::{Rgb, RgbImage};
@@ -139,8 +142,30 @@ pub fn pose_histograms(
     ]
 }
 
-/// The pose histograms of a set of samples as one picture.
-pub fn pose_picture(samples: &[SampleRecord]) -> RgbImage {
+/// The four pose histograms as one chart (two by two): titled, the x axes in degrees
+/// or metres with their tick values, the y axes in samples.
+pub fn pose_chart(title: &str, hists: &[(&str, Histogram)]) -> String {
+    let bars: Vec<Bars> = hists
+        .iter()
+        .map(|(name, h)| {
+            let what = name.split(" (").next().unwrap_or(name);
+            let b = Bars::of_histogram(&format!("{what} of {} samples", total(h)), name, h);
+            if name.ends_with("(deg)") {
+                b.with_x_step(30.0)
+            } else {
+                b
+            }
+        })
+        .collect();
+    bars_svg(title, &bars, 2)
+}
+
+fn total(h: &Histogram) -> usize {
+    h.counts.iter().sum::<usize>() + h.outside
+}
+
+/// The pose histograms of a set of samples as one chart ([`pose_chart`]).
+pub fn pose_svg(samples: &[SampleRecord]) -> String {
     let col = |f: &dyn Fn(&SampleRecord) -> f64| samples.iter().map(f).collect::<Vec<f64>>();
     let h = pose_histograms(
         &col(&|s| s.yaw_deg),
@@ -148,21 +173,22 @@ pub fn pose_picture(samples: &[SampleRecord]) -> RgbImage {
         &col(&|s| s.roll_deg),
         &col(&|s| -s.translation_m[2]),
     );
-    let panels: Vec<(&str, &Histogram)> = h.iter().map(|(n, h)| (*n, h)).collect();
-    histogram_panel(&panels)
+    pose_chart("Pose histograms", &h)
 }
 
-/// The loss curve of a training log (`loss.csv` rows): total and each term.
+/// The loss curve of a training log (`loss.csv` rows): total and each term, on a log
+/// scale against the training step.
 #[cfg(feature = "model")]
-pub fn loss_picture(log: &[crate::perspnet::StepLoss]) -> RgbImage {
+pub fn loss_svg(log: &[crate::perspnet::StepLoss]) -> String {
     let series = |name: &str, f: &dyn Fn(&crate::perspnet::StepLoss) -> f32, c: [u8; 3]| Series {
         name: name.to_string(),
         values: log.iter().map(|s| f(s) as f64).collect(),
-        colour: Rgb(c),
+        colour: c,
     };
-    log_line_chart(
-        "training loss (log scale)",
-        "steps",
+    log_line_svg(
+        "Training loss",
+        "training step",
+        "weighted loss (log scale)",
         &[
             series("total", &|s| s.total, [20, 20, 20]),
             series("corr", &|s| s.corr, [200, 40, 40]),
@@ -173,15 +199,19 @@ pub fn loss_picture(log: &[crate::perspnet::StepLoss]) -> RgbImage {
     )
 }
 
-/// One picture on the page.
-#[derive(Clone, Debug)]
+/// One picture or chart on the page.
+#[derive(Clone, Debug, Default)]
 pub struct Figure {
-    /// File name inside the report folder.
+    /// File name inside the report folder (a PNG, or the chart's `.svg`).
     pub file: String,
     /// Heading.
     pub title: String,
     /// What to look at.
     pub caption: String,
+    /// A chart's SVG, inlined in the page (then `file` holds the same SVG).
+    pub svg: Option<String>,
+    /// Captions laid over the picture (an SVG of the picture's size, inlined).
+    pub overlay: Option<String>,
 }
 
 /// One stage's line in the timing table.
@@ -229,14 +259,21 @@ const STYLE: &str = "body{font-family:system-ui,sans-serif;margin:2em auto;max-w
 padding:0 1em;color:#222}table{border-collapse:collapse;margin:1em 0}\
 td,th{border:1px solid #ccc;padding:4px 8px;text-align:right}th:first-child,\
 td:first-child{text-align:left}figure{margin:2em 0}img{max-width:100%;\
-border:1px solid #ddd;image-rendering:pixelated}figcaption{color:#555;margin-top:.4em}";
+border:1px solid #ddd;image-rendering:pixelated;display:block}figcaption{color:#555;margin-top:.4em}\
+figure>svg{max-width:100%;height:auto;display:block}.sheet{position:relative;display:inline-block;\
+max-width:100%}.sheet>svg{position:absolute;left:0;top:0;width:100%;height:100%;pointer-events:none}";
 
-// Records in data attributes whether every image decoded and whether any error was
-// thrown, so a headless browser's DOM dump tells without a driver.
+// Records in data attributes whether every image decoded, whether every chart (inline
+// SVG) has its text laid out with a width, and whether any error was thrown, so a
+// headless browser's DOM dump tells without a driver.
 const CHECK_SCRIPT: &str = "var errors=0;window.addEventListener('error',function(){errors++;\
 document.body.dataset.errors=errors},true);window.addEventListener('load',function(){\
 var imgs=document.images,ok=0;for(var i=0;i<imgs.length;i++){if(imgs[i].complete&&\
 imgs[i].naturalWidth>0)ok++}document.body.dataset.images=ok+'/'+imgs.length;\
+var svgs=document.querySelectorAll('svg'),drawn=0;for(var k=0;k<svgs.length;k++){\
+var t=svgs[k].querySelectorAll('text'),good=t.length>0;for(var j=0;j<t.length;j++){\
+if(!(t[j].getComputedTextLength()>0))good=false}if(good&&svgs[k].getBoundingClientRect()\
+.width>0)drawn++}document.body.dataset.charts=drawn+'/'+svgs.length;\
 document.body.dataset.errors=errors});";
 
 /// The page's HTML.
@@ -245,7 +282,7 @@ pub fn page_html(page: &Page) -> String {
     h += "<!DOCTYPE html>\n<html lang=\"en\">\n<head>\n<meta charset=\"utf-8\">\n";
     h += &format!("<title>{}</title>\n", escape(page.title));
     h += &format!("<style>{STYLE}</style>\n<script>{CHECK_SCRIPT}</script>\n");
-    h += "</head>\n<body data-images=\"pending\" data-errors=\"0\">\n";
+    h += "</head>\n<body data-images=\"pending\" data-charts=\"pending\" data-errors=\"0\">\n";
     h += &format!(
         "<h1>{}</h1>\n<p>{}</p>\n",
         escape(page.title),
@@ -285,11 +322,19 @@ pub fn page_html(page: &Page) -> String {
         h += &format!("<tr><th>total</th><th>{total:.1}</th><th></th></tr>\n</table>\n");
     }
     for f in page.figures {
-        h += &format!(
-            "<figure>\n<h2>{}</h2>\n<img src=\"{}\" alt=\"{}\">\n<figcaption>{}</figcaption>\n</figure>\n",
-            escape(&f.title),
+        h += &format!("<figure>\n<h2>{}</h2>\n", escape(&f.title));
+        let img = format!(
+            "<img src=\"{}\" alt=\"{}\">",
             escape(&f.file),
-            escape(&f.title),
+            escape(&f.title)
+        );
+        match (&f.svg, &f.overlay) {
+            (Some(svg), _) => h += svg,
+            (None, Some(overlay)) => h += &format!("<div class=\"sheet\">{img}\n{overlay}</div>\n"),
+            (None, None) => h += &format!("{img}\n"),
+        }
+        h += &format!(
+            "<figcaption>{}</figcaption>\n</figure>\n",
             escape(&f.caption)
         );
     }
@@ -326,6 +371,26 @@ pub fn write_figure(
         file: file.to_string(),
         title: title.to_string(),
         caption: caption.to_string(),
+        ..Figure::default()
+    })
+}
+
+/// Writes a chart (SVG text) into `dir` (atomically) and returns its figure entry, which
+/// inlines the same SVG in the page.
+pub fn write_chart(
+    dir: &Path,
+    file: &str,
+    svg: String,
+    title: &str,
+    caption: &str,
+) -> Result<Figure> {
+    crate::atomic_file::write_bytes(&dir.join(file), svg.as_bytes())?;
+    Ok(Figure {
+        file: file.to_string(),
+        title: title.to_string(),
+        caption: caption.to_string(),
+        svg: Some(svg),
+        overlay: None,
     })
 }
 
@@ -339,6 +404,7 @@ mod tests {
             file: "a b.png".into(),
             title: "x < y".into(),
             caption: "\"quoted\" & more".into(),
+            ..Figure::default()
         }];
         let html = page_html(&Page {
             title: "t",
@@ -367,6 +433,7 @@ mod tests {
             file: "missing.png".into(),
             title: "m".into(),
             caption: String::new(),
+            ..Figure::default()
         }];
         let page = Page {
             title: "t",

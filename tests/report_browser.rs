@@ -108,11 +108,35 @@ fn demo_runs_every_stage_and_its_report_opens_in_a_browser() {
         .skip(1)
         .map(|s| &s[..s.find('"').unwrap()])
         .collect();
-    assert!(images.len() >= 6, "{images:?}");
+    assert!(images.len() >= 3, "{images:?}");
     for i in &images {
         assert!(out.join("report").join(i).exists(), "{i}");
     }
-    assert!(!html.contains("http://") && !html.contains("https://"));
+    // The charts are inline SVG (the browser draws their text), each also a file; the
+    // worst predictions' captions are an SVG laid over their picture.
+    let charts = html.matches("<svg ").count();
+    assert_eq!(
+        charts, 4,
+        "poses, loss, errors by pose, captions of the worst"
+    );
+    for f in ["poses.svg", "loss.svg", "errors_by_pose.svg", "worst.svg"] {
+        let svg = std::fs::read_to_string(out.join("report").join(f)).unwrap();
+        assert!(
+            svg.starts_with("<svg ") && svg.trim_end().ends_with("</svg>"),
+            "{f}"
+        );
+    }
+    for label in [
+        "yaw (deg)",
+        "distance (m)",
+        "training step",
+        "mean rotation error (deg)",
+    ] {
+        assert!(html.contains(label), "{label}");
+    }
+    // Only the SVG namespace's name, never a fetch.
+    let without_ns = html.replace("xmlns=\"http://www.w3.org/2000/svg\"", "");
+    assert!(!without_ns.contains("http://") && !without_ns.contains("https://"));
 
     let Some(browser) = chromium() else {
         eprintln!(
@@ -130,13 +154,25 @@ fn demo_runs_every_stage_and_its_report_opens_in_a_browser() {
         body.contains(&format!("data-images=\"{n}/{n}\"")),
         "not every image loaded: {body}"
     );
+    assert!(
+        body.contains(&format!("data-charts=\"{charts}/{charts}\"")),
+        "not every chart was drawn: {body}"
+    );
     assert!(body.contains("data-errors=\"0\""), "{body}");
-    // The check itself can fail: a page with a broken image reports it.
+    // The check itself can fail: a page with a broken image and a chart that is not
+    // drawn reports both.
     let broken = out.join("report/broken.html");
-    std::fs::write(&broken, html.replacen("poses.png", "no-such-file.png", 1)).unwrap();
+    let html = html
+        .replacen("targets.png", "no-such-file.png", 1)
+        .replacen("<svg ", "<svg style=\"display:none\" ", 1);
+    std::fs::write(&broken, html).unwrap();
     let body = body_tag(&browser, &broken, &dir.path().join("profile2"));
     assert!(
         body.contains(&format!("data-images=\"{}/{n}\"", n - 1)),
+        "{body}"
+    );
+    assert!(
+        body.contains(&format!("data-charts=\"{}/{charts}\"", charts - 1)),
         "{body}"
     );
     assert!(!body.contains("data-errors=\"0\""), "{body}");

@@ -101,7 +101,7 @@ pub fn run(a: EvalArgs) -> Result<ExitCode> {
     let mut written = Vec::new();
     if let Some(dir) = &a.report {
         let topology = super::load_topology(a.resources.as_deref())?;
-        written = eval_dataset::write_report(dir, &ev, &topology)?;
+        written = eval_dataset::write_report(dir, &ev, &topology)?.files;
     }
     let p = &ev.problems;
     if a.json {

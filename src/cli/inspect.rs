@@ -1,7 +1,6 @@
 //! `arkit-tool inspect`.
 
 use arkit_tool::Result;
-use arkit_tool::plot::{Histogram, histogram_panel};
 use arkit_tool::samples_table::{f64_values, read_parquet_columns, str_values};
 use clap::Args;
 use std::collections::BTreeSet;
@@ -11,14 +10,16 @@ use std::process::ExitCode;
 /// Summarise a converted dataset: subjects, images, actions, errors, and the pose
 /// distributions (yaw, pitch, roll, distance) as histograms.
 ///
-/// Example: arkit-tool inspect --dataset data/parquet --plot poses.png
+/// Example: arkit-tool inspect --dataset data/parquet --plot poses.svg
 #[derive(Args, Debug)]
 pub struct InspectArgs {
     /// A folder written by `convert` (with dataset.json).
     #[arg(long)]
     dataset: PathBuf,
-    /// Also draw the four histograms into a PNG.
-    #[arg(long, value_name = "FILE.png")]
+    /// Also draw the four histograms as a chart into this SVG file (titled axes with
+    /// tick values and units; open it in a browser). For a PNG, convert it, e.g.
+    /// `rsvg-convert -o poses.png poses.svg` (Debian: librsvg2-bin).
+    #[arg(long, value_name = "FILE.svg")]
     plot: Option<PathBuf>,
     /// First check every file the manifest names against its full SHA-256 (every other
     /// command checks each shard's size and footer only); exits 1 on a mismatch.
@@ -30,6 +31,19 @@ pub struct InspectArgs {
 }
 
 pub fn run(a: InspectArgs) -> Result<ExitCode> {
+    if let Some(path) = &a.plot
+        && !path
+            .extension()
+            .is_some_and(|e| e.eq_ignore_ascii_case("svg"))
+    {
+        return Err(arkit_tool::Error::invalid(
+            "--plot",
+            format!(
+                "{}: the chart is written as SVG; name the file .svg (for a PNG, convert it: rsvg-convert -o poses.png poses.svg)",
+                path.display()
+            ),
+        ));
+    }
     let data = arkit_tool::dataset::Dataset::open(&a.dataset)?;
     if a.verify {
         let n = arkit_tool::convert::verify_dataset(&a.dataset)?;
@@ -113,13 +127,14 @@ pub fn run(a: InspectArgs) -> Result<ExitCode> {
         }
     }
     if let Some(path) = &a.plot {
-        let panels: Vec<(&str, &Histogram)> = hists.iter().map(|(n, h)| (*n, h)).collect();
-        let img = histogram_panel(&panels);
-        let mut bytes = std::io::Cursor::new(Vec::new());
-        img.write_to(&mut bytes, image::ImageFormat::Png)
-            .map_err(|e| arkit_tool::Error::invalid("plot", e.to_string()))?;
-        arkit_tool::atomic_file::write_bytes(path, bytes.get_ref())?;
-        println!("plot: {}", path.display());
+        let title = format!("Poses of {}", a.dataset.display());
+        let svg = arkit_tool::report::pose_chart(&title, &hists);
+        arkit_tool::atomic_file::write_bytes(path, svg.as_bytes())?;
+        if a.json {
+            eprintln!("plot: {}", path.display());
+        } else {
+            println!("plot: {}", path.display());
+        }
     }
     Ok(ExitCode::SUCCESS)
 }

@@ -11,7 +11,7 @@ use crate::dataset::Dataset;
 use crate::error::{Error, Result};
 use crate::eval::{self, EulerDifference, PoseFailure, SampleErrors, Summary};
 use crate::overlay::{MeshStyle, draw_mesh};
-use crate::plot::{Bars, bars_panel};
+use crate::plot::{Bars, bars_svg, sheet_labels_svg};
 use crate::predictions_table::PredictionRecord;
 use crate::release::SampleKey;
 use crate::samples_table::{self, SampleRecord};
@@ -452,10 +452,21 @@ fn draw_outline_or_points(
     Ok(())
 }
 
-/// Writes the report folder: `errors_by_pose.png` (mean errors per |yaw|, |pitch| and
-/// distance bin), `worst.png` (the worst samples, true mesh green, predicted red) and
-/// `summary.txt`.
-pub fn write_report(dir: &Path, ev: &Evaluation, topology: &FaceTopology) -> Result<Vec<PathBuf>> {
+/// What [`write_report`] wrote.
+#[derive(Clone, Debug, Default)]
+pub struct ReportFiles {
+    /// The files, in order.
+    pub files: Vec<PathBuf>,
+    /// The captions of `worst.png`'s cells (key and rotation error), as an SVG to lay
+    /// over the picture; None when no sample was drawn.
+    pub worst_labels: Option<String>,
+}
+
+/// Writes the report folder: `errors_by_pose.svg` (charts of the mean errors per
+/// |yaw|, |pitch| and distance bin, labelled axes), `worst.png` (the worst samples, true
+/// mesh green, predicted red), `worst.svg` (the same picture with each sample's key and
+/// error as captions) and `summary.txt`.
+pub fn write_report(dir: &Path, ev: &Evaluation, topology: &FaceTopology) -> Result<ReportFiles> {
     std::fs::create_dir_all(dir).map_err(|e| Error::io(dir, e))?;
     let rot = |f: &dyn Fn(&ScoredSample) -> f64| -> Vec<(f64, f64)> {
         ev.samples
@@ -470,39 +481,47 @@ pub fn write_report(dir: &Path, ev: &Evaluation, topology: &FaceTopology) -> Res
         (dmin * 10.0).floor() / 10.0,
         (dmax * 10.0).ceil() / 10.0 + 0.1,
     );
+    let n = ev.samples.len();
     let panels = [
         Bars::binned_mean(
-            "rot err by |yaw|",
+            &format!("Rotation error by |yaw| ({n} samples)"),
+            "|yaw| (deg)",
+            "mean rotation error (deg)",
             rot(&|s| s.gt_yaw_deg.abs()),
             0.0,
             90.0,
             9,
-            "deg",
-        ),
+        )
+        .with_x_step(10.0),
         Bars::binned_mean(
-            "rot err by |pitch|",
+            &format!("Rotation error by |pitch| ({n} samples)"),
+            "|pitch| (deg)",
+            "mean rotation error (deg)",
             rot(&|s| s.gt_pitch_deg.abs()),
             0.0,
             90.0,
             9,
-            "deg",
-        ),
+        )
+        .with_x_step(10.0),
         Bars::binned_mean(
-            "trans err by dist",
+            &format!("Translation error by distance ({n} samples)"),
+            "distance to the camera (m)",
+            "mean translation error (mm)",
             ev.samples
                 .iter()
                 .map(|s| (s.gt_distance_m, s.errors.translation_mm)),
             dlo,
             dhi,
             8,
-            "mm",
         ),
     ];
     let mut written = Vec::new();
-    let plot_path = dir.join("errors_by_pose.png");
-    crate::atomic_file::write_bytes(&plot_path, &png_bytes(&bars_panel(&panels))?)?;
+    let plot_path = dir.join("errors_by_pose.svg");
+    let chart = bars_svg("Errors by pose", &panels, 3);
+    crate::atomic_file::write_bytes(&plot_path, chart.as_bytes())?;
     written.push(plot_path);
     let mut cells = Vec::new();
+    let mut labels = Vec::new();
     let mut unreadable = Vec::new();
     for (sample, pred, err) in &ev.worst {
         // A sample whose image cannot be read is left out of the picture and named in
@@ -535,18 +554,45 @@ pub fn write_report(dir: &Path, ev: &Evaluation, topology: &FaceTopology) -> Res
             };
             draw_outline_or_points(&mut img, topology, &pv, &pose, Rgb([250, 60, 60]))?;
         }
-        let label = format!("{} {:.1} deg", sample.key.img_id, err);
-        crate::plot::draw_text(&mut img, 6, 6, &label, 2, Rgb([255, 255, 0]));
+        labels.push(format!(
+            "{} {}\n{}: {:.1} deg",
+            sample.key.subject_id, sample.key.facial_action, sample.key.img_id, err
+        ));
         cells.push(img);
     }
+    let mut worst_labels = None;
     if !cells.is_empty() {
-        let sheet = crate::synth::contact_sheet(&cells, 4, 320);
+        let (columns, cell) = (4, 320);
+        let sheet = crate::synth::contact_sheet(&cells, columns, cell);
+        let cell_h = (cell as f64 * cells[0].height() as f64 / cells[0].width() as f64).round();
         let p = dir.join("worst.png");
         crate::atomic_file::write_bytes(&p, &png_bytes(&sheet)?)?;
         written.push(p);
+        let geometry = (sheet.dimensions(), (cell, cell_h as u32));
+        let title = "The worst predictions: key and rotation error";
+        let p = dir.join("worst.svg");
+        let svg = sheet_labels_svg(
+            title,
+            Some("worst.png"),
+            geometry.0,
+            geometry.1,
+            columns,
+            &labels,
+        );
+        crate::atomic_file::write_bytes(&p, svg.as_bytes())?;
+        written.push(p);
+        worst_labels = Some(sheet_labels_svg(
+            title, None, geometry.0, geometry.1, columns, &labels,
+        ));
     }
     let p = dir.join("summary.txt");
     let mut text = ev.summary.table();
+    if !labels.is_empty() {
+        text.push_str("\nworst.png, left to right, top to bottom:\n");
+        for l in &labels {
+            text.push_str(&format!("  {}\n", l.replace('\n', " ")));
+        }
+    }
     if !unreadable.is_empty() {
         text.push_str(&format!(
             "\nworst.png leaves out {} sample(s) whose image could not be read:\n",
@@ -558,7 +604,10 @@ pub fn write_report(dir: &Path, ev: &Evaluation, topology: &FaceTopology) -> Res
     }
     crate::atomic_file::write_bytes(&p, text.as_bytes())?;
     written.push(p);
-    Ok(written)
+    Ok(ReportFiles {
+        files: written,
+        worst_labels,
+    })
 }
 
 /// PNG bytes of an image.

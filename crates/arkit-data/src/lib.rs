@@ -20,7 +20,7 @@
 //! - [`synth`]: the synthetic dataset generator.
 //! - [`convert`]: the release into validated, sharded Parquet; [`samples_table`]: the
 //!   `samples` and `errors` tables; [`split`]: subject-disjoint splits; [`plot`]:
-//!   histogram pictures.
+//!   charts as SVG (labelled axes, ticks, legends).
 //! - [`eval`]: the paper's metrics; [`predictions_table`]: the predictions file;
 //!   [`eval_dataset`]: a dataset's predictions scored, with a report.
 //! - [`systematic`]: the rule that stops a run when one check skips most samples.

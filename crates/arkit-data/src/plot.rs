@@ -1,7 +1,11 @@
-//! Small PNG charts (histograms) for people to look at, with a built-in 5x7 pixel font
-//! so no font files or plotting libraries are needed.
-
-use image::{Rgb, RgbImage};
+//! Charts for people to read, as SVG text: titled axes with tick values and units,
+//! legends, and text the viewer (a browser, an image viewer, Inkscape) draws with its
+//! own fonts, so no font files or plotting libraries are needed. The report inlines
+//! them in its HTML; `inspect --plot FILE.svg` writes one.
+//!
+//! Every chart is one `<svg>` element with a `viewBox` (it scales to its container),
+//! `<title>` for screen readers, and `class` names on its parts (`bar`, `series`,
+//! `tick`, ...) with the plotted value in `data-value`, so tests can check what was drawn.
 
 /// A histogram over `[lo, hi)` with equal-width bins.
 #[derive(Clone, Debug, PartialEq)]
@@ -54,88 +58,77 @@ impl Histogram {
     }
 }
 
-/// 5x7 glyphs, one `u8` per row (low 5 bits, leftmost pixel in bit 4).
-fn glyph(c: char) -> [u8; 7] {
-    match c.to_ascii_lowercase() {
-        '0' => [14, 17, 19, 21, 25, 17, 14],
-        '1' => [4, 12, 4, 4, 4, 4, 14],
-        '2' => [14, 17, 1, 2, 4, 8, 31],
-        '3' => [31, 2, 4, 2, 1, 17, 14],
-        '4' => [2, 6, 10, 18, 31, 2, 2],
-        '5' => [31, 16, 30, 1, 1, 17, 14],
-        '6' => [6, 8, 16, 30, 17, 17, 14],
-        '7' => [31, 1, 2, 4, 8, 8, 8],
-        '8' => [14, 17, 17, 14, 17, 17, 14],
-        '9' => [14, 17, 17, 15, 1, 2, 12],
-        'a' => [0, 0, 14, 1, 15, 17, 15],
-        'b' => [16, 16, 22, 25, 17, 17, 30],
-        'c' => [0, 0, 14, 16, 16, 17, 14],
-        'd' => [1, 1, 13, 19, 17, 17, 15],
-        'e' => [0, 0, 14, 17, 31, 16, 14],
-        'f' => [6, 9, 8, 28, 8, 8, 8],
-        'g' => [0, 0, 15, 17, 15, 1, 14],
-        'h' => [16, 16, 22, 25, 17, 17, 17],
-        'i' => [4, 0, 12, 4, 4, 4, 14],
-        'j' => [2, 0, 6, 2, 2, 18, 12],
-        'k' => [16, 16, 18, 20, 24, 20, 18],
-        'l' => [12, 4, 4, 4, 4, 4, 14],
-        'm' => [0, 0, 26, 21, 21, 17, 17],
-        'n' => [0, 0, 22, 25, 17, 17, 17],
-        'o' => [0, 0, 14, 17, 17, 17, 14],
-        'p' => [0, 0, 30, 17, 30, 16, 16],
-        'q' => [0, 0, 13, 19, 15, 1, 1],
-        'r' => [0, 0, 22, 25, 16, 16, 16],
-        's' => [0, 0, 14, 16, 14, 1, 30],
-        't' => [8, 8, 28, 8, 8, 9, 6],
-        'u' => [0, 0, 17, 17, 17, 19, 13],
-        'v' => [0, 0, 17, 17, 17, 10, 4],
-        'w' => [0, 0, 17, 17, 21, 21, 10],
-        'x' => [0, 0, 17, 10, 4, 10, 17],
-        'y' => [0, 0, 17, 17, 15, 1, 14],
-        'z' => [0, 0, 31, 2, 4, 8, 31],
-        '-' => [0, 0, 0, 31, 0, 0, 0],
-        '.' => [0, 0, 0, 0, 0, 12, 12],
-        ',' => [0, 0, 0, 0, 12, 4, 8],
-        ':' => [0, 12, 12, 0, 12, 12, 0],
-        '(' => [2, 4, 8, 8, 8, 4, 2],
-        ')' => [8, 4, 2, 2, 2, 4, 8],
-        '/' => [0, 1, 2, 4, 8, 16, 0],
-        '%' => [24, 25, 2, 4, 8, 19, 3],
-        _ => [0; 7],
-    }
-}
-
-/// Draws `text` with its top-left corner at `(x, y)`, each font pixel `scale` pixels.
-pub fn draw_text(img: &mut RgbImage, x: i64, y: i64, text: &str, scale: u32, colour: Rgb<u8>) {
-    for (k, c) in text.chars().enumerate() {
-        let g = glyph(c);
-        for (row, bits) in g.iter().enumerate() {
-            for col in 0..5 {
-                if bits >> (4 - col) & 1 == 1 {
-                    for dy in 0..scale as i64 {
-                        for dx in 0..scale as i64 {
-                            let px = x + (k as i64 * 6 + col) * scale as i64 + dx;
-                            let py = y + row as i64 * scale as i64 + dy;
-                            if px >= 0
-                                && py >= 0
-                                && (px as u32) < img.width()
-                                && (py as u32) < img.height()
-                            {
-                                img.put_pixel(px as u32, py as u32, colour);
-                            }
-                        }
-                    }
-                }
-            }
+/// Escapes text for XML (SVG, HTML).
+pub fn xml_escape(text: &str) -> String {
+    let mut out = String::with_capacity(text.len());
+    for c in text.chars() {
+        match c {
+            '&' => out.push_str("&amp;"),
+            '<' => out.push_str("&lt;"),
+            '>' => out.push_str("&gt;"),
+            '"' => out.push_str("&quot;"),
+            '\'' => out.push_str("&#39;"),
+            _ => out.push(c),
         }
     }
+    out
 }
 
-fn fill(img: &mut RgbImage, x0: i64, y0: i64, x1: i64, y1: i64, c: Rgb<u8>) {
-    for y in y0.max(0)..y1.min(img.height() as i64) {
-        for x in x0.max(0)..x1.min(img.width() as i64) {
-            img.put_pixel(x as u32, y as u32, c);
-        }
+/// Evenly spaced "nice" tick values (steps of 1, 2 or 5 times a power of ten) covering
+/// `[lo, hi]`: the first tick is at or below `lo`, the last at or above `hi`, about
+/// `target` intervals between them. `lo == hi` gets a unit-wide range.
+pub fn nice_ticks(lo: f64, hi: f64, target: usize) -> Vec<f64> {
+    ticks_with_min_step(lo, hi, target, 0.0)
+}
+
+/// [`nice_ticks`] with a step of at least `min_step` (1 for counts and step numbers).
+pub fn ticks_with_min_step(lo: f64, hi: f64, target: usize, min_step: f64) -> Vec<f64> {
+    let (lo, hi) = if lo.is_finite() && hi.is_finite() && lo < hi {
+        (lo, hi)
+    } else if lo.is_finite() {
+        (lo, lo + 1.0)
+    } else {
+        (0.0, 1.0)
+    };
+    let step = nice_step((hi - lo) / target.max(1) as f64).max(min_step);
+    let first = (lo / step + 1e-9).floor() as i64;
+    let last = (hi / step - 1e-9).ceil() as i64;
+    // Multiples of the step, so 0.1 * 3 prints as 0.3 and not 0.30000000000000004.
+    (first..=last).map(|k| clean(k as f64 * step)).collect()
+}
+
+fn nice_step(raw: f64) -> f64 {
+    let p = 10f64.powf(raw.log10().floor());
+    let m = raw / p;
+    let n = if m <= 1.0 + 1e-9 {
+        1.0
+    } else if m <= 2.0 + 1e-9 {
+        2.0
+    } else if m <= 5.0 + 1e-9 {
+        5.0
+    } else {
+        10.0
+    };
+    n * p
+}
+
+fn clean(v: f64) -> f64 {
+    let r = (v * 1e9).round() / 1e9;
+    if r == 0.0 { 0.0 } else { r }
+}
+
+/// A tick value as text with as many decimals as the tick step needs (`0.2` -> one).
+pub fn tick_label(v: f64, step: f64) -> String {
+    let decimals = if step >= 1.0 || step <= 0.0 || !step.is_finite() {
+        0
+    } else {
+        (-step.log10() - 1e-9).ceil().max(0.0) as usize
+    };
+    let s = format!("{:.*}", decimals, v);
+    if s.starts_with('-') && s[1..].chars().all(|c| c == '0' || c == '.') {
+        s[1..].to_string()
+    } else {
+        s
     }
 }
 
@@ -144,46 +137,75 @@ fn fill(img: &mut RgbImage, x0: i64, y0: i64, x1: i64, y1: i64, c: Rgb<u8>) {
 pub struct Bars {
     /// Title drawn above the chart.
     pub title: String,
+    /// The x axis's label, with its unit (`yaw (deg)`).
+    pub x_label: String,
+    /// The y axis's label, with its unit (`samples`, `mean rotation error (deg)`).
+    pub y_label: String,
     /// Left edge of the first bin.
     pub lo: f64,
     /// Right edge of the last bin.
     pub hi: f64,
-    /// Bar heights (NaN draws no bar).
+    /// Bar heights (NaN draws no bar: an empty bin).
     pub values: Vec<f64>,
-    /// What the top of the scale means, e.g. `max 12`.
-    pub scale_label: String,
+    /// Samples per bin (shown on hover; for a histogram the values themselves).
+    pub counts: Vec<usize>,
+    /// A note under the title, e.g. how many values fell outside the range.
+    pub note: String,
+    /// The x axis's tick step (default: a nice step for about 6 ticks); 30 suits
+    /// angles over -90..90.
+    pub x_step: Option<f64>,
+    /// Whether the values are counts (y ticks at whole numbers).
+    pub counts_axis: bool,
 }
 
 impl Bars {
-    /// The bars of a histogram (counts).
-    pub fn of_histogram(title: &str, h: &Histogram) -> Self {
-        let max = h.counts.iter().copied().max().unwrap_or(0).max(1);
+    /// The bars of a histogram (counts of samples).
+    pub fn of_histogram(title: &str, x_label: &str, h: &Histogram) -> Self {
         Bars {
             title: title.to_string(),
+            x_label: x_label.to_string(),
+            y_label: "samples".to_string(),
             lo: h.lo,
             hi: h.hi,
             values: h.counts.iter().map(|&c| c as f64).collect(),
-            scale_label: format!("max {max}"),
+            counts: h.counts.clone(),
+            note: if h.outside > 0 {
+                format!("{} outside the range", h.outside)
+            } else {
+                String::new()
+            },
+            x_step: None,
+            counts_axis: true,
         }
+    }
+
+    /// The same bars with x ticks every `step`.
+    pub fn with_x_step(mut self, step: f64) -> Self {
+        self.x_step = Some(step);
+        self
     }
 
     /// The mean of `y` per bin of `x` over `[lo, hi)` (NaN for an empty bin).
     pub fn binned_mean(
         title: &str,
+        x_label: &str,
+        y_label: &str,
         points: impl IntoIterator<Item = (f64, f64)>,
         lo: f64,
         hi: f64,
         bins: usize,
-        unit: &str,
     ) -> Self {
         let bins = bins.max(1);
         let (mut sum, mut n) = (vec![0.0; bins], vec![0usize; bins]);
         let width = (hi - lo) / bins as f64;
+        let mut outside = 0;
         for (x, y) in points {
             let k = ((x - lo) / width).floor();
             if x.is_finite() && y.is_finite() && k >= 0.0 && (k as usize) < bins {
                 sum[k as usize] += y;
                 n[k as usize] += 1;
+            } else {
+                outside += 1;
             }
         }
         let values: Vec<f64> = sum
@@ -191,74 +213,202 @@ impl Bars {
             .zip(&n)
             .map(|(s, &c)| if c == 0 { f64::NAN } else { s / c as f64 })
             .collect();
-        let max = values
-            .iter()
-            .copied()
-            .filter(|v| v.is_finite())
-            .fold(0.0, f64::max);
         Bars {
             title: title.to_string(),
+            x_label: x_label.to_string(),
+            y_label: y_label.to_string(),
             lo,
             hi,
             values,
-            scale_label: format!("max {max:.2} {unit}"),
+            counts: n,
+            note: if outside > 0 {
+                format!("{outside} outside the range")
+            } else {
+                String::new()
+            },
+            x_step: None,
+            counts_axis: false,
         }
     }
 }
 
-/// A panel of histograms side by side, each titled, with its range and peak count.
-pub fn histogram_panel(panels: &[(&str, &Histogram)]) -> RgbImage {
-    let bars: Vec<Bars> = panels
+const FONT: &str =
+    "font-family=\"system-ui, -apple-system, 'Segoe UI', Helvetica, Arial, sans-serif\"";
+const INK: &str = "#222";
+const GRID: &str = "#e2e2e2";
+const BAR: &str = "#4678c8";
+
+/// Size of one bar chart panel in SVG units.
+pub const PANEL_WIDTH: f64 = 380.0;
+/// See [`PANEL_WIDTH`].
+pub const PANEL_HEIGHT: f64 = 290.0;
+
+/// Opens an `<svg>` of `w x h` units titled `title` (for screen readers and tooltips).
+fn svg_open(w: f64, h: f64, title: &str) -> String {
+    format!(
+        "<svg xmlns=\"http://www.w3.org/2000/svg\" viewBox=\"0 0 {w} {h}\" width=\"{w}\" \
+         height=\"{h}\" role=\"img\" {FONT} font-size=\"13\" fill=\"{INK}\">\n<title>{}</title>\n\
+         <rect x=\"0\" y=\"0\" width=\"{w}\" height=\"{h}\" fill=\"#fff\"/>\n",
+        xml_escape(title)
+    )
+}
+
+fn text(x: f64, y: f64, anchor: &str, class: &str, extra: &str, body: &str) -> String {
+    format!(
+        "<text class=\"{class}\" x=\"{x:.1}\" y=\"{y:.1}\" text-anchor=\"{anchor}\"{extra}>{}</text>\n",
+        xml_escape(body)
+    )
+}
+
+/// One bar chart drawn into the box `(ox, oy, PANEL_WIDTH, PANEL_HEIGHT)`.
+fn bars_group(b: &Bars, ox: f64, oy: f64) -> String {
+    let (left, right, top, bottom) = (64.0, 14.0, 44.0, 50.0);
+    let (x0, x1) = (ox + left, ox + PANEL_WIDTH - right);
+    let (y0, y1) = (oy + top, oy + PANEL_HEIGHT - bottom);
+    let max = b
+        .values
         .iter()
-        .map(|(t, h)| Bars::of_histogram(t, h))
-        .collect();
-    bars_panel(&bars)
+        .copied()
+        .filter(|v| v.is_finite())
+        .fold(0.0, f64::max);
+    let min_step = if b.counts_axis { 1.0 } else { 0.0 };
+    let yticks = ticks_with_min_step(0.0, if max > 0.0 { max } else { 1.0 }, 5, min_step);
+    let ystep = yticks[1] - yticks[0];
+    let ytop = *yticks.last().expect("two ticks at least");
+    let py = |v: f64| y1 - (y1 - y0) * v / ytop;
+    let span = b.hi - b.lo;
+    let px = |v: f64| x0 + (x1 - x0) * (v - b.lo) / span;
+    let mut g = format!(
+        "<g class=\"chart\" data-title=\"{}\">\n",
+        xml_escape(&b.title)
+    );
+    g += &text(
+        ox + PANEL_WIDTH / 2.0,
+        oy + 20.0,
+        "middle",
+        "title",
+        " font-size=\"15\" font-weight=\"600\"",
+        &b.title,
+    );
+    if !b.note.is_empty() {
+        g += &text(
+            ox + PANEL_WIDTH / 2.0,
+            oy + 36.0,
+            "middle",
+            "note",
+            " font-size=\"11\" fill=\"#666\"",
+            &b.note,
+        );
+    }
+    for &t in &yticks {
+        let y = py(t);
+        g += &format!(
+            "<line x1=\"{x0:.1}\" y1=\"{y:.1}\" x2=\"{x1:.1}\" y2=\"{y:.1}\" stroke=\"{GRID}\"/>\n"
+        );
+        g += &text(
+            x0 - 6.0,
+            y + 4.0,
+            "end",
+            "tick y",
+            &format!(" data-value=\"{t}\""),
+            &tick_label(t, ystep),
+        );
+    }
+    let n = b.values.len().max(1);
+    let bw = (x1 - x0) / n as f64;
+    for (k, &v) in b.values.iter().enumerate() {
+        // No bar for an empty bin (NaN) or a zero (a bar of no height).
+        if !(v.is_finite() && v > 0.0) {
+            continue;
+        }
+        let top = py(v);
+        let a = b.lo + span * k as f64 / n as f64;
+        let count = b.counts.get(k).copied().unwrap_or(0);
+        g += &format!(
+            "<rect class=\"bar\" x=\"{:.2}\" y=\"{top:.2}\" width=\"{:.2}\" height=\"{:.2}\" \
+             fill=\"{BAR}\" data-value=\"{v}\" data-count=\"{count}\"><title>{}</title></rect>\n",
+            x0 + k as f64 * bw + 0.5,
+            (bw - 1.0).max(0.5),
+            y1 - top,
+            xml_escape(&format!(
+                "{} .. {}: {} ({count} samples)",
+                tick_label(a, span / n as f64 / 10.0),
+                tick_label(a + span / n as f64, span / n as f64 / 10.0),
+                tick_label(v, ystep / 10.0)
+            ))
+        );
+    }
+    let xticks = match b.x_step {
+        Some(step) if step > 0.0 && (b.hi - b.lo) / step <= 100.0 => {
+            let first = (b.lo / step - 1e-9).ceil() as i64;
+            let last = (b.hi / step + 1e-9).floor() as i64;
+            (first..=last).map(|k| clean(k as f64 * step)).collect()
+        }
+        _ => nice_ticks(b.lo, b.hi, 6),
+    };
+    let xstep = b
+        .x_step
+        .unwrap_or_else(|| xticks.get(1).map_or(1.0, |s| s - xticks[0]));
+    for &t in xticks
+        .iter()
+        .filter(|&&t| t >= b.lo - 1e-9 && t <= b.hi + 1e-9)
+    {
+        let x = px(t);
+        g += &format!(
+            "<line x1=\"{x:.1}\" y1=\"{y1:.1}\" x2=\"{x:.1}\" y2=\"{:.1}\" stroke=\"{INK}\"/>\n",
+            y1 + 5.0
+        );
+        g += &text(
+            x,
+            y1 + 19.0,
+            "middle",
+            "tick x",
+            &format!(" data-value=\"{t}\""),
+            &tick_label(t, xstep),
+        );
+    }
+    g +=
+        &format!("<path d=\"M{x0:.1},{y0:.1}V{y1:.1}H{x1:.1}\" fill=\"none\" stroke=\"{INK}\"/>\n");
+    g += &text(
+        (x0 + x1) / 2.0,
+        y1 + 40.0,
+        "middle",
+        "axis-label x",
+        "",
+        &b.x_label,
+    );
+    let (lx, ly) = (ox + 16.0, (y0 + y1) / 2.0);
+    g += &text(
+        lx,
+        ly,
+        "middle",
+        "axis-label y",
+        &format!(" transform=\"rotate(-90 {lx:.1} {ly:.1})\""),
+        &b.y_label,
+    );
+    g += "</g>\n";
+    g
 }
 
-/// Bar charts side by side, each titled, with its range and the top of its scale.
-pub fn bars_panel(panels: &[Bars]) -> RgbImage {
-    let (pw, ph) = (360i64, 260i64);
-    let mut img = RgbImage::from_pixel(
-        (pw * panels.len() as i64) as u32,
-        ph as u32,
-        Rgb([255, 255, 255]),
+/// Bar charts in one SVG, `columns` per row, each with its title, axes, tick values
+/// and the axes' labels.
+pub fn bars_svg(title: &str, panels: &[Bars], columns: usize) -> String {
+    let columns = columns.clamp(1, panels.len().max(1));
+    let rows = panels.len().div_ceil(columns).max(1);
+    let mut s = svg_open(
+        PANEL_WIDTH * columns as f64,
+        PANEL_HEIGHT * rows as f64,
+        title,
     );
-    let ink = Rgb([30, 30, 30]);
     for (i, b) in panels.iter().enumerate() {
-        let ox = i as i64 * pw;
-        draw_text(&mut img, ox + 20, 10, &b.title, 2, ink);
-        let (x0, x1, y0, y1) = (ox + 30, ox + pw - 20, 50, ph - 40);
-        fill(&mut img, x0, y1, x1, y1 + 1, ink);
-        fill(&mut img, x0, y0, x0 + 1, y1, ink);
-        let max = b
-            .values
-            .iter()
-            .copied()
-            .filter(|v| v.is_finite())
-            .fold(0.0, f64::max);
-        let max = if max > 0.0 { max } else { 1.0 };
-        let n = b.values.len() as i64;
-        let bw = (x1 - x0) / n.max(1);
-        for (k, &v) in b.values.iter().enumerate() {
-            if !v.is_finite() {
-                continue;
-            }
-            let top = y1 - ((y1 - y0) as f64 * v.max(0.0) / max).round() as i64;
-            fill(
-                &mut img,
-                x0 + 1 + k as i64 * bw,
-                top,
-                x0 + (k as i64 + 1) * bw,
-                y1,
-                Rgb([70, 120, 200]),
-            );
-        }
-        draw_text(&mut img, x0, y1 + 8, &format!("{}", b.lo), 1, ink);
-        let hi = format!("{}", b.hi);
-        draw_text(&mut img, x1 - 6 * hi.len() as i64, y1 + 8, &hi, 1, ink);
-        draw_text(&mut img, x0 + 6, y0 - 12, &b.scale_label, 1, ink);
+        s += &bars_group(
+            b,
+            (i % columns) as f64 * PANEL_WIDTH,
+            (i / columns) as f64 * PANEL_HEIGHT,
+        );
     }
-    img
+    s += "</svg>\n";
+    s
 }
 
 /// One named series of a line chart.
@@ -269,28 +419,39 @@ pub struct Series {
     /// `y` per step (`x` is the index); non-finite or non-positive values (on a log
     /// scale) are skipped.
     pub values: Vec<f64>,
-    /// Line colour.
-    pub colour: Rgb<u8>,
+    /// Line colour, RGB.
+    pub colour: [u8; 3],
+}
+
+/// Size of a line chart in SVG units.
+pub const LINE_WIDTH: f64 = 760.0;
+/// See [`LINE_WIDTH`].
+pub const LINE_HEIGHT: f64 = 340.0;
+/// The line chart's plot area: left, right, top and bottom edges in SVG units.
+pub const LINE_PLOT: [f64; 4] = [78.0, LINE_WIDTH - 150.0, 44.0, LINE_HEIGHT - 56.0];
+
+/// A decade tick as text: `0.01`, `1`, `100`, or `1e-5` beyond that.
+fn decade_label(d: i64) -> String {
+    if (-3..=4).contains(&d) {
+        tick_label(10f64.powi(d as i32), 10f64.powi(d as i32))
+    } else {
+        format!("1e{d}")
+    }
 }
 
 /// A line chart of `series` against their index on a log-10 `y` scale (losses span
-/// decades), with a legend and the decade grid labelled.
-pub fn log_line_chart(title: &str, x_label: &str, series: &[Series]) -> RgbImage {
-    let (w, h) = (720i64, 320i64);
-    let mut img = RgbImage::from_pixel(w as u32, h as u32, Rgb([255, 255, 255]));
-    let ink = Rgb([30, 30, 30]);
-    draw_text(&mut img, 20, 10, title, 2, ink);
-    let (x0, x1, y0, y1) = (70i64, w - 150, 40i64, h - 40);
+/// decades): a grid line and value at every decade, `x` ticks at nice steps, both axes
+/// labelled, and a legend.
+pub fn log_line_svg(title: &str, x_label: &str, y_label: &str, series: &[Series]) -> String {
+    let [x0, x1, y0, y1] = LINE_PLOT;
     let positive = series
         .iter()
         .flat_map(|s| s.values.iter().copied())
         .filter(|v| v.is_finite() && *v > 0.0);
     let (lo, hi) = positive.fold((f64::MAX, f64::MIN), |(a, b), v| (a.min(v), b.max(v)));
     let (dlo, dhi) = if lo <= hi {
-        (
-            lo.log10().floor(),
-            hi.log10().ceil().max(lo.log10().floor() + 1.0),
-        )
+        let dlo = lo.log10().floor();
+        (dlo, hi.log10().ceil().max(dlo + 1.0))
     } else {
         (0.0, 1.0)
     };
@@ -300,39 +461,157 @@ pub fn log_line_chart(title: &str, x_label: &str, series: &[Series]) -> RgbImage
         .max()
         .unwrap_or(0)
         .max(2);
-    let px = |i: usize| x0 as f64 + (x1 - x0) as f64 * i as f64 / (n - 1) as f64;
-    let py = |v: f64| y1 as f64 - (y1 - y0) as f64 * (v.log10() - dlo) / (dhi - dlo);
-    let grid = Rgb([225, 225, 225]);
-    let mut d = dlo;
-    while d <= dhi + 1e-9 {
-        let y = py(10f64.powf(d)).round() as i64;
-        fill(&mut img, x0, y, x1, y + 1, grid);
-        draw_text(&mut img, 8, y - 3, &format!("1e{}", d as i64), 1, ink);
-        d += 1.0;
+    let px = |i: f64| x0 + (x1 - x0) * i / (n - 1) as f64;
+    let py = |v: f64| y1 - (y1 - y0) * (v.log10() - dlo) / (dhi - dlo);
+    let mut s = svg_open(LINE_WIDTH, LINE_HEIGHT, title);
+    s += &text(
+        (x0 + x1) / 2.0,
+        24.0,
+        "middle",
+        "title",
+        " font-size=\"15\" font-weight=\"600\"",
+        title,
+    );
+    let mut d = dlo as i64;
+    while d as f64 <= dhi + 1e-9 {
+        let y = py(10f64.powi(d as i32));
+        s += &format!(
+            "<line x1=\"{x0:.1}\" y1=\"{y:.1}\" x2=\"{x1:.1}\" y2=\"{y:.1}\" stroke=\"{GRID}\"/>\n"
+        );
+        s += &text(
+            x0 - 6.0,
+            y + 4.0,
+            "end",
+            "tick y",
+            &format!(" data-value=\"{}\"", 10f64.powi(d as i32)),
+            &decade_label(d),
+        );
+        d += 1;
     }
-    fill(&mut img, x0, y1, x1, y1 + 1, ink);
-    fill(&mut img, x0, y0, x0 + 1, y1, ink);
-    draw_text(&mut img, x0, y1 + 8, "0", 1, ink);
-    let last = format!("{} {x_label}", n - 1);
-    draw_text(&mut img, x1 - 6 * last.len() as i64, y1 + 8, &last, 1, ink);
-    for (k, s) in series.iter().enumerate() {
-        let mut prev: Option<(f64, f64)> = None;
-        for (i, &v) in s.values.iter().enumerate() {
+    let xticks = ticks_with_min_step(0.0, (n - 1) as f64, 8, 1.0);
+    let xstep = xticks[1] - xticks[0];
+    for &t in xticks.iter().filter(|&&t| t <= (n - 1) as f64 + 1e-9) {
+        let x = px(t);
+        s += &format!(
+            "<line x1=\"{x:.1}\" y1=\"{y1:.1}\" x2=\"{x:.1}\" y2=\"{:.1}\" stroke=\"{INK}\"/>\n",
+            y1 + 5.0
+        );
+        s += &text(
+            x,
+            y1 + 19.0,
+            "middle",
+            "tick x",
+            &format!(" data-value=\"{t}\""),
+            &tick_label(t, xstep),
+        );
+    }
+    for (k, line) in series.iter().enumerate() {
+        let colour = format!(
+            "#{:02x}{:02x}{:02x}",
+            line.colour[0], line.colour[1], line.colour[2]
+        );
+        // One path; a gap (a value a log scale cannot show) starts a new piece.
+        let mut path = String::new();
+        let mut pen_down = false;
+        for (i, &v) in line.values.iter().enumerate() {
             if !(v.is_finite() && v > 0.0) {
-                prev = None;
+                pen_down = false;
                 continue;
             }
-            let p = (px(i), py(v));
-            if let Some(q) = prev {
-                crate::overlay::draw_line(&mut img, q, p, s.colour);
-            }
-            prev = Some(p);
+            path += &format!(
+                "{}{:.2},{:.2}",
+                if pen_down { "L" } else { "M" },
+                px(i as f64),
+                py(v)
+            );
+            pen_down = true;
         }
-        let ly = y0 + 14 * k as i64;
-        fill(&mut img, x1 + 15, ly + 2, x1 + 35, ly + 5, s.colour);
-        draw_text(&mut img, x1 + 42, ly, &s.name, 1, ink);
+        s += &format!(
+            "<path class=\"series\" data-name=\"{}\" d=\"{path}\" fill=\"none\" stroke=\"{colour}\" \
+             stroke-width=\"1.6\" stroke-linejoin=\"round\"/>\n",
+            xml_escape(&line.name)
+        );
+        let ly = y0 + 8.0 + 20.0 * k as f64;
+        s += &format!(
+            "<line class=\"legend-key\" x1=\"{:.1}\" y1=\"{ly:.1}\" x2=\"{:.1}\" y2=\"{ly:.1}\" \
+             stroke=\"{colour}\" stroke-width=\"3\"/>\n",
+            x1 + 18.0,
+            x1 + 44.0
+        );
+        s += &text(x1 + 52.0, ly + 4.5, "start", "legend", "", &line.name);
     }
-    img
+    s +=
+        &format!("<path d=\"M{x0:.1},{y0:.1}V{y1:.1}H{x1:.1}\" fill=\"none\" stroke=\"{INK}\"/>\n");
+    s += &text(
+        (x0 + x1) / 2.0,
+        y1 + 42.0,
+        "middle",
+        "axis-label x",
+        "",
+        x_label,
+    );
+    let (lx, ly) = (20.0, (y0 + y1) / 2.0);
+    s += &text(
+        lx,
+        ly,
+        "middle",
+        "axis-label y",
+        &format!(" transform=\"rotate(-90 {lx:.1} {ly:.1})\""),
+        y_label,
+    );
+    s += "</svg>\n";
+    s
+}
+
+/// Captions for the cells of a contact sheet (`sheet` pixels, cells `cell` pixels,
+/// `columns` per row, in order; a label's lines one under the other), drawn by the
+/// viewer in its own font: an SVG of the
+/// sheet's size. With `href` (the sheet's file name, relative) it shows the picture under
+/// the captions (a file to open on its own); without, it holds only the captions, to lay
+/// over the picture (the report does).
+pub fn sheet_labels_svg(
+    title: &str,
+    href: Option<&str>,
+    sheet: (u32, u32),
+    cell: (u32, u32),
+    columns: usize,
+    labels: &[String],
+) -> String {
+    let (w, h) = (sheet.0 as f64, sheet.1 as f64);
+    let mut s = format!(
+        "<svg xmlns=\"http://www.w3.org/2000/svg\" viewBox=\"0 0 {w} {h}\" role=\"img\" \
+         {FONT} font-size=\"15\" font-weight=\"600\">\n<title>{}</title>\n",
+        xml_escape(title)
+    );
+    if let Some(href) = href {
+        s += &format!(
+            "<image href=\"{}\" x=\"0\" y=\"0\" width=\"{w}\" height=\"{h}\"/>\n",
+            xml_escape(href)
+        );
+    }
+    let columns = columns.max(1);
+    for (k, label) in labels.iter().enumerate() {
+        let x = (k % columns) as f64 * cell.0 as f64 + 6.0;
+        let y = (k / columns) as f64 * cell.1 as f64 + 20.0;
+        // One line per line of the label.
+        let lines: String = label
+            .lines()
+            .enumerate()
+            .map(|(i, line)| {
+                format!(
+                    "<tspan x=\"{x:.1}\" dy=\"{}\">{}</tspan>",
+                    if i == 0 { "0" } else { "1.2em" },
+                    xml_escape(line)
+                )
+            })
+            .collect();
+        s += &format!(
+            "<text class=\"label\" x=\"{x:.1}\" y=\"{y:.1}\" fill=\"#ffe600\" stroke=\"#000\" \
+             stroke-width=\"3\" paint-order=\"stroke\">{lines}</text>\n"
+        );
+    }
+    s += "</svg>\n";
+    s
 }
 
 #[cfg(test)]
@@ -353,47 +632,52 @@ mod tests {
     fn binned_means_by_hand() {
         let b = Bars::binned_mean(
             "e",
+            "x (deg)",
+            "mean (deg)",
             [(0.5, 2.0), (0.7, 4.0), (2.5, 1.0), (9.0, 5.0)],
             0.0,
             3.0,
             3,
-            "deg",
         );
         assert_eq!(b.values[0], 3.0);
         assert!(b.values[1].is_nan());
         assert_eq!(b.values[2], 1.0);
-        assert_eq!(b.scale_label, "max 3.00 deg");
-        let img = bars_panel(&[b]);
-        assert_eq!(img.width(), 360);
+        assert_eq!(b.counts, vec![2, 0, 1]);
+        assert_eq!(b.note, "1 outside the range");
     }
 
     #[test]
-    fn text_is_drawn_inside_the_image() {
-        let mut img = RgbImage::from_pixel(60, 10, Rgb([0, 0, 0]));
-        draw_text(&mut img, 0, 0, "yaw 90", 1, Rgb([255, 255, 255]));
-        let lit = img.pixels().filter(|p| p.0[0] == 255).count();
-        assert!(lit > 20);
-        // Drawing past the edge does not panic.
-        draw_text(&mut img, 55, 5, "long text", 2, Rgb([255, 255, 255]));
-    }
-
-    #[test]
-    fn log_line_chart_puts_values_on_the_decade_scale() {
-        // Values 1, 10, 100 over 3 steps: decades 1e0..1e2 span y 280..40, steps span
-        // x 70..570, so 10 at step 1 is at (320, 160) by hand.
-        let red = Rgb([200, 0, 0]);
-        let img = log_line_chart(
-            "loss",
-            "steps",
-            &[Series {
-                name: "total".into(),
-                values: vec![1.0, 10.0, 100.0],
-                colour: red,
-            }],
+    fn ticks_are_nice_and_cover_the_range() {
+        assert_eq!(
+            nice_ticks(-90.0, 90.0, 6),
+            vec![-100.0, -50.0, 0.0, 50.0, 100.0]
         );
-        assert_eq!(*img.get_pixel(320, 160), red);
-        // A straight line on the log scale: the point between steps 0 and 1 at 10^0.5.
-        assert_eq!(*img.get_pixel(195, 220), red);
-        assert_ne!(*img.get_pixel(320, 100), red);
+        assert_eq!(
+            nice_ticks(0.0, 1.2, 6),
+            vec![0.0, 0.2, 0.4, 0.6, 0.8, 1.0, 1.2]
+        );
+        assert_eq!(nice_ticks(0.0, 7.0, 5), vec![0.0, 2.0, 4.0, 6.0, 8.0]);
+        assert_eq!(nice_ticks(0.0, 3.1, 5), vec![0.0, 1.0, 2.0, 3.0, 4.0]);
+        assert_eq!(nice_ticks(3.0, 3.0, 5).first(), Some(&3.0));
+        assert_eq!(tick_label(0.6000000001, 0.2), "0.6");
+        assert_eq!(tick_label(-0.0, 1.0), "0");
+        assert_eq!(tick_label(25.0, 5.0), "25");
+        assert_eq!(tick_label(0.05, 0.05), "0.05");
+        assert_eq!(decade_label(-2), "0.01");
+        assert_eq!(decade_label(2), "100");
+        assert_eq!(decade_label(-5), "1e-5");
+    }
+
+    #[test]
+    fn text_is_escaped() {
+        let s = bars_svg(
+            "a < b",
+            &[Bars::binned_mean("x & y", "<x>", "\"y\"", [], 0.0, 1.0, 2)],
+            1,
+        );
+        assert!(s.contains("a &lt; b") && s.contains("x &amp; y") && s.contains("&quot;y&quot;"));
+        assert!(!s.contains("<x>"));
+        // No bars for empty bins.
+        assert!(!s.contains("class=\"bar\""));
     }
 }

@@ -7,7 +7,7 @@
 //!   loader returns it, as numpy arrays that own the Rust buffers (no copy).
 //! - [`Dataset`]: a converted dataset's samples, by position.
 //! - [`solve_pnp_ransac`], [`project`], [`evaluate`]: PnP, the release's projection and
-//!   the paper's metrics.
+//!   the paper's metrics; [`topology`]: the mesh a dataset was converted with.
 //!
 //! Invariants: the GIL is released while Rust works (`Python::detach`); nothing here
 //! starts a thread, so a loader is safe to use after `fork` (DataLoader workers); every
@@ -859,6 +859,30 @@ fn read_image<'py>(py: Python<'py>, path: PathBuf) -> PyResult<Bound<'py, PyAny>
         .into_any())
 }
 
+/// The face topology a converted dataset was converted with (see [`topology_for`]):
+/// `triangles` (T x 3 uint32), `landmarks` (68 uint32 vertex ids), `uv` (V x 2 float32),
+/// `vertex_count` and `source`.
+#[pyfunction]
+#[pyo3(signature = (dir, resources=None))]
+fn topology<'py>(
+    py: Python<'py>,
+    dir: PathBuf,
+    resources: Option<PathBuf>,
+) -> PyResult<Bound<'py, PyDict>> {
+    let (topo, _) = run(py, || topology_for(&dir, resources.as_deref()))?;
+    let d = PyDict::new(py);
+    let t = topo.triangles.len();
+    let tris: Vec<u32> = topo.triangles.iter().flatten().copied().collect();
+    d.set_item("triangles", tris.into_pyarray(py).reshape([t, 3])?)?;
+    d.set_item("landmarks", topo.landmarks.clone().into_pyarray(py))?;
+    let v = topo.uv.len();
+    let uv: Vec<f32> = topo.uv.iter().flatten().copied().collect();
+    d.set_item("uv", uv.into_pyarray(py).reshape([v, 2])?)?;
+    d.set_item("vertex_count", topo.vertex_count)?;
+    d.set_item("source", &topo.source)?;
+    Ok(d)
+}
+
 #[pymodule]
 fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<Loader>()?;
@@ -868,6 +892,7 @@ fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(evaluate, m)?)?;
     m.add_function(wrap_pyfunction!(read_image, m)?)?;
     m.add_function(wrap_pyfunction!(default_crop_store, m)?)?;
+    m.add_function(wrap_pyfunction!(topology, m)?)?;
     m.add("DataError", m.py().get_type::<DataError>())?;
     m.add("__version__", env!("CARGO_PKG_VERSION"))?;
     Ok(())
