@@ -615,3 +615,96 @@ fn safetensors_headers_are_checked_before_any_data_is_read() {
         "declares 100000000000 bytes of tensor data",
     );
 }
+
+/// The release's topology folder ($ARKIT_RESOURCES, default ../shared/arkitface-resources),
+/// when present.
+fn real_resources() -> Option<PathBuf> {
+    let dir = std::env::var_os("ARKIT_RESOURCES")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| {
+            PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared/arkitface-resources")
+        });
+    dir.join("triangles.npy").exists().then_some(dir)
+}
+
+/// `import-weights --json`: what was imported and what `predict` will need.
+fn import_json(
+    file: &Path,
+    config: &str,
+    model: &Path,
+    resources: Option<&Path>,
+) -> (serde_json::Value, String) {
+    let mut cmd = tool();
+    cmd.args([
+        "import-weights",
+        file.to_str().unwrap(),
+        "--config",
+        config,
+        "--json",
+    ])
+    .args(["--output", model.to_str().unwrap()]);
+    if let Some(r) = resources {
+        cmd.arg("--resources").arg(r);
+    }
+    let out = cmd.output().unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr).into_owned();
+    assert!(out.status.success(), "{cmd:?}: {stderr}");
+    (serde_json::from_slice(&out.stdout).unwrap(), stderr)
+}
+
+#[test]
+fn paper_weights_without_resources_say_what_predict_needs() {
+    let dir = tempfile::tempdir().unwrap();
+    let cfg = PerspNetConfig::paper();
+    let vm = random_varmap(&cfg, 11);
+    let file = dir.path().join("paper.safetensors");
+    save(&export_state_dict(&vm, 0).unwrap(), &file);
+    let builtin = &arkit_tool::synthetic_face::builtin().topology;
+
+    // Without --resources: imported, with a warning on stderr and in the JSON.
+    let model = dir.path().join("model");
+    let (v, stderr) = import_json(&file, "paper", &model, None);
+    let warning = v["warning"].as_str().expect("a warning in the JSON");
+    assert!(warning.contains("--resources"), "{warning}");
+    assert!(stderr.contains(&format!("warning: {warning}")), "{stderr}");
+    assert!(v["predict_resources"].is_null(), "{v}");
+    assert_eq!(v["topology"], builtin.source.as_str());
+    assert!(
+        v["predict_needs"]
+            .as_str()
+            .unwrap()
+            .contains("no --resources"),
+        "{v}"
+    );
+    same_weights(&model, &vm);
+    // What it says holds: predict's loader takes the model without --resources ...
+    training::load(&model, builtin).unwrap();
+
+    // A tiny model without --resources is the synthetic case: no warning.
+    let tiny = random_varmap(&PerspNetConfig::tiny(), 12);
+    let tiny_file = dir.path().join("tiny.safetensors");
+    save(&export_state_dict(&tiny, 0).unwrap(), &tiny_file);
+    let (v, stderr) = import_json(&tiny_file, "tiny", &dir.path().join("tiny"), None);
+    assert!(v["warning"].is_null(), "{v}");
+    assert!(!stderr.contains("warning"), "{stderr}");
+
+    let Some(r) = real_resources() else {
+        eprintln!("SKIPPED: the release's topology folder is absent; the --resources half not run");
+        return;
+    };
+    // ... and refuses it with the release's topology, as the warning says.
+    let real = arkit_tool::FaceTopology::from_resources(&r).unwrap();
+    let e = training::load(&model, &real)
+        .err()
+        .expect("refused with --resources")
+        .to_string();
+    assert!(e.contains("trained with the topology"), "{e}");
+    // With --resources: no warning, and predict needs that folder.
+    let with = dir.path().join("with");
+    let (v, stderr) = import_json(&file, "paper", &with, Some(&r));
+    assert!(v["warning"].is_null(), "{v}");
+    assert!(!stderr.contains("warning"), "{stderr}");
+    assert_eq!(v["predict_resources"], r.display().to_string());
+    training::load(&with, &real).unwrap();
+    assert!(training::load(&with, builtin).is_err());
+}

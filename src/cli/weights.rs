@@ -16,13 +16,20 @@ use std::process::ExitCode;
 /// that lists all of them, and nothing is written. The folder is read by `predict
 /// --model` like one written by `train`.
 ///
+/// The model is tied to the topology it is imported with: `predict --model` later needs
+/// the same --resources (or none, for the built-in face), and says so if it is given
+/// another. The official checkpoint was trained on the release's topology, so import
+/// it with --resources (the folder given to `convert`); `--config paper` without
+/// --resources prints a warning saying what `predict` will need. --json prints the
+/// same as JSON.
+///
 /// The zip's pickle is read by a bounded reader of what torch.save writes for a
 /// state_dict: no code from the file is run, any class or function other than
 /// OrderedDict and the tensor rebuilders is refused, nesting, memo and size are
 /// bounded, and an entry that is not a tensor is refused by name. Names and shapes
 /// (from the pickle, or a safetensors header) are checked before any tensor is read.
 ///
-/// Example: arkit-tool import-weights checkpoint/run1/latest_net_R.pth --config paper --output official-model/
+/// Example: arkit-tool import-weights checkpoint/run1/latest_net_R.pth --config paper --resources ../shared/arkitface-resources --output official-model/
 #[derive(Args, Debug)]
 pub struct ImportWeightsArgs {
     /// The state_dict file (torch.save zip or safetensors).
@@ -35,9 +42,13 @@ pub struct ImportWeightsArgs {
     #[arg(long)]
     output: PathBuf,
     /// The release's resource folder (real topology: its vertex UVs, which `predict`
-    /// reads the UV map at); the built-in face without it.
+    /// reads the UV map at); the built-in face without it. `predict --model` needs the
+    /// same folder.
     #[arg(long)]
     resources: Option<PathBuf>,
+    /// Print what was imported and what `predict` will need as JSON.
+    #[arg(long)]
+    json: bool,
 }
 
 /// Write a model folder's weights as the official PerspNet's PyTorch state_dict.
@@ -94,12 +105,46 @@ pub fn run_import(a: ImportWeightsArgs) -> Result<ExitCode> {
     let config = super::train::config_named(&a.config)?;
     let topology = super::load_topology(a.resources.as_deref())?;
     let c = perspnet::import_weights(&a.file, &config, &topology, &a.output)?;
-    eprintln!(
-        "imported {} ({} batch-norm steps) -> {}",
-        a.file.display(),
-        c.steps,
-        a.output.display()
-    );
+    let out = a.output.display();
+    let needs = match &a.resources {
+        Some(r) => format!(
+            "`predict --model {out}` needs --resources {} (the topology imported with)",
+            r.display()
+        ),
+        None => format!(
+            "`predict --model {out}` needs no --resources (the model is tied to the built-in stand-in face) and a dataset converted without --resources"
+        ),
+    };
+    // The official network was trained on the release's topology: without it, the
+    // model predicts with the stand-in's vertex UVs and cannot predict on the release.
+    let warning = (a.config == "paper" && a.resources.is_none()).then(|| {
+        format!(
+            "--config paper without --resources: the model was imported with the built-in stand-in face, not the release's topology the official network was trained on, so `predict --model {out} --resources DIR` will refuse it; to predict on the release, import again with --resources DIR (the folder given to convert)"
+        )
+    });
+    if a.json {
+        let v = serde_json::json!({
+            "file": a.file.display().to_string(),
+            "output": out.to_string(),
+            "config": a.config,
+            "batch_norm_steps": c.steps,
+            "topology": c.topology,
+            "predict_resources": a.resources.as_ref().map(|r| r.display().to_string()),
+            "predict_needs": needs,
+            "warning": warning,
+        });
+        println!("{}", serde_json::to_string_pretty(&v).expect("json"));
+    } else {
+        eprintln!(
+            "imported {} ({} batch-norm steps) -> {out}",
+            a.file.display(),
+            c.steps,
+        );
+        eprintln!("{needs}");
+    }
+    if let Some(w) = &warning {
+        eprintln!("warning: {w}");
+    }
     Ok(ExitCode::SUCCESS)
 }
 
