@@ -142,8 +142,22 @@ fn oracle_without_noise_scores_zero_and_with_noise_stays_small() {
     let report = tempfile::tempdir().unwrap();
     let topology = &arkit_tool::synthetic_face::builtin().topology;
     let files = eval_dataset::write_report(report.path(), &ev, topology).unwrap();
-    assert_eq!(files.len(), 3);
-    for f in files {
+    let names: Vec<String> = files
+        .files
+        .iter()
+        .map(|f| f.file_name().unwrap().to_string_lossy().into_owned())
+        .collect();
+    assert_eq!(
+        names,
+        [
+            "errors_by_pose.svg",
+            "worst.png",
+            "worst.svg",
+            "summary.txt"
+        ]
+    );
+    assert!(files.worst_labels.is_some());
+    for f in &files.files {
         assert!(
             std::fs::metadata(&f).unwrap().len() > 100,
             "{}",
