@@ -6,8 +6,9 @@
 
 mod support;
 
+use arkit_tool::crop_store::WindowCodec;
 use arkit_tool::crop_store::{self, CropStore};
-use arkit_tool::crops_dataset::write_crop_store;
+use arkit_tool::crops_dataset::{write_crop_store, write_crop_store_with};
 use arkit_tool::dataset::Dataset;
 use arkit_tool::loader::{Compat, FaceLoader, LoaderMode, LoaderOptions};
 use std::path::Path;
@@ -32,10 +33,17 @@ fn store(dir: &Path, compat: Compat) -> std::path::PathBuf {
     let out = FaceLoader::default_crop_store(dir, compat, S);
     let summary = write_crop_store(&loader(dir, LoaderMode::Eval, compat), &out, &|_| {}).unwrap();
     assert_eq!(summary.missing, 0, "{:?}", summary.missing_examples);
+    let on_disk: u64 = (0..dir_shards(dir))
+        .map(|k| {
+            std::fs::metadata(out.join(format!("part-{k}.bin")))
+                .unwrap()
+                .len()
+        })
+        .sum();
+    assert_eq!(summary.bytes, on_disk);
     assert_eq!(
-        summary.bytes,
-        summary.samples as u64 * summary.bytes_per_sample
-            + (dir_shards(dir) as u64) * crop_store::HEADER_BYTES
+        summary.bytes_per_sample,
+        on_disk as f64 / summary.samples as f64
     );
     out
 }
@@ -128,9 +136,16 @@ fn a_damaged_stale_or_foreign_store_is_refused_naming_the_file() {
     // A flipped byte: the record's CRC, naming the file, and only that sample.
     let part = out.join("part-0.bin");
     let mut bytes = std::fs::read(&part).unwrap();
-    let record = crop_store::read_manifest(&out).unwrap().record_bytes;
-    let at = (crop_store::HEADER_BYTES + record + 5000) as usize;
-    bytes[at] ^= 0x10;
+    let opened = CropStore::open(
+        &out,
+        &Dataset::open(dir.path()).unwrap(),
+        "exact",
+        S,
+        l.mesh_vertex_count(),
+    )
+    .unwrap();
+    let (at, len) = opened.record_span(0, 1).unwrap();
+    bytes[(at + len / 2) as usize] ^= 0x10;
     std::fs::write(&part, &bytes).unwrap();
     l.open_crop_store(&out).unwrap();
     let e = l.item(1, 0).unwrap_err().to_string();
@@ -219,7 +234,6 @@ fn part_files_swapped_by_hand_are_refused_in_training_and_evaluation() {
     let out = store(dir.path(), Compat::Exact);
     let (p0, p1) = (out.join("part-0.bin"), out.join("part-1.bin"));
     let (b0, b1) = (std::fs::read(&p0).unwrap(), std::fs::read(&p1).unwrap());
-    assert_eq!(b0.len(), b1.len());
     // Whole files swapped: each names the shard it holds.
     std::fs::write(&p0, &b1).unwrap();
     std::fs::write(&p1, &b0).unwrap();
@@ -266,7 +280,7 @@ fn part_files_swapped_by_hand_are_refused_in_training_and_evaluation() {
 
 #[test]
 fn two_crops_into_one_store_never_mix() {
-    // Two datasets of the same shape (so their part files are interchangeable by size).
+    // Two datasets of the same shape.
     let (ra, a) = (tempfile::tempdir().unwrap(), tempfile::tempdir().unwrap());
     let (rb, b) = (tempfile::tempdir().unwrap(), tempfile::tempdir().unwrap());
     support::converted::converted_synthetic(ra.path(), a.path(), 2, 4, 256, 21);
@@ -321,7 +335,6 @@ fn two_crops_into_one_store_never_mix() {
     write_crop_store(&lb, bstore.path(), &|_| {}).unwrap();
     let theirs = std::fs::read(bstore.path().join("part-1.bin")).unwrap();
     let ours = std::fs::read(out.join("part-1.bin")).unwrap();
-    assert_eq!(theirs.len(), ours.len());
     std::fs::write(out.join("part-1.bin"), &theirs).unwrap();
     let e = served(a.path(), &out, LoaderMode::Train).unwrap_err();
     assert!(
@@ -374,22 +387,84 @@ fn a_rerun_removes_killed_runs_temporaries_and_an_old_store_is_refused() {
             "part-1.bin"
         ]
     );
-    // A store of the earlier format (its crops.json says format 1): refused with what
-    // to do, in Rust as in Python.
+    // A store of an earlier format (its crops.json says format 1 or 2; a part of
+    // format 2 under this format's manifest): refused with what to do, in Rust as in
+    // Python.
     let manifest = out.join("crops.json");
     let text = std::fs::read_to_string(&manifest).unwrap();
-    let old = text.replacen(
-        &format!("\"format\": {}", crop_store::FORMAT),
-        "\"format\": 1",
-        1,
-    );
-    assert_ne!(old, text);
-    std::fs::write(&manifest, old).unwrap();
-    let e = served(dir.path(), &out, LoaderMode::Train).unwrap_err();
+    for format in [1, 2] {
+        let old = text.replacen(
+            &format!("\"format\": {}", crop_store::FORMAT),
+            &format!("\"format\": {format}"),
+            1,
+        );
+        assert_ne!(old, text);
+        std::fs::write(&manifest, old).unwrap();
+        let e = served(dir.path(), &out, LoaderMode::Train).unwrap_err();
+        assert!(
+            e.contains("crops.json")
+                && e.contains(&format!("format {format}"))
+                && e.contains("rerun `arkit-tool crops`"),
+            "{e}"
+        );
+    }
+    std::fs::write(&manifest, &text).unwrap();
+    let part = out.join("part-0.bin");
+    let mut bytes = std::fs::read(&part).unwrap();
+    assert_eq!(&bytes[..8], b"ARKCROP3");
+    bytes[7] = b'2';
+    std::fs::write(&part, &bytes).unwrap();
+    let e = served(dir.path(), &out, LoaderMode::Eval).unwrap_err();
     assert!(
-        e.contains("crops.json")
-            && e.contains("format 1")
+        e.contains("part-0.bin")
+            && e.contains("store of format 2")
             && e.contains("rerun `arkit-tool crops`"),
         "{e}"
     );
+}
+
+#[test]
+fn png_and_raw_stores_serve_the_same_items_and_png_is_smaller() {
+    let (release, dir) = (tempfile::tempdir().unwrap(), tempfile::tempdir().unwrap());
+    support::converted::converted_synthetic(release.path(), dir.path(), 2, 3, 320, 44);
+    for compat in [Compat::Exact, Compat::Official] {
+        let base = tempfile::tempdir().unwrap();
+        let mut sizes = Vec::new();
+        let mut items = Vec::new();
+        for codec in [WindowCodec::Raw, WindowCodec::Png] {
+            let out = base.path().join(codec.name());
+            let s = write_crop_store_with(
+                &loader(dir.path(), LoaderMode::Eval, compat),
+                &out,
+                codec,
+                &|_| {},
+            )
+            .unwrap();
+            assert_eq!((s.missing, s.codec), (0, codec));
+            assert_eq!(crop_store::read_manifest(&out).unwrap().codec, codec);
+            sizes.push(s.bytes);
+            for mode in [LoaderMode::Eval, LoaderMode::Train] {
+                let mut l = loader(dir.path(), mode, compat);
+                l.open_crop_store(&out).unwrap();
+                let got: Vec<_> = (0..l.len()).map(|i| l.item(i, 1).unwrap()).collect();
+                if mode == LoaderMode::Eval {
+                    // Lossless: evaluation items equal the JPEG path's, bit for bit.
+                    let plain = loader(dir.path(), mode, compat);
+                    for (i, g) in got.iter().enumerate() {
+                        assert_eq!(*g, plain.item(i, 1).unwrap(), "{codec:?} {i}");
+                    }
+                }
+                items.push(got);
+            }
+        }
+        // Training items too: the windows decoded are the same bytes.
+        assert_eq!(items[0], items[2], "{compat:?} eval");
+        assert_eq!(items[1], items[3], "{compat:?} train");
+        assert!(
+            sizes[1] * 2 < sizes[0],
+            "{compat:?}: png {} bytes, raw {}",
+            sizes[1],
+            sizes[0]
+        );
+    }
 }

@@ -7,9 +7,10 @@ Makes an 800x800 synthetic dataset with the arkit-tool binary (the real topology
 the resource files are there), then, in one process on one core (torch threads 1,
 num_workers 0), times: decoding the dataset's JPEGs with Pillow (libjpeg-turbo: the floor
 of any loader that decodes the full image), `arkit-tool crops` (the crop store, made
-once), and the DataLoader over the dataset (batch 64, 1,024 points) for compat exact and
-official, from the crop store with sparse and dense correspondences, and from the JPEGs
-with sparse ones; batched (`ds.loader`: whole batches computed in place) and, from the
+once, its windows as PNGs, and again with `--codec raw`: the sizes of both are printed
+beside the JPEGs'), and the DataLoader over the dataset (batch 64, 1,024 points) for
+compat exact and official, from the crop store with sparse and dense correspondences,
+from the raw store and from the JPEGs with sparse ones; batched (`ds.loader`: whole batches computed in place) and, from the
 store with sparse correspondences, also through torch's default collate. The
 official `ARKitDataset.get_item` costs 19-31 ms a sample on this kind of machine
 (../shared/measurements.md, measured side by side on 2026-12-01); the ratios use 19 ms
@@ -77,25 +78,37 @@ def main():
     for mode, ms in official_ms.items():
         print(f"official get_item, {mode}: {ms:.2f} ms a sample ({source})")
 
-    t = time.perf_counter()
-    for compat in ["exact", "official"]:
-        subprocess.run([a.bin, "crops", "--dataset", data, "--compat", compat, *res],
-                       check=True, stdout=subprocess.DEVNULL)
-    store_ms = (time.perf_counter() - t) / len(paths) / 2 * 1e3
-    print(f"arkit-tool crops: {store_ms:.2f} ms a sample (once, all cores)")
+    jpeg_kib = sum(os.path.getsize(p) for p in paths) / len(paths) / 1024
+    raw_store = {}
+    for codec in ["png", "raw"]:
+        t = time.perf_counter()
+        for compat in ["exact", "official"]:
+            out = [] if codec == "png" else ["--output", tmp / f"raw-{compat}"]
+            subprocess.run([a.bin, "crops", "--dataset", data, "--compat", compat, "--codec", codec,
+                            *out, *res], check=True, stdout=subprocess.DEVNULL)
+            raw_store[compat] = tmp / f"raw-{compat}"
+        store_ms = (time.perf_counter() - t) / len(paths) / 2 * 1e3
+        folder = data / "crops" / "exact-192" if codec == "png" else raw_store["exact"]
+        kib = sum(f.stat().st_size for f in folder.glob("part-*.bin")) / len(paths) / 1024
+        print(f"arkit-tool crops --codec {codec}: {store_ms:.2f} ms a sample (once, all cores), "
+              f"{kib:.1f} KiB a sample (the JPEG: {jpeg_kib:.1f} KiB)")
+        print(f"ratio: crop store {codec} / JPEG bytes = {kib / jpeg_kib:.2f}")
 
     # `batched`: ds.loader (batches computed in place, arkit_tool.collate); `default`:
     # DataLoader(ds) with torch's default collate, which stacks the samples again.
     # (store, dense, default) is the official train.py's path: its DataLoader keeps the
     # default collate.
-    runs = [("store", "sparse", "batched"), ("store", "sparse", "default"),
-            ("store", "dense", "batched"), ("store", "dense", "default"), ("jpeg", "sparse", "batched")]
+    runs = [("store", "sparse", "batched"), ("raw", "sparse", "batched"), ("store", "sparse", "default"),
+            ("store", "dense", "batched"), ("raw", "dense", "batched"), ("store", "dense", "default"),
+            ("jpeg", "sparse", "batched")]
+    timed = {}
     for mode in ["eval", "train"]:
         for compat in ["exact", "official"]:
             for source, corr, collate in runs:
+                store = {"store": "auto", "raw": raw_store[compat], "jpeg": None}[source]
                 ds = arkit_tool.ARKitFaceDataset(data, split=None, mode=mode, compat=compat, corr=corr,
-                                                 crop_store="auto" if source == "store" else None)
-                assert (ds.crop_store is not None) == (source == "store")
+                                                 crop_store=store)
+                assert (ds.crop_store is not None) == (source != "jpeg")
                 if collate == "batched":
                     loader = ds.loader(64, shuffle=True, num_workers=0)
                 else:
@@ -111,6 +124,11 @@ def main():
                 print(f"ratio: official get_item {official_ms[mode]:.1f} ms / arkit_tool {name} = "
                       f"{official_ms[mode] / ms:.1f}x")
                 print(f"ratio: arkit_tool {name} / JPEG decode floor = {ms / floor_ms:.2f}")
+                timed[name] = ms
+                if source == "raw":
+                    png = timed[f"{mode}/{compat}/{corr}/store/{collate}"]
+                    print(f"ratio: arkit_tool {mode}/{compat}/{corr} png store / raw store = "
+                          f"{png / ms:.2f} (time a sample)")
 
 
 def time_official(code, release):

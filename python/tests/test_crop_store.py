@@ -13,7 +13,16 @@ from arkit_tool import ARKitFaceDataset, DataError
 
 from conftest import BIN, make_dataset, run
 
-HEADER = 128  # bytes of a part-K.bin header (crop store format 2)
+HEADER = 128  # bytes of a part-K.bin header (crop store format 3)
+FOOTER = 16  # bytes of its footer, after the record index
+
+
+def record_offsets(part, records):
+    """The `records + 1` offsets of a part file's record index (just before its footer)."""
+    data = open(part, "rb").read()
+    assert data[:8] == b"ARKCROP3" and data[-FOOTER:-FOOTER + 8] == b"ARKCIDX3"
+    index = data[-FOOTER - 8 * (records + 1):-FOOTER]
+    return np.frombuffer(index, dtype="<u8").tolist()
 
 
 def stored(dataset, tmp_path, compat):
@@ -61,8 +70,9 @@ def test_the_store_is_found_by_itself_and_one_that_does_not_fit_is_refused(tmp_p
         ARKitFaceDataset(data, split=None, mode="eval", crop_store=tmp_path)
     # A damaged record: that sample raises naming the file, the others are served.
     part = os.path.join(auto.crop_store, "part-0.bin")
+    offsets = record_offsets(part, 5)
     with open(part, "r+b") as f:
-        f.seek(HEADER + 2 * (os.path.getsize(part) - HEADER) // 5 + 777)
+        f.seek((offsets[2] + offsets[3]) // 2)
         b = f.read(1)
         f.seek(-1, 1)
         f.write(bytes([b[0] ^ 1]))
@@ -120,7 +130,6 @@ def test_part_files_swapped_by_hand_are_refused(tmp_path, mode):
     data, store = two_shard_store(tmp_path, "a")
     p0, p1 = (os.path.join(store, f"part-{k}.bin") for k in (0, 1))
     b0, b1 = (open(p, "rb").read() for p in (p0, p1))
-    assert len(b0) == len(b1)
     # Whole files swapped: refused when the store is opened, naming the file.
     open(p0, "wb").write(b1)
     open(p1, "wb").write(b0)
@@ -178,6 +187,10 @@ def test_two_crops_into_one_store_never_mix_and_an_old_store_is_refused(tmp_path
     assert not [n for n in os.listdir(store) if ".tmp-" in n]
     manifest = os.path.join(store, "crops.json")
     text = open(manifest).read()
-    open(manifest, "w").write(text.replace('"format": 2', '"format": 1', 1))
+    assert '"format": 3' in text and '"codec": "png"' in text
+    open(manifest, "w").write(text.replace('"format": 3', '"format": 2', 1))
+    with pytest.raises(DataError, match="format 2.*rerun `arkit-tool crops`"):
+        ARKitFaceDataset(a, split=None, mode="train", img_size=64)
+    open(manifest, "w").write(text.replace('"format": 3', '"format": 1', 1))
     with pytest.raises(DataError, match="format 1.*rerun `arkit-tool crops`"):
         ARKitFaceDataset(a, split=None, mode="train", img_size=64)

@@ -51,6 +51,11 @@ pub struct CropsArgs {
     /// integer box and cv2.warpAffine), as the loader's `compat`.
     #[arg(long, value_enum, default_value = "exact")]
     compat: CompatArg,
+    /// How the windows are stored, both lossless: `png` (the default, about a quarter
+    /// of the raw bytes) or `raw` (the bytes as they are: no decoding, four times the
+    /// disk).
+    #[arg(long, value_enum, default_value = "png")]
+    codec: CodecArg,
     /// The release's resource folder (real topology); the built-in face without it.
     /// Needed when the dataset was converted with it.
     #[arg(long)]
@@ -61,6 +66,13 @@ pub struct CropsArgs {
     /// Print the summary as JSON.
     #[arg(long)]
     json: bool,
+}
+
+/// `--codec` values.
+#[derive(Clone, Copy, Debug, clap::ValueEnum)]
+enum CodecArg {
+    Png,
+    Raw,
 }
 
 /// `--compat` values.
@@ -91,14 +103,19 @@ pub fn run(a: CropsArgs) -> Result<ExitCode> {
         .unwrap_or_else(|| FaceLoader::default_crop_store(&a.dataset, compat, a.size));
     let bar = super::progress_bar(loader.len() as u64, "crops", "samples");
     let pool = super::thread_pool(a.jobs)?;
-    let summary =
-        pool.install(|| crops_dataset::write_crop_store(&loader, &output, &|n| bar.inc(n as u64)))?;
+    let codec = match a.codec {
+        CodecArg::Png => arkit_tool::crop_store::WindowCodec::Png,
+        CodecArg::Raw => arkit_tool::crop_store::WindowCodec::Raw,
+    };
+    let summary = pool.install(|| {
+        crops_dataset::write_crop_store_with(&loader, &output, codec, &|n| bar.inc(n as u64))
+    })?;
     bar.finish_and_clear();
     if a.json {
         println!("{}", serde_json::to_string_pretty(&summary).expect("json"));
     } else {
         println!(
-            "stored {} of {} samples ({} rules, {}x{} crops in {}x{} windows): {:.1} KiB per sample, {:.1} MiB -> {}",
+            "stored {} of {} samples ({} rules, {}x{} crops in {}x{} {} windows): {:.1} KiB per sample, {:.1} MiB -> {}",
             summary.samples - summary.missing,
             summary.samples,
             summary.compat,
@@ -106,7 +123,8 @@ pub fn run(a: CropsArgs) -> Result<ExitCode> {
             summary.img_size,
             summary.window,
             summary.window,
-            summary.bytes_per_sample as f64 / 1024.0,
+            summary.codec.name(),
+            summary.bytes_per_sample / 1024.0,
             summary.bytes as f64 / (1024.0 * 1024.0),
             summary.output.display()
         );

@@ -23,7 +23,7 @@
 //! Tested in `tests/crop_store.rs`.
 
 use crate::crop_store::{
-    self, CropStoreManifest, FORMAT, MissingCrop, encode_record, margin, record_bytes,
+    self, CropStoreManifest, FORMAT, MissingCrop, WindowCodec, encode_record, margin,
 };
 use crate::error::{Error, Result};
 use crate::loader::FaceLoader;
@@ -42,6 +42,8 @@ pub struct CropStoreSummary {
     pub output: PathBuf,
     /// `"exact"` or `"official"`.
     pub compat: String,
+    /// How the windows are stored (`png` or `raw`).
+    pub codec: WindowCodec,
     /// Crop side.
     pub img_size: u32,
     /// Window side (`S + 2m`).
@@ -54,16 +56,26 @@ pub struct CropStoreSummary {
     pub missing_examples: Vec<String>,
     /// Bytes written (all `part-K.bin`).
     pub bytes: u64,
-    /// Bytes per sample.
-    pub bytes_per_sample: u64,
+    /// Bytes per sample (the mean, headers and indexes included).
+    pub bytes_per_sample: f64,
 }
 
 /// Writes the crop store of the dataset `loader` serves (opened with no split, in
-/// evaluation mode, with the rules and crop side wanted) into `output`; `progress` is
-/// called with the number of samples done since its last call.
+/// evaluation mode, with the rules and crop side wanted) into `output`, its windows as
+/// PNGs; `progress` is called with the number of samples done since its last call.
 pub fn write_crop_store(
     loader: &FaceLoader,
     output: &Path,
+    progress: &(dyn Fn(usize) + Sync),
+) -> Result<CropStoreSummary> {
+    write_crop_store_with(loader, output, WindowCodec::Png, progress)
+}
+
+/// [`write_crop_store`] with the windows stored by `codec`.
+pub fn write_crop_store_with(
+    loader: &FaceLoader,
+    output: &Path,
+    codec: WindowCodec,
     progress: &(dyn Fn(usize) + Sync),
 ) -> Result<CropStoreSummary> {
     let options = loader.options();
@@ -104,12 +116,12 @@ pub fn write_crop_store(
     let mut manifest = CropStoreManifest {
         format: FORMAT,
         compat: compat.name().to_string(),
+        codec,
         img_size: s,
         margin: margin(s),
         vertex_count,
         key_bytes,
         dataset_fingerprint: crate::render_dataset::dataset_fingerprint(dataset.manifest()),
-        record_bytes: record_bytes(s, vertex_count, key_bytes),
         shards: Vec::new(),
         missing: Vec::new(),
     };
@@ -165,14 +177,11 @@ pub fn write_crop_store(
     manifest.missing = missing;
     crop_store::write_manifest(output, &manifest)?;
     remove_unnamed_parts(output, &manifest)?;
-    let bytes: u64 = manifest
-        .shards
-        .iter()
-        .map(|c| crop_store::HEADER_BYTES + c.records as u64 * manifest.record_bytes)
-        .sum();
+    let bytes: u64 = manifest.shards.iter().map(|c| c.bytes).sum();
     Ok(CropStoreSummary {
         output: output.to_path_buf(),
         compat: manifest.compat.clone(),
+        codec,
         img_size: s,
         window: crop_store::window_side(s),
         samples: loader.len(),
@@ -184,7 +193,7 @@ pub fn write_crop_store(
             .map(|m| format!("{}: {}", m.key, m.reason))
             .collect(),
         bytes,
-        bytes_per_sample: manifest.record_bytes,
+        bytes_per_sample: bytes as f64 / loader.len().max(1) as f64,
     })
 }
 

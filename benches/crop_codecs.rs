@@ -1,0 +1,395 @@
+//! The crop store's codecs measured on real windows: bytes per sample and time to encode
+//! and decode one window, for every candidate, lossless and lossy, beside the raw bytes.
+//!
+//!     cargo bench --bench crop_codecs [-- SAMPLES]    (default 96)
+//!
+//! Makes an 800x800 synthetic release (the real topology from ARKIT_RESOURCES, default
+//! ../shared/arkitface-resources, when it is there; the built-in face otherwise),
+//! converts it, computes each sample's crop window and mesh as `arkit-tool crops` does
+//! (192-pixel crops, `exact` rules: 244x244 windows), then per codec prints the mean
+//! bytes of a window, the median encode and decode time of one window on one thread,
+//! and for lossy codecs the mean and largest difference from the raw window in grey
+//! levels. Lossless codecs are checked to round-trip bit for bit. The `ratio:` lines
+//! compare each codec's record (window plus mesh) with the raw record's bytes and its
+//! decode time with the `png` codec the store uses.
+
+mod timing;
+
+use arkit_tool::crop_store::{self, WindowCodec};
+use arkit_tool::loader::{Compat, FaceLoader, LoaderMode, LoaderOptions};
+use image::ImageEncoder;
+use std::path::PathBuf;
+
+struct Measured {
+    name: String,
+    bytes: f64,
+    encode_ms: f64,
+    decode_ms: f64,
+    /// Mean and largest absolute difference from the raw window (lossy codecs).
+    error: Option<(f64, u8)>,
+}
+
+fn main() {
+    let samples: usize = std::env::args()
+        .skip(1)
+        .find_map(|a| a.parse().ok())
+        .unwrap_or(96);
+    let resources = PathBuf::from(
+        std::env::var("ARKIT_RESOURCES").unwrap_or_else(|_| "../shared/arkitface-resources".into()),
+    );
+    let (topology, source) = if resources.join("triangles.npy").exists() {
+        let t = arkit_tool::FaceTopology::from_resources(&resources).expect("resources");
+        (
+            t.clone(),
+            arkit_tool::synth::FaceSource::new(t).expect("face"),
+        )
+    } else {
+        eprintln!("no resources at {}: the built-in face", resources.display());
+        (
+            arkit_tool::synthetic_face::builtin().topology.clone(),
+            arkit_tool::synth::FaceSource::builtin(),
+        )
+    };
+    let tmp = tempfile::tempdir().unwrap();
+    let (release, data) = (tmp.path().join("release"), tmp.path().join("data"));
+    let per_subject = 16;
+    let options = arkit_tool::synth::SynthOptions {
+        subjects: samples.div_ceil(per_subject),
+        images_per_subject: per_subject,
+        seed: 1,
+        test_fraction: 0.0,
+        ..Default::default()
+    };
+    arkit_tool::synth::generate(&source, &options, &release, &|| {}).unwrap();
+    let ctx = arkit_tool::convert::ValidationContext {
+        projection: arkit_tool::conventions::Camera::release_projection(),
+        topology: topology.clone(),
+        embed_images: false,
+    };
+    let copts = arkit_tool::convert::ConvertOptions {
+        input: release.clone(),
+        output: data.clone(),
+        resources: None,
+        rows_per_shard: 4096,
+        embed_images: false,
+        shard_index: 0,
+        shard_count: 1,
+        overwrite: false,
+    };
+    arkit_tool::convert::convert(&copts, &ctx, &|_| {}).unwrap();
+    let loader = FaceLoader::open(
+        &data,
+        topology,
+        None,
+        LoaderOptions {
+            split: None,
+            mode: LoaderMode::Eval,
+            compat: Compat::Exact,
+            img_size: 192,
+            n_pts: 1,
+            seed: 0,
+        },
+    )
+    .unwrap();
+    let crops: Vec<_> = (0..loader.len())
+        .map(|i| loader.stored_crop(i).unwrap())
+        .collect();
+    let jpeg_bytes: u64 = walk(&release.join("ARKitFace_image_train"));
+    let w = crop_store::window_side(192) as u32;
+    let raw_window = (3 * w * w) as f64;
+    let mesh_raw = 12.0 * crops[0].verts.len() as f64;
+    println!(
+        "{} samples, 800x800 JPEGs of {:.1} KiB on average; {w}x{w} windows ({:.1} KiB raw), meshes of {} vertices ({:.1} KiB raw)",
+        crops.len(),
+        jpeg_bytes as f64 / crops.len() as f64 / 1024.0,
+        raw_window / 1024.0,
+        crops[0].verts.len(),
+        mesh_raw / 1024.0
+    );
+
+    let mut rows = Vec::new();
+    // The store's own codecs, through its own encode and decode.
+    for codec in [WindowCodec::Raw, WindowCodec::Png] {
+        rows.push(measure(
+            codec.name(),
+            &crops,
+            |c| {
+                let bytes = crop_store::encode_window(codec, &c.window).unwrap();
+                let back = crop_store::decode_window(codec, &bytes, w as usize).unwrap();
+                assert_eq!(back, *c.window.as_raw(), "{} round trip", codec.name());
+                bytes
+            },
+            |b| {
+                std::hint::black_box(crop_store::decode_window(codec, b, w as usize).unwrap());
+            },
+        ));
+    }
+    // PNG at the other compression settings.
+    for (name, comp) in [
+        ("png-fast", image::codecs::png::CompressionType::Fast),
+        ("png-best", image::codecs::png::CompressionType::Best),
+    ] {
+        rows.push(measure(
+            name,
+            &crops,
+            |c| {
+                let mut out = Vec::new();
+                image::codecs::png::PngEncoder::new_with_quality(
+                    &mut out,
+                    comp,
+                    image::codecs::png::FilterType::Adaptive,
+                )
+                .write_image(c.window.as_raw(), w, w, image::ExtendedColorType::Rgb8)
+                .unwrap();
+                out
+            },
+            |b| {
+                std::hint::black_box(image::load_from_memory(b).unwrap());
+            },
+        ));
+    }
+    // zstd of the raw bytes, and of the bytes after a left-neighbour delta (PNG's Sub
+    // filter) and after the median-edge predictor (LOCO-I): both undone in one pass.
+    for level in [3, 19] {
+        rows.push(measure(
+            &format!("zstd-{level}"),
+            &crops,
+            |c| zstd::bulk::compress(c.window.as_raw(), level).unwrap(),
+            |b| {
+                std::hint::black_box(zstd::bulk::decompress(b, raw_window as usize).unwrap());
+            },
+        ));
+        rows.push(measure(
+            &format!("sub+zstd-{level}"),
+            &crops,
+            |c| zstd::bulk::compress(&sub(c.window.as_raw(), w as usize), level).unwrap(),
+            |b| {
+                let d = zstd::bulk::decompress(b, raw_window as usize).unwrap();
+                std::hint::black_box(unsub(d, w as usize));
+            },
+        ));
+        rows.push(measure(
+            &format!("med+zstd-{level}"),
+            &crops,
+            |c| {
+                let f = med(c.window.as_raw(), w as usize);
+                assert_eq!(unmed(f.clone(), w as usize), *c.window.as_raw());
+                zstd::bulk::compress(&f, level).unwrap()
+            },
+            |b| {
+                let d = zstd::bulk::decompress(b, raw_window as usize).unwrap();
+                std::hint::black_box(unmed(d, w as usize));
+            },
+        ));
+    }
+    // Lossy: JPEG of the window (encoded once), decoded as the loader would.
+    for q in [90u8, 95, 98, 100] {
+        let mut m = measure(
+            &format!("jpeg-q{q} (lossy)"),
+            &crops,
+            |c| {
+                let mut out = Vec::new();
+                image::codecs::jpeg::JpegEncoder::new_with_quality(&mut out, q)
+                    .write_image(c.window.as_raw(), w, w, image::ExtendedColorType::Rgb8)
+                    .unwrap();
+                out
+            },
+            |b| {
+                std::hint::black_box(image::load_from_memory(b).unwrap());
+            },
+        );
+        let (mut sum, mut n, mut worst) = (0u64, 0u64, 0u8);
+        for c in &crops {
+            let mut out = Vec::new();
+            image::codecs::jpeg::JpegEncoder::new_with_quality(&mut out, q)
+                .write_image(c.window.as_raw(), w, w, image::ExtendedColorType::Rgb8)
+                .unwrap();
+            let back = image::load_from_memory(&out).unwrap().to_rgb8();
+            for (a, b) in c.window.as_raw().iter().zip(back.as_raw()) {
+                let d = a.abs_diff(*b);
+                sum += d as u64;
+                n += 1;
+                worst = worst.max(d);
+            }
+        }
+        m.error = Some((sum as f64 / n as f64, worst));
+        rows.push(m);
+    }
+
+    // The mesh: raw float32, or zstd (of the bytes, and of its byte planes).
+    let mesh_bytes = |c: &crop_store::StoredCrop| -> Vec<u8> {
+        c.verts
+            .iter()
+            .flat_map(|p| [p.x, p.y, p.z])
+            .flat_map(f32::to_le_bytes)
+            .collect()
+    };
+    let mut mesh_z = 0.0;
+    let mut mesh_planes = 0.0;
+    for c in &crops {
+        let b = mesh_bytes(c);
+        mesh_z += zstd::bulk::compress(&b, 19).unwrap().len() as f64;
+        let planes: Vec<u8> = (0..4)
+            .flat_map(|k| b.iter().skip(k).step_by(4).copied())
+            .collect();
+        mesh_planes += zstd::bulk::compress(&planes, 19).unwrap().len() as f64;
+    }
+    let n = crops.len() as f64;
+    println!(
+        "mesh: raw {:.1} KiB, zstd-19 {:.1} KiB, byte planes + zstd-19 {:.1} KiB",
+        mesh_raw / 1024.0,
+        mesh_z / n / 1024.0,
+        mesh_planes / n / 1024.0
+    );
+
+    println!(
+        "{:<20} {:>12} {:>9} {:>11} {:>11} {:>16}",
+        "codec", "KiB/window", "of raw", "encode ms", "decode ms", "error (mean/max)"
+    );
+    for r in &rows {
+        println!(
+            "{:<20} {:>12.1} {:>8.1}% {:>11.3} {:>11.3} {:>16}",
+            r.name,
+            r.bytes / 1024.0,
+            100.0 * r.bytes / raw_window,
+            r.encode_ms,
+            r.decode_ms,
+            r.error
+                .map(|(m, x)| format!("{m:.2} / {x}"))
+                .unwrap_or_else(|| "lossless".into())
+        );
+    }
+    let png = rows.iter().find(|r| r.name == "png").unwrap().decode_ms;
+    let jpeg_kib = jpeg_bytes as f64 / n / 1024.0;
+    for r in &rows {
+        let record = r.bytes + mesh_raw;
+        println!(
+            "ratio: {} record / raw record = {:.3} ({:.1} KiB; the release's JPEG {:.1} KiB: {:.2}x); decode {:.3} ms / png's = {:.2}",
+            r.name,
+            record / (raw_window + mesh_raw),
+            record / 1024.0,
+            jpeg_kib,
+            record / 1024.0 / jpeg_kib,
+            r.decode_ms,
+            r.decode_ms / png
+        );
+    }
+}
+
+fn measure(
+    name: &str,
+    crops: &[crop_store::StoredCrop],
+    encode: impl Fn(&crop_store::StoredCrop) -> Vec<u8>,
+    decode: impl Fn(&[u8]),
+) -> Measured {
+    let encoded: Vec<Vec<u8>> = crops.iter().map(&encode).collect();
+    let bytes = encoded.iter().map(|e| e.len() as f64).sum::<f64>() / crops.len() as f64;
+    let mut k = 0;
+    let encode_ms = timing::median_ms(
+        || {
+            std::hint::black_box(encode(&crops[k % crops.len()]));
+            k += 1;
+        },
+        crops.len().min(48),
+    );
+    let mut k = 0;
+    let decode_ms = timing::median_ms(
+        || {
+            decode(&encoded[k % encoded.len()]);
+            k += 1;
+        },
+        3 * crops.len(),
+    );
+    Measured {
+        name: name.to_string(),
+        bytes,
+        encode_ms,
+        decode_ms,
+        error: None,
+    }
+}
+
+/// Each byte minus the same channel of its left neighbour (PNG's Sub filter).
+fn sub(raw: &[u8], w: usize) -> Vec<u8> {
+    let mut out = raw.to_vec();
+    for row in out.chunks_exact_mut(3 * w) {
+        for i in (3..3 * w).rev() {
+            row[i] = row[i].wrapping_sub(row[i - 3]);
+        }
+    }
+    out
+}
+
+fn unsub(mut d: Vec<u8>, w: usize) -> Vec<u8> {
+    for row in d.chunks_exact_mut(3 * w) {
+        for i in 3..3 * w {
+            row[i] = row[i].wrapping_add(row[i - 3]);
+        }
+    }
+    d
+}
+
+/// The median-edge predictor of LOCO-I: from the left `a`, above `b` and above-left `c`.
+fn predict(a: u8, b: u8, c: u8) -> u8 {
+    if c >= a.max(b) {
+        a.min(b)
+    } else if c <= a.min(b) {
+        a.max(b)
+    } else {
+        (a as i16 + b as i16 - c as i16) as u8
+    }
+}
+
+fn med(raw: &[u8], w: usize) -> Vec<u8> {
+    let mut out = raw.to_vec();
+    let at = |y: usize, x: usize, k: usize| 3 * (y * w + x) + k;
+    for y in 0..raw.len() / (3 * w) {
+        for x in 0..w {
+            for k in 0..3 {
+                let a = if x > 0 { raw[at(y, x - 1, k)] } else { 0 };
+                let b = if y > 0 { raw[at(y - 1, x, k)] } else { 0 };
+                let c = if x > 0 && y > 0 {
+                    raw[at(y - 1, x - 1, k)]
+                } else {
+                    0
+                };
+                out[at(y, x, k)] = raw[at(y, x, k)].wrapping_sub(predict(a, b, c));
+            }
+        }
+    }
+    out
+}
+
+fn unmed(mut d: Vec<u8>, w: usize) -> Vec<u8> {
+    let at = |y: usize, x: usize, k: usize| 3 * (y * w + x) + k;
+    for y in 0..d.len() / (3 * w) {
+        for x in 0..w {
+            for k in 0..3 {
+                let a = if x > 0 { d[at(y, x - 1, k)] } else { 0 };
+                let b = if y > 0 { d[at(y - 1, x, k)] } else { 0 };
+                let c = if x > 0 && y > 0 {
+                    d[at(y - 1, x - 1, k)]
+                } else {
+                    0
+                };
+                let i = at(y, x, k);
+                d[i] = d[i].wrapping_add(predict(a, b, c));
+            }
+        }
+    }
+    d
+}
+
+fn walk(dir: &std::path::Path) -> u64 {
+    let mut total = 0;
+    for e in std::fs::read_dir(dir).unwrap() {
+        let e = e.unwrap();
+        let t = e.file_type().unwrap();
+        if t.is_dir() {
+            total += walk(&e.path());
+        } else if e.path().extension().is_some_and(|x| x == "jpg") {
+            total += e.metadata().unwrap().len();
+        }
+    }
+    total
+}
