@@ -678,7 +678,7 @@ fn paper_weights_without_resources_say_what_predict_needs() {
     );
     same_weights(&model, &vm);
     // What it says holds: predict's loader takes the model without --resources ...
-    training::load(&model, builtin).unwrap();
+    perspnet::load(&model, builtin).unwrap();
 
     // A tiny model without --resources is the synthetic case: no warning.
     let tiny = random_varmap(&PerspNetConfig::tiny(), 12);
@@ -694,7 +694,7 @@ fn paper_weights_without_resources_say_what_predict_needs() {
     };
     // ... and refuses it with the release's topology, as the warning says.
     let real = arkit_tool::FaceTopology::from_resources(&r).unwrap();
-    let e = training::load(&model, &real)
+    let e = perspnet::load(&model, &real)
         .err()
         .expect("refused with --resources")
         .to_string();
@@ -705,6 +705,6 @@ fn paper_weights_without_resources_say_what_predict_needs() {
     assert!(v["warning"].is_null(), "{v}");
     assert!(!stderr.contains("warning"), "{stderr}");
     assert_eq!(v["predict_resources"], r.display().to_string());
-    training::load(&with, &real).unwrap();
-    assert!(training::load(&with, builtin).is_err());
+    perspnet::load(&with, &real).unwrap();
+    assert!(perspnet::load(&with, builtin).is_err());
 }

@@ -137,3 +137,57 @@ def test_batch_arrays_are_reused_only_once_nobody_holds_them(dataset, compat):
     assert len(pointers) == 1  # dropped batches are written over again
     # A batch of another size gets arrays of its own.
     assert len(ds.__getitems__([0, 1])) == 2
+
+
+@pytest.mark.parametrize("corr", ["dense", "sparse"])
+def test_torch_default_collate_takes_an_intact_batch_without_copying(dataset, corr):
+    # The official train.py keeps DataLoader's default collate: it gets the batch arrays
+    # themselves, the values stacking the samples gives.
+    ds = ARKitFaceDataset(dataset, split=None, mode="train", compat="official", corr=corr, n_pts=32)
+    batch = ds.__getitems__([2, 0, 1])
+    stacked = torch.utils.data.default_collate([dict(s) for s in batch])
+    got = torch.utils.data.default_collate(batch)
+    assert_same_batch(got, stacked, corr)
+    for k, v in batch.arrays.items():
+        if isinstance(v, np.ndarray):
+            assert got[k].data_ptr() == v.__array_interface__["data"][0], k  # no copy
+            assert got[k].data_ptr() != stacked[k].data_ptr(), k
+
+
+def test_a_changed_batch_is_stacked_as_it_now_is(dataset):
+    ds = ARKitFaceDataset(dataset, split=None, mode="eval", corr="sparse", n_pts=16)
+    for change in ["rebind", "replace", "drop", "swap"]:
+        batch = ds.__getitems__([0, 1, 2])
+        if change == "rebind":
+            batch[1]["img"] = batch[1]["img"] * 2
+        elif change == "replace":
+            batch[0] = ds[3]
+        elif change == "drop":
+            del batch[2]
+        else:
+            batch[0], batch[1] = batch[1], batch[0]
+        assert not batch.intact(), change
+        want = torch.utils.data.default_collate([dict(s) for s in batch])
+        for collate in [arkit_tool.collate, torch.utils.data.default_collate]:
+            got = collate(batch)
+            assert_same_batch(got, want, change)
+            assert got["img"].data_ptr() != batch.arrays["img"].__array_interface__["data"][0]
+        if change == "rebind":
+            np.testing.assert_array_equal(got["img"][1].numpy(), 2 * ds[1]["img"])
+    # Writing into a sample's array in place writes into the batch: still intact.
+    batch = ds.__getitems__([0, 1])
+    batch[0]["img"][:] = 0.5
+    assert batch.intact()
+    assert torch.all(torch.utils.data.default_collate(batch)["img"][0] == 0.5)
+
+
+def test_a_plain_dataloader_gives_the_one_by_one_batches(dataset):
+    # DataLoader(ds, batch_size=B), train.py's way, with 0 and 2 workers.
+    ds = ARKitFaceDataset(dataset, split=None, mode="train", compat="official", corr="dense", n_pts=24)
+    ds.set_epoch(3)
+    reference = list(torch.utils.data.DataLoader(OneByOne(ds), batch_size=4))
+    for workers in [0, 2]:
+        got = list(torch.utils.data.DataLoader(ds, batch_size=4, num_workers=workers))
+        assert len(got) == len(reference)
+        for a, b in zip(got, reference):
+            assert_same_batch(a, b, workers)

@@ -368,6 +368,8 @@ class ARKitFaceDataset:
         arrays = self._loader.batch([i for _, i in pairs], epoch, self.corr, self.mode == "eval", reuse)
         if reuse is None:
             _keep_batch(pool, arrays)
+        if "torch" in sys.modules:
+            _teach_default_collate()
         return ItemBatch(arrays, self.tensors)
 
     def sampler(
@@ -463,10 +465,18 @@ def _keep_batch(pool, arrays):
     del pool[_POOL_SIZE:]
 
 
+class SampleView(dict):
+    """One sample of an `ItemBatch`: a plain dict (`ds[i]`'s keys and values) whose
+    arrays are views of the batch's arrays. Its type is what lets torch's default collate
+    recognise a whole batch that needs no stacking (`collate`)."""
+
+    __slots__ = ()
+
+
 class ItemBatch(list):
     """The samples of one batch (`ARKitFaceDataset.__getitems__`): a list of per-sample
-    dicts, as torch's default collate expects, whose arrays are views of one set of batch
-    arrays, `arrays` (the batch axis first; strings as lists)."""
+    dicts (`SampleView`), as torch's default collate expects, whose arrays are views of
+    one set of batch arrays, `arrays` (the batch axis first; strings as lists)."""
 
     def __init__(self, arrays: Dict[str, Any], tensors: bool = False):
         if tensors:
@@ -475,20 +485,98 @@ class ItemBatch(list):
             arrays = {k: torch.from_numpy(v) if isinstance(v, np.ndarray) else v for k, v in arrays.items()}
         self.arrays = arrays
         b = len(arrays["img"])
-        super().__init__({k: v[i] for k, v in arrays.items()} for i in range(b))
+        super().__init__(SampleView((k, v[i]) for k, v in arrays.items()) for i in range(b))
+        self._views = tuple(self)
+
+    def intact(self) -> bool:
+        """Whether the list still holds exactly the samples it was made with, each with
+        its original values (the same objects): then its batch arrays are what stacking
+        its samples would give. A sample replaced, added, removed or reordered, or a
+        value rebound (`s["img"] = s["img"] * 2`), makes it False. (Writing into a
+        sample's array in place writes into the batch array, which stays equal.)"""
+        if len(self) != len(self._views) or any(a is not b for a, b in zip(self, self._views)):
+            return False
+        arrays = self.arrays
+        for i, sample in enumerate(self):
+            if sample.keys() != arrays.keys():
+                return False
+            for k, v in sample.items():
+                whole = arrays[k]
+                if isinstance(whole, list):
+                    if v is not whole[i]:
+                        return False
+                elif not _is_row(v, whole, i):
+                    return False
+        return True
+
+
+def _is_row(v, whole, i: int) -> bool:
+    """Whether `v` is row `i` of the array (numpy) or tensor `whole`, unchanged: the
+    same memory, shape and dtype (an index into a batch array makes a new view object
+    each time, so identity cannot be asked)."""
+    if type(v) is not type(whole) or v.shape != whole.shape[1:] or v.dtype != whole.dtype:
+        return False
+    if isinstance(whole, np.ndarray):
+        if v.base is not whole and v.base is not whole.base:
+            return False
+        at = v.__array_interface__["data"][0]
+        start = whole.__array_interface__["data"][0]
+        return at == start + i * whole.strides[0] and v.strides == whole.strides[1:]
+    return (
+        v.untyped_storage().data_ptr() == whole.untyped_storage().data_ptr()
+        and v.storage_offset() == whole.storage_offset() + i * whole.stride(0)
+        and v.stride() == whole.stride()[1:]
+    )
 
 
 def collate(batch):
-    """A DataLoader `collate_fn`: for an `ItemBatch` its batch arrays as torch tensors
-    (no copy; strings as lists), the same keys, shapes, dtypes and values as
+    """A DataLoader `collate_fn`: for an intact `ItemBatch` its batch arrays as torch
+    tensors (no copy; strings as lists), the same keys, shapes, dtypes and values as
     `torch.utils.data.default_collate` of its samples; anything else goes to
-    `default_collate`."""
+    `default_collate`.
+
+    Importing torch with arkit_tool also teaches torch's own `default_collate` the same
+    (`SampleView` in `torch.utils.data._utils.collate.default_collate_fn_map`, torch's
+    documented way to extend it), so a plain `DataLoader(ds, batch_size=B)`, such as the
+    official train.py's, gets its batches without the stacking copy too."""
     import torch
 
-    if isinstance(batch, ItemBatch):
+    if isinstance(batch, ItemBatch) and batch.intact():
         # torch.as_tensor shares a numpy array's memory and returns a tensor as it is.
         return {k: list(v) if isinstance(v, list) else torch.as_tensor(v) for k, v in batch.arrays.items()}
-    return torch.utils.data.default_collate(batch)
+    return torch.utils.data.default_collate(_plain(batch))
+
+
+def _plain(batch):
+    """`batch` with its `SampleView`s as plain dicts (what default_collate stacks)."""
+    if isinstance(batch, list) and batch and isinstance(batch[0], SampleView):
+        return [dict(s) for s in batch]
+    return batch
+
+
+def _collate_sample_views(batch, *, collate_fn_map=None):
+    """torch's `default_collate` for a batch whose first sample is a `SampleView`:
+    `collate(batch)` when it is an intact `ItemBatch`, else each key stacked as
+    `default_collate` stacks a dict's values."""
+    if isinstance(batch, ItemBatch) and batch.intact():
+        return collate(batch)
+    from torch.utils.data._utils.collate import collate as torch_collate
+
+    return torch_collate([dict(s) for s in batch], collate_fn_map=collate_fn_map)
+
+
+def _teach_default_collate() -> None:
+    """Registers `SampleView` with torch's `default_collate` (once; when torch is
+    imported)."""
+    torch_collate = sys.modules.get("torch.utils.data._utils.collate")
+    if torch_collate is None:
+        try:
+            import torch.utils.data._utils.collate as torch_collate
+        except ImportError:
+            return
+    fn_map = getattr(torch_collate, "default_collate_fn_map", None)
+    if fn_map is not None and SampleView not in fn_map:
+        fn_map[SampleView] = _collate_sample_views
 
 
 def _position(index, n: int) -> int:
