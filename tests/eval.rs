@@ -158,11 +158,7 @@ fn oracle_without_noise_scores_zero_and_with_noise_stays_small() {
     );
     assert!(files.worst_labels.is_some());
     for f in &files.files {
-        assert!(
-            std::fs::metadata(&f).unwrap().len() > 100,
-            "{}",
-            f.display()
-        );
+        assert!(std::fs::metadata(f).unwrap().len() > 100, "{}", f.display());
     }
 }
 
