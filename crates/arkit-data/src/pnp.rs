@@ -59,29 +59,8 @@
 //!
 //! # Measured figures
 //!
-//! `cargo bench --bench pnp`, single thread, on the 2-core machine
-//! the project is developed on (other jobs were running; each time is the
-//! minimum of 15 identical runs, then the median over poses). 300 random poses
-//! (yaw/pitch ±60°, roll ±30°, face-anchor origin at 0.3–1.0 m, ±10% off-axis),
-//! 1,024 points sampled area-uniformly on the ARKit face template mesh,
-//! 800×800 camera with fx = fy = 629.775, 1 px Gaussian noise; "ML" is LM
-//! started at the true pose on the true inliers, i.e. the attainable accuracy.
-//!
-//! | setting                | median rot. err | median trans. err | failures (>5°) | median time |
-//! |------------------------|-----------------|-------------------|----------------|-------------|
-//! | RANSAC, 0% outliers    | 0.0634°         | 0.222 mm          | 0 / 300        | 115–184 µs  |
-//! | RANSAC, 30% outliers   | 0.0771°         | 0.259 mm          | 0 / 300        | 167–265 µs  |
-//! | `solve_pnp`, 0%        | 0.0634°         | 0.221 mm          | 0 / 300        | 128–196 µs  |
-//! | ML reference, 0% / 30% | 0.0634° / 0.0769° | 0.222 / 0.254 mm | 0 / 0         | –           |
-//!
-//! The errors equal the ML reference (ratio 1.00–1.02), so they are at the
-//! statistical limit of this scene; OpenCV's `solvePnPRansac` figures
-//! (0.058°/0.18 mm/621 µs and 0.076°/0.22 mm/1898 µs) come from a scene
-//! generator that is not bit-identical, so the accuracy ratios against them
-//! (1.09/1.23 and 1.01/1.18) mostly measure the scene difference. Time ratios
-//! against OpenCV: 0.19–0.30 (0%) and 0.09–0.14 (30%). Time ranges span
-//! repeated runs under varying load from other jobs (the ML reference itself
-//! moved from 66 to 99 µs between those runs).
+//! Accuracy and time against the attainable accuracy and OpenCV's `solvePnPRansac`
+//! (`cargo bench --bench pnp`): docs/performance.md, "PnP accuracy and time".
 
 use nalgebra::{
     DMatrix, Isometry3, Matrix3, Point2, Point3, Rotation3, SymmetricEigen, Translation3,
