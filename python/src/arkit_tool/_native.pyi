@@ -1,0 +1,95 @@
+"""Type stubs for `arkit_tool._native`, the Rust extension module (crates/arkit-py).
+
+Checked against the built module by `mypy.stubtest` (python/tests/test_typing.py)."""
+
+import os
+from typing import Any, Dict, List, Optional, Sequence, Tuple, Union
+
+import numpy as np
+import numpy.typing as npt
+from typing_extensions import final
+
+_Path = Union[str, "os.PathLike[str]"]
+_Key = Tuple[str, str, str, str]
+
+__all__ = [
+    "Loader",
+    "Dataset",
+    "solve_pnp_ransac",
+    "project",
+    "evaluate",
+    "read_image",
+    "default_crop_store",
+    "topology",
+    "DataError",
+    "__version__",
+]
+__version__: str
+
+class DataError(ValueError): ...
+
+@final
+class Loader:
+    def __new__(
+        cls,
+        dir: _Path,
+        split: Optional[str],
+        mode: str,
+        compat: str,
+        img_size: int,
+        n_pts: int,
+        seed: int,
+        resources: Optional[_Path] = None,
+        crop_store: Optional[_Path] = None,
+    ) -> "Loader": ...
+    def __len__(self) -> int: ...
+    @property
+    def crop_store(self) -> Optional[str]: ...
+    def key(self, index: int) -> _Key: ...
+    def item(
+        self,
+        index: int,
+        epoch: int = 0,
+        corr: str = "dense",
+        eval_keys: bool = False,
+        extras: bool = False,
+    ) -> Dict[str, Any]: ...
+    def batch(
+        self,
+        indices: Sequence[int],
+        epoch: int = 0,
+        corr: str = "dense",
+        eval_keys: bool = False,
+        reuse: Optional[Dict[str, Any]] = None,
+    ) -> Dict[str, Any]: ...
+
+@final
+class Dataset:
+    def __new__(cls, dir: _Path) -> "Dataset": ...
+    def __len__(self) -> int: ...
+    def keys(self) -> List[_Key]: ...
+    def shard_files(self) -> List[str]: ...
+    def manifest_json(self) -> str: ...
+    def sample(self, index: int) -> Dict[str, Any]: ...
+
+def solve_pnp_ransac(
+    object_points: npt.NDArray[np.float64],
+    image_points: npt.NDArray[np.float64],
+    camera_matrix: npt.NDArray[np.float64],
+    reprojection_error: float = 8.0,
+    iterations_count: int = 100,
+    confidence: float = 0.99,
+    seed: int = 0,
+) -> Tuple[bool, Optional[npt.NDArray[np.float64]], Optional[npt.NDArray[np.float64]], Optional[npt.NDArray[np.int64]]]: ...
+def project(
+    verts: npt.NDArray[np.float64], r_t: npt.NDArray[np.float64], width: int, height: int
+) -> npt.NDArray[np.float64]: ...
+def evaluate(
+    dir: _Path,
+    predictions: Optional[Sequence[Tuple[str, str, str, Optional[Sequence[float]]]]] = None,
+    predictions_path: Optional[_Path] = None,
+    split: Optional[str] = None,
+) -> str: ...
+def default_crop_store(dir: _Path, compat: str, img_size: int) -> str: ...
+def read_image(path: _Path) -> npt.NDArray[np.uint8]: ...
+def topology(dir: _Path, resources: Optional[_Path] = None) -> Dict[str, Any]: ...
