@@ -4,7 +4,7 @@
 //! flat: memory is bounded by one shard). Prints ratios.
 //! Run: `cargo bench --bench convert` (N = 2000; `ARKIT_BENCH_SAMPLES` to change).
 
-use arkit_tool::synth::{self, FaceSource, SynthOptions};
+use arkit_data::ingest::synth::{self, FaceSource, SynthOptions};
 use rayon::prelude::*;
 use std::path::Path;
 use std::process::Command;

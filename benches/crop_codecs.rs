@@ -15,8 +15,8 @@
 
 mod timing;
 
-use arkit_tool::crop_store::{self, WindowCodec};
-use arkit_tool::loader::{Compat, FaceLoader, LoaderMode, LoaderOptions};
+use arkit_data::loader::crop_store::{self, WindowCodec};
+use arkit_data::loader::item::{Compat, FaceLoader, LoaderMode, LoaderOptions};
 use image::ImageEncoder;
 use std::path::PathBuf;
 
@@ -38,35 +38,36 @@ fn main() {
         std::env::var("ARKIT_RESOURCES").unwrap_or_else(|_| "../shared/arkitface-resources".into()),
     );
     let (topology, source) = if resources.join("triangles.npy").exists() {
-        let t = arkit_tool::FaceTopology::from_resources(&resources).expect("resources");
+        let t = arkit_data::mesh::topology::FaceTopology::from_resources(&resources)
+            .expect("resources");
         (
             t.clone(),
-            arkit_tool::synth::FaceSource::new(t).expect("face"),
+            arkit_data::ingest::synth::FaceSource::new(t).expect("face"),
         )
     } else {
         eprintln!("no resources at {}: the built-in face", resources.display());
         (
-            arkit_tool::synthetic_face::builtin().topology.clone(),
-            arkit_tool::synth::FaceSource::builtin(),
+            arkit_data::mesh::synthetic_face::builtin().topology.clone(),
+            arkit_data::ingest::synth::FaceSource::builtin(),
         )
     };
     let tmp = tempfile::tempdir().unwrap();
     let (release, data) = (tmp.path().join("release"), tmp.path().join("data"));
     let per_subject = 16;
-    let options = arkit_tool::synth::SynthOptions {
+    let options = arkit_data::ingest::synth::SynthOptions {
         subjects: samples.div_ceil(per_subject),
         images_per_subject: per_subject,
         seed: 1,
         test_fraction: 0.0,
         ..Default::default()
     };
-    arkit_tool::synth::generate(&source, &options, &release, &|| {}).unwrap();
-    let ctx = arkit_tool::convert::ValidationContext {
-        projection: arkit_tool::conventions::Camera::release_projection(),
+    arkit_data::ingest::synth::generate(&source, &options, &release, &|| {}).unwrap();
+    let ctx = arkit_data::ingest::convert::ValidationContext {
+        projection: arkit_core::conventions::Camera::release_projection(),
         topology: topology.clone(),
         embed_images: false,
     };
-    let copts = arkit_tool::convert::ConvertOptions {
+    let copts = arkit_data::ingest::convert::ConvertOptions {
         input: release.clone(),
         output: data.clone(),
         resources: None,
@@ -76,7 +77,7 @@ fn main() {
         shard_count: 1,
         overwrite: false,
     };
-    arkit_tool::convert::convert(&copts, &ctx, &|_| {}).unwrap();
+    arkit_data::ingest::convert::convert(&copts, &ctx, &|_| {}).unwrap();
     let loader = FaceLoader::open(
         &data,
         topology,

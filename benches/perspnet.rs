@@ -4,12 +4,10 @@
 
 use std::time::Instant;
 
-use arkit_tool::perspnet::Adam;
-use arkit_tool::perspnet::{CorrTarget, LossTargets, PerspNet, PerspNetConfig};
-use arkit_tool::perspnet::{LossWeights, perspnet_loss};
-use arkit_tool::perspnet::{
-    named_trainable_vars, parameter_count, synthetic_vertex_uv, trainable_vars,
-};
+use arkit_perspnet::Adam;
+use arkit_perspnet::{CorrTarget, LossTargets, PerspNet, PerspNetConfig};
+use arkit_perspnet::{LossWeights, perspnet_loss};
+use arkit_perspnet::{named_trainable_vars, parameter_count, synthetic_vertex_uv, trainable_vars};
 use candle_core::{DType, Device, Result, Tensor};
 use candle_nn::{AdamW, Optimizer, ParamsAdamW, VarBuilder, VarMap};
 

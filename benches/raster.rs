@@ -3,8 +3,8 @@
 //! and the ratio to the official Python loader's mask render of one 800x800 sample
 //! (3.0 ms, ../shared/measurements.md, same machine kind). Run: `cargo bench --bench raster`.
 
-use arkit_tool::conventions::{Camera, EulerAngles, Pose};
-use arkit_tool::raster::VisibilityBuffer;
+use arkit_core::conventions::{Camera, EulerAngles, Pose};
+use arkit_core::raster::VisibilityBuffer;
 use nalgebra::{Point3, Vector3};
 use std::time::Instant;
 
@@ -12,7 +12,7 @@ use std::time::Instant;
 const OFFICIAL_MASK_MS: f64 = 3.0;
 
 fn main() {
-    let topo = &arkit_tool::synthetic_face::builtin().topology;
+    let topo = &arkit_data::mesh::synthetic_face::builtin().topology;
     let fill = topo.hole_fill().expect("hole fill");
     let template = topo.template.as_ref().expect("template");
     let mut verts: Vec<Point3<f32>> = template.clone();

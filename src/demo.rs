@@ -9,27 +9,27 @@
 //! - `augmented/`: profiled samples in the release layout;
 //! - `model/`: the checkpoint (`perspnet.json`, `model.safetensors`, `loss.csv`);
 //! - `predictions.parquet`, `shipped.parquet`, `baseline.parquet`: the predictions of
-//!   the model trained here, of the shipped model ([`perspnet::SHIPPED_MODEL_DIR`],
+//!   the model trained here, of the shipped model ([`arkit_perspnet::SHIPPED_MODEL_DIR`],
 //!   compiled into the binary; left out for another topology than the built-in face's)
 //!   and of the mean pose;
 //! - `report/index.html` and its pictures; `demo.json`: timings and eval summaries.
 
-use crate::augment_dataset::{self, AugmentOptions, AxisChoice, ProfilingRule};
-use crate::conventions::Camera;
-use crate::convert::{self, ConvertOptions, ValidationContext};
-use crate::error::{Error, Result};
-use crate::eval::Summary;
-use crate::eval_dataset::{self, EvalOptions};
-use crate::perspnet::PerspNetConfig;
-use crate::perspnet::{self, Augmentation, TrainOptions};
-use crate::pnp::RansacParams;
-use crate::predictions_table::write_predictions;
-use crate::render::FaceRenderer;
-use crate::render_dataset::{self, RenderOptions};
 use crate::report::{self, Figure, Page, StageTiming};
-use crate::split::{self, HoldOut};
-use crate::synth::{self, FaceSource, SynthOptions};
-use crate::topology::FaceTopology;
+use arkit_core::conventions::Camera;
+use arkit_core::error::{Error, Result};
+use arkit_data::augment::dataset::{AugmentOptions, AxisChoice, ProfilingRule};
+use arkit_data::eval::dataset::EvalOptions;
+use arkit_data::eval::metrics::Summary;
+use arkit_data::ingest::convert::{self, ConvertOptions, ValidationContext};
+use arkit_data::ingest::split::{self, HoldOut};
+use arkit_data::ingest::synth::{self, FaceSource, SynthOptions};
+use arkit_data::mesh::topology::FaceTopology;
+use arkit_data::pose::pnp::RansacParams;
+use arkit_data::render::dataset::RenderOptions;
+use arkit_data::render::face::FaceRenderer;
+use arkit_data::store::predictions_table::write_predictions;
+use arkit_perspnet::PerspNetConfig;
+use arkit_perspnet::{Augmentation, TrainOptions};
 use image::RgbImage;
 use serde::Serialize;
 use std::path::{Path, PathBuf};
@@ -113,7 +113,7 @@ impl DemoPlan {
     /// Training steps.
     pub fn train_steps(&self) -> usize {
         let train = (self.subjects - self.test_subjects) * self.images_per_subject;
-        crate::perspnet::total_steps(train, self.epochs, self.batch)
+        arkit_perspnet::total_steps(train, self.epochs, self.batch)
     }
 
     /// Work units of the whole run for one progress display: a sample per stage that
@@ -167,7 +167,7 @@ pub struct DemoSummary {
     pub model: Summary,
     /// Its training steps.
     pub trained_steps: usize,
-    /// The shipped model ([`perspnet::SHIPPED_MODEL_DIR`]) on the same samples (none
+    /// The shipped model ([`arkit_perspnet::SHIPPED_MODEL_DIR`]) on the same samples (none
     /// with another topology than the built-in face's, on which it was trained).
     pub shipped: Option<Summary>,
     /// Training steps of the shipped model.
@@ -314,7 +314,7 @@ pub fn run_demo(
 
     clock.start("render");
     let renderer = FaceRenderer::new(topology.clone(), Camera::release_projection())?;
-    let rendered = render_dataset::render_dataset(
+    let rendered = arkit_data::render::dataset::render_dataset(
         &dataset,
         &renderer,
         &RenderOptions {
@@ -342,7 +342,7 @@ pub fn run_demo(
     );
 
     clock.start("augment");
-    let (aug, previews) = augment_dataset::augment_dataset(
+    let (aug, previews) = arkit_data::augment::dataset::augment_dataset(
         &dataset,
         topology,
         &AugmentOptions {
@@ -374,8 +374,8 @@ pub fn run_demo(
         points: plan.points,
         ..PerspNetConfig::tiny()
     };
-    let examples = perspnet::read_examples(&dataset, &dataset, &config, Some("train"))?;
-    let (checkpoint, log) = perspnet::train(
+    let examples = arkit_perspnet::read_examples(&dataset, &dataset, &config, Some("train"))?;
+    let (checkpoint, log) = arkit_perspnet::train(
         &examples,
         topology,
         &TrainOptions {
@@ -409,23 +409,23 @@ pub fn run_demo(
     clock.start("predict");
     // The test split through a network and PnP, as `predict --model` does.
     let predict_test = |model| {
-        perspnet::model_predictions(
+        arkit_perspnet::model_predictions(
             &dataset,
             model,
             Some("test"),
-            crate::render::CropRule::Ours,
+            arkit_data::crop::CropRule::Ours,
             None,
             plan.seed,
             &RansacParams::default(),
             &tick,
         )
     };
-    let model = perspnet::load(&model_dir, topology)?;
+    let model = arkit_perspnet::load(&model_dir, topology)?;
     let (rows, predicted) = predict_test(&model)?;
     write_predictions(&output.join("predictions.parquet"), &rows)?;
-    let shipped_checkpoint = perspnet::shipped_checkpoint()?;
+    let shipped_checkpoint = arkit_perspnet::shipped_checkpoint()?;
     let shipped_rows = if shipped_checkpoint.topology == topology.source {
-        let shipped = perspnet::shipped_model(topology)?;
+        let shipped = arkit_perspnet::shipped_model(topology)?;
         let (shipped_rows, _) = predict_test(&shipped)?;
         write_predictions(&output.join("shipped.parquet"), &shipped_rows)?;
         Some(shipped_rows)
@@ -434,7 +434,7 @@ pub fn run_demo(
         None
     };
     let (baseline_rows, mean) =
-        crate::predict::mean_pose_predictions(&dataset, Some("train"), Some("test"))?;
+        arkit_data::pose::predict::mean_pose_predictions(&dataset, Some("train"), Some("test"))?;
     write_predictions(&output.join("baseline.parquet"), &baseline_rows)?;
     clock.done(
         "predict",
@@ -451,12 +451,12 @@ pub fn run_demo(
         keep_worst: 8,
         ..EvalOptions::default()
     };
-    let ev = eval_dataset::evaluate(&dataset, &rows, &options)?;
-    let base = eval_dataset::evaluate(&dataset, &baseline_rows, &options)?;
+    let ev = arkit_data::eval::dataset::evaluate(&dataset, &rows, &options)?;
+    let base = arkit_data::eval::dataset::evaluate(&dataset, &baseline_rows, &options)?;
     let shipped = shipped_rows
-        .map(|r| eval_dataset::evaluate(&dataset, &r, &options).map(|e| e.summary))
+        .map(|r| arkit_data::eval::dataset::evaluate(&dataset, &r, &options).map(|e| e.summary))
         .transpose()?;
-    let eval_report = eval_dataset::write_report(&report_dir, &ev, topology)?;
+    let eval_report = arkit_data::eval::dataset::write_report(&report_dir, &ev, topology)?;
     tick(1);
     clock.done(
         "eval",
@@ -475,7 +475,8 @@ pub fn run_demo(
 
     clock.start("report");
     let mut figures = Vec::new();
-    let samples = crate::dataset::Dataset::open(&dataset)?.read_samples(&manifest.shards[0])?;
+    let samples =
+        arkit_data::store::dataset::Dataset::open(&dataset)?.read_samples(&manifest.shards[0])?;
     figures.push(report::write_chart(
         &report_dir,
         "poses.svg",
@@ -499,7 +500,7 @@ pub fn run_demo(
         figures.push(report::write_figure(
             &report_dir,
             "augmented.png",
-            &synth::contact_sheet(&cells, 4, 240),
+            &arkit_data::picture::encode::contact_sheet(&cells, 4, 240),
             "Face profiling",
             "Pairs of original and augmented images: the face turned out of plane through its \
              mesh (yaw or pitch) or rotated about the camera axis (roll), as `augment` writes \
@@ -583,7 +584,7 @@ pub fn run_demo(
         loss: [checkpoint.first_loss, checkpoint.last_loss],
         report: page_path,
     };
-    crate::atomic_file::write_bytes(
+    arkit_core::atomic_file::write_bytes(
         &output.join("demo.json"),
         serde_json::to_string_pretty(&summary)
             .expect("json")
@@ -628,10 +629,10 @@ pub fn results_table(rows: &[(&str, &Summary)]) -> String {
 fn targets_sheet(
     dataset: &Path,
     shard: usize,
-    samples: &[crate::samples_table::SampleRecord],
+    samples: &[arkit_data::store::samples_table::SampleRecord],
 ) -> Result<RgbImage> {
-    let data = crate::dataset::Dataset::open(dataset)?;
-    let targets = crate::targets_table::read_targets(
+    let data = arkit_data::store::dataset::Dataset::open(dataset)?;
+    let targets = arkit_data::store::targets_table::read_targets(
         &dataset
             .join("targets")
             .join(format!("part-{shard:05}.parquet")),
@@ -652,5 +653,5 @@ fn targets_sheet(
             up(&p.uv_map),
         ]);
     }
-    Ok(synth::contact_sheet(&cells, 4, cell))
+    Ok(arkit_data::picture::encode::contact_sheet(&cells, 4, cell))
 }

@@ -11,13 +11,13 @@
 //! error happened, so a headless browser can check the page without a driver
 //! (`tests/report_browser.rs`).
 
-use crate::error::{Error, Result};
-use crate::eval::Summary;
-use crate::plot::{Bars, Histogram, bars_svg};
+use arkit_core::error::{Error, Result};
+use arkit_data::eval::metrics::Summary;
+use arkit_data::picture::plot::{Bars, Histogram, bars_svg};
 #[cfg(feature = "model")]
-use crate::plot::{Series, log_line_svg};
-use crate::samples_table::SampleRecord;
-use crate::targets_table::TargetsRecord;
+use arkit_data::picture::plot::{Series, log_line_svg};
+use arkit_data::store::samples_table::SampleRecord;
+use arkit_data::store::targets_table::TargetsRecord;
 use image::{Rgb, RgbImage};
 use std::path::{Path, PathBuf};
 
@@ -82,7 +82,7 @@ pub fn target_panels(
     }
     let mut corr = RgbImage::new(s, s);
     let weights = targets.weights();
-    let pixels = crate::targets_table::mask_pixel_indices(&mask);
+    let pixels = arkit_data::store::face_targets::mask_pixel_indices(&mask);
     for ((&px, ids), w) in pixels.iter().zip(&targets.corr_vertices).zip(&weights) {
         let mut q = [0f32; 3];
         for k in 0..3 {
@@ -179,8 +179,8 @@ pub fn pose_svg(samples: &[SampleRecord]) -> String {
 /// The loss curve of a training log (`loss.csv` rows): total and each term, on a log
 /// scale against the training step.
 #[cfg(feature = "model")]
-pub fn loss_svg(log: &[crate::perspnet::StepLoss]) -> String {
-    let series = |name: &str, f: &dyn Fn(&crate::perspnet::StepLoss) -> f32, c: [u8; 3]| Series {
+pub fn loss_svg(log: &[arkit_perspnet::StepLoss]) -> String {
+    let series = |name: &str, f: &dyn Fn(&arkit_perspnet::StepLoss) -> f32, c: [u8; 3]| Series {
         name: name.to_string(),
         values: log.iter().map(|s| f(s) as f64).collect(),
         colour: c,
@@ -354,7 +354,7 @@ pub fn write_page(dir: &Path, page: &Page) -> Result<PathBuf> {
         }
     }
     let path = dir.join("index.html");
-    crate::atomic_file::write_bytes(&path, page_html(page).as_bytes())?;
+    arkit_core::atomic_file::write_bytes(&path, page_html(page).as_bytes())?;
     Ok(path)
 }
 
@@ -366,7 +366,10 @@ pub fn write_figure(
     title: &str,
     caption: &str,
 ) -> Result<Figure> {
-    crate::atomic_file::write_bytes(&dir.join(file), &crate::eval_dataset::png_bytes(img)?)?;
+    arkit_core::atomic_file::write_bytes(
+        &dir.join(file),
+        &arkit_data::eval::dataset::png_bytes(img)?,
+    )?;
     Ok(Figure {
         file: file.to_string(),
         title: title.to_string(),
@@ -384,7 +387,7 @@ pub fn write_chart(
     title: &str,
     caption: &str,
 ) -> Result<Figure> {
-    crate::atomic_file::write_bytes(&dir.join(file), svg.as_bytes())?;
+    arkit_core::atomic_file::write_bytes(&dir.join(file), svg.as_bytes())?;
     Ok(Figure {
         file: file.to_string(),
         title: title.to_string(),

@@ -3,17 +3,16 @@
 //! the pose that went in comes out to 1e-9, the mesh lands where the written image shows
 //! the head, frames without a pose are listed, bad files are reported.
 
-mod support;
-
-use arkit_tool::biwi::{self, BIWI_LANDMARKS, HEAD_ORIGIN_SHIFT_M};
-use arkit_tool::conventions::{Camera, EulerAngles, Pose};
-use arkit_tool::release::{self, ReleaseLayout, SampleKey, Split};
+use crate::support::biwi_writer::*;
+use crate::support::png_bomb::png_bomb;
+use crate::support::tool;
+use arkit_core::conventions::{Camera, EulerAngles, Pose};
+use arkit_core::release::{self, ReleaseLayout, SampleKey, Split};
+use arkit_data::ingest::biwi::{self, BIWI_LANDMARKS, HEAD_ORIGIN_SHIFT_M};
 use nalgebra::{Matrix3, Rotation3, Vector3};
 use serde_json::Value;
 use std::path::Path;
 use std::process::Command;
-use support::biwi_writer::*;
-use support::png_bomb::png_bomb;
 
 fn key(seq: &str, n: &str) -> SampleKey {
     SampleKey {
@@ -155,10 +154,6 @@ fn bad_files_are_reported_and_the_rest_converted() {
     assert!(err.contains("empty") && err.contains("hpdb"), "{err}");
 }
 
-fn tool() -> Command {
-    Command::new(env!("CARGO_BIN_EXE_arkit-tool"))
-}
-
 #[test]
 fn cli_convert_biwi_then_eval_scores_add_on_the_subjects_mesh() {
     let dir = tempfile::tempdir().unwrap();
@@ -211,7 +206,7 @@ fn cli_convert_biwi_then_eval_scores_add_on_the_subjects_mesh() {
         .unwrap();
     assert!(!out.status.success());
     assert!(String::from_utf8_lossy(&out.stderr).contains("--shard"));
-    let samples = arkit_tool::convert::read_dataset_samples(&pq).unwrap();
+    let samples = arkit_data::ingest::convert::read_dataset_samples(&pq).unwrap();
     assert_eq!(samples.len(), 6);
     assert!(samples.iter().all(|s| s.verts.len() == 6918 * 3));
 
@@ -281,12 +276,12 @@ fn cli_convert_biwi_then_eval_scores_add_on_the_subjects_mesh() {
     // about the head's origin; ADD must be the mean over the 6,918 head vertices of
     // |(R_d - I) v|. One frame is excluded.
     let turn = Rotation3::from_axis_angle(&Vector3::y_axis(), 5f64.to_radians());
-    let rows: Vec<arkit_tool::predictions_table::PredictionRecord> = samples
+    let rows: Vec<arkit_core::predictions_csv::PredictionRecord> = samples
         .iter()
         .map(|s| {
             let gt = Pose::from_release_rt(&s.rt).unwrap();
             let p = Pose::new(gt.rotation() * turn, gt.translation_m());
-            arkit_tool::predictions_table::PredictionRecord {
+            arkit_core::predictions_csv::PredictionRecord {
                 key: s.key.clone(),
                 rt: Some(p.to_release_rt()),
                 verts: None,
@@ -295,7 +290,7 @@ fn cli_convert_biwi_then_eval_scores_add_on_the_subjects_mesh() {
         })
         .collect();
     let preds = dir.path().join("turned.parquet");
-    arkit_tool::predictions_table::write_predictions(&preds, &rows).unwrap();
+    arkit_data::store::predictions_table::write_predictions(&preds, &rows).unwrap();
     let exclude = dir.path().join("exclude.csv");
     std::fs::write(
         &exclude,

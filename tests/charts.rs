@@ -2,9 +2,7 @@
 //! its titles, axis labels, tick values and bars are the ones derived by hand from
 //! the data.
 
-mod support;
-
-use arkit_tool::plot::{Bars, Histogram, LINE_PLOT, PANEL_HEIGHT, PANEL_WIDTH, Series};
+use arkit_data::picture::plot::{Bars, Histogram, LINE_PLOT, PANEL_HEIGHT, PANEL_WIDTH, Series};
 use quick_xml::events::Event;
 use std::collections::HashMap;
 use std::process::Command;
@@ -142,7 +140,7 @@ fn binned_means_chart_a_gap_for_an_empty_bin_and_decimal_ticks() {
         3.0,
         3,
     );
-    let e = parse(&arkit_tool::plot::bars_svg("Errors", &[b], 1));
+    let e = parse(&arkit_data::picture::plot::bars_svg("Errors", &[b], 1));
     assert_eq!(texts(&e, "axis-label y"), ["mean rotation error (deg)"]);
     // Peak 3.0: ticks 0..3 in steps of 1 (3 / 5 = 0.6 rounds up to 1).
     assert_eq!(texts(&e, "tick y"), ["0", "1", "2", "3"]);
@@ -162,7 +160,7 @@ fn binned_means_chart_a_gap_for_an_empty_bin_and_decimal_ticks() {
 fn the_loss_chart_puts_values_on_the_decade_scale_with_a_legend() {
     // 1, 10, 100 over steps 0..2: decades 1..100 span y 284..44, steps x 78..610, so
     // 10 at step 1 is at (344, 164) by hand.
-    let svg = arkit_tool::plot::log_line_svg(
+    let svg = arkit_data::picture::plot::log_line_svg(
         "Training loss",
         "training step",
         "weighted loss (log scale)",
@@ -202,7 +200,7 @@ fn the_loss_chart_puts_values_on_the_decade_scale_with_a_legend() {
 fn inspect_plot_writes_an_svg_whose_bars_count_every_sample_and_refuses_png() {
     let dir = tempfile::tempdir().unwrap();
     let data = dir.path().join("pq");
-    support::converted::converted_synthetic(&dir.path().join("release"), &data, 2, 3, 160, 5);
+    crate::support::converted_by_the_command(&dir.path().join("release"), &data, 2, 3, 160, 5);
     let bin = env!("CARGO_BIN_EXE_arkit-tool");
     let svg_path = dir.path().join("poses.svg");
     let out = Command::new(bin)

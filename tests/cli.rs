@@ -1,10 +1,6 @@
 //! The binary: help that teaches, clear errors, exit codes, JSON output.
 
-use std::process::Command;
-
-fn tool() -> Command {
-    Command::new(env!("CARGO_BIN_EXE_arkit-tool"))
-}
+use crate::support::tool;
 
 #[test]
 fn help_lists_commands_and_conventions() {

@@ -1,12 +1,14 @@
 //! `convert`, `merge` and `split` on synthetic data and on every kind of broken input.
 
-use arkit_tool::conventions::{Camera, Pose};
-use arkit_tool::convert::{self, ConvertOptions, ValidationContext};
-use arkit_tool::npy::{self, NpyArray, NpzCompression};
-use arkit_tool::release::{self, ReleaseLayout, SampleKey, Split};
-use arkit_tool::samples_table::{self, ERRORS_COLUMNS, SAMPLES_COLUMNS};
-use arkit_tool::split::{self, HoldOut};
-use arkit_tool::synth::{self, FaceSource, SynthOptions};
+use crate::support::{convert_context as context, convert_options as options};
+use arkit_core::conventions::{Camera, Pose};
+use arkit_core::npy::{self, NpyArray, NpzCompression};
+use arkit_core::release::{self, ReleaseLayout, SampleKey, Split};
+use arkit_data::ingest::convert::{self, ConvertOptions};
+use arkit_data::ingest::split::{self, HoldOut};
+use arkit_data::ingest::synth::{self, FaceSource, SynthOptions};
+use arkit_data::store::parquet;
+use arkit_data::store::samples_table::{self, ERRORS_COLUMNS, SAMPLES_COLUMNS};
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
@@ -23,28 +25,7 @@ fn make_release(dir: &Path, subjects: usize, images: usize) -> SynthOptions {
     options
 }
 
-fn context() -> ValidationContext {
-    ValidationContext {
-        projection: Camera::release_projection(),
-        topology: arkit_tool::synthetic_face::builtin().topology.clone(),
-        embed_images: false,
-    }
-}
-
-fn options(input: &Path, output: &Path, rows_per_shard: usize) -> ConvertOptions {
-    ConvertOptions {
-        input: input.to_path_buf(),
-        output: output.to_path_buf(),
-        resources: None,
-        rows_per_shard,
-        embed_images: false,
-        shard_index: 0,
-        shard_count: 1,
-        overwrite: false,
-    }
-}
-
-fn run(opts: &ConvertOptions, threads: usize) -> convert::Manifest {
+fn run(opts: &ConvertOptions, threads: usize) -> arkit_data::store::manifest::Manifest {
     let pool = rayon::ThreadPoolBuilder::new()
         .num_threads(threads)
         .build()
@@ -66,9 +47,9 @@ fn files(root: &Path, sub: &str) -> BTreeMap<String, Vec<u8>> {
 }
 
 /// A renderer for the built-in synthetic face with the release camera.
-fn builtin_renderer() -> arkit_tool::render::FaceRenderer {
-    arkit_tool::render::FaceRenderer::new(
-        arkit_tool::synthetic_face::builtin().topology.clone(),
+fn builtin_renderer() -> arkit_data::render::face::FaceRenderer {
+    arkit_data::render::face::FaceRenderer::new(
+        arkit_data::mesh::synthetic_face::builtin().topology.clone(),
         Camera::release_projection(),
     )
     .unwrap()
@@ -369,8 +350,8 @@ fn merge_reads_only_the_parts_the_conversion_names() {
         "{e}"
     );
     // A part that lists a shard twice, or drops one.
-    let mut m: convert::Manifest = serde_json::from_slice(&part1).unwrap();
-    let write = |m: &convert::Manifest| {
+    let mut m: arkit_data::store::manifest::Manifest = serde_json::from_slice(&part1).unwrap();
+    let write = |m: &arkit_data::store::manifest::Manifest| {
         std::fs::write(p("part-0001-of-0002.json"), serde_json::to_vec(m).unwrap()).unwrap()
     };
     let kept = m.shards.clone();
@@ -404,7 +385,7 @@ fn merge_refuses_a_sample_key_in_two_shards() {
     // match the new file: every file agrees with its record, yet two shards hold the
     // same samples.
     let part = parts.path().join(convert::manifest_name(1, 2));
-    let mut m = convert::read_manifest(&part).unwrap();
+    let mut m = arkit_data::store::manifest::read_manifest(&part).unwrap();
     let shard0 = parts.path().join("samples/part-00000.parquet");
     let rows = samples_table::read_samples(&shard0).unwrap();
     let entry = m.shards.iter_mut().find(|s| s.index == 3).unwrap();
@@ -412,8 +393,8 @@ fn merge_refuses_a_sample_key_in_two_shards() {
     samples_table::write_samples(&path, &rows, context().topology.vertex_count).unwrap();
     entry.rows = rows.len();
     entry.bytes = std::fs::metadata(&path).unwrap().len();
-    entry.sha256 = convert::sha256_file(&path).unwrap();
-    entry.tail_sha256 = convert::tail_sha256(&path).unwrap();
+    entry.sha256 = arkit_data::store::manifest::sha256_file(&path).unwrap();
+    entry.tail_sha256 = arkit_data::store::manifest::tail_sha256(&path).unwrap();
     std::fs::write(&part, serde_json::to_vec(&m).unwrap()).unwrap();
     let e = convert::merge(parts.path()).unwrap_err().to_string();
     assert!(
@@ -447,7 +428,7 @@ fn flat_layout_is_discovered() {
     )
     .unwrap();
     let d = convert::discover(flat.path()).unwrap();
-    assert_eq!(d.kind, convert::LayoutKind::Flat);
+    assert_eq!(d.kind, arkit_data::store::manifest::LayoutKind::Flat);
     let out = tempfile::tempdir().unwrap();
     let m = run(&options(flat.path(), out.path(), 10), 1);
     assert_eq!((m.converted, m.skipped), (m.listed, 0));
@@ -490,7 +471,7 @@ fn written_tables_match_the_schema_files() {
         (&m.shards[0].samples_file, &SAMPLES_COLUMNS[..]),
         (&m.shards[0].errors_file, &ERRORS_COLUMNS[..]),
     ] {
-        let df = samples_table::read_parquet(&out.path().join(path)).unwrap();
+        let df = parquet::read_parquet(&out.path().join(path)).unwrap();
         let got: Vec<(String, String)> = df
             .schema()
             .iter()
@@ -521,7 +502,7 @@ fn samples_have_fixed_shapes_recorded_for_datasets_and_old_files_still_read() {
     let m = run(&options(input.path(), out.path(), 10), 1);
     let file = out.path().join(&m.shards[0].samples_file);
     // Fixed-size lists of fixed-size lists, with the right widths.
-    let df = samples_table::read_parquet(&file).unwrap();
+    let df = parquet::read_parquet(&file).unwrap();
     let shape = |name: &str| match df.column(name).unwrap().dtype() {
         DataType::Array(row, outer) => match row.as_ref() {
             DataType::Array(leaf, inner) => (leaf.as_ref().clone(), *outer, *inner),
@@ -534,7 +515,7 @@ fn samples_have_fixed_shapes_recorded_for_datasets_and_old_files_still_read() {
     assert_eq!(shape("landmarks_2d"), (DataType::Float32, 68, 2));
     // The `huggingface` record: Array2D features with these shapes, Value features for
     // every other column, all columns in order.
-    let kv = samples_table::parquet_key_value_metadata(&file).unwrap();
+    let kv = parquet::parquet_key_value_metadata(&file).unwrap();
     let hf = kv.iter().find(|(k, _)| k == "huggingface").unwrap();
     let v: serde_json::Value = serde_json::from_str(hf.1.as_deref().unwrap()).unwrap();
     let features = v["info"]["features"].as_object().unwrap();
@@ -569,17 +550,16 @@ fn samples_have_fixed_shapes_recorded_for_datasets_and_old_files_still_read() {
     // Arrow readers (pyarrow, so `datasets`) take schema metadata from `ARROW:schema`:
     // it carries both records too, and without them it is exactly what polars writes.
     let arrow = kv.iter().find(|(k, _)| k == "ARROW:schema").unwrap();
-    let with_meta =
-        samples_table::arrow_schema_value(&df, &samples_table::huggingface_metadata(1220));
+    let with_meta = parquet::arrow_schema_value(&df, &samples_table::huggingface_metadata(1220));
     assert_eq!(arrow.1.as_deref(), Some(with_meta.as_str()));
     let plain = out.path().join("plain.parquet");
-    samples_table::write_parquet(&plain, &mut df.clone()).unwrap();
-    let polars_own = samples_table::parquet_key_value_metadata(&plain).unwrap();
+    parquet::write_parquet(&plain, &mut df.clone()).unwrap();
+    let polars_own = parquet::parquet_key_value_metadata(&plain).unwrap();
     assert_eq!(
         polars_own,
         vec![(
             "ARROW:schema".to_string(),
-            Some(samples_table::arrow_schema_value(&df, &[]))
+            Some(parquet::arrow_schema_value(&df, &[]))
         )]
     );
     let ours = kv.iter().find(|(k, _)| k == "arkit_tool").unwrap();
@@ -606,13 +586,13 @@ fn samples_have_fixed_shapes_recorded_for_datasets_and_old_files_still_read() {
     );
     // A file written before (variable-length lists, no metadata) reads as the same rows.
     let old = out.path().join("old.parquet");
-    samples_table::write_parquet(
+    parquet::write_parquet(
         &old,
         &mut samples_table::samples_frame_format1(&rows).unwrap(),
     )
     .unwrap();
     assert_eq!(
-        samples_table::read_parquet(&old).unwrap()["verts"].dtype(),
+        parquet::read_parquet(&old).unwrap()["verts"].dtype(),
         &DataType::List(Box::new(DataType::Float32))
     );
     assert!(samples_table::huggingface_shapes(&old).unwrap().is_none());
@@ -633,7 +613,7 @@ fn samples_have_fixed_shapes_recorded_for_datasets_and_old_files_still_read() {
             df.replace("R_t", polars::prelude::Column::new("R_t".into(), short))
                 .unwrap();
         }
-        samples_table::write_parquet(&old, &mut df).unwrap();
+        parquet::write_parquet(&old, &mut df).unwrap();
         let e = samples_table::read_samples(&old).unwrap_err().to_string();
         assert!(
             e.contains(&old.display().to_string()) && e.contains(&format!("column '{column}'")),
@@ -644,13 +624,13 @@ fn samples_have_fixed_shapes_recorded_for_datasets_and_old_files_still_read() {
     let empty = out.path().join("empty.parquet");
     samples_table::write_samples(&empty, &[], 1220).unwrap();
     assert_eq!(
-        samples_table::read_parquet(&empty).unwrap()["verts"].dtype(),
+        parquet::read_parquet(&empty).unwrap()["verts"].dtype(),
         &samples_table::polars_dtype_with("float32[N,3]", 1220).unwrap()
     );
     assert!(samples_table::read_samples(&empty).unwrap().is_empty());
     // A file whose metadata and column disagree is refused.
     let lying = out.path().join("lying.parquet");
-    samples_table::write_parquet_with_metadata(
+    parquet::write_parquet_with_metadata(
         &lying,
         &mut samples_table::samples_frame(&rows, 1220).unwrap(),
         samples_table::huggingface_metadata(1000),
@@ -679,9 +659,9 @@ fn split_is_subject_disjoint_and_reproducible() {
 
 #[test]
 fn rendered_targets_read_back_dense_equal_the_rasterizer() {
-    use arkit_tool::render::CropTransform;
-    use arkit_tool::render_dataset::{self, RenderOptions};
-    use arkit_tool::targets_table;
+    use arkit_data::crop::CropTransform;
+    use arkit_data::render::dataset::RenderOptions;
+    use arkit_data::store::targets_table;
     let input = tempfile::tempdir().unwrap();
     make_release(input.path(), 2, 3);
     let out = tempfile::tempdir().unwrap();
@@ -696,7 +676,8 @@ fn rendered_targets_read_back_dense_equal_the_rasterizer() {
         full_mask: true,
         output: out.path().to_path_buf(),
     };
-    let summary = render_dataset::render_dataset(out.path(), &renderer, &ro, &|_| {}).unwrap();
+    let summary =
+        arkit_data::render::dataset::render_dataset(out.path(), &renderer, &ro, &|_| {}).unwrap();
     assert_eq!(summary.samples, 6);
     let samples = convert::read_dataset_samples(out.path()).unwrap();
     let mut targets = Vec::new();
@@ -724,7 +705,7 @@ fn rendered_targets_read_back_dense_equal_the_rasterizer() {
             (name, c["type"].as_str().unwrap().to_lowercase())
         })
         .collect();
-    let df = samples_table::read_parquet(&out.path().join("targets/part-00000.parquet")).unwrap();
+    let df = parquet::read_parquet(&out.path().join("targets/part-00000.parquet")).unwrap();
     let got: Vec<(String, String)> = df
         .schema()
         .iter()
@@ -742,11 +723,11 @@ fn rendered_targets_read_back_dense_equal_the_rasterizer() {
         .drop("crop_sampling")
         .unwrap();
     let old_path = out.path().join("old-targets.parquet");
-    samples_table::write_parquet(&old_path, &mut old).unwrap();
+    parquet::write_parquet(&old_path, &mut old).unwrap();
     let first =
         targets_table::read_targets(&out.path().join("targets/part-00000.parquet")).unwrap();
     assert_eq!(targets_table::read_targets(&old_path).unwrap(), first);
-    let mut vb = arkit_tool::raster::VisibilityBuffer::new(96, 96);
+    let mut vb = arkit_core::raster::VisibilityBuffer::new(96, 96);
     for (s, t) in samples.iter().zip(&targets) {
         assert_eq!(s.key, t.key);
         let verts: Vec<nalgebra::Point3<f32>> = s
@@ -792,7 +773,7 @@ fn rendered_targets_read_back_dense_equal_the_rasterizer() {
         // The full-image mask is the rasterizer's over the whole image, and it agrees
         // with the crop mask: the crop's face pixels look at face pixels of the image,
         // and the areas scale with the crop (both within the pixels along the outline).
-        let mut full_vb = arkit_tool::raster::VisibilityBuffer::new(1, 1);
+        let mut full_vb = arkit_core::raster::VisibilityBuffer::new(1, 1);
         let full = t.full_mask().unwrap().expect("rendered with full_mask");
         assert_eq!(
             full,
@@ -826,7 +807,7 @@ fn rendered_targets_read_back_dense_equal_the_rasterizer() {
             "{full_area} vs {scaled}"
         );
         // UV map: float16 of the direct map.
-        let uv = arkit_tool::render::UvMapper::derive(renderer.topology())
+        let uv = arkit_data::render::face::UvMapper::derive(renderer.topology())
             .unwrap()
             .position_map(&verts, 64);
         for (a, b) in d.uv_map.chunks(3).zip(&uv) {
@@ -841,15 +822,16 @@ fn rendered_targets_read_back_dense_equal_the_rasterizer() {
         }
     }
     // A rerun keeps the shards.
-    let again = render_dataset::render_dataset(out.path(), &renderer, &ro, &|_| {}).unwrap();
+    let again =
+        arkit_data::render::dataset::render_dataset(out.path(), &renderer, &ro, &|_| {}).unwrap();
     assert_eq!(again.bytes, summary.bytes);
 }
 
 #[test]
 fn render_reports_and_skips_a_sample_it_cannot_render() {
-    use arkit_tool::render_dataset::{self, RenderOptions};
-    use arkit_tool::samples_table;
-    use arkit_tool::targets_table;
+    use arkit_data::render::dataset::RenderOptions;
+    use arkit_data::store::samples_table;
+    use arkit_data::store::targets_table;
     let input = tempfile::tempdir().unwrap();
     make_release(input.path(), 2, 3);
     let out = tempfile::tempdir().unwrap();
@@ -865,7 +847,8 @@ fn render_reports_and_skips_a_sample_it_cannot_render() {
     samples_table::write_samples(&shard0, &rows, 1220).unwrap();
     // Readers refuse a shard that differs from the manifest; this test wants the broken
     // row read, as if convert had written it, so the manifest forgets the shard's size.
-    let mut m = convert::read_manifest(&out.path().join("dataset.json")).unwrap();
+    let mut m =
+        arkit_data::store::manifest::read_manifest(&out.path().join("dataset.json")).unwrap();
     m.shards[0].bytes = 0;
     std::fs::write(
         out.path().join("dataset.json"),
@@ -882,7 +865,8 @@ fn render_reports_and_skips_a_sample_it_cannot_render() {
         full_mask: false,
         output: out.path().to_path_buf(),
     };
-    let summary = render_dataset::render_dataset(out.path(), &renderer, &ro, &|_| {}).unwrap();
+    let summary =
+        arkit_data::render::dataset::render_dataset(out.path(), &renderer, &ro, &|_| {}).unwrap();
     // The run finished: the other five samples have targets, the broken one a reason.
     assert_eq!((summary.samples, summary.skipped), (6, 1));
     assert!(
@@ -905,39 +889,39 @@ fn render_reports_and_skips_a_sample_it_cannot_render() {
     );
     // Training reads the other five and leaves the skipped one out (without the
     // errors file it would stop at the missing row).
-    let cfg = arkit_tool::perspnet::PerspNetConfig {
+    let cfg = arkit_perspnet::PerspNetConfig {
         points: 64,
-        ..arkit_tool::perspnet::PerspNetConfig::tiny()
+        ..arkit_perspnet::PerspNetConfig::tiny()
     };
-    let examples = arkit_tool::perspnet::read_examples(out.path(), out.path(), &cfg, None).unwrap();
+    let examples = arkit_perspnet::read_examples(out.path(), out.path(), &cfg, None).unwrap();
     assert_eq!(examples.len(), 5);
     assert!(examples.iter().all(|e| e.sample.key != broken));
     // predict --mask truth leaves it out too (a one-step model is enough to run it).
     let model_dir = tempfile::tempdir().unwrap();
-    let topts = arkit_tool::perspnet::TrainOptions {
+    let topts = arkit_perspnet::TrainOptions {
         config: cfg,
         epochs: 1,
         max_steps: Some(1),
         batch: 5,
         learning_rate: 1e-3,
         lr_hold: 1.0,
-        augmentation: arkit_tool::perspnet::Augmentation::NONE,
+        augmentation: arkit_perspnet::Augmentation::NONE,
         lowered_start: false,
         seed: 1,
         output: model_dir.path().to_path_buf(),
         resume: false,
     };
-    let topology = arkit_tool::synthetic_face::builtin().topology.clone();
-    arkit_tool::perspnet::train(&examples, &topology, &topts, &|_| {}).unwrap();
-    let model = arkit_tool::perspnet::load(model_dir.path(), &topology).unwrap();
-    let (preds, ps) = arkit_tool::perspnet::model_predictions(
+    let topology = arkit_data::mesh::synthetic_face::builtin().topology.clone();
+    arkit_perspnet::train(&examples, &topology, &topts, &|_| {}).unwrap();
+    let model = arkit_perspnet::load(model_dir.path(), &topology).unwrap();
+    let (preds, ps) = arkit_perspnet::model_predictions(
         out.path(),
         &model,
         None,
-        arkit_tool::render::CropRule::Ours,
+        arkit_data::crop::CropRule::Ours,
         Some(out.path()),
         1,
-        &arkit_tool::pnp::RansacParams::default(),
+        &arkit_data::pose::pnp::RansacParams::default(),
         &|_| {},
     )
     .unwrap();
@@ -949,7 +933,8 @@ fn render_reports_and_skips_a_sample_it_cannot_render() {
     assert!(e1.is_empty());
     // A rerun counts the shard as finished (targets + errors = its rows) and keeps it.
     let before = std::fs::read(targets_table::shard_path(out.path(), 0)).unwrap();
-    let again = render_dataset::render_dataset(out.path(), &renderer, &ro, &|_| {}).unwrap();
+    let again =
+        arkit_data::render::dataset::render_dataset(out.path(), &renderer, &ro, &|_| {}).unwrap();
     assert_eq!((again.skipped, again.bytes), (1, summary.bytes));
     assert_eq!(
         std::fs::read(targets_table::shard_path(out.path(), 0)).unwrap(),
@@ -957,7 +942,8 @@ fn render_reports_and_skips_a_sample_it_cannot_render() {
     );
     // Without its errors file the shard is not finished: rendered again, same bytes.
     std::fs::remove_file(targets_table::errors_path(out.path(), 0)).unwrap();
-    let third = render_dataset::render_dataset(out.path(), &renderer, &ro, &|_| {}).unwrap();
+    let third =
+        arkit_data::render::dataset::render_dataset(out.path(), &renderer, &ro, &|_| {}).unwrap();
     assert_eq!(third.skipped, 1);
     assert_eq!(
         std::fs::read(targets_table::shard_path(out.path(), 0)).unwrap(),
@@ -968,12 +954,12 @@ fn render_reports_and_skips_a_sample_it_cannot_render() {
 #[test]
 #[cfg(feature = "model")]
 fn training_streams_shard_by_shard() {
-    use arkit_tool::perspnet::PerspNetConfig;
-    use arkit_tool::perspnet::{self, ExampleShards, ShardedExamples, TrainOptions};
-    use arkit_tool::render_dataset::{self, RenderOptions};
+    use arkit_data::render::dataset::RenderOptions;
+    use arkit_perspnet::PerspNetConfig;
+    use arkit_perspnet::{ExampleShards, ShardedExamples, TrainOptions};
     let input = tempfile::tempdir().unwrap();
     make_release(input.path(), 2, 3);
-    let topology = arkit_tool::synthetic_face::builtin().topology.clone();
+    let topology = arkit_data::mesh::synthetic_face::builtin().topology.clone();
     let cfg = PerspNetConfig {
         points: 32,
         ..PerspNetConfig::tiny()
@@ -991,7 +977,8 @@ fn training_streams_shard_by_shard() {
             full_mask: false,
             output: out.path().to_path_buf(),
         };
-        render_dataset::render_dataset(out.path(), &builtin_renderer(), &ro, &|_| {}).unwrap();
+        arkit_data::render::dataset::render_dataset(out.path(), &builtin_renderer(), &ro, &|_| {})
+            .unwrap();
         out
     };
     let (two, one) = (dataset(4), dataset(100));
@@ -1001,15 +988,17 @@ fn training_streams_shard_by_shard() {
         (2, 4, 2)
     );
     // read_examples is the shards' examples one after the other.
-    let all = perspnet::read_examples(two.path(), two.path(), &cfg, None).unwrap();
-    let keys = |e: &[perspnet::Example]| e.iter().map(|e| e.sample.key.clone()).collect::<Vec<_>>();
+    let all = arkit_perspnet::read_examples(two.path(), two.path(), &cfg, None).unwrap();
+    let keys =
+        |e: &[arkit_perspnet::Example]| e.iter().map(|e| e.sample.key.clone()).collect::<Vec<_>>();
     let mut loaded = keys(&source.load(0).unwrap());
     loaded.extend(keys(&source.load(1).unwrap()));
     assert_eq!(loaded, keys(&all));
     // A split's counts (from the keys alone) agree with what loading gives.
     for split in ["train", "test"] {
         let part = ShardedExamples::open(two.path(), two.path(), &cfg, Some(split)).unwrap();
-        let read = perspnet::read_examples(two.path(), two.path(), &cfg, Some(split)).unwrap();
+        let read =
+            arkit_perspnet::read_examples(two.path(), two.path(), &cfg, Some(split)).unwrap();
         assert_eq!(part.total(), read.len(), "{split}");
         assert!((1..6).contains(&read.len()), "{split}: {}", read.len());
         assert!(read.iter().all(|e| e.sample.split == split));
@@ -1022,16 +1011,16 @@ fn training_streams_shard_by_shard() {
         batch: 3,
         learning_rate: 1e-3,
         lr_hold: 0.5,
-        augmentation: perspnet::Augmentation::NONE,
+        augmentation: arkit_perspnet::Augmentation::NONE,
         lowered_start: false,
         seed: 4,
         output: out.path().to_path_buf(),
         resume: false,
     };
     // Per epoch: ceil(4 / 3) + ceil(2 / 3) = 3 steps (a batch never spans two shards).
-    let (ck, log) = perspnet::train(&source, &topology, &topts, &|_| {}).unwrap();
+    let (ck, log) = arkit_perspnet::train(&source, &topology, &topts, &|_| {}).unwrap();
     assert_eq!((ck.steps, ck.example_shards, ck.examples), (6, 2, 6));
-    assert_eq!(perspnet::steps_per_epoch(&source, 3), 3);
+    assert_eq!(arkit_perspnet::steps_per_epoch(&source, 3), 3);
     // Interrupted after the first epoch and resumed: the replayed shard and sample
     // orders give the uninterrupted run's losses.
     let cut = tempfile::tempdir().unwrap();
@@ -1040,7 +1029,7 @@ fn training_streams_shard_by_shard() {
         ..topts.clone()
     };
     let stopped = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
-        perspnet::train(&source, &topology, &cut_opts, &|s| {
+        arkit_perspnet::train(&source, &topology, &cut_opts, &|s| {
             assert!(s.step < 3, "stop")
         })
     }));
@@ -1049,11 +1038,11 @@ fn training_streams_shard_by_shard() {
         resume: true,
         ..cut_opts
     };
-    let (_, rlog) = perspnet::train(&source, &topology, &resumed, &|_| {}).unwrap();
-    let totals = |l: &[perspnet::StepLoss]| l.iter().map(|s| s.total).collect::<Vec<_>>();
+    let (_, rlog) = arkit_perspnet::train(&source, &topology, &resumed, &|_| {}).unwrap();
+    let totals = |l: &[arkit_perspnet::StepLoss]| l.iter().map(|s| s.total).collect::<Vec<_>>();
     assert_eq!(totals(&rlog), totals(&log));
     // Resuming that checkpoint with all examples in memory (another order) is refused.
-    let e = match perspnet::train(&all, &topology, &resumed, &|_| {}) {
+    let e = match arkit_perspnet::train(&all, &topology, &resumed, &|_| {}) {
         Err(e) => e.to_string(),
         Ok(_) => panic!("resumed a streamed run in memory"),
     };
@@ -1061,14 +1050,18 @@ fn training_streams_shard_by_shard() {
     // With one shard, streaming is the in-memory run exactly.
     let single = ShardedExamples::open(one.path(), one.path(), &cfg, None).unwrap();
     assert_eq!(single.shards(), 1);
-    let in_memory = perspnet::read_examples(one.path(), one.path(), &cfg, None).unwrap();
+    let in_memory = arkit_perspnet::read_examples(one.path(), one.path(), &cfg, None).unwrap();
     let run_on = |s: &dyn ExampleShards| {
         let o = tempfile::tempdir().unwrap();
         let opts = TrainOptions {
             output: o.path().to_path_buf(),
             ..topts.clone()
         };
-        totals(&perspnet::train(s, &topology, &opts, &|_| {}).unwrap().1)
+        totals(
+            &arkit_perspnet::train(s, &topology, &opts, &|_| {})
+                .unwrap()
+                .1,
+        )
     };
     assert_eq!(run_on(&single), run_on(&in_memory));
 }

@@ -17,14 +17,15 @@
 //!   stops `convert` with the check's name and the way out (`--skip-check points2d`,
 //!   `--allow-systematic-skips`); half does not.
 
-use arkit_tool::atomic_file::FolderLock;
-use arkit_tool::conventions::Camera;
-use arkit_tool::convert::{self, ConvertOptions, ValidationContext};
-use arkit_tool::dataset::Dataset;
-use arkit_tool::npy::{NpyArray, NpzCompression};
-use arkit_tool::release::{self, ReleaseLayout, SampleKey, Split};
-use arkit_tool::samples_table;
-use arkit_tool::synth::{self, FaceSource, SynthOptions};
+use crate::support::{convert_context as context, convert_options as options};
+use arkit_core::atomic_file::FolderLock;
+use arkit_core::conventions::Camera;
+use arkit_core::npy::{NpyArray, NpzCompression};
+use arkit_core::release::{self, ReleaseLayout, SampleKey, Split};
+use arkit_data::ingest::convert::{self, ConvertOptions};
+use arkit_data::ingest::synth::{self, FaceSource, SynthOptions};
+use arkit_data::store::dataset::Dataset;
+use arkit_data::store::samples_table;
 use std::path::Path;
 use std::process::Command;
 
@@ -40,28 +41,7 @@ fn make_release(dir: &Path, subjects: usize, images: usize, seed: u64) {
     synth::generate(&FaceSource::builtin(), &options, dir, &|| {}).unwrap();
 }
 
-fn context() -> ValidationContext {
-    ValidationContext {
-        projection: Camera::release_projection(),
-        topology: arkit_tool::synthetic_face::builtin().topology.clone(),
-        embed_images: false,
-    }
-}
-
-fn options(input: &Path, output: &Path, rows_per_shard: usize) -> ConvertOptions {
-    ConvertOptions {
-        input: input.to_path_buf(),
-        output: output.to_path_buf(),
-        resources: None,
-        rows_per_shard,
-        embed_images: false,
-        shard_index: 0,
-        shard_count: 1,
-        overwrite: false,
-    }
-}
-
-fn convert(o: &ConvertOptions) -> arkit_tool::Result<convert::Manifest> {
+fn convert(o: &ConvertOptions) -> arkit_core::error::Result<arkit_data::store::manifest::Manifest> {
     convert::convert(o, &context(), &|_| {})
 }
 
@@ -89,7 +69,7 @@ fn another_conversion_in_the_folder_is_refused_and_overwrite_replaces_it() {
     );
     // Nothing of the first conversion was touched.
     assert_eq!(
-        convert::read_manifest(&out.path().join("dataset.json")).unwrap(),
+        arkit_data::store::manifest::read_manifest(&out.path().join("dataset.json")).unwrap(),
         first
     );
     // Other options into the same folder: refused too (a sharded part with another
@@ -180,7 +160,7 @@ fn parts_of_different_conversions_do_not_merge() {
     convert::merge(out.path()).unwrap();
     // A part manifest from a conversion with another topology.
     let part = out.path().join(convert::manifest_name(1, 2));
-    let mut m = convert::read_manifest(&part).unwrap();
+    let mut m = arkit_data::store::manifest::read_manifest(&part).unwrap();
     m.topology_sha256 = "0".repeat(64);
     std::fs::write(&part, serde_json::to_string_pretty(&m).unwrap()).unwrap();
     let e = convert::merge(out.path()).unwrap_err().to_string();
@@ -234,10 +214,12 @@ fn a_missing_image_is_reported_and_skipped_never_grey() {
     assert_eq!(data.image(&rows[0]).unwrap().dimensions(), (128, 128));
     // augment: the other samples are augmented, the missing one reported.
     let aug_out = tempfile::tempdir().unwrap();
-    let aopts = arkit_tool::augment_dataset::AugmentOptions {
+    let aopts = arkit_data::augment::dataset::AugmentOptions {
         output: aug_out.path().to_path_buf(),
-        axis: arkit_tool::augment_dataset::AxisChoice::Fixed(arkit_tool::augment::Axis::Roll),
-        rule: arkit_tool::augment_dataset::ProfilingRule::default(),
+        axis: arkit_data::augment::dataset::AxisChoice::Fixed(
+            arkit_data::augment::sample::Axis::Roll,
+        ),
+        rule: arkit_data::augment::dataset::ProfilingRule::default(),
         per_sample: 1,
         flip: false,
         with_originals: true,
@@ -245,9 +227,9 @@ fn a_missing_image_is_reported_and_skipped_never_grey() {
         jpeg_quality: 90,
         preview_pairs: 0,
     };
-    let (summary, _) = arkit_tool::augment_dataset::augment_dataset(
+    let (summary, _) = arkit_data::augment::dataset::augment_dataset(
         out.path(),
-        &arkit_tool::synthetic_face::builtin().topology,
+        &arkit_data::mesh::synthetic_face::builtin().topology,
         &aopts,
         &|_| {},
     )
@@ -312,7 +294,7 @@ fn write_info(root: &Path, key: &SampleKey, arrays: Vec<(&'static str, NpyArray)
     let path = ReleaseLayout::new(root).info_path(Split::Train, key);
     let refs: Vec<(&str, &NpyArray)> = arrays.iter().map(|(k, a)| (*k, a)).collect();
     let mut f = std::fs::File::create(path).unwrap();
-    arkit_tool::npy::write_npz(&mut f, &refs, NpzCompression::Stored).unwrap();
+    arkit_core::npy::write_npz(&mut f, &refs, NpzCompression::Stored).unwrap();
 }
 
 #[test]
@@ -340,11 +322,19 @@ fn degenerate_samples_are_skipped_with_the_reason() {
     );
     // 1: a 1x1 JPEG.
     let tiny = image::RgbImage::from_pixel(1, 1, image::Rgb([9, 9, 9]));
-    std::fs::write(image(&train[1]), synth::jpeg_bytes(&tiny, 90).unwrap()).unwrap();
+    std::fs::write(
+        image(&train[1]),
+        arkit_data::picture::encode::jpeg_bytes(&tiny, 90).unwrap(),
+    )
+    .unwrap();
     // 2: the image resized (the annotation's own points2d say where the face was).
     let img = image::open(image(&train[2])).unwrap().to_rgb8();
     let bigger = image::imageops::resize(&img, 160, 160, image::imageops::FilterType::Triangle);
-    std::fs::write(image(&train[2]), synth::jpeg_bytes(&bigger, 90).unwrap()).unwrap();
+    std::fs::write(
+        image(&train[2]),
+        arkit_data::picture::encode::jpeg_bytes(&bigger, 90).unwrap(),
+    )
+    .unwrap();
     // 3: bytes after the JPEG's end marker: a good sample.
     let mut bytes = std::fs::read(image(&train[3])).unwrap();
     bytes.extend_from_slice(&[0u8; 300]);
@@ -382,7 +372,7 @@ fn degenerate_samples_are_skipped_with_the_reason() {
 #[test]
 fn jpeg_framing_walks_the_segments() {
     let img = image::RgbImage::from_fn(40, 30, |x, y| image::Rgb([x as u8 * 5, y as u8 * 7, 90]));
-    let jpg = synth::jpeg_bytes(&img, 85).unwrap();
+    let jpg = arkit_data::picture::encode::jpeg_bytes(&img, 85).unwrap();
     assert_eq!(convert::check_jpeg_framing(&jpg), Ok(jpg.len()));
     let mut padded = jpg.clone();
     padded.extend_from_slice(&[0xFF, 0xD9, 1, 2, 3]);
@@ -400,9 +390,9 @@ fn jpeg_framing_walks_the_segments() {
 #[test]
 #[cfg(feature = "model")]
 fn library_options_are_checked_without_the_cli() {
-    use arkit_tool::perspnet::{Augmentation, TrainOptions};
+    use arkit_perspnet::{Augmentation, TrainOptions};
     let base = TrainOptions {
-        config: arkit_tool::perspnet::PerspNetConfig::tiny(),
+        config: arkit_perspnet::PerspNetConfig::tiny(),
         epochs: 1,
         max_steps: None,
         batch: 2,
@@ -438,10 +428,10 @@ fn library_options_are_checked_without_the_cli() {
     }
     // augment and the oracle check theirs before reading anything.
     let missing = Path::new("/nonexistent/dataset");
-    let aopts = arkit_tool::augment_dataset::AugmentOptions {
+    let aopts = arkit_data::augment::dataset::AugmentOptions {
         output: std::path::PathBuf::from("/nonexistent/out"),
-        axis: arkit_tool::augment_dataset::AxisChoice::Auto,
-        rule: arkit_tool::augment_dataset::ProfilingRule::default(),
+        axis: arkit_data::augment::dataset::AxisChoice::Auto,
+        rule: arkit_data::augment::dataset::ProfilingRule::default(),
         per_sample: 1,
         flip: false,
         with_originals: false,
@@ -449,15 +439,15 @@ fn library_options_are_checked_without_the_cli() {
         jpeg_quality: 0,
         preview_pairs: 0,
     };
-    let topo = &arkit_tool::synthetic_face::builtin().topology;
-    let e = arkit_tool::augment_dataset::augment_dataset(missing, topo, &aopts, &|_| {})
+    let topo = &arkit_data::mesh::synthetic_face::builtin().topology;
+    let e = arkit_data::augment::dataset::augment_dataset(missing, topo, &aopts, &|_| {})
         .unwrap_err()
         .to_string();
     assert!(e.contains("--jpeg-quality"), "{e}");
     let mut bad_rule = aopts.clone();
     bad_rule.jpeg_quality = 90;
     bad_rule.rule.max_angle = 1000.0;
-    let e = arkit_tool::augment_dataset::augment_dataset(missing, topo, &bad_rule, &|_| {})
+    let e = arkit_data::augment::dataset::augment_dataset(missing, topo, &bad_rule, &|_| {})
         .unwrap_err()
         .to_string();
     assert!(e.contains("max-angle"), "{e}");
@@ -465,14 +455,14 @@ fn library_options_are_checked_without_the_cli() {
     bad_rule.rule.max_angle = 20.0;
     assert!(bad_rule.rule.max_change > 20.0);
     bad_rule.validate().unwrap();
-    let o = arkit_tool::predict::OracleOptions {
+    let o = arkit_data::pose::predict::OracleOptions {
         noise_px: 0.0,
         outliers: 1.0,
         seed: 0,
         split: None,
-        ransac: arkit_tool::pnp::RansacParams::default(),
+        ransac: arkit_data::pose::pnp::RansacParams::default(),
     };
-    let e = arkit_tool::predict::oracle_predictions(missing, missing, &o, &|_| {})
+    let e = arkit_data::pose::predict::oracle_predictions(missing, missing, &o, &|_| {})
         .unwrap_err()
         .to_string();
     assert!(e.contains("--outliers"), "{e}");
@@ -480,14 +470,14 @@ fn library_options_are_checked_without_the_cli() {
 
 #[test]
 fn a_second_render_of_the_same_part_is_refused_and_its_temporaries_are_cleaned() {
-    use arkit_tool::render::FaceRenderer;
-    use arkit_tool::render_dataset::{self, RenderOptions};
+    use arkit_data::render::dataset::RenderOptions;
+    use arkit_data::render::face::FaceRenderer;
     let input = tempfile::tempdir().unwrap();
     make_release(input.path(), 2, 2, 10);
     let out = tempfile::tempdir().unwrap();
     convert(&options(input.path(), out.path(), 4)).unwrap();
     let renderer = FaceRenderer::new(
-        arkit_tool::synthetic_face::builtin().topology.clone(),
+        arkit_data::mesh::synthetic_face::builtin().topology.clone(),
         Camera::release_projection(),
     )
     .unwrap();
@@ -502,16 +492,16 @@ fn a_second_render_of_the_same_part_is_refused_and_its_temporaries_are_cleaned()
     };
     let targets = out.path().join("targets");
     let held = FolderLock::acquire(&targets, "render-part-0-of-1", "render").unwrap();
-    let e = render_dataset::render_dataset(out.path(), &renderer, &ro, &|_| {})
+    let e = arkit_data::render::dataset::render_dataset(out.path(), &renderer, &ro, &|_| {})
         .unwrap_err()
         .to_string();
     assert!(e.contains("another render of this part"), "{e}");
     drop(held);
     let stale = targets.join(".part-00000.parquet.tmp-777");
     std::fs::write(&stale, b"half").unwrap();
-    render_dataset::render_dataset(out.path(), &renderer, &ro, &|_| {}).unwrap();
+    arkit_data::render::dataset::render_dataset(out.path(), &renderer, &ro, &|_| {}).unwrap();
     assert!(!stale.exists());
-    assert!(arkit_tool::targets_table::shard_path(out.path(), 0).exists());
+    assert!(arkit_data::store::targets_table::shard_path(out.path(), 0).exists());
 }
 
 #[test]

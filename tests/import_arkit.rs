@@ -3,18 +3,16 @@
 //! written image shows the face, `convert` reads the output with nothing skipped, and
 //! every kind of bad frame is reported with its file and reason and skipped.
 
-use arkit_tool::conventions::{Camera, EulerAngles, Pose};
-use arkit_tool::convert::{self, ConvertOptions, ValidationContext};
-use arkit_tool::import_arkit::{self, ImportOptions, InterfaceOrientation};
-use arkit_tool::raster::VisibilityBuffer;
-use arkit_tool::release::{self, ReleaseLayout, Split};
+use crate::support::tool;
+use arkit_core::conventions::{Camera, EulerAngles, Pose};
+use arkit_core::raster::VisibilityBuffer;
+use arkit_core::release::{self, ReleaseLayout, Split};
+use arkit_data::ingest::convert::{self, ConvertOptions, ValidationContext};
+use arkit_data::ingest::import_arkit::{self, ImportOptions, InterfaceOrientation};
 use image::{Rgb, RgbImage};
 use nalgebra::{Matrix3, Matrix4, Point3, Rotation3, Vector3};
 use serde_json::{Value, json};
 use std::path::Path;
-use std::process::Command;
-
-mod support;
 
 /// A known scene: the face's pose in the camera of the written (turned) image, the
 /// camera in the world, the capture's intrinsics and resolution, the orientation.
@@ -27,8 +25,8 @@ struct Scene {
     orientation: InterfaceOrientation,
 }
 
-fn builtin() -> &'static arkit_tool::synthetic_face::SyntheticFace {
-    arkit_tool::synthetic_face::builtin()
+fn builtin() -> &'static arkit_data::mesh::synthetic_face::SyntheticFace {
+    arkit_data::mesh::synthetic_face::builtin()
 }
 
 fn mesh() -> Vec<Point3<f64>> {
@@ -157,7 +155,7 @@ fn options(input: &Path, output: &Path) -> ImportOptions {
         size: None,
         jpeg_quality: 95,
         overwrite: false,
-        systematic_window: arkit_tool::systematic::SYSTEMATIC_WINDOW,
+        systematic_window: arkit_data::ingest::systematic::SYSTEMATIC_WINDOW,
     }
 }
 
@@ -432,7 +430,7 @@ fn bad_frames_are_reported_with_file_and_reason_and_skipped() {
         !ReleaseLayout::new(&output)
             .info_path(
                 Split::Test,
-                &arkit_tool::release::SampleKey {
+                &arkit_core::release::SampleKey {
                     subject_id: "me".into(),
                     facial_action: "capture".into(),
                     img_id: "short".into(),
@@ -445,10 +443,6 @@ fn bad_frames_are_reported_with_file_and_reason_and_skipped() {
         .unwrap_err()
         .to_string();
     assert!(err.contains("--overwrite"), "{err}");
-}
-
-fn tool() -> Command {
-    Command::new(env!("CARGO_BIN_EXE_arkit-tool"))
 }
 
 #[test]
@@ -587,7 +581,11 @@ fn a_png_bomb_is_refused_from_its_header() {
         serde_json::to_string(&frame_json(&s)).unwrap(),
     )
     .unwrap();
-    std::fs::write(input.join("bomb.png"), support::png_bomb::png_bomb(16000)).unwrap();
+    std::fs::write(
+        input.join("bomb.png"),
+        crate::support::png_bomb::png_bomb(16000),
+    )
+    .unwrap();
     let summary = import_arkit::import_capture(&options(&input, &out), &|| {}).unwrap();
     assert_eq!(summary.imported, 1, "{:#?}", summary.skipped);
     let p = &summary.skipped[0];

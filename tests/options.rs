@@ -4,17 +4,15 @@
 //! old targets only when they were made from the same dataset with the same options and
 //! topology.
 
-use arkit_tool::conventions::Camera;
-use arkit_tool::render::FaceRenderer;
-use arkit_tool::render_dataset::{self, RenderOptions};
-use arkit_tool::samples_table;
-use arkit_tool::targets_table;
+use crate::support::tool;
+use arkit_core::conventions::Camera;
+use arkit_data::render::dataset::RenderOptions;
+use arkit_data::render::face::FaceRenderer;
+use arkit_data::store::parquet;
+use arkit_data::store::samples_table;
+use arkit_data::store::targets_table;
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
-
-fn tool() -> Command {
-    Command::new(env!("CARGO_BIN_EXE_arkit-tool"))
-}
+use std::process::Output;
 
 fn stderr(out: &Output) -> String {
     String::from_utf8_lossy(&out.stderr).into_owned()
@@ -327,13 +325,18 @@ fn checks_between_options_come_before_any_output() {
             full_mask: false,
         };
         let renderer = FaceRenderer::new(
-            arkit_tool::synthetic_face::builtin().topology.clone(),
+            arkit_data::mesh::synthetic_face::builtin().topology.clone(),
             Camera::release_projection(),
         )
         .unwrap();
-        let e = render_dataset::render_dataset(Path::new("/nonexistent"), &renderer, &ro, &|_| {})
-            .unwrap_err()
-            .to_string();
+        let e = arkit_data::render::dataset::render_dataset(
+            Path::new("/nonexistent"),
+            &renderer,
+            &ro,
+            &|_| {},
+        )
+        .unwrap_err()
+        .to_string();
         assert!(e.contains(&format!("invalid {option}")), "{e}");
         assert!(!out.exists());
     }
@@ -495,7 +498,7 @@ fn render_refuses_the_builtin_face_for_a_dataset_converted_with_resources() {
 fn rows_render_cannot_use_are_skipped_with_the_reason() {
     let dir = tempfile::tempdir().unwrap();
     let a = dataset(dir.path(), "a", 3, 5);
-    let m = arkit_tool::convert::read_manifest(&a.join("dataset.json")).unwrap();
+    let m = arkit_data::store::manifest::read_manifest(&a.join("dataset.json")).unwrap();
     let file = a.join(&m.shards[0].samples_file);
     let rows = samples_table::read_samples(&file).unwrap();
     assert!(rows.len() >= 4);
@@ -517,7 +520,7 @@ fn rows_render_cannot_use_are_skipped_with_the_reason() {
     let mut odd = rows.clone();
     odd[1].landmarks_2d.pop();
     for (rows, column) in [(&bad, "verts"), (&odd, "landmarks_2d")] {
-        samples_table::write_parquet(
+        parquet::write_parquet(
             &file,
             &mut samples_table::samples_frame_format1(rows).unwrap(),
         )
@@ -532,7 +535,7 @@ fn rows_render_cannot_use_are_skipped_with_the_reason() {
     rows[2].image_width = 20000; // beyond the rasterizer's buffer
     samples_table::write_samples(&file, &rows, 1220).unwrap();
     let renderer = FaceRenderer::new(
-        arkit_tool::synthetic_face::builtin().topology.clone(),
+        arkit_data::mesh::synthetic_face::builtin().topology.clone(),
         Camera::release_projection(),
     )
     .unwrap();
@@ -546,12 +549,12 @@ fn rows_render_cannot_use_are_skipped_with_the_reason() {
         shard: (0, 1),
         full_mask: true,
     };
-    let summary = render_dataset::render_dataset(&a, &renderer, &ro, &|_| {}).unwrap();
+    let summary = arkit_data::render::dataset::render_dataset(&a, &renderer, &ro, &|_| {}).unwrap();
     assert_eq!(summary.skipped, 1, "{:?}", summary.skipped_examples);
     let reasons = summary.skipped_examples.join("\n");
     assert!(reasons.contains("invalid image size"), "{reasons}");
     assert_eq!(
-        samples_table::parquet_row_count(&targets_table::shard_path(&out, 0)).unwrap(),
+        parquet::parquet_row_count(&targets_table::shard_path(&out, 0)).unwrap(),
         rows.len() - 1
     );
 }

@@ -4,7 +4,6 @@
 //! change the data), and the shipped model's scores against the mean pose's.
 
 use arkit_tool::demo::{self, DemoPlan, DemoProgress};
-use arkit_tool::perspnet;
 
 struct Quiet;
 
@@ -20,10 +19,10 @@ fn shipped_model_beats_the_mean_pose_3x_on_the_demos_held_out_subjects() {
         ..DemoPlan::quick(0)
     };
     // The shipped model takes what the demo renders.
-    let c = perspnet::shipped_checkpoint().unwrap();
+    let c = arkit_perspnet::shipped_checkpoint().unwrap();
     assert_eq!(c.config.input_size, plan.crop as usize);
     assert_eq!(c.config.points, plan.points);
-    let topology = arkit_tool::synthetic_face::builtin().topology.clone();
+    let topology = arkit_data::mesh::synthetic_face::builtin().topology.clone();
     assert_eq!(c.topology, topology.source);
 
     let dir = tempfile::tempdir().unwrap();

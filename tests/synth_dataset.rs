@@ -3,9 +3,9 @@
 //! with each other and with the projection, checked in Rust and, when python3 with
 //! numpy is installed, by a numpy script that reads the files as the official loader.
 
-use arkit_tool::conventions::{Camera, EulerAngles, Pose};
-use arkit_tool::release::{self, ReleaseLayout, Split};
-use arkit_tool::synth::{self, FaceSource, SynthOptions};
+use arkit_core::conventions::{Camera, EulerAngles, Pose};
+use arkit_core::release::{self, ReleaseLayout, Split};
+use arkit_data::ingest::synth::{self, FaceSource, SynthOptions};
 use nalgebra::{Matrix4, Point3};
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -163,8 +163,9 @@ fn annotations_agree_with_each_other_and_the_image() {
             // The image is not blank where the face is: the nose tip pixel differs from
             // the image corner's colour.
             let rgb = image.to_rgb8();
-            let tip =
-                &projected[arkit_tool::synthetic_face::builtin().topology.landmarks[30] as usize];
+            let tip = &projected[arkit_data::mesh::synthetic_face::builtin()
+                .topology
+                .landmarks[30] as usize];
             assert_ne!(
                 rgb.get_pixel(tip.u as u32, tip.v as u32),
                 rgb.get_pixel(0, 0)
@@ -216,7 +217,9 @@ fn synth_draws_the_real_template_when_resources_exist() {
         eprintln!("SKIPPED: {} is absent", dir.display());
         return;
     }
-    let source = FaceSource::new(arkit_tool::FaceTopology::from_resources(&dir).unwrap()).unwrap();
+    let source =
+        FaceSource::new(arkit_data::mesh::topology::FaceTopology::from_resources(&dir).unwrap())
+            .unwrap();
     let options = SynthOptions {
         subjects: 1,
         images_per_subject: 2,

@@ -2,7 +2,8 @@
 //! buffers; a bit-exact round trip; mismatched files refused with the list of what is
 //! wrong; and (when a Python with torch is at hand) a file written by `torch.save`.
 
-use arkit_tool::perspnet::{self, PerspNet, PerspNetConfig, export_state_dict, state_dict_entries};
+use crate::support::tool;
+use arkit_perspnet::{PerspNet, PerspNetConfig, export_state_dict, state_dict_entries};
 use candle_core::{DType, Device, Tensor};
 use candle_nn::{VarBuilder, VarMap};
 use std::collections::HashMap;
@@ -10,10 +11,6 @@ use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
-
-fn tool() -> Command {
-    Command::new(env!("CARGO_BIN_EXE_arkit-tool"))
-}
 
 /// Runs `cmd` and asserts that it succeeded, showing its stderr otherwise.
 fn run_ok(cmd: &mut Command) {
@@ -45,9 +42,14 @@ fn import_tiny(file: &Path, model: &Path, vm: &VarMap, steps: u64) {
 fn random_varmap(cfg: &PerspNetConfig, seed: u64) -> VarMap {
     let vm = VarMap::new();
     let vb = VarBuilder::from_varmap(&vm, DType::F32, &Device::Cpu);
-    let topo = &arkit_tool::synthetic_face::builtin().topology;
-    PerspNet::new(cfg, &perspnet::vertex_uv(topo, &Device::Cpu).unwrap(), vb).unwrap();
-    perspnet::reseed(&vm, seed, 0.05).unwrap();
+    let topo = &arkit_data::mesh::synthetic_face::builtin().topology;
+    PerspNet::new(
+        cfg,
+        &arkit_perspnet::vertex_uv(topo, &Device::Cpu).unwrap(),
+        vb,
+    )
+    .unwrap();
+    arkit_perspnet::reseed(&vm, seed, 0.05).unwrap();
     let data = vm.data().lock().unwrap();
     let mut k = 0f32;
     let mut names: Vec<&String> = data.keys().collect();
@@ -136,8 +138,8 @@ fn export_import_export_is_bit_exact() {
     );
     same_files(&first, &second);
     // The imported folder predicts like any other: it loads as a trained model.
-    let topo = &arkit_tool::synthetic_face::builtin().topology;
-    perspnet::load(&model, topo).unwrap();
+    let topo = &arkit_data::mesh::synthetic_face::builtin().topology;
+    arkit_perspnet::load(&model, topo).unwrap();
 }
 
 #[test]
@@ -302,8 +304,8 @@ fn predict_dump_holds_inputs_and_outputs() {
     assert_eq!(samples.len(), 4);
     assert_eq!(npz.require("vertex_uv").unwrap().shape(), &[1220, 2]);
     let (s, m, v) = (cfg.input_size, cfg.points, cfg.vertices);
-    let topo = &arkit_tool::synthetic_face::builtin().topology;
-    let model = perspnet::load(&dir.path().join("model"), topo).unwrap();
+    let topo = &arkit_data::mesh::synthetic_face::builtin().topology;
+    let model = arkit_perspnet::load(&dir.path().join("model"), topo).unwrap();
     for key in &samples {
         let get = |n: &str| npz.require(&format!("{key}/{n}")).unwrap();
         assert_eq!(get("image").shape(), &[3, s, s]);
@@ -397,10 +399,10 @@ fn half_model_loads_within_float16_rounding() {
         std::fs::read(model.join("perspnet.json")).unwrap(),
         std::fs::read(half.join("perspnet.json")).unwrap()
     );
-    let topo = &arkit_tool::synthetic_face::builtin().topology;
+    let topo = &arkit_data::mesh::synthetic_face::builtin().topology;
     let (a, b) = (
-        perspnet::load(&model, topo).unwrap(),
-        perspnet::load(&half, topo).unwrap(),
+        arkit_perspnet::load(&model, topo).unwrap(),
+        arkit_perspnet::load(&half, topo).unwrap(),
     );
     let (da, db) = (
         a.varmap.data().lock().unwrap(),
@@ -431,7 +433,10 @@ fn half_model_loads_within_float16_rounding() {
         candle_core::safetensors::load(model.join("model.safetensors"), &Device::Cpu).unwrap();
     tensors.remove("cnn.seg.bias");
     candle_core::safetensors::save(&tensors, model.join("model.safetensors")).unwrap();
-    let e = perspnet::load(&model, topo).err().unwrap().to_string();
+    let e = arkit_perspnet::load(&model, topo)
+        .err()
+        .unwrap()
+        .to_string();
     assert!(
         e.contains("cnn.seg.bias") && e.contains("model.safetensors"),
         "{e}"
@@ -696,7 +701,7 @@ fn paper_weights_without_resources_say_what_predict_needs() {
     let vm = random_varmap(&cfg, 11);
     let file = dir.path().join("paper.safetensors");
     save(&export_state_dict(&vm, 0).unwrap(), &file);
-    let builtin = &arkit_tool::synthetic_face::builtin().topology;
+    let builtin = &arkit_data::mesh::synthetic_face::builtin().topology;
 
     // Without --resources: imported, with a warning on stderr and in the JSON.
     let model = dir.path().join("model");
@@ -715,7 +720,7 @@ fn paper_weights_without_resources_say_what_predict_needs() {
     );
     same_weights(&model, &vm);
     // What it says holds: predict's loader takes the model without --resources ...
-    perspnet::load(&model, builtin).unwrap();
+    arkit_perspnet::load(&model, builtin).unwrap();
 
     // A tiny model without --resources is the synthetic case: no warning.
     let tiny = random_varmap(&PerspNetConfig::tiny(), 12);
@@ -730,8 +735,8 @@ fn paper_weights_without_resources_say_what_predict_needs() {
         return;
     };
     // ... and refuses it with the release's topology, as the warning says.
-    let real = arkit_tool::FaceTopology::from_resources(&r).unwrap();
-    let e = perspnet::load(&model, &real)
+    let real = arkit_data::mesh::topology::FaceTopology::from_resources(&r).unwrap();
+    let e = arkit_perspnet::load(&model, &real)
         .err()
         .expect("refused with --resources")
         .to_string();
@@ -742,6 +747,6 @@ fn paper_weights_without_resources_say_what_predict_needs() {
     assert!(v["warning"].is_null(), "{v}");
     assert!(!stderr.contains("warning"), "{stderr}");
     assert_eq!(v["predict_resources"], r.display().to_string());
-    perspnet::load(&with, &real).unwrap();
-    assert!(perspnet::load(&with, builtin).is_err());
+    arkit_perspnet::load(&with, &real).unwrap();
+    assert!(arkit_perspnet::load(&with, builtin).is_err());
 }

@@ -1,8 +1,8 @@
 //! `arkit-tool convert` and `arkit-tool merge`.
 
-use arkit_tool::Result;
-use arkit_tool::conventions::Camera;
-use arkit_tool::convert::{self, ConvertOptions, ValidationContext};
+use arkit_core::conventions::Camera;
+use arkit_core::error::Result;
+use arkit_data::ingest::convert::{self, ConvertOptions, ValidationContext};
 use clap::{Args, ValueEnum};
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
@@ -102,7 +102,7 @@ pub struct ConvertArgs {
     #[arg(long)]
     allow_systematic_skips: bool,
     /// The systematic rule's window (tests).
-    #[arg(long, hide = true, default_value_t = arkit_tool::systematic::SYSTEMATIC_WINDOW)]
+    #[arg(long, hide = true, default_value_t = arkit_data::ingest::systematic::SYSTEMATIC_WINDOW)]
     systematic_window: usize,
     /// Print the manifest as JSON.
     #[arg(long)]
@@ -148,13 +148,13 @@ pub fn run(a: ConvertArgs) -> Result<ExitCode> {
 /// `convert --format biwi`: stage the frames in the release layout, then convert.
 fn run_biwi(a: ConvertArgs) -> Result<ExitCode> {
     if a.resources.is_some() {
-        return Err(arkit_tool::Error::invalid(
+        return Err(arkit_core::error::Error::invalid(
             "--resources",
             "not used with --format biwi (the BIWI head mesh is the topology)",
         ));
     }
     if a.shard.is_some() {
-        return Err(arkit_tool::Error::invalid(
+        return Err(arkit_core::error::Error::invalid(
             "--shard",
             "not used with --format biwi (BIWI's 15,678 frames convert on one machine)",
         ));
@@ -163,11 +163,13 @@ fn run_biwi(a: ConvertArgs) -> Result<ExitCode> {
         .staging
         .clone()
         .unwrap_or_else(|| a.output.join("biwi-release"));
-    let total = arkit_tool::biwi::count_frames(&a.input);
+    let total = arkit_data::ingest::biwi::count_frames(&a.input);
     let bar = super::progress_bar(total as u64, "biwi", "frames");
     let pool = super::thread_pool(a.jobs)?;
     let (summary, topology) = pool.install(|| {
-        arkit_tool::biwi::stage_with(&a.input, &staging, a.biwi_size, a.window(), &|| bar.inc(1))
+        arkit_data::ingest::biwi::stage_with(&a.input, &staging, a.biwi_size, a.window(), &|| {
+            bar.inc(1)
+        })
     })?;
     bar.finish_and_clear();
     eprintln!(
@@ -204,9 +206,9 @@ fn run_biwi(a: ConvertArgs) -> Result<ExitCode> {
 
 fn convert_with(
     a: ConvertArgs,
-    topology: arkit_tool::FaceTopology,
+    topology: arkit_data::mesh::topology::FaceTopology,
     projection: nalgebra::Matrix4<f64>,
-    biwi: Option<&arkit_tool::biwi::StageSummary>,
+    biwi: Option<&arkit_data::ingest::biwi::StageSummary>,
 ) -> Result<ExitCode> {
     let (shard_index, shard_count) = a.shard.unwrap_or((0, 1));
     let options = ConvertOptions {
@@ -229,7 +231,7 @@ fn convert_with(
             .skip_check
             .iter()
             .map(|c| match c {
-                SkipCheck::Points2d => arkit_tool::systematic::Check::Points2d,
+                SkipCheck::Points2d => arkit_data::ingest::systematic::Check::Points2d,
             })
             .collect(),
         window: a.window(),
@@ -240,8 +242,8 @@ fn convert_with(
     eprintln!(
         "found the {} layout in {}: {} listed samples in {}",
         match input.kind {
-            convert::LayoutKind::Download => "download",
-            convert::LayoutKind::Flat => "flat",
+            arkit_data::store::manifest::LayoutKind::Download => "download",
+            arkit_data::store::manifest::LayoutKind::Flat => "flat",
         },
         a.input.display(),
         rows.len(),
@@ -319,7 +321,9 @@ pub fn run_merge(a: MergeArgs) -> Result<ExitCode> {
         m.shards.len(),
         m.converted,
         m.skipped,
-        a.dataset.join(arkit_tool::dataset::MANIFEST_FILE).display()
+        a.dataset
+            .join(arkit_data::store::manifest::MANIFEST_FILE)
+            .display()
     );
     Ok(ExitCode::SUCCESS)
 }

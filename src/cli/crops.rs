@@ -1,8 +1,8 @@
 //! `arkit-tool crops`.
 
-use arkit_tool::Result;
-use arkit_tool::crops_dataset;
-use arkit_tool::loader::{Compat, FaceLoader, LoaderMode, LoaderOptions};
+use arkit_core::error::Result;
+use arkit_data::loader::crops_dataset;
+use arkit_data::loader::item::{Compat, FaceLoader, LoaderMode, LoaderOptions};
 use clap::Args;
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -104,8 +104,8 @@ pub fn run(a: CropsArgs) -> Result<ExitCode> {
     let bar = super::progress_bar(loader.len() as u64, "crops", "samples");
     let pool = super::thread_pool(a.jobs)?;
     let codec = match a.codec {
-        CodecArg::Png => arkit_tool::crop_store::WindowCodec::Png,
-        CodecArg::Raw => arkit_tool::crop_store::WindowCodec::Raw,
+        CodecArg::Png => arkit_data::loader::crop_store::WindowCodec::Png,
+        CodecArg::Raw => arkit_data::loader::crop_store::WindowCodec::Raw,
     };
     let summary = pool.install(|| {
         crops_dataset::write_crop_store_with(&loader, &output, codec, &|n| bar.inc(n as u64))

@@ -1,6 +1,6 @@
 //! `arkit-tool demo`.
 
-use arkit_tool::Result;
+use arkit_core::error::Result;
 use arkit_tool::demo::{self, DemoPlan, DemoProgress, STAGES};
 use clap::Args;
 use std::path::PathBuf;
@@ -100,7 +100,7 @@ pub fn run(a: DemoArgs) -> Result<ExitCode> {
         println!(
             "the shipped model is {} (trained by `arkit-tool train` on other synthetic \
              subjects, see docs/train.md); the other was trained by this run.",
-            arkit_tool::perspnet::SHIPPED_MODEL_DIR
+            arkit_perspnet::SHIPPED_MODEL_DIR
         );
     }
     println!("\nreport: {}", summary.report.display());

@@ -1,9 +1,11 @@
 //! `arkit-tool eval`.
 
-use arkit_tool::eval::EulerDifference;
-use arkit_tool::eval_dataset::{self, EvalOptions};
-use arkit_tool::predictions_table::read_predictions;
-use arkit_tool::{Error, Result};
+use arkit_core::error::Error;
+use arkit_data::eval::dataset::EvalOptions;
+use arkit_data::eval::metrics::EulerDifference;
+use arkit_data::store::predictions_table::read_predictions;
+
+use arkit_core::error::Result;
 use clap::Args;
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -87,21 +89,21 @@ pub fn run(a: EvalArgs) -> Result<ExitCode> {
         keep_worst: if a.report.is_some() { 8 } else { 0 },
         exclude: match &a.exclude {
             None => Default::default(),
-            Some(path) => arkit_tool::release::read_list(path)?
+            Some(path) => arkit_core::release::read_list(path)?
                 .into_iter()
                 .map(|r| r.key)
                 .collect(),
         },
     };
-    let ev = eval_dataset::evaluate(&a.dataset, &predictions, &options)?;
+    let ev = arkit_data::eval::dataset::evaluate(&a.dataset, &predictions, &options)?;
     if let Some(path) = &a.per_sample {
-        let mut df = eval_dataset::per_sample_frame(&ev.samples)?;
-        arkit_tool::samples_table::write_parquet(path, &mut df)?;
+        let mut df = arkit_data::eval::dataset::per_sample_frame(&ev.samples)?;
+        arkit_data::store::parquet::write_parquet(path, &mut df)?;
     }
     let mut written = Vec::new();
     if let Some(dir) = &a.report {
         let topology = super::load_topology(a.resources.as_deref())?;
-        written = eval_dataset::write_report(dir, &ev, &topology)?.files;
+        written = arkit_data::eval::dataset::write_report(dir, &ev, &topology)?.files;
     }
     let p = &ev.problems;
     if a.json {

@@ -1,8 +1,10 @@
 //! `arkit-tool import-arkit`.
 
-use arkit_tool::import_arkit::{self, ImportOptions};
-use arkit_tool::release::{ReleaseLayout, Split};
-use arkit_tool::{Error, Result};
+use arkit_core::error::Error;
+use arkit_core::release::{ReleaseLayout, Split};
+use arkit_data::ingest::import_arkit::{self, ImportOptions};
+
+use arkit_core::error::Result;
 use clap::{Args, ValueEnum};
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -85,7 +87,7 @@ pub struct ImportArkitArgs {
     #[arg(long)]
     allow_systematic_skips: bool,
     /// The systematic rule's window (tests).
-    #[arg(long, hide = true, default_value_t = arkit_tool::systematic::SYSTEMATIC_WINDOW)]
+    #[arg(long, hide = true, default_value_t = arkit_data::ingest::systematic::SYSTEMATIC_WINDOW)]
     systematic_window: usize,
     /// Print a JSON summary instead of text.
     #[arg(long)]
@@ -155,21 +157,21 @@ pub fn run(a: ImportArkitArgs) -> Result<ExitCode> {
 fn write_preview(a: &ImportArkitArgs, split: Split, path: &std::path::Path) -> Result<()> {
     let topology = super::load_topology(a.resources.as_deref())?;
     let layout = ReleaseLayout::new(&a.output);
-    let keys = arkit_tool::release::read_list(&layout.list_path(split))?;
+    let keys = arkit_core::release::read_list(&layout.list_path(split))?;
     let mut images = Vec::new();
     for row in keys.iter().take(6) {
         let img_path = layout.image_path(split, &row.key);
-        let image = arkit_tool::image_decode::read_rgb8_checked(&img_path, |_| Ok(()))?;
-        let info = arkit_tool::release::read_info(&layout.info_path(split, &row.key))?;
+        let image = arkit_data::picture::image_decode::read_rgb8_checked(&img_path, |_| Ok(()))?;
+        let info = arkit_core::release::read_info(&layout.info_path(split, &row.key))?;
         let mut drawn = image.clone();
-        arkit_tool::synth::draw_overlay(&mut drawn, &topology, &info)?;
+        arkit_data::ingest::synth::draw_overlay(&mut drawn, &topology, &info)?;
         images.push(image);
         images.push(drawn);
     }
-    let sheet = arkit_tool::synth::contact_sheet(&images, 4, 320);
+    let sheet = arkit_data::picture::encode::contact_sheet(&images, 4, 320);
     let mut bytes = std::io::Cursor::new(Vec::new());
     sheet
         .write_to(&mut bytes, image::ImageFormat::Png)
         .map_err(|e| Error::invalid("preview", e.to_string()))?;
-    arkit_tool::atomic_file::write_bytes(path, bytes.get_ref())
+    arkit_core::atomic_file::write_bytes(path, bytes.get_ref())
 }

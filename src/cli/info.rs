@@ -1,7 +1,7 @@
 //! `arkit-tool info`.
 
-use arkit_tool::Result;
-use arkit_tool::release::read_info;
+use arkit_core::error::Result;
+use arkit_core::release::read_info;
 use clap::Args;
 use serde_json::json;
 use std::path::PathBuf;

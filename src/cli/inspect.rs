@@ -1,7 +1,7 @@
 //! `arkit-tool inspect`.
 
-use arkit_tool::Result;
-use arkit_tool::samples_table::{f64_values, read_parquet_columns, str_values};
+use arkit_core::error::Result;
+use arkit_data::store::parquet::{f64_values, read_parquet_columns, str_values};
 use clap::Args;
 use std::collections::BTreeSet;
 use std::path::PathBuf;
@@ -36,7 +36,7 @@ pub fn run(a: InspectArgs) -> Result<ExitCode> {
             .extension()
             .is_some_and(|e| e.eq_ignore_ascii_case("svg"))
     {
-        return Err(arkit_tool::Error::invalid(
+        return Err(arkit_core::error::Error::invalid(
             "--plot",
             format!(
                 "{}: the chart is written as SVG; name the file .svg (for a PNG, convert it: rsvg-convert -o poses.png poses.svg)",
@@ -44,9 +44,9 @@ pub fn run(a: InspectArgs) -> Result<ExitCode> {
             ),
         ));
     }
-    let data = arkit_tool::dataset::Dataset::open(&a.dataset)?;
+    let data = arkit_data::store::dataset::Dataset::open(&a.dataset)?;
     if a.verify {
-        let n = arkit_tool::convert::verify_dataset(&a.dataset)?;
+        let n = arkit_data::ingest::convert::verify_dataset(&a.dataset)?;
         eprintln!("verified {n} files against the SHA-256 in dataset.json");
     }
     let m = data.manifest().clone();
@@ -129,7 +129,7 @@ pub fn run(a: InspectArgs) -> Result<ExitCode> {
     if let Some(path) = &a.plot {
         let title = format!("Poses of {}", a.dataset.display());
         let svg = arkit_tool::report::pose_chart(&title, &hists);
-        arkit_tool::atomic_file::write_bytes(path, svg.as_bytes())?;
+        arkit_core::atomic_file::write_bytes(path, svg.as_bytes())?;
         if a.json {
             eprintln!("plot: {}", path.display());
         } else {

@@ -20,7 +20,7 @@ mod train;
 #[cfg(feature = "model")]
 mod weights;
 
-use arkit_tool::Result;
+use arkit_core::error::Result;
 use clap::{Parser, Subcommand};
 use std::process::ExitCode;
 
@@ -202,10 +202,12 @@ pub fn jobs(s: &str) -> Result<usize, String> {
 }
 
 /// Reads the topology named by `--resources` (or the built-in face without it).
-pub fn load_topology(resources: Option<&std::path::Path>) -> Result<arkit_tool::FaceTopology> {
+pub fn load_topology(
+    resources: Option<&std::path::Path>,
+) -> Result<arkit_data::mesh::topology::FaceTopology> {
     match resources {
-        Some(dir) => arkit_tool::FaceTopology::from_resources(dir),
-        None => Ok(arkit_tool::synthetic_face::builtin().topology.clone()),
+        Some(dir) => arkit_data::mesh::topology::FaceTopology::from_resources(dir),
+        None => Ok(arkit_data::mesh::synthetic_face::builtin().topology.clone()),
     }
 }
 
@@ -225,12 +227,12 @@ pub fn thread_pool(jobs: Option<usize>) -> Result<rayon::ThreadPool> {
     rayon::ThreadPoolBuilder::new()
         .num_threads(jobs.unwrap_or(0))
         .build()
-        .map_err(|e| arkit_tool::Error::invalid("--jobs", e.to_string()))
+        .map_err(|e| arkit_core::error::Error::invalid("--jobs", e.to_string()))
 }
 
 /// Prints, on stderr, how many samples a command could not read and why (the first
 /// ten, each naming its file), so a moved release or a damaged image is never silent.
-pub fn report_unreadable(unreadable: &[(arkit_tool::release::SampleKey, String)], command: &str) {
+pub fn report_unreadable(unreadable: &[(arkit_core::release::SampleKey, String)], command: &str) {
     if unreadable.is_empty() {
         return;
     }

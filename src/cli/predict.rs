@@ -1,11 +1,11 @@
 //! `arkit-tool predict`.
 
-use arkit_tool::Result;
-use arkit_tool::pnp::RansacParams;
-use arkit_tool::predict::{self, OracleOptions};
-use arkit_tool::predictions_table::write_predictions;
+use arkit_core::error::Result;
 #[cfg(feature = "model")]
-use arkit_tool::render::CropRule;
+use arkit_data::crop::CropRule;
+use arkit_data::pose::pnp::RansacParams;
+use arkit_data::pose::predict::{self, OracleOptions};
+use arkit_data::store::predictions_table::write_predictions;
 use clap::{ArgGroup, Args};
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -123,18 +123,18 @@ enum MaskSource {
 
 pub fn run(a: PredictArgs) -> Result<ExitCode> {
     if !(0.0..1.0).contains(&a.outliers) || a.noise_px < 0.0 || !a.noise_px.is_finite() {
-        return Err(arkit_tool::Error::invalid(
+        return Err(arkit_core::error::Error::invalid(
             "--noise-px/--outliers",
             "noise must be >= 0 and the outlier share in [0, 1)",
         ));
     }
     if a.dump.is_some() && a.model.is_none() {
-        return Err(arkit_tool::Error::invalid(
+        return Err(arkit_core::error::Error::invalid(
             "--dump",
             "dumps a network's inputs and outputs: it needs --model",
         ));
     }
-    let manifest = arkit_tool::dataset::Dataset::open(&a.dataset)?
+    let manifest = arkit_data::store::dataset::Dataset::open(&a.dataset)?
         .manifest()
         .clone();
     let ransac = RansacParams {
@@ -167,7 +167,7 @@ pub fn run(a: PredictArgs) -> Result<ExitCode> {
     }
     #[cfg(not(feature = "model"))]
     if a.model.is_some() {
-        return Err(arkit_tool::Error::invalid(
+        return Err(arkit_core::error::Error::invalid(
             "--model",
             "this arkit-tool was built without the `model` feature (candle); rebuild with default features to run a trained network",
         ));
@@ -175,11 +175,11 @@ pub fn run(a: PredictArgs) -> Result<ExitCode> {
     #[cfg(feature = "model")]
     if let Some(dir) = &a.model {
         let topology = super::load_topology(a.resources.as_deref())?;
-        let model = arkit_tool::perspnet::load(dir, &topology)?;
+        let model = arkit_perspnet::load(dir, &topology)?;
         let bar = super::progress_bar(manifest.converted as u64, "predict", "samples");
         let targets = a.targets.clone().unwrap_or_else(|| a.dataset.clone());
         let mut dump = Vec::new();
-        let (rows, summary) = arkit_tool::perspnet::model_predictions_dump(
+        let (rows, summary) = arkit_perspnet::model_predictions_dump(
             &a.dataset,
             &model,
             split,
@@ -196,7 +196,7 @@ pub fn run(a: PredictArgs) -> Result<ExitCode> {
         bar.finish_and_clear();
         write_predictions(&a.output, &rows)?;
         if let Some(path) = &a.dump {
-            arkit_tool::perspnet::write_dump(path, &model.checkpoint.config, &topology, &dump)?;
+            arkit_perspnet::write_dump(path, &model.checkpoint.config, &topology, &dump)?;
             if !a.json {
                 eprintln!(
                     "dumped {} samples' network inputs and outputs -> {}",

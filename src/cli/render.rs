@@ -1,9 +1,9 @@
 //! `arkit-tool render`.
 
-use arkit_tool::Result;
-use arkit_tool::conventions::Camera;
-use arkit_tool::render::{FaceRenderer, RasterMode};
-use arkit_tool::render_dataset::{self, RenderOptions};
+use arkit_core::conventions::Camera;
+use arkit_core::error::Result;
+use arkit_data::render::dataset::RenderOptions;
+use arkit_data::render::face::{FaceRenderer, RasterMode};
 use clap::Args;
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -99,11 +99,11 @@ pub fn run(a: RenderArgs) -> Result<ExitCode> {
     };
     // The checks between options (--points at most --size squared), before any reading.
     options.validate()?;
-    let manifest = arkit_tool::dataset::Dataset::open(&a.dataset)?
+    let manifest = arkit_data::store::dataset::Dataset::open(&a.dataset)?
         .manifest()
         .clone();
     let topology = super::load_topology(a.resources.as_deref())?;
-    render_dataset::check_topology(&manifest, &topology)?;
+    arkit_data::store::manifest::check_topology(&manifest, &topology)?;
     let mut renderer = FaceRenderer::new(topology, Camera::release_projection())?;
     renderer.mode = match a.compat {
         Compat::Exact => RasterMode::Exact,
@@ -119,9 +119,9 @@ pub fn run(a: RenderArgs) -> Result<ExitCode> {
     let bar = super::progress_bar(mine as u64, "render", "samples");
     let pool = super::thread_pool(a.jobs)?;
     let render = if a.overwrite {
-        render_dataset::render_dataset_replacing
+        arkit_data::render::dataset::render_dataset_replacing
     } else {
-        render_dataset::render_dataset
+        arkit_data::render::dataset::render_dataset
     };
     let summary =
         pool.install(|| render(&a.dataset, &renderer, &options, &|n| bar.inc(n as u64)))?;

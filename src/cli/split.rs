@@ -1,7 +1,7 @@
 //! `arkit-tool split`.
 
-use arkit_tool::Result;
-use arkit_tool::split::{self, HoldOut};
+use arkit_core::error::Result;
+use arkit_data::ingest::split::{self, HoldOut};
 use clap::{ArgGroup, Args};
 use std::collections::BTreeMap;
 use std::path::PathBuf;

@@ -1,7 +1,9 @@
 //! `arkit-tool synth`.
 
-use arkit_tool::synth::{self, FaceSource, SynthOptions};
-use arkit_tool::{Error, Result};
+use arkit_core::error::Error;
+use arkit_data::ingest::synth::{self, FaceSource, SynthOptions};
+
+use arkit_core::error::Result;
 use clap::Args;
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -68,7 +70,9 @@ pub fn run(a: SynthArgs) -> Result<ExitCode> {
     };
     options.check()?;
     let source = match &a.resources {
-        Some(dir) => FaceSource::new(arkit_tool::FaceTopology::from_resources(dir)?)?,
+        Some(dir) => FaceSource::new(arkit_data::mesh::topology::FaceTopology::from_resources(
+            dir,
+        )?)?,
         None => FaceSource::builtin(),
     };
     let total = (options.subjects * options.images_per_subject) as u64;
@@ -86,12 +90,12 @@ pub fn run(a: SynthArgs) -> Result<ExitCode> {
             images.push(sample.image);
             images.push(drawn);
         }
-        let sheet = synth::contact_sheet(&images, 4, 320);
+        let sheet = arkit_data::picture::encode::contact_sheet(&images, 4, 320);
         let mut bytes = std::io::Cursor::new(Vec::new());
         sheet
             .write_to(&mut bytes, image::ImageFormat::Png)
             .map_err(|e| Error::invalid("preview", e.to_string()))?;
-        arkit_tool::atomic_file::write_bytes(path, bytes.get_ref())?;
+        arkit_core::atomic_file::write_bytes(path, bytes.get_ref())?;
     }
     if a.json {
         println!(

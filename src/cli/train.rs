@@ -1,8 +1,10 @@
 //! `arkit-tool train`.
 
-use arkit_tool::perspnet::{self, ExampleShards, ShardedExamples, TrainOptions};
-use arkit_tool::perspnet::{Architecture, LossVariant, PerspNetConfig};
-use arkit_tool::{Error, Result};
+use arkit_core::error::Error;
+use arkit_perspnet::{Architecture, LossVariant, PerspNetConfig};
+use arkit_perspnet::{ExampleShards, ShardedExamples, TrainOptions};
+
+use arkit_core::error::Result;
 use clap::Args;
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -191,10 +193,10 @@ pub fn run(a: TrainArgs) -> Result<ExitCode> {
         ));
     }
     let topology = super::load_topology(a.resources.as_deref())?;
-    let manifest = arkit_tool::dataset::Dataset::open(&a.dataset)?
+    let manifest = arkit_data::store::dataset::Dataset::open(&a.dataset)?
         .manifest()
         .clone();
-    arkit_tool::convert::check_topology(&manifest, &topology)?;
+    arkit_data::store::manifest::check_topology(&manifest, &topology)?;
     let targets = a.targets.clone().unwrap_or_else(|| a.dataset.clone());
     let split = (a.split != "all").then_some(a.split.as_str());
     let source = ShardedExamples::open(&a.dataset, &targets, &config, split)?;
@@ -228,7 +230,7 @@ pub fn run(a: TrainArgs) -> Result<ExitCode> {
         }
         Box::new(examples)
     };
-    let per_epoch = perspnet::steps_per_epoch(source.as_ref(), a.batch).max(1);
+    let per_epoch = arkit_perspnet::steps_per_epoch(source.as_ref(), a.batch).max(1);
     let (epochs, steps) = match a.steps {
         Some(n) => (n.div_ceil(per_epoch), n),
         None => (a.epochs, a.epochs * per_epoch),
@@ -241,7 +243,7 @@ pub fn run(a: TrainArgs) -> Result<ExitCode> {
         batch: a.batch,
         learning_rate: a.lr,
         lr_hold: a.lr_hold,
-        augmentation: perspnet::Augmentation {
+        augmentation: arkit_perspnet::Augmentation {
             colour: a.colour_jitter as f32,
             shift_px: a.shift_px,
             resample_points: !a.stored_points,
@@ -252,11 +254,11 @@ pub fn run(a: TrainArgs) -> Result<ExitCode> {
         resume: a.resume,
         lowered_start: a.lowered_start,
     };
-    let on_step = |s: &perspnet::StepLoss| {
+    let on_step = |s: &arkit_perspnet::StepLoss| {
         bar.set_message(format!("loss {:.4}", s.total));
         bar.inc(1);
     };
-    let (checkpoint, _) = perspnet::train(source.as_ref(), &topology, &options, &on_step)?;
+    let (checkpoint, _) = arkit_perspnet::train(source.as_ref(), &topology, &options, &on_step)?;
     bar.finish_and_clear();
     if a.json {
         println!(

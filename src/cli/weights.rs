@@ -1,7 +1,6 @@
 //! `import-weights` and `export-weights`: the network's weights to and from PyTorch.
 
-use arkit_tool::Result;
-use arkit_tool::perspnet;
+use arkit_core::error::Result;
 use clap::Args;
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -92,7 +91,7 @@ pub struct HalfModelArgs {
 }
 
 pub fn run_half(a: HalfModelArgs) -> Result<ExitCode> {
-    let bytes = perspnet::write_half_model(&a.model, &a.output)?;
+    let bytes = arkit_perspnet::write_half_model(&a.model, &a.output)?;
     eprintln!(
         "wrote {} with float16 weights ({:.2} MB)",
         a.output.display(),
@@ -104,7 +103,7 @@ pub fn run_half(a: HalfModelArgs) -> Result<ExitCode> {
 pub fn run_import(a: ImportWeightsArgs) -> Result<ExitCode> {
     let config = super::train::config_named(&a.config)?;
     let topology = super::load_topology(a.resources.as_deref())?;
-    let c = perspnet::import_weights(&a.file, &config, &topology, &a.output)?;
+    let c = arkit_perspnet::import_weights(&a.file, &config, &topology, &a.output)?;
     let out = a.output.display();
     let needs = match &a.resources {
         Some(r) => format!(
@@ -149,7 +148,7 @@ pub fn run_import(a: ImportWeightsArgs) -> Result<ExitCode> {
 }
 
 pub fn run_export(a: ExportWeightsArgs) -> Result<ExitCode> {
-    let n = perspnet::export_weights(&a.model, &a.output)?;
+    let n = arkit_perspnet::export_weights(&a.model, &a.output)?;
     eprintln!("wrote {} state_dict entries -> {}", n, a.output.display());
     Ok(ExitCode::SUCCESS)
 }

@@ -1,7 +1,85 @@
-//! Writers of synthetic input shared by several test files (each test file uses some).
+//! What several of the end-to-end test modules share: the command, the conversion's
+//! options, and writers of synthetic (and hostile) input.
 
 #![allow(dead_code)]
 
 pub mod biwi_writer;
-pub mod converted;
 pub mod png_bomb;
+
+use arkit_core::conventions::Camera;
+use arkit_data::ingest::convert::{ConvertOptions, ValidationContext};
+use std::path::Path;
+use std::process::Command;
+
+/// The `arkit-tool` binary this test run built.
+pub fn tool() -> Command {
+    Command::new(env!("CARGO_BIN_EXE_arkit-tool"))
+}
+
+/// What `convert` checks samples against: the release's camera and the built-in face.
+pub fn convert_context() -> ValidationContext {
+    ValidationContext {
+        projection: Camera::release_projection(),
+        topology: arkit_data::mesh::synthetic_face::builtin().topology.clone(),
+        embed_images: false,
+    }
+}
+
+/// `convert`'s options for one machine: `input` into `output`, `rows_per_shard` rows
+/// per shard, images not embedded.
+pub fn convert_options(input: &Path, output: &Path, rows_per_shard: usize) -> ConvertOptions {
+    ConvertOptions {
+        input: input.to_path_buf(),
+        output: output.to_path_buf(),
+        resources: None,
+        rows_per_shard,
+        embed_images: false,
+        shard_index: 0,
+        shard_count: 1,
+        overwrite: false,
+    }
+}
+
+/// A synthetic release of `subjects x images` images of `size x size` pixels (`seed`)
+/// in `release`, converted into `dir` with four rows per shard, by the command itself.
+pub fn converted_by_the_command(
+    release: &Path,
+    dir: &Path,
+    subjects: usize,
+    images: usize,
+    size: u32,
+    seed: u64,
+) {
+    let run = |args: Vec<String>| {
+        let out = tool().args(&args).output().unwrap();
+        assert!(
+            out.status.success(),
+            "arkit-tool {}: {}",
+            args.join(" "),
+            String::from_utf8_lossy(&out.stderr)
+        );
+    };
+    let s = |v: &dyn ToString| v.to_string();
+    run(vec![
+        s(&"synth"),
+        s(&"--output"),
+        release.display().to_string(),
+        s(&"--subjects"),
+        s(&subjects),
+        s(&"--images-per-subject"),
+        s(&images),
+        s(&"--size"),
+        format!("{size}x{size}"),
+        s(&"--seed"),
+        s(&seed),
+    ]);
+    run(vec![
+        s(&"convert"),
+        s(&"--input"),
+        release.display().to_string(),
+        s(&"--output"),
+        dir.display().to_string(),
+        s(&"--rows-per-shard"),
+        s(&4),
+    ]);
+}

@@ -16,7 +16,7 @@
 //!
 //! The fuzz targets in `fuzz/` link this crate alone, so they build in seconds.
 
-#![warn(missing_docs)]
+#![deny(missing_docs)]
 
 pub mod atomic_file;
 pub mod conventions;

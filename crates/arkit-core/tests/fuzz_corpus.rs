@@ -11,9 +11,7 @@ use std::path::PathBuf;
 type Entry = fn(&[u8]) -> bool;
 
 fn replay(target: &str, entry: Entry, min_files: usize, min_accepted: usize) {
-    let dir = PathBuf::from(env!("CARGO_MANIFEST_DIR"))
-        .join("../../fuzz/corpus")
-        .join(target);
+    let dir = crate::support::workspace().join("fuzz/corpus").join(target);
     let entries = std::fs::read_dir(&dir)
         .unwrap_or_else(|e| panic!("seed corpus {} missing: {e}", dir.display()));
     let mut files: Vec<PathBuf> = entries

@@ -2,97 +2,170 @@
 //! (Kao et al., IEEE TIP 2023), and of data shaped like it: everything of `arkit-tool`
 //! but the network (`arkit-perspnet`) and the command line. Needs polars, not candle.
 //!
-//! Modules, one job each:
-//! - [`conventions`]: [`Pose`] (the release's `R_t`, OpenCV form, Euler 'yxz') and
-//!   [`Camera`] (OpenGL projection, viewport, y flip, pixel centres).
-//! - [`topology`]: [`FaceTopology`]: triangles, UVs, landmarks, and what is derived from
-//!   them (boundary loops, hole fills, mirror map).
-//! - [`synthetic_face`]: the built-in stand-in face model (not Apple's topology).
-//! - [`raster`]: the CPU triangle rasterizer core.
+//! One folder per stage of the data flow, each stating its contract in its `mod.rs`;
+//! a stage uses only the stages before it in this list (and `arkit_core`: conventions,
+//! bounded readers of the release's files, the rasterizer core):
+//!
+//! - [`mesh`]: the face topology and the built-in synthetic face.
 //! - [`crop`]: the square crop around a face and the image resampled into it (ours, and
 //!   the official loader's box and `cv2.warpAffine` in [`crop::official`]).
-//! - [`render`]: crops, masks, correspondences and UV position maps of one sample;
-//!   [`face_targets`]: the value they produce; [`targets_table`]: their compact storage
-//!   and the dense reader;
-//!   [`render_dataset`]: a whole converted dataset, shard by shard.
-//! - [`npy`]: NumPy `.npy` / `.npz` reading and writing.
-//! - [`release`]: the release's files: `_info.npz` annotations, list CSVs, layout.
-//! - [`synth`]: the synthetic dataset generator.
-//! - [`convert`]: the release into validated, sharded Parquet; [`samples_table`]: the
-//!   `samples` and `errors` tables; [`split`]: subject-disjoint splits; [`plot`]:
-//!   charts as SVG (labelled axes, ticks, legends).
-//! - [`eval`]: the paper's metrics; [`predictions_table`]: the predictions file;
-//!   [`eval_dataset`]: a dataset's predictions scored, with a report.
-//! - [`systematic`]: the rule that stops a run when one check skips most samples.
-//! - [`biwi`]: the BIWI Kinect Head Pose database into the release's conventions.
-//! - [`import_arkit`]: a user's own ARKit captures into the release's layout.
-//! - [`overlay`]: meshes drawn over images; [`image_decode`]: every image read, its
-//!   size checked from the header before decoding.
-//! - [`pnp`]: the pose from 2D-3D correspondences (P3P + MSAC + Levenberg-Marquardt);
-//!   [`predict`]: crop pixels to a release pose, and the oracle predictor.
-//! - [`augment`]: face profiling, roll and mirroring of one sample;
-//!   [`augment_dataset`]: the rule, the release-layout output, previews.
-//! - [`rng`]: the seeded random streams that make output reproducible.
-//! - [`atomic_file`]: writes that never leave a half-written file.
-//! - [`manifest`]: `dataset.json` and the checks of shards and topology it carries;
-//!   [`dataset`]: a converted dataset opened once: manifest, checked shards, images;
-//!   [`loader`]: one sample as the official PyTorch loader returns it, on the fly;
-//!   [`crop_store`]: each sample's crop pixels and mesh stored once for the loader;
-//!   [`crops_dataset`]: the store of a whole dataset.
-//! - [`limits`]: every bound on what the readers accept (re-exported from `arkit_core`);
-//!   [`target_codec`]: the byte codecs of the `targets` blobs.
+//! - [`picture`]: images read (bounded before decoding) and pictures drawn for people.
+//! - [`store`]: a converted dataset on disk: manifest, shards, the tables.
+//! - [`ingest`]: the release, BIWI, a user's captures and synthetic data into a dataset;
+//!   subject-disjoint splits.
+//! - [`render`]: masks, correspondences and UV position maps, per sample and per dataset.
+//! - [`augment`]: face profiling.
+//! - [`pose`]: PnP and predictions in the release's form.
+//! - [`eval`]: the paper's metrics, a predictions file scored, the report.
+//! - [`loader`]: the Python package's items, both rule sets, and the crop store.
+//!
+//! Every item has its home in one stage, and is used by that path. The names a pipeline
+//! is usually written with are also at the crate root (the one block of `pub use`
+//! below), so that `use arkit_data::{Dataset, FaceRenderer};` is enough to start.
+//!
+//! # Examples
+//!
+//! Open a dataset and render one sample's targets (a synthetic release of four images,
+//! converted first, as `arkit-tool synth` and `convert` do):
+//!
+//! ```
+//! use arkit_core::conventions::{Camera, Pose};
+//! use arkit_core::raster::VisibilityBuffer;
+//! use arkit_data::ingest::convert::{self, ConvertOptions, ValidationContext};
+//! use arkit_data::ingest::synth::{self, FaceSource, SynthOptions};
+//! use arkit_data::mesh::synthetic_face;
+//! use arkit_data::{CropTransform, Dataset, FaceRenderer};
+//! use nalgebra::Point3;
+//!
+//! # fn main() -> arkit_core::error::Result<()> {
+//! let tmp = tempfile::tempdir().unwrap();
+//! let (release, data) = (tmp.path().join("release"), tmp.path().join("pq"));
+//! let options = SynthOptions {
+//!     subjects: 2,
+//!     images_per_subject: 2,
+//!     width: 256,
+//!     height: 256,
+//!     ..SynthOptions::default()
+//! };
+//! synth::generate(&FaceSource::builtin(), &options, &release, &|| {})?;
+//! let topology = synthetic_face::builtin().topology.clone();
+//! let context = ValidationContext {
+//!     projection: Camera::release_projection(),
+//!     topology: topology.clone(),
+//!     embed_images: false,
+//! };
+//! let convert_options = ConvertOptions {
+//!     input: release,
+//!     output: data.clone(),
+//!     resources: None,
+//!     rows_per_shard: 4,
+//!     embed_images: false,
+//!     shard_index: 0,
+//!     shard_count: 1,
+//!     overwrite: false,
+//! };
+//! convert::convert(&convert_options, &context, &|_| {})?;
+//!
+//! let dataset = Dataset::open(&data)?;
+//! let samples = dataset.read_all_samples()?;
+//! assert_eq!(samples.len(), 4);
+//! let sample = &samples[0];
+//! let verts: Vec<Point3<f32>> =
+//!     sample.verts.chunks(3).map(|c| Point3::new(c[0], c[1], c[2])).collect();
+//! let renderer = FaceRenderer::new(topology, Camera::release_projection())?;
+//! let crop = CropTransform::around_landmarks(&sample.landmarks_2d, 128);
+//! let targets = renderer.render(
+//!     &verts,
+//!     &Pose::from_release_rt(&sample.rt)?,
+//!     sample.image_width,
+//!     sample.image_height,
+//!     &crop,
+//!     &mut VisibilityBuffer::new(1, 1),
+//! )?;
+//! // The face covers part of the crop, and every face pixel has its triangle's vertices.
+//! let face_pixels = targets.mask.iter().filter(|&&m| m).count();
+//! assert!(face_pixels > 0 && face_pixels < 128 * 128);
+//! assert_eq!(targets.corr_vertices.len(), face_pixels);
+//! # Ok(())
+//! # }
+//! ```
+//!
+//! Solve PnP: a pose recovered from the projections of 50 points, one of them an
+//! outlier that RANSAC leaves out:
+//!
+//! ```
+//! use arkit_data::pose::pnp::{Intrinsics, RansacParams, reproject, solve_pnp_ransac};
+//! use nalgebra::{Isometry3, Point3, Translation3, UnitQuaternion};
+//!
+//! let k = Intrinsics { fx: 600.0, fy: 600.0, cx: 400.0, cy: 400.0 };
+//! let truth = Isometry3::from_parts(
+//!     Translation3::new(0.02, -0.01, 0.5),
+//!     UnitQuaternion::from_euler_angles(0.1, -0.2, 0.05),
+//! );
+//! // A curved patch 10 cm across, as a face is.
+//! let object: Vec<Point3<f64>> = (0..50)
+//!     .map(|i| {
+//!         let (u, v) = ((i % 10) as f64 / 9.0 - 0.5, (i / 10) as f64 / 4.0 - 0.5);
+//!         Point3::new(0.1 * u, 0.1 * v, 0.02 * (u * u + v * v))
+//!     })
+//!     .collect();
+//! let mut image: Vec<_> = object.iter().map(|p| reproject(&k, &truth, p)).collect();
+//! image[3].x += 40.0;
+//! let solution = solve_pnp_ransac(&object, &image, &k, &RansacParams::default()).unwrap();
+//! assert!(!solution.inliers.contains(&3));
+//! assert!((solution.translation - truth.translation.vector).norm() < 1e-6);
+//! ```
+//!
+//! Evaluate: a prediction 10 mm off in x has a translation error of 10 mm in x and an
+//! ADD of 10 mm, and no rotation error:
+//!
+//! ```
+//! use arkit_data::eval::metrics::{EulerDifference, check_prediction, sample_errors, summarize};
+//!
+//! // `R_t` as the release stores it: row-vector form, translation in row 3, tz < 0.
+//! let mut truth = [0.0f64; 16];
+//! for i in [0, 5, 10, 15] {
+//!     truth[i] = 1.0;
+//! }
+//! truth[14] = -0.5;
+//! let mut predicted = truth;
+//! predicted[12] += 0.010;
+//! let verts = [0.0f32, 0.0, 0.0, 0.05, 0.0, 0.0, 0.0, 0.05, 0.02];
+//! let errors = sample_errors(
+//!     &truth,
+//!     check_prediction(Some(&predicted)),
+//!     &verts,
+//!     None,
+//!     EulerDifference::Official,
+//! );
+//! assert!((errors.tx_mm - 10.0).abs() < 1e-9 && errors.ty_mm.abs() < 1e-9);
+//! assert!((errors.add_mm - 10.0).abs() < 1e-6);
+//! assert!(errors.rotation_deg.abs() < 1e-6);
+//! let summary = summarize(&[errors], EulerDifference::Official);
+//! assert_eq!((summary.samples, summary.pose_failures), (1, 0));
+//! assert!((summary.tx_mae_mm - 10.0).abs() < 1e-9);
+//! ```
 
-#![warn(missing_docs)]
+#![deny(missing_docs)]
 
-pub mod allocator;
 pub mod augment;
-pub mod augment_dataset;
-pub mod biwi;
-pub mod colour_jitter;
-pub mod convert;
 pub mod crop;
-pub mod crop_store;
-pub mod crops_dataset;
-pub mod dataset;
 pub mod eval;
-pub mod eval_dataset;
-pub mod face_targets;
-pub mod image_decode;
-pub mod import_arkit;
+pub mod ingest;
 pub mod loader;
-pub mod manifest;
-pub mod overlay;
-pub mod plot;
-pub mod pnp;
-pub mod predict;
-pub mod predictions_table;
+pub mod mesh;
+pub mod picture;
+pub mod pose;
 pub mod render;
-pub mod render_dataset;
-pub mod samples_table;
-pub mod split;
-pub mod synth;
-pub mod synthetic_face;
-pub mod systematic;
-pub mod targets_table;
-pub mod topology;
+pub mod store;
 
-pub use crop::official as official_crop;
-
-pub use arkit_core::{
-    atomic_file, conventions, error, limits, npy, raster, release, rng, target_codec, torch_pickle,
+// The names a pipeline is written with: open a dataset, render, load, solve, score.
+pub use crate::{
+    crop::{CropRule, CropTransform},
+    eval::metrics::Summary as EvalSummary,
+    loader::item::{FaceLoader, LoaderItem, LoaderOptions},
+    mesh::topology::FaceTopology,
+    pose::pnp::{Intrinsics, PnpSolution, RansacParams},
+    render::face::FaceRenderer,
+    store::{dataset::Dataset, face_targets::FaceTargets},
 };
-pub use conventions::{Camera, EulerAngles, Pose};
-pub use error::{Error, ErrorKind, Result};
-pub use topology::FaceTopology;
-
-// The types a pipeline is written with, at the crate root.
-pub use crop::{CropRule, CropSampling, CropTransform};
-pub use dataset::Dataset;
-pub use eval::Summary as EvalSummary;
-pub use face_targets::FaceTargets;
-pub use loader::{FaceLoader, LoaderItem, LoaderOptions};
-pub use manifest::{Manifest, ShardEntry};
-pub use pnp::{Intrinsics, PnpSolution, RansacParams};
-pub use release::SampleKey;
-pub use render::{FaceRenderer, UvMapper, UvTexels};
-pub use samples_table::{ErrorRecord, SampleRecord};

@@ -13,10 +13,10 @@ use crate::{DirectNet, PerspNetConfig};
 use arkit_core::conventions::Pose;
 use arkit_core::error::{Error, Result};
 use arkit_data::crop::CropTransform;
-use arkit_data::dataset::Dataset;
-use arkit_data::eval_dataset::SplitLookup;
-use arkit_data::targets_table::{self, TargetsRecord};
-use arkit_data::topology::FaceTopology;
+use arkit_data::mesh::topology::FaceTopology;
+use arkit_data::store::dataset::Dataset;
+use arkit_data::store::splits::SplitLookup;
+use arkit_data::store::targets_table::{self, TargetsRecord};
 use candle_core::{Device, Tensor};
 use serde::Serialize;
 use std::collections::HashMap;
@@ -96,7 +96,7 @@ pub fn predict_crop_raw(
         if candidates.is_empty() {
             candidates = (0..mask.len() as u32).collect();
         }
-        let picks = arkit_data::render::sample_points(candidates.len(), cfg.points, seed);
+        let picks = arkit_data::render::face::sample_points(candidates.len(), cfg.points, seed);
         let pixels: Vec<u32> = picks.iter().map(|&k| candidates[k as usize]).collect();
         let choose = Tensor::from_slice(&pixels, (1, cfg.points), &device)?;
         let out = net.forward(&img, &choose, false)?;
@@ -149,7 +149,7 @@ pub fn direct_pose(
         net.forward(&img, false)?.flatten_all()?.to_vec1::<f32>()
     })()
     .map_err(|e| candle_err("network forward", e))?;
-    let k = arkit_data::predict::intrinsics(width, height);
+    let k = arkit_data::pose::predict::intrinsics(width, height);
     Ok(crate::direct::pose_from_output(&out, crop, &k))
 }
 
@@ -160,9 +160,9 @@ pub fn pose_of(
     crop: &CropTransform,
     width: u32,
     height: u32,
-    ransac: &arkit_data::pnp::RansacParams,
+    ransac: &arkit_data::pose::pnp::RansacParams,
 ) -> Option<Pose> {
-    use arkit_data::predict::crop_pixel_to_image;
+    use arkit_data::pose::predict::crop_pixel_to_image;
     let mut seen = std::collections::HashSet::new();
     let (mut object, mut image) = (Vec::new(), Vec::new());
     for (px, p) in prediction.pixels.iter().zip(&prediction.points) {
@@ -171,8 +171,8 @@ pub fn pose_of(
             image.push(crop_pixel_to_image(crop, *px));
         }
     }
-    let k = arkit_data::predict::intrinsics(width, height);
-    arkit_data::predict::pose_from_correspondences(&object, &image, &k, ransac)
+    let k = arkit_data::pose::predict::intrinsics(width, height);
+    arkit_data::pose::predict::pose_from_correspondences(&object, &image, &k, ransac)
         .ok()
         .map(|(p, _)| p)
 }
@@ -208,10 +208,10 @@ pub fn model_predictions(
     crop_rule: arkit_data::crop::CropRule,
     true_masks: Option<&Path>,
     seed: u64,
-    ransac: &arkit_data::pnp::RansacParams,
+    ransac: &arkit_data::pose::pnp::RansacParams,
     progress: &dyn Fn(usize),
 ) -> Result<(
-    Vec<arkit_data::predictions_table::PredictionRecord>,
+    Vec<arkit_core::predictions_csv::PredictionRecord>,
     ModelPredictSummary,
 )> {
     model_predictions_dump(
@@ -229,11 +229,11 @@ pub fn model_predictions_dump(
     crop_rule: arkit_data::crop::CropRule,
     true_masks: Option<&Path>,
     seed: u64,
-    ransac: &arkit_data::pnp::RansacParams,
+    ransac: &arkit_data::pose::pnp::RansacParams,
     progress: &dyn Fn(usize),
     mut dump: Option<&mut Vec<(arkit_core::release::SampleKey, RawOutputs)>>,
 ) -> Result<(
-    Vec<arkit_data::predictions_table::PredictionRecord>,
+    Vec<arkit_core::predictions_csv::PredictionRecord>,
     ModelPredictSummary,
 )> {
     if let Network::Direct(_) = &model.net {
@@ -313,7 +313,7 @@ pub fn model_predictions_dump(
                 let pose = direct_pose(net, &input, &crop, r.image_width, r.image_height)?;
                 summary.samples += 1;
                 summary.failures += pose.is_none() as usize;
-                out.push(arkit_data::predictions_table::PredictionRecord {
+                out.push(arkit_core::predictions_csv::PredictionRecord {
                     key: r.key.clone(),
                     rt: pose.map(|p| p.to_release_rt()),
                     verts: None,
@@ -335,11 +335,11 @@ pub fn model_predictions_dump(
             let pose = pose_of(&p, &crop, r.image_width, r.image_height, ransac);
             summary.samples += 1;
             summary.failures += pose.is_none() as usize;
-            out.push(arkit_data::predictions_table::PredictionRecord {
+            out.push(arkit_core::predictions_csv::PredictionRecord {
                 key: r.key.clone(),
                 rt: pose.map(|p| p.to_release_rt()),
                 verts: Some(p.verts),
-                mask_rle: Some(targets_table::rle_encode(&p.mask)),
+                mask_rle: Some(arkit_core::target_codec::rle_encode(&p.mask)),
             });
             progress(1);
         }

@@ -25,7 +25,7 @@ use candle_nn::{BatchNorm, Init, Linear, VarBuilder};
 use rayon::prelude::*;
 
 // The loader's ImageNet channel means and standard deviations: one definition.
-use arkit_data::loader::{IMAGENET_MEAN, IMAGENET_STD};
+use arkit_data::loader::item::{IMAGENET_MEAN, IMAGENET_STD};
 
 /// Normalises a `B x 3 x H x W` RGB batch with values in `[0, 1]` by the
 /// ImageNet mean and standard deviation.

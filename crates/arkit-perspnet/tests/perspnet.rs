@@ -935,12 +935,12 @@ mod pipeline {
     //! --model -> eval, on a few samples.
 
     use arkit_core::conventions::Camera;
-    use arkit_data::convert::{self, ConvertOptions, ValidationContext};
-    use arkit_data::eval_dataset::{self, EvalOptions};
-    use arkit_data::pnp::RansacParams;
-    use arkit_data::render::FaceRenderer;
-    use arkit_data::render_dataset::{self, RenderOptions};
-    use arkit_data::synth::{self, FaceSource, SynthOptions};
+    use arkit_data::eval::dataset::EvalOptions;
+    use arkit_data::ingest::convert::{self, ConvertOptions, ValidationContext};
+    use arkit_data::ingest::synth::{self, FaceSource, SynthOptions};
+    use arkit_data::pose::pnp::RansacParams;
+    use arkit_data::render::dataset::RenderOptions;
+    use arkit_data::render::face::FaceRenderer;
     use arkit_perspnet::PerspNetConfig;
     use arkit_perspnet::TrainOptions;
     use candle_core::Device;
@@ -957,7 +957,7 @@ mod pipeline {
             ..SynthOptions::default()
         };
         synth::generate(&FaceSource::builtin(), &options, release.path(), &|| {}).unwrap();
-        let topology = arkit_data::synthetic_face::builtin().topology.clone();
+        let topology = arkit_data::mesh::synthetic_face::builtin().topology.clone();
         let dir = tempfile::tempdir().unwrap();
         let ctx = ValidationContext {
             projection: Camera::release_projection(),
@@ -988,15 +988,25 @@ mod pipeline {
             full_mask: false,
             output: out.to_path_buf(),
         };
-        render_dataset::render_dataset(dir.path(), &renderer, &ro(96, wrong.path()), &|_| {})
-            .unwrap();
+        arkit_data::render::dataset::render_dataset(
+            dir.path(),
+            &renderer,
+            &ro(96, wrong.path()),
+            &|_| {},
+        )
+        .unwrap();
         let e = match arkit_perspnet::read_examples(dir.path(), wrong.path(), &cfg, None) {
             Err(e) => e.to_string(),
             Ok(_) => panic!("targets at 96 accepted for a 64 network"),
         };
         assert!(e.contains("--size 64"), "{e}");
-        render_dataset::render_dataset(dir.path(), &renderer, &ro(64, dir.path()), &|_| {})
-            .unwrap();
+        arkit_data::render::dataset::render_dataset(
+            dir.path(),
+            &renderer,
+            &ro(64, dir.path()),
+            &|_| {},
+        )
+        .unwrap();
         let examples = arkit_perspnet::read_examples(dir.path(), dir.path(), &cfg, None).unwrap();
         assert_eq!(examples.len(), 6);
         // The stored coordinates are the official 4.5x scale of the mesh at the weights.
@@ -1216,7 +1226,7 @@ mod pipeline {
             split: None,
             ..EvalOptions::default()
         };
-        let ev = eval_dataset::evaluate(dir.path(), &a, &options).unwrap();
+        let ev = arkit_data::eval::dataset::evaluate(dir.path(), &a, &options).unwrap();
         assert_eq!(ev.summary.samples, 6);
         assert!(ev.summary.recon_mean_mm.unwrap().is_finite());
         assert!(
@@ -1233,7 +1243,7 @@ mod pipeline {
         let biwi_pq = tempfile::tempdir().unwrap();
         let staging = biwi_pq.path().join("biwi-release");
         let (staged, biwi_topology) =
-            arkit_data::biwi::stage(hpdb.path(), &staging, 256, &|| {}).unwrap();
+            arkit_data::ingest::biwi::stage(hpdb.path(), &staging, 256, &|| {}).unwrap();
         assert_eq!(staged.staged, 6);
         let bctx = ValidationContext {
             projection: Camera::release_projection(),
@@ -1260,7 +1270,7 @@ mod pipeline {
         .unwrap();
         assert_eq!(summary.samples, 6);
         assert_eq!(rows.len(), 6);
-        let ev = eval_dataset::evaluate(
+        let ev = arkit_data::eval::dataset::evaluate(
             biwi_pq.path(),
             &rows,
             &EvalOptions {

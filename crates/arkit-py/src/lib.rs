@@ -3,7 +3,7 @@
 //! `arkit_tool`, not this module.
 //!
 //! What crosses the boundary:
-//! - [`Loader`]: `arkit_data::loader::FaceLoader`, one sample as the official PyTorch
+//! - [`Loader`]: `arkit_data::loader::item::FaceLoader`, one sample as the official PyTorch
 //!   loader returns it, as numpy arrays that own the Rust buffers (no copy).
 //! - [`Dataset`]: a converted dataset's samples, by position.
 //! - [`solve_pnp_ransac`], [`project`], [`evaluate`]: PnP, the release's projection and
@@ -14,10 +14,16 @@
 //! error, and any panic, reaches Python as `DataError` (a `ValueError`) whose message
 //! names the file and the problem, never as a Rust panic. Tested by `python/tests`.
 
-use arkit_data::loader::{Compat, FaceLoader, LoaderItem, LoaderMode, LoaderOptions};
-use arkit_data::release::SampleKey;
-use arkit_data::samples_table::SampleRecord;
-use arkit_data::{Camera, Error, FaceTopology, Pose};
+use arkit_core::conventions::Camera;
+use arkit_core::release::SampleKey;
+use arkit_data::loader::item::{Compat, FaceLoader, LoaderItem, LoaderMode, LoaderOptions};
+use arkit_data::store::samples_table::SampleRecord;
+
+use arkit_core::error::Error;
+
+use arkit_data::mesh::topology::FaceTopology;
+
+use arkit_core::conventions::Pose;
 use nalgebra::{Point2, Point3};
 use numpy::{IntoPyArray, PyArrayDyn, PyArrayMethods, PyReadonlyArray2, PyUntypedArrayMethods};
 use pyo3::create_exception;
@@ -38,7 +44,10 @@ fn py_err(e: Error) -> PyErr {
 }
 
 /// Runs `f` without the GIL, turning an error or a panic into `DataError`.
-fn run<T: Send>(py: Python<'_>, f: impl FnOnce() -> arkit_data::Result<T> + Send) -> PyResult<T> {
+fn run<T: Send>(
+    py: Python<'_>,
+    f: impl FnOnce() -> arkit_core::error::Result<T> + Send,
+) -> PyResult<T> {
     py.detach(|| std::panic::catch_unwind(std::panic::AssertUnwindSafe(f)))
         .map_err(|p| {
             let why = p
@@ -56,18 +65,21 @@ fn run<T: Send>(py: Python<'_>, f: impl FnOnce() -> arkit_data::Result<T> + Send
 fn topology_for(
     dir: &Path,
     resources: Option<&Path>,
-) -> arkit_data::Result<(FaceTopology, Option<PathBuf>)> {
+) -> arkit_core::error::Result<(FaceTopology, Option<PathBuf>)> {
     let from = match resources {
         Some(r) => Some(r.to_path_buf()),
         None => {
-            let data = arkit_data::dataset::Dataset::open(dir)?;
+            let data = arkit_data::store::dataset::Dataset::open(dir)?;
             let recorded = PathBuf::from(&data.manifest().topology);
             recorded.join("triangles.npy").is_file().then_some(recorded)
         }
     };
     match from {
         Some(r) => Ok((FaceTopology::from_resources(&r)?, Some(r))),
-        None => Ok((arkit_data::synthetic_face::builtin().topology.clone(), None)),
+        None => Ok((
+            arkit_data::mesh::synthetic_face::builtin().topology.clone(),
+            None,
+        )),
     }
 }
 
@@ -107,7 +119,7 @@ impl Loader {
         let inner = run(py, || {
             let (topology, from) = topology_for(&dir, resources.as_deref())?;
             let uv_triangles = match &from {
-                Some(r) => arkit_data::loader::read_uv_triangles(r)?,
+                Some(r) => arkit_data::loader::item::read_uv_triangles(r)?,
                 None => None,
             };
             let mut loader = FaceLoader::open(&dir, topology, uv_triangles, options)?;
@@ -354,7 +366,7 @@ impl BatchSlices<'_> {
         loader: &FaceLoader,
         indices: &[usize],
         epoch: u64,
-    ) -> arkit_data::Result<Vec<(PathBuf, SampleKey)>> {
+    ) -> arkit_core::error::Result<Vec<(PathBuf, SampleKey)>> {
         let b = indices.len().max(1);
         let per = |len: usize| len / b;
         let (img_n, uv_n, mask_n) = (
@@ -374,7 +386,7 @@ impl BatchSlices<'_> {
             let item = loader.item_into(
                 index,
                 epoch,
-                arkit_data::loader::ItemPlanes {
+                arkit_data::loader::item::ItemPlanes {
                     img: &mut self.img[at(img_n)],
                     uvmap: &mut self.uvmap[at(uv_n)],
                 },
@@ -517,7 +529,7 @@ struct Located {
 /// A converted dataset's samples, read shard by shard (the last shard read is kept).
 #[pyclass(module = "arkit_tool._native", frozen)]
 struct Dataset {
-    inner: arkit_data::dataset::Dataset,
+    inner: arkit_data::store::dataset::Dataset,
     rows: Vec<Located>,
     cache: Mutex<Option<(usize, Vec<SampleRecord>)>>,
 }
@@ -527,8 +539,8 @@ impl Dataset {
     #[new]
     fn new(py: Python<'_>, dir: PathBuf) -> PyResult<Self> {
         let (inner, rows) = run(py, || {
-            let data = arkit_data::dataset::Dataset::open(&dir)?;
-            let splits = arkit_data::eval_dataset::SplitLookup::read(&dir)?;
+            let data = arkit_data::store::dataset::Dataset::open(&dir)?;
+            let splits = arkit_data::store::splits::SplitLookup::read(&dir)?;
             let mut rows = Vec::new();
             for (k, shard) in data.shards().iter().enumerate() {
                 for (row, (key, listed)) in data.read_sample_keys(shard)?.into_iter().enumerate() {
@@ -694,19 +706,20 @@ fn solve_pnp_ransac<'py>(
         .into_iter()
         .map(|r| Point2::new(r[0], r[1]))
         .collect();
-    let intr = arkit_data::pnp::Intrinsics {
+    let intr = arkit_data::pose::pnp::Intrinsics {
         fx: k[[0, 0]],
         fy: k[[1, 1]],
         cx: k[[0, 2]],
         cy: k[[1, 2]],
     };
-    let params = arkit_data::pnp::RansacParams {
+    let params = arkit_data::pose::pnp::RansacParams {
         reprojection_threshold_px: reprojection_error,
         max_iterations: iterations_count,
         confidence,
         seed,
     };
-    let solved = py.detach(|| arkit_data::pnp::solve_pnp_ransac(&object, &image, &intr, &params));
+    let solved =
+        py.detach(|| arkit_data::pose::pnp::solve_pnp_ransac(&object, &image, &intr, &params));
     match solved {
         Err(_) => Ok((false, None, None, None)),
         Ok(s) => {
@@ -788,13 +801,13 @@ fn evaluate(
                 .into_iter()
                 .enumerate()
                 .map(|(i, (s, a, id, rt))| {
-                    Ok(arkit_data::predictions_table::PredictionRecord {
+                    Ok(arkit_core::predictions_csv::PredictionRecord {
                         key: SampleKey {
                             subject_id: s,
                             facial_action: a,
                             img_id: id,
                         },
-                        rt: arkit_data::predictions_table::rt_of(
+                        rt: arkit_core::predictions_csv::rt_of(
                             rt.as_deref(),
                             Path::new("predictions"),
                             i,
@@ -803,8 +816,8 @@ fn evaluate(
                         mask_rle: None,
                     })
                 })
-                .collect::<arkit_data::Result<Vec<_>>>()?,
-            (None, Some(path)) => arkit_data::predictions_table::read_predictions(&path)?,
+                .collect::<arkit_core::error::Result<Vec<_>>>()?,
+            (None, Some(path)) => arkit_data::store::predictions_table::read_predictions(&path)?,
             _ => {
                 return Err(Error::invalid(
                     "predictions",
@@ -812,12 +825,12 @@ fn evaluate(
                 ));
             }
         };
-        let options = arkit_data::eval_dataset::EvalOptions {
+        let options = arkit_data::eval::dataset::EvalOptions {
             split,
             keep_worst: 0,
             ..Default::default()
         };
-        let ev = arkit_data::eval_dataset::evaluate(&dir, &rows, &options)?;
+        let ev = arkit_data::eval::dataset::evaluate(&dir, &rows, &options)?;
         let p = &ev.problems;
         Ok(serde_json::json!({
             "summary": ev.summary,
@@ -843,13 +856,13 @@ fn default_crop_store(dir: PathBuf, compat: &str, img_size: u32) -> PyResult<Pat
     ))
 }
 
-/// An image file decoded as the loader decodes it (`arkit_data::image_decode`: PNG or
+/// An image file decoded as the loader decodes it (`arkit_data::picture::image_decode`: PNG or
 /// JPEG, its size checked from the header against the limits before decoding, 16-bit
 /// scaled to 8): `(H, W, 3)` uint8 RGB.
 #[pyfunction]
 fn read_image<'py>(py: Python<'py>, path: PathBuf) -> PyResult<Bound<'py, PyAny>> {
     let img = run(py, || {
-        arkit_data::image_decode::read_rgb8_checked(&path, |_| Ok(()))
+        arkit_data::picture::image_decode::read_rgb8_checked(&path, |_| Ok(()))
     })?;
     let (w, h) = img.dimensions();
     Ok(img

@@ -288,7 +288,7 @@ impl Camera {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::conventions::pose::EulerAngles;
+    use crate::conventions::EulerAngles;
     use nalgebra::Vector3;
     use proptest::prelude::*;
 

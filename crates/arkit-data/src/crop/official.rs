@@ -224,7 +224,7 @@ pub fn warp_taps(crop: &CropTransform) -> Vec<WarpTap> {
 /// negative: the crop grid extended past its edges), row-major, each computed by
 /// `cv2.warpAffine`'s formula for its output position, so the pixels shared with
 /// [`warp_taps`] get the same taps.
-pub fn warp_taps_window(crop: &CropTransform, first: i64, count: usize) -> Vec<WarpTap> {
+fn warp_taps_window(crop: &CropTransform, first: i64, count: usize) -> Vec<WarpTap> {
     // The forward map as cv2.getAffineTransform gives it, then its inverse as
     // cv2.invertAffineTransform computes it (the map is axis-aligned).
     let (a, e) = crop.scales();
@@ -450,7 +450,7 @@ mod tests {
     fn warp_mask_of_a_predicate_is_the_warped_full_mask() {
         // Random masks and boxes, some leaving the image: the weight rule against
         // cv2's resampling of the 0/1 image (warp_affine), tap by tap.
-        let mut r = crate::rng::Rng::new(3);
+        let mut r = arkit_core::rng::Rng::new(3);
         let (w, h) = (40u32, 30u32);
         for _ in 0..200 {
             let mask: Vec<bool> = (0..w * h).map(|_| r.below(3) == 0).collect();

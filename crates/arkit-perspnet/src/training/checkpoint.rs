@@ -15,7 +15,7 @@ use crate::weights::open_weights;
 use crate::weights::safetensors_file::SafetensorsFile;
 use crate::{Architecture, LossWeights, PerspNetConfig};
 use arkit_core::error::{Error, Result};
-use arkit_data::topology::FaceTopology;
+use arkit_data::mesh::topology::FaceTopology;
 use candle_core::{DType, Device};
 use candle_nn::{VarBuilder, VarMap};
 use serde::{Deserialize, Serialize};

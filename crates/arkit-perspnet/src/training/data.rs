@@ -13,13 +13,13 @@ use crate::{Architecture, CorrTarget, PerspNetConfig};
 use arkit_core::conventions::Pose;
 use arkit_core::error::{Error, Result};
 use arkit_core::rng::Rng;
-use arkit_data::colour_jitter::{ColourJitter, ColourJitterRanges};
 use arkit_data::crop::CropTransform;
-use arkit_data::dataset::Dataset;
-use arkit_data::eval_dataset::SplitLookup;
-use arkit_data::loader::{LoaderItem, normalise};
-use arkit_data::samples_table::SampleRecord;
-use arkit_data::targets_table::{self, TargetsRecord};
+use arkit_data::loader::colour_jitter::{ColourJitter, ColourJitterRanges};
+use arkit_data::loader::item::{LoaderItem, normalise};
+use arkit_data::store::dataset::Dataset;
+use arkit_data::store::samples_table::SampleRecord;
+use arkit_data::store::splits::SplitLookup;
+use arkit_data::store::targets_table::{self, TargetsRecord};
 use candle_core::{Device, Tensor};
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
@@ -75,7 +75,7 @@ impl Example {
 pub struct Augmentation {
     /// Colour jitter strength `c`: torchvision's `ColorJitter(c, c, 2c/3, c/30)` on
     /// the crop's bytes, the Python loader's jitter
-    /// ([`arkit_data::colour_jitter::ColourJitterRanges::of_strength`]; 0.3 is the
+    /// ([`arkit_data::loader::colour_jitter::ColourJitterRanges::of_strength`]; 0.3 is the
     /// official loader's, 0 turns it off).
     #[serde(rename = "colour_jitter", default)]
     pub colour: f32,
@@ -142,7 +142,7 @@ impl Example {
 
     /// What the network sees of this example in one step, drawn from `rng`: the crop
     /// shifted by `(dx, dy)` pixels (drawn first, up to `aug.shift_px`), its bytes
-    /// colour-jittered ([`arkit_data::colour_jitter::ColourJitter`], the loader's, at
+    /// colour-jittered ([`arkit_data::loader::colour_jitter::ColourJitter`], the loader's, at
     /// strength `aug.colour`) and normalised, and `m` face pixels (fresh ones, or the
     /// stored points cycled) with their targets. The item is the loader's type: what
     /// the Python package serves for a sample, with the shifted crop as its `crop` and
@@ -176,7 +176,7 @@ impl Example {
             return self.stored_item();
         }
         let points: Vec<u32> = if aug.resample_points {
-            arkit_data::render::sample_points(kept.len(), m, rng.next_u64())
+            arkit_data::render::face::sample_points(kept.len(), m, rng.next_u64())
                 .into_iter()
                 .map(|i| kept[i as usize])
                 .collect()
@@ -226,7 +226,7 @@ impl Example {
             mask,
             corr_vertices: Vec::with_capacity(points.len()),
             corr_weights: Vec::with_capacity(points.len()),
-            tform_inv: arkit_data::loader::tform_inv(&crop),
+            tform_inv: arkit_data::loader::item::tform_inv(&crop),
             rt: self.sample.rt,
             crop,
             official_box: None,
@@ -278,7 +278,7 @@ fn shift_planes<T: Copy + Default>(
 }
 
 /// The crop of a sample's image, as the network's input: `3 x S x S` floats,
-/// ImageNet-normalised ([`arkit_data::loader::normalise`]: the loader's, with no
+/// ImageNet-normalised ([`arkit_data::loader::item::normalise`]: the loader's, with no
 /// colour jitter; the evaluation input).
 pub fn network_input(image: &image::RgbImage, crop: &CropTransform) -> Vec<f32> {
     normalise(crop.crop_image(image).as_raw())
@@ -317,7 +317,7 @@ pub fn example(
         ));
     }
     let mask = targets.mask()?;
-    let pixels = targets_table::mask_pixel_indices(&mask);
+    let pixels = arkit_data::store::face_targets::mask_pixel_indices(&mask);
     let weights = targets.weights();
     let verts = &sample.verts;
     if pixels.len() != targets.corr_vertices.len() {
@@ -625,8 +625,10 @@ pub fn batch(
             let mut d = Vec::with_capacity(12 * b);
             for (e, i) in examples.iter().zip(items) {
                 let pose = Pose::from_release_rt(&i.rt)?;
-                let k =
-                    arkit_data::predict::intrinsics(e.sample.image_width, e.sample.image_height);
+                let k = arkit_data::pose::predict::intrinsics(
+                    e.sample.image_width,
+                    e.sample.image_height,
+                );
                 // The item's crop is the shifted one.
                 d.extend(crate::direct::direct_target(&pose, &i.crop, &k, (0, 0)));
             }
@@ -807,7 +809,7 @@ mod tests {
         // ranges at 0.3, the same draw from the same generator state), normalised.
         let item = e.item(2, &aug, &mut Rng::new(5));
         let mut rgb = e.rgb.clone();
-        arkit_data::colour_jitter::jitter_colour(&mut rgb, &mut Rng::new(5));
+        arkit_data::loader::colour_jitter::jitter_colour(&mut rgb, &mut Rng::new(5));
         assert_ne!(rgb, e.rgb);
         assert_eq!(item.img, normalise(&rgb));
     }

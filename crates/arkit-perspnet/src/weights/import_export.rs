@@ -7,7 +7,7 @@ use crate::training::checkpoint::{Checkpoint, save_renamed};
 use crate::training::data::Augmentation;
 use crate::{Architecture, PerspNet, PerspNetConfig};
 use arkit_core::error::{Error, Result};
-use arkit_data::topology::FaceTopology;
+use arkit_data::mesh::topology::FaceTopology;
 use candle_core::{DType, Device, Tensor};
 use candle_nn::{VarBuilder, VarMap};
 use std::collections::HashMap;

@@ -1,0 +1,1312 @@
+//! `convert`: the release as published into validated, sharded Parquet.
+//!
+//! Stages: [`discover`] the input layout; [`plan_rows`] from the list CSVs (list order,
+//! train before test); cut the rows into shards of `rows_per_shard`; for each shard
+//! this process owns (`--shard I/N`: shards `k` with `k % N == I`), validate every
+//! sample in parallel ([`validate_sample`]) and write `errors/part-K.parquet` then
+//! `samples/part-K.parquet`, each to a temporary name renamed into place, then the
+//! shard's record `samples/part-K.json` (its [`ShardEntry`]). Rows keep list order
+//! within and across shards, so the output is byte-identical whatever the number of
+//! threads. Memory is bounded by one shard.
+//!
+//! Output is what it says. `conversion.json` in the output folder records the
+//! conversion's fingerprint ([`ConversionFingerprint`]: the input root, the list files'
+//! contents, the layout, the topology and projection, the shard size, whether images
+//! are embedded); a later `convert` into the same folder with another fingerprint is
+//! refused (or, with `--overwrite`, replaces the old output). A shard is kept on a
+//! rerun, so an interrupted conversion resumes, only when its record exists, its
+//! fingerprint (the conversion's, its rows and the size and modification time of each
+//! row's files) is the one this run computes, and its files still hash to the record's
+//! SHA-256. Each writer holds a lock on its part (`.convert-part-I-of-N.lock`), so a
+//! second `convert` of the same part waits for nothing and is refused; stale temporaries
+//! of killed runs are removed at the start. Readers ([`crate::store::dataset::Dataset`]) check
+//! each shard's size and the SHA-256 of its last 64 KiB (the Parquet footer) against the
+//! manifest before using it; [`verify_dataset`] checks the full SHA-256.
+//!
+//! A bad sample never stops the run: it becomes a row of the `errors` table with the
+//! file at fault and the reason. Files on disk that no list names, and list rows that
+//! repeat a key, are reported in `errors/listing.parquet`.
+
+use crate::ingest::systematic::{Check, SkipTally};
+use crate::mesh::topology::FaceTopology;
+use crate::store::manifest::hex;
+use crate::store::manifest::{
+    LayoutKind, MANIFEST_FILE, Manifest, ShardEntry, check_shard_file, read_manifest, sha256_file,
+    tail_sha256, topology_digest,
+};
+use crate::store::parquet;
+use crate::store::samples_table::{self, ErrorRecord, SampleRecord};
+use arkit_core::conventions::{Camera, Pose};
+use arkit_core::error::{Error, Result};
+use arkit_core::release::{self, ListRow, SampleKey};
+use nalgebra::{Matrix4, Point3};
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+use sha2::{Digest, Sha256};
+use std::collections::{BTreeSet, HashSet};
+use std::path::{Path, PathBuf};
+
+/// What [`discover`] found.
+#[derive(Clone, Debug)]
+pub struct DiscoveredInput {
+    /// The input root.
+    pub root: PathBuf,
+    /// The layout.
+    pub kind: LayoutKind,
+    /// `(split name, list CSV)` pairs, train first.
+    pub lists: Vec<(String, PathBuf)>,
+}
+
+impl DiscoveredInput {
+    /// Image path of a sample, relative to the root.
+    pub fn image_relative(&self, split: &str, key: &SampleKey) -> PathBuf {
+        self.data_dir(split, "image")
+            .join(&key.subject_id)
+            .join(&key.facial_action)
+            .join(format!("{}_ar.jpg", key.img_id))
+    }
+
+    /// Annotation path of a sample, relative to the root.
+    pub fn info_relative(&self, split: &str, key: &SampleKey) -> PathBuf {
+        self.data_dir(split, "info")
+            .join(&key.subject_id)
+            .join(&key.facial_action)
+            .join(format!("{}_info.npz", key.img_id))
+    }
+
+    fn data_dir(&self, split: &str, kind: &str) -> PathBuf {
+        match self.kind {
+            LayoutKind::Download => PathBuf::from(format!("ARKitFace_{kind}_{split}")).join(kind),
+            LayoutKind::Flat => PathBuf::from(kind),
+        }
+    }
+
+    /// The folders that hold annotations and images (relative), for the orphan scan.
+    pub fn data_dirs(&self) -> Vec<PathBuf> {
+        let splits: BTreeSet<&str> = self.lists.iter().map(|(s, _)| s.as_str()).collect();
+        let mut dirs = Vec::new();
+        for s in splits {
+            dirs.push(self.data_dir(s, "image"));
+            dirs.push(self.data_dir(s, "info"));
+        }
+        dirs.dedup();
+        dirs
+    }
+}
+
+/// Finds the layout of `root`.
+pub fn discover(root: &Path) -> Result<DiscoveredInput> {
+    if !root.is_dir() {
+        return Err(Error::format(root, "input folder does not exist"));
+    }
+    let list_dir = root.join("ARKitFace_list").join("list");
+    if list_dir.is_dir() {
+        let mut lists = Vec::new();
+        for entry in std::fs::read_dir(&list_dir).map_err(|e| Error::io(&list_dir, e))? {
+            let path = entry.map_err(|e| Error::io(&list_dir, e))?.path();
+            let name = path
+                .file_name()
+                .map(|n| n.to_string_lossy().into_owned())
+                .unwrap_or_default();
+            if let Some(split) = name
+                .strip_prefix("ARKitFace_")
+                .and_then(|n| n.strip_suffix(".csv"))
+            {
+                lists.push((split.to_string(), path));
+            }
+        }
+        if lists.is_empty() {
+            return Err(Error::format(
+                &list_dir,
+                "no ARKitFace_<split>.csv list in this folder",
+            ));
+        }
+        // train first, then test, then any other split, by name.
+        lists.sort_by_key(|(s, _)| (s != "train", s != "test", s.clone()));
+        return Ok(DiscoveredInput {
+            root: root.to_path_buf(),
+            kind: LayoutKind::Download,
+            lists,
+        });
+    }
+    if root.join("image").is_dir() && root.join("info").is_dir() {
+        let mut csvs: Vec<PathBuf> = std::fs::read_dir(root)
+            .map_err(|e| Error::io(root, e))?
+            .filter_map(|e| e.ok().map(|e| e.path()))
+            .filter(|p| p.extension().is_some_and(|x| x == "csv"))
+            .collect();
+        csvs.sort();
+        if csvs.len() != 1 {
+            return Err(Error::format(
+                root,
+                format!(
+                    "a flat layout (image/, info/) needs exactly one list CSV in the folder, found {}",
+                    csvs.len()
+                ),
+            ));
+        }
+        return Ok(DiscoveredInput {
+            root: root.to_path_buf(),
+            kind: LayoutKind::Flat,
+            lists: vec![("all".into(), csvs.remove(0))],
+        });
+    }
+    Err(Error::format(
+        root,
+        "not an ARKitFace release: expected ARKitFace_list/list/*.csv (download layout) or image/, info/ and one CSV (flat layout)",
+    ))
+}
+
+/// One row to convert.
+#[derive(Clone, Debug)]
+pub struct PlannedRow {
+    /// Key.
+    pub key: SampleKey,
+    /// Split name.
+    pub split: String,
+    /// Image path relative to the root.
+    pub image: PathBuf,
+    /// Annotation path relative to the root.
+    pub info: PathBuf,
+}
+
+/// The rows of every list, in order, and the rows that repeat an earlier key.
+pub fn plan_rows(input: &DiscoveredInput) -> Result<(Vec<PlannedRow>, Vec<ErrorRecord>)> {
+    let mut rows = Vec::new();
+    let mut problems = Vec::new();
+    let mut seen = HashSet::new();
+    for (split, list) in &input.lists {
+        for ListRow { key, line } in release::read_list(list)? {
+            let rel_list = relative(&input.root, list);
+            if !seen.insert(key.clone()) {
+                problems.push(ErrorRecord {
+                    key: key.clone(),
+                    split: split.clone(),
+                    file: rel_list.clone(),
+                    reason: format!(
+                        "line {line}: {key} is listed again; the first listing is converted"
+                    ),
+                });
+                continue;
+            }
+            rows.push(PlannedRow {
+                image: input.image_relative(split, &key),
+                info: input.info_relative(split, &key),
+                key,
+                split: split.clone(),
+            });
+        }
+    }
+    Ok((rows, problems))
+}
+
+fn relative(root: &Path, path: &Path) -> String {
+    let rel = path.strip_prefix(root).unwrap_or(path);
+    rel.components()
+        .map(|c| c.as_os_str().to_string_lossy())
+        .collect::<Vec<_>>()
+        .join("/")
+}
+
+/// Files under the data folders that no list row names.
+fn find_orphans(input: &DiscoveredInput, rows: &[PlannedRow]) -> Vec<ErrorRecord> {
+    let named: HashSet<PathBuf> = rows
+        .iter()
+        .flat_map(|r| [r.image.clone(), r.info.clone()])
+        .collect();
+    let mut out = Vec::new();
+    let problem = |f: &Path, reason: String| ErrorRecord {
+        key: SampleKey {
+            subject_id: String::new(),
+            facial_action: String::new(),
+            img_id: String::new(),
+        },
+        split: String::new(),
+        file: relative(&input.root, f),
+        reason,
+    };
+    // Each folder is walked once (by its canonical path), so a symbolic link back to
+    // an ancestor is reported, not followed round; an entry that cannot be read (a
+    // broken or looping link) is reported, not taken for a file or skipped silently.
+    let mut walked = HashSet::new();
+    for dir in input.data_dirs() {
+        let mut stack = vec![input.root.join(&dir)];
+        let mut files = Vec::new();
+        let top = stack[0].clone();
+        while let Some(d) = stack.pop() {
+            match std::fs::canonicalize(&d) {
+                Ok(c) if !walked.insert(c.clone()) => {
+                    out.push(problem(
+                        &d,
+                        format!(
+                            "a folder already walked (a symbolic link to {}): not walked again",
+                            c.display()
+                        ),
+                    ));
+                    continue;
+                }
+                Ok(_) => {}
+                Err(e) if d == top && e.kind() == std::io::ErrorKind::NotFound => continue,
+                Err(e) => {
+                    out.push(problem(&d, format!("folder cannot be read: {e}")));
+                    continue;
+                }
+            }
+            let entries = match std::fs::read_dir(&d) {
+                Ok(entries) => entries,
+                Err(e) => {
+                    out.push(problem(&d, format!("folder cannot be read: {e}")));
+                    continue;
+                }
+            };
+            for e in entries {
+                let p = match e {
+                    Ok(e) => e.path(),
+                    Err(e) => {
+                        out.push(problem(&d, format!("folder cannot be listed: {e}")));
+                        continue;
+                    }
+                };
+                match std::fs::metadata(&p) {
+                    Ok(m) if m.is_dir() => stack.push(p),
+                    Ok(_) => files.push(p),
+                    Err(e) => out.push(problem(
+                        &p,
+                        format!("cannot be read ({e}): a broken or looping symbolic link?"),
+                    )),
+                }
+            }
+        }
+        files.sort();
+        for f in files {
+            let rel = f.strip_prefix(&input.root).unwrap_or(&f).to_path_buf();
+            if !named.contains(&rel) {
+                out.push(problem(&f, "file on disk that no list names".into()));
+            }
+        }
+    }
+    out
+}
+
+/// What validation needs besides the sample: the camera's projection and the landmarks.
+#[derive(Clone, Debug)]
+pub struct ValidationContext {
+    /// Row-vector projection matrix (the release's unless `--resources` has its own).
+    pub projection: Matrix4<f64>,
+    /// The topology whose landmark indices and vertex count apply.
+    pub topology: FaceTopology,
+    /// Keep the JPEG bytes in the table.
+    pub embed_images: bool,
+}
+
+/// Checks that `bytes` are a complete JPEG: the start-of-image marker, then marker
+/// segments (each within the file) and entropy-coded scans up to an end-of-image marker.
+/// Bytes after the end-of-image marker (camera padding, appended data) are allowed and
+/// ignored, as decoders ignore them. Returns the offset just past the end marker.
+pub fn check_jpeg_framing(bytes: &[u8]) -> std::result::Result<usize, String> {
+    if bytes.len() < 4 || bytes[..3] != [0xFF, 0xD8, 0xFF] {
+        return Err("not a JPEG file (no start-of-image marker)".into());
+    }
+    let truncated = |at: usize| {
+        format!(
+            "truncated JPEG (the data ends at byte {at} of {} before the end-of-image marker)",
+            bytes.len()
+        )
+    };
+    let mut pos = 2;
+    loop {
+        if pos >= bytes.len() {
+            return Err(truncated(bytes.len()));
+        }
+        if bytes[pos] != 0xFF {
+            return Err(format!(
+                "corrupt JPEG: byte {pos} should start a marker (0xFF), found {:#04x}",
+                bytes[pos]
+            ));
+        }
+        while pos < bytes.len() && bytes[pos] == 0xFF {
+            pos += 1;
+        }
+        let Some(&marker) = bytes.get(pos) else {
+            return Err(truncated(bytes.len()));
+        };
+        pos += 1;
+        match marker {
+            0xD9 => return Ok(pos),
+            0x01 | 0xD0..=0xD7 => continue,
+            0x00 => return Err(format!("corrupt JPEG: stray 0xFF00 at byte {}", pos - 2)),
+            _ => {}
+        }
+        let Some(len) = bytes
+            .get(pos..pos + 2)
+            .map(|b| u16::from_be_bytes([b[0], b[1]]) as usize)
+        else {
+            return Err(truncated(bytes.len()));
+        };
+        if len < 2 {
+            return Err(format!(
+                "corrupt JPEG: marker {marker:#04x} at byte {} has length {len}",
+                pos - 2
+            ));
+        }
+        pos += len;
+        if pos > bytes.len() {
+            return Err(truncated(bytes.len()));
+        }
+        if marker == 0xDA {
+            // Entropy-coded data: 0xFF is followed by 0x00 (a stuffed byte), a restart
+            // marker, or fill; anything else is the next marker.
+            loop {
+                match bytes[pos..].iter().position(|&b| b == 0xFF) {
+                    None => return Err(truncated(bytes.len())),
+                    Some(k) => pos += k,
+                }
+                match bytes.get(pos + 1) {
+                    None => return Err(truncated(bytes.len())),
+                    Some(0x00 | 0xD0..=0xD7) => pos += 2,
+                    Some(0xFF) => pos += 1,
+                    Some(_) => break,
+                }
+            }
+        }
+    }
+}
+
+/// Validates one sample and builds its row, or says what is wrong with which file.
+pub fn validate_sample(
+    root: &Path,
+    row: &PlannedRow,
+    ctx: &ValidationContext,
+) -> std::result::Result<SampleRecord, Box<ErrorRecord>> {
+    validate_sample_with(root, row, ctx, &ConvertChecks::default()).map_err(|s| s.record)
+}
+
+/// Which per-sample checks run, and the window of the systematic rule
+/// ([`crate::ingest::systematic`]).
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct ConvertChecks {
+    /// Checks turned off (only [`Check::Points2d`] can be).
+    pub skip: Vec<Check>,
+    /// The systematic rule's window ([`crate::ingest::systematic::SYSTEMATIC_WINDOW`]; 0: the
+    /// run never stops, `--allow-systematic-skips`).
+    pub window: usize,
+}
+
+impl Default for ConvertChecks {
+    fn default() -> Self {
+        ConvertChecks {
+            skip: Vec::new(),
+            window: crate::ingest::systematic::SYSTEMATIC_WINDOW,
+        }
+    }
+}
+
+/// The checks `--skip-check` can turn off: those whose failure does not make the sample
+/// wrong (the pose and image are still checked against each other without them).
+pub const SKIPPABLE_CHECKS: [Check; 1] = [Check::Points2d];
+
+/// A skipped sample: its error row, and the check (if a named one) that skipped it.
+#[derive(Debug)]
+pub struct Skip {
+    /// The named check, for the systematic rule.
+    pub check: Option<Check>,
+    /// The `errors` table's row.
+    pub record: Box<ErrorRecord>,
+}
+
+impl From<Box<ErrorRecord>> for Skip {
+    fn from(record: Box<ErrorRecord>) -> Self {
+        Skip {
+            check: None,
+            record,
+        }
+    }
+}
+
+fn by(check: Check) -> impl FnOnce(Box<ErrorRecord>) -> Skip {
+    move |record| Skip {
+        check: Some(check),
+        record,
+    }
+}
+
+/// [`validate_sample`] with `checks`; a skip says which check made it.
+fn validate_sample_with(
+    root: &Path,
+    row: &PlannedRow,
+    ctx: &ValidationContext,
+    checks: &ConvertChecks,
+) -> std::result::Result<SampleRecord, Skip> {
+    let fail = |file: &Path, reason: String| {
+        Box::new(ErrorRecord {
+            key: row.key.clone(),
+            split: row.split.clone(),
+            file: relative(root, &root.join(file)),
+            reason,
+        })
+    };
+    let strip = |e: Error| -> String { e.reason() };
+    let info_path = root.join(&row.info);
+    let info = release::read_info_with_vertex_count(&info_path, ctx.topology.vertex_count)
+        .map_err(|e| fail(&row.info, strip(e)))?;
+    if info.verts.len() != ctx.topology.vertex_count {
+        return Err(fail(
+            &row.info,
+            format!(
+                "{} vertices, the topology has {}",
+                info.verts.len(),
+                ctx.topology.vertex_count
+            ),
+        )
+        .into());
+    }
+    let pose =
+        Pose::from_release_rt(&info.rt).map_err(|e| by(Check::Pose)(fail(&row.info, strip(e))))?;
+    let image_path = root.join(&row.image);
+    let bytes = crate::picture::image_decode::read_image_file(&image_path)
+        .map_err(|e| fail(&row.image, e.reason()))?;
+    check_jpeg_framing(&bytes).map_err(|m| fail(&row.image, m))?;
+    // The size from the header, checked before any pixel is decoded; the decode then
+    // proves the JPEG whole.
+    let (width, height) = crate::picture::image_decode::decode_rgb8_checked(&bytes, &image_path, |h| {
+        let (width, height) = (h.width, h.height);
+        if width > arkit_core::raster::MAX_VIEWPORT || height > arkit_core::raster::MAX_VIEWPORT {
+            return Err(Error::format(
+                &image_path,
+                format!(
+                    "the image is {width}x{height}: larger than the {} pixels a side the renderer takes",
+                    arkit_core::raster::MAX_VIEWPORT
+                ),
+            ));
+        }
+        if width < MIN_IMAGE_SIDE || height < MIN_IMAGE_SIDE {
+            return Err(Error::format(
+                &image_path,
+                format!(
+                    "the image is {width}x{height}: too small for a face crop (at least {MIN_IMAGE_SIDE}x{MIN_IMAGE_SIDE})"
+                ),
+            ));
+        }
+        Ok(())
+    })
+    .map_err(|e| fail(&row.image, e.reason()))?
+    .dimensions();
+    let camera =
+        Camera::new(ctx.projection, width, height).map_err(|e| fail(&row.info, strip(e)))?;
+    let verts64: Vec<Point3<f64>> = info.verts.iter().map(|p| p.cast()).collect();
+    camera
+        .check_projectable(&pose, &verts64)
+        .map_err(|e| by(Check::Projection)(fail(&row.info, strip(e))))?;
+    let mut landmarks_2d = Vec::with_capacity(136);
+    let (mut x0, mut y0, mut x1, mut y1) = (f64::MAX, f64::MAX, f64::MIN, f64::MIN);
+    for (k, &v) in ctx.topology.landmarks.iter().enumerate() {
+        let p = camera.project(&pose, &verts64[v as usize]);
+        if !(0.0..=width as f64).contains(&p.u) || !(0.0..=height as f64).contains(&p.v) {
+            return Err(by(Check::Projection)(fail(
+                &row.info,
+                format!(
+                    "landmark {k} projects to ({:.1}, {:.1}), outside the {width}x{height} image: annotation and image do not match",
+                    p.u, p.v
+                ),
+            )));
+        }
+        landmarks_2d.extend([p.u as f32, p.v as f32]);
+        x0 = x0.min(p.u);
+        y0 = y0.min(p.v);
+        x1 = x1.max(p.u);
+        y1 = y1.max(p.v);
+    }
+    if x1 - x0 < MIN_FACE_SPAN_PX || y1 - y0 < MIN_FACE_SPAN_PX {
+        return Err(by(Check::Projection)(fail(
+            &row.info,
+            format!(
+                "the 68 landmarks span {:.1}x{:.1} pixels (at least {MIN_FACE_SPAN_PX} each way): a collapsed or all-zero mesh",
+                x1 - x0,
+                y1 - y0
+            ),
+        )));
+    }
+    if let Some(points2d) = info
+        .points2d
+        .as_ref()
+        .filter(|_| !checks.skip.contains(&Check::Points2d))
+    {
+        let mut off: Vec<f64> = verts64
+            .iter()
+            .zip(points2d)
+            .map(|(v, q)| {
+                let p = camera.project(&pose, v);
+                (p.u - q[0]).hypot(p.v - q[1])
+            })
+            .collect();
+        off.sort_by(f64::total_cmp);
+        let median = off[off.len() / 2];
+        let tolerance =
+            POINTS2D_TOLERANCE_PX.max(POINTS2D_TOLERANCE_FRACTION * width.max(height) as f64);
+        if median > tolerance {
+            return Err(by(Check::Points2d)(fail(
+                &row.image,
+                format!(
+                    "the annotation's points2d lie a median {median:.1} px from its verts at R_t projected into this {width}x{height} image (tolerance {tolerance:.1} px): the image is not the one the annotation was made for (resized or another sample's)"
+                ),
+            )));
+        }
+    }
+    let (cx, cy) = ((x0 + x1) / 2.0, (y0 + y1) / 2.0);
+    let half = 0.75 * (x1 - x0).max(y1 - y0);
+    let e = pose.euler();
+    let t = pose.translation_m();
+    Ok(SampleRecord {
+        key: row.key.clone(),
+        split: row.split.clone(),
+        image_path: relative(root, &image_path),
+        image_width: width,
+        image_height: height,
+        jpeg: ctx.embed_images.then_some(bytes),
+        verts: info.verts.iter().flat_map(|p| [p.x, p.y, p.z]).collect(),
+        rt: info.rt,
+        yaw_deg: e.yaw_deg,
+        pitch_deg: e.pitch_deg,
+        roll_deg: e.roll_deg,
+        translation_m: [t.x, t.y, t.z],
+        landmarks_2d,
+        face_box: [cx - half, cy - half, cx + half, cy + half],
+    })
+}
+
+/// Options of a conversion.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct ConvertOptions {
+    /// Input root.
+    pub input: PathBuf,
+    /// Output folder.
+    pub output: PathBuf,
+    /// Resource folder (topology, landmarks, projection), if given.
+    pub resources: Option<PathBuf>,
+    /// Rows per shard.
+    pub rows_per_shard: usize,
+    /// Keep JPEG bytes in the table.
+    pub embed_images: bool,
+    /// This process converts shards `k` with `k % shard_count == shard_index`.
+    pub shard_index: usize,
+    /// Number of processes sharing the conversion.
+    pub shard_count: usize,
+    /// Replace the output of another conversion found in the output folder instead of
+    /// refusing.
+    #[serde(default)]
+    pub overwrite: bool,
+}
+
+use arkit_core::limits::{MIN_FACE_SPAN_PX, MIN_IMAGE_SIDE};
+
+/// The annotation's own `points2d`, when present, must lie within this many pixels
+/// (median over the vertices) of `verts` at `R_t` projected into the image, or this
+/// fraction of the image's larger side, whichever is larger; further, the image is not
+/// the one the annotation was made for (another size, another sample).
+pub const POINTS2D_TOLERANCE_PX: f64 = 8.0;
+/// See [`POINTS2D_TOLERANCE_PX`].
+pub const POINTS2D_TOLERANCE_FRACTION: f64 = 0.02;
+
+/// Progress callback: called with the number of samples just finished.
+pub type Progress<'a> = &'a (dyn Fn(usize) + Sync);
+
+/// What a conversion is made from; two runs with the same fingerprint write the same
+/// bytes. The shard count (`--shard I/N`) is not part of it: parts of one conversion
+/// share it.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ConversionFingerprint {
+    /// The input root, absolute.
+    pub input_root: String,
+    /// The layout found.
+    pub layout: LayoutKind,
+    /// `(list file relative to the root, SHA-256 of its bytes)`.
+    pub lists: Vec<(String, String)>,
+    /// Where the topology came from.
+    pub topology: String,
+    /// [`topology_digest`] of the topology.
+    pub topology_sha256: String,
+    /// The projection matrix, row-major.
+    pub projection: Vec<f64>,
+    /// Rows per shard.
+    pub rows_per_shard: usize,
+    /// Whether JPEG bytes are embedded.
+    pub embed_images: bool,
+    /// The tool's version.
+    pub version: String,
+    /// [`samples_table::SAMPLES_FORMAT`] (0 in records written before it was recorded,
+    /// whose shards are format 1): an output of another format is another conversion,
+    /// so one dataset never mixes formats.
+    #[serde(default)]
+    pub samples_format: u32,
+    /// The per-sample checks turned off (`--skip-check`), sorted: a conversion with a
+    /// check off converts other samples, so it is another conversion. Absent when none.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub skipped_checks: Vec<String>,
+}
+
+impl ConversionFingerprint {
+    /// The fingerprint of converting `input` with `options` and `ctx`.
+    pub fn new(
+        input: &DiscoveredInput,
+        options: &ConvertOptions,
+        ctx: &ValidationContext,
+    ) -> Result<Self> {
+        let input_root = absolute_root(&input.root)?;
+        let mut lists = Vec::new();
+        for (_, p) in &input.lists {
+            lists.push((relative(&input.root, p), sha256_file(p)?));
+        }
+        Ok(Self {
+            input_root: input_root.display().to_string(),
+            layout: input.kind,
+            lists,
+            topology: ctx.topology.source.clone(),
+            topology_sha256: topology_digest(&ctx.topology),
+            projection: ctx.projection.transpose().iter().copied().collect(),
+            rows_per_shard: options.rows_per_shard,
+            embed_images: options.embed_images,
+            version: env!("CARGO_PKG_VERSION").into(),
+            samples_format: samples_table::SAMPLES_FORMAT,
+            skipped_checks: Vec::new(),
+        })
+    }
+
+    /// SHA-256 of the fingerprint's JSON, hex.
+    pub fn digest(&self) -> String {
+        hex(&Sha256::digest(
+            serde_json::to_vec(self).unwrap_or_default().as_slice(),
+        ))
+    }
+}
+
+/// `root` as an absolute, canonical path (symbolic links resolved).
+fn absolute_root(root: &Path) -> Result<PathBuf> {
+    std::fs::canonicalize(root).map_err(|e| Error::io(root, e))
+}
+
+/// The fingerprint of one shard: the conversion's, then each row's key, split and files
+/// with their size and modification time (a file changed in place changes it).
+fn shard_fingerprint(conversion: &str, root: &Path, rows: &[PlannedRow]) -> String {
+    let mut h = Sha256::new();
+    h.update(conversion.as_bytes());
+    for r in rows {
+        h.update(format!("\n{}\t{}", r.key, r.split).as_bytes());
+        for f in [&r.image, &r.info] {
+            h.update(b"\t");
+            h.update(f.to_string_lossy().as_bytes());
+            match std::fs::metadata(root.join(f)) {
+                Ok(m) => {
+                    h.update(m.len().to_le_bytes());
+                    let t = m
+                        .modified()
+                        .ok()
+                        .and_then(|t| t.duration_since(std::time::UNIX_EPOCH).ok())
+                        .map_or(0, |d| d.as_nanos());
+                    h.update(t.to_le_bytes());
+                }
+                Err(_) => h.update(b"missing"),
+            }
+        }
+    }
+    hex(&h.finalize())
+}
+
+/// The name of the conversion record in an output folder.
+pub const CONVERSION_FILE: &str = "conversion.json";
+
+/// The record of a finished shard, beside its samples file.
+fn shard_record_name(index: usize) -> String {
+    format!("samples/part-{index:05}.json")
+}
+
+/// Reads the conversion record of `output`, takes the folder for this conversion and
+/// removes stale temporaries. Refuses a folder that holds another conversion (or
+/// samples without a record) unless `overwrite`, which removes that output first.
+fn claim_output(output: &Path, fingerprint: &ConversionFingerprint, overwrite: bool) -> Result<()> {
+    // Parts of one conversion starting together take this in turn (it is held for
+    // the check and the record only).
+    let _guard = arkit_core::atomic_file::FolderLock::wait(output, "conversion")?;
+    let record = output.join(CONVERSION_FILE);
+    let existing: Option<ConversionFingerprint> = match std::fs::read_to_string(&record) {
+        Ok(text) => Some(
+            serde_json::from_str(&text)
+                .map_err(|e| Error::format(&record, format!("not a conversion record: {e}")))?,
+        ),
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => None,
+        Err(e) => return Err(Error::io(&record, e)),
+    };
+    let has_output = ["samples", "errors", "manifest"]
+        .iter()
+        .any(|d| std::fs::read_dir(output.join(d)).is_ok_and(|mut r| r.next().is_some()))
+        || output.join(MANIFEST_FILE).exists();
+    let conflict = match &existing {
+        Some(e) => e != fingerprint,
+        None => has_output,
+    };
+    if conflict {
+        if !overwrite {
+            let what = match &existing {
+                Some(e) if e.input_root != fingerprint.input_root => {
+                    format!("a conversion of {}", e.input_root)
+                }
+                Some(e) if e.lists != fingerprint.lists => {
+                    "a conversion of other list files".to_string()
+                }
+                Some(e) if e.topology_sha256 != fingerprint.topology_sha256 => {
+                    format!("a conversion with another topology ({})", e.topology)
+                }
+                Some(e) if e.samples_format != fingerprint.samples_format => format!(
+                    "a conversion in samples format {} (this version writes format {})",
+                    e.samples_format.max(1),
+                    fingerprint.samples_format
+                ),
+                Some(e) if e.skipped_checks != fingerprint.skipped_checks => format!(
+                    "a conversion with other checks turned off (--skip-check: [{}] there, [{}] now)",
+                    e.skipped_checks.join(", "),
+                    fingerprint.skipped_checks.join(", ")
+                ),
+                Some(_) => "a conversion with other options or another version".to_string(),
+                None => "samples without a conversion record".to_string(),
+            };
+            return Err(Error::format(
+                output,
+                format!(
+                    "holds {what}: made from other input or options; choose another --output, remove the folder, or pass --overwrite"
+                ),
+            ));
+        }
+        for d in ["samples", "errors", "manifest", "splits", "targets"] {
+            let p = output.join(d);
+            if p.exists() {
+                std::fs::remove_dir_all(&p).map_err(|e| Error::io(&p, e))?;
+            }
+        }
+        let p = output.join(MANIFEST_FILE);
+        if p.exists() {
+            std::fs::remove_file(&p).map_err(|e| Error::io(&p, e))?;
+        }
+    }
+    if existing.as_ref() != Some(fingerprint) {
+        let text = serde_json::to_string_pretty(fingerprint)
+            .map_err(|e| Error::invalid("conversion record", e.to_string()))?;
+        arkit_core::atomic_file::write_bytes(&record, format!("{text}\n").as_bytes())?;
+    }
+    arkit_core::atomic_file::remove_stale_temporaries(output, true)?;
+    Ok(())
+}
+
+/// A finished shard from an earlier run, if it was made from exactly these rows of this
+/// conversion and its files still hash to its record.
+fn finished_shard(out: &Path, index: usize, fingerprint: &str) -> Result<Option<ShardEntry>> {
+    let record = out.join(shard_record_name(index));
+    let Ok(text) = std::fs::read_to_string(&record) else {
+        return Ok(None);
+    };
+    let Ok(entry) = serde_json::from_str::<ShardEntry>(&text) else {
+        return Ok(None);
+    };
+    if entry.index != index || entry.fingerprint != fingerprint {
+        return Ok(None);
+    }
+    let (samples, errors) = (out.join(&entry.samples_file), out.join(&entry.errors_file));
+    if !samples.exists() || !errors.exists() {
+        return Ok(None);
+    }
+    if sha256_file(&samples)? != entry.sha256 || sha256_file(&errors)? != entry.errors_sha256 {
+        return Ok(None);
+    }
+    Ok(Some(entry))
+}
+
+/// The manifest's file name for a part.
+pub fn manifest_name(index: usize, count: usize) -> String {
+    if count == 1 {
+        MANIFEST_FILE.into()
+    } else {
+        format!("manifest/part-{index:04}-of-{count:04}.json")
+    }
+}
+
+/// Runs a conversion (or this process's part of it); returns its manifest.
+pub fn convert(
+    options: &ConvertOptions,
+    ctx: &ValidationContext,
+    progress: Progress,
+) -> Result<Manifest> {
+    let input = discover(&options.input)?;
+    let plan = plan_rows(&input)?;
+    convert_planned(options, ctx, &input, plan, progress)
+}
+
+/// [`convert`] for an input already discovered and planned (so a caller that reports
+/// what it found reads the lists once).
+fn convert_planned(
+    options: &ConvertOptions,
+    ctx: &ValidationContext,
+    input: &DiscoveredInput,
+    plan: (Vec<PlannedRow>, Vec<ErrorRecord>),
+    progress: Progress,
+) -> Result<Manifest> {
+    convert_planned_with(
+        options,
+        ctx,
+        &ConvertChecks::default(),
+        input,
+        plan,
+        progress,
+    )
+}
+
+/// [`convert_planned`] with `checks` (checks turned off, the systematic rule's
+/// window). A run that the systematic rule stops ([`crate::ingest::systematic`]) returns its
+/// message as the error; the shards finished before it stay (a rerun with the check
+/// turned off is another conversion and replaces them with `--overwrite`).
+pub fn convert_planned_with(
+    options: &ConvertOptions,
+    ctx: &ValidationContext,
+    checks: &ConvertChecks,
+    input: &DiscoveredInput,
+    plan: (Vec<PlannedRow>, Vec<ErrorRecord>),
+    progress: Progress,
+) -> Result<Manifest> {
+    if let Some(c) = checks.skip.iter().find(|c| !SKIPPABLE_CHECKS.contains(c)) {
+        return Err(Error::invalid(
+            "--skip-check",
+            format!(
+                "the '{}' check cannot be turned off (a sample that fails it would be wrong); only {} can",
+                c.name(),
+                SKIPPABLE_CHECKS.map(|c| c.name()).join(", ")
+            ),
+        ));
+    }
+    if options.rows_per_shard == 0 {
+        return Err(Error::invalid("--rows-per-shard", "must be at least 1"));
+    }
+    if options.shard_count == 0 || options.shard_index >= options.shard_count {
+        return Err(Error::invalid(
+            "--shard",
+            format!(
+                "{}/{} is not I/N with I < N",
+                options.shard_index, options.shard_count
+            ),
+        ));
+    }
+    let (rows, mut listing) = plan;
+    let out = &options.output;
+    let mut fingerprint = ConversionFingerprint::new(input, options, ctx)?;
+    let mut skipped: Vec<String> = checks.skip.iter().map(|c| c.name().to_string()).collect();
+    skipped.sort();
+    skipped.dedup();
+    fingerprint.skipped_checks = skipped;
+    let conversion = fingerprint.digest();
+    claim_output(out, &fingerprint, options.overwrite)?;
+    let _part_lock = arkit_core::atomic_file::FolderLock::acquire(
+        out,
+        &format!(
+            "convert-part-{}-of-{}",
+            options.shard_index, options.shard_count
+        ),
+        "convert of this part",
+    )?;
+    std::fs::create_dir_all(out.join("samples")).map_err(|e| Error::io(out, e))?;
+    std::fs::create_dir_all(out.join("errors")).map_err(|e| Error::io(out, e))?;
+    let mut listing_problems = 0;
+    if options.shard_index == 0 {
+        listing.extend(find_orphans(input, &rows));
+        listing_problems = listing.len();
+        parquet::write_parquet(
+            &out.join("errors").join("listing.parquet"),
+            &mut samples_table::errors_frame(&listing)?,
+        )?;
+    }
+    let mut shards = Vec::new();
+    let vertices = ctx.topology.vertex_count;
+    let mut tally = SkipTally::new(checks.window);
+    // Validation of shard k+1 (rayon) overlaps the writing of shard k (one writer
+    // thread), so the sequential Parquet encoding does not leave a core idle.
+    std::thread::scope(|scope| -> Result<()> {
+        let mut pending: Option<std::thread::ScopedJoinHandle<'_, Result<ShardEntry>>> = None;
+        let join = |h: std::thread::ScopedJoinHandle<'_, Result<ShardEntry>>| {
+            h.join()
+                .unwrap_or_else(|_| Err(Error::invalid("convert", "the shard writer panicked")))
+        };
+        for (index, chunk) in rows.chunks(options.rows_per_shard).enumerate() {
+            if index % options.shard_count != options.shard_index {
+                continue;
+            }
+            let shard_fp = shard_fingerprint(&conversion, &input.root, chunk);
+            if let Some(entry) = finished_shard(out, index, &shard_fp)? {
+                // Finished by an earlier run of this conversion, from the same files.
+                progress(chunk.len());
+                shards.push(entry);
+                continue;
+            }
+            let samples_rel = format!("samples/part-{index:05}.parquet");
+            let errors_rel = format!("errors/part-{index:05}.parquet");
+            let (samples_path, errors_path) = (out.join(&samples_rel), out.join(&errors_rel));
+            let record_path = out.join(shard_record_name(index));
+            // A record that no longer matches goes first: an interruption from here on
+            // leaves a shard that the next run redoes.
+            if record_path.exists() {
+                std::fs::remove_file(&record_path).map_err(|e| Error::io(&record_path, e))?;
+            }
+            let validate = |rows: &[PlannedRow]| -> Vec<std::result::Result<SampleRecord, Skip>> {
+                rows.par_iter()
+                    .map(|row| {
+                        let r = validate_sample_with(&input.root, row, ctx, checks);
+                        progress(1);
+                        r
+                    })
+                    .collect()
+            };
+            // The first samples of the run (up to the systematic rule's window) are
+            // validated first, and the rule applied, before the rest of the shard.
+            let first = tally.remaining().min(chunk.len());
+            let mut results = validate(&chunk[..first]);
+            for r in &results {
+                tally.record(r.as_ref().err().and_then(|s| {
+                    s.check
+                        .map(|c| (c, format!("{}: {}", s.record.file, s.record.reason)))
+                }));
+            }
+            if let Some((_, message)) = tally.verdict("samples") {
+                return Err(Error::invalid("convert", message));
+            }
+            results.extend(validate(&chunk[first..]));
+            let (mut good, mut bad) = (Vec::new(), Vec::new());
+            for r in results {
+                match r {
+                    Ok(s) => good.push(s),
+                    Err(e) => bad.push(*e.record),
+                }
+            }
+            if let Some(h) = pending.take() {
+                shards.push(join(h)?);
+            }
+            pending = Some(scope.spawn(move || {
+                parquet::write_parquet(&errors_path, &mut samples_table::errors_frame(&bad)?)?;
+                samples_table::write_samples(&samples_path, &good, vertices)?;
+                let entry = ShardEntry {
+                    index,
+                    samples_file: samples_rel,
+                    rows: good.len(),
+                    sha256: sha256_file(&samples_path)?,
+                    errors_file: errors_rel,
+                    error_rows: bad.len(),
+                    errors_sha256: sha256_file(&errors_path)?,
+                    bytes: std::fs::metadata(&samples_path)
+                        .map_err(|e| Error::io(&samples_path, e))?
+                        .len(),
+                    tail_sha256: tail_sha256(&samples_path)?,
+                    fingerprint: shard_fp,
+                };
+                // The record last: a shard is finished only once it exists.
+                let text = serde_json::to_string_pretty(&entry)
+                    .map_err(|e| Error::invalid("shard record", e.to_string()))?;
+                arkit_core::atomic_file::write_bytes(&record_path, format!("{text}\n").as_bytes())?;
+                Ok(entry)
+            }));
+        }
+        if let Some(h) = pending.take() {
+            shards.push(join(h)?);
+        }
+        Ok(())
+    })?;
+    shards.sort_by_key(|s| s.index);
+    let converted = shards.iter().map(|s| s.rows).sum();
+    let skipped = shards.iter().map(|s| s.error_rows).sum();
+    let manifest = Manifest {
+        tool: "arkit-tool".into(),
+        version: env!("CARGO_PKG_VERSION").into(),
+        input: options.input.display().to_string(),
+        input_root: fingerprint.input_root.clone(),
+        fingerprint: conversion,
+        topology_sha256: fingerprint.topology_sha256.clone(),
+        layout: input.kind,
+        lists: input
+            .lists
+            .iter()
+            .map(|(_, p)| relative(&input.root, p))
+            .collect(),
+        topology: ctx.topology.source.clone(),
+        rows_per_shard: options.rows_per_shard,
+        embed_images: options.embed_images,
+        part: [options.shard_index, options.shard_count],
+        listed: rows.len(),
+        converted,
+        skipped,
+        listing_problems,
+        shards,
+    };
+    write_manifest(
+        &out.join(manifest_name(options.shard_index, options.shard_count)),
+        &manifest,
+    )?;
+    Ok(manifest)
+}
+
+fn write_manifest(path: &Path, m: &Manifest) -> Result<()> {
+    let text =
+        serde_json::to_string_pretty(m).map_err(|e| Error::invalid("manifest", e.to_string()))?;
+    arkit_core::atomic_file::write_bytes(path, format!("{text}\n").as_bytes())
+}
+
+/// What [`merge`] did.
+#[derive(Clone, Debug)]
+pub struct Merged {
+    /// The dataset's manifest, as written to `dataset.json`.
+    pub manifest: Manifest,
+    /// Files in `manifest/` that are not named like a part (`part-IIII-of-NNNN.json`;
+    /// a copy such as `part-0000-of-0002 (copy).json`): not read, left where they are.
+    pub ignored: Vec<PathBuf>,
+}
+
+/// `(I, N)` of a part manifest's file name `part-IIII-of-NNNN.json`, exactly as
+/// [`manifest_name`] writes it (so `part-0-of-2.json` or a copy's name is not one).
+fn part_of_name(name: &str) -> Option<(usize, usize)> {
+    let (i, n) = name
+        .strip_prefix("part-")?
+        .strip_suffix(".json")?
+        .split_once("-of-")?;
+    let digits = |s: &str| s.len() >= 4 && s.bytes().all(|b| b.is_ascii_digit());
+    if !digits(i) || !digits(n) {
+        return None;
+    }
+    let (i, n) = (i.parse().ok()?, n.parse().ok()?);
+    (i < n && n > 1 && manifest_name(i, n) == format!("manifest/{name}")).then_some((i, n))
+}
+
+/// Joins the parts of a `--shard I/N` conversion into `dataset.json`.
+///
+/// Only the parts the conversion names are read: `manifest/part-IIII-of-NNNN.json` for
+/// `I` in `0..N`, each of which must say it is part `I` of `N` and carry the
+/// fingerprint of the conversion that `conversion.json` records. Any other file in
+/// `manifest/` (a copy made by hand, say) is ignored and listed in [`Merged::ignored`];
+/// parts of two different `N` are refused. Errors, naming the file: a part missing, a
+/// part of another conversion or renamed, parts that disagree, a shard in two parts or
+/// in none (every shard of the conversion's rows must be there once), a samples file
+/// that is not the one its part records, and a sample key found twice (the error names
+/// both shards).
+pub fn merge(dataset: &Path) -> Result<Merged> {
+    let record = dataset.join(CONVERSION_FILE);
+    let conversion: ConversionFingerprint = match std::fs::read_to_string(&record) {
+        Ok(text) => serde_json::from_str(&text)
+            .map_err(|e| Error::format(&record, format!("not a conversion record: {e}")))?,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
+            return Err(Error::format(
+                dataset,
+                format!(
+                    "no {CONVERSION_FILE}: not a folder that `arkit-tool convert --shard I/N` wrote"
+                ),
+            ));
+        }
+        Err(e) => return Err(Error::io(&record, e)),
+    };
+    let digest = conversion.digest();
+    let dir = dataset.join("manifest");
+    let mut named: Vec<(usize, usize)> = Vec::new();
+    let mut ignored = Vec::new();
+    for entry in std::fs::read_dir(&dir).map_err(|e| Error::io(&dir, e))? {
+        let entry = entry.map_err(|e| Error::io(&dir, e))?;
+        let name = entry.file_name().to_string_lossy().into_owned();
+        if arkit_core::atomic_file::is_temporary_name(&name) {
+            continue;
+        }
+        match part_of_name(&name) {
+            Some(part) => named.push(part),
+            None => ignored.push(entry.path()),
+        }
+    }
+    ignored.sort();
+    let counts: BTreeSet<usize> = named.iter().map(|p| p.1).collect();
+    let n = match counts.len() {
+        0 => {
+            return Err(Error::format(
+                &dir,
+                "no part manifests (part-IIII-of-NNNN.json) to merge: run `convert --shard I/N` first",
+            ));
+        }
+        1 => *counts.first().expect("one"),
+        _ => {
+            return Err(Error::format(
+                &dir,
+                format!(
+                    "holds the parts of conversions split {} ways: remove the part manifests of the split you do not want, or convert into a new folder",
+                    counts
+                        .iter()
+                        .map(|c| c.to_string())
+                        .collect::<Vec<_>>()
+                        .join(" and ")
+                ),
+            ));
+        }
+    };
+    let mut parts: Vec<(Manifest, PathBuf)> = Vec::new();
+    for i in 0..n {
+        let path = dataset.join(manifest_name(i, n));
+        if !path.exists() {
+            return Err(Error::format(
+                &dir,
+                format!("part {i} of {n} is missing: run `convert --shard {i}/{n}`"),
+            ));
+        }
+        let p = read_manifest(&path)?;
+        if p.part != [i, n] {
+            return Err(Error::format(
+                &path,
+                format!(
+                    "says it is part {} of {}, but its name is part {i} of {n}: renamed or copied by hand; run `convert --shard {i}/{n}` again",
+                    p.part[0], p.part[1]
+                ),
+            ));
+        }
+        if p.fingerprint != digest {
+            return Err(Error::format(
+                &path,
+                format!(
+                    "this part comes from another conversion than the one {CONVERSION_FILE} records (other input, lists or options): run `convert --shard {i}/{n}` again"
+                ),
+            ));
+        }
+        parts.push((p, path));
+    }
+    let (first, first_path) = parts[0].clone();
+    for (p, path) in &parts {
+        let differs = [
+            ("listed rows", p.listed != first.listed),
+            ("shard size", p.rows_per_shard != first.rows_per_shard),
+            (
+                "input",
+                p.input_root != first.input_root || p.input != first.input,
+            ),
+            (
+                "topology",
+                p.topology != first.topology || p.topology_sha256 != first.topology_sha256,
+            ),
+            ("embedded images", p.embed_images != first.embed_images),
+        ];
+        if let Some((what, _)) = differs.iter().find(|(_, d)| *d) {
+            return Err(Error::format(
+                path,
+                format!(
+                    "this part comes from a different conversion than {} ({what} differs): rerun every part with the same input and options",
+                    first_path.display()
+                ),
+            ));
+        }
+    }
+    // Every shard of the conversion's rows once, in the part that owns it.
+    let expected = first.listed.div_ceil(first.rows_per_shard.max(1));
+    let mut owner: Vec<Option<usize>> = vec![None; expected];
+    let mut shards: Vec<ShardEntry> = Vec::new();
+    for (i, (p, path)) in parts.iter().enumerate() {
+        for s in &p.shards {
+            if s.index >= expected || s.index % n != i {
+                return Err(Error::format(
+                    path,
+                    format!(
+                        "lists shard {}, which is not one of part {i} of {n} (shards k < {expected} with k % {n} == {i}): run `convert --shard {i}/{n}` again",
+                        s.index
+                    ),
+                ));
+            }
+            if owner[s.index].replace(i).is_some() {
+                return Err(Error::format(
+                    path,
+                    format!(
+                        "lists shard {} twice: run `convert --shard {i}/{n}` again",
+                        s.index
+                    ),
+                ));
+            }
+            shards.push(s.clone());
+        }
+    }
+    if let Some(k) = owner.iter().position(|o| o.is_none()) {
+        return Err(Error::format(
+            &parts[k % n].1,
+            format!(
+                "does not list shard {k} of the conversion's {expected}: run `convert --shard {}/{n}` again",
+                k % n
+            ),
+        ));
+    }
+    shards.sort_by_key(|s| s.index);
+    check_unique_keys(dataset, &shards)?;
+    let merged = Manifest {
+        part: [0, 1],
+        converted: shards.iter().map(|s| s.rows).sum(),
+        skipped: shards.iter().map(|s| s.error_rows).sum(),
+        listing_problems: parts.iter().map(|(p, _)| p.listing_problems).sum(),
+        shards,
+        ..first
+    };
+    write_manifest(&dataset.join(MANIFEST_FILE), &merged)?;
+    Ok(Merged {
+        manifest: merged,
+        ignored,
+    })
+}
+
+/// Checks each shard's samples file against its entry (size, footer checksum, rows)
+/// and that no sample key is in two rows; reads the key columns only.
+fn check_unique_keys(dataset: &Path, shards: &[ShardEntry]) -> Result<()> {
+    let mut seen: std::collections::HashMap<String, usize> = std::collections::HashMap::new();
+    for s in shards {
+        let path = dataset.join(&s.samples_file);
+        check_shard_file(&path, s.bytes, &s.tail_sha256)?;
+        let keys = samples_table::read_sample_keys(&path)?;
+        if keys.len() != s.rows {
+            return Err(Error::format(
+                &path,
+                format!(
+                    "{} rows, its part manifest says {}: rerun `arkit-tool convert`",
+                    keys.len(),
+                    s.rows
+                ),
+            ));
+        }
+        for (key, _) in keys {
+            let name = key.to_string();
+            if let Some(other) = seen.insert(name, s.index) {
+                return Err(Error::format(
+                    &path,
+                    format!(
+                        "sample {key} is in shard {other} and again in shard {}: a dataset holds each sample once; convert again into a new folder",
+                        s.index
+                    ),
+                ));
+            }
+        }
+    }
+    Ok(())
+}
+
+/// Reads every `samples` shard of a converted dataset named by its `dataset.json`, each
+/// checked against the manifest first.
+pub fn read_dataset_samples(dataset: &Path) -> Result<Vec<SampleRecord>> {
+    crate::store::dataset::Dataset::open(dataset)?.read_all_samples()
+}
+
+/// Checks every file the manifest of `dataset` names against its full SHA-256; returns
+/// the number of files checked, or the first file that differs.
+pub fn verify_dataset(dataset: &Path) -> Result<usize> {
+    let m = read_manifest(&dataset.join(MANIFEST_FILE))?;
+    let mut checked = 0;
+    for s in &m.shards {
+        for (file, sha) in [
+            (&s.samples_file, &s.sha256),
+            (&s.errors_file, &s.errors_sha256),
+        ] {
+            let path = dataset.join(file);
+            if &sha256_file(&path)? != sha {
+                return Err(Error::format(
+                    &path,
+                    "its SHA-256 differs from the manifest's: the file changed after convert wrote it; rerun `arkit-tool convert`",
+                ));
+            }
+            checked += 1;
+        }
+    }
+    Ok(checked)
+}

@@ -1,0 +1,794 @@
+//! `colour_jitter`: torchvision's `ColorJitter(0.3, 0.3, 0.2, 0.01)` (the official
+//! loader's training augmentation) on an interleaved RGB crop, byte for byte as PIL
+//! computes it: brightness, contrast, saturation and hue in a drawn order, each rounded
+//! back to bytes. The one colour jitter of the workspace: the loader (the Python
+//! package's) draws it in the official ranges, `train` in ranges of its
+//! `--colour-jitter` strength ([`ColourJitterRanges::of_strength`]; the official ones
+//! by default).
+//!
+//! Invariants: every operation gives the bytes of its textbook definition (PIL's
+//! enhancers, the HSV hue rotation with `f32` arithmetic and `round`); the fast paths
+//! (byte tables, library-free roundings, SSE2 and AVX2 lanes) do the same operations
+//! and give the same bits. Tested below: each operation against values derived by hand,
+//! the scalar hue path against the textbook conversion, and each lane path (SSE2, AVX2
+//! where the CPU has it) against the scalar path on every one of the 2^24 RGB triples.
+
+use arkit_core::rng::Rng;
+
+/// torchvision's `ColorJitter(0.3, 0.3, 0.2, 0.01)`: brightness, contrast and saturation
+/// factors uniform in [0.7, 1.3], [0.7, 1.3], [0.8, 1.2], a hue shift uniform in
+/// [-0.01, 0.01] of a turn, applied in a random order ([`ColourJitter::apply`]).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct ColourJitter {
+    /// Brightness factor (1: unchanged).
+    pub brightness: f32,
+    /// Contrast factor.
+    pub contrast: f32,
+    /// Saturation factor.
+    pub saturation: f32,
+    /// Hue shift in turns.
+    pub hue: f32,
+    /// The order of the four operations (0 brightness, 1 contrast, 2 saturation, 3 hue).
+    pub order: [usize; 4],
+}
+
+/// The ranges a [`ColourJitter`] is drawn from: torchvision's `ColorJitter(b, c, s, h)`
+/// draws its brightness, contrast and saturation factors uniform in `[1-b, 1+b]`,
+/// `[1-c, 1+c]`, `[1-s, 1+s]` and its hue shift in `[-h, h]`.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct ColourJitterRanges {
+    /// Brightness factor range.
+    pub brightness: (f64, f64),
+    /// Contrast factor range.
+    pub contrast: (f64, f64),
+    /// Saturation factor range.
+    pub saturation: (f64, f64),
+    /// Hue shift range, turns.
+    pub hue: (f64, f64),
+}
+
+impl ColourJitterRanges {
+    /// The official loader's `ColorJitter(0.3, 0.3, 0.2, 0.01)`.
+    pub const OFFICIAL: ColourJitterRanges = ColourJitterRanges {
+        brightness: (0.7, 1.3),
+        contrast: (0.7, 1.3),
+        saturation: (0.8, 1.2),
+        hue: (-0.01, 0.01),
+    };
+
+    /// `ColorJitter(c, c, 2c/3, c/30)`: the official ranges scaled to strength `c`
+    /// (`train --colour-jitter c`). At `c = 0.3` (as `f32`) they are
+    /// [`ColourJitterRanges::OFFICIAL`] exactly, so the same generator state draws the
+    /// same jitter as the loader's.
+    pub fn of_strength(c: f32) -> Self {
+        if c == 0.3 {
+            return Self::OFFICIAL;
+        }
+        let c = c as f64;
+        let around_one = |r: f64| (1.0 - r, 1.0 + r);
+        ColourJitterRanges {
+            brightness: around_one(c),
+            contrast: around_one(c),
+            saturation: around_one(c * 2.0 / 3.0),
+            hue: (-c / 30.0, c / 30.0),
+        }
+    }
+}
+
+impl ColourJitter {
+    /// One draw from `rng` in the official ranges ([`ColourJitterRanges::OFFICIAL`]).
+    pub fn draw(rng: &mut Rng) -> Self {
+        Self::draw_in(rng, &ColourJitterRanges::OFFICIAL)
+    }
+
+    /// One draw from `rng` in `ranges`: brightness, contrast, saturation, hue, then the
+    /// order of the four operations.
+    pub fn draw_in(rng: &mut Rng, ranges: &ColourJitterRanges) -> Self {
+        let mut uniform = |(lo, hi): (f64, f64)| rng.uniform(lo, hi) as f32;
+        let brightness = uniform(ranges.brightness);
+        let contrast = uniform(ranges.contrast);
+        let saturation = uniform(ranges.saturation);
+        let hue = uniform(ranges.hue);
+        let mut order = [0usize, 1, 2, 3];
+        for k in (1..4).rev() {
+            order.swap(k, rng.below(k as u64 + 1) as usize);
+        }
+        ColourJitter {
+            brightness,
+            contrast,
+            saturation,
+            hue,
+            order,
+        }
+    }
+
+    /// Applies the jitter to an interleaved RGB image, each operation rounded back to
+    /// bytes as PIL does between operations. Brightness blends with black, contrast with
+    /// the grey of the image's mean luma (ITU-R 601 integer luma, as PIL's `L`),
+    /// saturation with each pixel's luma; the hue shift rotates the HSV hue.
+    ///
+    /// Brightness and contrast map each byte alone, so they go through a 256-entry
+    /// table of the same formula; every rounding is [`round_half_away`], `f32::round`'s
+    /// values without its library call. Saturation and hue run eight pixels at a time
+    /// where the CPU has AVX2 ([`saturate_all`], [`shift_hue_all`]).
+    pub fn apply(&self, rgb: &mut [u8]) {
+        let through_table = |rgb: &mut [u8], grey: f32, f: f32| {
+            let table: [u8; 256] = std::array::from_fn(|v| blend(v as f32, grey, f));
+            rgb.iter_mut().for_each(|v| *v = table[*v as usize]);
+        };
+        for op in self.order {
+            match op {
+                0 => through_table(rgb, 0.0, self.brightness),
+                1 => {
+                    let n = (rgb.len() / 3).max(1) as f64;
+                    let mean = rgb.chunks_exact(3).map(|p| luma(p) as f64).sum::<f64>() / n;
+                    let grey = (mean + 0.5).floor() as f32;
+                    through_table(rgb, grey, self.contrast);
+                }
+                2 => saturate_all(rgb, self.saturation),
+                _ => {
+                    if self.hue != 0.0 {
+                        shift_hue_all(rgb, self.hue)
+                    }
+                }
+            }
+        }
+    }
+}
+
+/// PIL's integer luma of one RGB pixel (ITU-R 601, `L` mode): `(299 R + 587 G + 114 B)
+/// / 1000`.
+fn luma(p: &[u8]) -> u32 {
+    (p[0] as u32 * 299 + p[1] as u32 * 587 + p[2] as u32 * 114) / 1000
+}
+
+/// PIL's enhancer blend of a value `v` with `grey` by factor `f`, rounded back to a byte.
+fn blend(v: f32, grey: f32, f: f32) -> u8 {
+    round_half_away(grey + f * (v - grey)).clamp(0.0, 255.0) as u8
+}
+
+/// [`ColourJitter::draw`] then [`ColourJitter::apply`].
+pub fn jitter_colour(rgb: &mut [u8], rng: &mut Rng) {
+    ColourJitter::draw(rng).apply(rgb)
+}
+
+/// `v.round()` (nearest, halves away from zero) for `|v| < 2^23`, by truncation and a
+/// comparison: `f32::round` is a library call in the x86-64 baseline, and was most of
+/// the colour jitter's time. `v - trunc(v)` is exact, so the halfway test is too.
+#[inline]
+fn round_half_away(v: f32) -> f32 {
+    let t = v as i32 as f32;
+    let f = v - t;
+    if f >= 0.5 {
+        t + 1.0
+    } else if f <= -0.5 {
+        t - 1.0
+    } else {
+        t.copysign(v)
+    }
+}
+
+/// `x.rem_euclid(m)` for `x` in `[-m, 2m)`: `x % m` is then `x` or `x - m`, both exact,
+/// and a negative remainder gets `m` added, as `rem_euclid` adds it.
+#[inline]
+fn wrap_once(x: f32, m: f32) -> f32 {
+    if x < 0.0 {
+        x + m
+    } else if x >= m {
+        x - m
+    } else {
+        x
+    }
+}
+
+/// `v / 255` for every byte `v` (the same division, done once).
+pub(crate) const UNIT: [f32; 256] = {
+    let mut t = [0f32; 256];
+    let mut i = 0;
+    while i < 256 {
+        t[i] = i as f32 / 255.0;
+        i += 1;
+    }
+    t
+};
+
+/// For each sextant of the hue circle, which of `[val, t, p, q]` the red, green and
+/// blue channels take (the six cases of the HSV to RGB conversion).
+const SEXTANT: [[usize; 3]; 6] = [
+    [0, 1, 2],
+    [3, 0, 2],
+    [2, 0, 1],
+    [2, 3, 0],
+    [1, 2, 0],
+    [0, 2, 3],
+];
+
+/// Rotates one pixel's HSV hue by `h` turns (`|h| <= 0.5`): RGB to HSV, the hue moved,
+/// back to RGB, rounded to bytes. The scalar path of [`shift_hue_all`] (the last
+/// pixels, and targets without SSE2): the textbook conversion's arithmetic, operation
+/// for operation, with the sextant's channels from a table, so the bytes are its bytes
+/// (tested against it).
+fn shift_hue(p: &mut [u8], h: f32) {
+    let [r, g, b] = [p[0], p[1], p[2]].map(|v| UNIT[v as usize]);
+    let max = r.max(g).max(b);
+    let min = r.min(g).min(b);
+    let d = max - min;
+    if d == 0.0 {
+        return;
+    }
+    let (red, green) = (max == r, max == g);
+    let num = if red {
+        g - b
+    } else if green {
+        b - r
+    } else {
+        r - g
+    };
+    let x = num / d;
+    // (g - b) / d is in [-1, 1], the hue in [0, 1): one wrap each is rem_euclid.
+    let h6 = if red {
+        wrap_once(x, 6.0)
+    } else {
+        x + if green { 2.0 } else { 4.0 }
+    };
+    let hue = wrap_once(h6 / 6.0 + h, 1.0);
+    let (sat, val) = (d / max, max);
+    // hue * 6 is in [0, 6): truncation is floor.
+    let i = (hue * 6.0) as i32;
+    let f = hue * 6.0 - i as f32;
+    let values = [
+        val,
+        val * (1.0 - sat * (1.0 - f)),
+        val * (1.0 - sat),
+        val * (1.0 - sat * f),
+    ];
+    for (o, &k) in p.iter_mut().zip(&SEXTANT[(i % 6) as usize]) {
+        *o = round_half_away(values[k] * 255.0).clamp(0.0, 255.0) as u8;
+    }
+}
+
+/// [`shift_hue`] on every pixel of an interleaved RGB image: on x86-64 eight pixels at
+/// a time in AVX2 where the CPU has it ([`shift_hue_avx2`]), then four at a time in
+/// SSE2 (part of the baseline, [`shift_hue_sse2`]), the last pixels one by one. The lanes
+/// do the scalar path's operations lane by lane, the channel and sextant choices as
+/// masks, so every path gives its bytes (tested on every RGB triple).
+fn shift_hue_all(rgb: &mut [u8], h: f32) {
+    #[allow(unused_mut)]
+    let mut done = 0;
+    #[cfg(target_arch = "x86_64")]
+    {
+        if std::arch::is_x86_feature_detected!("avx2") {
+            done = rgb.len() / 24 * 24;
+            // SAFETY: AVX2 was detected; the function reads and writes only the slice
+            // given, whole groups of eight pixels.
+            unsafe { shift_hue_avx2(&mut rgb[..done], h) };
+        }
+        let whole = done + (rgb.len() - done) / 12 * 12;
+        // SAFETY: SSE2 is part of the x86-64 baseline; whole groups of four pixels.
+        unsafe { shift_hue_sse2(&mut rgb[done..whole], h) };
+        done = whole;
+    }
+    for p in rgb[done..].chunks_exact_mut(3) {
+        shift_hue(p, h);
+    }
+}
+
+/// Blends one pixel with its grey (`(299 R + 587 G + 114 B) / 1000`, PIL's integer
+/// luma) by `f`, each channel rounded back to a byte: PIL's `Color` enhancement, the
+/// scalar path of [`saturate_all`].
+fn saturate(p: &mut [u8], f: f32) {
+    let grey = luma(p) as f32;
+    for v in p.iter_mut() {
+        *v = blend(*v as f32, grey, f);
+    }
+}
+
+/// [`saturate`] on every pixel of an interleaved RGB image: on x86-64 eight pixels at a
+/// time in AVX2 where the CPU has it ([`saturate_avx2`]), the rest one by one; the same
+/// bytes (tested on every RGB triple).
+fn saturate_all(rgb: &mut [u8], f: f32) {
+    #[allow(unused_mut)]
+    let mut done = 0;
+    #[cfg(target_arch = "x86_64")]
+    if std::arch::is_x86_feature_detected!("avx2") {
+        done = rgb.len() / 24 * 24;
+        // SAFETY: AVX2 was detected; whole groups of eight pixels.
+        unsafe { saturate_avx2(&mut rgb[..done], f) };
+    }
+    for p in rgb[done..].chunks_exact_mut(3) {
+        saturate(p, f);
+    }
+}
+
+/// [`saturate`] on groups of eight pixels (`rgb.len()` a multiple of 24), in AVX2.
+/// The luma's integer division is a float division truncated: for sums below 2^24 the
+/// quotient's fraction is at least 1/1000 from the next integer, far more than a
+/// float's rounding, so the truncation is the integer quotient (tested on every triple).
+/// A negative blend is truncated toward zero instead of rounded away from it; both
+/// clamp to 0, as does every value below 0.5.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+unsafe fn saturate_avx2(rgb: &mut [u8], f: f32) {
+    use std::arch::x86_64::*;
+    let fv = _mm256_set1_ps(f);
+    let (zero, one) = (_mm256_setzero_ps(), _mm256_set1_ps(1.0));
+    let (half, full) = (_mm256_set1_ps(0.5), _mm256_set1_ps(255.0));
+    let weight = [
+        _mm256_set1_epi32(299),
+        _mm256_set1_epi32(587),
+        _mm256_set1_epi32(114),
+    ];
+    for px in rgb.chunks_exact_mut(24) {
+        let lane = |c: usize| {
+            let v: [i32; 8] = std::array::from_fn(|k| px[3 * k + c] as i32);
+            // SAFETY: an unaligned load of the eight i32 of `v`.
+            unsafe { _mm256_loadu_si256(v.as_ptr().cast()) }
+        };
+        let rgb_lanes = [lane(0), lane(1), lane(2)];
+        let sum = _mm256_add_epi32(
+            _mm256_add_epi32(
+                _mm256_mullo_epi32(rgb_lanes[0], weight[0]),
+                _mm256_mullo_epi32(rgb_lanes[1], weight[1]),
+            ),
+            _mm256_mullo_epi32(rgb_lanes[2], weight[2]),
+        );
+        let quotient = _mm256_div_ps(_mm256_cvtepi32_ps(sum), _mm256_set1_ps(1000.0));
+        let grey = _mm256_cvtepi32_ps(_mm256_cvttps_epi32(quotient));
+        let mut bytes = [[0i32; 8]; 3];
+        for (o, v) in bytes.iter_mut().zip(rgb_lanes) {
+            let v = _mm256_cvtepi32_ps(v);
+            let x = _mm256_add_ps(grey, _mm256_mul_ps(fv, _mm256_sub_ps(v, grey)));
+            let tr = _mm256_round_ps::<{ _MM_FROUND_TO_ZERO | _MM_FROUND_NO_EXC }>(x);
+            let up = _mm256_and_ps(_mm256_cmp_ps::<_CMP_GE_OQ>(_mm256_sub_ps(x, tr), half), one);
+            let y = _mm256_min_ps(_mm256_max_ps(_mm256_add_ps(tr, up), zero), full);
+            // SAFETY: an unaligned store of eight i32 into `o`, eight i32 long.
+            unsafe { _mm256_storeu_si256(o.as_mut_ptr().cast(), _mm256_cvttps_epi32(y)) };
+        }
+        for k in 0..8 {
+            for c in 0..3 {
+                px[3 * k + c] = bytes[c][k] as u8;
+            }
+        }
+    }
+}
+
+/// [`shift_hue`] on groups of four pixels (`rgb.len()` a multiple of 12), in SSE2.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "sse2")]
+unsafe fn shift_hue_sse2(rgb: &mut [u8], h: f32) {
+    use std::arch::x86_64::*;
+    let sel = |m: __m128, a: __m128, b: __m128| _mm_or_ps(_mm_and_ps(m, a), _mm_andnot_ps(m, b));
+    let (zero, one, six) = (_mm_setzero_ps(), _mm_set1_ps(1.0), _mm_set1_ps(6.0));
+    let (half, full) = (_mm_set1_ps(0.5), _mm_set1_ps(255.0));
+    let hv = _mm_set1_ps(h);
+    // `wrap_once(x, m)` lane by lane.
+    let wrap = |x: __m128, m: __m128| {
+        let low = _mm_cmplt_ps(x, zero);
+        let high = _mm_cmpge_ps(x, m);
+        sel(low, _mm_add_ps(x, m), sel(high, _mm_sub_ps(x, m), x))
+    };
+    for px in rgb.chunks_exact_mut(12) {
+        let lane = |c: usize| {
+            let v: [f32; 4] = std::array::from_fn(|k| UNIT[px[3 * k + c] as usize]);
+            // SAFETY: an unaligned load of the four floats of `v`.
+            unsafe { _mm_loadu_ps(v.as_ptr()) }
+        };
+        let (r, g, b) = (lane(0), lane(1), lane(2));
+        let max = _mm_max_ps(_mm_max_ps(r, g), b);
+        let min = _mm_min_ps(_mm_min_ps(r, g), b);
+        let d = _mm_sub_ps(max, min);
+        let keep = _mm_movemask_ps(_mm_cmpeq_ps(d, zero));
+        if keep == 0b1111 {
+            continue;
+        }
+        let red = _mm_cmpeq_ps(max, r);
+        let green = _mm_andnot_ps(red, _mm_cmpeq_ps(max, g));
+        let num = sel(
+            red,
+            _mm_sub_ps(g, b),
+            sel(green, _mm_sub_ps(b, r), _mm_sub_ps(r, g)),
+        );
+        let x = _mm_div_ps(num, d);
+        let off = sel(green, _mm_set1_ps(2.0), _mm_set1_ps(4.0));
+        let h6 = sel(red, wrap(x, six), _mm_add_ps(x, off));
+        let hue = wrap(_mm_add_ps(_mm_div_ps(h6, six), hv), one);
+        let sat = _mm_div_ps(d, max);
+        let scaled = _mm_mul_ps(hue, six);
+        let i = _mm_cvttps_epi32(scaled);
+        let f = _mm_sub_ps(scaled, _mm_cvtepi32_ps(i));
+        let i = _mm_andnot_si128(_mm_cmpeq_epi32(i, _mm_set1_epi32(6)), i);
+        let is = |k: i32| _mm_castsi128_ps(_mm_cmpeq_epi32(i, _mm_set1_epi32(k)));
+        let t = _mm_mul_ps(max, _mm_sub_ps(one, _mm_mul_ps(sat, _mm_sub_ps(one, f))));
+        let p = _mm_mul_ps(max, _mm_sub_ps(one, sat));
+        let q = _mm_mul_ps(max, _mm_sub_ps(one, _mm_mul_ps(sat, f)));
+        // SEXTANT, as masks.
+        let or = _mm_or_ps;
+        let out = [
+            sel(or(is(0), is(5)), max, sel(is(1), q, sel(is(4), t, p))),
+            sel(is(0), t, sel(or(is(1), is(2)), max, sel(is(3), q, p))),
+            sel(is(2), t, sel(or(is(3), is(4)), max, sel(is(5), q, p))),
+        ];
+        let mut bytes = [[0i32; 4]; 3];
+        for (o, v) in bytes.iter_mut().zip(out) {
+            // round_half_away for the non-negative values here, then the clamp.
+            let v = _mm_mul_ps(v, full);
+            let tr = _mm_cvtepi32_ps(_mm_cvttps_epi32(v));
+            let up = _mm_and_ps(_mm_cmpge_ps(_mm_sub_ps(v, tr), half), one);
+            let v = _mm_min_ps(_mm_max_ps(_mm_add_ps(tr, up), zero), full);
+            // SAFETY: an unaligned store of four i32 into `o`, four i32 long.
+            unsafe { _mm_storeu_si128(o.as_mut_ptr().cast(), _mm_cvttps_epi32(v)) };
+        }
+        for k in 0..4 {
+            if keep & (1 << k) == 0 {
+                for c in 0..3 {
+                    px[3 * k + c] = bytes[c][k] as u8;
+                }
+            }
+        }
+    }
+}
+
+/// [`shift_hue`] on groups of eight pixels (`rgb.len()` a multiple of 24), in AVX2: the
+/// operations of [`shift_hue_sse2`] on eight lanes.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+unsafe fn shift_hue_avx2(rgb: &mut [u8], h: f32) {
+    use std::arch::x86_64::*;
+    let sel = |m: __m256, a: __m256, b: __m256| _mm256_blendv_ps(b, a, m);
+    let (zero, one, six) = (
+        _mm256_setzero_ps(),
+        _mm256_set1_ps(1.0),
+        _mm256_set1_ps(6.0),
+    );
+    let (half, full) = (_mm256_set1_ps(0.5), _mm256_set1_ps(255.0));
+    let hv = _mm256_set1_ps(h);
+    // `wrap_once(x, m)` lane by lane.
+    let wrap = |x: __m256, m: __m256| {
+        let low = _mm256_cmp_ps::<_CMP_LT_OQ>(x, zero);
+        let high = _mm256_cmp_ps::<_CMP_GE_OQ>(x, m);
+        sel(low, _mm256_add_ps(x, m), sel(high, _mm256_sub_ps(x, m), x))
+    };
+    for px in rgb.chunks_exact_mut(24) {
+        let lane = |c: usize| {
+            let v: [f32; 8] = std::array::from_fn(|k| UNIT[px[3 * k + c] as usize]);
+            // SAFETY: an unaligned load of the eight floats of `v`.
+            unsafe { _mm256_loadu_ps(v.as_ptr()) }
+        };
+        let (r, g, b) = (lane(0), lane(1), lane(2));
+        let max = _mm256_max_ps(_mm256_max_ps(r, g), b);
+        let min = _mm256_min_ps(_mm256_min_ps(r, g), b);
+        let d = _mm256_sub_ps(max, min);
+        let keep = _mm256_movemask_ps(_mm256_cmp_ps::<_CMP_EQ_OQ>(d, zero));
+        if keep == 0xff {
+            continue;
+        }
+        let red = _mm256_cmp_ps::<_CMP_EQ_OQ>(max, r);
+        let green = _mm256_andnot_ps(red, _mm256_cmp_ps::<_CMP_EQ_OQ>(max, g));
+        let num = sel(
+            red,
+            _mm256_sub_ps(g, b),
+            sel(green, _mm256_sub_ps(b, r), _mm256_sub_ps(r, g)),
+        );
+        let x = _mm256_div_ps(num, d);
+        let off = sel(green, _mm256_set1_ps(2.0), _mm256_set1_ps(4.0));
+        let h6 = sel(red, wrap(x, six), _mm256_add_ps(x, off));
+        let hue = wrap(_mm256_add_ps(_mm256_div_ps(h6, six), hv), one);
+        let sat = _mm256_div_ps(d, max);
+        let scaled = _mm256_mul_ps(hue, six);
+        let i = _mm256_cvttps_epi32(scaled);
+        let f = _mm256_sub_ps(scaled, _mm256_cvtepi32_ps(i));
+        let i = _mm256_andnot_si256(_mm256_cmpeq_epi32(i, _mm256_set1_epi32(6)), i);
+        let is = |k: i32| _mm256_castsi256_ps(_mm256_cmpeq_epi32(i, _mm256_set1_epi32(k)));
+        let t = _mm256_mul_ps(
+            max,
+            _mm256_sub_ps(one, _mm256_mul_ps(sat, _mm256_sub_ps(one, f))),
+        );
+        let p = _mm256_mul_ps(max, _mm256_sub_ps(one, sat));
+        let q = _mm256_mul_ps(max, _mm256_sub_ps(one, _mm256_mul_ps(sat, f)));
+        // SEXTANT, as masks.
+        let or = _mm256_or_ps;
+        let out = [
+            sel(or(is(0), is(5)), max, sel(is(1), q, sel(is(4), t, p))),
+            sel(is(0), t, sel(or(is(1), is(2)), max, sel(is(3), q, p))),
+            sel(is(2), t, sel(or(is(3), is(4)), max, sel(is(5), q, p))),
+        ];
+        let mut bytes = [[0i32; 8]; 3];
+        for (o, v) in bytes.iter_mut().zip(out) {
+            // round_half_away for the non-negative values here, then the clamp.
+            let v = _mm256_mul_ps(v, full);
+            let tr = _mm256_cvtepi32_ps(_mm256_cvttps_epi32(v));
+            let up = _mm256_and_ps(_mm256_cmp_ps::<_CMP_GE_OQ>(_mm256_sub_ps(v, tr), half), one);
+            let v = _mm256_min_ps(_mm256_max_ps(_mm256_add_ps(tr, up), zero), full);
+            // SAFETY: an unaligned store of eight i32 into `o`, eight i32 long.
+            unsafe { _mm256_storeu_si256(o.as_mut_ptr().cast(), _mm256_cvttps_epi32(v)) };
+        }
+        for k in 0..8 {
+            if keep & (1 << k) == 0 {
+                for c in 0..3 {
+                    px[3 * k + c] = bytes[c][k] as u8;
+                }
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn colour_jitter_operations_match_their_definitions() {
+        let pixels = [200u8, 100, 50, 10, 20, 30];
+        let none = ColourJitter {
+            brightness: 1.0,
+            contrast: 1.0,
+            saturation: 1.0,
+            hue: 0.0,
+            order: [0, 1, 2, 3],
+        };
+        let mut p = pixels;
+        none.apply(&mut p);
+        assert_eq!(p, pixels);
+        let mut p = pixels;
+        ColourJitter {
+            brightness: 0.5,
+            ..none
+        }
+        .apply(&mut p);
+        assert_eq!(p, [100, 50, 25, 5, 10, 15]);
+        // Saturation 0: each pixel its integer luma (299 R + 587 G + 114 B) / 1000.
+        let mut p = pixels;
+        ColourJitter {
+            saturation: 0.0,
+            ..none
+        }
+        .apply(&mut p);
+        let l0 = (200 * 299 + 100 * 587 + 50 * 114) / 1000;
+        let l1 = (10 * 299 + 20 * 587 + 30 * 114) / 1000;
+        assert_eq!(p, [l0, l0, l0, l1, l1, l1].map(|v| v as u8));
+        // Contrast 0: every value the rounded mean luma.
+        let mut p = pixels;
+        ColourJitter {
+            contrast: 0.0,
+            ..none
+        }
+        .apply(&mut p);
+        let mean = ((l0 + l1) as f64 / 2.0 + 0.5).floor() as u8;
+        assert_eq!(p, [mean; 6]);
+        // A third of a turn takes pure red to pure green.
+        let mut p = [255u8, 0, 0];
+        ColourJitter {
+            hue: 1.0 / 3.0,
+            ..none
+        }
+        .apply(&mut p);
+        assert_eq!(p, [0, 255, 0]);
+    }
+
+    /// The HSV hue rotation as the textbook writes it, with the library's roundings.
+    fn shift_hue_reference(p: &mut [u8], h: f32) {
+        let [r, g, b] = [p[0], p[1], p[2]].map(|v| v as f32 / 255.0);
+        let max = r.max(g).max(b);
+        let min = r.min(g).min(b);
+        let d = max - min;
+        if d == 0.0 {
+            return;
+        }
+        let hue = if max == r {
+            ((g - b) / d).rem_euclid(6.0)
+        } else if max == g {
+            (b - r) / d + 2.0
+        } else {
+            (r - g) / d + 4.0
+        } / 6.0;
+        let hue = (hue + h).rem_euclid(1.0);
+        let (sat, val) = (d / max, max);
+        let i = (hue * 6.0).floor();
+        let f = hue * 6.0 - i;
+        let (pp, q, t) = (
+            val * (1.0 - sat),
+            val * (1.0 - sat * f),
+            val * (1.0 - sat * (1.0 - f)),
+        );
+        let (r, g, b) = match i as i32 % 6 {
+            0 => (val, t, pp),
+            1 => (q, val, pp),
+            2 => (pp, val, t),
+            3 => (pp, q, val),
+            4 => (t, pp, val),
+            _ => (val, pp, q),
+        };
+        for (o, v) in p.iter_mut().zip([r, g, b]) {
+            *o = (v * 255.0).round().clamp(0.0, 255.0) as u8;
+        }
+    }
+
+    #[test]
+    fn the_hue_rotation_gives_the_textbook_bytes() {
+        let mut rng = Rng::new(8);
+        for k in 0..300_000 {
+            let p: [u8; 3] = if k < 4096 {
+                // Every corner-ish and grey case: channels from a coarse grid.
+                [
+                    (k % 16 * 17) as u8,
+                    (k / 16 % 16 * 17) as u8,
+                    (k / 256 * 17) as u8,
+                ]
+            } else {
+                [0; 3].map(|_| rng.below(256) as u8)
+            };
+            let h = match k % 4 {
+                0 => rng.uniform(-0.01, 0.01) as f32,
+                1 => rng.uniform(-0.5, 0.5) as f32,
+                2 => 1.0 / 3.0,
+                _ => -0.01,
+            };
+            let (mut a, mut b) = (p, p);
+            shift_hue(&mut a, h);
+            shift_hue_reference(&mut b, h);
+            assert_eq!(a, b, "{p:?} {h}");
+        }
+        // The coarse grid (greys, ties between channels) through the lanes.
+        let grid: Vec<u8> = (0..4096)
+            .flat_map(|k| [k % 16 * 17, k / 16 % 16 * 17, k / 256 * 17].map(|v| v as u8))
+            .collect();
+        for h in [0.01f32, -0.01, 1.0 / 3.0, -0.5] {
+            let (mut a, mut b) = (grid.clone(), grid.clone());
+            shift_hue_all(&mut a, h);
+            b.chunks_exact_mut(3)
+                .for_each(|p| shift_hue_reference(p, h));
+            assert_eq!(a, b, "grid, hue {h}");
+        }
+        // Whole images through the lanes (and the remainder), against pixel by pixel.
+        for n in [1usize, 7, 8, 9, 64, 1001] {
+            let h = rng.uniform(-0.02, 0.02) as f32;
+            let img: Vec<u8> = (0..3 * n).map(|_| rng.below(256) as u8).collect();
+            let (mut a, mut b) = (img.clone(), img);
+            shift_hue_all(&mut a, h);
+            b.chunks_exact_mut(3)
+                .for_each(|p| shift_hue_reference(p, h));
+            assert_eq!(a, b, "{n} pixels");
+        }
+    }
+
+    #[test]
+    fn the_fast_roundings_equal_the_library_ones() {
+        let mut rng = Rng::new(3);
+        let mut values: Vec<f32> = vec![0.0, -0.0, 0.5, -0.5, 1.5, 2.5, -2.5, 254.5, 255.49998];
+        values.push(0.5f32.next_down()); // 0.49999997: rounds to 0, though + 0.5 gives 1
+        values.push((-0.5f32).next_up());
+        for _ in 0..200_000 {
+            values.push(rng.uniform(-400.0, 700.0) as f32);
+            let k = rng.below(512) as f32;
+            values.push(k + 0.5);
+            values.push(-k - 0.5);
+        }
+        for v in values {
+            assert_eq!(round_half_away(v).to_bits(), v.round().to_bits(), "{v}");
+        }
+        for _ in 0..200_000 {
+            let x = rng.uniform(-1.0, 2.0) as f32;
+            assert_eq!(
+                wrap_once(x, 1.0).to_bits(),
+                x.rem_euclid(1.0).to_bits(),
+                "{x}"
+            );
+            let y = rng.uniform(-6.0, 12.0) as f32;
+            assert_eq!(
+                wrap_once(y, 6.0).to_bits(),
+                y.rem_euclid(6.0).to_bits(),
+                "{y}"
+            );
+        }
+    }
+
+    #[test]
+    fn strength_ranges_are_the_official_ones_scaled() {
+        assert_eq!(
+            ColourJitterRanges::of_strength(0.3),
+            ColourJitterRanges::OFFICIAL
+        );
+        // The same generator state, the same draw as the loader's.
+        assert_eq!(
+            ColourJitter::draw_in(&mut Rng::new(4), &ColourJitterRanges::of_strength(0.3)),
+            ColourJitter::draw(&mut Rng::new(4))
+        );
+        let r = ColourJitterRanges::of_strength(0.15);
+        let c = 0.15f32 as f64;
+        assert_eq!(r.brightness, (1.0 - c, 1.0 + c));
+        assert_eq!(r.contrast, (1.0 - c, 1.0 + c));
+        assert!((r.saturation.1 - 1.1).abs() < 1e-7 && (r.hue.1 - 0.005).abs() < 1e-8);
+        // Strength 0: every factor 1 and no hue shift, so the bytes are unchanged.
+        let zero = ColourJitter::draw_in(&mut Rng::new(9), &ColourJitterRanges::of_strength(0.0));
+        let pixels = [200u8, 100, 50, 10, 20, 30, 0, 255, 128];
+        let mut p = pixels;
+        zero.apply(&mut p);
+        assert_eq!(p, pixels);
+    }
+
+    #[test]
+    fn colour_jitter_draws_stay_in_torchvision_ranges() {
+        let mut rng = Rng::new(5);
+        for _ in 0..1000 {
+            let j = ColourJitter::draw(&mut rng);
+            assert!((0.7..1.3).contains(&j.brightness) && (0.7..1.3).contains(&j.contrast));
+            assert!((0.8..1.2).contains(&j.saturation) && (-0.01..0.01).contains(&j.hue));
+            let mut o = j.order;
+            o.sort();
+            assert_eq!(o, [0, 1, 2, 3]);
+        }
+    }
+
+    /// Every RGB triple, interleaved.
+    fn every_triple() -> Vec<u8> {
+        (0..1u32 << 24)
+            .flat_map(|k| [(k >> 16) as u8, (k >> 8) as u8, k as u8])
+            .collect()
+    }
+
+    #[test]
+    fn the_hue_lanes_give_the_scalar_bytes_for_every_triple() {
+        let all = every_triple();
+        for h in [0.0093f32, -0.01, 0.5] {
+            let mut scalar = all.clone();
+            scalar.chunks_exact_mut(3).for_each(|p| shift_hue(p, h));
+            #[cfg(target_arch = "x86_64")]
+            {
+                let mut sse2 = all.clone();
+                // SAFETY: SSE2 is part of the x86-64 baseline; 2^24 pixels are whole
+                // groups of four.
+                unsafe { shift_hue_sse2(&mut sse2, h) };
+                assert!(sse2 == scalar, "SSE2, hue {h}");
+                if std::arch::is_x86_feature_detected!("avx2") {
+                    let mut avx2 = all.clone();
+                    // SAFETY: AVX2 detected; whole groups of eight pixels.
+                    unsafe { shift_hue_avx2(&mut avx2, h) };
+                    assert!(avx2 == scalar, "AVX2, hue {h}");
+                } else {
+                    eprintln!("SKIPPED: AVX2 hue lanes (this CPU has no AVX2)");
+                }
+            }
+            let mut dispatched = all.clone();
+            shift_hue_all(&mut dispatched, h);
+            assert!(dispatched == scalar, "shift_hue_all, hue {h}");
+        }
+    }
+
+    #[test]
+    fn the_saturation_lanes_give_the_scalar_bytes_for_every_triple() {
+        let all = every_triple();
+        for f in [0.8f32, 1.1999, 0.0, 1.0] {
+            let mut scalar = all.clone();
+            scalar.chunks_exact_mut(3).for_each(|p| saturate(p, f));
+            #[cfg(target_arch = "x86_64")]
+            if std::arch::is_x86_feature_detected!("avx2") {
+                let mut avx2 = all.clone();
+                // SAFETY: AVX2 detected; whole groups of eight pixels.
+                unsafe { saturate_avx2(&mut avx2, f) };
+                assert!(avx2 == scalar, "AVX2, factor {f}");
+            } else {
+                eprintln!("SKIPPED: AVX2 saturation lanes (this CPU has no AVX2)");
+            }
+            let mut dispatched = all.clone();
+            saturate_all(&mut dispatched, f);
+            assert!(dispatched == scalar, "saturate_all, factor {f}");
+        }
+        // The scalar path is PIL's blend with the integer luma, derived by hand.
+        let mut p = [200u8, 100, 50];
+        saturate(&mut p, 1.2);
+        let l = (200 * 299 + 100 * 587 + 50 * 114) / 1000; // 123
+        let by_hand = [200, 100, 50]
+            .map(|v: i32| (l as f32 + 1.2 * (v - l) as f32).round().clamp(0.0, 255.0) as u8);
+        assert_eq!(p, by_hand);
+        assert_eq!(by_hand, [215, 95, 35]);
+        // Images of any length: lanes and remainder.
+        let mut rng = Rng::new(11);
+        for n in [1usize, 7, 8, 9, 17, 1001] {
+            let img: Vec<u8> = (0..3 * n).map(|_| rng.below(256) as u8).collect();
+            let (mut a, mut b) = (img.clone(), img);
+            saturate_all(&mut a, 0.9);
+            b.chunks_exact_mut(3).for_each(|p| saturate(p, 0.9));
+            assert_eq!(a, b, "{n} pixels");
+        }
+    }
+}

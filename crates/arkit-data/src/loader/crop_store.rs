@@ -1,0 +1,1181 @@
+//! `crop_store`: every sample's crop pixels and mesh stored once, so that the loader
+//! ([`crate::loader::item::FaceLoader`]) reads one small record instead of decoding the
+//! release's JPEG and `_info.npz` for every sample in every epoch.
+//!
+//! What a record holds, for one sample and one rule set (`exact` or `official`) and crop
+//! side `S`: the evaluation crop's box ([`CropTransform`]: the box the loader cuts in
+//! `mode="eval"`), the mesh (`V x 3` float32, as `_info.npz` has it), and the crop
+//! *window* around that box: crop pixels `-m..S + m` in both axes (`m =`
+//! [`margin`]`(S)`), resampled from the full-resolution image by the same formula as
+//! the crop ([`CropTransform::crop_window`]). So:
+//! - in evaluation the crop is the window's centre `S x S`, bit for bit what decoding
+//!   the JPEG and cropping gives;
+//! - in training the jittered box (centre moved by up to 0.15 of the landmarks' box
+//!   size, side scaled 0.95-1.05) lies inside the window, and is resampled from it
+//!   ([`CropTransform::in_window`]): a second bilinear resampling at about the crop's
+//!   own scale, so the training crops are slightly smoother than crops from the full
+//!   image (measured in docs/python.md), while the box, mask, points and
+//!   correspondences are the same.
+//!
+//! Layout of a store folder (`DATA/crops/<compat>-<S>/` by default): `crops.json`
+//! ([`CropStoreManifest`]: the format, the rules, the window codec, `S`, the margin,
+//! the vertex count, the key field's width, the dataset's fingerprint, the files, the
+//! samples without pixels and why) and, per samples shard `K`, `part-K.bin`: a
+//! [`HEADER_BYTES`]-byte header (magic `ARKCROP3`, format, the rules, `S`, `m`, `V`,
+//! record count, codec, the shard index `K`, the key field's width, the dataset's
+//! fingerprint), one record per row of `samples/part-K.parquet`, in order, the record
+//! index (`rows + 1` byte offsets) and a [`FOOTER_BYTES`]-byte footer (magic
+//! `ARKCIDX3`, the index's CRC-32). A record: CRC-32 of the rest, status (1: pixels,
+//! 0: none), the row, the shard index, the key's length, the dataset's fingerprint,
+//! the sample's key (`subject/action/img_id`, zero-padded), the box (four float64),
+//! the mesh's and the window's byte counts, the mesh (`V x 3` float32), the window
+//! (`(S + 2m)^2` RGB pixels) as its codec stores it ([`WindowCodec`]): a PNG by
+//! default, or the raw bytes. Both are lossless, so the window read is the window
+//! resampled, byte for byte: evaluation crops stay those of the JPEG, and a PNG store
+//! and a raw one serve the same items in both modes (measured in docs/performance.md:
+//! the PNG record is about a quarter of the raw one's bytes).
+//!
+//! Nothing read is trusted before it is checked, and nothing is served from another
+//! place than the one asked for: [`CropStore::open`] checks the manifest against the
+//! dataset (its fingerprint, [`crate::render::dataset::dataset_fingerprint`]: the
+//! checksums of its samples shards, so a store of another or a re-converted dataset is
+//! refused, never served stale), the rules, `S` and `V` the loader asks for, and every
+//! file's header and record index (a part of another store, of another dataset or of
+//! another shard, swapped or renamed, is refused by name; a truncated part or a damaged
+//! index when the store is opened); [`CropStore::read`] checks each
+//! record, in training and in evaluation alike: its CRC, then that it is the record of
+//! this dataset, this shard, this row and this sample's key (a comparison of a few
+//! dozen bytes, no hashing of the data), then its status, and only then decodes the
+//! window (into a buffer of the store's window size, never one a file names: a PNG of
+//! another size or colour type is refused from its header). A record whose sample had no
+//! readable image when the store was made has status 0, and reading it is an error
+//! naming the sample and the recorded reason. A store of an earlier format is refused
+//! with "rerun `arkit-tool crops`". Files are written under a temporary name and
+//! renamed; `crops.json` last; `crops` holds the folder's lock while it writes.
+//!
+//! Tested in `tests/crop_store.rs`: every field of every item equal with and without the
+//! store in evaluation (both rule sets), the training items' geometry equal and their
+//! pixels close, a truncated file, a flipped byte, a stale dataset, a missing image,
+//! part files swapped by hand, a record of another sample, parts of two datasets mixed
+//! and a store of an earlier format each refused with the file named, in both modes;
+//! PNG and raw stores serving the same items.
+
+use crate::crop::{CropSampling, CropTransform};
+use arkit_core::error::{Error, Result};
+use nalgebra::Point3;
+use serde::{Deserialize, Serialize};
+use std::fs::File;
+use std::path::{Path, PathBuf};
+
+/// The manifest's file name in a store folder.
+pub const MANIFEST_FILE: &str = "crops.json";
+/// The store format written and read here (1: before the records carried their
+/// dataset, shard and key; 2: fixed-size records of raw windows, before the codecs and
+/// the index).
+pub const FORMAT: u32 = 3;
+/// Bytes of a `part-K.bin` header.
+pub const HEADER_BYTES: u64 = 128;
+/// Bytes of a `part-K.bin` footer (after the index): its magic, the index's CRC.
+pub const FOOTER_BYTES: u64 = 16;
+const MAGIC: &[u8; 8] = b"ARKCROP3";
+const INDEX_MAGIC: &[u8; 8] = b"ARKCIDX3";
+/// Largest `crops.json` read (its list of samples without pixels is what can grow).
+const MAX_MANIFEST_BYTES: u64 = 256 << 20;
+/// Bytes of a dataset fingerprint (SHA-256, lower-case hex) in headers and records.
+pub const FINGERPRINT_BYTES: usize = 64;
+/// Widest key field a store has (a key longer than this is refused by `crops`).
+pub const MAX_KEY_BYTES: usize = 1024;
+/// Where a record's fields start: CRC, status, row, shard, key length, fingerprint, key.
+const AT_STATUS: usize = 4;
+const AT_ROW: usize = 8;
+const AT_SHARD: usize = 16;
+const AT_KEY_LEN: usize = 20;
+const AT_FINGERPRINT: usize = 24;
+const AT_KEY: usize = AT_FINGERPRINT + FINGERPRINT_BYTES;
+
+/// How a record's window is stored. Both are lossless: the window decoded is the
+/// window `crops` resampled, byte for byte, so evaluation crops from either are those
+/// cut from the decoded JPEG.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum WindowCodec {
+    /// The `W x W x 3` bytes as they are.
+    Raw,
+    /// A PNG (8-bit RGB, adaptive filters, zlib's default level): the default.
+    Png,
+}
+
+impl WindowCodec {
+    /// Its name in `crops.json` and on the command line.
+    pub fn name(self) -> &'static str {
+        match self {
+            WindowCodec::Raw => "raw",
+            WindowCodec::Png => "png",
+        }
+    }
+
+    fn code(self) -> u32 {
+        match self {
+            WindowCodec::Raw => 0,
+            WindowCodec::Png => 1,
+        }
+    }
+}
+
+/// The bytes `codec` stores for `window` (`W x W` RGB).
+pub fn encode_window(codec: WindowCodec, window: &image::RgbImage) -> Result<Vec<u8>> {
+    match codec {
+        WindowCodec::Raw => Ok(window.as_raw().clone()),
+        WindowCodec::Png => {
+            use image::ImageEncoder;
+            let mut out = Vec::with_capacity(window.len() / 2);
+            image::codecs::png::PngEncoder::new_with_quality(
+                &mut out,
+                image::codecs::png::CompressionType::Default,
+                image::codecs::png::FilterType::Adaptive,
+            )
+            .write_image(
+                window.as_raw(),
+                window.width(),
+                window.height(),
+                image::ExtendedColorType::Rgb8,
+            )
+            .map_err(|e| Error::invalid("crop store", format!("PNG encoding: {e}")))?;
+            Ok(out)
+        }
+    }
+}
+
+/// The `side x side x 3` window that `bytes` (stored by `codec`) hold. Bounded: the
+/// output is allocated from `side` (the store's, checked against its manifest), never
+/// from a size read from `bytes`, and a PNG whose header is not `side x side` 8-bit RGB
+/// is refused before any pixel is decoded.
+pub fn decode_window(codec: WindowCodec, bytes: &[u8], side: usize) -> Result<Vec<u8>> {
+    let want = 3 * side * side;
+    match codec {
+        WindowCodec::Raw => {
+            if bytes.len() != want {
+                return Err(Error::invalid(
+                    "crop store",
+                    format!("a raw window of {} bytes, expected {want}", bytes.len()),
+                ));
+            }
+            Ok(bytes.to_vec())
+        }
+        WindowCodec::Png => {
+            use image::ImageDecoder;
+            let bad = |e: String| Error::invalid("crop store", format!("its PNG window: {e}"));
+            let mut decoder = image::codecs::png::PngDecoder::new(std::io::Cursor::new(bytes))
+                .map_err(|e| bad(e.to_string()))?;
+            let mut limits = image::Limits::default();
+            limits.max_image_width = Some(side as u32);
+            limits.max_image_height = Some(side as u32);
+            limits.max_alloc = Some(2 * want as u64 + (1 << 16));
+            decoder.set_limits(limits).map_err(|e| bad(e.to_string()))?;
+            if decoder.dimensions() != (side as u32, side as u32)
+                || decoder.color_type() != image::ColorType::Rgb8
+                || decoder.total_bytes() != want as u64
+            {
+                return Err(bad(format!(
+                    "{:?} {:?}, expected {side}x{side} Rgb8",
+                    decoder.dimensions(),
+                    decoder.color_type()
+                )));
+            }
+            let mut out = vec![0u8; want];
+            decoder
+                .read_image(&mut out)
+                .map_err(|e| bad(e.to_string()))?;
+            Ok(out)
+        }
+    }
+}
+
+/// Bytes of a record before the mesh: CRC, status, row, shard, key length, fingerprint,
+/// the key field (`key_bytes` wide), the box, the mesh's and the window's lengths.
+fn record_prefix(key_bytes: usize) -> usize {
+    AT_KEY + key_bytes + 4 * 8 + 8
+}
+
+/// The key field's width for a dataset whose longest key has `longest` bytes: a
+/// multiple of 8, at least 8.
+pub fn key_field_bytes(longest: usize) -> usize {
+    longest.max(1).div_ceil(8) * 8
+}
+
+/// Crop pixels kept beyond each edge of an `S`-pixel evaluation crop: the training
+/// jitter moves the box centre by up to 0.15 of the landmarks' box size (0.1 of the
+/// crop's side, whose half is 0.75 of that size) and scales its half-side by up to
+/// 1.05 (0.025 of the side more), so a jittered box reaches `0.125 S` past the
+/// evaluation crop; two pixels more cover the bilinear taps and the official box's
+/// integer rounding.
+pub fn margin(size: u32) -> u32 {
+    size.div_ceil(8) + 2
+}
+
+/// Side of a stored window for crop side `size`.
+pub fn window_side(size: u32) -> usize {
+    (size + 2 * margin(size)) as usize
+}
+
+/// Bytes of one record with raw pixels for crop side `size`, `vertex_count` vertices
+/// and a key field of `key_bytes` ([`key_field_bytes`]).
+fn raw_record_bytes(size: u32, vertex_count: usize, key_bytes: usize) -> u64 {
+    let w = window_side(size) as u64;
+    record_prefix(key_bytes) as u64 + 12 * vertex_count as u64 + 3 * w * w
+}
+
+/// The largest record a store accepts: a raw one, plus room for a PNG that does not
+/// compress (its filter bytes, chunks and deflate's stored blocks: well under this).
+fn max_record_bytes(size: u32, vertex_count: usize, key_bytes: usize) -> u64 {
+    let w = window_side(size) as u64;
+    raw_record_bytes(size, vertex_count, key_bytes) + 3 * w * w / 8 + 4096
+}
+
+/// `crops.json`: what a store holds and what it was made from.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct CropStoreManifest {
+    /// [`FORMAT`].
+    pub format: u32,
+    /// The rules the boxes and windows follow: `"exact"` or `"official"`.
+    pub compat: String,
+    /// How the windows are stored.
+    pub codec: WindowCodec,
+    /// Crop side `S`.
+    pub img_size: u32,
+    /// [`margin`]`(S)`.
+    pub margin: u32,
+    /// Vertices per mesh.
+    pub vertex_count: usize,
+    /// Width of each record's key field ([`key_field_bytes`] of the longest key).
+    pub key_bytes: usize,
+    /// [`crate::render::dataset::dataset_fingerprint`] of the dataset stored.
+    pub dataset_fingerprint: String,
+    /// One entry per samples shard, by index.
+    pub shards: Vec<CropShard>,
+    /// The samples stored without pixels, and why.
+    pub missing: Vec<MissingCrop>,
+}
+
+/// One `part-K.bin`.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct CropShard {
+    /// The samples shard `K`.
+    pub index: usize,
+    /// `part-K.bin`, relative to the store folder.
+    pub file: String,
+    /// Records (the shard's rows).
+    pub records: usize,
+    /// The file's bytes (header, records, index, footer).
+    pub bytes: u64,
+}
+
+/// A sample stored without pixels.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct MissingCrop {
+    /// Its samples shard.
+    pub shard: usize,
+    /// Its row there.
+    pub row: usize,
+    /// `subject/action/img_id`.
+    pub key: String,
+    /// Why (the error, naming the file).
+    pub reason: String,
+}
+
+/// One sample's stored values.
+#[derive(Clone, Debug, PartialEq)]
+pub struct StoredCrop {
+    /// The evaluation crop's box.
+    pub eval_crop: CropTransform,
+    /// The mesh.
+    pub verts: Vec<Point3<f32>>,
+    /// The window, `W x W` RGB (`W =` [`window_side`]).
+    pub window: image::RgbImage,
+}
+
+impl StoredCrop {
+    /// The first crop pixel of the window along each axis (`-m`).
+    pub fn first(&self) -> i64 {
+        -(margin(self.eval_crop.size) as i64)
+    }
+
+    /// The window's side.
+    pub fn side(&self) -> usize {
+        window_side(self.eval_crop.size)
+    }
+
+    /// The evaluation crop: the window's centre `S x S` (RGB bytes, row-major).
+    pub fn centre(&self) -> Vec<u8> {
+        let (s, w, m) = (
+            self.eval_crop.size as usize,
+            self.side(),
+            margin(self.eval_crop.size) as usize,
+        );
+        let mut out = Vec::with_capacity(s * s * 3);
+        for r in m..m + s {
+            out.extend_from_slice(&self.window.as_raw()[3 * (r * w + m)..3 * (r * w + m + s)]);
+        }
+        out
+    }
+
+    /// The pixels of `crop` (a box in the same image, of the same sampling and size):
+    /// the centre when it is the evaluation crop, else resampled from the window.
+    pub fn crop_pixels(&self, crop: &CropTransform) -> Vec<u8> {
+        if *crop == self.eval_crop {
+            return self.centre();
+        }
+        crop.in_window(&self.eval_crop, self.first()).crop_window(
+            &self.window,
+            0,
+            crop.size as usize,
+        )
+    }
+}
+
+/// The sampling a rule set's crops use.
+fn sampling_of(compat: &str) -> Result<CropSampling> {
+    match compat {
+        "exact" => Ok(CropSampling::Centres),
+        "official" => Ok(CropSampling::Corners),
+        other => Err(Error::invalid(
+            "compat",
+            format!("'{other}': expected 'exact' or 'official'"),
+        )),
+    }
+}
+
+fn compat_code(compat: &str) -> Result<u32> {
+    Ok(match sampling_of(compat)? {
+        CropSampling::Centres => 0,
+        CropSampling::Corners => 1,
+    })
+}
+
+/// The header of the `part-K.bin` of samples shard `index`, with `records` records.
+fn header(manifest: &CropStoreManifest, index: usize, records: usize) -> Result<[u8; 128]> {
+    let fingerprint = manifest.dataset_fingerprint.as_bytes();
+    if fingerprint.len() != FINGERPRINT_BYTES {
+        return Err(Error::invalid(
+            "crop store",
+            format!(
+                "dataset fingerprint '{}' is not {FINGERPRINT_BYTES} hex digits",
+                manifest.dataset_fingerprint
+            ),
+        ));
+    }
+    let mut h = [0u8; HEADER_BYTES as usize];
+    h[..8].copy_from_slice(MAGIC);
+    let fields = [
+        manifest.format,
+        compat_code(&manifest.compat)?,
+        manifest.img_size,
+        manifest.margin,
+        manifest.vertex_count as u32,
+    ];
+    for (i, f) in fields.iter().enumerate() {
+        h[8 + 4 * i..12 + 4 * i].copy_from_slice(&f.to_le_bytes());
+    }
+    h[28..36].copy_from_slice(&(records as u64).to_le_bytes());
+    h[36..40].copy_from_slice(&manifest.codec.code().to_le_bytes());
+    h[44..48].copy_from_slice(&(index as u32).to_le_bytes());
+    h[48..52].copy_from_slice(&(manifest.key_bytes as u32).to_le_bytes());
+    h[52..52 + FINGERPRINT_BYTES].copy_from_slice(fingerprint);
+    Ok(h)
+}
+
+/// Why the header `found` of `path` is not `want` (the header [`header`] gives for it),
+/// most telling difference first.
+fn header_mismatch(path: &Path, found: &[u8], want: &[u8], manifest: &CropStoreManifest) -> Error {
+    let u32_at = |h: &[u8], i: usize| u32::from_le_bytes(h[i..i + 4].try_into().expect("4 bytes"));
+    let fp_end = 52 + FINGERPRINT_BYTES;
+    let why = if &found[..7] == b"ARKCROP" && found[7] != MAGIC[7] {
+        format!(
+            "a part of a store of format {}, which this version no longer reads: rerun `arkit-tool crops`",
+            found[7] as char
+        )
+    } else if found[..8] != want[..8] {
+        "not a crop store part (its first bytes are not ARKCROP3)".to_string()
+    } else if found[52..fp_end] != want[52..fp_end] {
+        format!(
+            "made from another dataset than {MANIFEST_FILE} says (its fingerprint {}, {MANIFEST_FILE}'s {}): parts of two stores were mixed in this folder; rerun `arkit-tool crops`",
+            String::from_utf8_lossy(&found[52..fp_end]),
+            manifest.dataset_fingerprint
+        )
+    } else if found[44..48] != want[44..48] {
+        format!(
+            "holds the records of samples shard {}, but {MANIFEST_FILE} names it for shard {}: part files were swapped or renamed; rerun `arkit-tool crops`",
+            u32_at(found, 44),
+            u32_at(want, 44)
+        )
+    } else {
+        format!(
+            "its header does not match {MANIFEST_FILE} (format, rules, codec, size, margin, vertices, records, key width): the file is not this store's; rerun `arkit-tool crops`"
+        )
+    };
+    Error::format(path, why)
+}
+
+/// One record's bytes: row `row` of samples shard `shard`, sample `key`; a stored crop
+/// (its window stored by the manifest's codec), or `None` for a sample without pixels
+/// (status 0). A key wider than the manifest's key field is an error.
+pub fn encode_record(
+    manifest: &CropStoreManifest,
+    shard: usize,
+    row: usize,
+    key: &str,
+    crop: Option<&StoredCrop>,
+) -> Result<Vec<u8>> {
+    let fingerprint = manifest.dataset_fingerprint.as_bytes();
+    if key.len() > manifest.key_bytes || fingerprint.len() != FINGERPRINT_BYTES {
+        return Err(Error::invalid(
+            "crop store",
+            format!(
+                "{key}: a key of {} bytes does not fit the store's {}-byte key field (or the fingerprint is not {FINGERPRINT_BYTES} hex digits)",
+                key.len(),
+                manifest.key_bytes
+            ),
+        ));
+    }
+    let prefix = record_prefix(manifest.key_bytes);
+    let mut r = vec![0u8; prefix];
+    r[AT_ROW..AT_ROW + 8].copy_from_slice(&(row as u64).to_le_bytes());
+    r[AT_SHARD..AT_SHARD + 4].copy_from_slice(&(shard as u32).to_le_bytes());
+    r[AT_KEY_LEN..AT_KEY_LEN + 4].copy_from_slice(&(key.len() as u32).to_le_bytes());
+    r[AT_FINGERPRINT..AT_KEY].copy_from_slice(fingerprint);
+    r[AT_KEY..AT_KEY + key.len()].copy_from_slice(key.as_bytes());
+    if let Some(c) = crop {
+        let w = window_side(manifest.img_size);
+        if c.verts.len() != manifest.vertex_count || c.window.dimensions() != (w as u32, w as u32) {
+            return Err(Error::invalid(
+                "crop store",
+                format!(
+                    "{key}: {} vertices and a {:?} window, the store holds {} and {w}x{w}",
+                    c.verts.len(),
+                    c.window.dimensions(),
+                    manifest.vertex_count
+                ),
+            ));
+        }
+        r[AT_STATUS..AT_STATUS + 4].copy_from_slice(&1u32.to_le_bytes());
+        let b = &c.eval_crop;
+        let at_box = AT_KEY + manifest.key_bytes;
+        for (i, v) in [b.x0, b.y0, b.side, b.side_y].iter().enumerate() {
+            r[at_box + 8 * i..at_box + 8 * (i + 1)].copy_from_slice(&v.to_le_bytes());
+        }
+        let window = encode_window(manifest.codec, &c.window)?;
+        let at_lens = at_box + 32;
+        r[at_lens..at_lens + 4].copy_from_slice(&(12 * c.verts.len() as u32).to_le_bytes());
+        r[at_lens + 4..at_lens + 8].copy_from_slice(&(window.len() as u32).to_le_bytes());
+        r.reserve(12 * c.verts.len() + window.len());
+        for p in &c.verts {
+            for v in [p.x, p.y, p.z] {
+                r.extend_from_slice(&v.to_le_bytes());
+            }
+        }
+        r.extend_from_slice(&window);
+    }
+    let crc = crc32fast::hash(&r[4..]);
+    r[..4].copy_from_slice(&crc.to_le_bytes());
+    Ok(r)
+}
+
+/// Writes `dir/part-K.bin` (atomically) from its records, in row order: the header,
+/// the records, their index (`records + 1` offsets from the file's start, the last
+/// the index's own) and the footer (its magic and the index's CRC).
+pub fn write_shard_file(
+    dir: &Path,
+    manifest: &CropStoreManifest,
+    index: usize,
+    records: &mut dyn Iterator<Item = Result<Vec<u8>>>,
+    count: usize,
+) -> Result<CropShard> {
+    let file = shard_file_name(index);
+    let path = dir.join(&file);
+    let head = header(manifest, index, count)?;
+    let mut total = 0;
+    arkit_core::atomic_file::write_atomically(&path, |w| {
+        w.write_all(&head).map_err(|e| Error::io(&path, e))?;
+        let mut offsets = Vec::with_capacity(count + 1);
+        let mut at = HEADER_BYTES;
+        for r in records {
+            let r = r?;
+            offsets.push(at);
+            at += r.len() as u64;
+            w.write_all(&r).map_err(|e| Error::io(&path, e))?;
+        }
+        if offsets.len() != count {
+            return Err(Error::invalid(
+                "crop store",
+                format!(
+                    "{}: {} records for {count} rows",
+                    path.display(),
+                    offsets.len()
+                ),
+            ));
+        }
+        offsets.push(at);
+        let index: Vec<u8> = offsets.iter().flat_map(|o| o.to_le_bytes()).collect();
+        let mut footer = [0u8; FOOTER_BYTES as usize];
+        footer[..8].copy_from_slice(INDEX_MAGIC);
+        footer[8..12].copy_from_slice(&crc32fast::hash(&index).to_le_bytes());
+        w.write_all(&index).map_err(|e| Error::io(&path, e))?;
+        w.write_all(&footer).map_err(|e| Error::io(&path, e))?;
+        total = at + index.len() as u64 + FOOTER_BYTES;
+        Ok(())
+    })?;
+    Ok(CropShard {
+        index,
+        file,
+        records: count,
+        bytes: total,
+    })
+}
+
+/// The file name of samples shard `index`'s records: `part-K.bin`.
+fn shard_file_name(index: usize) -> String {
+    format!("part-{index}.bin")
+}
+
+/// Writes `crops.json` (atomically; last, after every shard file).
+pub fn write_manifest(dir: &Path, manifest: &CropStoreManifest) -> Result<()> {
+    let text = serde_json::to_string_pretty(manifest).expect("manifest serialises");
+    arkit_core::atomic_file::write_bytes(&dir.join(MANIFEST_FILE), text.as_bytes())
+}
+
+/// Reads and parses `dir/crops.json`; a store of another format is refused first, with
+/// what to do.
+pub fn read_manifest(dir: &Path) -> Result<CropStoreManifest> {
+    let path = dir.join(MANIFEST_FILE);
+    let meta = std::fs::metadata(&path).map_err(|e| {
+        Error::format(
+            dir,
+            format!("not a crop store ({MANIFEST_FILE}: {e}); make one with `arkit-tool crops`"),
+        )
+    })?;
+    if meta.len() > MAX_MANIFEST_BYTES {
+        return Err(Error::format(
+            &path,
+            format!("{} bytes, more than a manifest can be", meta.len()),
+        ));
+    }
+    let text = std::fs::read_to_string(&path).map_err(|e| Error::io(&path, e))?;
+    let value: serde_json::Value = serde_json::from_str(&text)
+        .map_err(|e| Error::format(&path, format!("not a crop store manifest: {e}")))?;
+    match value.get("format").and_then(|f| f.as_u64()) {
+        Some(f) if f == FORMAT as u64 => {}
+        Some(f) => {
+            return Err(Error::format(
+                &path,
+                format!(
+                    "a crop store of format {f}; this version reads format {FORMAT} (compressed windows, an index per part): rerun `arkit-tool crops`"
+                ),
+            ));
+        }
+        None => {
+            return Err(Error::format(
+                &path,
+                "not a crop store manifest: no format number",
+            ));
+        }
+    }
+    serde_json::from_value(value)
+        .map_err(|e| Error::format(&path, format!("not a crop store manifest: {e}")))
+}
+
+/// An opened store (see the module docs).
+#[derive(Debug)]
+pub struct CropStore {
+    dir: PathBuf,
+    manifest: CropStoreManifest,
+    /// Per samples shard index, its file, path and record offsets (`records + 1`).
+    files: Vec<Option<PartFile>>,
+}
+
+#[derive(Debug)]
+struct PartFile {
+    file: File,
+    path: PathBuf,
+    offsets: Vec<u64>,
+}
+
+/// The record offsets of the part file `path` (`len` bytes, `records` records, of the
+/// store `manifest`), read from its index and checked: the footer's magic and the
+/// index's CRC, offsets that start after the header, increase by at least a record's
+/// prefix and at most [`max_record_bytes`], and end where the index starts.
+fn read_index(
+    file: &File,
+    path: &Path,
+    len: u64,
+    records: usize,
+    manifest: &CropStoreManifest,
+) -> Result<Vec<u64>> {
+    let index_bytes = 8 * (records as u64 + 1);
+    let truncated = |what: &str| {
+        Error::format(
+            path,
+            format!(
+                "{len} bytes: {what}; the file is truncated or not this store's (rerun `arkit-tool crops`)"
+            ),
+        )
+    };
+    if len < HEADER_BYTES + index_bytes + FOOTER_BYTES {
+        return Err(truncated("too short for its header, index and footer"));
+    }
+    let mut footer = [0u8; FOOTER_BYTES as usize];
+    read_exact_at(file, &mut footer, len - FOOTER_BYTES).map_err(|e| Error::io(path, e))?;
+    if &footer[..8] != INDEX_MAGIC {
+        return Err(truncated("no index footer at its end"));
+    }
+    let index_at = len - FOOTER_BYTES - index_bytes;
+    let mut index = vec![0u8; index_bytes as usize];
+    read_exact_at(file, &mut index, index_at).map_err(|e| Error::io(path, e))?;
+    if crc32fast::hash(&index).to_le_bytes() != footer[8..12] {
+        return Err(Error::format(
+            path,
+            "its record index's CRC does not match (the file is damaged); rerun `arkit-tool crops`",
+        ));
+    }
+    let offsets: Vec<u64> = index
+        .chunks_exact(8)
+        .map(|c| u64::from_le_bytes(c.try_into().expect("8 bytes")))
+        .collect();
+    let (least, most) = (
+        record_prefix(manifest.key_bytes) as u64,
+        max_record_bytes(manifest.img_size, manifest.vertex_count, manifest.key_bytes),
+    );
+    let ok = offsets[0] == HEADER_BYTES
+        && offsets[records] == index_at
+        && offsets
+            .windows(2)
+            .all(|p| p[1] >= p[0] + least && p[1] - p[0] <= most);
+    if !ok {
+        return Err(Error::format(
+            path,
+            format!(
+                "its record index does not fit the file (records of {least}..={most} bytes from byte {HEADER_BYTES} to the index at {index_at}); rerun `arkit-tool crops`"
+            ),
+        ));
+    }
+    Ok(offsets)
+}
+
+impl CropStore {
+    /// Opens the store in `dir` for `dataset`, crops of rules `compat` and side
+    /// `img_size`, meshes of `vertex_count` vertices; every check of the module docs
+    /// but the records'.
+    pub fn open(
+        dir: &Path,
+        dataset: &crate::store::dataset::Dataset,
+        compat: &str,
+        img_size: u32,
+        vertex_count: usize,
+    ) -> Result<Self> {
+        let manifest = read_manifest(dir)?;
+        let mpath = dir.join(MANIFEST_FILE);
+        let expect = |what: &str, found: String, want: String| -> Result<()> {
+            if found == want {
+                Ok(())
+            } else {
+                Err(Error::format(
+                    &mpath,
+                    format!(
+                        "{what} is {found}, the loader needs {want}: make a store for it with `arkit-tool crops`"
+                    ),
+                ))
+            }
+        };
+        expect("compat", manifest.compat.clone(), compat.to_string())?;
+        expect(
+            "img_size",
+            manifest.img_size.to_string(),
+            img_size.to_string(),
+        )?;
+        expect(
+            "margin",
+            manifest.margin.to_string(),
+            margin(img_size).to_string(),
+        )?;
+        expect(
+            "vertex_count",
+            manifest.vertex_count.to_string(),
+            vertex_count.to_string(),
+        )?;
+        if manifest.key_bytes == 0
+            || manifest.key_bytes > MAX_KEY_BYTES
+            || !manifest.key_bytes.is_multiple_of(8)
+        {
+            return Err(Error::format(
+                &mpath,
+                format!(
+                    "key_bytes is {}, not a multiple of 8 in 8..={MAX_KEY_BYTES}",
+                    manifest.key_bytes
+                ),
+            ));
+        }
+        let fingerprint = crate::render::dataset::dataset_fingerprint(dataset.manifest());
+        if manifest.dataset_fingerprint != fingerprint {
+            return Err(Error::format(
+                &mpath,
+                format!(
+                    "made from another dataset than {} (or before it was converted again): run `arkit-tool crops` again",
+                    dataset.dir().display()
+                ),
+            ));
+        }
+        let shards = dataset.shards();
+        let mut files: Vec<Option<PartFile>> =
+            (0..shards.iter().map(|s| s.index + 1).max().unwrap_or(0))
+                .map(|_| None)
+                .collect();
+        for s in shards {
+            let entry = manifest
+                .shards
+                .iter()
+                .find(|c| c.index == s.index)
+                .ok_or_else(|| {
+                    Error::format(&mpath, format!("no file for samples shard {}", s.index))
+                })?;
+            if entry.records != s.rows || entry.file != shard_file_name(s.index) {
+                return Err(Error::format(
+                    &mpath,
+                    format!(
+                        "shard {}: {} records in '{}', the dataset has {} rows",
+                        s.index, entry.records, entry.file, s.rows
+                    ),
+                ));
+            }
+            let path = dir.join(&entry.file);
+            let file = File::open(&path).map_err(|e| Error::io(&path, e))?;
+            let len = file.metadata().map_err(|e| Error::io(&path, e))?.len();
+            let mut head = [0u8; HEADER_BYTES as usize];
+            if len >= HEADER_BYTES {
+                read_exact_at(&file, &mut head, 0).map_err(|e| Error::io(&path, e))?;
+            }
+            let want_head = header(&manifest, s.index, entry.records)?;
+            // The header first: a file of another store, dataset or shard is named as
+            // such, whatever its length.
+            if len >= HEADER_BYTES && head != want_head {
+                return Err(header_mismatch(&path, &head, &want_head, &manifest));
+            }
+            if len < HEADER_BYTES {
+                return Err(Error::format(
+                    &path,
+                    format!(
+                        "{len} bytes, shorter than a header: the file is truncated or not this store's"
+                    ),
+                ));
+            }
+            let offsets = read_index(&file, &path, len, entry.records, &manifest)?;
+            files[s.index] = Some(PartFile {
+                file,
+                path,
+                offsets,
+            });
+        }
+        Ok(CropStore {
+            dir: dir.to_path_buf(),
+            manifest,
+            files,
+        })
+    }
+
+    /// The store folder.
+    pub fn dir(&self) -> &Path {
+        &self.dir
+    }
+
+    /// Its manifest.
+    pub fn manifest(&self) -> &CropStoreManifest {
+        &self.manifest
+    }
+
+    /// Where the record of row `row` of samples shard `shard` lies in its part file:
+    /// its first byte and its length.
+    pub fn record_span(&self, shard: usize, row: usize) -> Option<(u64, u64)> {
+        let o = &self.files.get(shard)?.as_ref()?.offsets;
+        (row + 1 < o.len()).then(|| (o[row], o[row + 1] - o[row]))
+    }
+
+    /// The record of row `row` of samples shard `shard`, which must be that of sample
+    /// `key` (`subject/action/img_id`) of this store's dataset: checked, with the
+    /// record's CRC, before anything of it is decoded or returned.
+    pub fn read(&self, shard: usize, row: usize, key: &str) -> Result<StoredCrop> {
+        let part = self
+            .files
+            .get(shard)
+            .and_then(|f| f.as_ref())
+            .ok_or_else(|| Error::invalid("crop store", format!("no samples shard {shard}")))?;
+        let path = &part.path;
+        let (at, len) = self.record_span(shard, row).ok_or_else(|| {
+            Error::invalid("crop store", format!("{}: no record {row}", path.display()))
+        })?;
+        let m = &self.manifest;
+        // `len` was bounded when the index was read. The head (CRC to mesh) and the
+        // window read into their own buffers, so a raw window is returned as read,
+        // not moved out of the record.
+        let prefix = record_prefix(m.key_bytes);
+        let head_len = (len as usize).min(prefix + 12 * m.vertex_count);
+        let mut r = vec![0u8; head_len];
+        let mut tail = vec![0u8; len as usize - head_len];
+        read_exact_at(&part.file, &mut r, at).map_err(|e| Error::io(path, e))?;
+        read_exact_at(&part.file, &mut tail, at + head_len as u64)
+            .map_err(|e| Error::io(path, e))?;
+        let u32_at = |i: usize| u32::from_le_bytes(r[i..i + 4].try_into().expect("4 bytes"));
+        let mut crc = crc32fast::Hasher::new();
+        crc.update(&r[4..]);
+        crc.update(&tail);
+        if crc.finalize() != u32_at(0) {
+            return Err(Error::format(
+                path,
+                format!(
+                    "record {row}: its CRC does not match (the file is damaged); run `arkit-tool crops` again"
+                ),
+            ));
+        }
+        // Whose record it is: this dataset's, this shard's, this row's, this sample's.
+        let stored_row = u64::from_le_bytes(r[AT_ROW..AT_ROW + 8].try_into().expect("8 bytes"));
+        let stored_shard = u32_at(AT_SHARD) as u64;
+        let key_len = (u32_at(AT_KEY_LEN) as usize).min(m.key_bytes);
+        let stored_key = &r[AT_KEY..AT_KEY + key_len];
+        let stored_fingerprint = &r[AT_FINGERPRINT..AT_KEY];
+        if stored_row != row as u64
+            || stored_shard != shard as u64
+            || stored_key != key.as_bytes()
+            || stored_fingerprint != m.dataset_fingerprint.as_bytes()
+        {
+            let other_dataset = if stored_fingerprint != m.dataset_fingerprint.as_bytes() {
+                format!(
+                    " of another dataset (fingerprint {})",
+                    String::from_utf8_lossy(stored_fingerprint)
+                )
+            } else {
+                String::new()
+            };
+            return Err(Error::format(
+                path,
+                format!(
+                    "record {row} of shard {shard} should be sample {key}, but it holds sample {} (row {stored_row} of shard {stored_shard}{other_dataset}): the store's files were mixed, swapped or edited; run `arkit-tool crops` again",
+                    String::from_utf8_lossy(stored_key)
+                ),
+            ));
+        }
+        if u32_at(AT_STATUS) != 1 {
+            let why = m
+                .missing
+                .iter()
+                .find(|x| x.shard == shard && x.row == row)
+                .map(|x| format!("{}: {}", x.key, x.reason))
+                .unwrap_or_else(|| "no reason recorded".into());
+            return Err(Error::format(
+                path,
+                format!(
+                    "record {row} has no pixels: its sample could not be read when the store was made ({why})"
+                ),
+            ));
+        }
+        let at_box = AT_KEY + m.key_bytes;
+        let (mesh_len, window_len) = (u32_at(at_box + 32) as usize, u32_at(at_box + 36) as usize);
+        if mesh_len != 12 * m.vertex_count
+            || head_len != prefix + mesh_len
+            || window_len != tail.len()
+        {
+            return Err(Error::format(
+                path,
+                format!(
+                    "record {row}: a mesh of {mesh_len} bytes and a window of {window_len} in a record of {len} (the mesh has {} bytes): the file is not this store's; run `arkit-tool crops` again",
+                    12 * m.vertex_count
+                ),
+            ));
+        }
+        let f64_at = |i: usize| f64::from_le_bytes(r[i..i + 8].try_into().expect("8 bytes"));
+        let eval_crop = CropTransform {
+            x0: f64_at(at_box),
+            y0: f64_at(at_box + 8),
+            side: f64_at(at_box + 16),
+            side_y: f64_at(at_box + 24),
+            size: m.img_size,
+            sampling: sampling_of(&m.compat)?,
+        };
+        let verts = r[prefix..prefix + mesh_len]
+            .chunks_exact(12)
+            .map(|c| {
+                let f = |k: usize| f32::from_le_bytes(c[k..k + 4].try_into().expect("4 bytes"));
+                Point3::new(f(0), f(4), f(8))
+            })
+            .collect();
+        let w = window_side(m.img_size);
+        let window = match m.codec {
+            // The raw window moved out of the record, not copied.
+            WindowCodec::Raw => tail,
+            codec => decode_window(codec, &tail, w).map_err(|e| {
+                Error::format(
+                    path,
+                    format!("record {row}: {e}; run `arkit-tool crops` again"),
+                )
+            })?,
+        };
+        if window.len() != 3 * w * w {
+            return Err(Error::format(
+                path,
+                format!(
+                    "record {row}: a window of {} bytes, expected {}",
+                    window.len(),
+                    3 * w * w
+                ),
+            ));
+        }
+        Ok(StoredCrop {
+            eval_crop,
+            verts,
+            window: image::RgbImage::from_raw(w as u32, w as u32, window)
+                .expect("the window's size, checked"),
+        })
+    }
+}
+
+/// `pread` of exactly `buf.len()` bytes at `offset` (positional: safe to share the file
+/// between threads and forked processes).
+fn read_exact_at(file: &File, buf: &mut [u8], offset: u64) -> std::io::Result<()> {
+    #[cfg(unix)]
+    {
+        std::os::unix::fs::FileExt::read_exact_at(file, buf, offset)
+    }
+    #[cfg(windows)]
+    {
+        let mut done = 0;
+        while done < buf.len() {
+            let n = std::os::windows::fs::FileExt::seek_read(
+                file,
+                &mut buf[done..],
+                offset + done as u64,
+            )?;
+            if n == 0 {
+                return Err(std::io::ErrorKind::UnexpectedEof.into());
+            }
+            done += n;
+        }
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_margin_covers_the_largest_training_jitter() {
+        // Landmarks' box size d: the crop's half-side is 0.75 d = S / 2 crop pixels, so
+        // one d is 2S/3 crop pixels. The largest jitter: centre 0.15 d, half-side
+        // 0.75 d * 1.05: 0.9375 d from the centre, 0.1875 d = S / 8 past the crop.
+        for s in [16u32, 64, 192, 193, 1024] {
+            let d = 2.0 * s as f64 / 3.0;
+            let reach = 0.15 * d + 0.75 * d * 1.05 - s as f64 / 2.0;
+            assert!((reach - s as f64 / 8.0).abs() < 1e-9);
+            assert!(margin(s) as f64 >= reach + 2.0 - 1e-9, "{s}");
+        }
+        assert_eq!(window_side(192), 192 + 2 * 26);
+    }
+
+    fn manifest() -> CropStoreManifest {
+        CropStoreManifest {
+            format: FORMAT,
+            compat: "official".into(),
+            codec: WindowCodec::Png,
+            img_size: 16,
+            margin: margin(16),
+            vertex_count: 2,
+            key_bytes: key_field_bytes(5),
+            dataset_fingerprint: "ab".repeat(32),
+            shards: Vec::new(),
+            missing: Vec::new(),
+        }
+    }
+
+    fn crop() -> StoredCrop {
+        let w = window_side(16);
+        StoredCrop {
+            eval_crop: CropTransform {
+                x0: 1.5,
+                y0: -2.25,
+                side: 30.0,
+                side_y: 31.0,
+                size: 16,
+                sampling: CropSampling::Corners,
+            },
+            verts: vec![Point3::new(0.1, -0.2, 0.3), Point3::new(1.0, 2.0, 3.0)],
+            window: image::RgbImage::from_raw(
+                w as u32,
+                w as u32,
+                (0..w * w * 3).map(|i| (i * 7 % 251) as u8).collect(),
+            )
+            .unwrap(),
+        }
+    }
+
+    /// `dir/part-0.bin` of six records, row `r` holding `records[r]`, opened.
+    fn store_of(dir: &Path, m: &CropStoreManifest, records: Vec<Vec<u8>>) -> CropStore {
+        let n = records.len();
+        write_shard_file(dir, m, 0, &mut records.into_iter().map(Ok), n).unwrap();
+        let path = dir.join("part-0.bin");
+        let file = File::open(&path).unwrap();
+        let len = file.metadata().unwrap().len();
+        let offsets = read_index(&file, &path, len, n, m).unwrap();
+        CropStore {
+            dir: dir.to_path_buf(),
+            manifest: m.clone(),
+            files: vec![Some(PartFile {
+                file,
+                path,
+                offsets,
+            })],
+        }
+    }
+
+    /// The records of samples `s/a/<row>`, row 5 with `crop`'s pixels, the others without.
+    fn six(m: &CropStoreManifest, crop: &StoredCrop) -> Vec<Vec<u8>> {
+        (0..6)
+            .map(|r| {
+                let key = format!("s/a/{r}");
+                encode_record(m, 0, r, &key, (r == 5).then_some(crop)).unwrap()
+            })
+            .collect()
+    }
+
+    #[test]
+    fn a_record_round_trips_in_each_codec_and_its_crc_catches_a_flipped_byte() {
+        for codec in [WindowCodec::Raw, WindowCodec::Png] {
+            let dir = tempfile::tempdir().unwrap();
+            let m = CropStoreManifest {
+                codec,
+                ..manifest()
+            };
+            let crop = crop();
+            let records = six(&m, &crop);
+            let bytes = &records[5];
+            assert_eq!(crc32fast::hash(&bytes[4..]).to_le_bytes(), bytes[..4]);
+            if codec == WindowCodec::Raw {
+                assert_eq!(bytes.len() as u64, raw_record_bytes(16, 2, m.key_bytes));
+            }
+            let store = store_of(dir.path(), &m, records);
+            assert_eq!(store.read(0, 5, "s/a/5").unwrap(), crop);
+            let e = store.read(0, 2, "s/a/2").unwrap_err().to_string();
+            assert!(e.contains("part-0.bin") && e.contains("no pixels"), "{e}");
+            // One byte of the window flipped: refused by the CRC before it is decoded,
+            // naming the file.
+            let path = dir.path().join("part-0.bin");
+            let mut all = std::fs::read(&path).unwrap();
+            let (at, len) = store.record_span(0, 5).unwrap();
+            all[(at + len - 20) as usize] ^= 1;
+            std::fs::write(&path, &all).unwrap();
+            let e = store_of_file(&store, &path)
+                .read(0, 5, "s/a/5")
+                .unwrap_err();
+            assert!(
+                e.to_string().contains("part-0.bin") && e.to_string().contains("CRC"),
+                "{e}"
+            );
+            // The index damaged: refused when the part is opened.
+            all[(at + len - 20) as usize] ^= 1;
+            let n = all.len();
+            all[n - FOOTER_BYTES as usize - 3] ^= 1;
+            std::fs::write(&path, &all).unwrap();
+            let file = File::open(&path).unwrap();
+            let e = read_index(&file, &path, n as u64, 6, &m).unwrap_err();
+            assert!(e.to_string().contains("index's CRC"), "{e}");
+        }
+    }
+
+    /// `store` with its part file opened again from `path`.
+    fn store_of_file(store: &CropStore, path: &Path) -> CropStore {
+        let file = File::open(path).unwrap();
+        let len = file.metadata().unwrap().len();
+        let offsets = read_index(&file, path, len, 6, &store.manifest).unwrap();
+        CropStore {
+            dir: store.dir.clone(),
+            manifest: store.manifest.clone(),
+            files: vec![Some(PartFile {
+                file,
+                path: path.to_path_buf(),
+                offsets,
+            })],
+        }
+    }
+
+    #[test]
+    fn a_record_of_another_sample_row_shard_or_dataset_is_refused() {
+        let dir = tempfile::tempdir().unwrap();
+        let (m, crop) = (manifest(), crop());
+        let store = store_of(dir.path(), &m, six(&m, &crop));
+        // Asked as another sample: the key differs.
+        let e = store.read(0, 5, "s/a/6").unwrap_err().to_string();
+        assert!(
+            e.contains("part-0.bin")
+                && e.contains("should be sample s/a/6, but it holds sample s/a/5"),
+            "{e}"
+        );
+        // Record 5 in row 3's place (each CRC and the index intact): row 3 is refused,
+        // with what it holds; the other records are still served.
+        let mut records = six(&m, &crop);
+        records[3] = records[5].clone();
+        let store = store_of(dir.path(), &m, records);
+        let e = store.read(0, 3, "s/a/3").unwrap_err().to_string();
+        assert!(e.contains("holds sample s/a/5 (row 5 of shard 0)"), "{e}");
+        assert_eq!(store.read(0, 5, "s/a/5").unwrap(), crop);
+        // Another shard's or another dataset's record of the same row and key.
+        for (shard, fingerprint, says) in [
+            (1, "ab".repeat(32), "row 5 of shard 1)"),
+            (
+                0,
+                "cd".repeat(32),
+                &*format!("of another dataset (fingerprint {})", "cd".repeat(32)),
+            ),
+        ] {
+            let other = CropStoreManifest {
+                dataset_fingerprint: fingerprint,
+                ..m.clone()
+            };
+            let mut records = six(&m, &crop);
+            records[5] = encode_record(&other, shard, 5, "s/a/5", Some(&crop)).unwrap();
+            let store = store_of(dir.path(), &m, records);
+            let e = store.read(0, 5, "s/a/5").unwrap_err().to_string();
+            assert!(e.contains("part-0.bin") && e.contains(says), "{e}");
+        }
+        // A key longer than the key field is refused when written, never cut.
+        let e = encode_record(&m, 0, 0, "s/a/123456", None).unwrap_err();
+        assert!(e.to_string().contains("does not fit"), "{e}");
+    }
+
+    #[test]
+    fn a_png_window_of_another_size_or_colour_is_refused_before_decoding() {
+        use image::ImageEncoder;
+        let crop = crop();
+        let side = crop.side();
+        let png = encode_window(WindowCodec::Png, &crop.window).unwrap();
+        assert_eq!(
+            decode_window(WindowCodec::Png, &png, side).unwrap(),
+            *crop.window.as_raw()
+        );
+        assert!(png.len() < crop.window.len(), "{} bytes", png.len());
+        // A PNG of a larger side than the store's: refused from its header.
+        let big = image::RgbImage::new(1024, 1024);
+        let big = encode_window(WindowCodec::Png, &big).unwrap();
+        let e = decode_window(WindowCodec::Png, &big, side).unwrap_err();
+        assert!(e.to_string().contains("PNG window"), "{e}");
+        // Grey instead of RGB, of the right side.
+        let mut grey = Vec::new();
+        image::codecs::png::PngEncoder::new(&mut grey)
+            .write_image(
+                &vec![9u8; side * side],
+                side as u32,
+                side as u32,
+                image::ExtendedColorType::L8,
+            )
+            .unwrap();
+        let e = decode_window(WindowCodec::Png, &grey, side).unwrap_err();
+        assert!(e.to_string().contains("expected"), "{e}");
+        // Raw bytes of the wrong length; damaged PNG bytes.
+        assert!(decode_window(WindowCodec::Raw, &[0; 10], side).is_err());
+        assert!(decode_window(WindowCodec::Png, &png[..png.len() / 2], side).is_err());
+    }
+}

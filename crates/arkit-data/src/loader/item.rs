@@ -1,0 +1,1394 @@
+//! `loader`: one training sample as the official PyTorch loader returns it, computed on
+//! the fly from a converted dataset: what the Python package's `ARKitFaceDataset`
+//! serves.
+//!
+//! The official `ARKitDataset.get_item` (`data/arkit_dataset.py` of the official code)
+//! returns, per sample: `img` (the `S x S` crop, `ToTensor` + ImageNet `Normalize`,
+//! channels first), `choose` (`n_pts` crop pixel indices), `model` (the mesh, 1220 x 3),
+//! `uvmap` (3 x S x S, the UV position map in [-1, 1]), `nocs` (the points' canonical
+//! positions times 4.5), `mask` (S x S, 0/1), `corr_mat` (n_pts x 1220: each point's
+//! triangle's three vertex weights) and, in evaluation, `tform_inv` (crop pixel to image,
+//! 2 x 3) and `R_t`. [`FaceLoader::item`] computes them for one sample; the vertex ids
+//! and weights are kept sparse ([`LoaderItem::corr_vertices`]), the dense matrix is the
+//! caller's choice.
+//!
+//! Two rule sets ([`Compat`]):
+//! - [`Compat::Official`]: every value by the official loader's rules: its integer box
+//!   ([`crate::crop::official::official_box`]: `int()` of the landmarks' box edges), the
+//!   `cv2` affine map and `cv2.warpAffine` resampling ([`crate::crop::official`]), its rasterizer over the whole
+//!   image (screen-space weights; held only over the window the face can cover,
+//!   [`FaceRenderer::render_window_mask`], the rest being no face), its point choice (face pixels of the full-resolution
+//!   mask sliced `mask[top:bottom+1, left:right+1]` with Python's slice rules, drawn
+//!   without repetition or repeated cyclically, mapped to crop pixels by the affine map
+//!   and `floor`), its UV map (the UV triangles drawn at `uv * (S - 1)`, the ring at 1.1
+//!   times the contour in the `4.5 v + 0.5` space, [`OfficialUvLayout`]).
+//! - [`Compat::Exact`]: ours, as `render` stores them: the square box at pixel centres,
+//!   our bilinear crop, our rasterizer at crop resolution (perspective-correct weights),
+//!   points drawn from the crop mask, our UV map (texel centres, `--uv-size` = `S`).
+//!
+//! Training mode ([`LoaderMode::Train`]) adds the official online augmentation: the box
+//! centre moved by up to 0.15 of the landmarks' box size in x and y, its half-side scaled
+//! by 0.95-1.05, then a colour jitter with torchvision's `ColorJitter(0.3, 0.3, 0.2,
+//! 0.01)` ranges ([`jitter_colour`]). Every random draw comes from [`Rng::for_stream`] of
+//! `(seed, epoch, index)`, so an item is the same whichever worker process computes it.
+//!
+//! Where the official loader fails (its box leaves the image's top or left edge, the
+//! slice of a negative index is empty and `np.pad` raises; its `__getitem__` then trains
+//! on a random other sample), [`FaceLoader::item`] returns an error saying so in
+//! evaluation mode; in training mode the box jitter is drawn again (up to
+//! [`JITTER_DRAWS`] times, then the box without jitter) so a usable box is never replaced
+//! by another sample.
+//!
+//! Tested in `tests/loader.rs` (every field against the library's render path and
+//! values derived by hand, determinism across calls, the official slice rule) and by the
+//! Python package's tests against a numpy re-implementation of the official formulas.
+
+use crate::crop::official::{
+    LandmarkExtent, affine_transform, box_crop, official_box, warp_mask_of,
+};
+use crate::crop::{CropSampling, CropTransform};
+use crate::loader::colour_jitter::UNIT;
+use crate::loader::colour_jitter::jitter_colour;
+use crate::loader::crop_store::{CropStore, StoredCrop};
+use crate::mesh::topology::FaceTopology;
+use crate::render::face::{
+    FaceRenderer, RasterMode, UvMapper, UvTexels, WindowMask, sample_points,
+};
+use crate::store::dataset::Dataset;
+use arkit_core::conventions::{Camera, Pose};
+use arkit_core::error::{Error, Result};
+use arkit_core::raster::{ScreenVertex, VisibilityBuffer};
+use arkit_core::release::SampleKey;
+use arkit_core::rng::Rng;
+use nalgebra::Point3;
+use std::path::{Path, PathBuf};
+
+/// Which rules the values follow (see the module docs).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Compat {
+    /// Ours (`render`'s default).
+    Exact,
+    /// The official loader's.
+    Official,
+}
+
+impl Compat {
+    /// `"exact"` or `"official"`.
+    pub fn parse(s: &str) -> Result<Self> {
+        match s {
+            "exact" => Ok(Compat::Exact),
+            "official" => Ok(Compat::Official),
+            _ => Err(Error::invalid(
+                "compat",
+                format!("'{s}': expected 'exact' or 'official'"),
+            )),
+        }
+    }
+
+    /// `"exact"` or `"official"`.
+    pub fn name(self) -> &'static str {
+        match self {
+            Compat::Exact => "exact",
+            Compat::Official => "official",
+        }
+    }
+}
+
+/// Training (random box jitter and colour jitter) or evaluation (neither).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum LoaderMode {
+    /// The official training transform.
+    Train,
+    /// The official test transform.
+    Eval,
+}
+
+impl LoaderMode {
+    /// `"train"` or `"eval"`.
+    pub fn parse(s: &str) -> Result<Self> {
+        match s {
+            "train" => Ok(LoaderMode::Train),
+            "eval" => Ok(LoaderMode::Eval),
+            _ => Err(Error::invalid(
+                "mode",
+                format!("'{s}': expected 'train' or 'eval'"),
+            )),
+        }
+    }
+}
+
+/// What [`FaceLoader::open`] takes.
+#[derive(Clone, Debug)]
+pub struct LoaderOptions {
+    /// The split to serve (`"train"`, `"test"`, ...), or `None` for every sample. The
+    /// split of `split` when the dataset has a `splits.json`, else the listed split.
+    pub split: Option<String>,
+    /// Training or evaluation.
+    pub mode: LoaderMode,
+    /// Whose rules.
+    pub compat: Compat,
+    /// Crop side `S` (the official 192), 16..=1024.
+    pub img_size: u32,
+    /// Points per sample (the official 1024), 1..=65536.
+    pub n_pts: usize,
+    /// Seed of every random draw.
+    pub seed: u64,
+}
+
+impl LoaderOptions {
+    /// Checks the ranges.
+    pub fn validate(&self) -> Result<()> {
+        if !(16..=1024).contains(&self.img_size) {
+            return Err(Error::invalid(
+                "img_size",
+                format!("{}: must be 16..=1024", self.img_size),
+            ));
+        }
+        if !(1..=65536).contains(&self.n_pts) {
+            return Err(Error::invalid(
+                "n_pts",
+                format!("{}: must be 1..=65536", self.n_pts),
+            ));
+        }
+        Ok(())
+    }
+}
+
+/// How often a training box jitter is drawn again when the official box fails.
+pub const JITTER_DRAWS: usize = 10;
+
+/// ImageNet channel means (RGB), the official `Normalize`'s (and the network's input).
+pub const IMAGENET_MEAN: [f32; 3] = [0.485, 0.456, 0.406];
+/// ImageNet channel standard deviations (RGB), see [`IMAGENET_MEAN`].
+pub const IMAGENET_STD: [f32; 3] = [0.229, 0.224, 0.225];
+
+/// One sample as the official loader returns it (see the module docs). Arrays are
+/// row-major and channels first where the official tensors are.
+#[derive(Clone, Debug, PartialEq)]
+pub struct LoaderItem {
+    /// The sample's key.
+    pub key: SampleKey,
+    /// The image file (absolute), or the dataset folder for an embedded image.
+    pub image_path: PathBuf,
+    /// `3 x S x S`, normalised (empty from [`FaceLoader::item_into`], which writes it
+    /// into the caller's plane).
+    pub img: Vec<f32>,
+    /// `n_pts` crop pixel indices (`row * S + col`).
+    pub choose: Vec<i64>,
+    /// The mesh, `1220 x 3` (metres, canonical frame).
+    pub model: Vec<f32>,
+    /// `3 x S x S` in [-1, 1] (`-1` where no UV triangle covers the texel; empty from
+    /// [`FaceLoader::item_into`], which writes it into the caller's plane, and in the
+    /// items `train` builds from stored targets, whose loss takes no UV map).
+    pub uvmap: Vec<f32>,
+    /// `n_pts x 3`: each point's canonical position times 4.5.
+    pub nocs: Vec<f32>,
+    /// `S x S` crop face mask.
+    pub mask: Vec<u8>,
+    /// `n_pts`: the three vertex ids of each point's triangle.
+    pub corr_vertices: Vec<[u32; 3]>,
+    /// `n_pts`: their weights (sum 1).
+    pub corr_weights: Vec<[f32; 3]>,
+    /// Crop pixel `(col, row)` to image point: `[a, b, c, d, e, f]`, `u = a col + b row +
+    /// c`, `v = d col + e row + f` (the official `tform_inv`).
+    pub tform_inv: [f64; 6],
+    /// `R_t`, row-major.
+    pub rt: [f64; 16],
+    /// The crop.
+    pub crop: CropTransform,
+    /// [`Compat::Official`] only: the integer box `[left, top, right, bottom]`.
+    pub official_box: Option<[i64; 4]>,
+    /// [`Compat::Official`] only: the chosen points as indices into the flattened
+    /// `mask[top:bottom+1, left:right+1]` (the official `choose` before it is mapped).
+    pub choose_box: Vec<i64>,
+    /// [`Compat::Official`] only: whether the box leaves the image, so that the slice
+    /// is clipped (right or bottom) or wrapped (left or top, Python's negative indices)
+    /// and the official mapping of points to crop pixels misplaces them (points mapped
+    /// outside the crop are then replaced by a random pixel, as the official loader does).
+    pub box_clipped: bool,
+}
+
+/// Where [`FaceLoader::item_into`] writes an item's two image-sized arrays instead of
+/// allocating them: slices of a caller's batch arrays, for instance, so that a batch is
+/// computed in place with no copy per sample.
+#[derive(Debug)]
+pub struct ItemPlanes<'a> {
+    /// `3 x S x S`: what [`LoaderItem::img`] would hold.
+    pub img: &'a mut [f32],
+    /// `3 x U x U` ([`FaceLoader::uvmap_size`]): what [`LoaderItem::uvmap`] would hold.
+    pub uvmap: &'a mut [f32],
+}
+
+/// An item's image-sized arrays: in the item, or in a caller's [`ItemPlanes`].
+enum Planes<'a> {
+    Owned,
+    Borrowed(ItemPlanes<'a>),
+}
+
+impl Planes<'_> {
+    /// The normalised crop `rgb`: returned, or written into the caller's plane (then
+    /// an empty vector is returned).
+    fn img(&mut self, rgb: &[u8]) -> Vec<f32> {
+        match self {
+            Planes::Owned => normalise(rgb),
+            Planes::Borrowed(p) => {
+                normalise_into(rgb, p.img);
+                Vec::new()
+            }
+        }
+    }
+
+    /// A `len`-value UV map: `fill` writes it over `-1` (the uncovered value); returned,
+    /// or written into the caller's plane (then an empty vector is returned).
+    fn uvmap(&mut self, len: usize, fill: impl FnOnce(&mut [f32])) -> Vec<f32> {
+        match self {
+            Planes::Owned => {
+                let mut v = vec![-1f32; len];
+                fill(&mut v);
+                v
+            }
+            Planes::Borrowed(p) => {
+                p.uvmap.fill(-1.0);
+                fill(p.uvmap);
+                Vec::new()
+            }
+        }
+    }
+}
+
+/// One row of the index [`FaceLoader`] keeps per sample (the mesh is read per item).
+#[derive(Clone, Debug)]
+struct IndexRow {
+    /// The samples table's row, without its landmarks and without its mesh unless the
+    /// image is embedded (the release may then be gone).
+    sample: crate::store::samples_table::SampleRecord,
+    /// The split served (`split`'s assignment, else the listed one).
+    split: String,
+    /// The sample's `_info.npz`.
+    info_path: PathBuf,
+    /// Its samples shard and row there (its record in a crop store).
+    location: (usize, usize),
+}
+
+/// A visibility buffer lent by a [`FaceLoader`]'s pool; returned to it when dropped.
+struct KeptBuffer<'a> {
+    pool: &'a std::sync::Mutex<Vec<VisibilityBuffer>>,
+    buffer: VisibilityBuffer,
+}
+
+impl std::ops::Deref for KeptBuffer<'_> {
+    type Target = VisibilityBuffer;
+    fn deref(&self) -> &VisibilityBuffer {
+        &self.buffer
+    }
+}
+
+impl std::ops::DerefMut for KeptBuffer<'_> {
+    fn deref_mut(&mut self) -> &mut VisibilityBuffer {
+        &mut self.buffer
+    }
+}
+
+impl Drop for KeptBuffer<'_> {
+    fn drop(&mut self) {
+        let buffer = std::mem::replace(&mut self.buffer, VisibilityBuffer::new(0, 0));
+        self.pool
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .push(buffer);
+    }
+}
+
+/// Where an item's crop pixels come from.
+enum PixelSource {
+    /// The decoded full-resolution image.
+    Image(image::RgbImage),
+    /// A crop store's window around the evaluation crop.
+    Stored(StoredCrop),
+}
+
+impl PixelSource {
+    /// The pixels of `crop` (interleaved RGB, `S x S`). From a store, an evaluation
+    /// crop must be the stored box (else the store does not belong to this loader).
+    fn crop(&self, crop: &CropTransform, train: bool, key: &SampleKey) -> Result<Vec<u8>> {
+        match self {
+            PixelSource::Image(image) => Ok(crop.crop_image(image).into_raw()),
+            PixelSource::Stored(stored) => {
+                if !train && *crop != stored.eval_crop {
+                    return Err(Error::invalid(
+                        "crop store",
+                        format!(
+                            "{key}: the stored box {:?} is not the evaluation box {crop:?} computed from its mesh: the store was made with other rules or another topology; run `arkit-tool crops` again",
+                            stored.eval_crop
+                        ),
+                    ));
+                }
+                Ok(stored.crop_pixels(crop))
+            }
+        }
+    }
+}
+
+/// The release's UV layout: `tris_2500x3_202110.npy` and the 1,279 rows of
+/// `uv_coords_std_202109.npy`.
+pub type ReleaseUvLayout = (Vec<[u32; 3]>, Vec<[f32; 2]>);
+
+/// The official UV layout rasterized once for one map size: per texel the UV triangle
+/// and its screen-space weights, by the official rasterizer's rules at `uv * (S - 1)`.
+#[derive(Clone, Debug)]
+pub struct OfficialUvLayout {
+    size: u32,
+    triangles: Vec<[u32; 3]>,
+    /// Per texel, the triangle index or [`VisibilityBuffer::EMPTY`].
+    triangle: Vec<u32>,
+    bary: Vec<[f32; 3]>,
+    ring_of: Vec<u32>,
+    centroid_loops: Vec<Vec<u32>>,
+    extended: usize,
+}
+
+impl OfficialUvLayout {
+    /// The layout of `uv` (its UV coordinates, triangles, ring and hole loops) drawn at
+    /// `size` by the official rasterizer's rules at `uv * (S - 1)`; with `release` (the
+    /// release's `tris_2500x3_202110.npy` and the 1,279 rows of
+    /// `uv_coords_std_202109.npy`) the release's own triangles and vertex order instead
+    /// ([`OfficialUvLayout::release_order`]).
+    pub fn new(
+        uv: &UvMapper,
+        release: Option<ReleaseUvLayout>,
+        vertex_count: usize,
+        size: u32,
+    ) -> Result<Self> {
+        let (coords, triangles, ring_of, centroid_loops) = match release {
+            Some((tris, coords)) => {
+                let (ring_of, loops) = Self::release_order(&tris, vertex_count, coords.len())?;
+                (coords, tris, ring_of, loops)
+            }
+            None => (
+                uv.uv.clone(),
+                uv.triangles.clone(),
+                uv.ring_of.clone(),
+                uv.centroid_loops.clone(),
+            ),
+        };
+        if let Some(t) = triangles
+            .iter()
+            .flatten()
+            .find(|&&v| v as usize >= coords.len())
+        {
+            return Err(Error::invalid(
+                "UV triangles",
+                format!("vertex {t} beyond the {} UV vertices", coords.len()),
+            ));
+        }
+        let s = (size - 1) as f32;
+        let screen: Vec<ScreenVertex> = coords
+            .iter()
+            .map(|t| ScreenVertex {
+                x: t[0] * s,
+                y: t[1] * s,
+                inv_w: 1.0,
+            })
+            .collect();
+        let mut vb = VisibilityBuffer::new(size, size);
+        arkit_core::raster::rasterize_mesh_official(&mut vb, &screen, &triangles)
+            .map_err(|e| Error::invalid("UV triangles", e.to_string()))?;
+        Ok(OfficialUvLayout {
+            size,
+            triangles,
+            triangle: vb.triangle,
+            bary: vb.bary,
+            ring_of,
+            centroid_loops,
+            extended: coords.len(),
+        })
+    }
+
+    /// The release's extended vertices, read off its UV triangles: after the mesh
+    /// triangles come, for ring vertex `V + k`, the pair `[c_k, V+k+1, V+k]`,
+    /// `[c_k, c_k+1, V+k+1]` (so `c_k`, the first column of every other ring triangle,
+    /// is the contour vertex the official loader scales by 1.1 for row `V + k`), then a
+    /// fan `[l_i, centre, l_i+1]` around each hole centroid (the last three rows), whose
+    /// first column is the hole's loop in the official order.
+    pub fn release_order(
+        tris: &[[u32; 3]],
+        vertex_count: usize,
+        rows: usize,
+    ) -> Result<(Vec<u32>, Vec<Vec<u32>>)> {
+        let v = vertex_count as u32;
+        let bad = |why: &str| Error::invalid("tris_2500x3_202110.npy", why.to_string());
+        if rows < vertex_count + 3 {
+            return Err(bad("fewer UV rows than the mesh and three hole centroids"));
+        }
+        let centres: Vec<u32> = (rows as u32 - 3..rows as u32).collect();
+        let first_extra = tris
+            .iter()
+            .position(|t| t.iter().any(|&x| x >= v))
+            .ok_or_else(|| bad("no triangle beyond the mesh"))?;
+        let extra = &tris[first_extra..];
+        let ring: Vec<&[u32; 3]> = extra
+            .iter()
+            .filter(|t| !t.iter().any(|x| centres.contains(x)))
+            .collect();
+        let ring_of: Vec<u32> = ring.iter().step_by(2).map(|t| t[0]).collect();
+        if ring_of.len() != rows - vertex_count - 3 || ring_of.iter().any(|&c| c >= v) {
+            return Err(bad(
+                "the ring triangles do not pair one contour vertex per ring row",
+            ));
+        }
+        let loops = centres
+            .iter()
+            .map(|&c| {
+                let fan: Vec<u32> = extra.iter().filter(|t| t[1] == c).map(|t| t[0]).collect();
+                if fan.len() < 3 || fan.iter().any(|&x| x >= v) {
+                    return Err(bad("a hole centroid without its fan"));
+                }
+                Ok(fan)
+            })
+            .collect::<Result<Vec<_>>>()?;
+        Ok((ring_of, loops))
+    }
+
+    /// The official UV map of `verts` (metres), channels first, in [-1, 1]: the
+    /// positions mapped by `4.5 v + 0.5`, the ring at 1.1 times its contour vertex in that
+    /// space, the hole centroids their loops' means, interpolated with the layout's
+    /// weights, clipped to [0, 1] and mapped by `2 x - 1` (uncovered texels -1).
+    pub fn uv_map(&self, verts: &[Point3<f32>]) -> Vec<f32> {
+        let mut out = vec![-1f32; 3 * (self.size * self.size) as usize];
+        self.uv_map_into(verts, &mut out);
+        out
+    }
+
+    /// The side, in texels, of the maps [`OfficialUvLayout::uv_map`] draws.
+    pub fn size(&self) -> u32 {
+        self.size
+    }
+
+    /// [`OfficialUvLayout::uv_map`] over `out`, which holds `-1` (uncovered) already:
+    /// only covered texels are written.
+    ///
+    /// # Panics
+    /// When `out` is not `3 x size x size` values.
+    pub fn uv_map_into(&self, verts: &[Point3<f32>], out: &mut [f32]) {
+        let mut colors: Vec<[f32; 3]> = verts
+            .iter()
+            .map(|p| [p.x * 4.5 + 0.5, p.y * 4.5 + 0.5, p.z * 4.5 + 0.5])
+            .collect();
+        for &c in &self.ring_of {
+            let v = colors[c as usize];
+            colors.push([v[0] * 1.1, v[1] * 1.1, v[2] * 1.1]);
+        }
+        for l in &self.centroid_loops {
+            // numpy's float32 mean over axis 0: a running float32 sum, then / n.
+            let mut sum = [0f32; 3];
+            for &i in l {
+                for (s, v) in sum.iter_mut().zip(colors[i as usize]) {
+                    *s += v;
+                }
+            }
+            colors.push(sum.map(|s| s / l.len() as f32));
+        }
+        debug_assert_eq!(colors.len(), self.extended);
+        let n = (self.size * self.size) as usize;
+        assert_eq!(out.len(), 3 * n, "a 3 x size x size map");
+        for (i, (&t, w)) in self.triangle.iter().zip(&self.bary).enumerate() {
+            if t == VisibilityBuffer::EMPTY {
+                continue;
+            }
+            let [a, b, c] = self.triangles[t as usize].map(|v| colors[v as usize]);
+            for k in 0..3 {
+                let v = w[0] * a[k] + w[1] * b[k] + w[2] * c[k];
+                out[k * n + i] = v.clamp(0.0, 1.0) * 2.0 - 1.0;
+            }
+        }
+    }
+}
+
+/// The official loader's eye and mouth triangles (`vert_index[face_em]` of its
+/// `lib/eyemouth_index.py`), which it draws after the mesh, with attribute 0, into the
+/// full-resolution mask (`arkit_dataset.py:146-151`). `loops` are the two eyes' and the
+/// mouth's boundary loops in that order and in the official direction (the release's
+/// hole fans list them so, [`OfficialUvLayout::release_order`]); `uv` the topology's UV
+/// coordinates. Each loop starts at its vertex of smallest `u` (an eye or mouth corner)
+/// and is closed by a strip between its two ends: `[0, 1, n-1]`, then alternately `[a,
+/// a+1, b]` and `[a, b, b-1]`. The official list departs from that pattern in the vertex
+/// order of three triangles (each eye's third is `[2, n-2, n-1]`, the mouth's last
+/// `[17, 19, 18]`); the order changes the float32 rounding of the depth, so it is kept.
+/// With the release's files this gives the official 78 triangles exactly (checked beside
+/// the official code).
+pub fn official_organ_triangles(loops: [&[u32]; 3], uv: &[[f32; 2]]) -> Vec<[u32; 3]> {
+    let mut out = Vec::new();
+    for (k, lp) in loops.into_iter().enumerate() {
+        let n = lp.len();
+        if n < 3 {
+            continue;
+        }
+        // numpy's argmin: the first smallest.
+        let start = (0..n).fold(0, |best, i| {
+            if uv[lp[i] as usize][0] < uv[lp[best] as usize][0] {
+                i
+            } else {
+                best
+            }
+        });
+        let at = |i: usize| lp[(start + i) % n];
+        let mut local = vec![[0, 1, n - 1]];
+        let (mut a, mut b, mut step_a) = (1, n - 1, true);
+        while local.len() < n - 2 {
+            if step_a {
+                local.push([a, a + 1, b]);
+                a += 1;
+            } else {
+                local.push([a, b, b - 1]);
+                b -= 1;
+            }
+            step_a = !step_a;
+        }
+        let odd = if k < 2 { 2 } else { local.len() - 1 };
+        if let Some(t) = local.get_mut(odd) {
+            t.swap(1, 2);
+        }
+        out.extend(local.into_iter().map(|t| t.map(at)));
+    }
+    out
+}
+
+/// Python's `range(len)[start:stop]` for a step of 1: the clipped, wrapped bounds.
+fn python_slice(start: i64, stop: i64, len: i64) -> std::ops::Range<i64> {
+    let fix = |i: i64| {
+        if i < 0 { (i + len).max(0) } else { i.min(len) }
+    };
+    let (a, b) = (fix(start), fix(stop));
+    a..b.max(a)
+}
+
+/// The official `tform_inv` of a crop ([`LoaderItem::tform_inv`]): crop pixel
+/// `(col, row)` to image point by the crop's sampling rule.
+pub fn tform_inv(crop: &CropTransform) -> [f64; 6] {
+    let o = crop.sampling.offset();
+    let s = crop.size as f64;
+    let (sx, sy) = (crop.side / s, crop.side_y / s);
+    [sx, 0.0, crop.x0 + o * sx, 0.0, sy, crop.y0 + o * sy]
+}
+
+/// `ToTensor` then `Normalize(IMAGENET_MEAN, IMAGENET_STD)` of an interleaved RGB crop:
+/// channels first. Each value depends on its byte and channel only, so the formula is
+/// evaluated once per byte value and channel (a 3 x 256 table) and looked up: the same
+/// values, without two divisions per value.
+pub fn normalise(rgb: &[u8]) -> Vec<f32> {
+    let mut out = vec![0f32; rgb.len()];
+    normalise_into(rgb, &mut out);
+    out
+}
+
+/// [`normalise`] into `out` (`rgb.len()` values, channels first).
+///
+/// # Panics
+/// When `out.len() != rgb.len()`.
+fn normalise_into(rgb: &[u8], out: &mut [f32]) {
+    assert_eq!(out.len(), rgb.len(), "one value per byte");
+    let table: [[f32; 256]; 3] = std::array::from_fn(|k| {
+        std::array::from_fn(|v| (UNIT[v] - IMAGENET_MEAN[k]) / IMAGENET_STD[k])
+    });
+    let n = rgb.len() / 3;
+    let (r, rest) = out.split_at_mut(n);
+    let (g, b) = rest.split_at_mut(n);
+    for (((p, r), g), b) in rgb.chunks_exact(3).zip(r).zip(g).zip(b) {
+        *r = table[0][p[0] as usize];
+        *g = table[1][p[1] as usize];
+        *b = table[2][p[2] as usize];
+    }
+}
+
+/// A converted dataset served sample by sample (see the module docs). Holds a small
+/// index per sample (key, image path, size, `R_t`); the mesh is read from the sample's
+/// `_info.npz` per item (checked against the table's `R_t`), as the official loader
+/// reads it.
+#[derive(Debug)]
+pub struct FaceLoader {
+    dataset: Dataset,
+    rows: Vec<IndexRow>,
+    renderer: FaceRenderer,
+    camera_projection: nalgebra::Matrix4<f64>,
+    uv_texels: UvTexels,
+    uv: UvMapper,
+    official_uv: OfficialUvLayout,
+    options: LoaderOptions,
+    /// Visibility buffers kept between items (an 800x800 buffer is 13 MB to allocate,
+    /// a 192x192 crop's 0.7 MB to allocate and zero).
+    buffers: std::sync::Mutex<Vec<VisibilityBuffer>>,
+    /// The crop store items read their pixels and meshes from, when opened.
+    store: Option<CropStore>,
+}
+
+impl FaceLoader {
+    /// Opens `dir` (what `convert` wrote) for `options`, with `topology` (the one the
+    /// dataset was converted with; checked) and, for [`Compat::Official`], the release's
+    /// UV triangles `uv_triangles` when known.
+    pub fn open(
+        dir: &Path,
+        topology: FaceTopology,
+        uv_triangles: Option<Vec<[u32; 3]>>,
+        options: LoaderOptions,
+    ) -> Result<Self> {
+        options.validate()?;
+        let dataset = Dataset::open(dir)?;
+        crate::store::manifest::check_topology(dataset.manifest(), &topology)?;
+        let splits = crate::store::splits::SplitLookup::read(dir)?;
+        let layout = crate::ingest::convert::DiscoveredInput {
+            root: dataset.image_root().to_path_buf(),
+            kind: dataset.manifest().layout,
+            lists: Vec::new(),
+        };
+        let mut rows = Vec::new();
+        for shard in dataset.shards() {
+            for (position, mut r) in dataset.read_samples(shard)?.into_iter().enumerate() {
+                let split = splits.of(&r);
+                if options.split.as_deref().is_some_and(|s| s != split) {
+                    continue;
+                }
+                let info_path = dataset
+                    .image_root()
+                    .join(layout.info_relative(&r.split, &r.key));
+                r.landmarks_2d = Vec::new();
+                if r.jpeg.is_none() {
+                    r.verts = Vec::new();
+                }
+                rows.push(IndexRow {
+                    sample: r,
+                    split,
+                    info_path,
+                    location: (shard.index, position),
+                });
+            }
+        }
+        let uv = UvMapper::derive(&topology)?;
+        let uv_texels = uv.texels(options.img_size);
+        let release_uv = uv_triangles.map(|t| {
+            let mut coords = topology.uv.clone();
+            coords.extend_from_slice(&topology.uv_extension);
+            (t, coords)
+        });
+        let official_uv =
+            OfficialUvLayout::new(&uv, release_uv, topology.vertex_count, options.img_size)?;
+        // The official loader reads the projection matrix as float32
+        // (`np.loadtxt(..., dtype=np.float32)`): its screen positions follow those values.
+        let projection = match options.compat {
+            Compat::Exact => Camera::release_projection(),
+            Compat::Official => Camera::release_projection().map(|x| x as f32 as f64),
+        };
+        let topology_uv = topology.uv.clone();
+        let mut renderer = FaceRenderer::new(topology, projection)?;
+        renderer.mode = match options.compat {
+            Compat::Exact => RasterMode::Exact,
+            Compat::Official => RasterMode::Official,
+        };
+        if options.compat == Compat::Official {
+            // The holes as the official mask closes them. The layout's loops are the
+            // mouth's and the two eyes'; the official list has the eyes first.
+            let l = &official_uv.centroid_loops;
+            if l.len() == 3 {
+                let organs = official_organ_triangles([&l[1], &l[2], &l[0]], &topology_uv);
+                renderer.set_hole_triangles(&organs)?;
+            }
+        }
+        Ok(FaceLoader {
+            dataset,
+            rows,
+            renderer,
+            camera_projection: projection,
+            uv_texels,
+            uv,
+            official_uv,
+            options,
+            buffers: std::sync::Mutex::new(Vec::new()),
+            store: None,
+        })
+    }
+
+    /// Where `crops` writes the store of a dataset for these options by default:
+    /// `DIR/crops/<compat>-<S>`.
+    pub fn default_crop_store(dir: &Path, compat: Compat, img_size: u32) -> PathBuf {
+        dir.join("crops")
+            .join(format!("{}-{img_size}", compat.name()))
+    }
+
+    /// Reads pixels and meshes from the crop store in `dir` from now on (checked
+    /// against this loader's dataset, rules, crop side and topology: see
+    /// [`CropStore::open`]).
+    pub fn open_crop_store(&mut self, dir: &Path) -> Result<()> {
+        self.store = Some(CropStore::open(
+            dir,
+            &self.dataset,
+            self.options.compat.name(),
+            self.options.img_size,
+            self.renderer.topology().vertex_count,
+        )?);
+        Ok(())
+    }
+
+    /// The crop store in use, if any.
+    pub fn crop_store(&self) -> Option<&CropStore> {
+        self.store.as_ref()
+    }
+
+    /// Vertices of the meshes served (the topology's).
+    pub fn mesh_vertex_count(&self) -> usize {
+        self.renderer.topology().vertex_count
+    }
+
+    /// The samples shard and row of sample `index`.
+    pub fn location(&self, index: usize) -> Option<(usize, usize)> {
+        self.rows.get(index).map(|r| r.location)
+    }
+
+    /// What a crop store keeps of sample `index` (read from the release, not from a
+    /// store): its mesh, its evaluation box and the crop window around it.
+    pub fn stored_crop(&self, index: usize) -> Result<StoredCrop> {
+        let row = self.row(index)?;
+        let verts = self.mesh(index)?;
+        let image = self.dataset.image(&row.sample)?;
+        let pose = Pose::from_release_rt(&row.sample.rt)?;
+        let landmarks = self.landmarks(row, &verts, &pose)?;
+        let eval_crop = self.eval_crop(row, &landmarks)?;
+        let s = self.options.img_size;
+        let first = -(crate::loader::crop_store::margin(s) as i64);
+        let w = crate::loader::crop_store::window_side(s);
+        let window = eval_crop.crop_window(&image, first, w);
+        Ok(StoredCrop {
+            eval_crop,
+            verts,
+            window: image::RgbImage::from_raw(w as u32, w as u32, window).expect("window size"),
+        })
+    }
+
+    /// The 68 landmarks of `verts` at `pose` in image pixels.
+    fn landmarks(
+        &self,
+        row: &IndexRow,
+        verts: &[Point3<f32>],
+        pose: &Pose,
+    ) -> Result<Vec<(f64, f64)>> {
+        let camera = Camera::new(
+            self.camera_projection,
+            row.sample.image_width,
+            row.sample.image_height,
+        )?;
+        let points: Vec<Point3<f64>> = self
+            .renderer
+            .topology()
+            .landmarks
+            .iter()
+            .map(|&i| verts[i as usize].cast())
+            .collect();
+        Ok(camera
+            .project_all(pose, &points)
+            .iter()
+            .map(|p| (p.u, p.v))
+            .collect())
+    }
+
+    /// The evaluation crop of these landmarks under the loader's rules: ours, or the
+    /// official integer box (an error when that box is empty).
+    fn eval_crop(&self, row: &IndexRow, landmarks: &[(f64, f64)]) -> Result<CropTransform> {
+        let s = self.options.img_size;
+        match self.options.compat {
+            Compat::Exact => Ok(CropTransform::around_landmarks(
+                &flat_landmarks(landmarks),
+                s,
+            )),
+            Compat::Official => {
+                let [l, t, r, b] =
+                    official_box(LandmarkExtent::of(landmarks.iter().copied()), None);
+                if r <= l || b <= t {
+                    return Err(Error::invalid(
+                        "official box",
+                        format!("{}: the box {:?} is empty", row.sample.key, [l, t, r, b]),
+                    ));
+                }
+                Ok(box_crop(l, t, r, b, s))
+            }
+        }
+    }
+
+    /// Samples served.
+    pub fn len(&self) -> usize {
+        self.rows.len()
+    }
+
+    /// Whether no sample is served.
+    pub fn is_empty(&self) -> bool {
+        self.rows.is_empty()
+    }
+
+    /// The options.
+    pub fn options(&self) -> &LoaderOptions {
+        &self.options
+    }
+
+    /// The key and split of sample `index`.
+    pub fn key(&self, index: usize) -> Option<(&SampleKey, &str)> {
+        self.rows
+            .get(index)
+            .map(|r| (&r.sample.key, r.split.as_str()))
+    }
+
+    /// The dataset.
+    pub fn dataset(&self) -> &Dataset {
+        &self.dataset
+    }
+
+    /// The mesh of sample `index`, read from its `_info.npz` and checked against the
+    /// samples table (its `R_t` must be the table's, bit for bit); from the table for a
+    /// dataset with embedded images.
+    pub fn mesh(&self, index: usize) -> Result<Vec<Point3<f32>>> {
+        let row = self.row(index)?;
+        if row.sample.jpeg.is_some() {
+            return Ok(row
+                .sample
+                .verts
+                .chunks_exact(3)
+                .map(|c| Point3::new(c[0], c[1], c[2]))
+                .collect());
+        }
+        let info = arkit_core::release::read_info(&row.info_path)?;
+        if info.rt != row.sample.rt {
+            return Err(Error::format(
+                &row.info_path,
+                format!(
+                    "R_t differs from the samples table's for {}: the file changed since convert",
+                    row.sample.key
+                ),
+            ));
+        }
+        if info.verts.len() != self.renderer.topology().vertex_count {
+            return Err(Error::format(
+                &row.info_path,
+                format!(
+                    "{} vertices, the topology has {}",
+                    info.verts.len(),
+                    self.renderer.topology().vertex_count
+                ),
+            ));
+        }
+        Ok(info.verts)
+    }
+
+    fn row(&self, index: usize) -> Result<&IndexRow> {
+        self.rows.get(index).ok_or_else(|| {
+            Error::invalid(
+                "index",
+                format!("{index}: the dataset serves {} samples", self.rows.len()),
+            )
+        })
+    }
+
+    /// Sample `index` of epoch `epoch` (the epoch matters in training mode only).
+    pub fn item(&self, index: usize, epoch: u64) -> Result<LoaderItem> {
+        self.item_with(index, epoch, Planes::Owned)
+    }
+
+    /// As [`FaceLoader::item`], with `img` and `uvmap` written into `planes` (the
+    /// item's own two vectors are left empty): the same values, bit for bit (tested),
+    /// without allocating them. The planes must hold `3 x S x S` and `3 x U x U` values
+    /// ([`FaceLoader::uvmap_size`]); other lengths are refused.
+    pub fn item_into(
+        &self,
+        index: usize,
+        epoch: u64,
+        planes: ItemPlanes<'_>,
+    ) -> Result<LoaderItem> {
+        let s = self.options.img_size as usize;
+        let u = self.uvmap_size() as usize;
+        if planes.img.len() != 3 * s * s || planes.uvmap.len() != 3 * u * u {
+            return Err(Error::invalid(
+                "item planes",
+                format!(
+                    "{} and {} values given for img and uvmap; expected {} and {}",
+                    planes.img.len(),
+                    planes.uvmap.len(),
+                    3 * s * s,
+                    3 * u * u
+                ),
+            ));
+        }
+        self.item_with(index, epoch, Planes::Borrowed(planes))
+    }
+
+    /// The side, in texels, of an item's `uvmap` (`S` under both rule sets).
+    pub fn uvmap_size(&self) -> u32 {
+        match self.options.compat {
+            Compat::Exact => self.options.img_size,
+            Compat::Official => self.official_uv.size(),
+        }
+    }
+
+    fn item_with(&self, index: usize, epoch: u64, planes: Planes<'_>) -> Result<LoaderItem> {
+        let row = self.row(index)?;
+        let (verts, source) = match &self.store {
+            Some(store) => {
+                let (shard, r) = row.location;
+                // The record must be this sample's (checked in every mode).
+                let mut stored = store.read(shard, r, &row.sample.key.to_string())?;
+                (
+                    std::mem::take(&mut stored.verts),
+                    PixelSource::Stored(stored),
+                )
+            }
+            None => (
+                self.mesh(index)?,
+                PixelSource::Image(self.dataset.image(&row.sample)?),
+            ),
+        };
+        let pose = Pose::from_release_rt(&row.sample.rt)?;
+        let epoch = match self.options.mode {
+            LoaderMode::Train => epoch,
+            LoaderMode::Eval => 0,
+        };
+        let stream = (epoch << 40) ^ index as u64;
+        let mut rng = Rng::for_stream(self.options.seed, stream);
+        let landmarks = self.landmarks(row, &verts, &pose)?;
+        let train = self.options.mode == LoaderMode::Train;
+        let mut item = match self.options.compat {
+            Compat::Exact => self.exact(
+                row, &verts, &pose, &source, &landmarks, train, &mut rng, planes,
+            )?,
+            Compat::Official => self.official(
+                row, &verts, &pose, &source, &landmarks, train, &mut rng, planes,
+            )?,
+        };
+        item.model = verts.iter().flat_map(|p| [p.x, p.y, p.z]).collect();
+        Ok(item)
+    }
+
+    /// A training jitter `(dx, dy, scale)` for landmarks whose box has side `size`.
+    fn draw_jitter(rng: &mut Rng, size: f64) -> (f64, f64, f64) {
+        let r = 0.15 * size;
+        let dx = rng.uniform(-r, r);
+        let dy = rng.uniform(-r, r);
+        (dx, dy, rng.uniform(0.95, 1.05))
+    }
+
+    fn image_path(&self, row: &IndexRow) -> PathBuf {
+        match row.sample.jpeg {
+            Some(_) => self.dataset.dir().to_path_buf(),
+            None => self.dataset.image_root().join(&row.sample.image_path),
+        }
+    }
+
+    #[allow(clippy::too_many_arguments)]
+    fn exact(
+        &self,
+        row: &IndexRow,
+        verts: &[Point3<f32>],
+        pose: &Pose,
+        source: &PixelSource,
+        landmarks: &[(f64, f64)],
+        train: bool,
+        rng: &mut Rng,
+        mut planes: Planes<'_>,
+    ) -> Result<LoaderItem> {
+        let s = self.options.img_size;
+        let mut crop = CropTransform::around_landmarks(&flat_landmarks(landmarks), s);
+        if train {
+            // The landmarks' box size is 2/3 of the crop's side (half-side 0.75 size).
+            let size = crop.side / 1.5;
+            let (dx, dy, scale) = Self::draw_jitter(rng, size);
+            let (cx, cy) = (
+                crop.x0 + crop.side / 2.0 + dx,
+                crop.y0 + crop.side / 2.0 + dy,
+            );
+            let side = crop.side * scale;
+            crop = CropTransform {
+                x0: cx - side / 2.0,
+                y0: cy - side / 2.0,
+                side,
+                side_y: side,
+                size: s,
+                sampling: CropSampling::Centres,
+            };
+        }
+        let mut buffer = self.take_buffer();
+        let t = self.renderer.render(
+            verts,
+            pose,
+            row.sample.image_width,
+            row.sample.image_height,
+            &crop,
+            &mut buffer,
+        )?;
+        let pixels = t.mask_pixels();
+        if pixels.is_empty() {
+            return Err(Error::invalid(
+                "crop",
+                format!("no face pixel in the crop of {}", row.sample.key),
+            ));
+        }
+        let chosen = sample_points(pixels.len(), self.options.n_pts, rng.next_u64());
+        let coords = t.coordinate_map(verts);
+        let mut rgb = source.crop(&crop, train, &row.sample.key)?;
+        if train {
+            jitter_colour(&mut rgb, rng);
+        }
+        let extended = self.uv.extended_positions(verts);
+        let map = self.uv_texels.position_map(&extended);
+        let n = (s * s) as usize;
+        let uvmap = planes.uvmap(3 * n, |uvmap| {
+            for (i, p) in map.iter().enumerate() {
+                if p[0].is_nan() {
+                    continue;
+                }
+                for k in 0..3 {
+                    uvmap[k * n + i] = (p[k] * 9.0).clamp(-1.0, 1.0);
+                }
+            }
+        });
+        Ok(LoaderItem {
+            key: row.sample.key.clone(),
+            image_path: self.image_path(row),
+            img: planes.img(&rgb),
+            choose: chosen.iter().map(|&c| pixels[c as usize] as i64).collect(),
+            model: Vec::new(),
+            uvmap,
+            nocs: chosen
+                .iter()
+                .flat_map(|&c| {
+                    let p = coords[c as usize];
+                    [p.x * 4.5, p.y * 4.5, p.z * 4.5]
+                })
+                .collect(),
+            mask: t.mask.iter().map(|&m| m as u8).collect(),
+            corr_vertices: chosen
+                .iter()
+                .map(|&c| t.corr_vertices[c as usize].map(|v| v as u32))
+                .collect(),
+            corr_weights: chosen.iter().map(|&c| t.corr_weights[c as usize]).collect(),
+            tform_inv: tform_inv(&crop),
+            rt: row.sample.rt,
+            crop,
+            official_box: None,
+            choose_box: Vec::new(),
+            box_clipped: false,
+        })
+    }
+
+    #[allow(clippy::too_many_arguments)]
+    fn official(
+        &self,
+        row: &IndexRow,
+        verts: &[Point3<f32>],
+        pose: &Pose,
+        source: &PixelSource,
+        landmarks: &[(f64, f64)],
+        train: bool,
+        rng: &mut Rng,
+        planes: Planes<'_>,
+    ) -> Result<LoaderItem> {
+        let mut buffer = self.take_buffer();
+        // Only the window of the image the face can cover is rasterized and kept: the
+        // slice, the lookups and the warp below read through it.
+        let face = self.renderer.render_window_mask(
+            verts,
+            pose,
+            row.sample.image_width,
+            row.sample.image_height,
+            &mut buffer,
+        )?;
+        self.official_from(
+            row, verts, source, landmarks, train, rng, &buffer, &face, planes,
+        )
+    }
+
+    /// A visibility buffer from the loader's pool (or a new one), given back when
+    /// dropped: items reuse its allocation instead of allocating and zeroing one each.
+    fn take_buffer(&self) -> KeptBuffer<'_> {
+        let kept = self.buffers.lock().unwrap_or_else(|e| e.into_inner()).pop();
+        KeptBuffer {
+            pool: &self.buffers,
+            buffer: kept.unwrap_or_else(|| VisibilityBuffer::new(1, 1)),
+        }
+    }
+
+    #[allow(clippy::too_many_arguments)]
+    fn official_from(
+        &self,
+        row: &IndexRow,
+        verts: &[Point3<f32>],
+        source: &PixelSource,
+        landmarks: &[(f64, f64)],
+        train: bool,
+        rng: &mut Rng,
+        buffer: &VisibilityBuffer,
+        face: &WindowMask,
+        mut planes: Planes<'_>,
+    ) -> Result<LoaderItem> {
+        let s = self.options.img_size;
+        let (w, h) = (
+            row.sample.image_width as i64,
+            row.sample.image_height as i64,
+        );
+        let extent = LandmarkExtent::of(landmarks.iter().copied());
+        let box_of = |jitter| official_box(extent, jitter).map(|v| v as i64);
+        // The face pixels of the official slice of the full mask, or why there are none.
+        let choose_in = |b: [i64; 4]| -> std::result::Result<(Vec<i64>, i64, i64, i64), String> {
+            let [left, top, right, bottom] = b;
+            if right <= left || bottom <= top {
+                return Err(format!("the official box {b:?} is empty"));
+            }
+            let rows = python_slice(top, bottom + 1, h);
+            let cols = python_slice(left, right + 1, w);
+            let width = cols.end - cols.start;
+            let nz = face.face_offsets(rows.clone(), cols.clone());
+            if nz.is_empty() {
+                return Err(format!(
+                    "the official box {b:?} (left, top, right, bottom) of a {w}x{h} image holds no face pixel of mask[top:bottom+1, left:right+1]{}: the official loader raises on this sample and trains on a random other one",
+                    if top < 0 || left < 0 {
+                        " (a negative start indexes from the end in Python)"
+                    } else {
+                        ""
+                    }
+                ));
+            }
+            Ok((nz, rows.start, cols.start, width))
+        };
+        let mut chosen_box = box_of(None);
+        let mut found = None;
+        if train {
+            for _ in 0..JITTER_DRAWS {
+                let b = box_of(Some(Self::draw_jitter(rng, extent.size)));
+                if let Ok(c) = choose_in(b) {
+                    chosen_box = b;
+                    found = Some(c);
+                    break;
+                }
+            }
+        }
+        let (nz, row0, col0, slice_w) = match found {
+            Some(c) => c,
+            None => choose_in(chosen_box).map_err(|why| {
+                Error::invalid("official box", format!("{}: {why}", row.sample.key))
+            })?,
+        };
+        let [left, top, right, bottom] = chosen_box;
+        let crop = box_crop(left as f64, top as f64, right as f64, bottom as f64, s);
+        let picks = sample_points(nz.len(), self.options.n_pts, rng.next_u64());
+        let choose_box: Vec<i64> = picks.iter().map(|&p| nz[p as usize]).collect();
+        // The official mapping: columns of the unclipped box width, then the affine map
+        // cv2.getAffineTransform solves (its bits, see `official_crop::affine_transform`).
+        let crop_w = right - left + 1;
+        let (l, t, r, b) = (left as f32, top as f32, right as f32, bottom as f32);
+        let last = (s - 1) as f32;
+        let corners = [[0.0, 0.0], [0.0, last], [last, 0.0]];
+        let box_corners = [[l, t], [l, b], [r, t]];
+        let singular = || {
+            Error::invalid(
+                "official box",
+                format!("{}: the box {chosen_box:?} is degenerate", row.sample.key),
+            )
+        };
+        let tform = affine_transform(box_corners, corners).ok_or_else(singular)?;
+        let tform_inv = affine_transform(corners, box_corners).ok_or_else(singular)?;
+        let n = (s * s) as i64;
+        let n_mesh = self.renderer.topology().triangles.len() as u32;
+        let triangles = &self.renderer.topology().triangles;
+        let mut choose = Vec::with_capacity(choose_box.len());
+        let mut nocs = Vec::with_capacity(3 * choose_box.len());
+        let mut corr_vertices = Vec::with_capacity(choose_box.len());
+        let mut corr_weights = Vec::with_capacity(choose_box.len());
+        for &cb in &choose_box {
+            let col = (cb % crop_w + left) as f64;
+            let rw = (cb / crop_w + top) as f64;
+            // numpy's `point2d @ W + b`.
+            let px = (col * tform[0] + rw * tform[1]) + tform[2];
+            let py = (col * tform[3] + rw * tform[4]) + tform[5];
+            let k = py.floor() as i64 * s as i64 + px.floor() as i64;
+            choose.push(k);
+            // The full-resolution pixel the slice index names.
+            let (y, x) = (row0 + cb / slice_w, col0 + cb % slice_w);
+            let i = face
+                .window
+                .index(x, y)
+                .expect("a face pixel is in the window");
+            let t = buffer.triangle[i];
+            debug_assert!(t < n_mesh);
+            let tri = triangles[t as usize];
+            let wt = buffer.bary[i];
+            let attr = tri.map(|v| {
+                let p = verts[v as usize];
+                [p.x, p.y, p.z].map(|q| ((q as f64 * 4.5 + 0.5) * 255.0) as f32)
+            });
+            let [a0, a1, a2] = attr;
+            for ((x0, x1), x2) in a0.iter().zip(a1).zip(a2) {
+                let v = wt[0] * x0 + wt[1] * x1 + wt[2] * x2;
+                nocs.push(v / 255.0 - 0.5);
+            }
+            corr_vertices.push(tri);
+            corr_weights.push(wt);
+        }
+        // The official rule for points mapped outside the crop (only where the box leaves
+        // the image and the slice is clipped or wrapped): every index past the end becomes
+        // one random pixel, every negative index another (arkit_dataset.py:226-230).
+        let replaced = choose.iter().any(|k| !(0..n).contains(k));
+        if replaced {
+            let (high, low) = (rng.below(n as u64) as i64, rng.below(n as u64) as i64);
+            for k in &mut choose {
+                if *k >= n {
+                    *k = high;
+                } else if *k < 0 {
+                    *k = low;
+                }
+            }
+        }
+        let mut rgb = source.crop(&crop, train, &row.sample.key)?;
+        if train {
+            jitter_colour(&mut rgb, rng);
+        }
+        let mask = warp_mask_of(&crop, |x, y| face.is_face(x, y));
+        let box_clipped = left < 0 || top < 0 || right >= w || bottom >= h || replaced;
+        Ok(LoaderItem {
+            key: row.sample.key.clone(),
+            image_path: self.image_path(row),
+            img: planes.img(&rgb),
+            choose,
+            model: Vec::new(),
+            uvmap: planes.uvmap(3 * (self.uvmap_size() as usize).pow(2), |out| {
+                self.official_uv.uv_map_into(verts, out)
+            }),
+            nocs,
+            mask: mask.iter().map(|&m| m as u8).collect(),
+            corr_vertices,
+            corr_weights,
+            tform_inv,
+            rt: row.sample.rt,
+            crop,
+            official_box: Some(chosen_box),
+            choose_box,
+            box_clipped,
+        })
+    }
+}
+
+/// Landmarks `(u, v)` as the flat `[u0, v0, u1, v1, ...]` float32 list the crop takes.
+fn flat_landmarks(landmarks: &[(f64, f64)]) -> Vec<f32> {
+    landmarks
+        .iter()
+        .flat_map(|&(u, v)| [u as f32, v as f32])
+        .collect()
+}
+
+/// The release's UV triangles (`tris_2500x3_202110.npy`) from a resources folder, when
+/// the file is there: `(N, 3)` integer vertex ids.
+pub fn read_uv_triangles(resources: &Path) -> Result<Option<Vec<[u32; 3]>>> {
+    let path = resources.join("tris_2500x3_202110.npy");
+    if !path.exists() {
+        return Ok(None);
+    }
+    let a = arkit_core::npy::read_npy(&path)?;
+    if a.shape().len() != 2 || a.shape()[1] != 3 {
+        return Err(Error::format(
+            &path,
+            format!("expected shape (N, 3), found {:?}", a.shape()),
+        ));
+    }
+    let v = a.to_f64_vec();
+    if v.iter()
+        .any(|&x| x < 0.0 || x.fract() != 0.0 || x > u32::MAX as f64)
+    {
+        return Err(Error::format(
+            &path,
+            "vertex ids must be non-negative integers",
+        ));
+    }
+    Ok(Some(
+        v.chunks_exact(3)
+            .map(|c| [c[0] as u32, c[1] as u32, c[2] as u32])
+            .collect(),
+    ))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn python_slices_clip_and_wrap_as_python_does() {
+        // mask[top:bottom+1] of an 800-row image.
+        assert_eq!(python_slice(10, 301, 800), 10..301);
+        assert_eq!(python_slice(700, 901, 800), 700..800);
+        // A negative start counts from the end: [-5:301] is [795:301], empty.
+        assert_eq!(python_slice(-5, 301, 800), 795..795);
+        // ... unless the stop is past it.
+        assert_eq!(python_slice(-5, 900, 800), 795..800);
+        assert_eq!(python_slice(-900, 5, 800), 0..5);
+    }
+
+    #[test]
+    fn organ_strips_start_at_the_smallest_u_and_keep_the_official_vertex_order() {
+        // A six-vertex loop whose smallest u is its third vertex (12): local 0..5 are
+        // 12, 13, 14, 15, 10, 11. The strip [0,1,5], [1,2,5], [2,5,4], [2,3,4]; an eye's
+        // third triangle is listed [2,4,5], the mouth's last [2,4,3] (the official order).
+        let lp = [10u32, 11, 12, 13, 14, 15];
+        let mut uv = vec![[0.5f32, 0.5]; 16];
+        for (k, &v) in lp.iter().enumerate() {
+            uv[v as usize] = [[0.3, 0.2, 0.1, 0.4, 0.6, 0.5][k], 0.5];
+        }
+        let t = official_organ_triangles([&lp, &lp, &lp], &uv);
+        let eye = [[12, 13, 11], [13, 14, 11], [14, 10, 11], [14, 15, 10]];
+        let mouth = [[12, 13, 11], [13, 14, 11], [14, 11, 10], [14, 10, 15]];
+        assert_eq!(t[..4], eye);
+        assert_eq!(t[4..8], eye);
+        assert_eq!(t[8..], mouth);
+    }
+
+    #[test]
+    fn the_official_box_truncates_toward_zero_with_and_without_jitter() {
+        // Landmarks spanning x 100..200, y 50..130: size 100, centre (150, 90).
+        let l = LandmarkExtent::of([(100.0, 50.0), (200.0, 130.0), (150.0, 90.0)]);
+        assert_eq!((l.cx, l.cy, l.size), (150.0, 90.0, 100.0));
+        assert_eq!(official_box(l, None), [75.0, 15.0, 225.0, 165.0]);
+        // Centre moved by (10.5, -20.25), half-side 0.75 * 1.02 * 100 = 76.5.
+        let b = official_box(l, Some((10.5, -20.25, 1.02)));
+        assert_eq!(b, [84.0, -6.0, 237.0, 146.0]);
+        // int() truncates toward zero: -6.75 -> -6, not -7.
+        assert_eq!((90.0f64 - 20.25 - 76.5).trunc(), -6.0);
+    }
+
+    #[test]
+    fn normalisation_is_to_tensor_then_imagenet_normalize() {
+        // The table gives the formula's bits for every byte in every channel.
+        let all: Vec<u8> = (0..=255u8).flat_map(|v| [v, 255 - v, v / 2]).collect();
+        let out = normalise(&all);
+        for (i, p) in all.chunks_exact(3).enumerate() {
+            for k in 0..3 {
+                let direct = (p[k] as f32 / 255.0 - IMAGENET_MEAN[k]) / IMAGENET_STD[k];
+                assert_eq!(out[k * 256 + i].to_bits(), direct.to_bits());
+            }
+        }
+        let out = normalise(&[255, 0, 128, 0, 255, 64]);
+        // Channels first: R of pixel 0, R of pixel 1, G..., B...
+        assert!((out[0] - (1.0 - 0.485) / 0.229).abs() < 1e-6);
+        assert!((out[1] - (0.0 - 0.485) / 0.229).abs() < 1e-6);
+        assert!((out[3] - (1.0 - 0.456) / 0.224).abs() < 1e-6);
+        assert!((out[4] - (128.0 / 255.0 - 0.406) / 0.225).abs() < 1e-6);
+    }
+
+    #[test]
+    fn options_out_of_range_are_refused_naming_the_option() {
+        let o = LoaderOptions {
+            split: None,
+            mode: LoaderMode::Eval,
+            compat: Compat::Exact,
+            img_size: 8,
+            n_pts: 1024,
+            seed: 0,
+        };
+        assert!(o.validate().unwrap_err().to_string().contains("img_size"));
+        let o = LoaderOptions {
+            img_size: 192,
+            n_pts: 0,
+            ..o
+        };
+        assert!(o.validate().unwrap_err().to_string().contains("n_pts"));
+        assert!(Compat::parse("opencv").is_err() && LoaderMode::parse("test").is_err());
+    }
+}

@@ -1,0 +1,1345 @@
+//! `render`: PerspNet's geometric training targets for one sample, rendered once.
+//!
+//! Stages, each a function of its own:
+//! 1. **Crop** ([`CropTransform`]): the official square box (centre of the 68 projected
+//!    landmarks' bounding box, half-side 0.75 x its larger side) mapped onto a
+//!    `size x size` crop. The box edge `[x0, x0 + side]` maps to `[0, size]` in the
+//!    crop's continuous coordinates, so crop pixel `(i, j)` (centre `(i + 0.5, j + 0.5)`)
+//!    looks at image point `x0 + (i + 0.5) side / size` (the crate's pixel-centre rule,
+//!    `conventions::camera`).
+//! 2. **Visibility** ([`FaceRenderer::render`]): the mesh plus the fans that close the
+//!    eyes and mouth, projected with the release camera, mapped into the crop and
+//!    rasterized ([`arkit_core::raster`]) with the depth test. The fans take part in the
+//!    depth test (a cheek seen through an eye opening at large yaw stays hidden) but are
+//!    not face pixels.
+//! 3. **Targets** ([`FaceTargets`]): the mask (visible mesh triangles), and per mask pixel
+//!    the visible triangle's three vertex ids and perspective-correct barycentric
+//!    weights: the ground-truth row of the correspondence matrix M. The coordinate map
+//!    is not stored: it is `sum_k w_k V_k` ([`FaceTargets::coordinate_map`]).
+//! 4. **UV position map** ([`UvMapper`]): the canonical face drawn in UV space: each
+//!    texel holds the 3D position interpolated over the UV triangles, including the
+//!    ring outside the contour and the three hole centroids (1,279 UV vertices for
+//!    ARKit). It depends only on the mesh, so callers cache it per distinct mesh.
+//! 5. **Points** ([`sample_points`]): `M` mask pixels drawn from a seed, repeated
+//!    cyclically when the face has fewer than `M` pixels, as the official training does.
+//!
+//! The face mask over the whole image ([`FaceRenderer::render_full_mask`]) also comes
+//! held over a window ([`FaceRenderer::render_window_mask`], [`WindowMask`]): in
+//! official mode only the pixels the face's vertices can cover are rasterized, with the
+//! whole image's values there (tested against the whole-image raster on a face cut by
+//! the image's edges and one in the middle).
+
+use crate::mesh::topology::{FaceTopology, HoleFill, LoopRole};
+use arkit_core::conventions::{Camera, Pose};
+use arkit_core::error::{Error, Result};
+use arkit_core::raster::{PixelWindow, ScreenVertex, VisibilityBuffer};
+use arkit_core::rng::Rng;
+
+use crate::crop::{CropSampling, CropTransform};
+use crate::store::face_targets::FaceTargets;
+use nalgebra::Point3;
+use std::ops::Range;
+/// Renders masks and correspondences for one topology (see module docs).
+#[derive(Clone, Debug)]
+pub struct FaceRenderer {
+    topology: FaceTopology,
+    hole_fill: HoleFill,
+    triangles: Vec<[u32; 3]>,
+    camera_projection: nalgebra::Matrix4<f64>,
+    /// How pixels are sampled and weights interpolated.
+    pub mode: RasterMode,
+}
+
+/// Which rasterization rules [`FaceRenderer::render`] follows.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum RasterMode {
+    /// Ours: pixel centres, the top-left fill rule, perspective-correct weights.
+    #[default]
+    Exact,
+    /// The official loader's pipeline ([`crate::crop::official`]): its crop box and
+    /// `cv2` affine map (corner sampling), its rasterizer over the whole image
+    /// ([`arkit_core::raster::rasterize_mesh_official`]: integer sample points, its inside
+    /// test, screen-space weights, earlier triangle on ties), its mask warped into the
+    /// crop as `cv2.warpAffine` does, and each crop mask pixel's correspondence from
+    /// the full-resolution buffer at its heaviest face tap.
+    Official,
+}
+
+impl FaceRenderer {
+    /// A renderer for `topology`, projecting with `projection` (row-vector OpenGL form).
+    pub fn new(topology: FaceTopology, projection: nalgebra::Matrix4<f64>) -> Result<Self> {
+        if topology.vertex_count > u16::MAX as usize {
+            return Err(Error::invalid(
+                "topology",
+                "more than 65,535 vertices do not fit the u16 correspondence ids",
+            ));
+        }
+        let hole_fill = topology.hole_fill()?;
+        let mut triangles = topology.triangles.clone();
+        triangles.extend_from_slice(&hole_fill.triangles);
+        Ok(FaceRenderer {
+            topology,
+            hole_fill,
+            triangles,
+            camera_projection: projection,
+            mode: RasterMode::Exact,
+        })
+    }
+
+    /// Closes the eye and mouth holes with `holes` (triangles over the mesh's own
+    /// vertices, drawn after the mesh) instead of the centroid fans: in
+    /// [`RasterMode::Official`], the official loader's organ triangles
+    /// ([`crate::loader::item::official_organ_triangles`]). Which fill is drawn decides, where
+    /// a fill triangle overlaps the mesh on screen, which pixels are face: the fans and
+    /// the official strips cover a non-convex hole outline differently.
+    pub fn set_hole_triangles(&mut self, holes: &[[u32; 3]]) -> Result<()> {
+        if let Some(t) = holes
+            .iter()
+            .find(|t| t.iter().any(|&v| v as usize >= self.topology.vertex_count))
+        {
+            return Err(Error::invalid(
+                "hole triangles",
+                format!(
+                    "{t:?} refers to a vertex beyond the mesh's {}",
+                    self.topology.vertex_count
+                ),
+            ));
+        }
+        self.triangles.truncate(self.topology.triangles.len());
+        self.triangles.extend_from_slice(holes);
+        Ok(())
+    }
+
+    /// The topology.
+    pub fn topology(&self) -> &FaceTopology {
+        &self.topology
+    }
+
+    /// Renders the targets of `verts` at `pose` in an image of `width` x `height`, into
+    /// the crop `crop`. `buffer` is reused between calls (it is resized if needed).
+    pub fn render(
+        &self,
+        verts: &[Point3<f32>],
+        pose: &Pose,
+        width: u32,
+        height: u32,
+        crop: &CropTransform,
+        buffer: &mut VisibilityBuffer,
+    ) -> Result<FaceTargets> {
+        if self.mode == RasterMode::Official {
+            return self.render_official(verts, pose, width, height, crop, buffer);
+        }
+        self.rasterize(verts, pose, width, height, Some(crop), buffer)?;
+        let n_mesh = self.topology.triangles.len() as u32;
+        let mask = face_mask(&buffer.triangle, n_mesh);
+        let (corr_vertices, corr_weights) = self.correspondences(buffer, &mask);
+        Ok(FaceTargets {
+            crop: *crop,
+            mask,
+            corr_vertices,
+            corr_weights,
+        })
+    }
+
+    /// The official loader's crop ([`crate::crop::official::official_crop`]) of `verts`
+    /// at `pose` in a `width x height` image: its box around the landmarks projected in
+    /// `f64`, as the official loader projects them.
+    pub fn official_crop(
+        &self,
+        verts: &[Point3<f32>],
+        pose: &Pose,
+        width: u32,
+        height: u32,
+        size: u32,
+    ) -> Result<CropTransform> {
+        let camera = Camera::new(self.camera_projection, width, height)?;
+        let points: Vec<Point3<f64>> = self
+            .topology
+            .landmarks
+            .iter()
+            .map(|&i| {
+                verts
+                    .get(i as usize)
+                    .map(|p| p.cast())
+                    .ok_or_else(|| Error::invalid("verts", format!("no landmark vertex {i}")))
+            })
+            .collect::<Result<_>>()?;
+        let projected = camera.project_all(pose, &points);
+        crate::crop::official::official_crop(projected.iter().map(|p| (p.u, p.v)), size)
+            .ok_or_else(|| Error::invalid("landmarks", "the official crop box is empty"))
+    }
+
+    /// [`FaceRenderer::render`] in [`RasterMode::Official`]: the official loader's
+    /// pipeline ([`crate::crop::official`]): rasterize over the whole image with its
+    /// rules, warp the mask into the crop as `cv2.warpAffine` does, and take each crop
+    /// mask pixel's correspondence from the heaviest face pixel among its bilinear taps.
+    fn render_official(
+        &self,
+        verts: &[Point3<f32>],
+        pose: &Pose,
+        width: u32,
+        height: u32,
+        crop: &CropTransform,
+        buffer: &mut VisibilityBuffer,
+    ) -> Result<FaceTargets> {
+        if crop.sampling != CropSampling::Corners {
+            return Err(Error::invalid(
+                "crop",
+                "the official pipeline needs the official crop (corner sampling)",
+            ));
+        }
+        self.rasterize(verts, pose, width, height, None, buffer)?;
+        let n_mesh = self.topology.triangles.len() as u32;
+        let (w, h) = (width as i64, height as i64);
+        let face_at = |x: i64, y: i64| -> Option<usize> {
+            let inside = (0..w).contains(&x) && (0..h).contains(&y);
+            let i = (y * w + x) as usize;
+            (inside && buffer.triangle[i] < n_mesh).then_some(i)
+        };
+        let taps = crate::crop::official::warp_taps(crop);
+        let mut mask = vec![false; taps.len()];
+        let mut corr_vertices = Vec::new();
+        let mut corr_weights = Vec::new();
+        for (m, t) in mask.iter_mut().zip(&taps) {
+            let (x, y) = (t.x as i64, t.y as i64);
+            let corners = [(x, y), (x + 1, y), (x, y + 1), (x + 1, y + 1)];
+            let face_weight: u32 = corners
+                .iter()
+                .zip(t.weights())
+                .filter(|&(&(cx, cy), _)| face_at(cx, cy).is_some())
+                .map(|(_, wt)| wt)
+                .sum();
+            // cv2's rounding of the warped 0/1 mask: face from one half up.
+            if face_weight < crate::crop::official::HALF_WEIGHT {
+                continue;
+            }
+            let (cx, cy) =
+                crate::crop::official::nearest_face_tap(*t, |cx, cy| face_at(cx, cy).is_some())
+                    .expect("a tap weighs at least one half");
+            let i = face_at(cx, cy).expect("a face pixel");
+            let tri = self.triangles[buffer.triangle[i] as usize];
+            *m = true;
+            corr_vertices.push([tri[0] as u16, tri[1] as u16, tri[2] as u16]);
+            corr_weights.push(buffer.bary[i]);
+        }
+        Ok(FaceTargets {
+            crop: *crop,
+            mask,
+            corr_vertices,
+            corr_weights,
+        })
+    }
+
+    /// Per mask pixel, in row-major order: the visible triangle's vertex ids and the
+    /// barycentrics from `buffer`. Blocks of 16 pixels without a face pixel are
+    /// skipped (about 60% of a crop is background), the mesh triangle is looked up with
+    /// `get` (which is also the mask test), and the outputs are sized up front: growing
+    /// them by doubling copied up to 160 KiB per sample. The earlier loop over every
+    /// pixel index (bounds checks, values spilled to the stack: 55 instructions per face
+    /// pixel) was a fifth of the visibility stage's instructions.
+    #[inline(never)]
+    fn correspondences(
+        &self,
+        buffer: &VisibilityBuffer,
+        mask: &[bool],
+    ) -> (Vec<[u16; 3]>, Vec<[f32; 3]>) {
+        const BLOCK: usize = 16;
+        let mesh = &self.triangles[..self.topology.triangles.len()];
+        // Counted in u8 per block, which vectorises (a `usize` count per pixel did not).
+        let block_count = |m: &[bool]| m.iter().map(|&m| m as u8).sum::<u8>();
+        let faces: usize = mask.chunks(BLOCK).map(|m| block_count(m) as usize).sum();
+        let mut vertices = vec![[0u16; 3]; faces];
+        let mut weights = vec![[0f32; 3]; faces];
+        let mut k = 0;
+        let blocks = mask
+            .chunks(BLOCK)
+            .zip(buffer.triangle.chunks(BLOCK))
+            .zip(buffer.bary.chunks(BLOCK));
+        for ((m, triangle), bary) in blocks {
+            if block_count(m) == 0 {
+                continue;
+            }
+            for (&t, &b) in triangle.iter().zip(bary) {
+                if let Some(v) = mesh.get(t as usize) {
+                    vertices[k] = [v[0] as u16, v[1] as u16, v[2] as u16];
+                    weights[k] = b;
+                    k += 1;
+                }
+            }
+        }
+        (vertices, weights)
+    }
+
+    /// The face mask of `verts` at `pose` over the whole `width x height` image (row-major),
+    /// with the same rules as [`FaceRenderer::render`]'s crop mask (the hole fans hide
+    /// but are not face). `buffer` is reused between calls.
+    pub fn render_full_mask(
+        &self,
+        verts: &[Point3<f32>],
+        pose: &Pose,
+        width: u32,
+        height: u32,
+        buffer: &mut VisibilityBuffer,
+    ) -> Result<Vec<bool>> {
+        self.rasterize(verts, pose, width, height, None, buffer)?;
+        Ok(self.face_pixels(buffer))
+    }
+
+    /// [`FaceRenderer::render_full_mask`] held over a window of the image: in
+    /// [`RasterMode::Official`] the official rasterizer fills `buffer` only over the
+    /// window of every pixel the face's vertices can cover
+    /// ([`PixelWindow::official_extent`]), so the cost follows the face's extent, not
+    /// the image's; the mask is the whole-image one over the window and no face
+    /// outside it. In [`RasterMode::Exact`] the window is the whole image. `buffer`
+    /// (reused between calls, keeping its allocation) is left holding the window's
+    /// raster, pixel `(x, y)` at `window.index(x, y)`.
+    pub fn render_window_mask(
+        &self,
+        verts: &[Point3<f32>],
+        pose: &Pose,
+        width: u32,
+        height: u32,
+        buffer: &mut VisibilityBuffer,
+    ) -> Result<WindowMask> {
+        if self.mode == RasterMode::Exact {
+            let mask = self.render_full_mask(verts, pose, width, height, buffer)?;
+            let window = PixelWindow::whole(width, height);
+            return Ok(WindowMask { window, mask });
+        }
+        let screen = self.project(verts, pose, width, height)?;
+        check_viewport(width, height, "image size")?;
+        let window = PixelWindow::official_extent(&screen, width, height);
+        buffer.reset(window.width, window.height);
+        arkit_core::raster::rasterize_mesh_official_in(buffer, window, &screen, &self.triangles)
+            .map_err(|e| Error::invalid("mesh", e.to_string()))?;
+        let mask = self.face_pixels(buffer);
+        Ok(WindowMask { window, mask })
+    }
+
+    /// The face mask of a buffer this renderer filled (row-major): pixels whose
+    /// visible triangle is a mesh triangle, not a hole fan. After
+    /// [`FaceRenderer::render`] in [`RasterMode::Official`] the buffer holds the whole
+    /// image, so this is the full-image mask without rendering it again.
+    pub fn face_pixels(&self, buffer: &VisibilityBuffer) -> Vec<bool> {
+        face_mask(&buffer.triangle, self.topology.triangles.len() as u32)
+    }
+
+    /// The mesh's vertices and its hole centroids projected to image pixels with the
+    /// release camera for a `width x height` image.
+    fn project(
+        &self,
+        verts: &[Point3<f32>],
+        pose: &Pose,
+        width: u32,
+        height: u32,
+    ) -> Result<Vec<ScreenVertex>> {
+        if verts.len() != self.topology.vertex_count {
+            return Err(Error::invalid(
+                "verts",
+                format!(
+                    "{} vertices, the topology has {}",
+                    verts.len(),
+                    self.topology.vertex_count
+                ),
+            ));
+        }
+        let camera = Camera::new(self.camera_projection, width, height)?;
+        let mut all = verts.to_vec();
+        all.extend(self.hole_fill.centroid_positions(verts));
+        Ok(camera.project_to_screen(pose, &all))
+    }
+
+    /// Projects the mesh and its hole fans and rasterizes them into `buffer` (resized to
+    /// the crop, or to the whole image when `crop` is `None`) with the renderer's rules.
+    fn rasterize(
+        &self,
+        verts: &[Point3<f32>],
+        pose: &Pose,
+        width: u32,
+        height: u32,
+        crop: Option<&CropTransform>,
+        buffer: &mut VisibilityBuffer,
+    ) -> Result<()> {
+        let mut screen = self.project(verts, pose, width, height)?;
+        let (bw, bh) = match crop {
+            Some(crop) => {
+                let (sx, sy) = crop.scales();
+                let (sx, sy) = (sx as f32, sy as f32);
+                let (x0, y0) = (crop.x0 as f32, crop.y0 as f32);
+                // A corner-sampled crop's pixel i sits at i, where our rules sample
+                // i + 0.5: shift the mesh by half a crop pixel to sample there.
+                let o = 0.5 - crop.sampling.offset() as f32;
+                for p in &mut screen {
+                    p.x = (p.x - x0) * sx + o;
+                    p.y = (p.y - y0) * sy + o;
+                }
+                (crop.size, crop.size)
+            }
+            None => (width, height),
+        };
+        check_viewport(
+            bw,
+            bh,
+            if crop.is_some() {
+                "crop size"
+            } else {
+                "image size"
+            },
+        )?;
+        if buffer.width != bw || buffer.height != bh {
+            *buffer = VisibilityBuffer::new(bw, bh);
+        } else {
+            buffer.clear();
+        }
+        match self.mode {
+            RasterMode::Exact => buffer.rasterize_mesh(&screen, &self.triangles),
+            RasterMode::Official => {
+                arkit_core::raster::rasterize_mesh_official(buffer, &screen, &self.triangles)
+            }
+        }
+        .map_err(|e| Error::invalid("mesh", e.to_string()))
+    }
+}
+
+/// A `width x height` viewport's sides as an error naming `what` unless each is
+/// `1..=MAX_VIEWPORT`: the rasterizer's buffer panics beyond its limit, and a crop size
+/// or an image size read from a file must fail instead.
+fn check_viewport(width: u32, height: u32, what: &str) -> Result<()> {
+    let max = arkit_core::raster::MAX_VIEWPORT;
+    if !(1..=max).contains(&width) || !(1..=max).contains(&height) {
+        return Err(Error::invalid(
+            what,
+            format!("{width}x{height}: each side must be 1..={max} pixels"),
+        ));
+    }
+    Ok(())
+}
+
+/// A face mask over a window of a `width x height` image
+/// ([`FaceRenderer::render_window_mask`]): row-major over `window`; every pixel outside
+/// the window is not face.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct WindowMask {
+    /// The image pixels held.
+    pub window: PixelWindow,
+    /// Per window pixel, whether it shows the face.
+    pub mask: Vec<bool>,
+}
+
+impl WindowMask {
+    /// Whether image pixel `(x, y)` shows the face (never outside the window, nor
+    /// outside the image).
+    #[inline]
+    pub fn is_face(&self, x: i64, y: i64) -> bool {
+        self.window.index(x, y).is_some_and(|i| self.mask[i])
+    }
+
+    /// The mask over the whole `width x height` image (row-major), as
+    /// [`FaceRenderer::render_full_mask`] returns it.
+    pub fn to_full(&self, width: u32, height: u32) -> Vec<bool> {
+        let w = width as i64;
+        (0..width as usize * height as usize)
+            .map(|i| self.is_face(i as i64 % w, i as i64 / w))
+            .collect()
+    }
+
+    /// The face pixels of the image rectangle `rows x cols` (image pixels, within the
+    /// image), as row-major offsets in the rectangle: numpy's
+    /// `np.nonzero(mask[rows, cols].ravel())`. Only the rectangle's part inside the
+    /// window is visited.
+    pub fn face_offsets(&self, rows: Range<i64>, cols: Range<i64>) -> Vec<i64> {
+        let w = &self.window;
+        let clip = |r: &Range<i64>, start: u32, len: u32| {
+            r.start.max(start as i64)..r.end.min(start as i64 + len as i64)
+        };
+        let (inner_rows, inner_cols) = (clip(&rows, w.y0, w.height), clip(&cols, w.x0, w.width));
+        let width = cols.end - cols.start;
+        let mut offsets = Vec::new();
+        for y in inner_rows {
+            for x in inner_cols.clone() {
+                if self.is_face(x, y) {
+                    offsets.push((y - rows.start) * width + (x - cols.start));
+                }
+            }
+        }
+        offsets
+    }
+}
+
+/// Which pixels of a visibility buffer's `triangle` array show one of the first
+/// `n_mesh` triangles (the mesh, not the hole fans, and not empty).
+fn face_mask(triangle: &[u32], n_mesh: u32) -> Vec<bool> {
+    triangle.iter().map(|&t| t < n_mesh).collect()
+}
+
+/// How far the official loader's rasterizer (corner sampling, screen-space weights,
+/// [`arkit_core::raster::rasterize_mesh_official`]) and ours (centre sampling, perspective-
+/// correct weights) differ on one face in a full `width x height` image.
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize)]
+pub struct ModeDifference {
+    /// Face pixels in our mask.
+    pub face_pixels: usize,
+    /// Pixels that are face in one mode and not the other.
+    pub mask_pixels_changed: usize,
+    /// Face pixels in both whose visible triangle differs.
+    pub triangle_changed: usize,
+    /// Largest weight difference where both see the same triangle.
+    pub max_weight_difference: f32,
+}
+
+impl FaceRenderer {
+    /// Renders `verts` at `pose` in the full image both ways and compares. With
+    /// `aligned`, the official sampling is moved onto our pixel centres (vertices shifted
+    /// by half a pixel), which isolates the interpolation and edge rules from the
+    /// half-pixel offset between the two sampling conventions.
+    pub fn compare_with_official(
+        &self,
+        verts: &[Point3<f32>],
+        pose: &Pose,
+        width: u32,
+        height: u32,
+        aligned: bool,
+    ) -> Result<ModeDifference> {
+        let screen = self.project(verts, pose, width, height)?;
+        let mut ours = VisibilityBuffer::new(width, height);
+        ours.rasterize_mesh(&screen, &self.triangles)
+            .map_err(|e| Error::invalid("mesh", e.to_string()))?;
+        let shift = if aligned { 0.5 } else { 0.0 };
+        let shifted: Vec<ScreenVertex> = screen
+            .iter()
+            .map(|p| ScreenVertex {
+                x: p.x - shift,
+                y: p.y - shift,
+                inv_w: p.inv_w,
+            })
+            .collect();
+        let mut theirs = VisibilityBuffer::new(width, height);
+        arkit_core::raster::rasterize_mesh_official(&mut theirs, &shifted, &self.triangles)
+            .map_err(|e| Error::invalid("mesh", e.to_string()))?;
+        let n_mesh = self.topology.triangles.len() as u32;
+        let mut d = ModeDifference {
+            face_pixels: 0,
+            mask_pixels_changed: 0,
+            triangle_changed: 0,
+            max_weight_difference: 0.0,
+        };
+        for i in 0..ours.triangle.len() {
+            let (a, b) = (ours.triangle[i], theirs.triangle[i]);
+            let (fa, fb) = (a < n_mesh, b < n_mesh);
+            d.face_pixels += fa as usize;
+            if fa != fb {
+                d.mask_pixels_changed += 1;
+            } else if fa && a != b {
+                d.triangle_changed += 1;
+            } else if fa {
+                let w = (0..3)
+                    .map(|k| (ours.bary[i][k] - theirs.bary[i][k]).abs())
+                    .fold(0.0, f32::max);
+                d.max_weight_difference = d.max_weight_difference.max(w);
+            }
+        }
+        Ok(d)
+    }
+}
+
+/// `M` of `n` mask pixels (indices into the mask pixel list), drawn from `seed`: a
+/// random subset without repetition when `n >= M`, else all `n` repeated cyclically
+/// (numpy's `np.pad(choose, (0, M - n), 'wrap')`, as the official loader does).
+pub fn sample_points(n: usize, m: usize, seed: u64) -> Vec<u32> {
+    if n == 0 {
+        return Vec::new();
+    }
+    if n <= m {
+        return (0..m).map(|k| (k % n) as u32).collect();
+    }
+    // Partial Fisher-Yates, then sorted so the rows keep the pixel order.
+    let mut idx: Vec<u32> = (0..n as u32).collect();
+    let mut rng = Rng::new(seed);
+    for k in 0..m {
+        let j = k + rng.below((n - k) as u64) as usize;
+        idx.swap(k, j);
+    }
+    let mut chosen = idx[..m].to_vec();
+    chosen.sort_unstable();
+    chosen
+}
+
+/// The UV layout extended beyond the mesh, and the UV-space triangles over it.
+#[derive(Clone, Debug)]
+pub struct UvMapper {
+    /// UV coordinates of the mesh vertices, then the ring, then the hole centroids.
+    pub uv: Vec<[f32; 2]>,
+    /// Triangles over those UV vertices: mesh, ring, hole fans.
+    pub triangles: Vec<[u32; 3]>,
+    /// The mesh vertex each ring vertex is pushed out from.
+    pub ring_of: Vec<u32>,
+    /// The hole loops whose centroids come after the ring (mouth, right eye, left eye).
+    pub centroid_loops: Vec<Vec<u32>>,
+}
+
+/// How far the ring outside the contour is pushed (the release's `* 1.1`).
+pub const RING_SCALE: f32 = 1.1;
+
+impl UvMapper {
+    /// Derives the extension from the topology: the hole centroids at the mean UV of
+    /// each hole's loop (exactly the release's values), with fans; the outer contour's
+    /// vertices pushed out into a ring joined to the contour by triangles. The ring's
+    /// UVs are the topology's own extension rows when it has them (the release's file:
+    /// each ring row is matched to the contour vertex nearest to it in UV), otherwise
+    /// the contour UVs scaled by [`RING_SCALE`] about their mean.
+    pub fn derive(topology: &FaceTopology) -> Result<Self> {
+        let loops = topology.boundary_loops()?;
+        let fill = topology.hole_fill()?;
+        // `boundary_loops` returns four loops, the outer one among them, or an error.
+        let outer = loops.get(LoopRole::Outer).expect("outer loop").clone();
+        let v = topology.vertex_count as u32;
+        let mut uv = topology.uv.clone();
+        let n = outer.len() as f32;
+        let mean = outer.iter().fold([0.0f32; 2], |a, &i| {
+            [
+                a[0] + topology.uv[i as usize][0] / n,
+                a[1] + topology.uv[i as usize][1] / n,
+            ]
+        });
+        let ring_rows = &topology.uv_extension[..topology.uv_extension.len().min(outer.len())];
+        let use_release_ring = ring_rows.len() == outer.len();
+        for &c in &outer {
+            let p = topology.uv[c as usize];
+            let pushed = [
+                (mean[0] + (p[0] - mean[0]) * RING_SCALE).clamp(0.0, 1.0),
+                (mean[1] + (p[1] - mean[1]) * RING_SCALE).clamp(0.0, 1.0),
+            ];
+            if use_release_ring {
+                // The release row nearest to the contour vertex's UV.
+                let d = |q: &[f32; 2]| (q[0] - p[0]).powi(2) + (q[1] - p[1]).powi(2);
+                let best = ring_rows
+                    .iter()
+                    .min_by(|a, b| d(a).total_cmp(&d(b)))
+                    .expect("rows");
+                uv.push(*best);
+            } else {
+                uv.push(pushed);
+            }
+        }
+        let mut triangles = topology.triangles.clone();
+        let k = outer.len() as u32;
+        for i in 0..k {
+            let (c0, c1) = (outer[i as usize], outer[((i + 1) % k) as usize]);
+            let (p0, p1) = (v + i, v + (i + 1) % k);
+            triangles.push([c0, p1, p0]);
+            triangles.push([c0, c1, p1]);
+        }
+        let base = v + k;
+        let mut centroid_loops = Vec::new();
+        for (j, (_, l)) in fill.centroids.iter().enumerate() {
+            let n = l.len() as f32;
+            uv.push(l.iter().fold([0.0f32; 2], |a, &i| {
+                [
+                    a[0] + topology.uv[i as usize][0] / n,
+                    a[1] + topology.uv[i as usize][1] / n,
+                ]
+            }));
+            for t in fill.triangles.iter().filter(|t| t[2] == v + j as u32) {
+                triangles.push([t[0], t[1], base + j as u32]);
+            }
+            centroid_loops.push(l.clone());
+        }
+        Ok(UvMapper {
+            uv,
+            triangles,
+            ring_of: outer,
+            centroid_loops,
+        })
+    }
+
+    /// The extended positions of a face: the mesh, the ring (contour vertices scaled by
+    /// [`RING_SCALE`] about the canonical origin, as the release), the hole centroids.
+    pub fn extended_positions(&self, verts: &[Point3<f32>]) -> Vec<Point3<f32>> {
+        let mut out = verts.to_vec();
+        out.extend(
+            self.ring_of
+                .iter()
+                .map(|&c| Point3::from(verts[c as usize].coords * RING_SCALE)),
+        );
+        for l in &self.centroid_loops {
+            let sum = l.iter().fold(nalgebra::Vector3::zeros(), |a, &i| {
+                a + verts[i as usize].coords
+            });
+            out.push(Point3::from(sum / l.len() as f32));
+        }
+        out
+    }
+
+    /// The UV position map of `verts`: `size x size` texels, row-major, each the
+    /// canonical position (metres) interpolated over the UV triangles, or NaN where no
+    /// triangle covers the texel. Texel `(i, j)` is sampled at UV `((i + 0.5) / size,
+    /// (j + 0.5) / size)`. Rasterizes the layout on every call: for many meshes, make
+    /// the [`UvTexels`] once ([`UvMapper::texels`]) and use
+    /// [`UvTexels::position_map`].
+    pub fn position_map(&self, verts: &[Point3<f32>], size: u32) -> Vec<[f32; 3]> {
+        self.texels(size)
+            .position_map(&self.extended_positions(verts))
+    }
+
+    /// The UV layout rasterized at `size x size` (the UV square scaled to the map).
+    fn rasterize_layout(&self, size: u32) -> VisibilityBuffer {
+        let screen: Vec<ScreenVertex> = (self.uv.iter())
+            .map(|t| ScreenVertex {
+                x: t[0] * size as f32,
+                y: t[1] * size as f32,
+                inv_w: 1.0,
+            })
+            .collect();
+        let mut vb = VisibilityBuffer::new(size, size);
+        vb.rasterize_mesh(&screen, &self.triangles)
+            .expect("UV triangles index the extended vertices");
+        vb
+    }
+
+    /// Which UV triangle covers each texel of a `size x size` map and with which
+    /// weights: the rasterization of the layout, which depends on the layout and the
+    /// size only, never on a face's positions. Texels are sampled at their centres
+    /// with the rasterizer's rules (top-left fill, the earlier triangle keeps a texel
+    /// two overlapping triangles reach at equal depth).
+    pub fn texels(&self, size: u32) -> UvTexels {
+        let vb = self.rasterize_layout(size);
+        // Covered texels grouped by triangle, row-major within a triangle.
+        let mut covered: Vec<(u32, u32)> = (vb.triangle.iter().enumerate())
+            .filter(|&(_, &t)| t != VisibilityBuffer::EMPTY)
+            .map(|(i, &t)| (t, i as u32))
+            .collect();
+        covered.sort_unstable();
+        let mut texels = UvTexels {
+            size,
+            extended_vertices: self.uv.len(),
+            triangles: Vec::new(),
+            ends: Vec::new(),
+            index: Vec::with_capacity(covered.len()),
+            weights: Vec::with_capacity(covered.len()),
+        };
+        for group in covered.chunk_by(|a, b| a.0 == b.0) {
+            texels.triangles.push(self.triangles[group[0].0 as usize]);
+            for &(_, i) in group {
+                texels.index.push(i);
+                let b = vb.bary[i as usize];
+                texels.weights.push(TexelWeights([b[0], b[1], b[2], 0.0]));
+            }
+            texels.ends.push(texels.index.len() as u32);
+        }
+        // `position_map` relies on these (its unchecked reads).
+        assert!(
+            (texels.triangles.iter().flatten()).all(|&v| (v as usize) < self.uv.len()),
+            "UV triangles index the extended vertices"
+        );
+        assert!(texels.index.iter().all(|&i| i < size * size));
+        texels
+    }
+
+    /// Reads the map bilinearly at a UV coordinate (texel centres at `(i + 0.5) / size`).
+    pub fn sample(map: &[[f32; 3]], size: u32, uv: [f32; 2]) -> [f32; 3] {
+        let (fx, fy) = (uv[0] * size as f32 - 0.5, uv[1] * size as f32 - 0.5);
+        let (x, y) = (fx.floor(), fy.floor());
+        let (tx, ty) = (fx - x, fy - y);
+        let at = |x: f32, y: f32| {
+            let (xi, yi) = (
+                (x.max(0.0) as u32).min(size - 1),
+                (y.max(0.0) as u32).min(size - 1),
+            );
+            map[(yi * size + xi) as usize]
+        };
+        let (a, b, c, d) = (
+            at(x, y),
+            at(x + 1.0, y),
+            at(x, y + 1.0),
+            at(x + 1.0, y + 1.0),
+        );
+        let mut out = [0.0; 3];
+        for k in 0..3 {
+            let top = a[k] + (b[k] - a[k]) * tx;
+            let bottom = c[k] + (d[k] - c[k]) * tx;
+            out[k] = top + (bottom - top) * ty;
+        }
+        out
+    }
+}
+
+/// The rasterized UV layout at one map size ([`UvMapper::texels`]): per covered texel,
+/// its UV triangle's three extended vertices and their weights. A position map is then
+/// a weighted sum of three positions per texel, with no rasterization: at 192x192 the
+/// map of a mesh took 1.0 ms when the layout was rasterized for each mesh. The texels
+/// are grouped by triangle, so that a triangle's three positions are read once for
+/// its texels (about a dozen at 192x192), not once per texel.
+#[derive(Clone, Debug)]
+pub struct UvTexels {
+    size: u32,
+    extended_vertices: usize,
+    /// Per group, the UV triangle's extended vertex ids.
+    triangles: Vec<[u32; 3]>,
+    /// Per group, the end of its texels in `index` and `weights` (the next group's
+    /// start).
+    ends: Vec<u32>,
+    /// Row-major index of each covered texel.
+    index: Vec<u32>,
+    /// Each covered texel's three weights (and a zero), for one aligned load.
+    weights: Vec<TexelWeights>,
+}
+
+/// A texel's three barycentric weights and a zero, 16-byte aligned.
+#[derive(Clone, Copy, Debug)]
+#[repr(C, align(16))]
+struct TexelWeights([f32; 4]);
+
+impl UvTexels {
+    /// The map side, in texels.
+    pub fn size(&self) -> u32 {
+        self.size
+    }
+
+    /// Number of texels some UV triangle covers.
+    pub fn covered(&self) -> usize {
+        self.index.len()
+    }
+
+    /// The position map of a face from its extended positions
+    /// ([`UvMapper::extended_positions`]): row-major `size x size`, NaN where no
+    /// triangle covers the texel. Panics if `extended` has not one position per UV
+    /// vertex of the layout.
+    ///
+    /// Each covered texel is `(p0 * w0 + p1 * w1) + p2 * w2`, per coordinate, its
+    /// texels grouped by triangle so that the triangle's positions are loaded once. On
+    /// x86-64 one four-float SSE2 operation per texel (positions padded to four
+    /// floats), or one eight-float AVX operation per two texels where the CPU has AVX
+    /// ([`UvTexels::fill_avx`], detected at run time). Invariant: every path gives the
+    /// bits of one coordinate at a time (tested). Measurements: `docs/performance.md`
+    /// ("The UV position map").
+    pub fn position_map(&self, extended: &[Point3<f32>]) -> Vec<[f32; 3]> {
+        assert_eq!(
+            extended.len(),
+            self.extended_vertices,
+            "one position per UV vertex"
+        );
+        #[cfg(target_arch = "x86_64")]
+        {
+            let padded = padded_positions(extended);
+            let n = self.size as usize * self.size as usize;
+            let mut out = vec![[f32::NAN; 3]; n];
+            if std::arch::is_x86_feature_detected!("avx") {
+                // SAFETY: the CPU has AVX (detected just above).
+                unsafe { self.fill_avx(&padded, &mut out) }
+            } else {
+                self.fill_sse2(&padded, &mut out)
+            }
+            out
+        }
+        #[cfg(not(target_arch = "x86_64"))]
+        self.position_map_scalar(extended)
+    }
+
+    /// Checks the buffers of [`UvTexels::fill_sse2`] and [`UvTexels::fill_avx`]: one
+    /// padded position per extended vertex, one output per texel of the map. With the
+    /// table's own invariants (every vertex id below `extended_vertices`, every texel
+    /// index below `size * size`: [`UvMapper::texels`] makes them so) this keeps their
+    /// unchecked reads and writes in bounds.
+    #[cfg(target_arch = "x86_64")]
+    fn check_fill(&self, padded: &[[f32; 4]], out: &[[f32; 3]]) {
+        assert_eq!(padded.len(), self.extended_vertices);
+        assert_eq!(out.len(), self.size as usize * self.size as usize);
+    }
+
+    /// The covered texels of `out` from the padded positions, one texel per SSE2
+    /// operation (the x86-64 baseline).
+    #[cfg(target_arch = "x86_64")]
+    fn fill_sse2(&self, padded: &[[f32; 4]], out: &mut [[f32; 3]]) {
+        use std::arch::x86_64::*;
+        self.check_fill(padded, out);
+        let (pos, dst) = (padded.as_ptr(), out.as_mut_ptr().cast::<f32>());
+        let mut start = 0;
+        for (v, &end) in self.triangles.iter().zip(&self.ends) {
+            let range = start..end as usize;
+            start = end as usize;
+            let texels = self.index[range.clone()].iter().zip(&self.weights[range]);
+            // SAFETY: SSE2 is part of the x86-64 baseline; the reads and writes are in
+            // bounds (`check_fill`); `w` is 16-byte aligned.
+            unsafe {
+                let p = v.map(|v| _mm_loadu_ps(pos.add(v as usize).cast()));
+                for (&i, w) in texels {
+                    let q = texel_sum(p, _mm_load_ps(w.0.as_ptr()));
+                    store_texel(dst.add(i as usize * 3), q);
+                }
+            }
+        }
+    }
+
+    /// [`UvTexels::fill_sse2`] two texels per eight-float AVX operation (the
+    /// triangle's positions in both halves), a group's odd texel in four floats:
+    /// the same products and sums lane by lane, so the same bits (tested).
+    ///
+    /// # Safety
+    /// The CPU must have AVX.
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx")]
+    unsafe fn fill_avx(&self, padded: &[[f32; 4]], out: &mut [[f32; 3]]) {
+        use std::arch::x86_64::*;
+        self.check_fill(padded, out);
+        let (pos, dst) = (padded.as_ptr(), out.as_mut_ptr().cast::<f32>());
+        let (index, weights) = (self.index.as_ptr(), self.weights.as_ptr());
+        let mut start = 0;
+        for (v, &end) in self.triangles.iter().zip(&self.ends) {
+            let (mut j, end) = (start, end as usize);
+            start = end;
+            // SAFETY: the reads and writes are in bounds (`check_fill`; `j` and `j + 1`
+            // stay below the group's end, at most `index.len() == weights.len()`);
+            // the CPU has AVX (the caller's promise).
+            unsafe {
+                let p = v.map(|v| _mm256_broadcast_ps(&*pos.add(v as usize).cast::<__m128>()));
+                while j + 2 <= end {
+                    let w = _mm256_loadu_ps(weights.add(j).cast());
+                    let lane = |k: usize, w: __m256| _mm256_mul_ps(p[k], w);
+                    let q = _mm256_add_ps(
+                        _mm256_add_ps(
+                            lane(0, _mm256_shuffle_ps::<0x00>(w, w)),
+                            lane(1, _mm256_shuffle_ps::<0x55>(w, w)),
+                        ),
+                        lane(2, _mm256_shuffle_ps::<0xAA>(w, w)),
+                    );
+                    store_texel(
+                        dst.add(*index.add(j) as usize * 3),
+                        _mm256_castps256_ps128(q),
+                    );
+                    store_texel(
+                        dst.add(*index.add(j + 1) as usize * 3),
+                        _mm256_extractf128_ps::<1>(q),
+                    );
+                    j += 2;
+                }
+                if j < end {
+                    let p = p.map(|p| _mm256_castps256_ps128(p));
+                    let q = texel_sum(p, _mm_load_ps((*weights.add(j)).0.as_ptr()));
+                    store_texel(dst.add(*index.add(j) as usize * 3), q);
+                }
+            }
+        }
+    }
+
+    /// [`UvTexels::position_map`] one coordinate at a time.
+    #[cfg_attr(target_arch = "x86_64", allow(dead_code))]
+    fn position_map_scalar(&self, extended: &[Point3<f32>]) -> Vec<[f32; 3]> {
+        let mut out = vec![[f32::NAN; 3]; self.size as usize * self.size as usize];
+        let mut start = 0;
+        for (v, &end) in self.triangles.iter().zip(&self.ends) {
+            let range = start..end as usize;
+            start = end as usize;
+            for (&i, b) in self.index[range.clone()].iter().zip(&self.weights[range]) {
+                let p = extended[v[0] as usize].coords * b.0[0]
+                    + extended[v[1] as usize].coords * b.0[1]
+                    + extended[v[2] as usize].coords * b.0[2];
+                out[i as usize] = [p.x, p.y, p.z];
+            }
+        }
+        out
+    }
+}
+
+/// Positions padded to four floats, for one four-float load each.
+#[cfg(target_arch = "x86_64")]
+fn padded_positions(extended: &[Point3<f32>]) -> Vec<[f32; 4]> {
+    extended.iter().map(|p| [p.x, p.y, p.z, 0.0]).collect()
+}
+
+/// One texel's position from its triangle's three positions and its weights (lanes
+/// 0-2 of `w`): `(p0 * w0 + p1 * w1) + p2 * w2` in four lanes, the fourth junk.
+#[cfg(target_arch = "x86_64")]
+#[inline(always)]
+fn texel_sum(
+    p: [std::arch::x86_64::__m128; 3],
+    w: std::arch::x86_64::__m128,
+) -> std::arch::x86_64::__m128 {
+    use std::arch::x86_64::*;
+    // SAFETY: SSE2 is part of the x86-64 baseline; no memory is touched.
+    unsafe {
+        let t0 = _mm_mul_ps(p[0], _mm_shuffle_ps::<0x00>(w, w));
+        let t1 = _mm_mul_ps(p[1], _mm_shuffle_ps::<0x55>(w, w));
+        let t2 = _mm_mul_ps(p[2], _mm_shuffle_ps::<0xAA>(w, w));
+        _mm_add_ps(_mm_add_ps(t0, t1), t2)
+    }
+}
+
+/// Stores lanes 0-2 of `q` at `d`.
+///
+/// # Safety
+/// `d` must be valid for writing three floats.
+#[cfg(target_arch = "x86_64")]
+#[inline(always)]
+unsafe fn store_texel(d: *mut f32, q: std::arch::x86_64::__m128) {
+    use std::arch::x86_64::*;
+    // SAFETY: the caller's promise; SSE2 is part of the x86-64 baseline.
+    unsafe {
+        _mm_storel_epi64(d.cast(), _mm_castps_si128(q));
+        _mm_store_ss(d.add(2), _mm_movehl_ps(q, q));
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::crop::CropRule;
+    use arkit_core::conventions::EulerAngles;
+    use nalgebra::Vector3;
+
+    fn face() -> (FaceRenderer, Vec<Point3<f32>>) {
+        let topo = crate::mesh::synthetic_face::builtin().topology.clone();
+        let verts = topo.template.clone().unwrap();
+        (
+            FaceRenderer::new(topo, Camera::release_projection()).unwrap(),
+            verts,
+        )
+    }
+
+    fn landmarks(r: &FaceRenderer, verts: &[Point3<f32>], pose: &Pose, w: u32, h: u32) -> Vec<f32> {
+        let cam = Camera::release(w, h);
+        r.topology()
+            .landmarks
+            .iter()
+            .flat_map(|&i| {
+                let p = cam.project(pose, &verts[i as usize].cast());
+                [p.u as f32, p.v as f32]
+            })
+            .collect()
+    }
+
+    #[test]
+    fn every_correspondence_lands_in_its_pixel() {
+        let (r, verts) = face();
+        let mut vb = VisibilityBuffer::new(1, 1);
+        for (yaw, pitch, roll) in [(0.0, 0.0, 0.0), (35.0, -10.0, 20.0), (-70.0, 15.0, -40.0)] {
+            let pose = Pose::from_euler(
+                EulerAngles::new(yaw, pitch, roll),
+                Vector3::new(0.02, -0.01, -0.5),
+            );
+            let crop =
+                CropTransform::around_landmarks(&landmarks(&r, &verts, &pose, 800, 800), 192);
+            let t = r.render(&verts, &pose, 800, 800, &crop, &mut vb).unwrap();
+            let cam = Camera::release(800, 800);
+            let pixels = t.mask_pixels();
+            assert!(pixels.len() > 3000, "{}", pixels.len());
+            for (k, p) in t.coordinate_map(&verts).iter().enumerate() {
+                let q = cam.project(&pose, &p.cast());
+                let (cu, cv) = crop.to_crop(q.u, q.v);
+                let (i, j) = (pixels[k] % 192, pixels[k] / 192);
+                assert!(
+                    (cu - (i as f64 + 0.5)).abs() < 2e-3 && (cv - (j as f64 + 0.5)).abs() < 2e-3,
+                    "pixel ({i}, {j}) -> ({cu}, {cv})"
+                );
+                let w = t.corr_weights[k];
+                assert!((w.iter().sum::<f32>() - 1.0).abs() < 1e-5);
+            }
+        }
+    }
+
+    #[test]
+    fn a_roll_about_the_camera_axis_rotates_the_mask() {
+        let (r, verts) = face();
+        let mut vb = VisibilityBuffer::new(1, 1);
+        let base = Pose::from_euler(
+            EulerAngles::new(25.0, 10.0, 0.0),
+            Vector3::new(0.0, 0.0, -0.5),
+        );
+        // Roll the whole camera-space scene by 90 degrees about the optical axis.
+        let rz =
+            nalgebra::Rotation3::from_axis_angle(&Vector3::z_axis(), std::f64::consts::FRAC_PI_2);
+        let rolled = Pose::new(rz * base.rotation(), rz * base.translation_m());
+        // One crop centred on the principal point for both.
+        let crop = CropTransform {
+            x0: 400.0 - 150.0,
+            y0: 400.0 - 150.0,
+            side: 300.0,
+            side_y: 300.0,
+            size: 128,
+            sampling: crate::crop::CropSampling::Centres,
+        };
+        let a = r
+            .render(&verts, &base, 800, 800, &crop, &mut vb)
+            .unwrap()
+            .mask;
+        let b = r
+            .render(&verts, &rolled, 800, 800, &crop, &mut vb)
+            .unwrap()
+            .mask;
+        let n = 128usize;
+        // +90 degrees about +z (y up) is a quarter turn counter-clockwise on screen:
+        // image pixel (i, j) goes to (j, n - 1 - i).
+        let mut differ = 0;
+        for j in 0..n {
+            for i in 0..n {
+                if a[j * n + i] != b[(n - 1 - i) * n + j] {
+                    differ += 1;
+                }
+            }
+        }
+        let area = a.iter().filter(|&&m| m).count();
+        assert!(area > 2000);
+        // Only pixel centres exactly on an edge can differ (the fill rule is not
+        // rotation-invariant there).
+        assert!(differ * 200 < area, "{differ} of {area}");
+    }
+
+    #[test]
+    fn uv_position_map_equals_the_scalar_sum() {
+        // The SSE2 texel loop (on x86-64) against one coordinate at a time, bit for
+        // bit, NaN where uncovered, on a non-square-friendly size and a bent face.
+        let (r, verts) = face();
+        let uv = UvMapper::derive(r.topology()).unwrap();
+        let bent: Vec<Point3<f32>> = verts
+            .iter()
+            .map(|p| Point3::new(p.x * 1.1, p.y - 0.3 * p.x * p.x, p.z + 0.01))
+            .collect();
+        let ext = uv.extended_positions(&bent);
+        for size in [17, 64, 193] {
+            let t = uv.texels(size);
+            let (fast, slow) = (t.position_map(&ext), t.position_map_scalar(&ext));
+            assert_eq!(fast.len(), (size * size) as usize);
+            let bits =
+                |m: &[[f32; 3]]| -> Vec<u32> { m.iter().flatten().map(|v| v.to_bits()).collect() };
+            assert_eq!(bits(&fast), bits(&slow), "size {size}");
+            // Each vector path alone (`position_map` takes AVX where the CPU has it).
+            #[cfg(target_arch = "x86_64")]
+            {
+                let padded = padded_positions(&ext);
+                let mut sse2 = vec![[f32::NAN; 3]; slow.len()];
+                t.fill_sse2(&padded, &mut sse2);
+                assert_eq!(bits(&sse2), bits(&slow), "SSE2, size {size}");
+                if std::arch::is_x86_feature_detected!("avx") {
+                    let mut avx = vec![[f32::NAN; 3]; slow.len()];
+                    // SAFETY: the CPU has AVX (checked above).
+                    unsafe { t.fill_avx(&padded, &mut avx) };
+                    assert_eq!(bits(&avx), bits(&slow), "AVX, size {size}");
+                } else {
+                    eprintln!("skipping the AVX UV map: this CPU has no AVX");
+                }
+            }
+            let covered = fast.iter().filter(|p| !p[0].is_nan()).count();
+            assert_eq!(covered, t.covered());
+            assert!(covered > (size * size) as usize / 3, "{covered}");
+            // And against the layout's buffer, texel by texel, without the texel
+            // table's grouping by triangle.
+            let vb = uv.rasterize_layout(size);
+            for (i, &tri) in vb.triangle.iter().enumerate() {
+                let want = match uv.triangles.get(tri as usize) {
+                    None => [f32::NAN; 3],
+                    Some(v) => {
+                        let b = vb.bary[i];
+                        let p = ext[v[0] as usize].coords * b[0]
+                            + ext[v[1] as usize].coords * b[1]
+                            + ext[v[2] as usize].coords * b[2];
+                        [p.x, p.y, p.z]
+                    }
+                };
+                assert_eq!(
+                    bits(&fast[i..i + 1]),
+                    bits(&[want]),
+                    "size {size} texel {i}"
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn uv_map_gives_back_the_vertices() {
+        let topo = crate::mesh::synthetic_face::builtin().topology.clone();
+        let verts = topo.template.clone().unwrap();
+        let uv = UvMapper::derive(&topo).unwrap();
+        let size = 256;
+        let map = uv.position_map(&verts, size);
+        let mut worst = 0.0f32;
+        for (v, t) in verts.iter().zip(&topo.uv) {
+            let s = UvMapper::sample(&map, size, *t);
+            assert!(
+                s.iter().all(|c| c.is_finite()),
+                "vertex UV {t:?} not covered"
+            );
+            worst = worst.max((Point3::new(s[0], s[1], s[2]) - v).norm());
+        }
+        // A texel spans about 0.7 mm of face here; bilinear reads are within a texel.
+        assert!(worst < 1.5e-3, "{worst}");
+    }
+
+    #[test]
+    fn official_mode_differs_only_along_edges_and_by_half_a_pixel() {
+        let (r, verts) = face();
+        let pose = Pose::from_euler(
+            EulerAngles::new(30.0, -10.0, 5.0),
+            Vector3::new(0.0, 0.0, -0.5),
+        );
+        // As the two conventions sample: half a pixel apart, so the masks differ on a
+        // band along the silhouette and openings, and small triangles change.
+        let d = r
+            .compare_with_official(&verts, &pose, 800, 800, false)
+            .unwrap();
+        assert!(d.face_pixels > 20_000);
+        assert!(
+            d.mask_pixels_changed > 0 && d.mask_pixels_changed * 20 < d.face_pixels,
+            "{d:?}"
+        );
+        // At the same sample points, only pixel centres exactly on edges and the
+        // perspective correction differ: an independent check of our rasterizer.
+        let a = r
+            .compare_with_official(&verts, &pose, 800, 800, true)
+            .unwrap();
+        assert!(a.mask_pixels_changed * 200 < a.face_pixels, "{a:?}");
+        assert!(a.triangle_changed * 100 < a.face_pixels, "{a:?}");
+        assert!(a.max_weight_difference < 0.02, "{a:?}");
+    }
+
+    #[test]
+    fn official_mode_follows_the_official_crop_pipeline() {
+        let (mut r, verts) = face();
+        let pose = Pose::from_euler(
+            EulerAngles::new(10.0, 5.0, 0.0),
+            Vector3::new(0.0, 0.0, -0.5),
+        );
+        let lm = landmarks(&r, &verts, &pose, 800, 800);
+        let ours = CropTransform::around_landmarks(&lm, 192);
+        let crop = r.official_crop(&verts, &pose, 800, 800, 192).unwrap();
+        let from_f32 = lm.chunks(2).map(|p| (p[0] as f64, p[1] as f64));
+        assert_eq!(
+            Some(crop),
+            crate::crop::official::official_crop(from_f32, 192),
+            "float32 landmarks give the same box here"
+        );
+        let mut vb = VisibilityBuffer::new(192, 192);
+        let exact = r.render(&verts, &pose, 800, 800, &ours, &mut vb).unwrap();
+        r.mode = RasterMode::Official;
+        // The official pipeline needs the official (corner-sampled) crop.
+        assert!(r.render(&verts, &pose, 800, 800, &ours, &mut vb).is_err());
+        let official = r.render(&verts, &pose, 800, 800, &crop, &mut vb).unwrap();
+        let kept = r.face_pixels(&vb);
+        // Two paths to the crop mask: the render's fused loop, and the full-resolution
+        // official mask through the cv2.warpAffine reproduction.
+        let full = r
+            .render_full_mask(&verts, &pose, 800, 800, &mut vb)
+            .unwrap();
+        assert_eq!(
+            official.mask,
+            crate::crop::official::warp_mask(&full, 800, 800, &crop)
+        );
+        // The official render leaves the full-image raster in the buffer.
+        assert_eq!(kept, full);
+        // Each correspondence, pushed through the camera, lands within a pixel of the
+        // image point its crop pixel samples (the heaviest face tap is at most one
+        // pixel away; the screen-space weights add a few hundredths).
+        let cam = Camera::release(800, 800);
+        let pixels = official.mask_pixels();
+        let coords = official.coordinate_map(&verts);
+        for (k, p) in coords.iter().enumerate() {
+            let q = cam.project(&pose, &p.cast());
+            let (u, v) = crop.pixel_to_image(pixels[k] % 192, pixels[k] / 192);
+            assert!(
+                (q.u - u).abs() < 1.1 && (q.v - v).abs() < 1.1,
+                "pixel {} samples ({u}, {v}), its correspondence is at ({}, {})",
+                pixels[k],
+                q.u,
+                q.v
+            );
+        }
+        // The two modes see the same face: mask areas in image pixels agree.
+        let area = |t: &FaceTargets| {
+            let (sx, sy) = t.crop.scales();
+            t.mask.iter().filter(|&&m| m).count() as f64 / (sx * sy)
+        };
+        let (a, b) = (area(&exact), area(&official));
+        assert!((a - b).abs() < 0.03 * a, "{a} vs {b}");
+    }
+
+    #[test]
+    fn the_windowed_full_mask_is_the_whole_images() {
+        // Two paths: the official raster of the whole image, and of the window the
+        // vertices can cover. A face cut by the image's left and top edges, and one in
+        // the middle: the same mask, and the same triangle and weights on every pixel.
+        let (mut r, verts) = face();
+        r.mode = RasterMode::Official;
+        let at = |x: f64, y: f64| {
+            Pose::from_euler(EulerAngles::new(20.0, -5.0, 10.0), Vector3::new(x, y, -0.5))
+        };
+        let (w, h) = (800u32, 640u32);
+        let (mut whole, mut part) = (VisibilityBuffer::new(1, 1), VisibilityBuffer::new(1, 1));
+        for (name, pose) in [("edge", at(-0.27, 0.25)), ("middle", at(0.0, 0.0))] {
+            let full = r.render_full_mask(&verts, &pose, w, h, &mut whole).unwrap();
+            let face = r
+                .render_window_mask(&verts, &pose, w, h, &mut part)
+                .unwrap();
+            assert_eq!(face.to_full(w, h), full, "{name}");
+            let win = face.window;
+            assert_eq!((part.width, part.height), (win.width, win.height));
+            for (i, &t) in whole.triangle.iter().enumerate() {
+                let (x, y) = ((i % w as usize) as i64, (i / w as usize) as i64);
+                let Some(j) = win.index(x, y) else {
+                    assert_eq!(t, VisibilityBuffer::EMPTY, "{name} ({x}, {y})");
+                    continue;
+                };
+                assert_eq!(part.triangle[j], t, "{name} ({x}, {y})");
+                if t != VisibilityBuffer::EMPTY {
+                    assert_eq!(part.bary[j], whole.bary[i], "{name} ({x}, {y})");
+                }
+            }
+            let face_on = |x: u32, y: u32| full[(y * w + x) as usize];
+            let touches_edges = (0..h).any(|y| face_on(0, y)) && (0..w).any(|x| face_on(x, 0));
+            match name {
+                "edge" => assert!(touches_edges && (win.x0, win.y0) == (0, 0), "{win:?}"),
+                _ => assert!(!touches_edges && win.x0 > 0 && win.len() * 4 < full.len()),
+            }
+            // A slice starting inside the window and ending past it: numpy's nonzero of
+            // mask[rows, cols].
+            let (x0, y0) = (win.x0 as i64 + 17, win.y0 as i64 + 23);
+            let (rows, cols) = (y0..(y0 + 300).min(h as i64), x0..(x0 + 400).min(w as i64));
+            let want: Vec<i64> = rows
+                .clone()
+                .flat_map(|y| cols.clone().map(move |x| (y, x)))
+                .enumerate()
+                .filter(|&(_, (y, x))| face_on(x as u32, y as u32))
+                .map(|(k, _)| k as i64)
+                .collect();
+            assert!(!want.is_empty());
+            assert_eq!(face.face_offsets(rows, cols), want, "{name}");
+        }
+        // In exact mode the window is the whole image.
+        r.mode = RasterMode::Exact;
+        let pose = at(0.0, 0.0);
+        let face = r
+            .render_window_mask(&verts, &pose, w, h, &mut part)
+            .unwrap();
+        assert_eq!(face.window, PixelWindow::whole(w, h));
+        let full = r.render_full_mask(&verts, &pose, w, h, &mut whole).unwrap();
+        assert_eq!(face.mask, full);
+    }
+
+    #[test]
+    fn crop_rules_cut_our_box_or_the_official_one() {
+        let lm = [10.0f32, -5.0, 30.0, 5.0];
+        let ours = CropRule::Ours.around_landmarks(&lm, 192).unwrap();
+        assert_eq!(ours, CropTransform::around_landmarks(&lm, 192));
+        let official = CropRule::Official.around_landmarks(&lm, 192).unwrap();
+        assert_eq!(official.sampling, CropSampling::Corners);
+        // int(20 - 15) = 5 and int(0 - 15) = -15; ours starts at 20 - 15 = 5 and -15
+        // too, but its box is 30 wide where the official one maps 30 pixels onto 191.
+        assert_eq!((official.x0, official.y0), (5.0, -15.0));
+        assert_eq!((ours.x0, ours.side), (5.0, 30.0));
+        assert!((official.side - 30.0 * 192.0 / 191.0).abs() < 1e-12);
+        assert!(
+            CropRule::Official
+                .around_landmarks(&[3.0, 3.0, 3.0, 3.0], 192)
+                .is_none()
+        );
+    }
+
+    #[test]
+    fn points_are_sampled_as_the_official_training_does() {
+        assert_eq!(sample_points(3, 7, 1), vec![0, 1, 2, 0, 1, 2, 0]);
+        let p = sample_points(5000, 1024, 9);
+        assert_eq!(p.len(), 1024);
+        assert!(p.windows(2).all(|w| w[0] < w[1]));
+        assert_eq!(p, sample_points(5000, 1024, 9));
+        assert_ne!(p, sample_points(5000, 1024, 10));
+        assert!(sample_points(0, 10, 0).is_empty());
+    }
+}

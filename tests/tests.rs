@@ -1,0 +1,25 @@
+//! The end-to-end tests of the `arkit-tool` command (and of what only the whole
+//! workspace can check: the Python loader's files, the shard processes, the official
+//! crop against OpenCV), one test binary. The libraries' own behaviour is tested in
+//! their crates' `tests/`.
+
+mod support;
+
+mod biwi;
+mod charts;
+mod cli;
+mod convert;
+#[cfg(feature = "model")]
+mod direct_commands;
+mod hostile;
+mod import_arkit;
+mod official_crop;
+mod options;
+#[cfg(feature = "model")]
+mod report_browser;
+mod shard_processes;
+#[cfg(feature = "model")]
+mod shipped_model;
+mod synth_dataset;
+#[cfg(feature = "model")]
+mod weights;
