@@ -9,9 +9,13 @@
 //! (192-pixel crops, `exact` rules: 244x244 windows), then per codec prints the mean
 //! bytes of a window, the median encode and decode time of one window on one thread,
 //! and for lossy codecs the mean and largest difference from the raw window in grey
-//! levels. Lossless codecs are checked to round-trip bit for bit. The `ratio:` lines
-//! compare each codec's record (window plus mesh) with the raw record's bytes and its
-//! decode time with the `png` codec the store uses.
+//! levels. Lossless codecs are checked to round-trip bit for bit. Then the store's mesh
+//! codec on these meshes and on the real face of the resources (bytes, decode time).
+//! The `ratio:` lines compare each codec's record (window plus raw mesh, as format 3
+//! stored it) with the raw record's bytes, with the release's JPEG, and (window plus the
+//! mesh codec's bytes, format 4) with the JPEG again, and its decode time with the
+//! `png` codec's; the last ones are whole stores written by `crops` with each of the
+//! store's codecs, bytes a sample against the JPEG.
 
 mod timing;
 
@@ -19,6 +23,9 @@ use arkit_data::loader::crop_store::{self, WindowCodec};
 use arkit_data::loader::item::{Compat, FaceLoader, LoaderMode, LoaderOptions};
 use image::ImageEncoder;
 use std::path::PathBuf;
+
+/// The window codecs a store can have.
+const STORE_CODECS: [WindowCodec; 3] = [WindowCodec::Raw, WindowCodec::Png, WindowCodec::PredZstd];
 
 struct Measured {
     name: String,
@@ -110,7 +117,7 @@ fn main() {
 
     let mut rows = Vec::new();
     // The store's own codecs, through its own encode and decode.
-    for codec in [WindowCodec::Raw, WindowCodec::Png] {
+    for codec in STORE_CODECS {
         rows.push(measure(
             codec.name(),
             &crops,
@@ -125,23 +132,24 @@ fn main() {
             },
         ));
     }
-    // PNG at the other compression settings.
-    for (name, comp) in [
-        ("png-fast", image::codecs::png::CompressionType::Fast),
-        ("png-best", image::codecs::png::CompressionType::Best),
+    // PNG at the other compression settings and filters.
+    use image::codecs::png::{CompressionType, FilterType};
+    for (name, comp, filter) in [
+        ("png-fast", CompressionType::Fast, FilterType::Adaptive),
+        ("png-best", CompressionType::Best, FilterType::Adaptive),
+        ("png-best-sub", CompressionType::Best, FilterType::Sub),
+        ("png-best-up", CompressionType::Best, FilterType::Up),
+        ("png-best-avg", CompressionType::Best, FilterType::Avg),
+        ("png-best-paeth", CompressionType::Best, FilterType::Paeth),
     ] {
         rows.push(measure(
             name,
             &crops,
             |c| {
                 let mut out = Vec::new();
-                image::codecs::png::PngEncoder::new_with_quality(
-                    &mut out,
-                    comp,
-                    image::codecs::png::FilterType::Adaptive,
-                )
-                .write_image(c.window.as_raw(), w, w, image::ExtendedColorType::Rgb8)
-                .unwrap();
+                image::codecs::png::PngEncoder::new_with_quality(&mut out, comp, filter)
+                    .write_image(c.window.as_raw(), w, w, image::ExtendedColorType::Rgb8)
+                    .unwrap();
                 out
             },
             |b| {
@@ -149,6 +157,43 @@ fn main() {
             },
         ));
     }
+    // The store's prediction at zstd's highest level but the "ultra" ones.
+    rows.push(measure(
+        "pred-zstd-19",
+        &crops,
+        |c| {
+            zstd::bulk::compress(
+                &crop_store::predict_window(c.window.as_raw(), w as usize),
+                19,
+            )
+            .unwrap()
+        },
+        |b| {
+            let d = zstd::bulk::decompress(b, raw_window as usize).unwrap();
+            std::hint::black_box(crop_store::unpredict_window(&d, w as usize));
+        },
+    ));
+    // Lossless WebP (image's encoder), decoded by image's decoder.
+    rows.push(measure(
+        "webp-lossless",
+        &crops,
+        |c| {
+            let mut out = Vec::new();
+            image::codecs::webp::WebPEncoder::new_lossless(&mut out)
+                .write_image(c.window.as_raw(), w, w, image::ExtendedColorType::Rgb8)
+                .unwrap();
+            let back = image::load_from_memory_with_format(&out, image::ImageFormat::WebP)
+                .unwrap()
+                .to_rgb8();
+            assert_eq!(back.as_raw(), c.window.as_raw(), "webp round trip");
+            out
+        },
+        |b| {
+            std::hint::black_box(
+                image::load_from_memory_with_format(b, image::ImageFormat::WebP).unwrap(),
+            );
+        },
+    ));
     // zstd of the raw bytes, and of the bytes after a left-neighbour delta (PNG's Sub
     // filter) and after the median-edge predictor (LOCO-I): both undone in one pass.
     for level in [3, 19] {
@@ -242,6 +287,33 @@ fn main() {
         mesh_z / n / 1024.0,
         mesh_planes / n / 1024.0
     );
+    // The store's mesh codec (coordinate and byte planes, deflate): on these synthetic
+    // meshes and on the real face of the resources, which may compress otherwise.
+    let verts: Vec<Vec<_>> = crops.iter().map(|c| c.verts.clone()).collect();
+    let (mesh_stored, mesh_us) = mesh_codec(&verts);
+    println!(
+        "mesh codec (synthetic, {} meshes): {:.1} KiB ({:.1}% of raw), decode {:.1} us",
+        verts.len(),
+        mesh_stored / 1024.0,
+        100.0 * mesh_stored / mesh_raw,
+        mesh_us
+    );
+    let real = resources.join("template_verts.npy");
+    if real.exists() {
+        let v = arkit_core::npy::read_npy(&real).unwrap().to_f32_vec();
+        let face = [v
+            .chunks_exact(3)
+            .map(|c| nalgebra::Point3::new(c[0], c[1], c[2]))
+            .collect::<Vec<_>>()];
+        let (bytes, us) = mesh_codec(&face);
+        println!(
+            "mesh codec (the real face, {} vertices): {:.1} KiB ({:.1}% of raw), decode {:.1} us",
+            face[0].len(),
+            bytes / 1024.0,
+            100.0 * bytes / (12.0 * face[0].len() as f64),
+            us
+        );
+    }
 
     println!(
         "{:<20} {:>12} {:>9} {:>11} {:>11} {:>16}",
@@ -262,19 +334,68 @@ fn main() {
     }
     let png = rows.iter().find(|r| r.name == "png").unwrap().decode_ms;
     let jpeg_kib = jpeg_bytes as f64 / n / 1024.0;
+    // Window plus raw mesh (the records of format 3), then window plus the mesh codec's
+    // bytes (format 4), each against the release's JPEG.
     for r in &rows {
         let record = r.bytes + mesh_raw;
+        let stored = r.bytes + mesh_stored;
         println!(
-            "ratio: {} record / raw record = {:.3} ({:.1} KiB; the release's JPEG {:.1} KiB: {:.2}x); decode {:.3} ms / png's = {:.2}",
+            "ratio: {} record / raw record = {:.3} ({:.1} KiB; the release's JPEG {:.1} KiB: {:.2}x; with the mesh codec {:.1} KiB: {:.2}x); decode {:.3} ms / png's = {:.2}",
             r.name,
             record / (raw_window + mesh_raw),
             record / 1024.0,
             jpeg_kib,
             record / 1024.0 / jpeg_kib,
+            stored / 1024.0,
+            stored / 1024.0 / jpeg_kib,
             r.decode_ms,
             r.decode_ms / png
         );
     }
+    // Whole stores, as `arkit-tool crops` writes them (headers, keys, boxes and indexes
+    // included), per sample against the release's JPEG.
+    for codec in STORE_CODECS {
+        let out = tmp.path().join(format!("store-{}", codec.name()));
+        let summary =
+            arkit_data::loader::crops_dataset::write_crop_store_with(&loader, &out, codec, &|_| {})
+                .unwrap();
+        println!(
+            "ratio: store {} / JPEG = {:.3} ({:.1} KiB a sample, the release's JPEG {:.1} KiB)",
+            codec.name(),
+            summary.bytes_per_sample / 1024.0 / jpeg_kib,
+            summary.bytes_per_sample / 1024.0,
+            jpeg_kib
+        );
+    }
+}
+
+/// The mean bytes of `meshes` stored by the store's mesh codec (checked to round-trip
+/// bit for bit), and the median time to decode one, in microseconds.
+fn mesh_codec(meshes: &[Vec<nalgebra::Point3<f32>>]) -> (f64, f64) {
+    let stored: Vec<Vec<u8>> = meshes
+        .iter()
+        .map(|m| crop_store::encode_mesh(m.as_slice()))
+        .collect();
+    for (m, s) in meshes.iter().zip(&stored) {
+        let back = crop_store::decode_mesh(s, m.len()).unwrap();
+        let bits = |v: &[nalgebra::Point3<f32>]| -> Vec<u32> {
+            v.iter()
+                .flat_map(|p| [p.x.to_bits(), p.y.to_bits(), p.z.to_bits()])
+                .collect()
+        };
+        assert_eq!(bits(&back), bits(m), "mesh round trip");
+    }
+    let mut k = 0;
+    let ms = timing::median_ms(
+        || {
+            let s = &stored[k % stored.len()];
+            std::hint::black_box(crop_store::decode_mesh(s, meshes[0].len()).unwrap());
+            k += 1;
+        },
+        (3 * meshes.len()).max(64),
+    );
+    let bytes = stored.iter().map(|s| s.len() as f64).sum::<f64>() / stored.len() as f64;
+    (bytes, 1000.0 * ms)
 }
 
 fn measure(

@@ -13,14 +13,14 @@ from arkit_tool import ARKitFaceDataset, DataError
 
 from conftest import BIN, make_dataset, run
 
-HEADER = 128  # bytes of a part-K.bin header (crop store format 3)
+HEADER = 128  # bytes of a part-K.bin header (crop store format 4)
 FOOTER = 16  # bytes of its footer, after the record index
 
 
 def record_offsets(part, records):
     """The `records + 1` offsets of a part file's record index (just before its footer)."""
     data = open(part, "rb").read()
-    assert data[:8] == b"ARKCROP3" and data[-FOOTER:-FOOTER + 8] == b"ARKCIDX3"
+    assert data[:8] == b"ARKCROP4" and data[-FOOTER:-FOOTER + 8] == b"ARKCIDX4"
     index = data[-FOOTER - 8 * (records + 1):-FOOTER]
     return np.frombuffer(index, dtype="<u8").tolist()
 
@@ -187,10 +187,10 @@ def test_two_crops_into_one_store_never_mix_and_an_old_store_is_refused(tmp_path
     assert not [n for n in os.listdir(store) if ".tmp-" in n]
     manifest = os.path.join(store, "crops.json")
     text = open(manifest).read()
-    assert '"format": 3' in text and '"codec": "png"' in text
-    open(manifest, "w").write(text.replace('"format": 3', '"format": 2', 1))
-    with pytest.raises(DataError, match="format 2.*rerun `arkit-tool crops`"):
+    assert '"format": 4' in text and '"codec": "pred-zstd"' in text
+    open(manifest, "w").write(text.replace('"format": 4', '"format": 3', 1))
+    with pytest.raises(DataError, match="format 3.*rerun `arkit-tool crops`"):
         ARKitFaceDataset(a, split=None, mode="train", img_size=64)
-    open(manifest, "w").write(text.replace('"format": 3', '"format": 1', 1))
+    open(manifest, "w").write(text.replace('"format": 4', '"format": 1', 1))
     with pytest.raises(DataError, match="format 1.*rerun `arkit-tool crops`"):
         ARKitFaceDataset(a, split=None, mode="train", img_size=64)

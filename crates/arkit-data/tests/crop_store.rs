@@ -385,12 +385,12 @@ fn a_rerun_removes_killed_runs_temporaries_and_an_old_store_is_refused() {
             "part-1.bin"
         ]
     );
-    // A store of an earlier format (its crops.json says format 1 or 2; a part of
-    // format 2 under this format's manifest): refused with what to do, in Rust as in
+    // A store of an earlier format (its crops.json says format 1, 2 or 3; a part of
+    // format 3 under this format's manifest): refused with what to do, in Rust as in
     // Python.
     let manifest = out.join("crops.json");
     let text = std::fs::read_to_string(&manifest).unwrap();
-    for format in [1, 2] {
+    for format in [1, 2, 3] {
         let old = text.replacen(
             &format!("\"format\": {}", crop_store::FORMAT),
             &format!("\"format\": {format}"),
@@ -409,27 +409,27 @@ fn a_rerun_removes_killed_runs_temporaries_and_an_old_store_is_refused() {
     std::fs::write(&manifest, &text).unwrap();
     let part = out.join("part-0.bin");
     let mut bytes = std::fs::read(&part).unwrap();
-    assert_eq!(&bytes[..8], b"ARKCROP3");
-    bytes[7] = b'2';
+    assert_eq!(&bytes[..8], b"ARKCROP4");
+    bytes[7] = b'3';
     std::fs::write(&part, &bytes).unwrap();
     let e = served(dir.path(), &out, LoaderMode::Eval).unwrap_err();
     assert!(
         e.contains("part-0.bin")
-            && e.contains("store of format 2")
+            && e.contains("store of format 3")
             && e.contains("rerun `arkit-tool crops`"),
         "{e}"
     );
 }
 
 #[test]
-fn png_and_raw_stores_serve_the_same_items_and_png_is_smaller() {
+fn pred_zstd_png_and_raw_stores_serve_the_same_items_and_pred_zstd_is_smallest() {
     let (release, dir) = (tempfile::tempdir().unwrap(), tempfile::tempdir().unwrap());
     crate::support::converted::converted_synthetic(release.path(), dir.path(), 2, 3, 320, 44);
     for compat in [Compat::Exact, Compat::Official] {
         let base = tempfile::tempdir().unwrap();
         let mut sizes = Vec::new();
         let mut items = Vec::new();
-        for codec in [WindowCodec::Raw, WindowCodec::Png] {
+        for codec in [WindowCodec::Raw, WindowCodec::Png, WindowCodec::PredZstd] {
             let out = base.path().join(codec.name());
             let s = write_crop_store_with(
                 &loader(dir.path(), LoaderMode::Eval, compat),
@@ -456,11 +456,14 @@ fn png_and_raw_stores_serve_the_same_items_and_png_is_smaller() {
             }
         }
         // Training items too: the windows decoded are the same bytes.
-        assert_eq!(items[0], items[2], "{compat:?} eval");
-        assert_eq!(items[1], items[3], "{compat:?} train");
+        for k in [2, 4] {
+            assert_eq!(items[0], items[k], "{compat:?} eval {k}");
+            assert_eq!(items[1], items[k + 1], "{compat:?} train {k}");
+        }
         assert!(
-            sizes[1] * 2 < sizes[0],
-            "{compat:?}: png {} bytes, raw {}",
+            sizes[2] < sizes[1] && sizes[1] * 2 < sizes[0],
+            "{compat:?}: pred-zstd {} bytes, png {}, raw {}",
+            sizes[2],
             sizes[1],
             sizes[0]
         );

@@ -21,19 +21,21 @@
 //! ([`CropStoreManifest`]: the format, the rules, the window codec, `S`, the margin,
 //! the vertex count, the key field's width, the dataset's fingerprint, the files, the
 //! samples without pixels and why) and, per samples shard `K`, `part-K.bin`: a
-//! [`HEADER_BYTES`]-byte header (magic `ARKCROP3`, format, the rules, `S`, `m`, `V`,
+//! [`HEADER_BYTES`]-byte header (magic `ARKCROP4`, format, the rules, `S`, `m`, `V`,
 //! record count, codec, the shard index `K`, the key field's width, the dataset's
 //! fingerprint), one record per row of `samples/part-K.parquet`, in order, the record
 //! index (`rows + 1` byte offsets) and a [`FOOTER_BYTES`]-byte footer (magic
-//! `ARKCIDX3`, the index's CRC-32). A record: CRC-32 of the rest, status (1: pixels,
+//! `ARKCIDX4`, the index's CRC-32). A record: CRC-32 of the rest, status (1: pixels,
 //! 0: none), the row, the shard index, the key's length, the dataset's fingerprint,
 //! the sample's key (`subject/action/img_id`, zero-padded), the box (four float64),
-//! the mesh's and the window's byte counts, the mesh (`V x 3` float32), the window
-//! (`(S + 2m)^2` RGB pixels) as its codec stores it ([`WindowCodec`]): a PNG by
-//! default, or the raw bytes. Both are lossless, so the window read is the window
-//! resampled, byte for byte: evaluation crops stay those of the JPEG, and a PNG store
-//! and a raw one serve the same items in both modes (measured in docs/performance.md:
-//! the PNG record is about a quarter of the raw one's bytes).
+//! the window's and the mesh's byte counts, the window (`(S + 2m)^2` RGB pixels) as its
+//! codec stores it ([`WindowCodec`]: by default its pixels predicted from their
+//! neighbours and the errors compressed by zstd, or a PNG, or the raw bytes), then the
+//! mesh (`V x 3` float32, by coordinate and byte plane, deflated: [`encode_mesh`]). All
+//! are lossless, so the window read is the window resampled and the mesh the mesh, bit
+//! for bit: evaluation crops stay those of the JPEG, and stores of every codec serve the
+//! same items in both modes (measured in docs/performance.md: a `pred-zstd` window is
+//! about a fifth of the raw bytes, a PNG one a quarter; the mesh 81% of its raw bytes).
 //!
 //! Nothing read is trusted before it is checked, and nothing is served from another
 //! place than the one asked for: [`CropStore::open`] checks the manifest against the
@@ -45,9 +47,11 @@
 //! index when the store is opened); [`CropStore::read`] checks each
 //! record, in training and in evaluation alike: its CRC, then that it is the record of
 //! this dataset, this shard, this row and this sample's key (a comparison of a few
-//! dozen bytes, no hashing of the data), then its status, and only then decodes the
-//! window (into a buffer of the store's window size, never one a file names: a PNG of
-//! another size or colour type is refused from its header). A record whose sample had no
+//! dozen bytes, no hashing of the data), then its status, then that the window's and
+//! the mesh's lengths fill the record and are within their bounds, and only then decodes
+//! the mesh and the window (each into a buffer of its exact size from the manifest,
+//! never one a file names: a deflate or zstd stream that gives more or fewer bytes, or a
+//! PNG of another size or colour type, is refused, the PNG from its header). A record whose sample had no
 //! readable image when the store was made has status 0, and reading it is an error
 //! naming the sample and the recorded reason. A store of an earlier format is refused
 //! with "rerun `arkit-tool crops`". Files are written under a temporary name and
@@ -58,7 +62,10 @@
 //! pixels close, a truncated file, a flipped byte, a stale dataset, a missing image,
 //! part files swapped by hand, a record of another sample, parts of two datasets mixed
 //! and a store of an earlier format each refused with the file named, in both modes;
-//! PNG and raw stores serving the same items.
+//! `pred-zstd`, PNG and raw stores serving the same items. Here: the codecs' round trips
+//! (NaN, -0.0 and denormal vertices; windows with wrapping colour differences), streams
+//! cut, grown or of another size refused, records whose lengths do not add up refused
+//! though their CRC matches.
 
 use crate::crop::{CropSampling, CropTransform};
 use arkit_core::error::{Error, Result};
@@ -71,14 +78,14 @@ use std::path::{Path, PathBuf};
 pub const MANIFEST_FILE: &str = "crops.json";
 /// The store format written and read here (1: before the records carried their
 /// dataset, shard and key; 2: fixed-size records of raw windows, before the codecs and
-/// the index).
-pub const FORMAT: u32 = 3;
+/// the index; 3: raw meshes, before the window moved ahead of a compressed mesh).
+pub const FORMAT: u32 = 4;
 /// Bytes of a `part-K.bin` header.
 pub const HEADER_BYTES: u64 = 128;
 /// Bytes of a `part-K.bin` footer (after the index): its magic, the index's CRC.
 pub const FOOTER_BYTES: u64 = 16;
-const MAGIC: &[u8; 8] = b"ARKCROP3";
-const INDEX_MAGIC: &[u8; 8] = b"ARKCIDX3";
+const MAGIC: &[u8; 8] = b"ARKCROP4";
+const INDEX_MAGIC: &[u8; 8] = b"ARKCIDX4";
 /// Largest `crops.json` read (its list of samples without pixels is what can grow).
 const MAX_MANIFEST_BYTES: u64 = 256 << 20;
 /// Bytes of a dataset fingerprint (SHA-256, lower-case hex) in headers and records.
@@ -101,8 +108,13 @@ const AT_KEY: usize = AT_FINGERPRINT + FINGERPRINT_BYTES;
 pub enum WindowCodec {
     /// The `W x W x 3` bytes as they are.
     Raw,
-    /// A PNG (8-bit RGB, adaptive filters, zlib's default level): the default.
+    /// A PNG (8-bit RGB, adaptive filters, zlib's default level).
     Png,
+    /// The default: each pixel predicted from its decoded neighbours and the
+    /// prediction errors compressed by zstd ([`predict_window`]): green, then red and
+    /// blue less green, each plane by the median edge detector of LOCO-I (JPEG-LS).
+    #[serde(rename = "pred-zstd")]
+    PredZstd,
 }
 
 impl WindowCodec {
@@ -111,6 +123,7 @@ impl WindowCodec {
         match self {
             WindowCodec::Raw => "raw",
             WindowCodec::Png => "png",
+            WindowCodec::PredZstd => "pred-zstd",
         }
     }
 
@@ -118,6 +131,7 @@ impl WindowCodec {
         match self {
             WindowCodec::Raw => 0,
             WindowCodec::Png => 1,
+            WindowCodec::PredZstd => 2,
         }
     }
 }
@@ -143,7 +157,106 @@ pub fn encode_window(codec: WindowCodec, window: &image::RgbImage) -> Result<Vec
             .map_err(|e| Error::invalid("crop store", format!("PNG encoding: {e}")))?;
             Ok(out)
         }
+        WindowCodec::PredZstd => {
+            let side = window.width() as usize;
+            if window.height() as usize != side {
+                return Err(Error::invalid("crop store", "a window that is not square"));
+            }
+            zstd::bulk::compress(&predict_window(window.as_raw(), side), ZSTD_LEVEL)
+                .map_err(|e| Error::invalid("crop store", format!("zstd: {e}")))
+        }
     }
+}
+
+/// zstd's level for [`WindowCodec::PredZstd`]: on the codec bench's windows, level 19
+/// is about 1% smaller and takes 2-3x the time to encode (`crops` spends most of its
+/// time here); below 15 the windows grow by 5% (level 13) to 15% (level 9).
+const ZSTD_LEVEL: i32 = 15;
+
+/// The prediction of a plane's value from the values already decoded: the median edge
+/// detector of LOCO-I (JPEG-LS), the median of the left `a`, the above `b` and the
+/// plane through them and the above-left `c` (`a + b - c`).
+#[inline]
+fn med(a: i16, b: i16, c: i16) -> i16 {
+    a.min(b).max(a.max(b).min(a + b - c))
+}
+
+/// The three plane values of a pixel: green, red less green, blue less green.
+#[inline]
+fn planes_of(rgb: &[u8]) -> [i16; 3] {
+    let g = rgb[1] as i16;
+    [g, rgb[0] as i16 - g, rgb[2] as i16 - g]
+}
+
+/// The predictions of the pixel at row `y`, column `x` (plane values of the row above,
+/// `prev`, and of this row, `cur`): none for the first pixel, the left one along the
+/// first row, the one above down the first column, else [`med`].
+#[inline]
+fn predict(prev: &[[i16; 3]], cur: &[[i16; 3]], y: usize, x: usize) -> [i16; 3] {
+    match (y, x) {
+        (0, 0) => [0; 3],
+        (0, _) => cur[x - 1],
+        (_, 0) => prev[0],
+        _ => {
+            let (a, b, c) = (cur[x - 1], prev[x], prev[x - 1]);
+            [
+                med(a[0], b[0], c[0]),
+                med(a[1], b[1], c[1]),
+                med(a[2], b[2], c[2]),
+            ]
+        }
+    }
+}
+
+/// The prediction errors of a `side x side` RGB window, as [`WindowCodec::PredZstd`]
+/// stores them before zstd: per pixel (row-major) three bytes, the errors of green, of
+/// red less green and of blue less green, each plane's value less its [`predict`]ion
+/// from that plane, modulo 256 (so every window has one, and [`unpredict_window`]
+/// undoes it exactly).
+pub fn predict_window(raw: &[u8], side: usize) -> Vec<u8> {
+    assert_eq!(raw.len(), 3 * side * side, "a {side}x{side} RGB window");
+    let mut out = vec![0u8; raw.len()];
+    let (mut prev, mut cur) = (vec![[0i16; 3]; side], vec![[0i16; 3]; side]);
+    for y in 0..side {
+        for x in 0..side {
+            let i = 3 * (y * side + x);
+            let p = predict(&prev, &cur, y, x);
+            let v = planes_of(&raw[i..i + 3]);
+            for (e, (v, p)) in out[i..i + 3].iter_mut().zip(v.iter().zip(p)) {
+                *e = (v - p) as u8;
+            }
+            cur[x] = v;
+        }
+        std::mem::swap(&mut prev, &mut cur);
+    }
+    out
+}
+
+/// The `side x side` RGB window whose [`predict_window`] errors are `errors`
+/// (`3 side^2` bytes).
+pub fn unpredict_window(errors: &[u8], side: usize) -> Vec<u8> {
+    assert_eq!(
+        errors.len(),
+        3 * side * side,
+        "the errors of a {side}x{side} window"
+    );
+    let mut raw = vec![0u8; errors.len()];
+    let (mut prev, mut cur) = (vec![[0i16; 3]; side], vec![[0i16; 3]; side]);
+    for y in 0..side {
+        for x in 0..side {
+            let i = 3 * (y * side + x);
+            let p = predict(&prev, &cur, y, x);
+            // Each plane's value modulo 256, then the bytes: green first, red and blue
+            // as their differences plus green.
+            let g = (p[0] as u8).wrapping_add(errors[i]);
+            let r = (p[1] as u8).wrapping_add(errors[i + 1]).wrapping_add(g);
+            let b = (p[2] as u8).wrapping_add(errors[i + 2]).wrapping_add(g);
+            raw[i..i + 3].copy_from_slice(&[r, g, b]);
+            cur[x] = planes_of(&raw[i..i + 3]);
+        }
+        std::mem::swap(&mut prev, &mut cur);
+    }
+    raw
 }
 
 /// The `side x side x 3` window that `bytes` (stored by `codec`) hold. Bounded: the
@@ -188,11 +301,88 @@ pub fn decode_window(codec: WindowCodec, bytes: &[u8], side: usize) -> Result<Ve
                 .map_err(|e| bad(e.to_string()))?;
             Ok(out)
         }
+        WindowCodec::PredZstd => {
+            let bad = |e: String| Error::invalid("crop store", format!("its zstd window: {e}"));
+            // Into a buffer of exactly the window's bytes: a frame that would give more
+            // is an error, one that gives fewer is refused here.
+            let mut errors = vec![0u8; want];
+            let made = zstd::bulk::Decompressor::new()
+                .and_then(|mut d| d.decompress_to_buffer(bytes, &mut errors[..]))
+                .map_err(|e| bad(e.to_string()))?;
+            if made != want {
+                return Err(bad(format!("{made} bytes, expected {want}")));
+            }
+            Ok(unpredict_window(&errors, side))
+        }
     }
 }
 
-/// Bytes of a record before the mesh: CRC, status, row, shard, key length, fingerprint,
-/// the key field (`key_bytes` wide), the box, the mesh's and the window's lengths.
+/// The bytes a record stores for `verts`: their float32 bits, coordinate by coordinate
+/// (every x, then every y, then every z) and byte plane by byte plane (the lowest byte
+/// of each value, then the next, ...), compressed by deflate (a raw stream, its best
+/// level). The planes put the values' sign and exponent bytes, which vary little from
+/// one vertex to the next, side by side, where deflate finds them; the bits are kept,
+/// NaN, -0.0 and denormals included.
+pub fn encode_mesh(verts: &[Point3<f32>]) -> Vec<u8> {
+    let n = verts.len();
+    let mut planes = vec![0u8; 12 * n];
+    for (i, p) in verts.iter().enumerate() {
+        for (c, v) in [p.x, p.y, p.z].into_iter().enumerate() {
+            for (k, b) in v.to_bits().to_le_bytes().into_iter().enumerate() {
+                planes[(4 * c + k) * n + i] = b;
+            }
+        }
+    }
+    let mut z =
+        flate2::write::DeflateEncoder::new(Vec::with_capacity(12 * n), flate2::Compression::best());
+    std::io::Write::write_all(&mut z, &planes).expect("writing to a Vec");
+    z.finish().expect("writing to a Vec")
+}
+
+/// The most bytes a stored mesh of `vertex_count` vertices can take: deflate's stored
+/// blocks (5 bytes per 64 KiB) of all `12 V` bytes, and room to spare.
+pub fn max_mesh_bytes(vertex_count: usize) -> usize {
+    12 * vertex_count + 12 * vertex_count / 1024 + 64
+}
+
+/// The `vertex_count` vertices that `bytes` ([`encode_mesh`]) hold. Bounded: the stream
+/// is inflated into a buffer of exactly `12 V` bytes, and one that would give more, or
+/// ends before it is full, or has bytes after its end, is refused.
+pub fn decode_mesh(bytes: &[u8], vertex_count: usize) -> Result<Vec<Point3<f32>>> {
+    let n = vertex_count;
+    let want = 12 * n;
+    let bad = |why: String| Error::invalid("crop store", format!("its mesh: {why}"));
+    let mut planes = vec![0u8; want];
+    let mut z = flate2::Decompress::new(false);
+    let status = z
+        .decompress(bytes, &mut planes, flate2::FlushDecompress::Finish)
+        .map_err(|e| bad(format!("not a deflate stream ({e})")))?;
+    let (read, made) = (z.total_in() as usize, z.total_out() as usize);
+    if status != flate2::Status::StreamEnd {
+        // Either the buffer is full and the stream goes on, or the input ran out.
+        return Err(bad(if made == want {
+            format!("more than the {want} bytes of {n} vertices")
+        } else {
+            format!("{made} bytes from a stream that ends early, expected {want}")
+        }));
+    }
+    if made != want || read != bytes.len() {
+        return Err(bad(format!(
+            "{made} bytes from {read} of {}, expected {want} bytes from all of them",
+            bytes.len()
+        )));
+    }
+    let value = |i: usize, c: usize| {
+        let b = |k: usize| planes[(4 * c + k) * n + i];
+        f32::from_bits(u32::from_le_bytes([b(0), b(1), b(2), b(3)]))
+    };
+    Ok((0..n)
+        .map(|i| Point3::new(value(i, 0), value(i, 1), value(i, 2)))
+        .collect())
+}
+
+/// Bytes of a record before the window: CRC, status, row, shard, key length, fingerprint,
+/// the key field (`key_bytes` wide), the box, the window's and the mesh's lengths.
 fn record_prefix(key_bytes: usize) -> usize {
     AT_KEY + key_bytes + 4 * 8 + 8
 }
@@ -218,18 +408,24 @@ pub fn window_side(size: u32) -> usize {
     (size + 2 * margin(size)) as usize
 }
 
-/// Bytes of one record with raw pixels for crop side `size`, `vertex_count` vertices
-/// and a key field of `key_bytes` ([`key_field_bytes`]).
-fn raw_record_bytes(size: u32, vertex_count: usize, key_bytes: usize) -> u64 {
+/// Bytes of one record with raw pixels for crop side `size`, a stored mesh of
+/// `mesh_bytes` ([`encode_mesh`]) and a key field of `key_bytes` ([`key_field_bytes`]).
+pub fn raw_record_bytes(size: u32, mesh_bytes: usize, key_bytes: usize) -> u64 {
     let w = window_side(size) as u64;
-    record_prefix(key_bytes) as u64 + 12 * vertex_count as u64 + 3 * w * w
+    record_prefix(key_bytes) as u64 + mesh_bytes as u64 + 3 * w * w
 }
 
-/// The largest record a store accepts: a raw one, plus room for a PNG that does not
-/// compress (its filter bytes, chunks and deflate's stored blocks: well under this).
+/// The largest window a store accepts: the raw bytes, plus room for a compressed one
+/// that does not compress (a PNG's filter bytes, chunks and deflate's stored blocks, a
+/// WebP's headers: well under this).
+fn max_window_bytes(size: u32) -> usize {
+    let w = window_side(size);
+    3 * w * w + 3 * w * w / 8 + 4096
+}
+
+/// The largest record a store accepts: the largest window and the largest mesh.
 fn max_record_bytes(size: u32, vertex_count: usize, key_bytes: usize) -> u64 {
-    let w = window_side(size) as u64;
-    raw_record_bytes(size, vertex_count, key_bytes) + 3 * w * w / 8 + 4096
+    (record_prefix(key_bytes) + max_window_bytes(size) + max_mesh_bytes(vertex_count)) as u64
 }
 
 /// `crops.json`: what a store holds and what it was made from.
@@ -395,7 +591,10 @@ fn header_mismatch(path: &Path, found: &[u8], want: &[u8], manifest: &CropStoreM
             found[7] as char
         )
     } else if found[..8] != want[..8] {
-        "not a crop store part (its first bytes are not ARKCROP3)".to_string()
+        format!(
+            "not a crop store part (its first bytes are not {})",
+            String::from_utf8_lossy(MAGIC)
+        )
     } else if found[52..fp_end] != want[52..fp_end] {
         format!(
             "made from another dataset than {MANIFEST_FILE} says (its fingerprint {}, {MANIFEST_FILE}'s {}): parts of two stores were mixed in this folder; rerun `arkit-tool crops`",
@@ -464,16 +663,13 @@ pub fn encode_record(
             r[at_box + 8 * i..at_box + 8 * (i + 1)].copy_from_slice(&v.to_le_bytes());
         }
         let window = encode_window(manifest.codec, &c.window)?;
+        let mesh = encode_mesh(&c.verts);
         let at_lens = at_box + 32;
-        r[at_lens..at_lens + 4].copy_from_slice(&(12 * c.verts.len() as u32).to_le_bytes());
-        r[at_lens + 4..at_lens + 8].copy_from_slice(&(window.len() as u32).to_le_bytes());
-        r.reserve(12 * c.verts.len() + window.len());
-        for p in &c.verts {
-            for v in [p.x, p.y, p.z] {
-                r.extend_from_slice(&v.to_le_bytes());
-            }
-        }
+        r[at_lens..at_lens + 4].copy_from_slice(&(window.len() as u32).to_le_bytes());
+        r[at_lens + 4..at_lens + 8].copy_from_slice(&(mesh.len() as u32).to_le_bytes());
+        r.reserve(window.len() + mesh.len());
         r.extend_from_slice(&window);
+        r.extend_from_slice(&mesh);
     }
     let crc = crc32fast::hash(&r[4..]);
     r[..4].copy_from_slice(&crc.to_le_bytes());
@@ -568,7 +764,7 @@ pub fn read_manifest(dir: &Path) -> Result<CropStoreManifest> {
             return Err(Error::format(
                 &path,
                 format!(
-                    "a crop store of format {f}; this version reads format {FORMAT} (compressed windows, an index per part): rerun `arkit-tool crops`"
+                    "a crop store of format {f}; this version reads format {FORMAT} (compressed windows and meshes, an index per part): rerun `arkit-tool crops`"
                 ),
             ));
         }
@@ -811,11 +1007,11 @@ impl CropStore {
             Error::invalid("crop store", format!("{}: no record {row}", path.display()))
         })?;
         let m = &self.manifest;
-        // `len` was bounded when the index was read. The head (CRC to mesh) and the
-        // window read into their own buffers, so a raw window is returned as read,
-        // not moved out of the record.
+        // `len` was bounded when the index was read. The head (CRC to the lengths) and
+        // the rest (the window, then the mesh) read into their own buffers, so a raw
+        // window is returned as read, not moved out of the record.
         let prefix = record_prefix(m.key_bytes);
-        let head_len = (len as usize).min(prefix + 12 * m.vertex_count);
+        let head_len = (len as usize).min(prefix);
         let mut r = vec![0u8; head_len];
         let mut tail = vec![0u8; len as usize - head_len];
         read_exact_at(&part.file, &mut r, at).map_err(|e| Error::io(path, e))?;
@@ -875,16 +1071,16 @@ impl CropStore {
             ));
         }
         let at_box = AT_KEY + m.key_bytes;
-        let (mesh_len, window_len) = (u32_at(at_box + 32) as usize, u32_at(at_box + 36) as usize);
-        if mesh_len != 12 * m.vertex_count
-            || head_len != prefix + mesh_len
-            || window_len != tail.len()
+        let (window_len, mesh_len) = (u32_at(at_box + 32) as usize, u32_at(at_box + 36) as usize);
+        if head_len != prefix
+            || window_len > max_window_bytes(m.img_size)
+            || mesh_len > max_mesh_bytes(m.vertex_count)
+            || window_len + mesh_len != tail.len()
         {
             return Err(Error::format(
                 path,
                 format!(
-                    "record {row}: a mesh of {mesh_len} bytes and a window of {window_len} in a record of {len} (the mesh has {} bytes): the file is not this store's; run `arkit-tool crops` again",
-                    12 * m.vertex_count
+                    "record {row}: a window of {window_len} bytes and a mesh of {mesh_len} in a record of {len}: the file is not this store's; run `arkit-tool crops` again"
                 ),
             ));
         }
@@ -897,23 +1093,21 @@ impl CropStore {
             size: m.img_size,
             sampling: sampling_of(&m.compat)?,
         };
-        let verts = r[prefix..prefix + mesh_len]
-            .chunks_exact(12)
-            .map(|c| {
-                let f = |k: usize| f32::from_le_bytes(c[k..k + 4].try_into().expect("4 bytes"));
-                Point3::new(f(0), f(4), f(8))
-            })
-            .collect();
+        let in_record = |e: Error| {
+            Error::format(
+                path,
+                format!("record {row}: {e}; run `arkit-tool crops` again"),
+            )
+        };
+        let verts = decode_mesh(&tail[window_len..], m.vertex_count).map_err(in_record)?;
         let w = window_side(m.img_size);
         let window = match m.codec {
-            // The raw window moved out of the record, not copied.
-            WindowCodec::Raw => tail,
-            codec => decode_window(codec, &tail, w).map_err(|e| {
-                Error::format(
-                    path,
-                    format!("record {row}: {e}; run `arkit-tool crops` again"),
-                )
-            })?,
+            // The raw window kept in the buffer it was read into, the mesh cut off.
+            WindowCodec::Raw => {
+                tail.truncate(window_len);
+                tail
+            }
+            codec => decode_window(codec, &tail[..window_len], w).map_err(in_record)?,
         };
         if window.len() != 3 * w * w {
             return Err(Error::format(
@@ -1044,7 +1238,7 @@ mod tests {
 
     #[test]
     fn a_record_round_trips_in_each_codec_and_its_crc_catches_a_flipped_byte() {
-        for codec in [WindowCodec::Raw, WindowCodec::Png] {
+        for codec in [WindowCodec::Raw, WindowCodec::Png, WindowCodec::PredZstd] {
             let dir = tempfile::tempdir().unwrap();
             let m = CropStoreManifest {
                 codec,
@@ -1055,7 +1249,8 @@ mod tests {
             let bytes = &records[5];
             assert_eq!(crc32fast::hash(&bytes[4..]).to_le_bytes(), bytes[..4]);
             if codec == WindowCodec::Raw {
-                assert_eq!(bytes.len() as u64, raw_record_bytes(16, 2, m.key_bytes));
+                let mesh = encode_mesh(&crop.verts).len();
+                assert_eq!(bytes.len() as u64, raw_record_bytes(16, mesh, m.key_bytes));
             }
             let store = store_of(dir.path(), &m, records);
             assert_eq!(store.read(0, 5, "s/a/5").unwrap(), crop);
@@ -1066,7 +1261,9 @@ mod tests {
             let path = dir.path().join("part-0.bin");
             let mut all = std::fs::read(&path).unwrap();
             let (at, len) = store.record_span(0, 5).unwrap();
-            all[(at + len - 20) as usize] ^= 1;
+            let in_window = at as usize + record_prefix(m.key_bytes) + 10;
+            assert!(in_window + encode_mesh(&crop.verts).len() < (at + len) as usize);
+            all[in_window] ^= 1;
             std::fs::write(&path, &all).unwrap();
             let e = store_of_file(&store, &path)
                 .read(0, 5, "s/a/5")
@@ -1076,7 +1273,7 @@ mod tests {
                 "{e}"
             );
             // The index damaged: refused when the part is opened.
-            all[(at + len - 20) as usize] ^= 1;
+            all[in_window] ^= 1;
             let n = all.len();
             all[n - FOOTER_BYTES as usize - 3] ^= 1;
             std::fs::write(&path, &all).unwrap();
@@ -1144,6 +1341,213 @@ mod tests {
         // A key longer than the key field is refused when written, never cut.
         let e = encode_record(&m, 0, 0, "s/a/123456", None).unwrap_err();
         assert!(e.to_string().contains("does not fit"), "{e}");
+    }
+
+    /// The bits of `verts`, for comparisons that tell NaNs and -0.0 apart.
+    fn bits(verts: &[Point3<f32>]) -> Vec<u32> {
+        verts
+            .iter()
+            .flat_map(|p| [p.x.to_bits(), p.y.to_bits(), p.z.to_bits()])
+            .collect()
+    }
+
+    #[test]
+    fn a_mesh_round_trips_bit_for_bit_nans_zeros_and_denormals_included() {
+        let odd = [
+            f32::NAN,
+            f32::from_bits(0x7fc0_1234),
+            f32::from_bits(0xffbf_ffff),
+            -0.0,
+            0.0,
+            f32::from_bits(1),
+            -f32::from_bits(0x007f_ffff),
+            f32::MIN_POSITIVE,
+            f32::INFINITY,
+            f32::NEG_INFINITY,
+            f32::MAX,
+            -1.5e-3,
+        ];
+        // A face-like mesh (smooth, centimetres in metres) with the odd values in it.
+        let mut verts: Vec<Point3<f32>> = (0..1220)
+            .map(|i| {
+                let t = i as f32 * 0.013;
+                Point3::new(
+                    0.08 * t.sin(),
+                    0.09 * (0.7 * t).cos(),
+                    0.02 + 0.03 * t.cos(),
+                )
+            })
+            .collect();
+        for (i, v) in odd.iter().enumerate() {
+            verts[37 * i].x = *v;
+            verts[37 * i + 5].y = *v;
+            verts[37 * i + 11].z = -*v;
+        }
+        let stored = encode_mesh(&verts);
+        assert!(stored.len() < 12 * verts.len(), "{} bytes", stored.len());
+        assert!(stored.len() <= max_mesh_bytes(verts.len()));
+        assert_eq!(
+            bits(&decode_mesh(&stored, verts.len()).unwrap()),
+            bits(&verts)
+        );
+        // Every value alone, and no vertices at all.
+        let each: Vec<Point3<f32>> = odd.iter().map(|&v| Point3::new(v, -v, v)).collect();
+        let back = decode_mesh(&encode_mesh(&each), each.len()).unwrap();
+        assert_eq!(bits(&back), bits(&each));
+        assert!(decode_mesh(&encode_mesh(&[]), 0).unwrap().is_empty());
+        // Random bits (nothing to compress): still within the bound, still exact.
+        let mut x = 0x9e37_79b9_u32;
+        let mut next = || {
+            x ^= x << 13;
+            x ^= x >> 17;
+            x ^= x << 5;
+            f32::from_bits(x)
+        };
+        let noise: Vec<Point3<f32>> = (0..1220)
+            .map(|_| Point3::new(next(), next(), next()))
+            .collect();
+        let stored = encode_mesh(&noise);
+        assert!(
+            stored.len() <= max_mesh_bytes(noise.len()),
+            "{}",
+            stored.len()
+        );
+        assert_eq!(
+            bits(&decode_mesh(&stored, noise.len()).unwrap()),
+            bits(&noise)
+        );
+    }
+
+    #[test]
+    fn a_record_whose_mesh_or_lengths_do_not_fit_is_refused_though_its_crc_matches() {
+        let dir = tempfile::tempdir().unwrap();
+        let (m, crop) = (manifest(), crop());
+        let at_lens = AT_KEY + m.key_bytes + 32;
+        // Record 5 with its mesh replaced by `mesh` and its lengths by `lens`, CRC
+        // recomputed: what a writer with a bug (or an editor) could leave.
+        let forged = |mesh: &[u8], lens: Option<(u32, u32)>| {
+            let mut records = six(&m, &crop);
+            let r = &mut records[5];
+            let window_len = u32::from_le_bytes(r[at_lens..at_lens + 4].try_into().unwrap());
+            r.truncate(record_prefix(m.key_bytes) + window_len as usize);
+            r.extend_from_slice(mesh);
+            let (w, n) = lens.unwrap_or((window_len, mesh.len() as u32));
+            r[at_lens..at_lens + 4].copy_from_slice(&w.to_le_bytes());
+            r[at_lens + 4..at_lens + 8].copy_from_slice(&n.to_le_bytes());
+            let crc = crc32fast::hash(&r[4..]);
+            r[..4].copy_from_slice(&crc.to_le_bytes());
+            store_of(dir.path(), &m, records).read(0, 5, "s/a/5")
+        };
+        let good = encode_mesh(&crop.verts);
+        assert_eq!(forged(&good, None).unwrap(), crop);
+        // A mesh of three vertices in a store of two.
+        let three = encode_mesh(&[crop.verts[0], crop.verts[1], crop.verts[0]]);
+        let e = forged(&three, None).unwrap_err().to_string();
+        assert!(
+            e.contains("part-0.bin") && e.contains("record 5") && e.contains("its mesh"),
+            "{e}"
+        );
+        // Lengths that do not add up to the record's, or a mesh longer than any can be.
+        let window_len = encode_window(m.codec, &crop.window).unwrap().len() as u32;
+        for lens in [
+            (window_len + 1, good.len() as u32),
+            (window_len - 1, good.len() as u32),
+            (0, window_len + good.len() as u32),
+        ] {
+            let e = forged(&good, Some(lens)).unwrap_err().to_string();
+            assert!(
+                e.contains("record 5") && e.contains("not this store's"),
+                "{lens:?}: {e}"
+            );
+        }
+        // The mesh counted into the window: no mesh left to decode.
+        let e = forged(&good, Some((window_len + good.len() as u32, 0)))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("record 5") && e.contains("its mesh"), "{e}");
+    }
+
+    #[test]
+    fn a_mesh_stream_cut_short_grown_or_of_another_size_is_refused() {
+        let verts = crop().verts;
+        let stored = encode_mesh(&verts);
+        // Cut: every shorter stream refused.
+        for cut in 0..stored.len() {
+            assert!(decode_mesh(&stored[..cut], 2).is_err(), "cut to {cut}");
+        }
+        // Bytes after the stream's end.
+        let mut more = stored.clone();
+        more.push(0);
+        let e = decode_mesh(&more, 2).unwrap_err().to_string();
+        assert!(e.contains("expected 24 bytes from all of them"), "{e}");
+        // The stream of a larger mesh, read as two vertices: it does not end in 24 bytes.
+        let three = [verts[0], verts[1], verts[0]];
+        let e = decode_mesh(&encode_mesh(&three), 2)
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("more than the 24 bytes"), "{e}");
+        // The stream of a smaller mesh: it ends early.
+        let e = decode_mesh(&encode_mesh(&verts[..1]), 2)
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("12 bytes") && e.contains("expected 24"), "{e}");
+        // Not deflate at all.
+        assert!(decode_mesh(&[0xff; 40], 2).is_err());
+    }
+
+    #[test]
+    fn a_predicted_window_round_trips_and_a_frame_of_another_size_is_refused() {
+        // Smooth, noisy, saturated and wrapping colour differences (red 255 on green 0,
+        // blue 0 on green 255), at several sides.
+        let mut x = 0x2545_f491_u32;
+        let mut next = || {
+            x ^= x << 13;
+            x ^= x >> 17;
+            x ^= x << 5;
+            x
+        };
+        for side in [1usize, 2, 3, 24, 61] {
+            let mut px = Vec::with_capacity(3 * side * side);
+            for i in 0..side * side {
+                let (y, c) = (i / side, i % side);
+                px.extend_from_slice(&match i % 7 {
+                    0 => [255, 0, 0],
+                    1 => [0, 255, 0],
+                    2 => [0, 255, 255],
+                    3 => [next() as u8, next() as u8, next() as u8],
+                    _ => [(y * 4) as u8, (c * 3 + y) as u8, (200 - c) as u8],
+                });
+            }
+            let window = image::RgbImage::from_raw(side as u32, side as u32, px).unwrap();
+            let errors = predict_window(window.as_raw(), side);
+            assert_eq!(unpredict_window(&errors, side), *window.as_raw(), "{side}");
+            let stored = encode_window(WindowCodec::PredZstd, &window).unwrap();
+            let back = decode_window(WindowCodec::PredZstd, &stored, side).unwrap();
+            assert_eq!(back, *window.as_raw(), "{side}");
+        }
+        // A smooth window compresses well below PNG's bytes here.
+        let crop = crop();
+        let side = crop.side();
+        let stored = encode_window(WindowCodec::PredZstd, &crop.window).unwrap();
+        assert_eq!(
+            decode_window(WindowCodec::PredZstd, &stored, side).unwrap(),
+            *crop.window.as_raw()
+        );
+        assert!(
+            stored.len() < crop.window.len() / 2,
+            "{} bytes",
+            stored.len()
+        );
+        // The frame of a larger or a smaller window, cut or damaged bytes: refused.
+        for other in [side + 1, side - 1] {
+            let w = image::RgbImage::new(other as u32, other as u32);
+            let bytes = encode_window(WindowCodec::PredZstd, &w).unwrap();
+            let e = decode_window(WindowCodec::PredZstd, &bytes, side).unwrap_err();
+            assert!(e.to_string().contains("zstd window"), "{other}: {e}");
+        }
+        assert!(decode_window(WindowCodec::PredZstd, &stored[..stored.len() - 3], side).is_err());
+        assert!(decode_window(WindowCodec::PredZstd, &[0x28, 0xb5, 0x2f, 0xfd, 1], side).is_err());
+        assert!(decode_window(WindowCodec::PredZstd, &[], side).is_err());
     }
 
     #[test]

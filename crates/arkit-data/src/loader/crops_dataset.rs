@@ -42,7 +42,7 @@ pub struct CropStoreSummary {
     pub output: PathBuf,
     /// `"exact"` or `"official"`.
     pub compat: String,
-    /// How the windows are stored (`png` or `raw`).
+    /// How the windows are stored (`pred-zstd`, `png` or `raw`).
     pub codec: WindowCodec,
     /// Crop side.
     pub img_size: u32,
@@ -61,14 +61,15 @@ pub struct CropStoreSummary {
 }
 
 /// Writes the crop store of the dataset `loader` serves (opened with no split, in
-/// evaluation mode, with the rules and crop side wanted) into `output`, its windows as
-/// PNGs; `progress` is called with the number of samples done since its last call.
+/// evaluation mode, with the rules and crop side wanted) into `output`, its windows by
+/// the default codec ([`WindowCodec::PredZstd`]); `progress` is called with the number
+/// of samples done since its last call.
 pub fn write_crop_store(
     loader: &FaceLoader,
     output: &Path,
     progress: &(dyn Fn(usize) + Sync),
 ) -> Result<CropStoreSummary> {
-    write_crop_store_with(loader, output, WindowCodec::Png, progress)
+    write_crop_store_with(loader, output, WindowCodec::PredZstd, progress)
 }
 
 /// [`write_crop_store`] with the windows stored by `codec`.
