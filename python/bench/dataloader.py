@@ -79,16 +79,17 @@ def main():
         print(f"official get_item, {mode}: {ms:.2f} ms a sample ({source})")
 
     jpeg_kib = sum(os.path.getsize(p) for p in paths) / len(paths) / 1024
-    raw_store = {}
-    for codec in ["pred-zstd", "raw"]:
+    stores = {"pred-zstd": {}, "png": {}, "raw": {}}
+    for codec in stores:
         t = time.perf_counter()
         for compat in ["exact", "official"]:
-            out = [] if codec == "pred-zstd" else ["--output", tmp / f"raw-{compat}"]
+            # The default codec goes to the dataset's default folder (`crop_store="auto"`).
+            out = [] if codec == "pred-zstd" else ["--output", tmp / f"{codec}-{compat}"]
             subprocess.run([a.bin, "crops", "--dataset", data, "--compat", compat, "--codec", codec,
                             *out, *res], check=True, stdout=subprocess.DEVNULL)
-            raw_store[compat] = tmp / f"raw-{compat}"
+            stores[codec][compat] = "auto" if codec == "pred-zstd" else tmp / f"{codec}-{compat}"
         store_ms = (time.perf_counter() - t) / len(paths) / 2 * 1e3
-        folder = data / "crops" / "exact-192" if codec == "pred-zstd" else raw_store["exact"]
+        folder = data / "crops" / "exact-192" if codec == "pred-zstd" else tmp / f"{codec}-exact"
         kib = sum(f.stat().st_size for f in folder.glob("part-*.bin")) / len(paths) / 1024
         print(f"arkit-tool crops --codec {codec}: {store_ms:.2f} ms a sample (once, all cores), "
               f"{kib:.1f} KiB a sample (the JPEG: {jpeg_kib:.1f} KiB)")
@@ -98,14 +99,16 @@ def main():
     # DataLoader(ds) with torch's default collate, which stacks the samples again.
     # (store, dense, default) is the official train.py's path: its DataLoader keeps the
     # default collate.
-    runs = [("store", "sparse", "batched"), ("raw", "sparse", "batched"), ("store", "sparse", "default"),
-            ("store", "dense", "batched"), ("raw", "dense", "batched"), ("store", "dense", "default"),
-            ("jpeg", "sparse", "batched")]
+    # `store` is the default (pred-zstd) store; `png` and `raw` the other codecs' stores.
+    runs = [("store", "sparse", "batched"), ("png", "sparse", "batched"), ("raw", "sparse", "batched"),
+            ("store", "sparse", "default"), ("store", "dense", "batched"), ("raw", "dense", "batched"),
+            ("store", "dense", "default"), ("png", "dense", "default"), ("jpeg", "sparse", "batched")]
     timed = {}
     for mode in ["eval", "train"]:
         for compat in ["exact", "official"]:
             for source, corr, collate in runs:
-                store = {"store": "auto", "raw": raw_store[compat], "jpeg": None}[source]
+                store = {"store": "auto", "png": stores["png"][compat], "raw": stores["raw"][compat],
+                         "jpeg": None}[source]
                 ds = arkit_tool.ARKitFaceDataset(data, split=None, mode=mode, compat=compat, corr=corr,
                                                  crop_store=store)
                 assert (ds.crop_store is not None) == (source != "jpeg")
@@ -130,10 +133,10 @@ def main():
                       f"{official_ms[mode] / ms:.1f}x")
                 print(f"ratio: arkit_tool {name} / JPEG decode floor = {ms / floor_ms:.2f}")
                 timed[name] = ms
-                if source == "raw":
+                if source in ("png", "raw"):
                     default = timed[f"{mode}/{compat}/{corr}/store/{collate}"]
-                    print(f"ratio: arkit_tool {mode}/{compat}/{corr} pred-zstd store / raw store = "
-                          f"{default / ms:.2f} (time a sample)")
+                    print(f"ratio: arkit_tool {mode}/{compat}/{corr}/{collate} pred-zstd store / {source} "
+                          f"store = {default / ms:.2f} (time a sample)")
 
 
 def time_official(code, release):

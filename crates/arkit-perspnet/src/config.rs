@@ -51,7 +51,7 @@ pub struct PerspNetConfig {
     #[serde(default = "yes")]
     pub assignment_loss: bool,
     /// Which network: PerspNet (the default; older configs) or the paper's "Direct
-    /// 6DoF Regress" baseline ([`crate::direct`]), which uses the encoder's
+    /// 6DoF Regress" baseline (`crate::direct`), which uses the encoder's
     /// settings (`input_size`, `encoder_widths`, `fc_channels` as its head's width,
     /// `init_std`, `bn_eps`, `bn_momentum`) and ignores the rest.
     #[serde(default)]
@@ -90,7 +90,7 @@ fn yes() -> bool {
 
 /// The two readings of PerspNet's loss: the official code's (the default) and the
 /// paper's text. Both have the same five terms (correspondence, shape, KL with entropy,
-/// segmentation); see [`crate::loss`] for each.
+/// segmentation); see `crate::loss` for each.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum LossVariant {

@@ -14,7 +14,7 @@
 //! - its losses ([`PerspNetLoss`]) and optimiser ([`Adam`]);
 //! - training ([`train`]): examples from a converted, rendered dataset
 //!   ([`ShardedExamples`]), the view of an example the network sees in a step
-//!   ([`Example::augmented_view`]), the loop, checkpoints ([`Checkpoint`], [`load`]);
+//!   ([`Example`]), the loop, checkpoints ([`Checkpoint`], [`load`]);
 //! - weights ([`load_weights`], [`import_weights`], [`export_weights`],
 //!   [`write_half_model`]);
 //! - inference ([`predict_crop`], [`model_predictions`]).

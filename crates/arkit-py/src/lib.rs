@@ -3,11 +3,11 @@
 //! `arkit_tool`, not this module.
 //!
 //! What crosses the boundary:
-//! - [`Loader`]: `arkit_data::loader::item::FaceLoader`, one sample as the official PyTorch
+//! - `Loader`: `arkit_data::loader::item::FaceLoader`, one sample as the official PyTorch
 //!   loader returns it, as numpy arrays that own the Rust buffers (no copy).
-//! - [`Dataset`]: a converted dataset's samples, by position.
-//! - [`solve_pnp_ransac`], [`project`], [`evaluate`]: PnP, the release's projection and
-//!   the paper's metrics; [`topology`]: the mesh a dataset was converted with.
+//! - `Dataset`: a converted dataset's samples, by position.
+//! - `solve_pnp_ransac`, `project`, `evaluate`: PnP, the release's projection and
+//!   the paper's metrics; `topology`: the mesh a dataset was converted with.
 //!
 //! Invariants: the GIL is released while Rust works (`Python::detach`); nothing here
 //! starts a thread, so a loader is safe to use after `fork` (DataLoader workers); every

@@ -26,7 +26,7 @@
 //!    `+0.5`) at the face layer's source point where the face covers it, else the band
 //!    layer's; pixels outside both keep their value.
 //!
-//! The new pose changes one Euler angle ('yxz', see [`arkit_core::conventions::pose`]) and
+//! The new pose changes one Euler angle ('yxz', see [`arkit_core::conventions::EulerAngles`]) and
 //! keeps the others and the translation, so the new Euler angles equal the request
 //! exactly. A surface hidden in the source (the far cheek) that turns into view shows
 //! whatever covered it; that is why yaw is enlarged only for faces already turned away.

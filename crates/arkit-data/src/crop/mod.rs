@@ -160,12 +160,12 @@ impl CropTransform {
     ///
     /// The map is an axis-aligned scale, so the bilinear taps and weights of a column
     /// depend only on its x and those of a row only on its y: they are computed once per
-    /// column and row (`Taps`, [`ColumnTaps`]), a tap outside the image getting weight 0.
+    /// column and row (`Taps`, `ColumnTaps`), a tap outside the image getting weight 0.
     /// Each crop row then blends its two source rows over the span the columns read
-    /// ([`blend_rows`]: SSE2, or AVX2 where the CPU has it), reads its pixels from that
+    /// (`blend_rows`: SSE2, or AVX2 where the CPU has it), reads its pixels from that
     /// blend with two taps each (one four-float operation per pixel, the span padded
     /// with a zero pixel on each side so that no tap is tested for the border), and
-    /// rounds the float row to bytes ([`round_row_to_u8`]). Invariant: every vector path
+    /// rounds the float row to bytes (`round_row_to_u8`). Invariant: every vector path
     /// gives the scalar path's bits (tested), and the whole equals per-pixel bilinear
     /// sampling with black outside (tested across the image border). The measurements
     /// that chose this shape are in `docs/performance.md` ("The crop").

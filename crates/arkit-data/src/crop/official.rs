@@ -270,7 +270,7 @@ pub fn warp_affine(
 }
 
 /// [`warp_affine`] over the crop window `first..first + count` (see
-/// [`warp_taps_window`]): `count x count` pixels, those shared with the crop equal.
+/// `warp_taps_window`): `count x count` pixels, those shared with the crop equal.
 pub fn warp_affine_window(
     src: &[u8],
     width: u32,

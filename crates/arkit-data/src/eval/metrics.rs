@@ -2,7 +2,7 @@
 //!
 //! One home for every metric of `arkit-tool eval`. Per sample ([`sample_errors`]):
 //! - **Euler errors**: yaw, pitch and roll of both poses (SciPy `as_euler('yxz')` of
-//!   `R_t[:3,:3]^T`, see [`arkit_core::conventions::pose`]) and their absolute differences in
+//!   `R_t[:3,:3]^T`, see [`arkit_core::conventions::EulerAngles`]) and their absolute differences in
 //!   degrees. The official code subtracts the angles as they are, so a yaw of 179 degrees
 //!   against -179 degrees counts as a 358 degree error; [`EulerDifference::Wrapped`]
 //!   offers the shortest angular difference instead. The default is the official one.

@@ -857,7 +857,7 @@ fn convert_planned(
     )
 }
 
-/// [`convert_planned`] with `checks` (checks turned off, the systematic rule's
+/// `convert_planned` with `checks` (checks turned off, the systematic rule's
 /// window). A run that the systematic rule stops ([`crate::ingest::systematic`]) returns its
 /// message as the error; the shards finished before it stay (a rerun with the check
 /// turned off is another conversion and replaces them with `--overwrite`).

@@ -108,9 +108,9 @@ impl ColourJitter {
     /// saturation with each pixel's luma; the hue shift rotates the HSV hue.
     ///
     /// Brightness and contrast map each byte alone, so they go through a 256-entry
-    /// table of the same formula; every rounding is [`round_half_away`], `f32::round`'s
+    /// table of the same formula; every rounding is `round_half_away`, `f32::round`'s
     /// values without its library call. Saturation and hue run eight pixels at a time
-    /// where the CPU has AVX2 ([`saturate_all`], [`shift_hue_all`]).
+    /// where the CPU has AVX2 (`saturate_all`, `shift_hue_all`).
     pub fn apply(&self, rgb: &mut [u8]) {
         let through_table = |rgb: &mut [u8], grey: f32, f: f32| {
             let table: [u8; 256] = std::array::from_fn(|v| blend(v as f32, grey, f));

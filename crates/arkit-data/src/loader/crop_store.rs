@@ -210,7 +210,7 @@ fn predict(prev: &[[i16; 3]], cur: &[[i16; 3]], y: usize, x: usize) -> [i16; 3] 
 
 /// The prediction errors of a `side x side` RGB window, as [`WindowCodec::PredZstd`]
 /// stores them before zstd: per pixel (row-major) three bytes, the errors of green, of
-/// red less green and of blue less green, each plane's value less its [`predict`]ion
+/// red less green and of blue less green, each plane's value less its `predict`ion
 /// from that plane, modulo 256 (so every window has one, and [`unpredict_window`]
 /// undoes it exactly).
 pub fn predict_window(raw: &[u8], side: usize) -> Vec<u8> {

@@ -149,7 +149,7 @@ fn check_budget(h: &ImageHeader, path: &Path) -> Result<()> {
 
 /// Decodes a PNG or JPEG in memory into 8-bit RGB (module docs), after `check` has
 /// accepted its header (for example: the size the caller expects) and the header has
-/// passed [`check_budget`]. `path` names the image in errors.
+/// passed `check_budget`. `path` names the image in errors.
 pub fn decode_rgb8_checked(
     bytes: &[u8],
     path: &Path,

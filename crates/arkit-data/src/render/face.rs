@@ -810,7 +810,7 @@ impl UvTexels {
     /// texels grouped by triangle so that the triangle's positions are loaded once. On
     /// x86-64 one four-float SSE2 operation per texel (positions padded to four
     /// floats), or one eight-float AVX operation per two texels where the CPU has AVX
-    /// ([`UvTexels::fill_avx`], detected at run time). Invariant: every path gives the
+    /// (`UvTexels::fill_avx`, detected at run time). Invariant: every path gives the
     /// bits of one coordinate at a time (tested). Measurements: `docs/performance.md`
     /// ("The UV position map").
     pub fn position_map(&self, extended: &[Point3<f32>]) -> Vec<[f32; 3]> {

@@ -73,7 +73,7 @@ pub struct Manifest {
     /// manifests written before it was recorded).
     #[serde(default)]
     pub input_root: String,
-    /// The conversion's fingerprint ([`ConversionFingerprint::digest`]).
+    /// The conversion's fingerprint ([`crate::ingest::convert::ConversionFingerprint::digest`]).
     #[serde(default)]
     pub fingerprint: String,
     /// [`topology_digest`] of the topology it was converted with (empty in manifests

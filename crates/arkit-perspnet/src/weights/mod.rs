@@ -20,7 +20,7 @@ use safetensors_file::SafetensorsFile;
 use std::collections::HashMap;
 use std::path::Path;
 
-/// Opens the safetensors file `path` ([`safetensors_file`]): its header is read
+/// Opens the safetensors file `path` (`safetensors_file`): its header is read
 /// and checked against the file's length; no tensor data is read yet.
 pub fn open_weights(path: &Path) -> Result<SafetensorsFile<std::io::BufReader<std::fs::File>>> {
     if let Err(e) = std::fs::metadata(path) {
