@@ -50,36 +50,29 @@ pub fn converted_by_the_command(
     size: u32,
     seed: u64,
 ) {
-    let run = |args: Vec<String>| {
-        let out = tool().args(&args).output().unwrap();
+    let run = |command: &mut Command| {
+        let out = command.output().unwrap();
         assert!(
             out.status.success(),
-            "arkit-tool {}: {}",
-            args.join(" "),
+            "{command:?}: {}",
             String::from_utf8_lossy(&out.stderr)
         );
     };
-    let s = |v: &dyn ToString| v.to_string();
-    run(vec![
-        s(&"synth"),
-        s(&"--output"),
-        release.display().to_string(),
-        s(&"--subjects"),
-        s(&subjects),
-        s(&"--images-per-subject"),
-        s(&images),
-        s(&"--size"),
-        format!("{size}x{size}"),
-        s(&"--seed"),
-        s(&seed),
-    ]);
-    run(vec![
-        s(&"convert"),
-        s(&"--input"),
-        release.display().to_string(),
-        s(&"--output"),
-        dir.display().to_string(),
-        s(&"--rows-per-shard"),
-        s(&4),
-    ]);
+    let (subjects, images, seed) = (subjects.to_string(), images.to_string(), seed.to_string());
+    run(tool().arg("synth").arg("--output").arg(release).args([
+        "--subjects",
+        &subjects,
+        "--images-per-subject",
+        &images,
+        "--size",
+        &format!("{size}x{size}"),
+        "--seed",
+        &seed,
+    ]));
+    run(tool()
+        .args(["convert", "--input"])
+        .arg(release)
+        .arg("--output")
+        .arg(dir)
+        .args(["--rows-per-shard", "4"]));
 }
