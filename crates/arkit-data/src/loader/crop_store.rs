@@ -235,28 +235,67 @@ pub fn predict_window(raw: &[u8], side: usize) -> Vec<u8> {
 /// The `side x side` RGB window whose [`predict_window`] errors are `errors`
 /// (`3 side^2` bytes).
 pub fn unpredict_window(errors: &[u8], side: usize) -> Vec<u8> {
+    let mut raw = errors.to_vec();
+    unpredict_window_in_place(&mut raw, side);
+    raw
+}
+
+/// [`unpredict_window`] in place: `buf` holds a window's [`predict_window`] errors
+/// and is left holding its RGB bytes. The same arithmetic as the prediction, pixel by
+/// pixel, written for the decoder's one serial dependency (each pixel's prediction
+/// needs its left neighbour's decoded value): the first row and column apart, so the
+/// inner loop has no case to choose, and the row above's plane values kept beside the
+/// row being decoded. Tested against the prediction's own per-pixel definition.
+pub fn unpredict_window_in_place(buf: &mut [u8], side: usize) {
     assert_eq!(
-        errors.len(),
+        buf.len(),
         3 * side * side,
         "the errors of a {side}x{side} window"
     );
-    let mut raw = vec![0u8; errors.len()];
+    if side == 0 {
+        return;
+    }
+    // Each decoded pixel's bytes from its plane predictions and its errors; returns
+    // its plane values (green, red less green, blue less green).
+    #[inline(always)]
+    fn decode(px: &mut [u8], p: [i16; 3]) -> [i16; 3] {
+        let g = (p[0] as u8).wrapping_add(px[0]);
+        let r = (p[1] as u8).wrapping_add(px[1]).wrapping_add(g);
+        let b = (p[2] as u8).wrapping_add(px[2]).wrapping_add(g);
+        px[0] = r;
+        px[1] = g;
+        px[2] = b;
+        let g = g as i16;
+        [g, r as i16 - g, b as i16 - g]
+    }
     let (mut prev, mut cur) = (vec![[0i16; 3]; side], vec![[0i16; 3]; side]);
-    for y in 0..side {
-        for x in 0..side {
-            let i = 3 * (y * side + x);
-            let p = predict(&prev, &cur, y, x);
-            // Each plane's value modulo 256, then the bytes: green first, red and blue
-            // as their differences plus green.
-            let g = (p[0] as u8).wrapping_add(errors[i]);
-            let r = (p[1] as u8).wrapping_add(errors[i + 1]).wrapping_add(g);
-            let b = (p[2] as u8).wrapping_add(errors[i + 2]).wrapping_add(g);
-            raw[i..i + 3].copy_from_slice(&[r, g, b]);
-            cur[x] = planes_of(&raw[i..i + 3]);
+    let row_bytes = 3 * side;
+    for (y, row) in buf.chunks_exact_mut(row_bytes).enumerate() {
+        let mut pixels = row.chunks_exact_mut(3);
+        let first = pixels.next().expect("a row of at least one pixel");
+        // The first pixel: none (top-left) or the one above.
+        let mut left = decode(first, if y == 0 { [0; 3] } else { prev[0] });
+        cur[0] = left;
+        if y == 0 {
+            // The first row: the left neighbour.
+            for (px, out) in pixels.zip(&mut cur[1..]) {
+                left = decode(px, left);
+                *out = left;
+            }
+        } else {
+            for ((px, out), above) in pixels.zip(&mut cur[1..]).zip(prev.windows(2)) {
+                let (c, b) = (above[0], above[1]);
+                let p = [
+                    med(left[0], b[0], c[0]),
+                    med(left[1], b[1], c[1]),
+                    med(left[2], b[2], c[2]),
+                ];
+                left = decode(px, p);
+                *out = left;
+            }
         }
         std::mem::swap(&mut prev, &mut cur);
     }
-    raw
 }
 
 /// The `side x side x 3` window that `bytes` (stored by `codec`) hold. Bounded: the
@@ -312,7 +351,8 @@ pub fn decode_window(codec: WindowCodec, bytes: &[u8], side: usize) -> Result<Ve
             if made != want {
                 return Err(bad(format!("{made} bytes, expected {want}")));
             }
-            Ok(unpredict_window(&errors, side))
+            unpredict_window_in_place(&mut errors, side);
+            Ok(errors)
         }
     }
 }
@@ -1524,6 +1564,15 @@ mod tests {
             let stored = encode_window(WindowCodec::PredZstd, &window).unwrap();
             let back = decode_window(WindowCodec::PredZstd, &stored, side).unwrap();
             assert_eq!(back, *window.as_raw(), "{side}");
+            // The other way round: any bytes, read as errors, decode to the window
+            // whose prediction errors they are (the decoder and the prediction's
+            // per-pixel definition agree on every value, wrapping ones included).
+            let noise: Vec<u8> = (0..3 * side * side).map(|_| next() as u8).collect();
+            assert_eq!(
+                predict_window(&unpredict_window(&noise, side), side),
+                noise,
+                "{side}"
+            );
         }
         // A smooth window compresses well below PNG's bytes here.
         let crop = crop();
