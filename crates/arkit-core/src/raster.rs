@@ -955,6 +955,18 @@ pub fn rasterize_mesh_official_in(
     vertices: &[ScreenVertex],
     triangles: &[[u32; 3]],
 ) -> Result<(), BadTriangle> {
+    official_in(buffer, window, vertices, triangles, true)
+}
+
+/// [`rasterize_mesh_official_in`], with its AVX2 lanes where the CPU has them
+/// (`lanes`) or one pixel at a time: the same buffer either way (tested).
+fn official_in(
+    buffer: &mut VisibilityBuffer,
+    window: PixelWindow,
+    vertices: &[ScreenVertex],
+    triangles: &[[u32; 3]],
+    lanes: bool,
+) -> Result<(), BadTriangle> {
     assert_eq!(
         (buffer.width, buffer.height),
         (window.width, window.height),
@@ -965,6 +977,10 @@ pub fn rasterize_mesh_official_in(
     buffer.inv_w.fill(f32::NEG_INFINITY);
     let (ox, oy) = (window.x0 as i64, window.y0 as i64);
     let (w, h) = (window.width as i64, window.height as i64);
+    #[cfg(target_arch = "x86_64")]
+    let avx2 = lanes && std::arch::is_x86_feature_detected!("avx2");
+    #[cfg(not(target_arch = "x86_64"))]
+    let _ = lanes;
     for (ti, t) in triangles.iter().enumerate() {
         let [p0, p1, p2] = [
             vertices[t[0] as usize],
@@ -990,27 +1006,185 @@ pub fn rasterize_mesh_official_in(
         );
         let deno = dot00 * dot11 - dot01 * dot01;
         let inv_deno = if deno == 0.0 { 0.0 } else { 1.0 / deno };
-        for y in y_min..=y_max {
-            for x in x_min..=x_max {
-                let (v2x, v2y) = (x as f32 - p0.x, y as f32 - p0.y);
-                let (dot02, dot12) = (v0x * v2x + v0y * v2y, v1x * v2x + v1y * v2y);
-                let u = (dot11 * dot02 - dot01 * dot12) * inv_deno;
-                let v = (dot00 * dot12 - dot01 * dot02) * inv_deno;
-                if !(u >= 0.0 && v >= 0.0 && u + v < 1.0) {
-                    continue;
-                }
-                let wts = [1.0 - u - v, v, u];
-                let z = wts[0] * depth[0] + wts[1] * depth[1] + wts[2] * depth[2];
-                let idx = ((y - oy) * w + (x - ox)) as usize;
-                if z > buffer.inv_w[idx] {
-                    buffer.inv_w[idx] = z;
-                    buffer.triangle[idx] = ti as u32;
-                    buffer.bary[idx] = wts;
-                }
+        let tri = OfficialTriangle {
+            index: ti as u32,
+            p0: (p0.x, p0.y),
+            v0: (v0x, v0y),
+            v1: (v1x, v1y),
+            dots: (dot00, dot01, dot11),
+            inv_deno,
+            depth,
+        };
+        let area = OfficialSpan {
+            xs: x_min..x_max + 1,
+            ys: y_min..y_max + 1,
+            origin: (ox, oy),
+            width: w,
+        };
+        #[cfg(target_arch = "x86_64")]
+        if avx2 {
+            // SAFETY: AVX2 was detected on this CPU.
+            unsafe { official_triangle_avx2(buffer, &tri, area) };
+            continue;
+        }
+        official_triangle_scalar(buffer, &tri, area);
+    }
+    Ok(())
+}
+
+/// One triangle of [`rasterize_mesh_official_in`]: what every pixel's test needs.
+struct OfficialTriangle {
+    index: u32,
+    p0: (f32, f32),
+    /// `p2 - p0` and `p1 - p0`.
+    v0: (f32, f32),
+    v1: (f32, f32),
+    /// `v0.v0`, `v0.v1`, `v1.v1`.
+    dots: (f32, f32, f32),
+    inv_deno: f32,
+    depth: [f32; 3],
+}
+
+/// The pixels a triangle's box covers (image coordinates, the window's clamp applied)
+/// and where the window lies.
+struct OfficialSpan {
+    xs: std::ops::Range<i64>,
+    ys: std::ops::Range<i64>,
+    origin: (i64, i64),
+    width: i64,
+}
+
+/// The official per-pixel test and depth write of one triangle, one pixel at a time:
+/// the definition (`official_triangle_avx2` computes the same float32 operations, in
+/// the same order, eight pixels at a time, and is tested equal to it).
+fn official_triangle_scalar(
+    buffer: &mut VisibilityBuffer,
+    t: &OfficialTriangle,
+    area: OfficialSpan,
+) {
+    let ((p0x, p0y), (v0x, v0y), (v1x, v1y)) = (t.p0, t.v0, t.v1);
+    let (dot00, dot01, dot11) = t.dots;
+    let (ox, oy) = area.origin;
+    for y in area.ys.clone() {
+        for x in area.xs.clone() {
+            let (v2x, v2y) = (x as f32 - p0x, y as f32 - p0y);
+            let (dot02, dot12) = (v0x * v2x + v0y * v2y, v1x * v2x + v1y * v2y);
+            let u = (dot11 * dot02 - dot01 * dot12) * t.inv_deno;
+            let v = (dot00 * dot12 - dot01 * dot02) * t.inv_deno;
+            if !(u >= 0.0 && v >= 0.0 && u + v < 1.0) {
+                continue;
+            }
+            let wts = [1.0 - u - v, v, u];
+            let z = wts[0] * t.depth[0] + wts[1] * t.depth[1] + wts[2] * t.depth[2];
+            let idx = ((y - oy) * area.width + (x - ox)) as usize;
+            if z > buffer.inv_w[idx] {
+                buffer.inv_w[idx] = z;
+                buffer.triangle[idx] = t.index;
+                buffer.bary[idx] = wts;
             }
         }
     }
-    Ok(())
+}
+
+/// [`official_triangle_scalar`] eight pixels of a row at a time: the same IEEE float32
+/// operations lane by lane (no fused multiply-add, no reordering), so every weight,
+/// depth and comparison has the scalar path's bits; pixels past the box's right edge
+/// are masked off (their depths are never read or written).
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+unsafe fn official_triangle_avx2(
+    buffer: &mut VisibilityBuffer,
+    t: &OfficialTriangle,
+    area: OfficialSpan,
+) {
+    use std::arch::x86_64::*;
+    let ((p0x, p0y), (v0x, v0y), (v1x, v1y)) = (t.p0, t.v0, t.v1);
+    let (dot00, dot01, dot11) = t.dots;
+    let (ox, oy) = area.origin;
+    let set = _mm256_set1_ps;
+    let (v0x8, v0y8, v1x8, v1y8) = (set(v0x), set(v0y), set(v1x), set(v1y));
+    let (d00, d01, d11, inv) = (set(dot00), set(dot01), set(dot11), set(t.inv_deno));
+    let (z0, z1, z2) = (set(t.depth[0]), set(t.depth[1]), set(t.depth[2]));
+    let (zero, one) = (_mm256_setzero_ps(), set(1.0));
+    let lanes = _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7);
+    let id = _mm256_set1_epi32(t.index as i32);
+    let len = buffer.inv_w.len();
+    for y in area.ys.clone() {
+        let v2y = set(y as f32 - p0y);
+        let (a, b) = (_mm256_mul_ps(v0y8, v2y), _mm256_mul_ps(v1y8, v2y));
+        let row = ((y - oy) * area.width - ox) as isize;
+        let mut x = area.xs.start;
+        while x < area.xs.end {
+            let left = (area.xs.end - x).min(8) as i32;
+            let live = _mm256_cmpgt_epi32(_mm256_set1_epi32(left), lanes);
+            // x + k as float32: exact (|x| is far below 2^24), as `x as f32` is.
+            let xs = _mm256_cvtepi32_ps(_mm256_add_epi32(_mm256_set1_epi32(x as i32), lanes));
+            let v2x = _mm256_sub_ps(xs, set(p0x));
+            let dot02 = _mm256_add_ps(_mm256_mul_ps(v0x8, v2x), a);
+            let dot12 = _mm256_add_ps(_mm256_mul_ps(v1x8, v2x), b);
+            let u = _mm256_mul_ps(
+                _mm256_sub_ps(_mm256_mul_ps(d11, dot02), _mm256_mul_ps(d01, dot12)),
+                inv,
+            );
+            let v = _mm256_mul_ps(
+                _mm256_sub_ps(_mm256_mul_ps(d00, dot12), _mm256_mul_ps(d01, dot02)),
+                inv,
+            );
+            // Ordered comparisons: a NaN weight is outside, as in the scalar test.
+            let inside = _mm256_and_ps(
+                _mm256_and_ps(
+                    _mm256_cmp_ps::<_CMP_GE_OQ>(u, zero),
+                    _mm256_cmp_ps::<_CMP_GE_OQ>(v, zero),
+                ),
+                _mm256_cmp_ps::<_CMP_LT_OQ>(_mm256_add_ps(u, v), one),
+            );
+            let inside = _mm256_and_ps(inside, _mm256_castsi256_ps(live));
+            if _mm256_movemask_ps(inside) != 0 {
+                let w0 = _mm256_sub_ps(_mm256_sub_ps(one, u), v);
+                let z = _mm256_add_ps(
+                    _mm256_add_ps(_mm256_mul_ps(w0, z0), _mm256_mul_ps(v, z1)),
+                    _mm256_mul_ps(u, z2),
+                );
+                let at = (row + x as isize) as usize;
+                // The live lanes are pixels of this row inside the window (the box was
+                // clamped to it), so of the buffer: checked, as the scalar path's
+                // indexing checks it.
+                assert!(
+                    at + left as usize <= len,
+                    "a triangle's box outside the window"
+                );
+                // SAFETY: the masked loads and stores touch only the live lanes,
+                // `at..at + left`, inside all three buffers (each `len` long), and the
+                // bary writes only lanes with a bit in `bits`, a subset of them.
+                unsafe {
+                    let depth_ptr = buffer.inv_w.as_mut_ptr().add(at);
+                    let old = _mm256_maskload_ps(depth_ptr, live);
+                    let win = _mm256_and_ps(inside, _mm256_cmp_ps::<_CMP_GT_OQ>(z, old));
+                    let bits = _mm256_movemask_ps(win);
+                    if bits != 0 {
+                        let wi = _mm256_castps_si256(win);
+                        _mm256_maskstore_ps(depth_ptr, wi, z);
+                        _mm256_maskstore_epi32(
+                            buffer.triangle.as_mut_ptr().add(at) as *mut i32,
+                            wi,
+                            id,
+                        );
+                        let (mut w0s, mut vs, mut us) = ([0f32; 8], [0f32; 8], [0f32; 8]);
+                        _mm256_storeu_ps(w0s.as_mut_ptr(), w0);
+                        _mm256_storeu_ps(vs.as_mut_ptr(), v);
+                        _mm256_storeu_ps(us.as_mut_ptr(), u);
+                        let mut m = bits as u32;
+                        while m != 0 {
+                            let k = m.trailing_zeros() as usize;
+                            *buffer.bary.get_unchecked_mut(at + k) = [w0s[k], vs[k], us[k]];
+                            m &= m - 1;
+                        }
+                    }
+                }
+            }
+            x += 8;
+        }
+    }
 }
 
 #[cfg(test)]
@@ -1412,6 +1586,74 @@ mod tests {
         assert!(
             (b[0] - 0.5).abs() < 1e-6 && (b[1] - 0.25).abs() < 1e-6 && (b[2] - 0.25).abs() < 1e-6,
             "{b:?}"
+        );
+    }
+
+    #[test]
+    fn official_lanes_give_the_scalar_paths_buffer_bit_for_bit() {
+        // Meshes of small and large, thin, degenerate (zero area: the official test
+        // then takes every pixel of the box) and overlapping triangles, vertices at
+        // fractional, integer and half-integer positions (weights exactly 0 and sums
+        // exactly 1 on the edges), over windows of every width modulo 8 and offset:
+        // the AVX2 lanes and the scalar path give the same triangle, depth and weights
+        // (bits) in every pixel. Without AVX2 both calls take the scalar path.
+        let mut r = Rng::new(29);
+        let mut drawn = 0usize;
+        for case in 0..400 {
+            let (w, h) = (8 + r.below(57) as u32, 8 + r.below(40) as u32);
+            let spread = [2.0, 6.0, 30.0][case % 3];
+            let snap = |v: f64| match case % 4 {
+                0 => v.round(),
+                1 => v.round() + 0.5,
+                _ => v,
+            };
+            let n = 16;
+            let mut vertices: Vec<ScreenVertex> = (0..n)
+                .map(|_| ScreenVertex {
+                    x: snap(r.uniform(-spread, w as f64 + spread)) as f32,
+                    y: snap(r.uniform(-spread, h as f64 + spread)) as f32,
+                    inv_w: r.uniform(0.5, 2.0) as f32,
+                })
+                .collect();
+            // A repeated vertex: a degenerate triangle.
+            vertices[1] = vertices[0];
+            let mut triangles: Vec<[u32; 3]> = (0..24)
+                .map(|_| [0; 3].map(|_| r.below(n as u64) as u32))
+                .collect();
+            triangles.push([0, 1, 2]);
+            let window = PixelWindow {
+                x0: r.below(4) as u32,
+                y0: r.below(4) as u32,
+                width: w - 3,
+                height: h - 3,
+            };
+            let run = |lanes: bool| {
+                let mut b = VisibilityBuffer::new(1, 1);
+                b.reset(window.width, window.height);
+                official_in(&mut b, window, &vertices, &triangles, lanes).unwrap();
+                b
+            };
+            let (scalar, lanes) = (run(false), run(true));
+            assert_eq!(scalar.triangle, lanes.triangle, "case {case}");
+            for i in 0..scalar.triangle.len() {
+                assert_eq!(
+                    scalar.inv_w[i].to_bits(),
+                    lanes.inv_w[i].to_bits(),
+                    "case {case} pixel {i}"
+                );
+                if scalar.triangle[i] != VisibilityBuffer::EMPTY {
+                    drawn += 1;
+                    assert_eq!(
+                        scalar.bary[i].map(f32::to_bits),
+                        lanes.bary[i].map(f32::to_bits),
+                        "case {case} pixel {i}"
+                    );
+                }
+            }
+        }
+        assert!(
+            drawn > 10_000,
+            "{drawn} pixels drawn: the cases must cover pixels"
         );
     }
 

@@ -225,6 +225,19 @@ pub fn warp_taps(crop: &CropTransform) -> Vec<WarpTap> {
 /// `cv2.warpAffine`'s formula for its output position, so the pixels shared with
 /// [`warp_taps`] get the same taps.
 fn warp_taps_window(crop: &CropTransform, first: i64, count: usize) -> Vec<WarpTap> {
+    let (columns, rows) = warp_axes(crop, first, count);
+    let mut taps = Vec::with_capacity(count * count);
+    for &(y, fy) in &rows {
+        taps.extend(columns.iter().map(|&(x, fx)| WarpTap { x, y, fx, fy }));
+    }
+    taps
+}
+
+/// The taps of crop pixels `first..first + count` along each axis: `(column, fraction)`
+/// of every crop column, then `(row, fraction)` of every crop row. The crop's map is
+/// axis-aligned, so `cv2.warpAffine`'s tap of crop pixel `(i, j)` is column `i`'s
+/// horizontal tap with row `j`'s vertical one ([`warp_taps_window`] pairs them).
+fn warp_axes(crop: &CropTransform, first: i64, count: usize) -> (Vec<(i32, u32)>, Vec<(i32, u32)>) {
     // The forward map as cv2.getAffineTransform gives it, then its inverse as
     // cv2.invertAffineTransform computes it (the map is axis-aligned).
     let (a, e) = crop.scales();
@@ -235,26 +248,18 @@ fn warp_taps_window(crop: &CropTransform, first: i64, count: usize) -> Vec<WarpT
     let one = (1i64 << AB_BITS) as f64;
     let round_delta = 1i64 << (AB_BITS - INTER_BITS - 1);
     let span = first..first + count as i64;
-    let adelta: Vec<i64> = span
+    let x0 = cv_round(ic * one) + round_delta;
+    let split = |v: i64| ((v >> INTER_BITS) as i32, (v & 31) as u32);
+    let columns = span
         .clone()
-        .map(|x| cv_round(ia * x as f64 * one))
+        .map(|x| split((x0 + cv_round(ia * x as f64 * one)) >> (AB_BITS - INTER_BITS)))
         .collect();
-    let mut taps = Vec::with_capacity(count * count);
-    for y in span {
-        let x0 = cv_round(ic * one) + round_delta;
-        let y0 = cv_round((ie * y as f64 + if_) * one) + round_delta;
-        let yy = y0 >> (AB_BITS - INTER_BITS);
-        for &ad in &adelta {
-            let xx = (x0 + ad) >> (AB_BITS - INTER_BITS);
-            taps.push(WarpTap {
-                x: (xx >> INTER_BITS) as i32,
-                y: (yy >> INTER_BITS) as i32,
-                fx: (xx & 31) as u32,
-                fy: (yy & 31) as u32,
-            });
-        }
-    }
-    taps
+    let rows = span
+        .map(|y| {
+            split((cv_round((ie * y as f64 + if_) * one) + round_delta) >> (AB_BITS - INTER_BITS))
+        })
+        .collect();
+    (columns, rows)
 }
 
 /// `cv2.warpAffine(src, M, (S, S))` with its defaults (bilinear, black outside) for an
@@ -271,6 +276,12 @@ pub fn warp_affine(
 
 /// [`warp_affine`] over the crop window `first..first + count` (see
 /// `warp_taps_window`): `count x count` pixels, those shared with the crop equal.
+///
+/// Each pixel is OpenCV's fixed-point sum of its four taps' weighted bytes (a tap
+/// outside the image adds nothing), rounded: [`WarpTap::weights`] are products of a
+/// horizontal and a vertical factor, so the sum is taken as the vertical blend of two
+/// horizontal ones, in integers, hence exactly the same sum. Pixels whose four taps
+/// are all in the image (all but a border) skip the bounds checks.
 pub fn warp_affine_window(
     src: &[u8],
     width: u32,
@@ -281,24 +292,71 @@ pub fn warp_affine_window(
     count: usize,
 ) -> Vec<u8> {
     let (w, h) = (width as i64, height as i64);
+    assert_eq!(
+        src.len(),
+        w as usize * h as usize * channels,
+        "a {width}x{height} image"
+    );
     let stride = w as usize * channels;
-    let taps = warp_taps_window(crop, first, count);
-    let mut out = vec![0u8; taps.len() * channels];
-    for (o, t) in out.chunks_exact_mut(channels).zip(&taps) {
-        let wts = t.weights();
-        let (x, y) = (t.x as i64, t.y as i64);
-        let corners = [(x, y), (x + 1, y), (x, y + 1), (x + 1, y + 1)];
-        for (k, o) in o.iter_mut().enumerate() {
-            let mut sum = 0u32;
-            for (&(cx, cy), &wt) in corners.iter().zip(&wts) {
-                if (0..w).contains(&cx) && (0..h).contains(&cy) {
-                    sum += wt * src[cy as usize * stride + cx as usize * channels + k] as u32;
+    let (columns, rows) = warp_axes(crop, first, count);
+    // The weights' common factor: (32 - f) and f are in 1/32, the weights in 2^-15.
+    let scale = 1u32 << (COEF_BITS - 2 * INTER_BITS);
+    let round = |sum: u32| ((sum + (1 << (COEF_BITS - 1))) >> COEF_BITS).min(255) as u8;
+    let inside = |x: i32, len: i64| x >= 0 && (x as i64) + 1 < len;
+    let mut out = vec![0u8; count * count * channels];
+    for (o_row, &(y, fy)) in out.chunks_exact_mut(count * channels).zip(&rows) {
+        let whole_rows = inside(y, h);
+        for (o, &(x, fx)) in o_row.chunks_exact_mut(channels).zip(&columns) {
+            if whole_rows && inside(x, w) {
+                let at = y as usize * stride + x as usize * channels;
+                let (top, bottom) = (
+                    &src[at..at + 2 * channels],
+                    &src[at + stride..at + stride + 2 * channels],
+                );
+                if channels == 3 {
+                    blend_pixel::<3>(o, top, bottom, fx, fy);
+                } else {
+                    for (k, o) in o.iter_mut().enumerate() {
+                        let blend =
+                            |r: &[u8]| (32 - fx) * r[k] as u32 + fx * r[channels + k] as u32;
+                        *o = round(((32 - fy) * blend(top) + fy * blend(bottom)) * scale);
+                    }
                 }
+                continue;
             }
-            *o = ((sum + (1 << (COEF_BITS - 1))) >> COEF_BITS).min(255) as u8;
+            let t = WarpTap { x, y, fx, fy };
+            let wts = t.weights();
+            let (x, y) = (x as i64, y as i64);
+            let corners = [(x, y), (x + 1, y), (x, y + 1), (x + 1, y + 1)];
+            for (k, o) in o.iter_mut().enumerate() {
+                let mut sum = 0u32;
+                for (&(cx, cy), &wt) in corners.iter().zip(&wts) {
+                    if (0..w).contains(&cx) && (0..h).contains(&cy) {
+                        sum += wt * src[cy as usize * stride + cx as usize * channels + k] as u32;
+                    }
+                }
+                *o = round(sum);
+            }
         }
     }
     out
+}
+
+/// One pixel of [`warp_affine_window`] whose four taps are in the image, `C` channels:
+/// `top` and `bottom` hold the two taps of its rows (`2 C` bytes each).
+#[inline(always)]
+fn blend_pixel<const C: usize>(o: &mut [u8], top: &[u8], bottom: &[u8], fx: u32, fy: u32) {
+    let (o, top, bottom): (&mut [u8; C], &[u8], &[u8]) = (
+        o.try_into().expect("C bytes"),
+        &top[..2 * C],
+        &bottom[..2 * C],
+    );
+    let scale = 1u32 << (COEF_BITS - 2 * INTER_BITS);
+    for k in 0..C {
+        let blend = |r: &[u8]| (32 - fx) * r[k] as u32 + fx * r[C + k] as u32;
+        let sum = ((32 - fy) * blend(top) + fy * blend(bottom)) * scale;
+        o[k] = ((sum + (1 << (COEF_BITS - 1))) >> COEF_BITS).min(255) as u8;
+    }
 }
 
 /// The official crop mask: the full-resolution mask (row-major `width x height`)
@@ -317,10 +375,12 @@ pub fn warp_mask(full_mask: &[bool], width: u32, height: u32, crop: &CropTransfo
 /// rounding of the warped 0/1 mask is above 0. For a mask held over a window of the
 /// image, without the whole image's mask.
 pub fn warp_mask_of(crop: &CropTransform, is_face: impl Fn(i64, i64) -> bool) -> Vec<bool> {
-    warp_taps(crop)
-        .iter()
-        .map(|t| {
-            let (x, y) = (t.x as i64, t.y as i64);
+    let (columns, rows) = warp_axes(crop, 0, crop.size as usize);
+    let mut out = Vec::with_capacity(columns.len() * rows.len());
+    for &(y, fy) in &rows {
+        out.extend(columns.iter().map(|&(x, fx)| {
+            let t = WarpTap { x, y, fx, fy };
+            let (x, y) = (x as i64, y as i64);
             let corners = [(x, y), (x + 1, y), (x, y + 1), (x + 1, y + 1)];
             let face_weight: u32 = corners
                 .iter()
@@ -329,8 +389,9 @@ pub fn warp_mask_of(crop: &CropTransform, is_face: impl Fn(i64, i64) -> bool) ->
                 .map(|(_, wt)| wt)
                 .sum();
             face_weight >= HALF_WEIGHT
-        })
-        .collect()
+        }));
+    }
+    out
 }
 
 /// For crop pixel tap `t`, the image pixel (row-major index) the official correspondence
@@ -396,6 +457,67 @@ mod tests {
             "{u} {v}"
         );
         assert!(official_crop([(3.0, 3.0), (3.0, 3.0)], 192).is_none());
+    }
+
+    /// `cv2.warpAffine`'s sum over the four taps of every pixel, bounds checked tap by
+    /// tap: the definition [`warp_affine_window`] is tested against.
+    fn warp_by_taps(
+        src: &[u8],
+        w: u32,
+        h: u32,
+        ch: usize,
+        crop: &CropTransform,
+        first: i64,
+        count: usize,
+    ) -> Vec<u8> {
+        let (w, h) = (w as i64, h as i64);
+        let mut out = Vec::new();
+        for t in warp_taps_window(crop, first, count) {
+            let (x, y) = (t.x as i64, t.y as i64);
+            let corners = [(x, y), (x + 1, y), (x, y + 1), (x + 1, y + 1)];
+            for k in 0..ch {
+                let mut sum = 0u32;
+                for (&(cx, cy), wt) in corners.iter().zip(t.weights()) {
+                    if (0..w).contains(&cx) && (0..h).contains(&cy) {
+                        sum += wt * src[(cy * w + cx) as usize * ch + k] as u32;
+                    }
+                }
+                out.push(((sum + (1 << (COEF_BITS - 1))) >> COEF_BITS).min(255) as u8);
+            }
+        }
+        out
+    }
+
+    #[test]
+    fn the_separable_warp_is_the_tap_by_tap_sum() {
+        // Boxes inside the image, across each edge and beyond it, shrinking and
+        // enlarging, grey and RGB, crops and windows around them: byte for byte.
+        let mut r = arkit_core::rng::Rng::new(7);
+        for case in 0..200 {
+            let (w, h) = (20 + r.below(60) as u32, 20 + r.below(60) as u32);
+            let ch = if case % 2 == 0 { 3 } else { 1 };
+            let src: Vec<u8> = (0..w as usize * h as usize * ch)
+                .map(|_| r.below(256) as u8)
+                .collect();
+            let left = r.uniform(-30.0, w as f64);
+            let top = r.uniform(-30.0, h as f64);
+            let side = r.uniform(2.0, 90.0);
+            let size = 4 + r.below(40) as u32;
+            let c = crop(
+                left.trunc(),
+                top.trunc(),
+                (left + side).trunc(),
+                (top + side).trunc(),
+                size,
+            );
+            for (first, count) in [(0i64, size as usize), (-3, size as usize + 6)] {
+                assert_eq!(
+                    warp_affine_window(&src, w, h, ch, &c, first, count),
+                    warp_by_taps(&src, w, h, ch, &c, first, count),
+                    "case {case}"
+                );
+            }
+        }
     }
 
     #[test]
