@@ -16,6 +16,7 @@
 
 use arkit_core::conventions::Camera;
 use arkit_core::release::SampleKey;
+use arkit_data::loader::correspondence_matrix::write_correspondence_matrix;
 use arkit_data::loader::item::{Compat, FaceLoader, LoaderItem, LoaderMode, LoaderOptions};
 use arkit_data::store::samples_table::SampleRecord;
 
@@ -230,11 +231,9 @@ impl Loader {
         let sparse_n = if sparse { n } else { 0 };
         let ids = array_for::<i64>(&np, reuse, "corr_ids", "empty", &[b, sparse_n, 3])?;
         let weights = array_for::<f32>(&np, reuse, "corr_weights", "empty", &[b, sparse_n, 3])?;
-        // numpy's zeros are the kernel's zero pages; a reused matrix is cleared row by
-        // row as it is filled.
+        // Every value of the matrix is written (`write_correspondence_matrix`).
         let dense_n = if dense { n } else { 0 };
-        let corr_reused = reuse.is_some_and(|r| r.contains("corr_mat").unwrap_or(false));
-        let corr_mat = array_for::<f32>(&np, reuse, "corr_mat", "zeros", &[b, dense_n, v])?;
+        let corr_mat = array_for::<f32>(&np, reuse, "corr_mat", "empty", &[b, dense_n, v])?;
         let tform = new_array::<f64>(&np, "empty", &[b, 2, 3])?;
         let rt = new_array::<f64>(&np, "empty", &[b, 4, 4])?;
         let keys = {
@@ -253,7 +252,6 @@ impl Loader {
                     ids: ids.as_slice_mut()?,
                     weights: weights.as_slice_mut()?,
                     corr_mat: corr_mat.as_slice_mut()?,
-                    corr_mat_zeroed: !corr_reused,
                     tform: tform.as_slice_mut()?,
                     rt: rt.as_slice_mut()?,
                 }
@@ -352,8 +350,6 @@ struct BatchSlices<'a> {
     ids: &'a mut [i64],
     weights: &'a mut [f32],
     corr_mat: &'a mut [f32],
-    /// Whether `corr_mat` holds zeros already (else each sample's rows are cleared).
-    corr_mat_zeroed: bool,
     tform: &'a mut [f64],
     rt: &'a mut [f64],
 }
@@ -422,11 +418,13 @@ impl BatchSlices<'_> {
                 }
             }
             if !self.corr_mat.is_empty() {
-                let rows = &mut self.corr_mat[at(corr_n)];
-                if !self.corr_mat_zeroed {
-                    rows.fill(0.0);
-                }
-                dense_correspondences_into(&item, v, rows);
+                // Every value written (old batches' values replaced).
+                write_correspondence_matrix(
+                    &mut self.corr_mat[at(corr_n)],
+                    v,
+                    &item.corr_vertices,
+                    &item.corr_weights,
+                );
             }
             self.tform[at(6)].copy_from_slice(&item.tform_inv);
             self.rt[at(16)].copy_from_slice(&item.rt);
@@ -440,22 +438,8 @@ impl BatchSlices<'_> {
 fn dense_correspondences(item: &LoaderItem) -> Vec<f32> {
     let v = item.model.len() / 3;
     let mut m = vec![0f32; item.corr_vertices.len() * v];
-    dense_correspondences_into(item, v, &mut m);
+    write_correspondence_matrix(&mut m, v, &item.corr_vertices, &item.corr_weights);
     m
-}
-
-/// [`dense_correspondences`] into `m`, `n_pts x v` zeros.
-fn dense_correspondences_into(item: &LoaderItem, v: usize, m: &mut [f32]) {
-    for (r, (ids, w)) in item
-        .corr_vertices
-        .iter()
-        .zip(&item.corr_weights)
-        .enumerate()
-    {
-        for k in 0..3 {
-            m[r * v + ids[k] as usize] = w[k];
-        }
-    }
 }
 
 fn item_dict<'py>(

@@ -394,6 +394,48 @@ pub fn warp_mask_of(crop: &CropTransform, is_face: impl Fn(i64, i64) -> bool) ->
     out
 }
 
+/// [`warp_mask_of`] for a mask held over `window` of the image (row-major
+/// `window.width x window.height`; pixels outside it are not face): the same crop
+/// mask, with each crop row's two tap rows looked up once instead of every tap through
+/// a closure (tested equal).
+pub fn warp_mask_in(
+    crop: &CropTransform,
+    window: arkit_core::raster::PixelWindow,
+    mask: &[bool],
+) -> Vec<bool> {
+    let (ww, wh) = (window.width as usize, window.height as usize);
+    assert_eq!(mask.len(), ww * wh, "a {ww}x{wh} window's mask");
+    let (columns, rows) = warp_axes(crop, 0, crop.size as usize);
+    // Each column's two taps as window columns (None outside the window).
+    let in_window = |v: i64, first: u32, len: usize| {
+        let k = v - first as i64;
+        (0..len as i64).contains(&k).then_some(k as usize)
+    };
+    let taps: Vec<[Option<usize>; 2]> = columns
+        .iter()
+        .map(|&(x, _)| [0, 1].map(|d| in_window(x as i64 + d, window.x0, ww)))
+        .collect();
+    let mut out = Vec::with_capacity(columns.len() * rows.len());
+    for &(y, fy) in &rows {
+        let tap_rows = [0, 1]
+            .map(|d| in_window(y as i64 + d, window.y0, wh).map(|r| &mask[r * ww..(r + 1) * ww]));
+        out.extend(columns.iter().zip(&taps).map(|(&(x, fx), cols)| {
+            let wts = WarpTap { x, y, fx, fy }.weights();
+            let mut face_weight = 0;
+            for (k, wt) in wts.into_iter().enumerate() {
+                let (row, col) = (tap_rows[k / 2], cols[k % 2]);
+                if let (Some(row), Some(col)) = (row, col) {
+                    if wt > 0 && row[col] {
+                        face_weight += wt;
+                    }
+                }
+            }
+            face_weight >= HALF_WEIGHT
+        }));
+    }
+    out
+}
+
 /// For crop pixel tap `t`, the image pixel (row-major index) the official correspondence
 /// is taken from: the face pixel among the four taps with the largest weight, the
 /// first on a tie; `None` when no tap is a face pixel.
@@ -517,6 +559,39 @@ mod tests {
                     "case {case}"
                 );
             }
+        }
+    }
+
+    #[test]
+    fn the_windowed_mask_warp_is_the_closures() {
+        // Random masks over windows inside, across and off the crop's taps.
+        let mut r = arkit_core::rng::Rng::new(11);
+        for case in 0..200 {
+            let window = arkit_core::raster::PixelWindow {
+                x0: r.below(30) as u32,
+                y0: r.below(30) as u32,
+                width: r.below(50) as u32,
+                height: r.below(50) as u32,
+            };
+            let density = r.uniform(0.0, 1.0);
+            let mask: Vec<bool> = (0..window.width * window.height)
+                .map(|_| r.uniform(0.0, 1.0) < density)
+                .collect();
+            let left = r.uniform(-10.0, 60.0).trunc();
+            let top = r.uniform(-10.0, 60.0).trunc();
+            let side = r.uniform(2.0, 60.0).trunc();
+            let c = crop(left, top, left + side, top + side, 4 + r.below(30) as u32);
+            let is_face = |x: i64, y: i64| {
+                let (cx, cy) = (x - window.x0 as i64, y - window.y0 as i64);
+                (0..window.width as i64).contains(&cx)
+                    && (0..window.height as i64).contains(&cy)
+                    && mask[(cy * window.width as i64 + cx) as usize]
+            };
+            assert_eq!(
+                warp_mask_in(&c, window, &mask),
+                warp_mask_of(&c, is_face),
+                "case {case}"
+            );
         }
     }
 

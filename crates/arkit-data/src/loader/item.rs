@@ -44,7 +44,7 @@
 //! Python package's tests against a numpy re-implementation of the official formulas.
 
 use crate::crop::official::{
-    LandmarkExtent, affine_transform, box_crop, official_box, warp_mask_of,
+    LandmarkExtent, affine_transform, box_crop, official_box, warp_mask_in,
 };
 use crate::crop::{CropSampling, CropTransform};
 use crate::loader::colour_jitter::UNIT;
@@ -1243,7 +1243,7 @@ impl FaceLoader {
         if train {
             jitter_colour(&mut rgb, rng);
         }
-        let mask = warp_mask_of(&crop, |x, y| face.is_face(x, y));
+        let mask = warp_mask_in(&crop, face.window, &face.mask);
         let box_clipped = left < 0 || top < 0 || right >= w || bottom >= h || replaced;
         Ok(LoaderItem {
             key: row.sample.key.clone(),

@@ -1,0 +1,181 @@
+//! `correspondence_matrix`: the dense `n_pts x V` matrix the official loader returns as
+//! `corr_mat`: row `r` holds point `r`'s three barycentric weights at its triangle's
+//! three vertex columns and zeros elsewhere (`arkit_dataset.py` assigns the three
+//! columns one after another, so where a triangle repeats a vertex the last weight
+//! stays).
+//!
+//! The matrix is mostly zeros (3 of 1,220 values a row) and large (5 MB a sample at
+//! 1,024 points), so writing it is the cost: [`write_correspondence_matrix`] writes
+//! every value once, in order, and on x86-64 with AVX writes large matrices with
+//! streaming (non-temporal) stores, which do not read the destination's cache lines
+//! first. The plain path (zeros, then the weights) is the definition; the streaming
+//! one is tested equal to it.
+
+/// Matrices of at least this many values are written with streaming stores (where
+/// the CPU has AVX): below it the destination may be read back from the cache soon.
+const STREAM_FROM: usize = 1 << 16;
+
+/// Writes the `n x vertex_count` correspondence matrix of `n` points into `out`
+/// (row-major, every value written: whatever `out` held is replaced): point `r`'s
+/// weights `weights[r]` at columns `vertices[r]`, zeros elsewhere; where a triangle
+/// repeats a vertex, the later weight stays (the official assignment order).
+///
+/// Panics if `out` does not hold `n x vertex_count` values or a vertex is not below
+/// `vertex_count` (the caller's arrays are made from the same mesh).
+pub fn write_correspondence_matrix(
+    out: &mut [f32],
+    vertex_count: usize,
+    vertices: &[[u32; 3]],
+    weights: &[[f32; 3]],
+) {
+    let entries = matrix_entries(vertex_count, vertices, weights);
+    assert_eq!(
+        out.len(),
+        vertices.len() * vertex_count,
+        "a {} x {vertex_count} matrix",
+        vertices.len()
+    );
+    #[cfg(target_arch = "x86_64")]
+    if out.len() >= STREAM_FROM && std::arch::is_x86_feature_detected!("avx") {
+        // SAFETY: AVX was detected on this CPU.
+        unsafe { write_streaming(out, &entries) };
+        return;
+    }
+    write_plain(out, &entries);
+}
+
+/// The matrix's non-zero candidates as `(position, weight)` in increasing position,
+/// one per position (the later of a row's equal columns).
+fn matrix_entries(
+    vertex_count: usize,
+    vertices: &[[u32; 3]],
+    weights: &[[f32; 3]],
+) -> Vec<(usize, f32)> {
+    assert_eq!(
+        vertices.len(),
+        weights.len(),
+        "a weight triple for each point"
+    );
+    let mut entries = Vec::with_capacity(3 * vertices.len());
+    for (r, (ids, w)) in vertices.iter().zip(weights).enumerate() {
+        let mut row: Vec<(usize, f32)> = Vec::with_capacity(3);
+        for (&id, &wk) in ids.iter().zip(w) {
+            let id = id as usize;
+            assert!(
+                id < vertex_count,
+                "vertex {id} of a {vertex_count}-vertex mesh"
+            );
+            match row.iter_mut().find(|(c, _)| *c == id) {
+                Some(e) => e.1 = wk,
+                None => row.push((id, wk)),
+            }
+        }
+        row.sort_unstable_by_key(|&(c, _)| c);
+        entries.extend(row.into_iter().map(|(c, wk)| (r * vertex_count + c, wk)));
+    }
+    entries
+}
+
+/// The definition: zeros, then the weights.
+fn write_plain(out: &mut [f32], entries: &[(usize, f32)]) {
+    out.fill(0.0);
+    for &(at, w) in entries {
+        out[at] = w;
+    }
+}
+
+/// [`write_plain`]'s values written in order, eight at a time with streaming stores
+/// over the 32-byte aligned body (each group of eight made in registers: zeros, or the
+/// weights that fall in it), plainly before and after it.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx")]
+unsafe fn write_streaming(out: &mut [f32], entries: &[(usize, f32)]) {
+    use std::arch::x86_64::*;
+    let len = out.len();
+    let head = out.as_ptr().align_offset(32).min(len);
+    let body_end = head + (len - head) / 8 * 8;
+    let mut next = 0;
+    // The plain values of `range`: zeros and the entries in it.
+    let plain = |out: &mut [f32], range: std::ops::Range<usize>, next: &mut usize| {
+        out[range.clone()].fill(0.0);
+        while *next < entries.len() && entries[*next].0 < range.end {
+            out[entries[*next].0] = entries[*next].1;
+            *next += 1;
+        }
+    };
+    plain(out, 0..head, &mut next);
+    let zeros = _mm256_setzero_ps();
+    let base = out.as_mut_ptr();
+    let mut at = head;
+    while at < body_end {
+        let group = if next < entries.len() && entries[next].0 < at + 8 {
+            let mut g = [0f32; 8];
+            while next < entries.len() && entries[next].0 < at + 8 {
+                g[entries[next].0 - at] = entries[next].1;
+                next += 1;
+            }
+            // SAFETY: `g` is eight floats.
+            unsafe { _mm256_loadu_ps(g.as_ptr()) }
+        } else {
+            zeros
+        };
+        // SAFETY: `at..at + 8` is inside `out` (below `body_end <= len`) and `at` is
+        // 32-byte aligned (`head` is, and `at` steps by eight floats).
+        unsafe { _mm256_stream_ps(base.add(at), group) };
+        at += 8;
+    }
+    // Streaming stores are weakly ordered: fenced before anything else reads `out`.
+    _mm_sfence();
+    plain(out, body_end..len, &mut next);
+    debug_assert_eq!(next, entries.len());
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn plain(n: usize, v: usize, ids: &[[u32; 3]], w: &[[f32; 3]]) -> Vec<f32> {
+        let mut m = vec![f32::NAN; n * v];
+        write_plain(&mut m, &matrix_entries(v, ids, w));
+        m
+    }
+
+    #[test]
+    fn every_value_is_written_with_the_weights_in_their_columns() {
+        // By hand: two points of a 5-vertex mesh, the second triangle repeating vertex 4
+        // (its last weight, 0.25, stays, as the official assignments leave it).
+        let ids = [[2, 0, 1], [4, 3, 4]];
+        let w = [[0.5, 0.25, 0.25], [0.5, 0.25, 0.25]];
+        let mut m = vec![7.0f32; 10];
+        write_correspondence_matrix(&mut m, 5, &ids, &w);
+        assert_eq!(m, [0.25, 0.25, 0.5, 0.0, 0.0, 0.0, 0.0, 0.0, 0.25, 0.25]);
+        assert_eq!(plain(2, 5, &ids, &w), m);
+    }
+
+    #[test]
+    fn streaming_writes_the_plain_matrix_at_every_alignment() {
+        // Matrices large enough to stream, at every float offset from a 32-byte
+        // boundary, over old values that are not zero: bit for bit the plain matrix.
+        let mut r = arkit_core::rng::Rng::new(3);
+        for (n, v) in [(64usize, 1220usize), (57, 1201), (200, 331)] {
+            let ids: Vec<[u32; 3]> = (0..n)
+                .map(|_| [0; 3].map(|_| r.below(v as u64) as u32))
+                .collect();
+            let w: Vec<[f32; 3]> = (0..n)
+                .map(|_| [0; 3].map(|_| r.uniform(-1.0, 1.0) as f32))
+                .collect();
+            let want = plain(n, v, &ids, &w);
+            let mut backing = vec![f32::NAN; n * v + 16];
+            for shift in 0..8 {
+                let out = &mut backing[shift..shift + n * v];
+                write_correspondence_matrix(out, v, &ids, &w);
+                assert!(
+                    out.iter()
+                        .zip(&want)
+                        .all(|(a, b)| a.to_bits() == b.to_bits()),
+                    "{n} x {v} at +{shift}"
+                );
+            }
+        }
+    }
+}
