@@ -233,11 +233,15 @@ fn warp_taps_window(crop: &CropTransform, first: i64, count: usize) -> Vec<WarpT
     taps
 }
 
+/// One axis's tap of a crop column or row: the first image column or row it reads and
+/// the fraction past it, in 1/32 pixel.
+type AxisTap = (i32, u32);
+
 /// The taps of crop pixels `first..first + count` along each axis: `(column, fraction)`
 /// of every crop column, then `(row, fraction)` of every crop row. The crop's map is
 /// axis-aligned, so `cv2.warpAffine`'s tap of crop pixel `(i, j)` is column `i`'s
 /// horizontal tap with row `j`'s vertical one ([`warp_taps_window`] pairs them).
-fn warp_axes(crop: &CropTransform, first: i64, count: usize) -> (Vec<(i32, u32)>, Vec<(i32, u32)>) {
+fn warp_axes(crop: &CropTransform, first: i64, count: usize) -> (Vec<AxisTap>, Vec<AxisTap>) {
     // The forward map as cv2.getAffineTransform gives it, then its inverse as
     // cv2.invertAffineTransform computes it (the map is axis-aligned).
     let (a, e) = crop.scales();
@@ -424,10 +428,11 @@ pub fn warp_mask_in(
             let mut face_weight = 0;
             for (k, wt) in wts.into_iter().enumerate() {
                 let (row, col) = (tap_rows[k / 2], cols[k % 2]);
-                if let (Some(row), Some(col)) = (row, col) {
-                    if wt > 0 && row[col] {
-                        face_weight += wt;
-                    }
+                if let (Some(row), Some(col)) = (row, col)
+                    && wt > 0
+                    && row[col]
+                {
+                    face_weight += wt;
                 }
             }
             face_weight >= HALF_WEIGHT
