@@ -7,11 +7,13 @@ Makes an 800x800 synthetic dataset with the arkit-tool binary (the real topology
 the resource files are there), then, in one process on one core (torch threads 1,
 num_workers 0), times: decoding the dataset's JPEGs with Pillow (libjpeg-turbo: the floor
 of any loader that decodes the full image), `arkit-tool crops` (the crop store, made
-once, its windows by the default codec (`pred-zstd`), and again with `--codec raw`: the sizes of both are printed
-beside the JPEGs'), and the DataLoader over the dataset (batch 64, 1,024 points) for
-compat exact and official, from the crop store with sparse and dense correspondences,
-from the raw store and from the JPEGs with sparse ones; batched (`ds.loader`: whole batches computed in place) and, from the
-store with sparse correspondences, also through torch's default collate. The
+once, by the default codec (`pred-zstd`), `--codec png` and `--codec raw`: the sizes
+are printed beside the JPEGs'), and the DataLoader over the dataset (batch 64, 1,024
+points) for compat exact and official, from each store with sparse and dense
+correspondences and from the JPEGs with sparse ones; batched (`ds.loader`: whole
+batches computed in place) and through torch's default collate (the official
+train.py's path: official rules, dense). Each configuration is warmed with one epoch
+and timed over three (a training loop's steady state: its batch arrays reused). The
 official `ARKitDataset.get_item` costs 19-31 ms a sample on this kind of machine
 (../shared/measurements.md, measured side by side on 2026-12-01); the ratios use 19 ms
 (its fastest, test mode) and 31 ms (train mode with colour jitter), or, with
