@@ -303,9 +303,6 @@ pub fn warp_affine_window(
     );
     let stride = w as usize * channels;
     let (columns, rows) = warp_axes(crop, first, count);
-    // The weights' common factor: (32 - f) and f are in 1/32, the weights in 2^-15.
-    let scale = 1u32 << (COEF_BITS - 2 * INTER_BITS);
-    let round = |sum: u32| ((sum + (1 << (COEF_BITS - 1))) >> COEF_BITS).min(255) as u8;
     let inside = |x: i32, len: i64| x >= 0 && (x as i64) + 1 < len;
     let mut out = vec![0u8; count * count * channels];
     for (o_row, &(y, fy)) in out.chunks_exact_mut(count * channels).zip(&rows) {
@@ -313,18 +310,11 @@ pub fn warp_affine_window(
         for (o, &(x, fx)) in o_row.chunks_exact_mut(channels).zip(&columns) {
             if whole_rows && inside(x, w) {
                 let at = y as usize * stride + x as usize * channels;
-                let (top, bottom) = (
-                    &src[at..at + 2 * channels],
-                    &src[at + stride..at + stride + 2 * channels],
-                );
-                if channels == 3 {
-                    blend_pixel::<3>(o, top, bottom, fx, fy);
-                } else {
-                    for (k, o) in o.iter_mut().enumerate() {
-                        let blend =
-                            |r: &[u8]| (32 - fx) * r[k] as u32 + fx * r[channels + k] as u32;
-                        *o = round(((32 - fy) * blend(top) + fy * blend(bottom)) * scale);
-                    }
+                let (top, bottom) = (&src[at..], &src[at + stride..]);
+                // RGB with the channel count known to the compiler.
+                match channels {
+                    3 => blend_pixel(o, top, bottom, fx, fy, 3),
+                    c => blend_pixel(o, top, bottom, fx, fy, c),
                 }
                 continue;
             }
@@ -339,27 +329,33 @@ pub fn warp_affine_window(
                         sum += wt * src[cy as usize * stride + cx as usize * channels + k] as u32;
                     }
                 }
-                *o = round(sum);
+                *o = round_sum(sum);
             }
         }
     }
     out
 }
 
-/// One pixel of [`warp_affine_window`] whose four taps are in the image, `C` channels:
-/// `top` and `bottom` hold the two taps of its rows (`2 C` bytes each).
+/// OpenCV's rounding of a pixel's tap sum (in units of 2^-15) to a byte.
 #[inline(always)]
-fn blend_pixel<const C: usize>(o: &mut [u8], top: &[u8], bottom: &[u8], fx: u32, fy: u32) {
-    let (o, top, bottom): (&mut [u8; C], &[u8], &[u8]) = (
-        o.try_into().expect("C bytes"),
-        &top[..2 * C],
-        &bottom[..2 * C],
+fn round_sum(sum: u32) -> u8 {
+    ((sum + (1 << (COEF_BITS - 1))) >> COEF_BITS).min(255) as u8
+}
+
+/// One pixel of [`warp_affine_window`] whose four taps are in the image, `channels`
+/// bytes: `top` and `bottom` start at the left tap of its two rows. The weights are
+/// `(32 - f)` and `f` in 1/32 along each axis, their products in 2^-15 once scaled.
+#[inline(always)]
+fn blend_pixel(o: &mut [u8], top: &[u8], bottom: &[u8], fx: u32, fy: u32, channels: usize) {
+    let (o, top, bottom) = (
+        &mut o[..channels],
+        &top[..2 * channels],
+        &bottom[..2 * channels],
     );
     let scale = 1u32 << (COEF_BITS - 2 * INTER_BITS);
-    for k in 0..C {
-        let blend = |r: &[u8]| (32 - fx) * r[k] as u32 + fx * r[C + k] as u32;
-        let sum = ((32 - fy) * blend(top) + fy * blend(bottom)) * scale;
-        o[k] = ((sum + (1 << (COEF_BITS - 1))) >> COEF_BITS).min(255) as u8;
+    for (k, o) in o.iter_mut().enumerate() {
+        let blend = |r: &[u8]| (32 - fx) * r[k] as u32 + fx * r[channels + k] as u32;
+        *o = round_sum(((32 - fy) * blend(top) + fy * blend(bottom)) * scale);
     }
 }
 

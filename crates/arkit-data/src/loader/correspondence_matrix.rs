@@ -58,20 +58,26 @@ fn matrix_entries(
     );
     let mut entries = Vec::with_capacity(3 * vertices.len());
     for (r, (ids, w)) in vertices.iter().zip(weights).enumerate() {
-        let mut row: Vec<(usize, f32)> = Vec::with_capacity(3);
+        // The row's distinct columns, each with its last weight, then in column order.
+        let mut row = [(0usize, 0f32); 3];
+        let mut len = 0;
         for (&id, &wk) in ids.iter().zip(w) {
             let id = id as usize;
             assert!(
                 id < vertex_count,
                 "vertex {id} of a {vertex_count}-vertex mesh"
             );
-            match row.iter_mut().find(|(c, _)| *c == id) {
+            match row[..len].iter_mut().find(|(c, _)| *c == id) {
                 Some(e) => e.1 = wk,
-                None => row.push((id, wk)),
+                None => {
+                    row[len] = (id, wk);
+                    len += 1;
+                }
             }
         }
+        let row = &mut row[..len];
         row.sort_unstable_by_key(|&(c, _)| c);
-        entries.extend(row.into_iter().map(|(c, wk)| (r * vertex_count + c, wk)));
+        entries.extend(row.iter().map(|&(c, wk)| (r * vertex_count + c, wk)));
     }
     entries
 }
