@@ -107,23 +107,22 @@ impl ColourJitter {
     /// the grey of the image's mean luma (ITU-R 601 integer luma, as PIL's `L`),
     /// saturation with each pixel's luma; the hue shift rotates the HSV hue.
     ///
-    /// Brightness and contrast map each byte alone, so they go through a 256-entry
-    /// table of the same formula; every rounding is `round_half_away`, `f32::round`'s
-    /// values without its library call. Saturation and hue run eight pixels at a time
-    /// where the CPU has AVX2 (`saturate_all`, `shift_hue_all`).
+    /// Brightness and contrast map each byte alone ([`blend_bytes`]: 32 bytes at a time
+    /// where the CPU has AVX2, else a 256-entry table of the same formula); every
+    /// rounding is `round_half_away`, `f32::round`'s values without its library call.
+    /// Saturation and hue run eight pixels at a time where the CPU has AVX2
+    /// (`saturate_all`, `shift_hue_all`).
     pub fn apply(&self, rgb: &mut [u8]) {
-        let through_table = |rgb: &mut [u8], grey: f32, f: f32| {
-            let table: [u8; 256] = std::array::from_fn(|v| blend(v as f32, grey, f));
-            rgb.iter_mut().for_each(|v| *v = table[*v as usize]);
-        };
         for op in self.order {
             match op {
-                0 => through_table(rgb, 0.0, self.brightness),
+                0 => blend_bytes(rgb, 0.0, self.brightness),
                 1 => {
                     let n = (rgb.len() / 3).max(1) as f64;
-                    let mean = rgb.chunks_exact(3).map(|p| luma(p) as f64).sum::<f64>() / n;
-                    let grey = (mean + 0.5).floor() as f32;
-                    through_table(rgb, grey, self.contrast);
+                    // An integer sum: the same value as summing the lumas in f64 (every
+                    // partial sum is an integer below 2^53), without its latency chain.
+                    let sum: u64 = rgb.chunks_exact(3).map(|p| luma(p) as u64).sum();
+                    let grey = (sum as f64 / n + 0.5).floor() as f32;
+                    blend_bytes(rgb, grey, self.contrast);
                 }
                 2 => saturate_all(rgb, self.saturation),
                 _ => {
@@ -145,6 +144,148 @@ fn luma(p: &[u8]) -> u32 {
 /// PIL's enhancer blend of a value `v` with `grey` by factor `f`, rounded back to a byte.
 fn blend(v: f32, grey: f32, f: f32) -> u8 {
     round_half_away(grey + f * (v - grey)).clamp(0.0, 255.0) as u8
+}
+
+/// [`blend`] with one `grey` and factor `f` on every byte (brightness: `grey` 0;
+/// contrast: the mean luma): on x86-64 32 bytes at a time in AVX2 where the CPU has it
+/// ([`blend_bytes_avx2`]), the rest through a 256-entry table of [`blend`]; the same
+/// bytes (tested on every byte value).
+fn blend_bytes(bytes: &mut [u8], grey: f32, f: f32) {
+    #[allow(unused_mut)]
+    let mut done = 0;
+    #[cfg(target_arch = "x86_64")]
+    if std::arch::is_x86_feature_detected!("avx2") {
+        done = bytes.len() / 32 * 32;
+        // SAFETY: AVX2 was detected; whole groups of 32 bytes.
+        unsafe { blend_bytes_avx2(&mut bytes[..done], grey, f) };
+    }
+    if done < bytes.len() {
+        let table: [u8; 256] = std::array::from_fn(|v| blend(v as f32, grey, f));
+        bytes[done..]
+            .iter_mut()
+            .for_each(|v| *v = table[*v as usize]);
+    }
+}
+
+/// [`blend`] on groups of 32 bytes (`bytes.len()` a multiple of 32), in AVX2: the
+/// same `grey + f * (v - grey)` in `f32`, rounded as [`saturate_avx2`] rounds.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+unsafe fn blend_bytes_avx2(bytes: &mut [u8], grey: f32, f: f32) {
+    use std::arch::x86_64::*;
+    let (fv, gv) = (_mm256_set1_ps(f), _mm256_set1_ps(grey));
+    let (zero, one) = (_mm256_setzero_ps(), _mm256_set1_ps(1.0));
+    let (half, full) = (_mm256_set1_ps(0.5), _mm256_set1_ps(255.0));
+    let in_order = _mm256_setr_epi32(0, 4, 1, 5, 2, 6, 3, 7);
+    for chunk in bytes.chunks_exact_mut(32) {
+        let p = chunk.as_mut_ptr();
+        let q: [__m256i; 4] = std::array::from_fn(|k| {
+            // SAFETY: an unaligned load of bytes 8k..8k+8 of the 32-byte chunk.
+            let v = unsafe { _mm_loadl_epi64(p.add(8 * k).cast()) };
+            let v = _mm256_cvtepi32_ps(_mm256_cvtepu8_epi32(v));
+            let x = _mm256_add_ps(gv, _mm256_mul_ps(fv, _mm256_sub_ps(v, gv)));
+            let tr = _mm256_round_ps::<{ _MM_FROUND_TO_ZERO | _MM_FROUND_NO_EXC }>(x);
+            let up = _mm256_and_ps(_mm256_cmp_ps::<_CMP_GE_OQ>(_mm256_sub_ps(x, tr), half), one);
+            let y = _mm256_min_ps(_mm256_max_ps(_mm256_add_ps(tr, up), zero), full);
+            _mm256_cvttps_epi32(y)
+        });
+        // Packed lane by lane, then the dwords (four bytes each) put back in order.
+        let words = (
+            _mm256_packus_epi32(q[0], q[1]),
+            _mm256_packus_epi32(q[2], q[3]),
+        );
+        let packed = _mm256_packus_epi16(words.0, words.1);
+        let out = _mm256_permutevar8x32_epi32(packed, in_order);
+        // SAFETY: an unaligned store of the 32 bytes of the chunk.
+        unsafe { _mm256_storeu_si256(p.cast(), out) };
+    }
+}
+
+/// Eight interleaved RGB pixels (24 bytes) as three lanes of `i32`, one per channel.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+unsafe fn load_rgb8(px: &[u8; 24]) -> [std::arch::x86_64::__m256i; 3] {
+    use std::arch::x86_64::*;
+    // SAFETY: unaligned loads of bytes 0..16 and 16..24 of the 24.
+    let (lo, hi) = unsafe {
+        (
+            _mm_loadu_si128(px.as_ptr().cast()),
+            _mm_loadl_epi64(px.as_ptr().add(16).cast()),
+        )
+    };
+    // Pixels 0-3 (bytes 0..12) in the low 128 bits, pixels 4-7 (12..24) in the high.
+    let halves = _mm256_permutevar8x32_epi32(
+        _mm256_set_m128i(hi, lo),
+        _mm256_setr_epi32(0, 1, 2, 2, 3, 4, 5, 5),
+    );
+    std::array::from_fn(|c| {
+        let c = c as i8;
+        let z = -128i8; // a shuffle index with its top bit set gives 0
+        let pick = _mm256_setr_epi8(
+            c,
+            z,
+            z,
+            z,
+            c + 3,
+            z,
+            z,
+            z,
+            c + 6,
+            z,
+            z,
+            z,
+            c + 9,
+            z,
+            z,
+            z, //
+            c,
+            z,
+            z,
+            z,
+            c + 3,
+            z,
+            z,
+            z,
+            c + 6,
+            z,
+            z,
+            z,
+            c + 9,
+            z,
+            z,
+            z,
+        );
+        _mm256_shuffle_epi8(halves, pick)
+    })
+}
+
+/// Stores three lanes of `i32` in `0..=255`, one per channel, as eight interleaved RGB
+/// pixels: the inverse of [`load_rgb8`].
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+unsafe fn store_rgb8(px: &mut [u8; 24], [r, g, b]: [std::arch::x86_64::__m256i; 3]) {
+    use std::arch::x86_64::*;
+    let pixels = _mm256_or_si256(
+        r,
+        _mm256_or_si256(_mm256_slli_epi32::<8>(g), _mm256_slli_epi32::<16>(b)),
+    );
+    let z = -128i8;
+    let tight = _mm256_setr_epi8(
+        0, 1, 2, 4, 5, 6, 8, 9, 10, 12, 13, 14, z, z, z, z, //
+        0, 1, 2, 4, 5, 6, 8, 9, 10, 12, 13, 14, z, z, z, z,
+    );
+    let both = _mm256_permutevar8x32_epi32(
+        _mm256_shuffle_epi8(pixels, tight),
+        _mm256_setr_epi32(0, 1, 2, 4, 5, 6, 7, 7),
+    );
+    // SAFETY: unaligned stores of bytes 0..16 and 16..24 of the 24.
+    unsafe {
+        _mm_storeu_si128(px.as_mut_ptr().cast(), _mm256_castsi256_si128(both));
+        _mm_storel_epi64(
+            px.as_mut_ptr().add(16).cast(),
+            _mm256_extracti128_si256::<1>(both),
+        );
+    }
 }
 
 /// [`ColourJitter::draw`] then [`ColourJitter::apply`].
@@ -319,12 +460,9 @@ unsafe fn saturate_avx2(rgb: &mut [u8], f: f32) {
         _mm256_set1_epi32(114),
     ];
     for px in rgb.chunks_exact_mut(24) {
-        let lane = |c: usize| {
-            let v: [i32; 8] = std::array::from_fn(|k| px[3 * k + c] as i32);
-            // SAFETY: an unaligned load of the eight i32 of `v`.
-            unsafe { _mm256_loadu_si256(v.as_ptr().cast()) }
-        };
-        let rgb_lanes = [lane(0), lane(1), lane(2)];
+        let px: &mut [u8; 24] = px.try_into().expect("chunks of 24");
+        // SAFETY: AVX2 is enabled in this function.
+        let rgb_lanes = unsafe { load_rgb8(px) };
         let sum = _mm256_add_epi32(
             _mm256_add_epi32(
                 _mm256_mullo_epi32(rgb_lanes[0], weight[0]),
@@ -334,21 +472,16 @@ unsafe fn saturate_avx2(rgb: &mut [u8], f: f32) {
         );
         let quotient = _mm256_div_ps(_mm256_cvtepi32_ps(sum), _mm256_set1_ps(1000.0));
         let grey = _mm256_cvtepi32_ps(_mm256_cvttps_epi32(quotient));
-        let mut bytes = [[0i32; 8]; 3];
-        for (o, v) in bytes.iter_mut().zip(rgb_lanes) {
+        let out = rgb_lanes.map(|v| {
             let v = _mm256_cvtepi32_ps(v);
             let x = _mm256_add_ps(grey, _mm256_mul_ps(fv, _mm256_sub_ps(v, grey)));
             let tr = _mm256_round_ps::<{ _MM_FROUND_TO_ZERO | _MM_FROUND_NO_EXC }>(x);
             let up = _mm256_and_ps(_mm256_cmp_ps::<_CMP_GE_OQ>(_mm256_sub_ps(x, tr), half), one);
             let y = _mm256_min_ps(_mm256_max_ps(_mm256_add_ps(tr, up), zero), full);
-            // SAFETY: an unaligned store of eight i32 into `o`, eight i32 long.
-            unsafe { _mm256_storeu_si256(o.as_mut_ptr().cast(), _mm256_cvttps_epi32(y)) };
-        }
-        for k in 0..8 {
-            for c in 0..3 {
-                px[3 * k + c] = bytes[c][k] as u8;
-            }
-        }
+            _mm256_cvttps_epi32(y)
+        });
+        // SAFETY: AVX2 is enabled in this function.
+        unsafe { store_rgb8(px, out) };
     }
 }
 
@@ -449,12 +582,11 @@ unsafe fn shift_hue_avx2(rgb: &mut [u8], h: f32) {
         sel(low, _mm256_add_ps(x, m), sel(high, _mm256_sub_ps(x, m), x))
     };
     for px in rgb.chunks_exact_mut(24) {
-        let lane = |c: usize| {
-            let v: [f32; 8] = std::array::from_fn(|k| UNIT[px[3 * k + c] as usize]);
-            // SAFETY: an unaligned load of the eight floats of `v`.
-            unsafe { _mm256_loadu_ps(v.as_ptr()) }
-        };
-        let (r, g, b) = (lane(0), lane(1), lane(2));
+        let px: &mut [u8; 24] = px.try_into().expect("chunks of 24");
+        // SAFETY: AVX2 is enabled in this function.
+        let bytes = unsafe { load_rgb8(px) };
+        // `UNIT[v]`: the same correctly rounded division.
+        let [r, g, b] = bytes.map(|v| _mm256_div_ps(_mm256_cvtepi32_ps(v), full));
         let max = _mm256_max_ps(_mm256_max_ps(r, g), b);
         let min = _mm256_min_ps(_mm256_min_ps(r, g), b);
         let d = _mm256_sub_ps(max, min);
@@ -492,23 +624,18 @@ unsafe fn shift_hue_avx2(rgb: &mut [u8], h: f32) {
             sel(is(0), t, sel(or(is(1), is(2)), max, sel(is(3), q, p))),
             sel(is(2), t, sel(or(is(3), is(4)), max, sel(is(5), q, p))),
         ];
-        let mut bytes = [[0i32; 8]; 3];
-        for (o, v) in bytes.iter_mut().zip(out) {
+        // Grey pixels (`d == 0`) keep their bytes, as the scalar path returns early.
+        let grey = _mm256_castps_si256(_mm256_cmp_ps::<_CMP_EQ_OQ>(d, zero));
+        let out = std::array::from_fn(|c| {
             // round_half_away for the non-negative values here, then the clamp.
-            let v = _mm256_mul_ps(v, full);
+            let v = _mm256_mul_ps(out[c], full);
             let tr = _mm256_cvtepi32_ps(_mm256_cvttps_epi32(v));
             let up = _mm256_and_ps(_mm256_cmp_ps::<_CMP_GE_OQ>(_mm256_sub_ps(v, tr), half), one);
             let v = _mm256_min_ps(_mm256_max_ps(_mm256_add_ps(tr, up), zero), full);
-            // SAFETY: an unaligned store of eight i32 into `o`, eight i32 long.
-            unsafe { _mm256_storeu_si256(o.as_mut_ptr().cast(), _mm256_cvttps_epi32(v)) };
-        }
-        for k in 0..8 {
-            if keep & (1 << k) == 0 {
-                for c in 0..3 {
-                    px[3 * k + c] = bytes[c][k] as u8;
-                }
-            }
-        }
+            _mm256_blendv_epi8(_mm256_cvttps_epi32(v), bytes[c], grey)
+        });
+        // SAFETY: AVX2 is enabled in this function.
+        unsafe { store_rgb8(px, out) };
     }
 }
 
@@ -717,6 +844,29 @@ mod tests {
             o.sort();
             assert_eq!(o, [0, 1, 2, 3]);
         }
+    }
+
+    #[test]
+    fn the_byte_blend_lanes_give_blends_bytes_for_every_byte() {
+        let mut rng = Rng::new(21);
+        // Every byte value in several places of the 32-byte groups, then a remainder.
+        let bytes: Vec<u8> = (0..256 * 5 + 17).map(|k| (k * 7 % 256) as u8).collect();
+        let mut factors = vec![(0.0f32, 0.7f32), (0.0, 1.3), (128.0, 0.0), (0.0, 1.0)];
+        factors.extend([(255.0, 1.3), (0.0, 0.5), (3.0, 1.2999)]);
+        for _ in 0..200 {
+            factors.push((rng.below(256) as f32, rng.uniform(0.0, 2.0) as f32));
+        }
+        for (grey, f) in factors {
+            let mut fast = bytes.clone();
+            blend_bytes(&mut fast, grey, f);
+            let by_formula: Vec<u8> = bytes.iter().map(|&v| blend(v as f32, grey, f)).collect();
+            assert_eq!(fast, by_formula, "grey {grey}, factor {f}");
+        }
+        // Brightness 0.5 by hand: 200 -> 100, 3 -> 1.5 -> 2 (halves away from zero).
+        let mut p = [200u8; 40];
+        p[33] = 3;
+        blend_bytes(&mut p, 0.0, 0.5);
+        assert_eq!((p[0], p[31], p[32], p[33]), (100, 100, 100, 2));
     }
 
     /// Every RGB triple, interleaved.
