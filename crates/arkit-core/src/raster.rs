@@ -955,17 +955,31 @@ pub fn rasterize_mesh_official_in(
     vertices: &[ScreenVertex],
     triangles: &[[u32; 3]],
 ) -> Result<(), BadTriangle> {
-    official_in(buffer, window, vertices, triangles, true)
+    official_in(buffer, window, vertices, triangles, true, true)
+}
+
+/// [`rasterize_mesh_official_in`] for a mask: fills `triangle` and `inv_w` with the
+/// same values and leaves `bary` as it was (not this mesh's weights). The weights are
+/// most of a pixel's writes, and a mask needs only which triangle each pixel shows.
+pub fn rasterize_official_visibility_in(
+    buffer: &mut VisibilityBuffer,
+    window: PixelWindow,
+    vertices: &[ScreenVertex],
+    triangles: &[[u32; 3]],
+) -> Result<(), BadTriangle> {
+    official_in(buffer, window, vertices, triangles, true, false)
 }
 
 /// [`rasterize_mesh_official_in`], with its AVX2 lanes where the CPU has them
-/// (`lanes`) or one pixel at a time: the same buffer either way (tested).
+/// (`lanes`) or one pixel at a time: the same buffer either way (tested); the weights
+/// written or not (`weights`, [`rasterize_official_visibility_in`]).
 fn official_in(
     buffer: &mut VisibilityBuffer,
     window: PixelWindow,
     vertices: &[ScreenVertex],
     triangles: &[[u32; 3]],
     lanes: bool,
+    weights: bool,
 ) -> Result<(), BadTriangle> {
     assert_eq!(
         (buffer.width, buffer.height),
@@ -990,7 +1004,6 @@ fn official_in(
         if ![p0, p1, p2].iter().all(official_vertex_ok) {
             continue;
         }
-        let depth = [-1.0 / p0.inv_w, -1.0 / p1.inv_w, -1.0 / p2.inv_w];
         let x_min = (p0.x.min(p1.x).min(p2.x).ceil() as i64).max(ox);
         let x_max = (p0.x.max(p1.x).max(p2.x).floor() as i64).min(ox + w - 1);
         let y_min = (p0.y.min(p1.y).min(p2.y).ceil() as i64).max(oy);
@@ -998,23 +1011,7 @@ fn official_in(
         if x_max < x_min || y_max < y_min {
             continue;
         }
-        let (v0x, v0y, v1x, v1y) = (p2.x - p0.x, p2.y - p0.y, p1.x - p0.x, p1.y - p0.y);
-        let (dot00, dot01, dot11) = (
-            v0x * v0x + v0y * v0y,
-            v0x * v1x + v0y * v1y,
-            v1x * v1x + v1y * v1y,
-        );
-        let deno = dot00 * dot11 - dot01 * dot01;
-        let inv_deno = if deno == 0.0 { 0.0 } else { 1.0 / deno };
-        let tri = OfficialTriangle {
-            index: ti as u32,
-            p0: (p0.x, p0.y),
-            v0: (v0x, v0y),
-            v1: (v1x, v1y),
-            dots: (dot00, dot01, dot11),
-            inv_deno,
-            depth,
-        };
+        let tri = OfficialTriangle::new(ti as u32, [p0, p1, p2]);
         let area = OfficialSpan {
             xs: x_min..x_max + 1,
             ys: y_min..y_max + 1,
@@ -1024,10 +1021,16 @@ fn official_in(
         #[cfg(target_arch = "x86_64")]
         if avx2 {
             // SAFETY: AVX2 was detected on this CPU.
-            unsafe { official_triangle_avx2(buffer, &tri, area) };
+            unsafe {
+                if weights {
+                    official_triangle_avx2::<true>(buffer, &tri, area)
+                } else {
+                    official_triangle_avx2::<false>(buffer, &tri, area)
+                }
+            };
             continue;
         }
-        official_triangle_scalar(buffer, &tri, area);
+        official_triangle_scalar(buffer, &tri, area, weights);
     }
     Ok(())
 }
@@ -1043,6 +1046,53 @@ struct OfficialTriangle {
     dots: (f32, f32, f32),
     inv_deno: f32,
     depth: [f32; 3],
+}
+
+impl OfficialTriangle {
+    /// The triangle `index` with these corners: the official code's per-triangle
+    /// values, in its float32 operations.
+    fn new(index: u32, [p0, p1, p2]: [ScreenVertex; 3]) -> Self {
+        let (v0x, v0y, v1x, v1y) = (p2.x - p0.x, p2.y - p0.y, p1.x - p0.x, p1.y - p0.y);
+        let (dot00, dot01, dot11) = (
+            v0x * v0x + v0y * v0y,
+            v0x * v1x + v0y * v1y,
+            v1x * v1x + v1y * v1y,
+        );
+        let deno = dot00 * dot11 - dot01 * dot01;
+        let inv_deno = if deno == 0.0 { 0.0 } else { 1.0 / deno };
+        OfficialTriangle {
+            index,
+            p0: (p0.x, p0.y),
+            v0: (v0x, v0y),
+            v1: (v1x, v1y),
+            dots: (dot00, dot01, dot11),
+            inv_deno,
+            depth: [-1.0 / p0.inv_w, -1.0 / p1.inv_w, -1.0 / p2.inv_w],
+        }
+    }
+
+    /// The official barycentrics `(u, v)` of integer point `(x, y)`: the point is inside
+    /// when `u >= 0, v >= 0, u + v < 1`, and its weights are `[1 - u - v, v, u]`.
+    #[inline]
+    fn uv_at(&self, x: i64, y: i64) -> (f32, f32) {
+        let ((p0x, p0y), (v0x, v0y), (v1x, v1y)) = (self.p0, self.v0, self.v1);
+        let (dot00, dot01, dot11) = self.dots;
+        let (v2x, v2y) = (x as f32 - p0x, y as f32 - p0y);
+        let (dot02, dot12) = (v0x * v2x + v0y * v2y, v1x * v2x + v1y * v2y);
+        let u = (dot11 * dot02 - dot01 * dot12) * self.inv_deno;
+        let v = (dot00 * dot12 - dot01 * dot02) * self.inv_deno;
+        (u, v)
+    }
+}
+
+/// The weights [`rasterize_mesh_official`] writes at image pixel `(x, y)` when
+/// `triangle` (vertex indices into `vertices`) is the one it shows there: the same
+/// float32 operations, so the same bits. With [`rasterize_official_visibility_in`],
+/// which leaves the weights out, a caller computes them only where it needs them.
+pub fn official_weights(vertices: &[ScreenVertex], triangle: [u32; 3], x: i64, y: i64) -> [f32; 3] {
+    let corners = triangle.map(|v| vertices[v as usize]);
+    let (u, v) = OfficialTriangle::new(0, corners).uv_at(x, y);
+    [1.0 - u - v, v, u]
 }
 
 /// The pixels a triangle's box covers (image coordinates, the window's clamp applied)
@@ -1061,16 +1111,12 @@ fn official_triangle_scalar(
     buffer: &mut VisibilityBuffer,
     t: &OfficialTriangle,
     area: OfficialSpan,
+    weights: bool,
 ) {
-    let ((p0x, p0y), (v0x, v0y), (v1x, v1y)) = (t.p0, t.v0, t.v1);
-    let (dot00, dot01, dot11) = t.dots;
     let (ox, oy) = area.origin;
     for y in area.ys.clone() {
         for x in area.xs.clone() {
-            let (v2x, v2y) = (x as f32 - p0x, y as f32 - p0y);
-            let (dot02, dot12) = (v0x * v2x + v0y * v2y, v1x * v2x + v1y * v2y);
-            let u = (dot11 * dot02 - dot01 * dot12) * t.inv_deno;
-            let v = (dot00 * dot12 - dot01 * dot02) * t.inv_deno;
+            let (u, v) = t.uv_at(x, y);
             if !(u >= 0.0 && v >= 0.0 && u + v < 1.0) {
                 continue;
             }
@@ -1080,7 +1126,9 @@ fn official_triangle_scalar(
             if z > buffer.inv_w[idx] {
                 buffer.inv_w[idx] = z;
                 buffer.triangle[idx] = t.index;
-                buffer.bary[idx] = wts;
+                if weights {
+                    buffer.bary[idx] = wts;
+                }
             }
         }
     }
@@ -1089,10 +1137,11 @@ fn official_triangle_scalar(
 /// [`official_triangle_scalar`] eight pixels of a row at a time: the same IEEE float32
 /// operations lane by lane (no fused multiply-add, no reordering), so every weight,
 /// depth and comparison has the scalar path's bits; pixels past the box's right edge
-/// are masked off (their depths are never read or written).
+/// are masked off (their depths are never read or written). The weights are written
+/// when `WEIGHTS`.
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2")]
-unsafe fn official_triangle_avx2(
+unsafe fn official_triangle_avx2<const WEIGHTS: bool>(
     buffer: &mut VisibilityBuffer,
     t: &OfficialTriangle,
     area: OfficialSpan,
@@ -1169,6 +1218,8 @@ unsafe fn official_triangle_avx2(
                             wi,
                             id,
                         );
+                    }
+                    if WEIGHTS && bits != 0 {
                         let (mut w0s, mut vs, mut us) = ([0f32; 8], [0f32; 8], [0f32; 8]);
                         _mm256_storeu_ps(w0s.as_mut_ptr(), w0);
                         _mm256_storeu_ps(vs.as_mut_ptr(), v);
@@ -1627,13 +1678,20 @@ mod tests {
                 width: w - 3,
                 height: h - 3,
             };
-            let run = |lanes: bool| {
+            let run = |lanes: bool, weights: bool| {
                 let mut b = VisibilityBuffer::new(1, 1);
                 b.reset(window.width, window.height);
-                official_in(&mut b, window, &vertices, &triangles, lanes).unwrap();
+                official_in(&mut b, window, &vertices, &triangles, lanes, weights).unwrap();
                 b
             };
-            let (scalar, lanes) = (run(false), run(true));
+            let (scalar, lanes) = (run(false, true), run(true, true));
+            // Without the weights, each path gives the same triangles and depths.
+            for visibility in [run(false, false), run(true, false)] {
+                assert_eq!(visibility.triangle, scalar.triangle, "case {case}");
+                let bits =
+                    |b: &VisibilityBuffer| b.inv_w.iter().map(|v| v.to_bits()).collect::<Vec<_>>();
+                assert_eq!(bits(&visibility), bits(&scalar), "case {case}");
+            }
             assert_eq!(scalar.triangle, lanes.triangle, "case {case}");
             for i in 0..scalar.triangle.len() {
                 assert_eq!(
@@ -1646,6 +1704,17 @@ mod tests {
                     assert_eq!(
                         scalar.bary[i].map(f32::to_bits),
                         lanes.bary[i].map(f32::to_bits),
+                        "case {case} pixel {i}"
+                    );
+                    // The weights computed alone for the triangle shown there.
+                    let (x, y) = (
+                        window.x0 as i64 + (i % window.width as usize) as i64,
+                        window.y0 as i64 + (i / window.width as usize) as i64,
+                    );
+                    let t = triangles[scalar.triangle[i] as usize];
+                    assert_eq!(
+                        official_weights(&vertices, t, x, y).map(f32::to_bits),
+                        scalar.bary[i].map(f32::to_bits),
                         "case {case} pixel {i}"
                     );
                 }

@@ -1212,7 +1212,7 @@ impl FaceLoader {
             let t = buffer.triangle[i];
             debug_assert!(t < n_mesh);
             let tri = triangles[t as usize];
-            let wt = buffer.bary[i];
+            let wt = face.official_weights(tri, x, y);
             let attr = tri.map(|v| {
                 let p = verts[v as usize];
                 [p.x, p.y, p.z].map(|q| ((q as f64 * 4.5 + 0.5) * 255.0) as f32)

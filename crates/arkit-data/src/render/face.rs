@@ -293,7 +293,9 @@ impl FaceRenderer {
     /// the image's; the mask is the whole-image one over the window and no face
     /// outside it. In [`RasterMode::Exact`] the window is the whole image. `buffer`
     /// (reused between calls, keeping its allocation) is left holding the window's
-    /// raster, pixel `(x, y)` at `window.index(x, y)`.
+    /// raster, pixel `(x, y)` at `window.index(x, y)`: in official mode its triangles
+    /// and depths only, the weights computed where needed by
+    /// [`WindowMask::official_weights`] (most of the raster's writes saved).
     pub fn render_window_mask(
         &self,
         verts: &[Point3<f32>],
@@ -305,16 +307,30 @@ impl FaceRenderer {
         if self.mode == RasterMode::Exact {
             let mask = self.render_full_mask(verts, pose, width, height, buffer)?;
             let window = PixelWindow::whole(width, height);
-            return Ok(WindowMask { window, mask });
+            let screen = Vec::new();
+            return Ok(WindowMask {
+                window,
+                mask,
+                screen,
+            });
         }
         let screen = self.project(verts, pose, width, height)?;
         check_viewport(width, height, "image size")?;
         let window = PixelWindow::official_extent(&screen, width, height);
         buffer.reset(window.width, window.height);
-        arkit_core::raster::rasterize_mesh_official_in(buffer, window, &screen, &self.triangles)
-            .map_err(|e| Error::invalid("mesh", e.to_string()))?;
+        arkit_core::raster::rasterize_official_visibility_in(
+            buffer,
+            window,
+            &screen,
+            &self.triangles,
+        )
+        .map_err(|e| Error::invalid("mesh", e.to_string()))?;
         let mask = self.face_pixels(buffer);
-        Ok(WindowMask { window, mask })
+        Ok(WindowMask {
+            window,
+            mask,
+            screen,
+        })
     }
 
     /// The face mask of a buffer this renderer filled (row-major): pixels whose
@@ -419,15 +435,28 @@ fn check_viewport(width: u32, height: u32, what: &str) -> Result<()> {
 /// A face mask over a window of a `width x height` image
 /// ([`FaceRenderer::render_window_mask`]): row-major over `window`; every pixel outside
 /// the window is not face.
-#[derive(Clone, Debug, PartialEq, Eq)]
+#[derive(Clone, Debug, PartialEq)]
 pub struct WindowMask {
     /// The image pixels held.
     pub window: PixelWindow,
     /// Per window pixel, whether it shows the face.
     pub mask: Vec<bool>,
+    /// In [`RasterMode::Official`], the vertices (and hole centroids) projected to
+    /// image pixels that the mask was drawn from, for [`WindowMask::official_weights`];
+    /// empty in [`RasterMode::Exact`].
+    pub screen: Vec<ScreenVertex>,
 }
 
 impl WindowMask {
+    /// In [`RasterMode::Official`], the weights the official rasterizer gives image
+    /// pixel `(x, y)` when `triangle` (the renderer's, as the buffer's triangle index
+    /// names it) is the one shown there: the buffer's weights are left out of the
+    /// window raster, and computed here with the same float32 operations
+    /// ([`arkit_core::raster::official_weights`]).
+    pub fn official_weights(&self, triangle: [u32; 3], x: i64, y: i64) -> [f32; 3] {
+        arkit_core::raster::official_weights(&self.screen, triangle, x, y)
+    }
+
     /// Whether image pixel `(x, y)` shows the face (never outside the window, nor
     /// outside the image).
     #[inline]
@@ -1279,7 +1308,13 @@ mod tests {
                 };
                 assert_eq!(part.triangle[j], t, "{name} ({x}, {y})");
                 if t != VisibilityBuffer::EMPTY {
-                    assert_eq!(part.bary[j], whole.bary[i], "{name} ({x}, {y})");
+                    let tri = r.triangles[t as usize];
+                    let weights = face.official_weights(tri, x, y).map(f32::to_bits);
+                    assert_eq!(
+                        weights,
+                        whole.bary[i].map(f32::to_bits),
+                        "{name} ({x}, {y})"
+                    );
                 }
             }
             let face_on = |x: u32, y: u32| full[(y * w + x) as usize];
