@@ -283,9 +283,12 @@ pub fn warp_affine(
 ///
 /// Each pixel is OpenCV's fixed-point sum of its four taps' weighted bytes (a tap
 /// outside the image adds nothing), rounded: [`WarpTap::weights`] are products of a
-/// horizontal and a vertical factor, so the sum is taken as the vertical blend of two
-/// horizontal ones, in integers, hence exactly the same sum. Pixels whose four taps
-/// are all in the image (all but a border) skip the bounds checks.
+/// horizontal and a vertical factor, so the sum is taken as the horizontal blend of a
+/// vertical one, in integers, hence exactly the same sum. Each crop row's two image
+/// rows are blended once for the whole row (`(32 - fy) top + fy bottom`, a loop the
+/// compiler vectorises), then each pixel whose four taps are all in the image blends
+/// two of those values per channel ([`blend_columns`]); the border's pixels sum their
+/// taps one by one.
 pub fn warp_affine_window(
     src: &[u8],
     width: u32,
@@ -305,16 +308,24 @@ pub fn warp_affine_window(
     let (columns, rows) = warp_axes(crop, first, count);
     let inside = |x: i32, len: i64| x >= 0 && (x as i64) + 1 < len;
     let mut out = vec![0u8; count * count * channels];
+    let mut vertical = vec![0u16; stride];
     for (o_row, &(y, fy)) in out.chunks_exact_mut(count * channels).zip(&rows) {
         let whole_rows = inside(y, h);
+        if whole_rows {
+            let at = y as usize * stride;
+            let (top, bottom) = (&src[at..at + stride], &src[at + stride..at + 2 * stride]);
+            let (up, down) = ((32 - fy) as u16, fy as u16);
+            for ((v, &t), &b) in vertical.iter_mut().zip(top).zip(bottom) {
+                *v = up * t as u16 + down * b as u16;
+            }
+        }
         for (o, &(x, fx)) in o_row.chunks_exact_mut(channels).zip(&columns) {
             if whole_rows && inside(x, w) {
-                let at = y as usize * stride + x as usize * channels;
-                let (top, bottom) = (&src[at..], &src[at + stride..]);
+                let left = &vertical[x as usize * channels..];
                 // RGB with the channel count known to the compiler.
                 match channels {
-                    3 => blend_pixel(o, top, bottom, fx, fy, 3),
-                    c => blend_pixel(o, top, bottom, fx, fy, c),
+                    3 => blend_columns(o, left, fx, 3),
+                    c => blend_columns(o, left, fx, c),
                 }
                 continue;
             }
@@ -343,19 +354,16 @@ fn round_sum(sum: u32) -> u8 {
 }
 
 /// One pixel of [`warp_affine_window`] whose four taps are in the image, `channels`
-/// bytes: `top` and `bottom` start at the left tap of its two rows. The weights are
-/// `(32 - f)` and `f` in 1/32 along each axis, their products in 2^-15 once scaled.
+/// bytes: `left` starts at the vertically blended values of its left taps, its right
+/// taps' follow. The weights are `(32 - f)` and `f` in 1/32 along each axis, their
+/// products in 2^-15 once scaled.
 #[inline(always)]
-fn blend_pixel(o: &mut [u8], top: &[u8], bottom: &[u8], fx: u32, fy: u32, channels: usize) {
-    let (o, top, bottom) = (
-        &mut o[..channels],
-        &top[..2 * channels],
-        &bottom[..2 * channels],
-    );
+fn blend_columns(o: &mut [u8], left: &[u16], fx: u32, channels: usize) {
+    let (o, left) = (&mut o[..channels], &left[..2 * channels]);
     let scale = 1u32 << (COEF_BITS - 2 * INTER_BITS);
     for (k, o) in o.iter_mut().enumerate() {
-        let blend = |r: &[u8]| (32 - fx) * r[k] as u32 + fx * r[channels + k] as u32;
-        *o = round_sum(((32 - fy) * blend(top) + fy * blend(bottom)) * scale);
+        let sum = (32 - fx) * left[k] as u32 + fx * left[channels + k] as u32;
+        *o = round_sum(sum * scale);
     }
 }
 
@@ -396,8 +404,10 @@ pub fn warp_mask_of(crop: &CropTransform, is_face: impl Fn(i64, i64) -> bool) ->
 
 /// [`warp_mask_of`] for a mask held over `window` of the image (row-major
 /// `window.width x window.height`; pixels outside it are not face): the same crop
-/// mask, with each crop row's two tap rows looked up once instead of every tap through
-/// a closure (tested equal).
+/// mask, its face weight summed as [`warp_affine_window`] sums bytes, the horizontal
+/// blend of a vertical one (the same integer): each crop row blends its two window
+/// rows once (`(32 - fy) top + fy bottom` of 0/1 values, zero for a row outside the
+/// window), then each pixel two of those values (tested equal to the tap-by-tap sum).
 pub fn warp_mask_in(
     crop: &CropTransform,
     window: arkit_core::raster::PixelWindow,
@@ -406,32 +416,45 @@ pub fn warp_mask_in(
     let (ww, wh) = (window.width as usize, window.height as usize);
     assert_eq!(mask.len(), ww * wh, "a {ww}x{wh} window's mask");
     let (columns, rows) = warp_axes(crop, 0, crop.size as usize);
-    // Each column's two taps as window columns (None outside the window).
-    let in_window = |v: i64, first: u32, len: usize| {
-        let k = v - first as i64;
-        (0..len as i64).contains(&k).then_some(k as usize)
-    };
-    let taps: Vec<[Option<usize>; 2]> = columns
+    // Window column k is at k + 1 of the blended row; 0 and ww + 1 stay zero, and
+    // every tap outside the window is clamped to one of them (it adds nothing).
+    let padded = |x: i64| (x - window.x0 as i64 + 1).clamp(0, ww as i64 + 1) as usize;
+    let taps: Vec<[usize; 2]> = columns
         .iter()
-        .map(|&(x, _)| [0, 1].map(|d| in_window(x as i64 + d, window.x0, ww)))
+        .map(|&(x, _)| [padded(x as i64), padded(x as i64 + 1)])
         .collect();
+    let in_window = |v: i64| {
+        let k = v - window.y0 as i64;
+        (0..wh as i64)
+            .contains(&k)
+            .then(|| &mask[k as usize * ww..(k as usize + 1) * ww])
+    };
+    let scale = 1u32 << (COEF_BITS - 2 * INTER_BITS);
+    let mut vertical = vec![0u16; ww + 2];
     let mut out = Vec::with_capacity(columns.len() * rows.len());
     for &(y, fy) in &rows {
-        let tap_rows = [0, 1]
-            .map(|d| in_window(y as i64 + d, window.y0, wh).map(|r| &mask[r * ww..(r + 1) * ww]));
-        out.extend(columns.iter().zip(&taps).map(|(&(x, fx), cols)| {
-            let wts = WarpTap { x, y, fx, fy }.weights();
-            let mut face_weight = 0;
-            for (k, wt) in wts.into_iter().enumerate() {
-                let (row, col) = (tap_rows[k / 2], cols[k % 2]);
-                if let (Some(row), Some(col)) = (row, col)
-                    && wt > 0
-                    && row[col]
-                {
-                    face_weight += wt;
+        let (top, bottom) = (in_window(y as i64), in_window(y as i64 + 1));
+        let (up, down) = ((32 - fy) as u16, fy as u16);
+        let inner = &mut vertical[1..ww + 1];
+        match (top, bottom) {
+            (Some(t), Some(b)) => {
+                for ((v, &t), &b) in inner.iter_mut().zip(t).zip(b) {
+                    *v = up * t as u16 + down * b as u16;
                 }
             }
-            face_weight >= HALF_WEIGHT
+            (Some(t), None) => inner
+                .iter_mut()
+                .zip(t)
+                .for_each(|(v, &t)| *v = up * t as u16),
+            (None, Some(b)) => inner
+                .iter_mut()
+                .zip(b)
+                .for_each(|(v, &b)| *v = down * b as u16),
+            (None, None) => inner.fill(0),
+        }
+        out.extend(columns.iter().zip(&taps).map(|(&(_, fx), &[l, r])| {
+            let face_weight = (32 - fx) * vertical[l] as u32 + fx * vertical[r] as u32;
+            face_weight * scale >= HALF_WEIGHT
         }));
     }
     out
