@@ -485,12 +485,23 @@ impl WindowMask {
         let (inner_rows, inner_cols) = (clip(&rows, w.y0, w.height), clip(&cols, w.x0, w.width));
         let width = cols.end - cols.start;
         let mut offsets = Vec::new();
+        if inner_cols.is_empty() {
+            return offsets;
+        }
+        let (from, to) = (
+            (inner_cols.start - w.x0 as i64) as usize,
+            (inner_cols.end - w.x0 as i64) as usize,
+        );
         for y in inner_rows {
-            for x in inner_cols.clone() {
-                if self.is_face(x, y) {
-                    offsets.push((y - rows.start) * width + (x - cols.start));
-                }
-            }
+            let at = (y - w.y0 as i64) as usize * w.width as usize;
+            let first = (y - rows.start) * width + (inner_cols.start - cols.start);
+            let row = &self.mask[at + from..at + to];
+            offsets.extend(
+                row.iter()
+                    .enumerate()
+                    .filter(|&(_, &face)| face)
+                    .map(|(k, _)| first + k as i64),
+            );
         }
         offsets
     }
@@ -1325,17 +1336,20 @@ mod tests {
             }
             // A slice starting inside the window and ending past it: numpy's nonzero of
             // mask[rows, cols].
-            let (x0, y0) = (win.x0 as i64 + 17, win.y0 as i64 + 23);
-            let (rows, cols) = (y0..(y0 + 300).min(h as i64), x0..(x0 + 400).min(w as i64));
-            let want: Vec<i64> = rows
-                .clone()
-                .flat_map(|y| cols.clone().map(move |x| (y, x)))
-                .enumerate()
-                .filter(|&(_, (y, x))| face_on(x as u32, y as u32))
-                .map(|(k, _)| k as i64)
-                .collect();
-            assert!(!want.is_empty());
-            assert_eq!(face.face_offsets(rows, cols), want, "{name}");
+            // Then one starting before the window (where the window leaves room).
+            for (dx, dy) in [(17i64, 23i64), (-5, -7)] {
+                let (x0, y0) = ((win.x0 as i64 + dx).max(0), (win.y0 as i64 + dy).max(0));
+                let (rows, cols) = (y0..(y0 + 300).min(h as i64), x0..(x0 + 400).min(w as i64));
+                let want: Vec<i64> = rows
+                    .clone()
+                    .flat_map(|y| cols.clone().map(move |x| (y, x)))
+                    .enumerate()
+                    .filter(|&(_, (y, x))| face_on(x as u32, y as u32))
+                    .map(|(k, _)| k as i64)
+                    .collect();
+                assert!(!want.is_empty());
+                assert_eq!(face.face_offsets(rows, cols), want, "{name} {dx} {dy}");
+            }
         }
         // In exact mode the window is the whole image.
         r.mode = RasterMode::Exact;
