@@ -238,17 +238,17 @@ impl Planes<'_> {
         }
     }
 
-    /// A `len`-value UV map: `fill` writes it over `-1` (the uncovered value); returned,
-    /// or written into the caller's plane (then an empty vector is returned).
+    /// A `len`-value UV map: `fill` writes every value of it (`-1` where uncovered), in
+    /// one pass; returned, or written into the caller's plane (then an empty vector is
+    /// returned).
     fn uvmap(&mut self, len: usize, fill: impl FnOnce(&mut [f32])) -> Vec<f32> {
         match self {
             Planes::Owned => {
-                let mut v = vec![-1f32; len];
+                let mut v = vec![0f32; len];
                 fill(&mut v);
                 v
             }
             Planes::Borrowed(p) => {
-                p.uvmap.fill(-1.0);
                 fill(p.uvmap);
                 Vec::new()
             }
@@ -454,7 +454,7 @@ impl OfficialUvLayout {
     /// space, the hole centroids their loops' means, interpolated with the layout's
     /// weights, clipped to [0, 1] and mapped by `2 x - 1` (uncovered texels -1).
     pub fn uv_map(&self, verts: &[Point3<f32>]) -> Vec<f32> {
-        let mut out = vec![-1f32; 3 * (self.size * self.size) as usize];
+        let mut out = vec![0f32; 3 * (self.size * self.size) as usize];
         self.uv_map_into(verts, &mut out);
         out
     }
@@ -464,8 +464,8 @@ impl OfficialUvLayout {
         self.size
     }
 
-    /// [`OfficialUvLayout::uv_map`] over `out`, which holds `-1` (uncovered) already:
-    /// only covered texels are written.
+    /// [`OfficialUvLayout::uv_map`] into `out`: every value written (`-1` where
+    /// uncovered), in one pass.
     ///
     /// # Panics
     /// When `out` is not `3 x size x size` values.
@@ -493,6 +493,9 @@ impl OfficialUvLayout {
         assert_eq!(out.len(), 3 * n, "a 3 x size x size map");
         for (i, (&t, w)) in self.triangle.iter().zip(&self.bary).enumerate() {
             if t == VisibilityBuffer::EMPTY {
+                for k in 0..3 {
+                    out[k * n + i] = -1.0;
+                }
                 continue;
             }
             let [a, b, c] = self.triangles[t as usize].map(|v| colors[v as usize]);
@@ -1033,14 +1036,21 @@ impl FaceLoader {
         let extended = self.uv.extended_positions(verts);
         let map = self.uv_texels.position_map(&extended);
         let n = (s * s) as usize;
+        assert_eq!(map.len(), n, "one position per texel");
         let uvmap = planes.uvmap(3 * n, |uvmap| {
-            for (i, p) in map.iter().enumerate() {
-                if p[0].is_nan() {
-                    continue;
-                }
-                for k in 0..3 {
-                    uvmap[k * n + i] = (p[k] * 9.0).clamp(-1.0, 1.0);
-                }
+            let (u, rest) = uvmap.split_at_mut(n);
+            let (v, w) = rest.split_at_mut(n);
+            for (((p, u), v), w) in map.iter().zip(u).zip(v).zip(w) {
+                // An uncovered texel (NaN) is -1.
+                let covered = !p[0].is_nan();
+                let value = |c: f32| {
+                    if covered {
+                        (c * 9.0).clamp(-1.0, 1.0)
+                    } else {
+                        -1.0
+                    }
+                };
+                (*u, *v, *w) = (value(p[0]), value(p[1]), value(p[2]));
             }
         });
         Ok(LoaderItem {
