@@ -1028,7 +1028,6 @@ impl FaceLoader {
             ));
         }
         let chosen = sample_points(pixels.len(), self.options.n_pts, rng.next_u64());
-        let coords = t.coordinate_map(verts);
         let mut rgb = source.crop(&crop, train, &row.sample.key)?;
         if train {
             jitter_colour(&mut rgb, rng);
@@ -1063,7 +1062,7 @@ impl FaceLoader {
             nocs: chosen
                 .iter()
                 .flat_map(|&c| {
-                    let p = coords[c as usize];
+                    let p = t.coordinate_at(verts, c as usize);
                     [p.x * 4.5, p.y * 4.5, p.z * 4.5]
                 })
                 .collect(),

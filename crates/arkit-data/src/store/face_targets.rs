@@ -33,17 +33,20 @@ impl FaceTargets {
     /// The coordinate map at the mask pixels: the canonical position under each pixel,
     /// `sum_k w_k V_k`.
     pub fn coordinate_map(&self, verts: &[Point3<f32>]) -> Vec<Point3<f32>> {
-        self.corr_vertices
-            .iter()
-            .zip(&self.corr_weights)
-            .map(|(v, w)| {
-                Point3::from(
-                    verts[v[0] as usize].coords * w[0]
-                        + verts[v[1] as usize].coords * w[1]
-                        + verts[v[2] as usize].coords * w[2],
-                )
-            })
+        (0..self.corr_vertices.len())
+            .map(|k| self.coordinate_at(verts, k))
             .collect()
+    }
+
+    /// The coordinate map at the `k`-th mask pixel alone (what
+    /// [`FaceTargets::coordinate_map`] holds there), for callers that need a few points.
+    pub fn coordinate_at(&self, verts: &[Point3<f32>], k: usize) -> Point3<f32> {
+        let (v, w) = (self.corr_vertices[k], self.corr_weights[k]);
+        Point3::from(
+            verts[v[0] as usize].coords * w[0]
+                + verts[v[1] as usize].coords * w[1]
+                + verts[v[2] as usize].coords * w[2],
+        )
     }
 }
 
