@@ -583,71 +583,82 @@ unsafe fn shift_hue_avx2(rgb: &mut [u8], h: f32) {
         let high = _mm256_cmp_ps::<_CMP_GE_OQ>(x, m);
         sel(low, _mm256_add_ps(x, m), sel(high, _mm256_sub_ps(x, m), x))
     };
-    for px in rgb.chunks_exact_mut(24) {
-        let px: &mut [u8; 24] = px.try_into().expect("chunks of 24");
-        // SAFETY: AVX2 is enabled in this function.
-        let bytes = unsafe { load_rgb8(px) };
-        // `UNIT[v]`: the same correctly rounded division.
-        let [r, g, b] = bytes.map(|v| _mm256_div_ps(_mm256_cvtepi32_ps(v), full));
-        let max = _mm256_max_ps(_mm256_max_ps(r, g), b);
-        let min = _mm256_min_ps(_mm256_min_ps(r, g), b);
-        let d = _mm256_sub_ps(max, min);
-        let keep = _mm256_movemask_ps(_mm256_cmp_ps::<_CMP_EQ_OQ>(d, zero));
-        if keep == 0xff {
-            continue;
+    // Two passes over blocks of groups of eight pixels, each pass's chain of dependent
+    // operations about half the whole one, so more groups are in flight at once: the
+    // first computes each pixel's sextant, its fraction, saturation and value, the
+    // second the bytes from them.
+    const GROUPS: usize = 16;
+    for block in rgb.chunks_mut(24 * GROUPS) {
+        let mut hsv = [(_mm256_setzero_si256(), [zero; 3]); GROUPS];
+        for (px, out) in block.chunks_exact(24).zip(hsv.iter_mut()) {
+            let px: &[u8; 24] = px.try_into().expect("chunks of 24");
+            // SAFETY: AVX2 is enabled in this function.
+            let bytes = unsafe { load_rgb8(px) };
+            // `UNIT[v]`: the same correctly rounded division.
+            let [r, g, b] = bytes.map(|v| _mm256_div_ps(_mm256_cvtepi32_ps(v), full));
+            let max = _mm256_max_ps(_mm256_max_ps(r, g), b);
+            let min = _mm256_min_ps(_mm256_min_ps(r, g), b);
+            // Grey pixels (`d == 0`) get NaNs here and keep their bytes in the second pass.
+            let d = _mm256_sub_ps(max, min);
+            let red = _mm256_cmp_ps::<_CMP_EQ_OQ>(max, r);
+            let green = _mm256_andnot_ps(red, _mm256_cmp_ps::<_CMP_EQ_OQ>(max, g));
+            let num = sel(
+                red,
+                _mm256_sub_ps(g, b),
+                sel(green, _mm256_sub_ps(b, r), _mm256_sub_ps(r, g)),
+            );
+            let x = _mm256_div_ps(num, d);
+            let off = sel(green, _mm256_set1_ps(2.0), _mm256_set1_ps(4.0));
+            let h6 = sel(red, wrap(x, six), _mm256_add_ps(x, off));
+            let hue = wrap(_mm256_add_ps(_mm256_div_ps(h6, six), hv), one);
+            let sat = _mm256_div_ps(d, max);
+            let scaled = _mm256_mul_ps(hue, six);
+            let i = _mm256_cvttps_epi32(scaled);
+            let f = _mm256_sub_ps(scaled, _mm256_cvtepi32_ps(i));
+            let i = _mm256_andnot_si256(_mm256_cmpeq_epi32(i, _mm256_set1_epi32(6)), i);
+            *out = (i, [f, sat, max]);
         }
-        let red = _mm256_cmp_ps::<_CMP_EQ_OQ>(max, r);
-        let green = _mm256_andnot_ps(red, _mm256_cmp_ps::<_CMP_EQ_OQ>(max, g));
-        let num = sel(
-            red,
-            _mm256_sub_ps(g, b),
-            sel(green, _mm256_sub_ps(b, r), _mm256_sub_ps(r, g)),
-        );
-        let x = _mm256_div_ps(num, d);
-        let off = sel(green, _mm256_set1_ps(2.0), _mm256_set1_ps(4.0));
-        let h6 = sel(red, wrap(x, six), _mm256_add_ps(x, off));
-        let hue = wrap(_mm256_add_ps(_mm256_div_ps(h6, six), hv), one);
-        let sat = _mm256_div_ps(d, max);
-        let scaled = _mm256_mul_ps(hue, six);
-        let i = _mm256_cvttps_epi32(scaled);
-        let f = _mm256_sub_ps(scaled, _mm256_cvtepi32_ps(i));
-        let i = _mm256_andnot_si256(_mm256_cmpeq_epi32(i, _mm256_set1_epi32(6)), i);
-        // Of [val, t, p, q], each sextant takes val, p and one of t (even sextants) and q
-        // (odd): `t = val (1 - sat (1 - f))`, `q = val (1 - sat f)`, so that one is the
-        // same operations on `1 - f` or `f`. `val` rounds back to the largest byte and
-        // `p = val (1 - sat)` to the smallest (their float errors are far below half a
-        // byte), so only t or q is rounded here (every triple tested).
-        let odd = _mm256_castsi256_ps(_mm256_slli_epi32::<31>(i));
-        let factor = _mm256_blendv_ps(_mm256_sub_ps(one, f), f, odd);
-        let mid = _mm256_mul_ps(max, _mm256_sub_ps(one, _mm256_mul_ps(sat, factor)));
-        // round_half_away for the non-negative value here, then the clamp.
-        let v = _mm256_mul_ps(mid, full);
-        let tr = _mm256_cvtepi32_ps(_mm256_cvttps_epi32(v));
-        let up = _mm256_and_ps(_mm256_cmp_ps::<_CMP_GE_OQ>(_mm256_sub_ps(v, tr), half), one);
-        let mid = _mm256_cvttps_epi32(_mm256_min_ps(
-            _mm256_max_ps(_mm256_add_ps(tr, up), zero),
-            full,
-        ));
-        let [rb, gb, bb] = bytes;
-        let high = _mm256_max_epi32(_mm256_max_epi32(rb, gb), bb);
-        let low = _mm256_min_epi32(_mm256_min_epi32(rb, gb), bb);
-        // SEXTANT, as masks: per channel, the sextants where it takes val, or t or q
-        // (else p).
-        let is = |k: i32| _mm256_cmpeq_epi32(i, _mm256_set1_epi32(k));
-        let either = |a: i32, b: i32| _mm256_or_si256(is(a), is(b));
-        let channel = |val: __m256i, middle: __m256i| {
-            _mm256_blendv_epi8(_mm256_blendv_epi8(low, mid, middle), high, val)
-        };
-        // Grey pixels (`d == 0`) keep their bytes, as the scalar path returns early.
-        let grey = _mm256_castps_si256(_mm256_cmp_ps::<_CMP_EQ_OQ>(d, zero));
-        let out = [
-            channel(either(0, 5), either(1, 4)),
-            channel(either(1, 2), either(0, 3)),
-            channel(either(3, 4), either(2, 5)),
-        ];
-        let out = std::array::from_fn(|c| _mm256_blendv_epi8(out[c], bytes[c], grey));
-        // SAFETY: AVX2 is enabled in this function.
-        unsafe { store_rgb8(px, out) };
+        for (px, &(i, [f, sat, max])) in block.chunks_exact_mut(24).zip(hsv.iter()) {
+            let px: &mut [u8; 24] = px.try_into().expect("chunks of 24");
+            // SAFETY: AVX2 is enabled in this function.
+            let bytes = unsafe { load_rgb8(px) };
+            // Of [val, t, p, q], each sextant takes val, p and one of t (even sextants)
+            // and q (odd): `t = val (1 - sat (1 - f))`, `q = val (1 - sat f)`, so that
+            // one is the same operations on `1 - f` or `f`. `val` rounds back to the
+            // largest byte and `p = val (1 - sat)` to the smallest (their float errors
+            // are far below half a byte), so only t or q is rounded here (every triple
+            // tested).
+            let odd = _mm256_castsi256_ps(_mm256_slli_epi32::<31>(i));
+            let factor = _mm256_blendv_ps(_mm256_sub_ps(one, f), f, odd);
+            let mid = _mm256_mul_ps(max, _mm256_sub_ps(one, _mm256_mul_ps(sat, factor)));
+            // round_half_away for the non-negative value here, then the clamp.
+            let v = _mm256_mul_ps(mid, full);
+            let tr = _mm256_cvtepi32_ps(_mm256_cvttps_epi32(v));
+            let up = _mm256_and_ps(_mm256_cmp_ps::<_CMP_GE_OQ>(_mm256_sub_ps(v, tr), half), one);
+            let mid = _mm256_cvttps_epi32(_mm256_min_ps(
+                _mm256_max_ps(_mm256_add_ps(tr, up), zero),
+                full,
+            ));
+            let [rb, gb, bb] = bytes;
+            let high = _mm256_max_epi32(_mm256_max_epi32(rb, gb), bb);
+            let low = _mm256_min_epi32(_mm256_min_epi32(rb, gb), bb);
+            // SEXTANT, as masks: per channel, the sextants where it takes val, or t or q
+            // (else p).
+            let is = |k: i32| _mm256_cmpeq_epi32(i, _mm256_set1_epi32(k));
+            let either = |a: i32, b: i32| _mm256_or_si256(is(a), is(b));
+            let channel = |val: __m256i, middle: __m256i| {
+                _mm256_blendv_epi8(_mm256_blendv_epi8(low, mid, middle), high, val)
+            };
+            let grey = _mm256_cmpeq_epi32(high, low);
+            let out = [
+                channel(either(0, 5), either(1, 4)),
+                channel(either(1, 2), either(0, 3)),
+                channel(either(3, 4), either(2, 5)),
+            ];
+            let out = std::array::from_fn(|c| _mm256_blendv_epi8(out[c], bytes[c], grey));
+            // SAFETY: AVX2 is enabled in this function.
+            unsafe { store_rgb8(px, out) };
+        }
     }
 }
 
