@@ -243,11 +243,12 @@ pub fn unpredict_window(errors: &[u8], side: usize) -> Vec<u8> {
 /// [`unpredict_window`] in place: `buf` holds a window's [`predict_window`] errors
 /// and is left holding its RGB bytes. The same arithmetic as the prediction, pixel by
 /// pixel. On x86-64 a pixel's three planes are decoded together in SSE2 lanes (part of
-/// the baseline; VEX-encoded where the CPU has AVX2) and four rows at once, each a pixel behind the one above it
-/// ([`unpredict_rows_sse2`]): a pixel needs its left neighbour (the decoder's one serial
-/// dependency) and the row above's pixel and the one before it, so the four rows' chains
-/// run side by side. Elsewhere one pixel at a time ([`unpredict_window_scalar`]). Both
-/// are tested against the prediction's own per-pixel definition, and each other.
+/// the baseline; VEX-encoded where the CPU has AVX2) and four rows at once, each a pixel
+/// behind the one above it ([`unpredict_rows_sse2`]): a pixel needs its left neighbour
+/// (the decoder's one serial dependency) and the row above's pixel and the one before
+/// it, so the four rows' chains run side by side. Elsewhere one pixel at a time
+/// ([`unpredict_window_scalar`]). Both are tested against the prediction's own
+/// per-pixel definition, and each other.
 pub fn unpredict_window_in_place(buf: &mut [u8], side: usize) {
     assert_eq!(
         buf.len(),
