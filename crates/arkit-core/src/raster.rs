@@ -995,23 +995,31 @@ fn official_in(
     let avx2 = lanes && std::arch::is_x86_feature_detected!("avx2");
     #[cfg(not(target_arch = "x86_64"))]
     let _ = lanes;
+    // Each vertex's depth once (`-1 / inv_w`), NaN where it is not drawn.
+    let depths: Vec<f32> = vertices
+        .iter()
+        .map(|p| {
+            if official_vertex_ok(p) {
+                -1.0 / p.inv_w
+            } else {
+                f32::NAN
+            }
+        })
+        .collect();
     for (ti, t) in triangles.iter().enumerate() {
-        let [p0, p1, p2] = [
-            vertices[t[0] as usize],
-            vertices[t[1] as usize],
-            vertices[t[2] as usize],
-        ];
-        if ![p0, p1, p2].iter().all(official_vertex_ok) {
+        let [p0, p1, p2] = t.map(|v| vertices[v as usize]);
+        let depth = t.map(|v| depths[v as usize]);
+        if depth.iter().any(|d| d.is_nan()) {
             continue;
         }
-        let x_min = (p0.x.min(p1.x).min(p2.x).ceil() as i64).max(ox);
-        let x_max = (p0.x.max(p1.x).max(p2.x).floor() as i64).min(ox + w - 1);
-        let y_min = (p0.y.min(p1.y).min(p2.y).ceil() as i64).max(oy);
-        let y_max = (p0.y.max(p1.y).max(p2.y).floor() as i64).min(oy + h - 1);
+        let x_min = ceil_to_i64(p0.x.min(p1.x).min(p2.x)).max(ox);
+        let x_max = floor_to_i64(p0.x.max(p1.x).max(p2.x)).min(ox + w - 1);
+        let y_min = ceil_to_i64(p0.y.min(p1.y).min(p2.y)).max(oy);
+        let y_max = floor_to_i64(p0.y.max(p1.y).max(p2.y)).min(oy + h - 1);
         if x_max < x_min || y_max < y_min {
             continue;
         }
-        let tri = OfficialTriangle::new(ti as u32, [p0, p1, p2]);
+        let tri = OfficialTriangle::new(ti as u32, [p0, p1, p2], depth);
         let area = OfficialSpan {
             xs: x_min..x_max + 1,
             ys: y_min..y_max + 1,
@@ -1048,10 +1056,34 @@ struct OfficialTriangle {
     depth: [f32; 3],
 }
 
+/// `v.ceil() as i64` for a finite `v`, without the library call `ceil` is on the x86-64
+/// baseline: the truncation, one up where it lies below `v` (for `|v| >= 2^23` every
+/// float is an integer and the truncation is `v`; beyond `i64` both saturate).
+#[inline]
+fn ceil_to_i64(v: f32) -> i64 {
+    let t = v as i64;
+    if (t as f32) < v {
+        t.saturating_add(1)
+    } else {
+        t
+    }
+}
+
+/// `v.floor() as i64` for a finite `v`, as [`ceil_to_i64`].
+#[inline]
+fn floor_to_i64(v: f32) -> i64 {
+    let t = v as i64;
+    if (t as f32) > v {
+        t.saturating_sub(1)
+    } else {
+        t
+    }
+}
+
 impl OfficialTriangle {
-    /// The triangle `index` with these corners: the official code's per-triangle
-    /// values, in its float32 operations.
-    fn new(index: u32, [p0, p1, p2]: [ScreenVertex; 3]) -> Self {
+    /// The triangle `index` with these corners and their depths (`-1 / inv_w`): the
+    /// official code's per-triangle values, in its float32 operations.
+    fn new(index: u32, [p0, p1, p2]: [ScreenVertex; 3], depth: [f32; 3]) -> Self {
         let (v0x, v0y, v1x, v1y) = (p2.x - p0.x, p2.y - p0.y, p1.x - p0.x, p1.y - p0.y);
         let (dot00, dot01, dot11) = (
             v0x * v0x + v0y * v0y,
@@ -1067,7 +1099,7 @@ impl OfficialTriangle {
             v1: (v1x, v1y),
             dots: (dot00, dot01, dot11),
             inv_deno,
-            depth: [-1.0 / p0.inv_w, -1.0 / p1.inv_w, -1.0 / p2.inv_w],
+            depth,
         }
     }
 
@@ -1091,7 +1123,8 @@ impl OfficialTriangle {
 /// which leaves the weights out, a caller computes them only where it needs them.
 pub fn official_weights(vertices: &[ScreenVertex], triangle: [u32; 3], x: i64, y: i64) -> [f32; 3] {
     let corners = triangle.map(|v| vertices[v as usize]);
-    let (u, v) = OfficialTriangle::new(0, corners).uv_at(x, y);
+    let depth = corners.map(|p| -1.0 / p.inv_w);
+    let (u, v) = OfficialTriangle::new(0, corners, depth).uv_at(x, y);
     [1.0 - u - v, v, u]
 }
 
@@ -1638,6 +1671,21 @@ mod tests {
             (b[0] - 0.5).abs() < 1e-6 && (b[1] - 0.25).abs() < 1e-6 && (b[2] - 0.25).abs() < 1e-6,
             "{b:?}"
         );
+    }
+
+    #[test]
+    fn the_inline_ceil_and_floor_are_the_librarys() {
+        let mut r = Rng::new(41);
+        let mut values = vec![0.0f32, -0.0, 0.5, -0.5, 1.0, -1.0, 8388607.5, -8388607.5];
+        values.extend([8388608.0, 1e20, -1e20, 0.99999994, -0.99999994, 2.5, -2.5]);
+        for _ in 0..100_000 {
+            values.push(r.uniform(-2000.0, 2000.0) as f32);
+            values.push(r.below(4000) as f32 - 2000.0);
+        }
+        for v in values {
+            assert_eq!(ceil_to_i64(v), v.ceil() as i64, "{v}");
+            assert_eq!(floor_to_i64(v), v.floor() as i64, "{v}");
+        }
     }
 
     #[test]
