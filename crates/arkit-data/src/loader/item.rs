@@ -333,15 +333,27 @@ impl PixelSource {
 /// `uv_coords_std_202109.npy`.
 pub type ReleaseUvLayout = (Vec<[u32; 3]>, Vec<[f32; 2]>);
 
+/// A texel of an [`OfficialUvLayout`] that a UV triangle covers.
+#[derive(Clone, Copy, Debug)]
+struct CoveredTexel {
+    /// Row-major index in the map.
+    texel: u32,
+    /// The triangle's corners (extended vertex indices).
+    corners: [u32; 3],
+    /// The official rasterizer's weights of the corners at the texel.
+    weights: [f32; 3],
+}
+
 /// The official UV layout rasterized once for one map size: per texel the UV triangle
 /// and its screen-space weights, by the official rasterizer's rules at `uv * (S - 1)`.
 #[derive(Clone, Debug)]
 pub struct OfficialUvLayout {
     size: u32,
-    triangles: Vec<[u32; 3]>,
-    /// Per texel, the triangle index or [`VisibilityBuffer::EMPTY`].
-    triangle: Vec<u32>,
-    bary: Vec<[f32; 3]>,
+    /// The texels a triangle covers, in texel order: their triangle's corners and
+    /// weights.
+    covered: Vec<CoveredTexel>,
+    /// The runs of texels no triangle covers (texel indices), in order.
+    uncovered: Vec<std::ops::Range<usize>>,
     ring_of: Vec<u32>,
     centroid_loops: Vec<Vec<u32>>,
     extended: usize,
@@ -393,11 +405,26 @@ impl OfficialUvLayout {
         let mut vb = VisibilityBuffer::new(size, size);
         arkit_core::raster::rasterize_mesh_official(&mut vb, &screen, &triangles)
             .map_err(|e| Error::invalid("UV triangles", e.to_string()))?;
+        let mut covered = Vec::new();
+        let mut uncovered: Vec<std::ops::Range<usize>> = Vec::new();
+        for (texel, (&t, &weights)) in vb.triangle.iter().zip(&vb.bary).enumerate() {
+            if t == VisibilityBuffer::EMPTY {
+                match uncovered.last_mut() {
+                    Some(run) if run.end == texel => run.end += 1,
+                    _ => uncovered.push(texel..texel + 1),
+                }
+            } else {
+                covered.push(CoveredTexel {
+                    texel: texel as u32,
+                    corners: triangles[t as usize],
+                    weights,
+                });
+            }
+        }
         Ok(OfficialUvLayout {
             size,
-            triangles,
-            triangle: vb.triangle,
-            bary: vb.bary,
+            covered,
+            uncovered,
             ring_of,
             centroid_loops,
             extended: coords.len(),
@@ -491,17 +518,20 @@ impl OfficialUvLayout {
         debug_assert_eq!(colors.len(), self.extended);
         let n = (self.size * self.size) as usize;
         assert_eq!(out.len(), 3 * n, "a 3 x size x size map");
-        for (i, (&t, w)) in self.triangle.iter().zip(&self.bary).enumerate() {
-            if t == VisibilityBuffer::EMPTY {
-                for k in 0..3 {
-                    out[k * n + i] = -1.0;
-                }
-                continue;
+        let (u, rest) = out.split_at_mut(n);
+        let (v, w) = rest.split_at_mut(n);
+        for run in &self.uncovered {
+            for plane in [&mut *u, &mut *v, &mut *w] {
+                plane[run.clone()].fill(-1.0);
             }
-            let [a, b, c] = self.triangles[t as usize].map(|v| colors[v as usize]);
-            for k in 0..3 {
-                let v = w[0] * a[k] + w[1] * b[k] + w[2] * c[k];
-                out[k * n + i] = v.clamp(0.0, 1.0) * 2.0 - 1.0;
+        }
+        for t in &self.covered {
+            let [a, b, c] = t.corners.map(|v| colors[v as usize]);
+            let wt = t.weights;
+            let i = t.texel as usize;
+            for (k, plane) in [&mut *u, &mut *v, &mut *w].into_iter().enumerate() {
+                let value = wt[0] * a[k] + wt[1] * b[k] + wt[2] * c[k];
+                plane[i] = value.clamp(0.0, 1.0) * 2.0 - 1.0;
             }
         }
     }
