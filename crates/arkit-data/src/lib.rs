@@ -157,6 +157,8 @@ pub mod mesh;
 pub mod picture;
 pub mod pose;
 pub mod render;
+#[cfg(target_arch = "x86_64")]
+mod rgb_lanes;
 pub mod store;
 
 // The names a pipeline is written with: open a dataset, render, load, solve, score.

@@ -309,8 +309,16 @@ pub fn warp_affine_window(
     let inside = |x: i32, len: i64| x >= 0 && (x as i64) + 1 < len;
     let mut out = vec![0u8; count * count * channels];
     let mut vertical = vec![0u16; stride];
+    // Eight RGB pixels at a time in AVX2 where the CPU has it (`blend_columns_avx2`):
+    // `pairs[j]` holds blended values `j` and `j + 3` side by side.
+    #[cfg(target_arch = "x86_64")]
+    let lanes = channels == 3 && std::arch::is_x86_feature_detected!("avx2");
+    #[cfg(target_arch = "x86_64")]
+    let mut pairs = vec![0u32; if lanes { stride } else { 0 }];
     for (o_row, &(y, fy)) in out.chunks_exact_mut(count * channels).zip(&rows) {
         let whole_rows = inside(y, h);
+        #[allow(unused_mut)]
+        let mut done = 0..0;
         if whole_rows {
             let at = y as usize * stride;
             let (top, bottom) = (&src[at..at + stride], &src[at + stride..at + 2 * stride]);
@@ -318,29 +326,65 @@ pub fn warp_affine_window(
             for ((v, &t), &b) in vertical.iter_mut().zip(top).zip(bottom) {
                 *v = up * t as u16 + down * b as u16;
             }
-        }
-        for (o, &(x, fx)) in o_row.chunks_exact_mut(channels).zip(&columns) {
-            if whole_rows && inside(x, w) {
-                let left = &vertical[x as usize * channels..];
-                // RGB with the channel count known to the compiler.
-                match channels {
-                    3 => blend_columns(o, left, fx, 3),
-                    c => blend_columns(o, left, fx, c),
+            #[cfg(target_arch = "x86_64")]
+            if lanes {
+                let (near, far) = (&vertical[..stride - 3], &vertical[3..]);
+                for ((p, &a), &b) in pairs.iter_mut().zip(near).zip(far) {
+                    *p = a as u32 | (b as u32) << 16;
                 }
-                continue;
+                // The crop columns whose taps are all in the image (a run: the taps
+                // move one way along a row), whole groups of eight.
+                let first = columns.iter().position(|&(x, _)| inside(x, w));
+                if let Some(first) = first {
+                    let run = columns[first..]
+                        .iter()
+                        .take_while(|&&(x, _)| inside(x, w))
+                        .count();
+                    done = first..first + run / 8 * 8;
+                    // SAFETY: AVX2 was detected; every column of `done` has its taps in
+                    // the image, so each pair it reads is in `pairs`.
+                    unsafe {
+                        blend_columns_avx2(
+                            &mut o_row[3 * done.start..3 * done.end],
+                            &pairs,
+                            &columns[done.clone()],
+                        )
+                    };
+                }
             }
-            let t = WarpTap { x, y, fx, fy };
-            let wts = t.weights();
-            let (x, y) = (x as i64, y as i64);
-            let corners = [(x, y), (x + 1, y), (x, y + 1), (x + 1, y + 1)];
-            for (k, o) in o.iter_mut().enumerate() {
-                let mut sum = 0u32;
-                for (&(cx, cy), &wt) in corners.iter().zip(&wts) {
-                    if (0..w).contains(&cx) && (0..h).contains(&cy) {
-                        sum += wt * src[cy as usize * stride + cx as usize * channels + k] as u32;
+        }
+        // The columns the lanes did not take: those before and those after.
+        let (before, rest) = o_row.split_at_mut(done.start * channels);
+        let after = &mut rest[(done.end - done.start) * channels..];
+        let parts = [
+            (before, &columns[..done.start]),
+            (after, &columns[done.end..]),
+        ];
+        for (part, cols) in parts {
+            for (o, &(x, fx)) in part.chunks_exact_mut(channels).zip(cols) {
+                if whole_rows && inside(x, w) {
+                    let left = &vertical[x as usize * channels..];
+                    // RGB with the channel count known to the compiler.
+                    match channels {
+                        3 => blend_columns(o, left, fx, 3),
+                        c => blend_columns(o, left, fx, c),
                     }
+                    continue;
                 }
-                *o = round_sum(sum);
+                let t = WarpTap { x, y, fx, fy };
+                let wts = t.weights();
+                let (x, y) = (x as i64, y as i64);
+                let corners = [(x, y), (x + 1, y), (x, y + 1), (x + 1, y + 1)];
+                for (k, o) in o.iter_mut().enumerate() {
+                    let mut sum = 0u32;
+                    for (&(cx, cy), &wt) in corners.iter().zip(&wts) {
+                        if (0..w).contains(&cx) && (0..h).contains(&cy) {
+                            sum +=
+                                wt * src[cy as usize * stride + cx as usize * channels + k] as u32;
+                        }
+                    }
+                    *o = round_sum(sum);
+                }
             }
         }
     }
@@ -364,6 +408,46 @@ fn blend_columns(o: &mut [u8], left: &[u16], fx: u32, channels: usize) {
     for (k, o) in o.iter_mut().enumerate() {
         let sum = (32 - fx) * left[k] as u32 + fx * left[channels + k] as u32;
         *o = round_sum(sum * scale);
+    }
+}
+
+/// [`blend_columns`] for eight RGB crop pixels at a time (`out` three bytes a column
+/// of `columns`, a multiple of eight), in AVX2: each lane gathers its column's pair of
+/// vertically blended values (`pairs[3 x + k]`, the left tap's and the right tap's) and
+/// multiplies and adds them with `(32 - fx, fx)` in one step, then rounds as
+/// [`round_sum`] does (`(s 32 + 2^14) >> 15` is `(s + 512) >> 10`). The same integers.
+///
+/// # Safety
+///
+/// The CPU has AVX2, and `3 x + 2 < pairs.len()` for every column's `x`.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+unsafe fn blend_columns_avx2(out: &mut [u8], pairs: &[u32], columns: &[AxisTap]) {
+    use std::arch::x86_64::*;
+    let round = _mm256_set1_epi32(512);
+    for (o, cols) in out.chunks_exact_mut(24).zip(columns.chunks_exact(8)) {
+        let xs: [i32; 8] = std::array::from_fn(|k| 3 * cols[k].0);
+        let weights: [i32; 8] = std::array::from_fn(|k| {
+            let fx = cols[k].1 as i32;
+            (32 - fx) | fx << 16
+        });
+        // SAFETY: unaligned loads of eight i32.
+        let (xs, weights) = unsafe {
+            (
+                _mm256_loadu_si256(xs.as_ptr().cast()),
+                _mm256_loadu_si256(weights.as_ptr().cast()),
+            )
+        };
+        let channel = |k: i32| {
+            let at = _mm256_add_epi32(xs, _mm256_set1_epi32(k));
+            // SAFETY: every index is below `pairs.len()` (the caller's).
+            let pair = unsafe { _mm256_i32gather_epi32::<4>(pairs.as_ptr().cast(), at) };
+            let sum = _mm256_madd_epi16(pair, weights);
+            _mm256_srli_epi32::<10>(_mm256_add_epi32(sum, round))
+        };
+        let o: &mut [u8; 24] = o.try_into().expect("chunks of 24");
+        // SAFETY: AVX2 is enabled here; each value is at most 255.
+        unsafe { crate::rgb_lanes::store_rgb8(o, [channel(0), channel(1), channel(2)]) };
     }
 }
 
