@@ -428,29 +428,41 @@ unsafe fn saturate_avx2(rgb: &mut [u8], f: f32) {
         _mm256_set1_epi32(587),
         _mm256_set1_epi32(114),
     ];
-    for px in rgb.chunks_exact_mut(24) {
-        let px: &mut [u8; 24] = px.try_into().expect("chunks of 24");
-        // SAFETY: AVX2 is enabled in this function.
-        let rgb_lanes = unsafe { load_rgb8(px) };
-        let sum = _mm256_add_epi32(
-            _mm256_add_epi32(
-                _mm256_mullo_epi32(rgb_lanes[0], weight[0]),
-                _mm256_mullo_epi32(rgb_lanes[1], weight[1]),
-            ),
-            _mm256_mullo_epi32(rgb_lanes[2], weight[2]),
-        );
-        let quotient = _mm256_div_ps(_mm256_cvtepi32_ps(sum), _mm256_set1_ps(1000.0));
-        let grey = _mm256_cvtepi32_ps(_mm256_cvttps_epi32(quotient));
-        let out = rgb_lanes.map(|v| {
-            let v = _mm256_cvtepi32_ps(v);
-            let x = _mm256_add_ps(grey, _mm256_mul_ps(fv, _mm256_sub_ps(v, grey)));
-            let tr = _mm256_round_ps::<{ _MM_FROUND_TO_ZERO | _MM_FROUND_NO_EXC }>(x);
-            let up = _mm256_and_ps(_mm256_cmp_ps::<_CMP_GE_OQ>(_mm256_sub_ps(x, tr), half), one);
-            let y = _mm256_min_ps(_mm256_max_ps(_mm256_add_ps(tr, up), zero), full);
-            _mm256_cvttps_epi32(y)
-        });
-        // SAFETY: AVX2 is enabled in this function.
-        unsafe { store_rgb8(px, out) };
+    // Two passes over blocks of groups of eight pixels, as in `shift_hue_avx2`: each
+    // pixel's grey, then the blends.
+    const GROUPS: usize = 16;
+    for block in rgb.chunks_mut(24 * GROUPS) {
+        let mut greys = [zero; GROUPS];
+        for (px, grey) in block.chunks_exact(24).zip(greys.iter_mut()) {
+            let px: &[u8; 24] = px.try_into().expect("chunks of 24");
+            // SAFETY: AVX2 is enabled in this function.
+            let rgb_lanes = unsafe { load_rgb8(px) };
+            let sum = _mm256_add_epi32(
+                _mm256_add_epi32(
+                    _mm256_mullo_epi32(rgb_lanes[0], weight[0]),
+                    _mm256_mullo_epi32(rgb_lanes[1], weight[1]),
+                ),
+                _mm256_mullo_epi32(rgb_lanes[2], weight[2]),
+            );
+            let quotient = _mm256_div_ps(_mm256_cvtepi32_ps(sum), _mm256_set1_ps(1000.0));
+            *grey = _mm256_cvtepi32_ps(_mm256_cvttps_epi32(quotient));
+        }
+        for (px, &grey) in block.chunks_exact_mut(24).zip(greys.iter()) {
+            let px: &mut [u8; 24] = px.try_into().expect("chunks of 24");
+            // SAFETY: AVX2 is enabled in this function.
+            let rgb_lanes = unsafe { load_rgb8(px) };
+            let out = rgb_lanes.map(|v| {
+                let v = _mm256_cvtepi32_ps(v);
+                let x = _mm256_add_ps(grey, _mm256_mul_ps(fv, _mm256_sub_ps(v, grey)));
+                let tr = _mm256_round_ps::<{ _MM_FROUND_TO_ZERO | _MM_FROUND_NO_EXC }>(x);
+                let up =
+                    _mm256_and_ps(_mm256_cmp_ps::<_CMP_GE_OQ>(_mm256_sub_ps(x, tr), half), one);
+                let y = _mm256_min_ps(_mm256_max_ps(_mm256_add_ps(tr, up), zero), full);
+                _mm256_cvttps_epi32(y)
+            });
+            // SAFETY: AVX2 is enabled in this function.
+            unsafe { store_rgb8(px, out) };
+        }
     }
 }
 
