@@ -160,34 +160,81 @@ fn luma_sum(rgb: &[u8]) -> u64 {
         .sum::<u64>()
 }
 
-/// [`luma`] summed over groups of eight pixels (`rgb.len()` a multiple of 24), in AVX2.
-/// The division by 1000 is a float division truncated, as in [`saturate_avx2`] (exact
-/// for every weighted sum a pixel can have, `0..=255000`: tested on all of them); the
-/// lanes' sums are `u32`, emptied into the total every 2^13 groups (each group adds at
-/// most 255 a lane).
+/// [`luma`] of eight pixels (one channel a register, as [`load_rgb8`] gives them), in
+/// AVX2: the weighted sum in integers, its division by 1000 a float division truncated
+/// (for sums below 2^24 the quotient's fraction is at least 1/1000 from the next
+/// integer, far more than a float's rounding; tested on every sum a pixel can have,
+/// `0..=255000`).
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+#[inline]
+fn luma_lanes([r, g, b]: [std::arch::x86_64::__m256i; 3]) -> std::arch::x86_64::__m256i {
+    use std::arch::x86_64::*;
+    let weighted = |v: __m256i, w: i32| _mm256_mullo_epi32(v, _mm256_set1_epi32(w));
+    let sum = _mm256_add_epi32(
+        _mm256_add_epi32(weighted(r, 299), weighted(g, 587)),
+        weighted(b, 114),
+    );
+    _mm256_cvttps_epi32(_mm256_div_ps(
+        _mm256_cvtepi32_ps(sum),
+        _mm256_set1_ps(1000.0),
+    ))
+}
+
+/// [`blend`] on eight lanes, in AVX2: `grey + f (v - grey)` in `f32`, then
+/// [`round_byte_lanes`].
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+#[inline]
+fn blend_lanes(
+    v: std::arch::x86_64::__m256,
+    grey: std::arch::x86_64::__m256,
+    f: std::arch::x86_64::__m256,
+) -> std::arch::x86_64::__m256i {
+    use std::arch::x86_64::*;
+    round_byte_lanes(_mm256_add_ps(
+        grey,
+        _mm256_mul_ps(f, _mm256_sub_ps(v, grey)),
+    ))
+}
+
+/// `round_half_away(x).clamp(0.0, 255.0)` on eight lanes, as `i32`, in AVX2: the
+/// truncation, one up where the fraction is at least a half. A negative value is
+/// truncated toward zero instead of rounded away from it; both clamp to 0, as does
+/// every value below 0.5.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+#[inline]
+fn round_byte_lanes(x: std::arch::x86_64::__m256) -> std::arch::x86_64::__m256i {
+    use std::arch::x86_64::*;
+    let (zero, one) = (_mm256_setzero_ps(), _mm256_set1_ps(1.0));
+    let tr = _mm256_round_ps::<{ _MM_FROUND_TO_ZERO | _MM_FROUND_NO_EXC }>(x);
+    let up = _mm256_and_ps(
+        _mm256_cmp_ps::<_CMP_GE_OQ>(_mm256_sub_ps(x, tr), _mm256_set1_ps(0.5)),
+        one,
+    );
+    let y = _mm256_min_ps(
+        _mm256_max_ps(_mm256_add_ps(tr, up), zero),
+        _mm256_set1_ps(255.0),
+    );
+    _mm256_cvttps_epi32(y)
+}
+
+/// [`luma`] summed over groups of eight pixels (`rgb.len()` a multiple of 24), in AVX2
+/// ([`luma_lanes`]); the lanes' sums are `u32`, emptied into the total every 2^13 groups
+/// (each group adds at most 255 a lane).
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2")]
 unsafe fn luma_sum_avx2(rgb: &[u8]) -> u64 {
     use std::arch::x86_64::*;
-    let weight = [299, 587, 114].map(|w| _mm256_set1_epi32(w));
-    let thousand = _mm256_set1_ps(1000.0);
     let mut total = 0u64;
     for part in rgb.chunks(24 << 13) {
         let mut lanes = _mm256_setzero_si256();
         for px in part.chunks_exact(24) {
             let px: &[u8; 24] = px.try_into().expect("chunks of 24");
             // SAFETY: AVX2 is enabled here.
-            let [r, g, b] = unsafe { crate::rgb_lanes::load_rgb8(px) };
-            let s = _mm256_add_epi32(
-                _mm256_add_epi32(
-                    _mm256_mullo_epi32(r, weight[0]),
-                    _mm256_mullo_epi32(g, weight[1]),
-                ),
-                _mm256_mullo_epi32(b, weight[2]),
-            );
-            let quotient = _mm256_div_ps(_mm256_cvtepi32_ps(s), thousand);
-            let l = _mm256_cvttps_epi32(quotient);
-            lanes = _mm256_add_epi32(lanes, l);
+            let pixels = unsafe { load_rgb8(px) };
+            lanes = _mm256_add_epi32(lanes, luma_lanes(pixels));
         }
         let mut out = [0u32; 8];
         // SAFETY: an unaligned store of eight u32 into `out`.
@@ -223,27 +270,20 @@ fn blend_bytes(bytes: &mut [u8], grey: f32, f: f32) {
     }
 }
 
-/// [`blend`] on groups of 32 bytes (`bytes.len()` a multiple of 32), in AVX2: the
-/// same `grey + f * (v - grey)` in `f32`, rounded as [`saturate_avx2`] rounds.
+/// [`blend`] on groups of 32 bytes (`bytes.len()` a multiple of 32), in AVX2
+/// ([`blend_lanes`]).
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2")]
 unsafe fn blend_bytes_avx2(bytes: &mut [u8], grey: f32, f: f32) {
     use std::arch::x86_64::*;
     let (fv, gv) = (_mm256_set1_ps(f), _mm256_set1_ps(grey));
-    let (zero, one) = (_mm256_setzero_ps(), _mm256_set1_ps(1.0));
-    let (half, full) = (_mm256_set1_ps(0.5), _mm256_set1_ps(255.0));
     let in_order = _mm256_setr_epi32(0, 4, 1, 5, 2, 6, 3, 7);
     for chunk in bytes.chunks_exact_mut(32) {
         let p = chunk.as_mut_ptr();
         let q: [__m256i; 4] = std::array::from_fn(|k| {
             // SAFETY: an unaligned load of bytes 8k..8k+8 of the 32-byte chunk.
             let v = unsafe { _mm_loadl_epi64(p.add(8 * k).cast()) };
-            let v = _mm256_cvtepi32_ps(_mm256_cvtepu8_epi32(v));
-            let x = _mm256_add_ps(gv, _mm256_mul_ps(fv, _mm256_sub_ps(v, gv)));
-            let tr = _mm256_round_ps::<{ _MM_FROUND_TO_ZERO | _MM_FROUND_NO_EXC }>(x);
-            let up = _mm256_and_ps(_mm256_cmp_ps::<_CMP_GE_OQ>(_mm256_sub_ps(x, tr), half), one);
-            let y = _mm256_min_ps(_mm256_max_ps(_mm256_add_ps(tr, up), zero), full);
-            _mm256_cvttps_epi32(y)
+            blend_lanes(_mm256_cvtepi32_ps(_mm256_cvtepu8_epi32(v)), gv, fv)
         });
         // Packed lane by lane, then the dwords (four bytes each) put back in order.
         let words = (
@@ -410,56 +450,29 @@ fn saturate_all(rgb: &mut [u8], f: f32) {
     }
 }
 
-/// [`saturate`] on groups of eight pixels (`rgb.len()` a multiple of 24), in AVX2.
-/// The luma's integer division is a float division truncated: for sums below 2^24 the
-/// quotient's fraction is at least 1/1000 from the next integer, far more than a
-/// float's rounding, so the truncation is the integer quotient (tested on every triple).
-/// A negative blend is truncated toward zero instead of rounded away from it; both
-/// clamp to 0, as does every value below 0.5.
+/// [`saturate`] on groups of eight pixels (`rgb.len()` a multiple of 24), in AVX2: each
+/// pixel's luma ([`luma_lanes`]), then its channels blended with it ([`blend_lanes`]).
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2")]
 unsafe fn saturate_avx2(rgb: &mut [u8], f: f32) {
     use std::arch::x86_64::*;
     let fv = _mm256_set1_ps(f);
-    let (zero, one) = (_mm256_setzero_ps(), _mm256_set1_ps(1.0));
-    let (half, full) = (_mm256_set1_ps(0.5), _mm256_set1_ps(255.0));
-    let weight = [
-        _mm256_set1_epi32(299),
-        _mm256_set1_epi32(587),
-        _mm256_set1_epi32(114),
-    ];
     // Two passes over blocks of groups of eight pixels, as in `shift_hue_avx2`: each
     // pixel's grey, then the blends.
     const GROUPS: usize = 16;
     for block in rgb.chunks_mut(24 * GROUPS) {
-        let mut greys = [zero; GROUPS];
+        let mut greys = [_mm256_setzero_ps(); GROUPS];
         for (px, grey) in block.chunks_exact(24).zip(greys.iter_mut()) {
             let px: &[u8; 24] = px.try_into().expect("chunks of 24");
             // SAFETY: AVX2 is enabled in this function.
-            let rgb_lanes = unsafe { load_rgb8(px) };
-            let sum = _mm256_add_epi32(
-                _mm256_add_epi32(
-                    _mm256_mullo_epi32(rgb_lanes[0], weight[0]),
-                    _mm256_mullo_epi32(rgb_lanes[1], weight[1]),
-                ),
-                _mm256_mullo_epi32(rgb_lanes[2], weight[2]),
-            );
-            let quotient = _mm256_div_ps(_mm256_cvtepi32_ps(sum), _mm256_set1_ps(1000.0));
-            *grey = _mm256_cvtepi32_ps(_mm256_cvttps_epi32(quotient));
+            let pixels = unsafe { load_rgb8(px) };
+            *grey = _mm256_cvtepi32_ps(luma_lanes(pixels));
         }
         for (px, &grey) in block.chunks_exact_mut(24).zip(greys.iter()) {
             let px: &mut [u8; 24] = px.try_into().expect("chunks of 24");
             // SAFETY: AVX2 is enabled in this function.
-            let rgb_lanes = unsafe { load_rgb8(px) };
-            let out = rgb_lanes.map(|v| {
-                let v = _mm256_cvtepi32_ps(v);
-                let x = _mm256_add_ps(grey, _mm256_mul_ps(fv, _mm256_sub_ps(v, grey)));
-                let tr = _mm256_round_ps::<{ _MM_FROUND_TO_ZERO | _MM_FROUND_NO_EXC }>(x);
-                let up =
-                    _mm256_and_ps(_mm256_cmp_ps::<_CMP_GE_OQ>(_mm256_sub_ps(x, tr), half), one);
-                let y = _mm256_min_ps(_mm256_max_ps(_mm256_add_ps(tr, up), zero), full);
-                _mm256_cvttps_epi32(y)
-            });
+            let pixels = unsafe { load_rgb8(px) };
+            let out = pixels.map(|v| blend_lanes(_mm256_cvtepi32_ps(v), grey, fv));
             // SAFETY: AVX2 is enabled in this function.
             unsafe { store_rgb8(px, out) };
         }
@@ -556,7 +569,7 @@ unsafe fn shift_hue_avx2(rgb: &mut [u8], h: f32) {
         _mm256_set1_ps(1.0),
         _mm256_set1_ps(6.0),
     );
-    let (half, full) = (_mm256_set1_ps(0.5), _mm256_set1_ps(255.0));
+    let full = _mm256_set1_ps(255.0);
     let hv = _mm256_set1_ps(h);
     // `wrap_once(x, m)` lane by lane.
     let wrap = |x: __m256, m: __m256| {
@@ -612,14 +625,7 @@ unsafe fn shift_hue_avx2(rgb: &mut [u8], h: f32) {
             let odd = _mm256_castsi256_ps(_mm256_slli_epi32::<31>(i));
             let factor = _mm256_blendv_ps(_mm256_sub_ps(one, f), f, odd);
             let mid = _mm256_mul_ps(max, _mm256_sub_ps(one, _mm256_mul_ps(sat, factor)));
-            // round_half_away for the non-negative value here, then the clamp.
-            let v = _mm256_mul_ps(mid, full);
-            let tr = _mm256_cvtepi32_ps(_mm256_cvttps_epi32(v));
-            let up = _mm256_and_ps(_mm256_cmp_ps::<_CMP_GE_OQ>(_mm256_sub_ps(v, tr), half), one);
-            let mid = _mm256_cvttps_epi32(_mm256_min_ps(
-                _mm256_max_ps(_mm256_add_ps(tr, up), zero),
-                full,
-            ));
+            let mid = round_byte_lanes(_mm256_mul_ps(mid, full));
             let [rb, gb, bb] = bytes;
             let high = _mm256_max_epi32(_mm256_max_epi32(rb, gb), bb);
             let low = _mm256_min_epi32(_mm256_min_epi32(rb, gb), bb);
