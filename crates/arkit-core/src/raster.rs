@@ -237,12 +237,8 @@ impl TriangleSetup {
         // per triangle (the choice and the top-left tests were computed as selects).
         let sign = if clockwise { -1 } else { 1 };
         for k in 0..3 {
-            let (a, b) = ((k + 1) % 3, (k + 2) % 3);
-            let (ax, ay, bx, by) = (px[a], py[a], px[b], py[b]);
-            // E(p) = (px - ax) * (by - ay) - (py - ay) * (bx - ax), times the sign: its
-            // increments per pixel along x and down y, over ONE.
-            let (ex, ey) = (sign * (by - ay), sign * (ax - bx));
-            e0[k] = (cx - ax) * ex + (cy - ay) * ey;
+            let (ex, ey) = edge_slopes(&px, &py, k, sign);
+            e0[k] = edge_value(&px, &py, k, (ex, ey), (cx, cy));
             dx[k] = ex * ONE;
             dy[k] = ey * ONE;
             // Top-left rule: a centre exactly on the edge (E = 0) is inside only on a
@@ -382,29 +378,31 @@ impl TriangleSetup {
         });
     }
 
+    /// Depth-tested coverage without the fragments: as [`TriangleSetup::for_each_nearer`]
+    /// (the same depth keys, tests and stores into `depth`), calling `emit(idx)` where a
+    /// pixel passes. The barycentrics are left to [`VisibilityBuffer::fragment_at`], for
+    /// the pixels a caller needs.
+    pub fn for_each_nearer_key(
+        &self,
+        depth: &mut [f32],
+        width: usize,
+        mut emit: impl FnMut(usize),
+    ) {
+        let inv_area = 1.0 / self.area2 as f64;
+        let w = self.inv_w.map(|v| v as f64 * inv_area);
+        self.walk(|x, y, e| {
+            let key = (e[0] as f64 * w[0] + e[1] as f64 * w[1] + e[2] as f64 * w[2]) as f32;
+            let idx = y as usize * width + x as usize;
+            if key > depth[idx] {
+                depth[idx] = key;
+                emit(idx);
+            }
+        });
+    }
+
     #[inline]
     fn fragment(&self, x: u32, y: u32, e: [i64; 3], inv_area: f64) -> Fragment {
-        // One reciprocal per triangle instead of three divisions per pixel (the
-        // interpolation was about half of the visibility stage's time at crop size).
-        let l = [
-            e[0] as f64 * inv_area,
-            e[1] as f64 * inv_area,
-            e[2] as f64 * inv_area,
-        ];
-        let pw = [
-            l[0] * self.inv_w[0] as f64,
-            l[1] * self.inv_w[1] as f64,
-            l[2] * self.inv_w[2] as f64,
-        ];
-        let inv_w = pw[0] + pw[1] + pw[2];
-        let r = 1.0 / inv_w;
-        Fragment {
-            x,
-            y,
-            bary: [(pw[0] * r) as f32, (pw[1] * r) as f32, (pw[2] * r) as f32],
-            screen_bary: [l[0] as f32, l[1] as f32, l[2] as f32],
-            inv_w: inv_w as f32,
-        }
+        fragment_of(self.inv_w, x, y, e, inv_area)
     }
 
     /// The clipped pixel box `(x0, y0, x1, y1)`, inclusive.
@@ -635,6 +633,51 @@ impl ScalarRowCoverage {
 #[cfg(not(target_arch = "x86_64"))]
 use ScalarRowCoverage as RowCoverage;
 
+/// The fragment at pixel `(x, y)` of a triangle whose vertices have `1 / w` of
+/// `inv_w`, from its edge values `e` there and `1 / area2` (`inv_area`): the weights
+/// are the edge values over the area, made perspective-correct through the `1 / w`.
+#[inline(always)]
+fn fragment_of(inv_w: [f32; 3], x: u32, y: u32, e: [i64; 3], inv_area: f64) -> Fragment {
+    // One reciprocal per triangle instead of three divisions per pixel (the
+    // interpolation was about half of the visibility stage's time at crop size).
+    let l = [
+        e[0] as f64 * inv_area,
+        e[1] as f64 * inv_area,
+        e[2] as f64 * inv_area,
+    ];
+    let pw = [
+        l[0] * inv_w[0] as f64,
+        l[1] * inv_w[1] as f64,
+        l[2] * inv_w[2] as f64,
+    ];
+    let inv_w = pw[0] + pw[1] + pw[2];
+    let r = 1.0 / inv_w;
+    Fragment {
+        x,
+        y,
+        bary: [(pw[0] * r) as f32, (pw[1] * r) as f32, (pw[2] * r) as f32],
+        screen_bary: [l[0] as f32, l[1] as f32, l[2] as f32],
+        inv_w: inv_w as f32,
+    }
+}
+
+/// Edge `k`'s (from vertex `k + 1` to `k + 2`, opposite vertex `k`) function
+/// `E(p) = (px - ax) (by - ay) - (py - ay) (bx - ax)` times `sign`: its increments
+/// per fixed-point unit along x and down y.
+#[inline(always)]
+fn edge_slopes(px: &[i64; 3], py: &[i64; 3], k: usize, sign: i64) -> (i64, i64) {
+    let (a, b) = ((k + 1) % 3, (k + 2) % 3);
+    (sign * (py[b] - py[a]), sign * (px[a] - px[b]))
+}
+
+/// Edge `k`'s function (slopes `(ex, ey)`, [`edge_slopes`]) at fixed-point point `c`:
+/// exact integers, so equal to the value stepped there pixel by pixel.
+#[inline(always)]
+fn edge_value(px: &[i64; 3], py: &[i64; 3], k: usize, (ex, ey): (i64, i64), c: (i64, i64)) -> i64 {
+    let a = (k + 1) % 3;
+    (c.0 - px[a]) * ex + (c.1 - py[a]) * ey
+}
+
 /// Steps three edge values by their increments.
 #[inline(always)]
 fn step(e: &mut [i64; 3], by: [i64; 3]) {
@@ -786,6 +829,82 @@ impl VisibilityBuffer {
     /// Number of covered pixels.
     pub fn covered_pixels(&self) -> usize {
         self.triangle.iter().filter(|&&t| t != Self::EMPTY).count()
+    }
+
+    /// [`VisibilityBuffer::rasterize_mesh`] without the weights: fills `triangle` and
+    /// `inv_w` with the same values and leaves `bary` as it was (not this mesh's
+    /// weights). Computing and storing a fragment's weights is most of a visible
+    /// pixel's cost, and a caller that needs them at a few pixels computes those with
+    /// [`VisibilityBuffer::fragment_at`].
+    pub fn rasterize_visibility(
+        &mut self,
+        vertices: &[ScreenVertex],
+        triangles: &[[u32; 3]],
+    ) -> Result<(), BadTriangle> {
+        check_indices(vertices.len(), triangles)?;
+        if !viewport_ok(self.width, self.height) {
+            return Ok(());
+        }
+        let width = self.width as usize;
+        let fixed: Vec<Option<FixedVertex>> =
+            vertices.iter().map(|&p| FixedVertex::new(p)).collect();
+        for (ti, t) in triangles.iter().enumerate() {
+            let (Some(a), Some(b), Some(c)) = (
+                fixed[t[0] as usize],
+                fixed[t[1] as usize],
+                fixed[t[2] as usize],
+            ) else {
+                continue;
+            };
+            let Some(setup) =
+                TriangleSetup::from_fixed([a, b, c], self.width, self.height, self.culling)
+            else {
+                continue;
+            };
+            let n = self.triangle.len();
+            let (depth, triangle) = (&mut self.inv_w[..n], &mut self.triangle[..n]);
+            setup.for_each_nearer_key(depth, width, |idx| triangle[idx] = ti as u32);
+        }
+        Ok(())
+    }
+
+    /// The fragment [`VisibilityBuffer::rasterize_mesh`] gives pixel `(x, y)`, after
+    /// either it or [`VisibilityBuffer::rasterize_visibility`] filled the buffer from
+    /// `vertices` and `triangles`: the same operations on the triangle recorded there,
+    /// so the same bits (`inv_w` is the depth key the buffer holds). `None` where no
+    /// triangle covers the pixel or `(x, y)` is outside the buffer.
+    pub fn fragment_at(
+        &self,
+        vertices: &[ScreenVertex],
+        triangles: &[[u32; 3]],
+        x: u32,
+        y: u32,
+    ) -> Option<Fragment> {
+        if x >= self.width || y >= self.height {
+            return None;
+        }
+        let idx = self.index(x, y);
+        let t = triangles.get(self.triangle[idx] as usize)?;
+        let v = t.map(|i| vertices.get(i as usize).and_then(|&p| FixedVertex::new(p)));
+        let [Some(a), Some(b), Some(c)] = v else {
+            return None;
+        };
+        let (px, py) = ([a.x, b.x, c.x], [a.y, b.y, c.y]);
+        // As [`TriangleSetup::from_fixed`]: the orientation's sign, the edges' values
+        // (exact integers, as stepped to this pixel) and the area's reciprocal.
+        let area = (b.x - a.x) * (c.y - a.y) - (c.x - a.x) * (b.y - a.y);
+        let sign = if area > 0 { -1 } else { 1 };
+        let centre = (x as i64 * ONE + HALF, y as i64 * ONE + HALF);
+        let e = [0, 1, 2].map(|k| edge_value(&px, &py, k, edge_slopes(&px, &py, k, sign), centre));
+        let mut f = fragment_of(
+            [a.inv_w, b.inv_w, c.inv_w],
+            x,
+            y,
+            e,
+            1.0 / area.abs() as f64,
+        );
+        f.inv_w = self.inv_w[idx];
+        Some(f)
     }
 
     /// Rasterizes a mesh with the depth test, recording the nearest triangle per pixel.
@@ -1770,6 +1889,77 @@ mod tests {
         }
         assert!(
             drawn > 10_000,
+            "{drawn} pixels drawn: the cases must cover pixels"
+        );
+    }
+
+    #[test]
+    fn visibility_raster_and_fragments_at_pixels_give_the_full_rasters_bits() {
+        // Random overlapping meshes of small, large, thin and degenerate triangles of
+        // both windings, vertices at fractional and pixel-centre positions (edge values
+        // exactly 0, the top-left rule deciding), some behind the camera or off the
+        // viewport, with and without culling: the visibility raster holds the full
+        // raster's triangles and depths, leaves the weights alone, and the fragment
+        // computed at each covered pixel has the full raster's weights, bit for bit.
+        let mut r = Rng::new(31);
+        let mut drawn = 0usize;
+        for case in 0..300 {
+            let (w, h) = (4 + r.below(90) as u32, 4 + r.below(90) as u32);
+            let spread = [2.0, 8.0, 40.0][case % 3];
+            let snap = |v: f64| if case % 4 == 0 { v.round() + 0.5 } else { v };
+            let n = 20;
+            let mut vertices: Vec<ScreenVertex> = (0..n)
+                .map(|_| ScreenVertex {
+                    x: snap(r.uniform(-spread, w as f64 + spread)) as f32,
+                    y: snap(r.uniform(-spread, h as f64 + spread)) as f32,
+                    inv_w: r.uniform(0.2, 3.0) as f32,
+                })
+                .collect();
+            vertices[1] = vertices[0];
+            vertices[2].inv_w = if case % 5 == 0 {
+                -1.0
+            } else {
+                vertices[2].inv_w
+            };
+            let mut triangles: Vec<[u32; 3]> = (0..40)
+                .map(|_| [0; 3].map(|_| r.below(n as u64) as u32))
+                .collect();
+            triangles.push([0, 1, 3]);
+            let culling = if case % 2 == 0 {
+                Culling::None
+            } else {
+                Culling::BackFaces
+            };
+            let mut full = VisibilityBuffer::new(w, h);
+            full.culling = culling;
+            full.rasterize_mesh(&vertices, &triangles).unwrap();
+            let mut visible = VisibilityBuffer::new(w, h);
+            visible.culling = culling;
+            visible.bary.fill([7.0; 3]);
+            visible.rasterize_visibility(&vertices, &triangles).unwrap();
+            assert_eq!(visible.triangle, full.triangle, "case {case}");
+            let bits = |v: &[f32]| v.iter().map(|v| v.to_bits()).collect::<Vec<_>>();
+            assert_eq!(bits(&visible.inv_w), bits(&full.inv_w), "case {case}");
+            assert!(visible.bary.iter().all(|b| *b == [7.0; 3]), "case {case}");
+            for y in 0..h {
+                for x in 0..w {
+                    let i = full.index(x, y);
+                    let f = visible.fragment_at(&vertices, &triangles, x, y);
+                    if full.triangle[i] == VisibilityBuffer::EMPTY {
+                        assert!(f.is_none(), "case {case} pixel {x},{y}");
+                        continue;
+                    }
+                    drawn += 1;
+                    let f = f.expect("a covered pixel has a fragment");
+                    assert_eq!((f.x, f.y), (x, y));
+                    assert_eq!(f.bary.map(f32::to_bits), full.bary[i].map(f32::to_bits));
+                    assert_eq!(f.inv_w.to_bits(), full.inv_w[i].to_bits());
+                }
+            }
+            assert!(visible.fragment_at(&vertices, &triangles, w, 0).is_none());
+        }
+        assert!(
+            drawn > 50_000,
             "{drawn} pixels drawn: the cases must cover pixels"
         );
     }

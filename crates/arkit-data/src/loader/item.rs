@@ -55,6 +55,7 @@ use crate::render::face::{
     FaceRenderer, RasterMode, UvMapper, UvTexels, WindowMask, sample_points,
 };
 use crate::store::dataset::Dataset;
+use crate::store::face_targets::{canonical_position, mask_pixel_indices};
 use arkit_core::conventions::{Camera, Pose};
 use arkit_core::error::{Error, Result};
 use arkit_core::raster::{ScreenVertex, VisibilityBuffer};
@@ -1091,7 +1092,9 @@ impl FaceLoader {
             };
         }
         let mut buffer = self.take_buffer();
-        let t = self.renderer.render(
+        // The mask, then the correspondences at the sampled points only (the raster
+        // leaves the weights out): `render`'s targets there, bit for bit.
+        let t = self.renderer.render_visibility(
             verts,
             pose,
             row.sample.image_width,
@@ -1099,7 +1102,7 @@ impl FaceLoader {
             &crop,
             &mut buffer,
         )?;
-        let pixels = t.mask_pixels();
+        let pixels = mask_pixel_indices(&t.mask);
         if pixels.is_empty() {
             return Err(Error::invalid(
                 "crop",
@@ -1107,6 +1110,17 @@ impl FaceLoader {
             ));
         }
         let chosen = sample_points(pixels.len(), self.options.n_pts, rng.next_u64());
+        let correspondences = chosen
+            .iter()
+            .map(|&c| {
+                t.correspondence_at(pixels[c as usize]).ok_or_else(|| {
+                    Error::invalid(
+                        "crop",
+                        format!("a mask pixel of {} has no triangle", row.sample.key),
+                    )
+                })
+            })
+            .collect::<Result<Vec<_>>>()?;
         let mut rgb = source.crop(&crop, train, &row.sample.key)?;
         if train {
             jitter_colour(&mut rgb, rng);
@@ -1138,19 +1152,19 @@ impl FaceLoader {
             choose: chosen.iter().map(|&c| pixels[c as usize] as i64).collect(),
             model: Vec::new(),
             uvmap,
-            nocs: chosen
+            nocs: correspondences
                 .iter()
-                .flat_map(|&c| {
-                    let p = t.coordinate_at(verts, c as usize);
+                .flat_map(|&(v, w)| {
+                    let p = canonical_position(verts, v, w);
                     [p.x * 4.5, p.y * 4.5, p.z * 4.5]
                 })
                 .collect(),
             mask: t.mask.iter().map(|&m| m as u8).collect(),
-            corr_vertices: chosen
+            corr_vertices: correspondences
                 .iter()
-                .map(|&c| t.corr_vertices[c as usize].map(|v| v as u32))
+                .map(|(v, _)| v.map(|v| v as u32))
                 .collect(),
-            corr_weights: chosen.iter().map(|&c| t.corr_weights[c as usize]).collect(),
+            corr_weights: correspondences.iter().map(|&(_, w)| w).collect(),
             tform_inv: tform_inv(&crop),
             rt: row.sample.rt,
             crop,

@@ -130,7 +130,7 @@ impl FaceRenderer {
         if self.mode == RasterMode::Official {
             return self.render_official(verts, pose, width, height, crop, buffer);
         }
-        self.rasterize(verts, pose, width, height, Some(crop), buffer)?;
+        self.rasterize(verts, pose, width, height, Some(crop), buffer, true)?;
         let n_mesh = self.topology.triangles.len() as u32;
         let mask = face_mask(&buffer.triangle, n_mesh);
         let (corr_vertices, corr_weights) = self.correspondences(buffer, &mask);
@@ -139,6 +139,42 @@ impl FaceRenderer {
             mask,
             corr_vertices,
             corr_weights,
+        })
+    }
+
+    /// [`FaceRenderer::render`]'s mask in [`RasterMode::Exact`], with the
+    /// correspondences left to be computed at the pixels a caller needs
+    /// ([`CropVisibility::correspondence_at`]): the rasterizer records which triangle
+    /// each pixel shows and not its weights
+    /// ([`VisibilityBuffer::rasterize_visibility`]), which saves most of a visible
+    /// pixel's work when a few of the mask's pixels are used (the loader's sampled
+    /// points). The mask, and the correspondences wherever they are asked for, are
+    /// [`FaceRenderer::render`]'s, bit for bit (tested). `buffer` is reused between
+    /// calls and borrowed by the result. In [`RasterMode::Official`], whose targets go
+    /// through the whole image and a warp ([`FaceRenderer::render`]), an error.
+    pub fn render_visibility<'a>(
+        &'a self,
+        verts: &[Point3<f32>],
+        pose: &Pose,
+        width: u32,
+        height: u32,
+        crop: &CropTransform,
+        buffer: &'a mut VisibilityBuffer,
+    ) -> Result<CropVisibility<'a>> {
+        if self.mode != RasterMode::Exact {
+            return Err(Error::invalid(
+                "raster mode",
+                "render_visibility follows the exact rules; the official rules' targets come from render",
+            ));
+        }
+        let screen = self.rasterize(verts, pose, width, height, Some(crop), buffer, false)?;
+        let mask = face_mask(&buffer.triangle, self.topology.triangles.len() as u32);
+        Ok(CropVisibility {
+            crop: *crop,
+            mask,
+            screen,
+            triangles: &self.triangles,
+            buffer,
         })
     }
 
@@ -189,7 +225,7 @@ impl FaceRenderer {
                 "the official pipeline needs the official crop (corner sampling)",
             ));
         }
-        self.rasterize(verts, pose, width, height, None, buffer)?;
+        self.rasterize(verts, pose, width, height, None, buffer, true)?;
         let n_mesh = self.topology.triangles.len() as u32;
         let (w, h) = (width as i64, height as i64);
         let face_at = |x: i64, y: i64| -> Option<usize> {
@@ -282,7 +318,7 @@ impl FaceRenderer {
         height: u32,
         buffer: &mut VisibilityBuffer,
     ) -> Result<Vec<bool>> {
-        self.rasterize(verts, pose, width, height, None, buffer)?;
+        self.rasterize(verts, pose, width, height, None, buffer, true)?;
         Ok(self.face_pixels(buffer))
     }
 
@@ -367,7 +403,10 @@ impl FaceRenderer {
     }
 
     /// Projects the mesh and its hole fans and rasterizes them into `buffer` (resized to
-    /// the crop, or to the whole image when `crop` is `None`) with the renderer's rules.
+    /// the crop, or to the whole image when `crop` is `None`) with the renderer's rules:
+    /// with the weights, or in [`RasterMode::Exact`] without them (`weights`,
+    /// [`VisibilityBuffer::rasterize_visibility`]). Returns the vertices as drawn.
+    #[allow(clippy::too_many_arguments)]
     fn rasterize(
         &self,
         verts: &[Point3<f32>],
@@ -376,7 +415,8 @@ impl FaceRenderer {
         height: u32,
         crop: Option<&CropTransform>,
         buffer: &mut VisibilityBuffer,
-    ) -> Result<()> {
+        weights: bool,
+    ) -> Result<Vec<ScreenVertex>> {
         let mut screen = self.project(verts, pose, width, height)?;
         let (bw, bh) = match crop {
             Some(crop) => {
@@ -409,12 +449,14 @@ impl FaceRenderer {
             buffer.clear();
         }
         match self.mode {
-            RasterMode::Exact => buffer.rasterize_mesh(&screen, &self.triangles),
+            RasterMode::Exact if weights => buffer.rasterize_mesh(&screen, &self.triangles),
+            RasterMode::Exact => buffer.rasterize_visibility(&screen, &self.triangles),
             RasterMode::Official => {
                 arkit_core::raster::rasterize_mesh_official(buffer, &screen, &self.triangles)
             }
         }
-        .map_err(|e| Error::invalid("mesh", e.to_string()))
+        .map_err(|e| Error::invalid("mesh", e.to_string()))?;
+        Ok(screen)
     }
 }
 
@@ -430,6 +472,42 @@ fn check_viewport(width: u32, height: u32, what: &str) -> Result<()> {
         ));
     }
     Ok(())
+}
+
+/// A face's visibility in a crop ([`FaceRenderer::render_visibility`]): the mask of
+/// [`FaceRenderer::render`]'s targets, and its correspondences at the pixels asked for.
+#[derive(Debug)]
+pub struct CropVisibility<'a> {
+    /// The crop.
+    pub crop: CropTransform,
+    /// Face mask, row-major `size * size` ([`FaceTargets::mask`]).
+    pub mask: Vec<bool>,
+    /// The vertices (and hole centroids) as drawn, in crop pixels.
+    screen: Vec<ScreenVertex>,
+    /// The renderer's triangles (mesh, then hole fill), as the buffer indexes them.
+    triangles: &'a [[u32; 3]],
+    /// The raster: triangles and depths, no weights.
+    buffer: &'a VisibilityBuffer,
+}
+
+impl CropVisibility<'_> {
+    /// The correspondence at crop pixel `pixel` (row-major): the visible triangle's
+    /// three vertex ids and perspective-correct weights, the row
+    /// [`FaceRenderer::render`] gives that pixel in [`FaceTargets::corr_vertices`] and
+    /// [`FaceTargets::corr_weights`] (same bits). `None` where the pixel is not face
+    /// (or outside the crop).
+    pub fn correspondence_at(&self, pixel: u32) -> Option<([u16; 3], [f32; 3])> {
+        if !*self.mask.get(pixel as usize)? {
+            return None;
+        }
+        let width = self.buffer.width;
+        let (x, y) = (pixel % width, pixel / width);
+        let f = self
+            .buffer
+            .fragment_at(&self.screen, self.triangles, x, y)?;
+        let t = self.triangles[self.buffer.triangle[pixel as usize] as usize];
+        Some((t.map(|v| v as u16), f.bary))
+    }
 }
 
 /// A face mask over a window of a `width x height` image
@@ -1075,6 +1153,63 @@ mod tests {
                 assert!((w.iter().sum::<f32>() - 1.0).abs() < 1e-5);
             }
         }
+    }
+
+    #[test]
+    fn visibility_gives_renders_mask_and_correspondences_bit_for_bit() {
+        // Two paths: `render`'s targets (the raster's weights at every pixel), and the
+        // visibility raster with each correspondence computed at its pixel alone. Poses
+        // from frontal to a profile where the hole fans hide part of the cheek, crops of
+        // two sizes: the same mask, and at every mask pixel the same vertex ids and
+        // weight bits; nothing off the mask or the crop.
+        let (r, verts) = face();
+        let (mut full, mut visible) = (VisibilityBuffer::new(1, 1), VisibilityBuffer::new(1, 1));
+        let mut compared = 0;
+        for (yaw, pitch, roll, size) in [
+            (0.0, 0.0, 0.0, 192),
+            (35.0, -10.0, 20.0, 128),
+            (-70.0, 15.0, -40.0, 192),
+            (85.0, 5.0, 0.0, 96),
+        ] {
+            let pose = Pose::from_euler(
+                EulerAngles::new(yaw, pitch, roll),
+                Vector3::new(0.02, -0.01, -0.5),
+            );
+            let crop =
+                CropTransform::around_landmarks(&landmarks(&r, &verts, &pose, 800, 800), size);
+            let t = r.render(&verts, &pose, 800, 800, &crop, &mut full).unwrap();
+            let v = r
+                .render_visibility(&verts, &pose, 800, 800, &crop, &mut visible)
+                .unwrap();
+            assert_eq!(v.mask, t.mask, "yaw {yaw}");
+            assert_eq!(v.crop, t.crop);
+            for (k, &pixel) in t.mask_pixels().iter().enumerate() {
+                let (ids, weights) = v.correspondence_at(pixel).expect("a mask pixel");
+                assert_eq!(ids, t.corr_vertices[k], "yaw {yaw} pixel {pixel}");
+                assert_eq!(
+                    weights.map(f32::to_bits),
+                    t.corr_weights[k].map(f32::to_bits)
+                );
+                compared += 1;
+            }
+            let off = t.mask.iter().position(|&m| !m).unwrap() as u32;
+            assert_eq!(v.correspondence_at(off), None);
+            assert_eq!(v.correspondence_at(size * size), None);
+        }
+        assert!(compared > 20_000, "{compared}");
+        // The official rules' targets come only from `render`.
+        let mut official = r.clone();
+        official.mode = RasterMode::Official;
+        let pose = Pose::from_euler(
+            EulerAngles::new(0.0, 0.0, 0.0),
+            Vector3::new(0.0, 0.0, -0.5),
+        );
+        let crop = CropTransform::around_landmarks(&landmarks(&r, &verts, &pose, 800, 800), 64);
+        assert!(
+            official
+                .render_visibility(&verts, &pose, 800, 800, &crop, &mut visible)
+                .is_err()
+        );
     }
 
     #[test]

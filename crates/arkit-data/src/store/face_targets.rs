@@ -41,13 +41,18 @@ impl FaceTargets {
     /// The coordinate map at the `k`-th mask pixel alone (what
     /// [`FaceTargets::coordinate_map`] holds there), for callers that need a few points.
     pub fn coordinate_at(&self, verts: &[Point3<f32>], k: usize) -> Point3<f32> {
-        let (v, w) = (self.corr_vertices[k], self.corr_weights[k]);
-        Point3::from(
-            verts[v[0] as usize].coords * w[0]
-                + verts[v[1] as usize].coords * w[1]
-                + verts[v[2] as usize].coords * w[2],
-        )
+        canonical_position(verts, self.corr_vertices[k], self.corr_weights[k])
     }
+}
+
+/// The canonical position a correspondence row names: `sum_k w_k V_k` over its three
+/// vertex ids `v` and weights `w`.
+pub(crate) fn canonical_position(verts: &[Point3<f32>], v: [u16; 3], w: [f32; 3]) -> Point3<f32> {
+    Point3::from(
+        verts[v[0] as usize].coords * w[0]
+            + verts[v[1] as usize].coords * w[1]
+            + verts[v[2] as usize].coords * w[2],
+    )
 }
 
 /// The row-major indices of a mask's set pixels, in order (the rows of the stored
