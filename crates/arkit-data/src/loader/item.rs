@@ -1126,24 +1126,10 @@ impl FaceLoader {
             jitter_colour(&mut rgb, rng);
         }
         let extended = self.uv.extended_positions(verts);
-        let map = self.uv_texels.position_map(&extended);
         let n = (s * s) as usize;
-        assert_eq!(map.len(), n, "one position per texel");
+        // Positions times 9 clamped to [-1, 1], uncovered texels -1.
         let uvmap = planes.uvmap(3 * n, |uvmap| {
-            let (u, rest) = uvmap.split_at_mut(n);
-            let (v, w) = rest.split_at_mut(n);
-            for (((p, u), v), w) in map.iter().zip(u).zip(v).zip(w) {
-                // An uncovered texel (NaN) is -1.
-                let covered = !p[0].is_nan();
-                let value = |c: f32| {
-                    if covered {
-                        (c * 9.0).clamp(-1.0, 1.0)
-                    } else {
-                        -1.0
-                    }
-                };
-                (*u, *v, *w) = (value(p[0]), value(p[1]), value(p[2]));
-            }
+            self.uv_texels.clamped_planes_into(&extended, 9.0, uvmap)
         });
         Ok(LoaderItem {
             key: row.sample.key.clone(),

@@ -834,9 +834,15 @@ impl UvMapper {
             triangles: Vec::new(),
             ends: Vec::new(),
             index: Vec::with_capacity(covered.len()),
+            layout: next_layout_id(),
             weights: Vec::with_capacity(covered.len()),
         };
-        for group in covered.chunk_by(|a, b| a.0 == b.0) {
+        // The groups in the order of their first texel: the writes then sweep the map
+        // from top to bottom, a few rows at a time, instead of landing anywhere in it
+        // in the layout's triangle order (each texel is written once either way).
+        let mut groups: Vec<&[(u32, u32)]> = covered.chunk_by(|a, b| a.0 == b.0).collect();
+        groups.sort_unstable_by_key(|g| g[0].1);
+        for group in groups {
             texels.triangles.push(self.triangles[group[0].0 as usize]);
             for &(_, i) in group {
                 texels.index.push(i);
@@ -899,6 +905,10 @@ pub struct UvTexels {
     ends: Vec<u32>,
     /// Row-major index of each covered texel.
     index: Vec<u32>,
+    /// This table's identity, shared by its clones (which cover the same texels): a
+    /// position map kept for it has NaN on every texel it leaves uncovered
+    /// ([`UvTexels::clamped_planes_into`]).
+    layout: u64,
     /// Each covered texel's three weights (and a zero), for one aligned load.
     weights: Vec<TexelWeights>,
 }
@@ -932,6 +942,14 @@ impl UvTexels {
     /// bits of one coordinate at a time (tested). Measurements: `docs/performance.md`
     /// ("The UV position map").
     pub fn position_map(&self, extended: &[Point3<f32>]) -> Vec<[f32; 3]> {
+        let mut out = vec![[f32::NAN; 3]; self.size as usize * self.size as usize];
+        self.fill_covered(extended, &mut out);
+        out
+    }
+
+    /// The covered texels of [`UvTexels::position_map`] written into `out` (one per
+    /// texel of the map), the others left as they are, by the fastest path the CPU has.
+    fn fill_covered(&self, extended: &[Point3<f32>], out: &mut [[f32; 3]]) {
         assert_eq!(
             extended.len(),
             self.extended_vertices,
@@ -940,18 +958,54 @@ impl UvTexels {
         #[cfg(target_arch = "x86_64")]
         {
             let padded = padded_positions(extended);
-            let n = self.size as usize * self.size as usize;
-            let mut out = vec![[f32::NAN; 3]; n];
             if std::arch::is_x86_feature_detected!("avx") {
                 // SAFETY: the CPU has AVX (detected just above).
-                unsafe { self.fill_avx(&padded, &mut out) }
+                unsafe { self.fill_avx(&padded, out) }
             } else {
-                self.fill_sse2(&padded, &mut out)
+                self.fill_sse2(&padded, out)
             }
-            out
         }
         #[cfg(not(target_arch = "x86_64"))]
-        self.position_map_scalar(extended)
+        self.fill_scalar(extended, out);
+    }
+
+    /// The position map scaled for a network's input, channels first: each coordinate
+    /// of [`UvTexels::position_map`] times `scale`, clamped to [-1, 1]; a texel without
+    /// a position (uncovered, or whose x is NaN, the map's mark for it) is -1 in all
+    /// three planes. Written into `out` (`3 x size x size` values) in one pass over a
+    /// position map the thread keeps for this table (no allocation; NaN where the
+    /// table covers nothing, its covered texels drawn anew each call), eight texels at
+    /// a time where the CPU has AVX. The same bits as mapping
+    /// [`UvTexels::position_map`] one value at a time (tested).
+    ///
+    /// # Panics
+    /// When `extended` is not one position per UV vertex or `out` not `3 x size x size`.
+    pub fn clamped_planes_into(&self, extended: &[Point3<f32>], scale: f32, out: &mut [f32]) {
+        thread_local! {
+            /// The last table's identity and a position map for it: NaN wherever that
+            /// table covers nothing (no texel of it is ever written there).
+            static MAP: std::cell::RefCell<(u64, Vec<[f32; 3]>)> =
+                const { std::cell::RefCell::new((u64::MAX, Vec::new())) };
+        }
+        let n = self.size as usize * self.size as usize;
+        assert_eq!(out.len(), 3 * n, "a 3 x size x size map");
+        let (u, rest) = out.split_at_mut(n);
+        let (v, w) = rest.split_at_mut(n);
+        MAP.with_borrow_mut(|(layout, map)| {
+            if *layout != self.layout || map.len() != n {
+                map.clear();
+                map.resize(n, [f32::NAN; 3]);
+                *layout = self.layout;
+            }
+            self.fill_covered(extended, map);
+            #[cfg(target_arch = "x86_64")]
+            if std::arch::is_x86_feature_detected!("avx") {
+                // SAFETY: the CPU has AVX (detected just above).
+                unsafe { clamp_planes_avx(map, scale, [u, v, w]) };
+                return;
+            }
+            clamp_planes_scalar(map, scale, [u, v, w]);
+        });
     }
 
     /// Checks the buffers of [`UvTexels::fill_sse2`] and [`UvTexels::fill_avx`]: one
@@ -1044,6 +1098,13 @@ impl UvTexels {
     #[cfg_attr(target_arch = "x86_64", allow(dead_code))]
     fn position_map_scalar(&self, extended: &[Point3<f32>]) -> Vec<[f32; 3]> {
         let mut out = vec![[f32::NAN; 3]; self.size as usize * self.size as usize];
+        self.fill_scalar(extended, &mut out);
+        out
+    }
+
+    /// [`UvTexels::fill_covered`] one coordinate at a time.
+    #[cfg_attr(target_arch = "x86_64", allow(dead_code))]
+    fn fill_scalar(&self, extended: &[Point3<f32>], out: &mut [[f32; 3]]) {
         let mut start = 0;
         for (v, &end) in self.triangles.iter().zip(&self.ends) {
             let range = start..end as usize;
@@ -1055,8 +1116,87 @@ impl UvTexels {
                 out[i as usize] = [p.x, p.y, p.z];
             }
         }
-        out
     }
+}
+
+/// A new identity for a [`UvTexels`] table.
+fn next_layout_id() -> u64 {
+    static NEXT: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
+    NEXT.fetch_add(1, std::sync::atomic::Ordering::Relaxed)
+}
+
+/// A position map (row-major `[x, y, z]`) into three planes: each coordinate times
+/// `scale`, clamped to [-1, 1] (`f32::clamp`: NaN stays NaN), and the whole texel -1
+/// where x is NaN (an uncovered texel). Texels from `start` on (the others are left
+/// as they are). The definition [`clamp_planes_avx`] is tested against.
+fn clamp_planes_from(map: &[[f32; 3]], start: usize, scale: f32, planes: [&mut [f32]; 3]) {
+    let [u, v, w] = planes;
+    for (i, p) in map.iter().enumerate().skip(start) {
+        let value = |c: f32| {
+            if p[0].is_nan() {
+                -1.0
+            } else {
+                (c * scale).clamp(-1.0, 1.0)
+            }
+        };
+        (u[i], v[i], w[i]) = (value(p[0]), value(p[1]), value(p[2]));
+    }
+}
+
+/// [`clamp_planes_from`] over the whole map.
+fn clamp_planes_scalar(map: &[[f32; 3]], scale: f32, planes: [&mut [f32]; 3]) {
+    clamp_planes_from(map, 0, scale, planes)
+}
+
+/// [`clamp_planes_scalar`] eight texels at a time in AVX lanes: the 24 floats split
+/// into x, y and z by shuffles within each 128-bit half, the same multiply, `max` and
+/// `min` in the order that keeps a NaN (`max_ps` and `min_ps` return their second
+/// operand on NaN), and a blend to -1 where x is NaN; the last texels one at a time.
+///
+/// # Safety
+/// The CPU must have AVX.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx")]
+unsafe fn clamp_planes_avx(map: &[[f32; 3]], scale: f32, planes: [&mut [f32]; 3]) {
+    use std::arch::x86_64::*;
+    let n = map.len();
+    assert!(planes.iter().all(|p| p.len() == n));
+    let [u, v, w] = planes;
+    let src = map.as_ptr().cast::<f32>();
+    let (k, lo, hi) = (
+        _mm256_set1_ps(scale),
+        _mm256_set1_ps(-1.0),
+        _mm256_set1_ps(1.0),
+    );
+    let mut i = 0;
+    while i + 8 <= n {
+        // SAFETY: texels i..i + 8 are within `map` and each plane (checked above); the
+        // CPU has AVX (the caller's promise).
+        unsafe {
+            let p = src.add(3 * i);
+            let half = |a: usize, b: usize| {
+                let low = _mm256_castps128_ps256(_mm_loadu_ps(p.add(a)));
+                _mm256_insertf128_ps::<1>(low, _mm_loadu_ps(p.add(b)))
+            };
+            // Per half: [x0 y0 z0 x1], [y1 z1 x2 y2], [z2 x3 y3 z3].
+            let (a, b, c) = (half(0, 12), half(4, 16), half(8, 20));
+            let xy = _mm256_shuffle_ps::<0b10_01_11_10>(b, c); // x2 y2 x3 y3
+            let yz = _mm256_shuffle_ps::<0b01_00_10_01>(a, b); // y0 z0 y1 z1
+            let x = _mm256_shuffle_ps::<0b10_00_11_00>(a, xy);
+            let y = _mm256_shuffle_ps::<0b11_01_10_00>(yz, xy);
+            let z = _mm256_shuffle_ps::<0b11_00_11_01>(yz, c);
+            let nan_x = _mm256_cmp_ps::<_CMP_UNORD_Q>(x, x);
+            let value = |c: __m256| {
+                let r = _mm256_min_ps(hi, _mm256_max_ps(lo, _mm256_mul_ps(c, k)));
+                _mm256_blendv_ps(r, lo, nan_x)
+            };
+            _mm256_storeu_ps(u.as_mut_ptr().add(i), value(x));
+            _mm256_storeu_ps(v.as_mut_ptr().add(i), value(y));
+            _mm256_storeu_ps(w.as_mut_ptr().add(i), value(z));
+        }
+        i += 8;
+    }
+    clamp_planes_from(map, i, scale, [u, v, w]);
 }
 
 /// Positions padded to four floats, for one four-float load each.
@@ -1316,6 +1456,83 @@ mod tests {
                     "size {size} texel {i}"
                 );
             }
+        }
+    }
+
+    #[test]
+    fn clamped_uv_planes_are_the_position_map_mapped() {
+        // The planes (AVX lanes where the CPU has them, and the scalar path) against
+        // mapping the position map texel by texel, bit for bit: positions scaled past the clamp on
+        // both sides, -0.0, and NaN in x (the whole texel -1) or in y alone (NaN kept).
+        let (r, verts) = face();
+        let uv = UvMapper::derive(r.topology()).unwrap();
+        let mut rng = Rng::new(11);
+        let mut ext = uv.extended_positions(&verts);
+        for p in ext.iter_mut().step_by(7) {
+            *p = Point3::new(
+                rng.uniform(-0.3, 0.3) as f32,
+                rng.uniform(-0.3, 0.3) as f32,
+                -0.0,
+            );
+        }
+        ext[3].x = f32::NAN;
+        ext[10].y = f32::NAN;
+        for (size, scale) in [(64, 9.0), (17, 9.0), (96, 30.0)] {
+            let t = uv.texels(size);
+            let n = (size * size) as usize;
+            let want: Vec<f32> = (0..3)
+                .flat_map(|k| {
+                    t.position_map_scalar(&ext).into_iter().map(move |p| {
+                        if p[0].is_nan() {
+                            -1.0
+                        } else {
+                            (p[k] * scale).clamp(-1.0, 1.0)
+                        }
+                    })
+                })
+                .collect();
+            let bits = |m: &[f32]| -> Vec<u32> { m.iter().map(|v| v.to_bits()).collect() };
+            let mut fast = vec![7.0; 3 * n];
+            t.clamped_planes_into(&ext, scale, &mut fast);
+            assert_eq!(bits(&fast), bits(&want), "size {size}");
+            let mut slow = vec![7.0; 3 * n];
+            let (u, rest) = slow.split_at_mut(n);
+            let (v, w) = rest.split_at_mut(n);
+            clamp_planes_scalar(&t.position_map_scalar(&ext), scale, [u, v, w]);
+            assert_eq!(bits(&slow), bits(&want), "scalar, size {size}");
+            // Twice on one thread, its kept map reused (after a larger map, for 17).
+            let mut again = vec![7.0; 3 * n];
+            t.clamped_planes_into(&ext, scale, &mut again);
+            assert_eq!(bits(&again), bits(&want), "again, size {size}");
+            // The cases are there: clamped values, NaN texels, -1 from NaN x.
+            assert!(want.contains(&1.0) && want.contains(&-1.0));
+            assert!(want.iter().any(|v| v.is_nan()), "size {size}");
+            assert!(want.iter().any(|&v| v != 0.0 && v.abs() < 1.0));
+        }
+        // Two tables of one size covering different texels, taken in turn on one
+        // thread: each gives its own map (a kept map drawn for the other table would
+        // leave stale values where only the other covers), and a clone is its table.
+        let mut shrunk = uv.clone();
+        for c in &mut shrunk.uv {
+            *c = c.map(|v| 0.5 + 0.7 * (v - 0.5));
+        }
+        let (a, b) = (uv.texels(48), shrunk.texels(48));
+        let planes = |t: &UvTexels| {
+            let mut out = vec![7.0; 3 * 48 * 48];
+            t.clamped_planes_into(&ext, 9.0, &mut out);
+            out.iter().map(|v| v.to_bits()).collect::<Vec<_>>()
+        };
+        let expected = |t: &UvTexels| {
+            let map = t.position_map_scalar(&ext);
+            let mut out = vec![7.0; 3 * 48 * 48];
+            let (u, rest) = out.split_at_mut(48 * 48);
+            let (v, w) = rest.split_at_mut(48 * 48);
+            clamp_planes_scalar(&map, 9.0, [u, v, w]);
+            out.iter().map(|v| v.to_bits()).collect::<Vec<_>>()
+        };
+        assert_ne!(expected(&a), expected(&b));
+        for t in [&a, &b, &a, &a.clone(), &b] {
+            assert_eq!(planes(t), expected(t));
         }
     }
 
