@@ -131,20 +131,7 @@ def main():
                 ds = arkit_tool.ARKitFaceDataset(data, split=None, mode=mode, compat=compat, corr=corr,
                                                  crop_store=store)
                 assert (ds.crop_store is not None) == (source != "jpeg")
-                if collate == "batched":
-                    loader = ds.loader(64, shuffle=True, num_workers=0)
-                else:
-                    loader = torch.utils.data.DataLoader(ds, batch_size=64, shuffle=True, num_workers=0)
-                # Warm with a whole epoch, through the same variable as the timed loop (as a
-                # training loop holds its one `batch`): a training run holds the previous
-                # batch while the next is computed, so its first two batches get new arrays
-                # and every later one reuses them (on a dataset of two batches, timing the
-                # first epoch would time only fresh arrays' page faults). Then EPOCHS epochs
-                # are timed: the steady state of a run's later batches.
-                for batch in loader:
-                    pass
-                del batch
-                ms = time_epochs(loader, EPOCHS)
+                ms = time_epochs(warmed_loader(torch, ds, collate), EPOCHS)
                 name = f"{mode}/{compat}/{corr}/{source}/{collate}"
                 print(f"{name}: {ms:.2f} ms a sample, {1e3 / ms:.0f} samples/s/core")
                 print(f"ratio: official get_item {official_ms[mode]:.1f} ms / arkit_tool {name} = "
@@ -165,13 +152,7 @@ def main():
     for mode in ["eval", "train"]:
         for compat, corr, collate, goal in GOALS:
             ds = arkit_tool.ARKitFaceDataset(data, split=None, mode=mode, compat=compat, corr=corr)
-            if collate == "batched":
-                loader = ds.loader(64, shuffle=True, num_workers=0)
-            else:
-                loader = torch.utils.data.DataLoader(ds, batch_size=64, shuffle=True, num_workers=0)
-            for batch in loader:
-                pass
-            del batch
+            loader = warmed_loader(torch, ds, collate)
             ratios = []
             for _ in range(ROUNDS):
                 theirs = official_epoch(mode)
@@ -181,6 +162,26 @@ def main():
             each = ", ".join(f"{r:.1f}x" for r in ratios)
             print(f"ratio: official get_item / arkit_tool {name}, in turn (median of {ROUNDS}: {each}; "
                   f"goal {goal}x) = {sorted(ratios)[ROUNDS // 2]:.1f}x")
+
+
+def warmed_loader(torch, ds, collate):
+    """Batches of 64 of `ds`, shuffled, in this process: `ds.loader` (`batched`) or a
+    DataLoader with torch's default collate (`default`), warmed with a whole epoch.
+
+    The warm epoch goes through one variable, as the timed loop's (and as a training
+    loop holds its one `batch`): a training run holds the previous batch while the next
+    is computed, so its first two batches get new arrays and every later one reuses them
+    (on a dataset of two batches, timing the first epoch would time only fresh arrays'
+    page faults). The epochs timed after it are the steady state of a run's later
+    batches."""
+    if collate == "batched":
+        loader = ds.loader(64, shuffle=True, num_workers=0)
+    else:
+        loader = torch.utils.data.DataLoader(ds, batch_size=64, shuffle=True, num_workers=0)
+    for batch in loader:
+        pass
+    del batch
+    return loader
 
 
 def time_epochs(loader, epochs):

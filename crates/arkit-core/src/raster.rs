@@ -717,6 +717,25 @@ pub fn rasterize_triangle(
     }
 }
 
+/// The triangles of `triangles` that can be drawn in a `width x height` viewport with
+/// `culling`, in order, with their index: each vertex snapped and checked once (not once
+/// per triangle using it), then each triangle's setup. The indices must have been
+/// checked ([`check_indices`]).
+fn drawable<'t>(
+    vertices: &[ScreenVertex],
+    triangles: &'t [[u32; 3]],
+    width: u32,
+    height: u32,
+    culling: Culling,
+) -> impl Iterator<Item = (u32, TriangleSetup)> + use<'t> {
+    let fixed: Vec<Option<FixedVertex>> = vertices.iter().map(|&p| FixedVertex::new(p)).collect();
+    triangles.iter().enumerate().filter_map(move |(ti, t)| {
+        let [a, b, c] = t.map(|v| fixed[v as usize]);
+        let setup = TriangleSetup::from_fixed([a?, b?, c?], width, height, culling)?;
+        Some((ti as u32, setup))
+    })
+}
+
 /// The first triangle that refers to a vertex `>= vertex_count`, as an error.
 fn check_indices(vertex_count: usize, triangles: &[[u32; 3]]) -> Result<(), BadTriangle> {
     match triangles
@@ -846,24 +865,11 @@ impl VisibilityBuffer {
             return Ok(());
         }
         let width = self.width as usize;
-        let fixed: Vec<Option<FixedVertex>> =
-            vertices.iter().map(|&p| FixedVertex::new(p)).collect();
-        for (ti, t) in triangles.iter().enumerate() {
-            let (Some(a), Some(b), Some(c)) = (
-                fixed[t[0] as usize],
-                fixed[t[1] as usize],
-                fixed[t[2] as usize],
-            ) else {
-                continue;
-            };
-            let Some(setup) =
-                TriangleSetup::from_fixed([a, b, c], self.width, self.height, self.culling)
-            else {
-                continue;
-            };
+        let drawn = drawable(vertices, triangles, self.width, self.height, self.culling);
+        for (ti, setup) in drawn {
             let n = self.triangle.len();
             let (depth, triangle) = (&mut self.inv_w[..n], &mut self.triangle[..n]);
-            setup.for_each_nearer_key(depth, width, |idx| triangle[idx] = ti as u32);
+            setup.for_each_nearer_key(depth, width, |idx| triangle[idx] = ti);
         }
         Ok(())
     }
@@ -930,21 +936,8 @@ impl VisibilityBuffer {
             return Ok(());
         }
         let width = self.width as usize;
-        let fixed: Vec<Option<FixedVertex>> =
-            vertices.iter().map(|&p| FixedVertex::new(p)).collect();
-        for (ti, t) in triangles.iter().enumerate() {
-            let (Some(a), Some(b), Some(c)) = (
-                fixed[t[0] as usize],
-                fixed[t[1] as usize],
-                fixed[t[2] as usize],
-            ) else {
-                continue;
-            };
-            let Some(setup) =
-                TriangleSetup::from_fixed([a, b, c], self.width, self.height, self.culling)
-            else {
-                continue;
-            };
+        let drawn = drawable(vertices, triangles, self.width, self.height, self.culling);
+        for (ti, setup) in drawn {
             // All three cut to the same length, so that the depth test's bounds check
             // covers the two stores (LLVM drops theirs).
             let n = self.triangle.len();
@@ -954,9 +947,9 @@ impl VisibilityBuffer {
                 &mut self.bary[..n],
             );
             setup.for_each_nearer(depth, width, |idx, f| {
-                triangle[idx] = ti as u32;
+                triangle[idx] = ti;
                 bary[idx] = f.bary;
-                on_visible(idx, ti as u32, &f);
+                on_visible(idx, ti, &f);
             });
         }
         Ok(())
