@@ -1800,6 +1800,34 @@ mod tests {
         }
     }
 
+    /// A random mesh over a `w x h` viewport: `vertex_count` vertices up to `spread`
+    /// pixels past its edges (each coordinate through `snap`), `1 / w` drawn from
+    /// `inv_w`, vertex 1 a copy of vertex 0 (so `last`, drawn after `triangle_count`
+    /// random triangles, may be degenerate).
+    fn random_mesh(
+        r: &mut Rng,
+        (w, h): (u32, u32),
+        spread: f64,
+        snap: impl Fn(f64) -> f64,
+        inv_w: (f64, f64),
+        (vertex_count, triangle_count): (usize, usize),
+        last: [u32; 3],
+    ) -> (Vec<ScreenVertex>, Vec<[u32; 3]>) {
+        let mut vertices: Vec<ScreenVertex> = (0..vertex_count)
+            .map(|_| ScreenVertex {
+                x: snap(r.uniform(-spread, w as f64 + spread)) as f32,
+                y: snap(r.uniform(-spread, h as f64 + spread)) as f32,
+                inv_w: r.uniform(inv_w.0, inv_w.1) as f32,
+            })
+            .collect();
+        vertices[1] = vertices[0];
+        let mut triangles: Vec<[u32; 3]> = (0..triangle_count)
+            .map(|_| [0; 3].map(|_| r.below(vertex_count as u64) as u32))
+            .collect();
+        triangles.push(last);
+        (vertices, triangles)
+    }
+
     #[test]
     fn official_lanes_give_the_scalar_paths_buffer_bit_for_bit() {
         // Meshes of small and large, thin, degenerate (zero area: the official test
@@ -1818,20 +1846,15 @@ mod tests {
                 1 => v.round() + 0.5,
                 _ => v,
             };
-            let n = 16;
-            let mut vertices: Vec<ScreenVertex> = (0..n)
-                .map(|_| ScreenVertex {
-                    x: snap(r.uniform(-spread, w as f64 + spread)) as f32,
-                    y: snap(r.uniform(-spread, h as f64 + spread)) as f32,
-                    inv_w: r.uniform(0.5, 2.0) as f32,
-                })
-                .collect();
-            // A repeated vertex: a degenerate triangle.
-            vertices[1] = vertices[0];
-            let mut triangles: Vec<[u32; 3]> = (0..24)
-                .map(|_| [0; 3].map(|_| r.below(n as u64) as u32))
-                .collect();
-            triangles.push([0, 1, 2]);
+            let (vertices, triangles) = random_mesh(
+                &mut r,
+                (w, h),
+                spread,
+                snap,
+                (0.5, 2.0),
+                (16, 24),
+                [0, 1, 2],
+            );
             let window = PixelWindow {
                 x0: r.below(4) as u32,
                 y0: r.below(4) as u32,
@@ -1900,24 +1923,20 @@ mod tests {
             let (w, h) = (4 + r.below(90) as u32, 4 + r.below(90) as u32);
             let spread = [2.0, 8.0, 40.0][case % 3];
             let snap = |v: f64| if case % 4 == 0 { v.round() + 0.5 } else { v };
-            let n = 20;
-            let mut vertices: Vec<ScreenVertex> = (0..n)
-                .map(|_| ScreenVertex {
-                    x: snap(r.uniform(-spread, w as f64 + spread)) as f32,
-                    y: snap(r.uniform(-spread, h as f64 + spread)) as f32,
-                    inv_w: r.uniform(0.2, 3.0) as f32,
-                })
-                .collect();
-            vertices[1] = vertices[0];
+            let (mut vertices, triangles) = random_mesh(
+                &mut r,
+                (w, h),
+                spread,
+                snap,
+                (0.2, 3.0),
+                (20, 40),
+                [0, 1, 3],
+            );
             vertices[2].inv_w = if case % 5 == 0 {
                 -1.0
             } else {
                 vertices[2].inv_w
             };
-            let mut triangles: Vec<[u32; 3]> = (0..40)
-                .map(|_| [0; 3].map(|_| r.below(n as u64) as u32))
-                .collect();
-            triangles.push([0, 1, 3]);
             let culling = if case % 2 == 0 {
                 Culling::None
             } else {
