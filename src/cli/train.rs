@@ -121,7 +121,8 @@ pub struct TrainArgs {
     /// every epoch), given the same options: weights, Adam's moments and the loss
     /// weights are restored, so the resumed run is step for step the uninterrupted one.
     /// Each file must match the record DIR/checkpoint.json: a checkpoint left torn by a
-    /// run stopped while writing it is refused (naming the file) and left as it is.
+    /// run stopped while writing it, or missing one of its files, is refused (naming the
+    /// file) and left as it is. A folder with no checkpoint file starts the run.
     #[arg(long)]
     resume: bool,
     /// Seed of the initial weights and the sample order.

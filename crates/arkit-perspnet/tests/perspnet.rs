@@ -1141,6 +1141,31 @@ mod pipeline {
             Ok(_) => panic!("a checkpoint without its record was resumed"),
         };
         assert!(e.contains("checkpoint.json: cannot be read"), "{e}");
+        // A whole checkpoint less its `perspnet.json`: refused, naming that file, and
+        // left as it is (it was trained over, from new weights, before).
+        let no_config = tempfile::tempdir().unwrap();
+        for f in std::fs::read_dir(cut.path()).unwrap() {
+            let f = f.unwrap().path();
+            std::fs::copy(&f, no_config.path().join(f.file_name().unwrap())).unwrap();
+        }
+        std::fs::remove_file(no_config.path().join("perspnet.json")).unwrap();
+        let before = snapshot(no_config.path());
+        let no_config_opts = TrainOptions {
+            output: no_config.path().to_path_buf(),
+            ..resumed_opts.clone()
+        };
+        let e = match arkit_perspnet::train(&examples[..4], &topology, &no_config_opts, &|_| {}) {
+            Err(e) => e.to_string(),
+            Ok(_) => panic!("a checkpoint without its perspnet.json was trained over"),
+        };
+        assert!(
+            e.contains("perspnet.json: missing") && e.contains("torn"),
+            "{e}"
+        );
+        assert!(
+            snapshot(no_config.path()) == before,
+            "the refused checkpoint was changed"
+        );
         // A loss log cut short: its size differs.
         let cut2 = tempfile::tempdir().unwrap();
         for f in std::fs::read_dir(cut.path()).unwrap() {

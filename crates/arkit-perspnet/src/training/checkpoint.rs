@@ -199,6 +199,14 @@ fn write_checkpoint_record(dir: &Path) -> Result<()> {
     arkit_core::atomic_file::write_bytes(&dir.join(CHECKPOINT_RECORD), json.as_bytes())
 }
 
+/// Whether `dir` holds any file of a checkpoint (its record or one it covers): what
+/// `train --resume` must then resume, or refuse, rather than train over.
+pub(crate) fn holds_checkpoint(dir: &Path) -> bool {
+    std::iter::once(CHECKPOINT_RECORD)
+        .chain(CHECKPOINT_FILES)
+        .any(|name| dir.join(name).exists())
+}
+
 /// Checks that every file of the checkpoint in `dir` is the one its record
 /// ([`CHECKPOINT_RECORD`]) describes; the error names the first that differs and how.
 /// Nothing in the folder is changed.

@@ -2,7 +2,9 @@
 //! shuffled order of shards and examples, one optimiser step per batch, a checkpoint
 //! after every epoch, and `--resume`.
 
-use super::checkpoint::{ADAM_FILE, Checkpoint, verify_checkpoint, write_checkpoint};
+use super::checkpoint::{
+    ADAM_FILE, Checkpoint, holds_checkpoint, verify_checkpoint, write_checkpoint,
+};
 use super::data::{Augmentation, Example, ExampleShards, batch};
 use crate::candle_err;
 use crate::loss::PerspNetLoss;
@@ -224,7 +226,10 @@ pub fn train<S: ExampleShards + ?Sized>(
         // The weights the official schedule reaches once L_corr < 0.1.
         loss.weights.update_schedule(0.05);
     }
-    if options.resume && options.output.join("perspnet.json").exists() {
+    // Any file of a checkpoint is resumed from, or refused naming what is wrong (a
+    // folder missing its `perspnet.json` but holding weights was trained over before);
+    // a folder without one starts the run.
+    if options.resume && holds_checkpoint(&options.output) {
         let resumed = resume_from(&options.output, &checkpoint, &varmap, &mut opt)?;
         start_epoch = resumed.checkpoint.epochs_done;
         log = resumed.log;
