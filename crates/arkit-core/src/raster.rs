@@ -365,16 +365,10 @@ impl TriangleSetup {
         mut emit: impl FnMut(usize, Fragment),
     ) {
         let inv_area = 1.0 / self.area2 as f64;
-        let w = self.inv_w.map(|v| v as f64 * inv_area);
-        self.walk(|x, y, e| {
-            let key = (e[0] as f64 * w[0] + e[1] as f64 * w[1] + e[2] as f64 * w[2]) as f32;
-            let idx = y as usize * width + x as usize;
-            if key > depth[idx] {
-                depth[idx] = key;
-                let mut f = self.fragment(x, y, e, inv_area);
-                f.inv_w = key;
-                emit(idx, f);
-            }
+        self.walk_nearer(depth, width, |idx, x, y, e, key| {
+            let mut f = self.fragment(x, y, e, inv_area);
+            f.inv_w = key;
+            emit(idx, f);
         });
     }
 
@@ -388,6 +382,20 @@ impl TriangleSetup {
         width: usize,
         mut emit: impl FnMut(usize),
     ) {
+        self.walk_nearer(depth, width, |idx, _, _, _, _| emit(idx));
+    }
+
+    /// The depth test of both [`TriangleSetup::for_each_nearer`] and
+    /// [`TriangleSetup::for_each_nearer_key`]: each covered pixel's key, `1 / w`
+    /// interpolated from the edge values; where it is larger than `depth[idx]`, stored
+    /// there and `pass(idx, x, y, edges, key)` called.
+    #[inline(always)]
+    fn walk_nearer(
+        &self,
+        depth: &mut [f32],
+        width: usize,
+        mut pass: impl FnMut(usize, u32, u32, [i64; 3], f32),
+    ) {
         let inv_area = 1.0 / self.area2 as f64;
         let w = self.inv_w.map(|v| v as f64 * inv_area);
         self.walk(|x, y, e| {
@@ -395,7 +403,7 @@ impl TriangleSetup {
             let idx = y as usize * width + x as usize;
             if key > depth[idx] {
                 depth[idx] = key;
-                emit(idx);
+                pass(idx, x, y, e, key);
             }
         });
     }

@@ -1065,12 +1065,17 @@ mod pipeline {
             })
         }));
         assert!(interrupted.is_err());
+        // A new folder holding a copy of each file of `d`.
+        let copy_of = |d: &std::path::Path| {
+            let copy = tempfile::tempdir().unwrap();
+            for f in std::fs::read_dir(d).unwrap() {
+                let f = f.unwrap().path();
+                std::fs::copy(&f, copy.path().join(f.file_name().unwrap())).unwrap();
+            }
+            copy
+        };
         // The checkpoint of epoch 4, kept for the torn-checkpoint case below.
-        let torn = tempfile::tempdir().unwrap();
-        for f in std::fs::read_dir(cut.path()).unwrap() {
-            let f = f.unwrap().path();
-            std::fs::copy(&f, torn.path().join(f.file_name().unwrap())).unwrap();
-        }
+        let torn = copy_of(cut.path());
         let resumed_opts = TrainOptions {
             resume: true,
             ..cut_opts.clone()
@@ -1143,11 +1148,7 @@ mod pipeline {
         assert!(e.contains("checkpoint.json: cannot be read"), "{e}");
         // A whole checkpoint less its `perspnet.json`: refused, naming that file, and
         // left as it is (it was trained over, from new weights, before).
-        let no_config = tempfile::tempdir().unwrap();
-        for f in std::fs::read_dir(cut.path()).unwrap() {
-            let f = f.unwrap().path();
-            std::fs::copy(&f, no_config.path().join(f.file_name().unwrap())).unwrap();
-        }
+        let no_config = copy_of(cut.path());
         std::fs::remove_file(no_config.path().join("perspnet.json")).unwrap();
         let before = snapshot(no_config.path());
         let no_config_opts = TrainOptions {
@@ -1167,11 +1168,7 @@ mod pipeline {
             "the refused checkpoint was changed"
         );
         // A loss log cut short: its size differs.
-        let cut2 = tempfile::tempdir().unwrap();
-        for f in std::fs::read_dir(cut.path()).unwrap() {
-            let f = f.unwrap().path();
-            std::fs::copy(&f, cut2.path().join(f.file_name().unwrap())).unwrap();
-        }
+        let cut2 = copy_of(cut.path());
         let csv = std::fs::read(cut2.path().join("loss.csv")).unwrap();
         std::fs::write(cut2.path().join("loss.csv"), &csv[..csv.len() - 10]).unwrap();
         let e = match arkit_perspnet::train(

@@ -168,7 +168,7 @@ impl FaceRenderer {
             ));
         }
         let screen = self.rasterize(verts, pose, width, height, Some(crop), buffer, false)?;
-        let mask = face_mask(&buffer.triangle, self.topology.triangles.len() as u32);
+        let mask = self.face_pixels(buffer);
         Ok(CropVisibility {
             crop: *crop,
             mask,
@@ -1004,7 +1004,7 @@ impl UvTexels {
                 unsafe { clamp_planes_avx(map, scale, [u, v, w]) };
                 return;
             }
-            clamp_planes_scalar(map, scale, [u, v, w]);
+            clamp_planes_from(map, 0, scale, [u, v, w]);
         });
     }
 
@@ -1143,12 +1143,7 @@ fn clamp_planes_from(map: &[[f32; 3]], start: usize, scale: f32, planes: [&mut [
     }
 }
 
-/// [`clamp_planes_from`] over the whole map.
-fn clamp_planes_scalar(map: &[[f32; 3]], scale: f32, planes: [&mut [f32]; 3]) {
-    clamp_planes_from(map, 0, scale, planes)
-}
-
-/// [`clamp_planes_scalar`] eight texels at a time in AVX lanes: the 24 floats split
+/// [`clamp_planes_from`] eight texels at a time in AVX lanes: the 24 floats split
 /// into x, y and z by shuffles within each 128-bit half, the same multiply, `max` and
 /// `min` in the order that keeps a NaN (`max_ps` and `min_ps` return their second
 /// operand on NaN), and a blend to -1 where x is NaN; the last texels one at a time.
@@ -1498,7 +1493,7 @@ mod tests {
             let mut slow = vec![7.0; 3 * n];
             let (u, rest) = slow.split_at_mut(n);
             let (v, w) = rest.split_at_mut(n);
-            clamp_planes_scalar(&t.position_map_scalar(&ext), scale, [u, v, w]);
+            clamp_planes_from(&t.position_map_scalar(&ext), 0, scale, [u, v, w]);
             assert_eq!(bits(&slow), bits(&want), "scalar, size {size}");
             // Twice on one thread, its kept map reused (after a larger map, for 17).
             let mut again = vec![7.0; 3 * n];
@@ -1527,7 +1522,7 @@ mod tests {
             let mut out = vec![7.0; 3 * 48 * 48];
             let (u, rest) = out.split_at_mut(48 * 48);
             let (v, w) = rest.split_at_mut(48 * 48);
-            clamp_planes_scalar(&map, 9.0, [u, v, w]);
+            clamp_planes_from(&map, 0, 9.0, [u, v, w]);
             out.iter().map(|v| v.to_bits()).collect::<Vec<_>>()
         };
         assert_ne!(expected(&a), expected(&b));
