@@ -1121,15 +1121,19 @@ mod pipeline {
             v.sort();
             v
         };
+        // `--resume` into `dir`, which must be refused (`what` it holds): the error.
+        let refused = |dir: &std::path::Path, what: &str| {
+            let opts = TrainOptions {
+                output: dir.to_path_buf(),
+                ..resumed_opts.clone()
+            };
+            match arkit_perspnet::train(&examples[..4], &topology, &opts, &|_| {}) {
+                Err(e) => e.to_string(),
+                Ok(_) => panic!("{what} was resumed"),
+            }
+        };
         let before = snapshot(torn.path());
-        let torn_opts = TrainOptions {
-            output: torn.path().to_path_buf(),
-            ..resumed_opts.clone()
-        };
-        let e = match arkit_perspnet::train(&examples[..4], &topology, &torn_opts, &|_| {}) {
-            Err(e) => e.to_string(),
-            Ok(_) => panic!("a torn checkpoint was resumed"),
-        };
+        let e = refused(torn.path(), "a torn checkpoint");
         assert!(
             e.contains("model.safetensors: its SHA-256 is")
                 && e.contains("checkpoint.json records")
@@ -1141,24 +1145,14 @@ mod pipeline {
             "the refused checkpoint was changed"
         );
         std::fs::remove_file(torn.path().join(arkit_perspnet::CHECKPOINT_RECORD)).unwrap();
-        let e = match arkit_perspnet::train(&examples[..4], &topology, &torn_opts, &|_| {}) {
-            Err(e) => e.to_string(),
-            Ok(_) => panic!("a checkpoint without its record was resumed"),
-        };
+        let e = refused(torn.path(), "a checkpoint without its record");
         assert!(e.contains("checkpoint.json: cannot be read"), "{e}");
         // A whole checkpoint less its `perspnet.json`: refused, naming that file, and
         // left as it is (it was trained over, from new weights, before).
         let no_config = copy_of(cut.path());
         std::fs::remove_file(no_config.path().join("perspnet.json")).unwrap();
         let before = snapshot(no_config.path());
-        let no_config_opts = TrainOptions {
-            output: no_config.path().to_path_buf(),
-            ..resumed_opts.clone()
-        };
-        let e = match arkit_perspnet::train(&examples[..4], &topology, &no_config_opts, &|_| {}) {
-            Err(e) => e.to_string(),
-            Ok(_) => panic!("a checkpoint without its perspnet.json was trained over"),
-        };
+        let e = refused(no_config.path(), "a checkpoint without its perspnet.json");
         assert!(
             e.contains("perspnet.json: missing") && e.contains("torn"),
             "{e}"
@@ -1171,18 +1165,7 @@ mod pipeline {
         let cut2 = copy_of(cut.path());
         let csv = std::fs::read(cut2.path().join("loss.csv")).unwrap();
         std::fs::write(cut2.path().join("loss.csv"), &csv[..csv.len() - 10]).unwrap();
-        let e = match arkit_perspnet::train(
-            &examples[..4],
-            &topology,
-            &TrainOptions {
-                output: cut2.path().to_path_buf(),
-                ..resumed_opts.clone()
-            },
-            &|_| {},
-        ) {
-            Err(e) => e.to_string(),
-            Ok(_) => panic!("a checkpoint with a cut loss log was resumed"),
-        };
+        let e = refused(cut2.path(), "a checkpoint with a cut loss log");
         assert!(
             e.contains(&format!(
                 "loss.csv: {} bytes, but checkpoint.json records {}",
