@@ -836,6 +836,13 @@ impl VisibilityBuffer {
     /// for windows of varying sizes reallocates only when one outgrows it), and empties
     /// it as [`VisibilityBuffer::clear`] does. Panics as [`VisibilityBuffer::new`] does.
     pub fn reset(&mut self, width: u32, height: u32) {
+        self.resize(width, height);
+        self.clear();
+    }
+
+    /// [`VisibilityBuffer::reset`] without the clear: the caller writes every
+    /// `triangle` and `inv_w` value next.
+    fn resize(&mut self, width: u32, height: u32) {
         assert!(
             width <= MAX_VIEWPORT && height <= MAX_VIEWPORT,
             "viewport {width}x{height} exceeds {MAX_VIEWPORT}"
@@ -845,7 +852,6 @@ impl VisibilityBuffer {
         self.triangle.resize(n, Self::EMPTY);
         self.bary.resize(n, [0.0; 3]);
         self.inv_w.resize(n, 0.0);
-        self.clear();
     }
 
     /// Index of pixel `(x, y)` in the flat arrays.
@@ -1064,7 +1070,8 @@ pub fn rasterize_mesh_official(
 }
 
 /// [`rasterize_mesh_official`] of an image into a buffer holding only `window` of it
-/// (`buffer` is `window.width x window.height`; vertices are in image coordinates).
+/// (`buffer` is resized to `window.width x window.height`, keeping its allocation, and
+/// every pixel written; vertices are in image coordinates).
 /// Every sample point, weight and depth is computed in image coordinates as over the
 /// whole image and only the box each triangle walks is clamped to the window, so the
 /// buffer holds the whole image's values over the window; with
@@ -1101,12 +1108,8 @@ fn official_in(
     lanes: bool,
     weights: bool,
 ) -> Result<(), BadTriangle> {
-    assert_eq!(
-        (buffer.width, buffer.height),
-        (window.width, window.height),
-        "the buffer must be the window's size"
-    );
     check_indices(vertices.len(), triangles)?;
+    buffer.resize(window.width, window.height);
     buffer.triangle.fill(VisibilityBuffer::EMPTY);
     buffer.inv_w.fill(f32::NEG_INFINITY);
     let (ox, oy) = (window.x0 as i64, window.y0 as i64);
@@ -1991,6 +1994,7 @@ mod tests {
         // official extent holds every pixel the whole image gets.
         let mut r = Rng::new(13);
         let (w, h) = (48u32, 40u32);
+        let mut part = VisibilityBuffer::new(3, 5);
         for case in 0..300 {
             let (cx, cy, spread) = (
                 r.uniform(-20.0, 70.0),
@@ -2022,10 +2026,11 @@ mod tests {
                 width: r.below((w - x0) as u64 + 1) as u32,
                 height: r.below((h - y0) as u64 + 1) as u32,
             };
+            // One buffer for both windows and every case, of whatever size and content
+            // the last call left: the rasterizer sizes it and writes every pixel.
             for window in [extent, other] {
-                let mut part = VisibilityBuffer::new(1, 1);
-                part.reset(window.width, window.height);
                 rasterize_mesh_official_in(&mut part, window, &vertices, &triangles).unwrap();
+                assert_eq!((part.width, part.height), (window.width, window.height));
                 for (y, x) in (0..h as i64).flat_map(|y| (0..w as i64).map(move |x| (y, x))) {
                     let i = whole.index(x as u32, y as u32);
                     let Some(j) = window.index(x, y) else {

@@ -334,15 +334,17 @@ impl PixelSource {
 /// `uv_coords_std_202109.npy`.
 pub type ReleaseUvLayout = (Vec<[u32; 3]>, Vec<[f32; 2]>);
 
-/// A texel of an [`OfficialUvLayout`] that a UV triangle covers.
+/// Texels of an [`OfficialUvLayout`] next to each other that one UV triangle covers: texels `start..start + len`, whose weights are `first..first + len` of
+/// the layout's weight planes.
 #[derive(Clone, Copy, Debug)]
-struct CoveredTexel {
-    /// Row-major index in the map.
-    texel: u32,
+struct TexelRun {
+    /// Row-major index in the map of the run's first texel.
+    start: u32,
+    len: u32,
+    /// Where the run's weights begin in the weight planes.
+    first: u32,
     /// The triangle's corners (extended vertex indices).
     corners: [u32; 3],
-    /// The official rasterizer's weights of the corners at the texel.
-    weights: [f32; 3],
 }
 
 /// The official UV layout rasterized once for one map size: per texel the UV triangle
@@ -350,9 +352,11 @@ struct CoveredTexel {
 #[derive(Clone, Debug)]
 pub struct OfficialUvLayout {
     size: u32,
-    /// The texels a triangle covers, in texel order: their triangle's corners and
-    /// weights.
-    covered: Vec<CoveredTexel>,
+    /// The texels a triangle covers, in texel order, as runs of one triangle's texels.
+    covered: Vec<TexelRun>,
+    /// The official rasterizer's weights of each covered texel's corners (weight `k` of
+    /// the covered texels in order in plane `k`).
+    weights: [Vec<f32>; 3],
     /// The runs of texels no triangle covers (texel indices), in order.
     uncovered: Vec<std::ops::Range<usize>>,
     ring_of: Vec<u32>,
@@ -406,25 +410,39 @@ impl OfficialUvLayout {
         let mut vb = VisibilityBuffer::new(size, size);
         arkit_core::raster::rasterize_mesh_official(&mut vb, &screen, &triangles)
             .map_err(|e| Error::invalid("UV triangles", e.to_string()))?;
-        let mut covered = Vec::new();
+        let mut covered: Vec<TexelRun> = Vec::new();
+        let mut weights: [Vec<f32>; 3] = Default::default();
+        let mut run_triangle = VisibilityBuffer::EMPTY;
         let mut uncovered: Vec<std::ops::Range<usize>> = Vec::new();
-        for (texel, (&t, &weights)) in vb.triangle.iter().zip(&vb.bary).enumerate() {
+        for (texel, (&t, &wt)) in vb.triangle.iter().zip(&vb.bary).enumerate() {
             if t == VisibilityBuffer::EMPTY {
                 match uncovered.last_mut() {
                     Some(run) if run.end == texel => run.end += 1,
                     _ => uncovered.push(texel..texel + 1),
                 }
-            } else {
-                covered.push(CoveredTexel {
-                    texel: texel as u32,
-                    corners: triangles[t as usize],
-                    weights,
-                });
+                continue;
+            }
+            let texel = texel as u32;
+            match covered.last_mut() {
+                Some(run) if run_triangle == t && run.start + run.len == texel => run.len += 1,
+                _ => {
+                    run_triangle = t;
+                    covered.push(TexelRun {
+                        start: texel,
+                        len: 1,
+                        first: weights[0].len() as u32,
+                        corners: triangles[t as usize],
+                    });
+                }
+            }
+            for (plane, w) in weights.iter_mut().zip(wt) {
+                plane.push(w);
             }
         }
         Ok(OfficialUvLayout {
             size,
             covered,
+            weights,
             uncovered,
             ring_of,
             centroid_loops,
@@ -498,6 +516,28 @@ impl OfficialUvLayout {
     /// # Panics
     /// When `out` is not `3 x size x size` values.
     pub fn uv_map_into(&self, verts: &[Point3<f32>], out: &mut [f32]) {
+        let colors = self.colours(verts);
+        let n = (self.size * self.size) as usize;
+        assert_eq!(out.len(), 3 * n, "a 3 x size x size map");
+        let (u, rest) = out.split_at_mut(n);
+        let (v, w) = rest.split_at_mut(n);
+        for run in &self.uncovered {
+            for plane in [&mut *u, &mut *v, &mut *w] {
+                plane[run.clone()].fill(-1.0);
+            }
+        }
+        // SAFETY: SSE2 is part of the x86-64 baseline: every x86-64 CPU has it.
+        #[cfg(target_arch = "x86_64")]
+        unsafe {
+            self.covered_sse(&colors, [u, v, w])
+        };
+        #[cfg(not(target_arch = "x86_64"))]
+        self.covered_scalar(&colors, [u, v, w]);
+    }
+
+    /// The official colours of the extended vertices: the positions mapped by
+    /// `4.5 v + 0.5`, then the ring's and the hole centroids'.
+    fn colours(&self, verts: &[Point3<f32>]) -> Vec<[f32; 3]> {
         let mut colors: Vec<[f32; 3]> = verts
             .iter()
             .map(|p| [p.x * 4.5 + 0.5, p.y * 4.5 + 0.5, p.z * 4.5 + 0.5])
@@ -517,22 +557,63 @@ impl OfficialUvLayout {
             colors.push(sum.map(|s| s / l.len() as f32));
         }
         debug_assert_eq!(colors.len(), self.extended);
-        let n = (self.size * self.size) as usize;
-        assert_eq!(out.len(), 3 * n, "a 3 x size x size map");
-        let (u, rest) = out.split_at_mut(n);
-        let (v, w) = rest.split_at_mut(n);
-        for run in &self.uncovered {
-            for plane in [&mut *u, &mut *v, &mut *w] {
-                plane[run.clone()].fill(-1.0);
+        colors
+    }
+
+    /// The covered texels' values, one at a time: the definition. A texel is its
+    /// corners' colours weighted (`w0 a + w1 b + w2 c`, left to right), clamped to
+    /// [0, 1] and mapped by `2 x - 1`, in float32.
+    #[cfg(any(test, not(target_arch = "x86_64")))]
+    fn covered_scalar(&self, colors: &[[f32; 3]], mut planes: [&mut [f32]; 3]) {
+        for run in &self.covered {
+            let [a, b, c] = run.corners.map(|v| colors[v as usize]);
+            for k in 0..run.len as usize {
+                let (i, j) = (run.start as usize + k, run.first as usize + k);
+                let wt = [self.weights[0][j], self.weights[1][j], self.weights[2][j]];
+                for (ch, plane) in planes.iter_mut().enumerate() {
+                    let value = wt[0] * a[ch] + wt[1] * b[ch] + wt[2] * c[ch];
+                    plane[i] = value.clamp(0.0, 1.0) * 2.0 - 1.0;
+                }
             }
         }
-        for t in &self.covered {
-            let [a, b, c] = t.corners.map(|v| colors[v as usize]);
-            let wt = t.weights;
-            let i = t.texel as usize;
-            for (k, plane) in [&mut *u, &mut *v, &mut *w].into_iter().enumerate() {
-                let value = wt[0] * a[k] + wt[1] * b[k] + wt[2] * c[k];
-                plane[i] = value.clamp(0.0, 1.0) * 2.0 - 1.0;
+    }
+
+    /// [`OfficialUvLayout::covered_scalar`] with a texel's three channels in the lanes
+    /// of one SSE register (the fourth lane unused): the same float32 operations in the
+    /// same order lane by lane (no fused multiply-add), and the clamp's `max(0, x)` then
+    /// `min(1, x)` with `x` as the second operand, which keeps a NaN and a `-0.0` as
+    /// `f32::clamp` does; so the same bits (tested). (The texels' runs are short, 2.8
+    /// texels on average in a 192x192 map, so lanes across texels would mostly idle.)
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "sse2")]
+    fn covered_sse(&self, colors: &[[f32; 3]], planes: [&mut [f32]; 3]) {
+        use std::arch::x86_64::*;
+        let [u, v, w] = planes;
+        let [w0s, w1s, w2s] = &self.weights;
+        let lane = |c: [f32; 3]| _mm_setr_ps(c[0], c[1], c[2], 0.0);
+        let (zero, one, two) = (_mm_setzero_ps(), _mm_set1_ps(1.0), _mm_set1_ps(2.0));
+        for run in &self.covered {
+            let [a, b, c] = run.corners.map(|i| lane(colors[i as usize]));
+            let (start, first, len) = (run.start as usize, run.first as usize, run.len as usize);
+            let texels = (u[start..start + len].iter_mut())
+                .zip(&mut v[start..start + len])
+                .zip(&mut w[start..start + len]);
+            let weights = (w0s[first..first + len].iter())
+                .zip(&w1s[first..first + len])
+                .zip(&w2s[first..first + len]);
+            for (((u, v), w), ((&w0, &w1), &w2)) in texels.zip(weights) {
+                let value = _mm_add_ps(
+                    _mm_add_ps(
+                        _mm_mul_ps(_mm_set1_ps(w0), a),
+                        _mm_mul_ps(_mm_set1_ps(w1), b),
+                    ),
+                    _mm_mul_ps(_mm_set1_ps(w2), c),
+                );
+                let clamped = _mm_min_ps(one, _mm_max_ps(zero, value));
+                let mapped = _mm_sub_ps(_mm_mul_ps(clamped, two), one);
+                *u = _mm_cvtss_f32(mapped);
+                *v = _mm_cvtss_f32(_mm_shuffle_ps::<0b01>(mapped, mapped));
+                *w = _mm_cvtss_f32(_mm_shuffle_ps::<0b10>(mapped, mapped));
             }
         }
     }
@@ -1397,6 +1478,73 @@ pub fn read_uv_triangles(resources: &Path) -> Result<Option<Vec<[u32; 3]>>> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn official_uv_map_in_lanes_is_the_per_texel_definition() {
+        // The layout's runs and lanes against each texel computed straight from the
+        // official raster of the UV triangles: the same bits, on meshes whose colours
+        // run past [0, 1] on both sides, with a NaN among them.
+        let face = crate::mesh::synthetic_face::builtin();
+        let topology = &face.topology;
+        let uv = UvMapper::derive(topology).unwrap();
+        let mut r = Rng::new(8);
+        for size in [64u32, 192] {
+            let layout = OfficialUvLayout::new(&uv, None, topology.vertex_count, size).unwrap();
+            let s = (size - 1) as f32;
+            let screen: Vec<ScreenVertex> = uv
+                .uv
+                .iter()
+                .map(|t| ScreenVertex {
+                    x: t[0] * s,
+                    y: t[1] * s,
+                    inv_w: 1.0,
+                })
+                .collect();
+            let mut vb = VisibilityBuffer::new(size, size);
+            arkit_core::raster::rasterize_mesh_official(&mut vb, &screen, &uv.triangles).unwrap();
+            for case in 0..4 {
+                let mut verts: Vec<Point3<f32>> = (0..topology.vertex_count)
+                    .map(|_| {
+                        let mut q = || r.uniform(-0.2, 0.2) as f32 * (1 + case) as f32;
+                        Point3::new(q(), q(), q())
+                    })
+                    .collect();
+                // x = -1/9 puts a colour at zero or a hair off it; a NaN stays NaN
+                // through the clamp.
+                verts[3].x = -1.0 / 9.0;
+                verts[5].y = f32::NAN;
+                let colors = layout.colours(&verts);
+                let n = (size * size) as usize;
+                let mut want = vec![-1f32; 3 * n];
+                for (i, &t) in vb.triangle.iter().enumerate() {
+                    if t == VisibilityBuffer::EMPTY {
+                        continue;
+                    }
+                    let [a, b, c] = uv.triangles[t as usize].map(|v| colors[v as usize]);
+                    let wt = vb.bary[i];
+                    for ch in 0..3 {
+                        let value = wt[0] * a[ch] + wt[1] * b[ch] + wt[2] * c[ch];
+                        want[ch * n + i] = value.clamp(0.0, 1.0) * 2.0 - 1.0;
+                    }
+                }
+                let mut got = vec![7f32; 3 * n];
+                layout.uv_map_into(&verts, &mut got);
+                let bits = |m: &[f32]| m.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+                assert_eq!(bits(&got), bits(&want), "size {size}, case {case}");
+                let mut scalar = vec![7f32; 3 * n];
+                let (u, rest) = scalar.split_at_mut(n);
+                let (v, w) = rest.split_at_mut(n);
+                for run in &layout.uncovered {
+                    for plane in [&mut *u, &mut *v, &mut *w] {
+                        plane[run.clone()].fill(-1.0);
+                    }
+                }
+                layout.covered_scalar(&colors, [u, v, w]);
+                assert_eq!(bits(&scalar), bits(&want), "size {size}, case {case}");
+                assert!(got.iter().any(|x| x.is_nan()) && got.contains(&1.0));
+            }
+        }
+    }
 
     #[test]
     fn python_slices_clip_and_wrap_as_python_does() {

@@ -353,7 +353,6 @@ impl FaceRenderer {
         let screen = self.project(verts, pose, width, height)?;
         check_viewport(width, height, "image size")?;
         let window = PixelWindow::official_extent(&screen, width, height);
-        buffer.reset(window.width, window.height);
         arkit_core::raster::rasterize_official_visibility_in(
             buffer,
             window,
@@ -573,16 +572,37 @@ impl WindowMask {
         for y in inner_rows {
             let at = (y - w.y0 as i64) as usize * w.width as usize;
             let first = (y - rows.start) * width + (inner_cols.start - cols.start);
-            let row = &self.mask[at + from..at + to];
-            offsets.extend(
-                row.iter()
-                    .enumerate()
-                    .filter(|&(_, &face)| face)
-                    .map(|(k, _)| first + k as i64),
-            );
+            push_face_offsets(&self.mask[at + from..at + to], first, &mut offsets);
         }
         offsets
     }
+}
+
+/// Appends to `out` the offsets `first + k` of the face pixels `row[k]`, sixteen pixels
+/// at a time: a chunk all background or all face is skipped or written whole, and only
+/// a chunk that holds an edge is looked at pixel by pixel (a face's rows are long runs).
+fn push_face_offsets(row: &[bool], first: i64, out: &mut Vec<i64>) {
+    const ALL_FACE: u128 = u128::from_ne_bytes([1; 16]);
+    let one_by_one = |out: &mut Vec<i64>, part: &[bool], at: i64| {
+        out.extend(
+            part.iter()
+                .enumerate()
+                .filter(|&(_, &face)| face)
+                .map(|(k, _)| at + k as i64),
+        )
+    };
+    let mut chunks = row.chunks_exact(16);
+    let mut at = first;
+    for chunk in &mut chunks {
+        let bytes: [u8; 16] = std::array::from_fn(|k| chunk[k] as u8);
+        match u128::from_ne_bytes(bytes) {
+            0 => {}
+            ALL_FACE => out.extend(at..at + 16),
+            _ => one_by_one(out, chunk, at),
+        }
+        at += 16;
+    }
+    one_by_one(out, chunks.remainder(), at);
 }
 
 /// Which pixels of a visibility buffer's `triangle` array show one of the first
@@ -1236,6 +1256,31 @@ unsafe fn store_texel(d: *mut f32, q: std::arch::x86_64::__m128) {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn face_offsets_of_a_row_sixteen_at_a_time_are_the_pixel_by_pixel_ones() {
+        let mut r = Rng::new(21);
+        for case in 0..400 {
+            let len = r.below(90) as usize;
+            // Runs of face and background of random lengths, as a face's rows have.
+            let mut row = Vec::with_capacity(len);
+            let mut face = r.below(2) == 0;
+            while row.len() < len {
+                let run = 1 + r.below(if case % 2 == 0 { 40 } else { 4 }) as usize;
+                row.extend(std::iter::repeat_n(face, run.min(len - row.len())));
+                face = !face;
+            }
+            let first = r.below(1000) as i64 - 500;
+            let want: Vec<i64> = (0..len)
+                .filter(|&k| row[k])
+                .map(|k| first + k as i64)
+                .collect();
+            let mut got = vec![-7];
+            push_face_offsets(&row, first, &mut got);
+            assert_eq!(got[0], -7, "appends");
+            assert_eq!(got[1..], want[..], "case {case}: {row:?}");
+        }
+    }
     use crate::crop::CropRule;
     use arkit_core::conventions::EulerAngles;
     use nalgebra::Vector3;
