@@ -13,6 +13,9 @@ use arkit_core::raster::{
 use nalgebra::{Point3, Vector3};
 use std::time::Instant;
 
+mod timing;
+use timing::median_ms;
+
 /// The official loader's face-mask render for one 800x800 sample, ms.
 const OFFICIAL_MASK_MS: f64 = 3.0;
 
@@ -61,27 +64,20 @@ fn main() {
         // The official rules over the face's window, into one buffer (the loader's
         // pooled buffer, which the rasterizer sizes and fills per item).
         let window = PixelWindow::official_extent(&screen, 800, 800);
-        let mut official = Vec::new();
-        for _ in 0..60 {
-            let t = Instant::now();
-            rasterize_mesh_official_in(&mut vb, window, &screen, &triangles).unwrap();
-            official.push(t.elapsed().as_secs_f64() * 1e3);
-        }
-        official.sort_by(f64::total_cmp);
+        let official = median_ms(
+            || {
+                rasterize_mesh_official_in(&mut vb, window, &screen, &triangles).unwrap();
+            },
+            60,
+        );
         // The same without the weights: the loader's mask (`rasterize_official_visibility_in`).
-        let mut visibility = Vec::new();
-        for _ in 0..60 {
-            let t = Instant::now();
-            rasterize_official_visibility_in(&mut vb, window, &screen, &triangles).unwrap();
-            visibility.push(t.elapsed().as_secs_f64() * 1e3);
-        }
-        visibility.sort_by(f64::total_cmp);
-        official_rules.push((
-            label,
-            window,
-            official[official.len() / 2],
-            visibility[visibility.len() / 2],
-        ));
+        let visibility = median_ms(
+            || {
+                rasterize_official_visibility_in(&mut vb, window, &screen, &triangles).unwrap();
+            },
+            60,
+        );
+        official_rules.push((label, window, official, visibility));
         vb.reset(800, 800);
         results.push((label, covered, median, clear_ms));
     }

@@ -398,18 +398,7 @@ impl OfficialUvLayout {
                 format!("vertex {t} beyond the {} UV vertices", coords.len()),
             ));
         }
-        let s = (size - 1) as f32;
-        let screen: Vec<ScreenVertex> = coords
-            .iter()
-            .map(|t| ScreenVertex {
-                x: t[0] * s,
-                y: t[1] * s,
-                inv_w: 1.0,
-            })
-            .collect();
-        let mut vb = VisibilityBuffer::new(size, size);
-        arkit_core::raster::rasterize_mesh_official(&mut vb, &screen, &triangles)
-            .map_err(|e| Error::invalid("UV triangles", e.to_string()))?;
+        let vb = Self::raster(&coords, &triangles, size)?;
         let mut covered: Vec<TexelRun> = Vec::new();
         let mut weights: [Vec<f32>; 3] = Default::default();
         let mut run_triangle = VisibilityBuffer::EMPTY;
@@ -448,6 +437,24 @@ impl OfficialUvLayout {
             centroid_loops,
             extended: coords.len(),
         })
+    }
+
+    /// The UV triangles drawn by the official rasterizer's rules at `uv * (size - 1)`
+    /// into a `size x size` buffer: each texel's triangle and weights.
+    fn raster(coords: &[[f32; 2]], triangles: &[[u32; 3]], size: u32) -> Result<VisibilityBuffer> {
+        let s = (size - 1) as f32;
+        let screen: Vec<ScreenVertex> = coords
+            .iter()
+            .map(|t| ScreenVertex {
+                x: t[0] * s,
+                y: t[1] * s,
+                inv_w: 1.0,
+            })
+            .collect();
+        let mut vb = VisibilityBuffer::new(size, size);
+        arkit_core::raster::rasterize_mesh_official(&mut vb, &screen, triangles)
+            .map_err(|e| Error::invalid("UV triangles", e.to_string()))?;
+        Ok(vb)
     }
 
     /// The release's extended vertices, read off its UV triangles: after the mesh
@@ -1482,7 +1489,7 @@ mod tests {
     #[test]
     fn official_uv_map_in_lanes_is_the_per_texel_definition() {
         // The layout's runs and lanes against each texel computed straight from the
-        // official raster of the UV triangles: the same bits, on meshes whose colours
+        // official raster of the UV triangles (the one the layout is read from): the same bits, on meshes whose colours
         // run past [0, 1] on both sides, with a NaN among them.
         let face = crate::mesh::synthetic_face::builtin();
         let topology = &face.topology;
@@ -1490,18 +1497,7 @@ mod tests {
         let mut r = Rng::new(8);
         for size in [64u32, 192] {
             let layout = OfficialUvLayout::new(&uv, None, topology.vertex_count, size).unwrap();
-            let s = (size - 1) as f32;
-            let screen: Vec<ScreenVertex> = uv
-                .uv
-                .iter()
-                .map(|t| ScreenVertex {
-                    x: t[0] * s,
-                    y: t[1] * s,
-                    inv_w: 1.0,
-                })
-                .collect();
-            let mut vb = VisibilityBuffer::new(size, size);
-            arkit_core::raster::rasterize_mesh_official(&mut vb, &screen, &uv.triangles).unwrap();
+            let vb = OfficialUvLayout::raster(&uv.uv, &uv.triangles, size).unwrap();
             for case in 0..4 {
                 let mut verts: Vec<Point3<f32>> = (0..topology.vertex_count)
                     .map(|_| {
