@@ -102,7 +102,8 @@ fn main() {
     }
     for &(label, window, ms, mask_ms) in &official_rules {
         println!(
-            "official rules, {label}: the face's {}x{} window at full resolution, {ms:.3} ms a frame ({mask_ms:.3} ms without the weights, as the loader's mask)",
+            "official rules, {label}: the face's {}x{} window at full resolution, {ms:.3} ms a \
+             frame ({mask_ms:.3} ms without the weights, as the loader's mask)",
             window.width, window.height
         );
     }

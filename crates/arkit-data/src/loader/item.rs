@@ -334,8 +334,9 @@ impl PixelSource {
 /// `uv_coords_std_202109.npy`.
 pub type ReleaseUvLayout = (Vec<[u32; 3]>, Vec<[f32; 2]>);
 
-/// Texels of an [`OfficialUvLayout`] next to each other that one UV triangle covers: texels `start..start + len`, whose weights are `first..first + len` of
-/// the layout's weight planes.
+/// Texels of an [`OfficialUvLayout`] next to each other that one UV triangle covers:
+/// texels `start..start + len`, whose weights are `first..first + len` of the layout's
+/// weight planes.
 #[derive(Clone, Copy, Debug)]
 struct TexelRun {
     /// Row-major index in the map of the run's first texel.
@@ -401,7 +402,6 @@ impl OfficialUvLayout {
         let vb = Self::raster(&coords, &triangles, size)?;
         let mut covered: Vec<TexelRun> = Vec::new();
         let mut weights: [Vec<f32>; 3] = Default::default();
-        let mut run_triangle = VisibilityBuffer::EMPTY;
         let mut uncovered: Vec<std::ops::Range<usize>> = Vec::new();
         for (texel, (&t, &wt)) in vb.triangle.iter().zip(&vb.bary).enumerate() {
             if t == VisibilityBuffer::EMPTY {
@@ -411,18 +411,17 @@ impl OfficialUvLayout {
                 }
                 continue;
             }
-            let texel = texel as u32;
+            // A texel continues the last run when it is the next texel and its triangle
+            // has the run's corners (the values depend on the corners, not the index).
+            let (texel, corners) = (texel as u32, triangles[t as usize]);
             match covered.last_mut() {
-                Some(run) if run_triangle == t && run.start + run.len == texel => run.len += 1,
-                _ => {
-                    run_triangle = t;
-                    covered.push(TexelRun {
-                        start: texel,
-                        len: 1,
-                        first: weights[0].len() as u32,
-                        corners: triangles[t as usize],
-                    });
-                }
+                Some(run) if run.corners == corners && run.start + run.len == texel => run.len += 1,
+                _ => covered.push(TexelRun {
+                    start: texel,
+                    len: 1,
+                    first: weights[0].len() as u32,
+                    corners,
+                }),
             }
             for (plane, w) in weights.iter_mut().zip(wt) {
                 plane.push(w);
@@ -524,6 +523,19 @@ impl OfficialUvLayout {
     /// When `out` is not `3 x size x size` values.
     pub fn uv_map_into(&self, verts: &[Point3<f32>], out: &mut [f32]) {
         let colors = self.colours(verts);
+        let planes = self.planes_uncovered_filled(out);
+        // SAFETY: SSE2 is part of the x86-64 baseline: every x86-64 CPU has it.
+        #[cfg(target_arch = "x86_64")]
+        unsafe {
+            self.covered_sse(&colors, planes)
+        };
+        #[cfg(not(target_arch = "x86_64"))]
+        self.covered_scalar(&colors, planes);
+    }
+
+    /// `out`'s three planes (`3 x size x size` values, channels first), with `-1` written
+    /// at every uncovered texel.
+    fn planes_uncovered_filled<'a>(&self, out: &'a mut [f32]) -> [&'a mut [f32]; 3] {
         let n = (self.size * self.size) as usize;
         assert_eq!(out.len(), 3 * n, "a 3 x size x size map");
         let (u, rest) = out.split_at_mut(n);
@@ -533,13 +545,7 @@ impl OfficialUvLayout {
                 plane[run.clone()].fill(-1.0);
             }
         }
-        // SAFETY: SSE2 is part of the x86-64 baseline: every x86-64 CPU has it.
-        #[cfg(target_arch = "x86_64")]
-        unsafe {
-            self.covered_sse(&colors, [u, v, w])
-        };
-        #[cfg(not(target_arch = "x86_64"))]
-        self.covered_scalar(&colors, [u, v, w]);
+        [u, v, w]
     }
 
     /// The official colours of the extended vertices: the positions mapped by
@@ -1489,8 +1495,9 @@ mod tests {
     #[test]
     fn official_uv_map_in_lanes_is_the_per_texel_definition() {
         // The layout's runs and lanes against each texel computed straight from the
-        // official raster of the UV triangles (the one the layout is read from): the same bits, on meshes whose colours
-        // run past [0, 1] on both sides, with a NaN among them.
+        // official raster of the UV triangles (the one the layout is read from): the
+        // same bits, on meshes whose colours run past [0, 1] on both sides, with a NaN
+        // among them.
         let face = crate::mesh::synthetic_face::builtin();
         let topology = &face.topology;
         let uv = UvMapper::derive(topology).unwrap();
@@ -1528,14 +1535,7 @@ mod tests {
                 let bits = |m: &[f32]| m.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
                 assert_eq!(bits(&got), bits(&want), "size {size}, case {case}");
                 let mut scalar = vec![7f32; 3 * n];
-                let (u, rest) = scalar.split_at_mut(n);
-                let (v, w) = rest.split_at_mut(n);
-                for run in &layout.uncovered {
-                    for plane in [&mut *u, &mut *v, &mut *w] {
-                        plane[run.clone()].fill(-1.0);
-                    }
-                }
-                layout.covered_scalar(&colors, [u, v, w]);
+                layout.covered_scalar(&colors, layout.planes_uncovered_filled(&mut scalar));
                 assert_eq!(bits(&scalar), bits(&want), "size {size}, case {case}");
                 assert!(got.iter().any(|x| x.is_nan()) && got.contains(&1.0));
             }
