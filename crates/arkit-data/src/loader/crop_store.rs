@@ -320,9 +320,10 @@ fn unpredict_window_scalar(buf: &mut [u8], side: usize) {
 
 /// [`unpredict_rows_sse2`] compiled for a CPU with AVX2: the same operations in the
 /// three-operand (VEX) encodings, which spare the register copies of SSE2's two-operand
-/// ones, and the steps away from the window's edges with all four rows of a band in
-/// one register ([`band_middle_avx2`]): 97 against 123 us a 244x244 window (the same
-/// code without that register, alternated, one core).
+/// ones, and bands of [`WIDE_WAVEFRONT`] rows whose steps away from the window's edges
+/// run in two registers of four rows ([`band_middle_avx2`]): 51 against 80 us a
+/// 244x244 window (bands of four rows in one register, alternated, one core; 123 us
+/// with a register per row).
 ///
 /// # Safety
 ///
@@ -355,6 +356,12 @@ unsafe fn unpredict_rows_sse2<const WIDE: bool>(buf: &mut [u8], side: usize) {
         let zero = _mm_setzero_si128();
         // The planes of the row above the rows being decoded, and the last of those rows'.
         let (mut above, mut below) = (vec![zero; side], vec![zero; side]);
+        // The wide bands' staging ([`BandState::stage`]).
+        let mut stage = if WIDE {
+            vec![[0u64; 4]; side]
+        } else {
+            Vec::new()
+        };
         // The first row: the left neighbour predicts (none for the first pixel).
         let mut left = zero;
         for (x, out) in above.iter_mut().enumerate() {
@@ -363,24 +370,40 @@ unsafe fn unpredict_rows_sse2<const WIDE: bool>(buf: &mut [u8], side: usize) {
             *out = left;
         }
         let mut y = 1;
+        if WIDE {
+            while y + WIDE_WAVEFRONT <= side {
+                // SAFETY: rows y..y + WIDE_WAVEFRONT are inside the window.
+                unpredict_band_sse2::<WIDE_WAVEFRONT, true>(
+                    buf, side, y, &above, &mut below, &mut stage,
+                );
+                std::mem::swap(&mut above, &mut below);
+                y += WIDE_WAVEFRONT;
+            }
+        }
         while y + WAVEFRONT <= side {
             // SAFETY: rows y..y + WAVEFRONT are inside the window.
-            unpredict_band_sse2::<WAVEFRONT, WIDE>(buf, side, y, &above, &mut below);
+            unpredict_band_sse2::<WAVEFRONT, false>(buf, side, y, &above, &mut below, &mut []);
             std::mem::swap(&mut above, &mut below);
             y += WAVEFRONT;
         }
         while y < side {
             // SAFETY: row y is inside the window.
-            unpredict_band_sse2::<1, false>(buf, side, y, &above, &mut below);
+            unpredict_band_sse2::<1, false>(buf, side, y, &above, &mut below, &mut []);
             std::mem::swap(&mut above, &mut below);
             y += 1;
         }
     }
 }
 
-/// The rows [`unpredict_rows_sse2`] decodes side by side.
+/// The rows [`unpredict_rows_sse2`] decodes side by side (a row's state in a register
+/// of its own).
 #[cfg(target_arch = "x86_64")]
 const WAVEFRONT: usize = 4;
+
+/// The rows [`unpredict_rows_vex`] decodes side by side: two registers of four rows
+/// ([`band_middle_avx2`]).
+#[cfg(target_arch = "x86_64")]
+const WIDE_WAVEFRONT: usize = 8;
 
 /// Rows `y0..y0 + K` of [`unpredict_rows_sse2`] (`y0 >= 1`, all inside the window):
 /// `above` holds row `y0 - 1`'s planes, `below` gets row `y0 + K - 1`'s. The steps
@@ -394,6 +417,7 @@ unsafe fn unpredict_band_sse2<const K: usize, const WIDE: bool>(
     y0: usize,
     above: &[std::arch::x86_64::__m128i],
     below: &mut [std::arch::x86_64::__m128i],
+    stage: &mut [[u64; 4]],
 ) {
     // SAFETY: SSE2 is part of the x86-64 baseline (these run on every x86-64 CPU,
     // inlined into the AVX2 entry on CPUs that have it); the pointers are the caller's.
@@ -414,6 +438,7 @@ unsafe fn unpredict_band_sse2<const K: usize, const WIDE: bool>(
             y0,
             above,
             below,
+            stage,
         };
         for t in 0..inner {
             // SAFETY: rows y0..y0 + K are inside the window (the caller's).
@@ -421,8 +446,8 @@ unsafe fn unpredict_band_sse2<const K: usize, const WIDE: bool>(
         }
         if let (true, Ok(last), Ok(before)) = (
             WIDE,
-            <&mut [__m128i; 4]>::try_from(&mut last[..]),
-            <&mut [__m128i; 4]>::try_from(&mut before[..]),
+            <&mut [__m128i; WIDE_WAVEFRONT]>::try_from(&mut last[..]),
+            <&mut [__m128i; WIDE_WAVEFRONT]>::try_from(&mut before[..]),
         ) {
             // SAFETY: WIDE runs only on a CPU with AVX2 ([`unpredict_rows_vex`]); the
             // steps are the band's inner ones.
@@ -447,6 +472,9 @@ struct BandState<'a> {
     y0: usize,
     above: &'a [std::arch::x86_64::__m128i],
     below: &'a mut [std::arch::x86_64::__m128i],
+    /// [`band_middle_avx2`]'s second register per column (`side` of them; empty
+    /// elsewhere), whose last row becomes `below` after the steps.
+    stage: &'a mut [[u64; 4]],
 }
 
 /// Step `t` of [`unpredict_band_sse2`]: row `k` decodes column `t - k`, from the last
@@ -510,17 +538,20 @@ unsafe fn band_step<const K: usize, const EDGE: bool>(
     }
 }
 
-/// The inner steps `steps` of a band of four rows ([`unpredict_band_sse2`]) with the
-/// four rows in one AVX2 register, row `k`'s planes in its 64-bit lane `k` (`i16` lanes
-/// `4k..4k + 3`, the fourth zero): per step one median, one decode and the row above's
-/// values moved one row down by a lane permute, where [`band_step`] does each row in a
-/// register of its own. The same arithmetic lane by lane, so the same bytes (tested
-/// against the scalar decoder). `last` and `before` hold the rows' state as
-/// [`band_step`] keeps it, on entry and on return.
+/// The inner steps `steps` of a band of eight rows ([`unpredict_band_sse2`]) in two
+/// AVX2 registers of four rows, row `k`'s planes in 64-bit lane `k % 4` (`i16` lanes
+/// `4 (k % 4)..4 (k % 4) + 3`, the fourth zero) of register `k / 4`, where
+/// [`band_step`] does each row in a register of its own. Per step and register one
+/// median and one decode; the rows above move one row down by a lane permute (the
+/// first register's lane 3 into the second's lane 0). The two registers' dependency
+/// chains overlap: the second reads only the first's values of the step before. The
+/// same arithmetic lane by lane, so the same bytes (tested against the scalar
+/// decoder). `last` and `before` hold the rows' state as [`band_step`] keeps it, on
+/// entry and on return.
 ///
 /// # Safety
 ///
-/// The CPU has AVX2; `band`'s four rows are inside the window in `buf`, and every step
+/// The CPU has AVX2; `band`'s eight rows are inside the window in `buf`, and every step
 /// is an inner one: each row at a column in `1..side - 1`.
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2")]
@@ -528,8 +559,8 @@ unsafe fn band_middle_avx2(
     buf: &mut [u8],
     band: &mut BandState<'_>,
     steps: std::ops::Range<usize>,
-    last: &mut [std::arch::x86_64::__m128i; 4],
-    before: &mut [std::arch::x86_64::__m128i; 4],
+    last: &mut [std::arch::x86_64::__m128i; WIDE_WAVEFRONT],
+    before: &mut [std::arch::x86_64::__m128i; WIDE_WAVEFRONT],
 ) {
     use std::arch::x86_64::*;
     let side = band.side;
@@ -537,25 +568,28 @@ unsafe fn band_middle_avx2(
         return;
     }
     assert!(
-        steps.start >= 4 && steps.end < side && (band.y0 + 4) * side * 3 <= buf.len(),
+        steps.start >= WIDE_WAVEFRONT
+            && steps.end < side
+            && (band.y0 + WIDE_WAVEFRONT) * side * 3 <= buf.len()
+            && band.stage.len() == side
+            && band.below.len() == side,
         "inner steps of a band inside the window"
     );
     let zero = _mm_setzero_si128();
-    // Rows' xmm state (planes in lanes 0-2) to and from the 64-bit lanes of one register.
-    let join = |r: &[__m128i; 4]| {
+    // Four rows' xmm state (planes in lanes 0-2) to and from the 64-bit lanes of one
+    // register.
+    let join = |r: &[__m128i]| {
         _mm256_set_m128i(
             _mm_unpacklo_epi64(r[2], r[3]),
             _mm_unpacklo_epi64(r[0], r[1]),
         )
     };
-    let split = |v: __m256i| {
+    let split = |v: __m256i, r: &mut [__m128i]| {
         let (lo, hi) = (_mm256_castsi256_si128(v), _mm256_extracti128_si256::<1>(v));
-        [
-            _mm_move_epi64(lo),
-            _mm_unpackhi_epi64(lo, zero),
-            _mm_move_epi64(hi),
-            _mm_unpackhi_epi64(hi, zero),
-        ]
+        r[0] = _mm_move_epi64(lo);
+        r[1] = _mm_unpackhi_epi64(lo, zero);
+        r[2] = _mm_move_epi64(hi);
+        r[3] = _mm_unpackhi_epi64(hi, zero);
     };
     // Lanes 0-2 of every row.
     let planes_mask = _mm256_set1_epi64x(0x0000_00ff_00ff_00ff);
@@ -570,60 +604,103 @@ unsafe fn band_middle_avx2(
         2, 0, 4, -128, 10, 8, 12, -128, -128, -128, -128, -128, -128, -128, -128, -128, 2, 0, 4,
         -128, 10, 8, 12, -128, -128, -128, -128, -128, -128, -128, -128, -128,
     );
-    let (mut last_v, mut before_v) = (join(last), join(before));
-    let row_at = |k: usize, t: usize| 3 * ((band.y0 + k) * side + t - k);
+    // Rows 0-3 (`_a`) and 4-7 (`_b`): planes at the last decoded column and the one before.
+    let (mut last_a, mut before_a) = (join(&last[..4]), join(&before[..4]));
+    let (mut last_b, mut before_b) = (join(&last[4..]), join(&before[4..]));
+    // Row k's pixel of step t is `stride` bytes after row k - 1's (a row down, a
+    // pixel left): at `row_at(t) + k * stride`, offsets computed one by one (an array
+    // of them would be built in vector lanes and each taken out again).
+    let row_at = |t: usize| 3 * (band.y0 * side + t);
+    let stride = 3 * side - 3;
     let base = buf.as_mut_ptr();
-    for t in steps {
-        // SAFETY: every row's pixel t - k is an inner one (the caller's), so its four
-        // bytes (its three and the next pixel's first) are inside `buf`; `above` holds
-        // a value for every column.
+    // A register's rows from their predictions' inputs: left `a`, above `b`, above-left
+    // `c`, the errors; writes each row's pixel at `at` and returns its planes.
+    // Rows `k0..k0 + 4` of step t, whose row 0 pixel is at `at0`.
+    let decode = |a: __m256i, b: __m256i, c: __m256i, errors: __m256i, at0: usize, k0: usize| {
+        let plane = _mm256_sub_epi16(_mm256_add_epi16(a, b), c);
+        let p = _mm256_max_epi16(
+            _mm256_min_epi16(a, b),
+            _mm256_min_epi16(_mm256_max_epi16(a, b), plane),
+        );
+        // Green, red less green and blue less green, modulo 256 once masked.
+        let sums = _mm256_add_epi16(p, errors);
+        let green = _mm256_shuffle_epi8(sums, green_of);
+        let grb = _mm256_and_si256(_mm256_add_epi16(sums, green), planes_mask);
+        // Each half's low 64 bits (two rows' bytes, `rgb_of`) moved to a general
+        // register, then stored from there: lane extracts into memory would each take
+        // the shuffle unit, which is what a step waits on.
+        let rgb = _mm256_shuffle_epi8(grb, rgb_of);
+        let (mut lo, mut hi) = (
+            _mm_cvtsi128_si64(_mm256_castsi256_si128(rgb)) as u64,
+            _mm_cvtsi128_si64(_mm256_extracti128_si256::<1>(rgb)) as u64,
+        );
+        // SAFETY: an empty instruction: the values stay in general registers (else
+        // the compiler folds the moves and shifts back into lane extracts).
         unsafe {
-            let at = [row_at(0, t), row_at(1, t), row_at(2, t), row_at(3, t)];
-            let read = |i: usize| base.add(at[i]).cast::<i32>().read_unaligned();
-            // Lane 3 of each row gets the next pixel's first byte: it never reaches a
-            // result (green is taken from lane 0, the sums are masked to lanes 0-2).
-            let errors = _mm256_cvtepu8_epi16(_mm_setr_epi32(read(0), read(1), read(2), read(3)));
-            // Above: row k - 1's last pixel, row 0's from the band above; above-left:
-            // the pixel before those.
-            let down = |v: __m256i| _mm256_permute4x64_epi64::<0b10_01_00_00>(v);
-            let above = |x: usize| _mm256_castsi128_si256(*band.above.get_unchecked(x));
-            let b = _mm256_blend_epi32::<0b11>(down(last_v), above(t));
-            let c = _mm256_blend_epi32::<0b11>(down(before_v), above(t - 1));
-            let a = last_v;
-            let plane = _mm256_sub_epi16(_mm256_add_epi16(a, b), c);
-            let p = _mm256_max_epi16(
-                _mm256_min_epi16(a, b),
-                _mm256_min_epi16(_mm256_max_epi16(a, b), plane),
-            );
-            // Green, red less green and blue less green, modulo 256 once masked.
-            let sums = _mm256_add_epi16(p, errors);
-            let green = _mm256_shuffle_epi8(sums, green_of);
-            let grb = _mm256_and_si256(_mm256_add_epi16(sums, green), planes_mask);
-            let rgb = _mm256_shuffle_epi8(grb, rgb_of);
-            let (lo, hi) = (
-                _mm256_castsi256_si128(rgb),
-                _mm256_extracti128_si256::<1>(rgb),
-            );
-            let out = [
-                _mm_cvtsi128_si32(lo),
-                _mm_extract_epi32::<1>(lo),
-                _mm_cvtsi128_si32(hi),
-                _mm_extract_epi32::<1>(hi),
-            ];
-            for (k, &o) in out.iter().enumerate() {
-                // Three bytes (two and one), as `decode_inner_pixel_sse2` writes them.
-                let ptr = base.add(at[k]);
+            std::arch::asm!("/* {0} {1} */", inout(reg) lo, inout(reg) hi, options(pure, nomem, nostack))
+        };
+        let out = [lo as u32, (lo >> 32) as u32, hi as u32, (hi >> 32) as u32];
+        for (k, &o) in (k0..k0 + 4).zip(&out) {
+            let at = at0 + k * stride;
+            // SAFETY: the caller's (below): the pixel's bytes are inside `buf`.
+            // Three bytes (two and one), as `decode_inner_pixel_sse2` writes them.
+            unsafe {
+                let ptr = base.add(at);
                 ptr.cast::<u16>().write_unaligned(o as u16);
                 ptr.add(2).write((o >> 16) as u8);
             }
-            before_v = last_v;
-            last_v = _mm256_sub_epi16(grb, green);
-            let x = t - 3;
-            *band.below.get_unchecked_mut(x) =
-                _mm_unpackhi_epi64(_mm256_extracti128_si256::<1>(last_v), zero);
+        }
+        _mm256_sub_epi16(grb, green)
+    };
+    // Above: row k - 1's last pixel, row 0's from the band above, row 4's from row 3
+    // (the first register's lane 3). Above-left: the pixel before those, which is the
+    // step before's above.
+    let down = |v: __m256i| _mm256_permute4x64_epi64::<0b10_01_00_00>(v);
+    let down_from = |a: __m256i, b: __m256i| {
+        _mm256_alignr_epi8::<8>(b, _mm256_permute2x128_si256::<0x21>(a, b))
+    };
+    // SAFETY: `above` holds a value for every column, and `steps.start >= 1`.
+    let above = |x: usize| unsafe { _mm256_castsi128_si256(*band.above.get_unchecked(x)) };
+    let mut c_a = _mm256_blend_epi32::<0b11>(down(before_a), above(steps.start - 1));
+    let mut c_b = down_from(before_a, before_b);
+    let first = steps.start;
+    let stage = band.stage.as_mut_ptr();
+    for t in steps.clone() {
+        // SAFETY: every row's pixel t - k is an inner one (the caller's), so its four
+        // bytes (its three and the next pixel's first) are inside `buf`; `stage` holds
+        // a value for every column (asserted above).
+        unsafe {
+            let at0 = row_at(t);
+            let read = |k: usize| base.add(at0 + k * stride).cast::<i32>().read_unaligned();
+            // Lane 3 of each row gets the next pixel's first byte: it never reaches a
+            // result (green is taken from lane 0, the sums are masked to lanes 0-2).
+            let errors = |k: usize| {
+                _mm256_cvtepu8_epi16(_mm_setr_epi32(
+                    read(k),
+                    read(k + 1),
+                    read(k + 2),
+                    read(k + 3),
+                ))
+            };
+            let b_a = _mm256_blend_epi32::<0b11>(down(last_a), above(t));
+            let b_b = down_from(last_a, last_b);
+            let new_a = decode(last_a, b_a, c_a, errors(0), at0, 0);
+            let new_b = decode(last_b, b_b, c_b, errors(4), at0, 4);
+            (before_a, last_a, c_a) = (last_a, new_a, b_a);
+            (before_b, last_b, c_b) = (last_b, new_b, b_b);
+            // The whole register kept (a plain store), its last row taken out below.
+            _mm256_storeu_si256(stage.add(t - (WIDE_WAVEFRONT - 1)).cast(), last_b);
         }
     }
-    (*last, *before) = (split(last_v), split(before_v));
+    for x in first - (WIDE_WAVEFRONT - 1)..steps.end - (WIDE_WAVEFRONT - 1) {
+        // Row 7's planes: the register's lane 3, the upper half zero.
+        // SAFETY: SSE2 is part of the x86-64 baseline; the eight bytes are `stage[x][3]`.
+        band.below[x] = unsafe { _mm_loadl_epi64(band.stage[x][3..].as_ptr().cast()) };
+    }
+    split(last_a, &mut last[..4]);
+    split(last_b, &mut last[4..]);
+    split(before_a, &mut before[..4]);
+    split(before_b, &mut before[4..]);
 }
 
 /// Decodes pixel `(y, x)` of the window in `buf` from its plane predictions `p`
@@ -1946,8 +2023,9 @@ mod tests {
             x
         };
         // Noise read as errors (every value, wrapping ones included) and the errors of
-        // a smooth window, at every side up to 20 (each band remainder) and 244.
-        for side in (0..=20).chain([244]) {
+        // a smooth window, at every side up to 40 (bands of eight, four and one rows,
+        // each remainder) and 244.
+        for side in (0..=40).chain([244]) {
             let noise: Vec<u8> = (0..3 * side * side).map(|_| next() as u8).collect();
             let smooth: Vec<u8> = (0..side * side)
                 .flat_map(|i| [(i / side * 3) as u8, (i % side * 5) as u8, 90])
