@@ -36,7 +36,7 @@ use arkit_core::raster::{PixelWindow, ScreenVertex, VisibilityBuffer};
 use arkit_core::rng::Rng;
 
 use crate::crop::{CropSampling, CropTransform};
-use crate::store::face_targets::FaceTargets;
+use crate::store::face_targets::{FaceTargets, for_each_set_run};
 use nalgebra::Point3;
 use std::ops::Range;
 /// Renders masks and correspondences for one topology (see module docs).
@@ -579,30 +579,11 @@ impl WindowMask {
 }
 
 /// Appends to `out` the offsets `first + k` of the face pixels `row[k]`, sixteen pixels
-/// at a time: a chunk all background or all face is skipped or written whole, and only
-/// a chunk that holds an edge is looked at pixel by pixel (a face's rows are long runs).
+/// at a time ([`for_each_set_run`]).
 fn push_face_offsets(row: &[bool], first: i64, out: &mut Vec<i64>) {
-    const ALL_FACE: u128 = u128::from_ne_bytes([1; 16]);
-    let one_by_one = |out: &mut Vec<i64>, part: &[bool], at: i64| {
-        out.extend(
-            part.iter()
-                .enumerate()
-                .filter(|&(_, &face)| face)
-                .map(|(k, _)| at + k as i64),
-        )
-    };
-    let mut chunks = row.chunks_exact(16);
-    let mut at = first;
-    for chunk in &mut chunks {
-        let bytes: [u8; 16] = std::array::from_fn(|k| chunk[k] as u8);
-        match u128::from_ne_bytes(bytes) {
-            0 => {}
-            ALL_FACE => out.extend(at..at + 16),
-            _ => one_by_one(out, chunk, at),
-        }
-        at += 16;
-    }
-    one_by_one(out, chunks.remainder(), at);
+    for_each_set_run(row, |start, len| {
+        out.extend(first + start as i64..first + (start + len) as i64)
+    });
 }
 
 /// Which pixels of a visibility buffer's `triangle` array show one of the first

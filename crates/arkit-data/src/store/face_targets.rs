@@ -58,9 +58,66 @@ pub(crate) fn canonical_position(verts: &[Point3<f32>], v: [u16; 3], w: [f32; 3]
 /// The row-major indices of a mask's set pixels, in order (the rows of the stored
 /// correspondences follow this order).
 pub fn mask_pixel_indices(mask: &[bool]) -> Vec<u32> {
-    mask.iter()
-        .enumerate()
-        .filter(|(_, m)| **m)
-        .map(|(i, _)| i as u32)
-        .collect()
+    let mut out = Vec::new();
+    for_each_set_run(mask, |start, len| {
+        out.extend(start as u32..(start + len) as u32)
+    });
+    out
+}
+
+/// Calls `run(start, len)` for the set values of `mask`, `start..start + len`, in
+/// order, looking at sixteen values at a time: a chunk all unset is skipped, a chunk all
+/// set is one run, and in a chunk that holds an edge each set value is found from the
+/// chunk's bits (a face's rows are long runs, so few chunks are looked into).
+pub(crate) fn for_each_set_run(mask: &[bool], mut run: impl FnMut(usize, usize)) {
+    const ALL_SET: u128 = u128::from_ne_bytes([1; 16]);
+    let mut chunks = mask.chunks_exact(16);
+    let mut at = 0;
+    for chunk in &mut chunks {
+        // A bool is the byte 0 or 1, so value k is bit 8k of the little-endian word.
+        let bytes: [u8; 16] = std::array::from_fn(|k| chunk[k] as u8);
+        match u128::from_le_bytes(bytes) {
+            0 => {}
+            ALL_SET => run(at, 16),
+            mut bits => {
+                while bits != 0 {
+                    run(at + bits.trailing_zeros() as usize / 8, 1);
+                    bits &= bits - 1;
+                }
+            }
+        }
+        at += 16;
+    }
+    for (k, &set) in chunks.remainder().iter().enumerate() {
+        if set {
+            run(at + k, 1);
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn mask_pixel_indices_are_the_set_values_in_order() {
+        // By hand: a chunk all set (0..16), one with an edge (set at 17, 18 and 31), one
+        // all unset (32..48), and a remainder of five values with the last set.
+        let mut mask = vec![false; 53];
+        for i in (0..16).chain([17, 18, 31, 52]) {
+            mask[i] = true;
+        }
+        let want: Vec<u32> = (0..16).chain([17, 18, 31, 52]).collect();
+        assert_eq!(mask_pixel_indices(&mask), want);
+        // And every single set value at every position of two chunks and a remainder.
+        for at in 0..37 {
+            let mut one = vec![false; 37];
+            one[at] = true;
+            assert_eq!(mask_pixel_indices(&one), [at as u32]);
+            let all_but: Vec<bool> = (0..37).map(|i| i != at).collect();
+            let want: Vec<u32> = (0..37).filter(|&i| i != at as u32).collect();
+            assert_eq!(mask_pixel_indices(&all_but), want);
+        }
+        assert!(mask_pixel_indices(&[]).is_empty());
+    }
 }
