@@ -1344,43 +1344,39 @@ unsafe fn official_triangle_avx2<const WEIGHTS: bool>(
                 _mm256_cmp_ps::<_CMP_LT_OQ>(_mm256_add_ps(u, v), one),
             );
             let inside = _mm256_and_ps(inside, _mm256_castsi256_ps(live));
-            if _mm256_movemask_ps(inside) != 0 {
-                let w0 = _mm256_sub_ps(_mm256_sub_ps(one, u), v);
-                let z = _mm256_add_ps(
-                    _mm256_add_ps(_mm256_mul_ps(w0, z0), _mm256_mul_ps(v, z1)),
-                    _mm256_mul_ps(u, z2),
-                );
-                let at = (row + x as isize) as usize;
-                // The live lanes are pixels of this row inside the window (the box was
-                // clamped to it), so of the buffer: checked, as the scalar path's
-                // indexing checks it.
-                assert!(
-                    at + left as usize <= len,
-                    "a triangle's box outside the window"
-                );
-                // SAFETY: the masked loads and stores touch only the live lanes,
-                // `at..at + left`, inside all three buffers (each `len` long), and the
-                // bary writes only lanes with a bit in `bits`, a subset of them.
-                unsafe {
-                    let depth_ptr = buffer.inv_w.as_mut_ptr().add(at);
-                    let old = _mm256_maskload_ps(depth_ptr, live);
-                    let win = _mm256_and_ps(inside, _mm256_cmp_ps::<_CMP_GT_OQ>(z, old));
-                    let bits = _mm256_movemask_ps(win);
-                    if bits != 0 {
-                        let wi = _mm256_castps_si256(win);
-                        _mm256_maskstore_ps(depth_ptr, wi, z);
-                        _mm256_maskstore_epi32(
-                            buffer.triangle.as_mut_ptr().add(at) as *mut i32,
-                            wi,
-                            id,
-                        );
-                    }
-                    if WEIGHTS && bits != 0 {
+            // No branch on whether any lane is inside (which a triangle's rows make
+            // hard to predict): the depth test and the masked writes of a chunk with
+            // no lane inside write nothing.
+            let w0 = _mm256_sub_ps(_mm256_sub_ps(one, u), v);
+            let z = _mm256_add_ps(
+                _mm256_add_ps(_mm256_mul_ps(w0, z0), _mm256_mul_ps(v, z1)),
+                _mm256_mul_ps(u, z2),
+            );
+            let at = (row + x as isize) as usize;
+            // The live lanes are pixels of this row inside the window (the box was
+            // clamped to it), so of the buffer: checked, as the scalar path's indexing
+            // checks it.
+            assert!(
+                at + left as usize <= len,
+                "a triangle's box outside the window"
+            );
+            // SAFETY: the masked loads and stores touch only the live lanes,
+            // `at..at + left`, inside all three buffers (each `len` long), and the bary
+            // writes only lanes with a bit in `bits`, a subset of them.
+            unsafe {
+                let depth_ptr = buffer.inv_w.as_mut_ptr().add(at);
+                let old = _mm256_maskload_ps(depth_ptr, live);
+                let win = _mm256_and_ps(inside, _mm256_cmp_ps::<_CMP_GT_OQ>(z, old));
+                let wi = _mm256_castps_si256(win);
+                _mm256_maskstore_ps(depth_ptr, wi, z);
+                _mm256_maskstore_epi32(buffer.triangle.as_mut_ptr().add(at) as *mut i32, wi, id);
+                if WEIGHTS {
+                    let mut m = _mm256_movemask_ps(win) as u32;
+                    if m != 0 {
                         let (mut w0s, mut vs, mut us) = ([0f32; 8], [0f32; 8], [0f32; 8]);
                         _mm256_storeu_ps(w0s.as_mut_ptr(), w0);
                         _mm256_storeu_ps(vs.as_mut_ptr(), v);
                         _mm256_storeu_ps(us.as_mut_ptr(), u);
-                        let mut m = bits as u32;
                         while m != 0 {
                             let k = m.trailing_zeros() as usize;
                             *buffer.bary.get_unchecked_mut(at + k) = [w0s[k], vs[k], us[k]];
