@@ -1082,7 +1082,14 @@ pub fn rasterize_mesh_official_in(
     vertices: &[ScreenVertex],
     triangles: &[[u32; 3]],
 ) -> Result<(), BadTriangle> {
-    official_in(buffer, window, vertices, triangles, true, true)
+    official_in(
+        buffer,
+        window,
+        vertices,
+        triangles,
+        OfficialLanes::Sixteen,
+        true,
+    )
 }
 
 /// [`rasterize_mesh_official_in`] for a mask: fills `triangle` and `inv_w` with the
@@ -1094,18 +1101,40 @@ pub fn rasterize_official_visibility_in(
     vertices: &[ScreenVertex],
     triangles: &[[u32; 3]],
 ) -> Result<(), BadTriangle> {
-    official_in(buffer, window, vertices, triangles, true, false)
+    official_in(
+        buffer,
+        window,
+        vertices,
+        triangles,
+        OfficialLanes::Sixteen,
+        false,
+    )
 }
 
-/// [`rasterize_mesh_official_in`], with its AVX2 lanes where the CPU has them
-/// (`lanes`) or one pixel at a time: the same buffer either way (tested); the weights
-/// written or not (`weights`, [`rasterize_official_visibility_in`]).
+/// How many pixels [`official_in`] tests at a time, at most (the CPU may have fewer
+/// lanes: then the widest it has).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum OfficialLanes {
+    /// One pixel at a time: the definition.
+    One,
+    /// Eight pixels of a row in AVX2 ([`official_triangle_avx2`]). (Chosen by the
+    /// tests; the library asks for the widest.)
+    #[cfg_attr(not(test), allow(dead_code))]
+    Eight,
+    /// Without the weights, sixteen pixels, eight of two rows, in AVX-512
+    /// ([`official_visibility_avx512`]); with them, eight.
+    Sixteen,
+}
+
+/// [`rasterize_mesh_official_in`], with the CPU's SIMD lanes up to `lanes` or one pixel
+/// at a time: the same buffer either way (tested); the weights written or not
+/// (`weights`, [`rasterize_official_visibility_in`]).
 fn official_in(
     buffer: &mut VisibilityBuffer,
     window: PixelWindow,
     vertices: &[ScreenVertex],
     triangles: &[[u32; 3]],
-    lanes: bool,
+    lanes: OfficialLanes,
     weights: bool,
 ) -> Result<(), BadTriangle> {
     check_indices(vertices.len(), triangles)?;
@@ -1115,7 +1144,13 @@ fn official_in(
     let (ox, oy) = (window.x0 as i64, window.y0 as i64);
     let (w, h) = (window.width as i64, window.height as i64);
     #[cfg(target_arch = "x86_64")]
-    let avx2 = lanes && std::arch::is_x86_feature_detected!("avx2");
+    let avx2 = lanes != OfficialLanes::One && std::arch::is_x86_feature_detected!("avx2");
+    #[cfg(target_arch = "x86_64")]
+    let avx512 = lanes == OfficialLanes::Sixteen
+        && !weights
+        && std::arch::is_x86_feature_detected!("avx512f")
+        && std::arch::is_x86_feature_detected!("avx512vl")
+        && std::arch::is_x86_feature_detected!("avx512dq");
     #[cfg(not(target_arch = "x86_64"))]
     let _ = lanes;
     // Each vertex's depth once (`-1 / inv_w`), NaN where it is not drawn.
@@ -1149,6 +1184,12 @@ fn official_in(
             origin: (ox, oy),
             width: w,
         };
+        #[cfg(target_arch = "x86_64")]
+        if avx512 {
+            // SAFETY: AVX-512 F, VL and DQ were detected on this CPU.
+            unsafe { official_visibility_avx512(buffer, &tri, area) };
+            continue;
+        }
         #[cfg(target_arch = "x86_64")]
         if avx2 {
             // SAFETY: AVX2 was detected on this CPU.
@@ -1387,6 +1428,107 @@ unsafe fn official_triangle_avx2<const WEIGHTS: bool>(
             }
             x += 8;
         }
+    }
+}
+
+/// [`official_triangle_scalar`] without the weights, sixteen pixels at a time: eight
+/// of a row and the eight below them, in the lanes of one AVX-512 register (a face's
+/// triangles at full resolution are mostly under eight pixels wide, so a row of eight
+/// lanes is mostly one step; two rows are one). The same IEEE float32 operations lane
+/// by lane as [`official_triangle_avx2`] (no fused multiply-add, no reordering), so
+/// the same bits; lanes past the box's right edge or below its last row are masked
+/// off (their depths are never read or written).
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f,avx512vl,avx512dq")]
+unsafe fn official_visibility_avx512(
+    buffer: &mut VisibilityBuffer,
+    t: &OfficialTriangle,
+    area: OfficialSpan,
+) {
+    use std::arch::x86_64::*;
+    let ((p0x, p0y), (v0x, v0y), (v1x, v1y)) = (t.p0, t.v0, t.v1);
+    let (dot00, dot01, dot11) = t.dots;
+    let (ox, oy) = area.origin;
+    let set = _mm512_set1_ps;
+    let (v0x16, v0y16, v1x16, v1y16) = (set(v0x), set(v0y), set(v1x), set(v1y));
+    let (d00, d01, d11, inv) = (set(dot00), set(dot01), set(dot11), set(t.inv_deno));
+    let (z0, z1, z2) = (set(t.depth[0]), set(t.depth[1]), set(t.depth[2]));
+    let (zero, one) = (_mm512_setzero_ps(), set(1.0));
+    // Lane k: column k % 8 of row k / 8.
+    let cols = _mm512_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7, 0, 1, 2, 3, 4, 5, 6, 7);
+    let rows = _mm512_setr_epi32(0, 0, 0, 0, 0, 0, 0, 0, 1, 1, 1, 1, 1, 1, 1, 1);
+    let id = _mm256_set1_epi32(t.index as i32);
+    let len = buffer.inv_w.len();
+    let mut y = area.ys.start;
+    while y < area.ys.end {
+        // y + row as float32: exact (|y| is far below 2^24), as `y as f32` is.
+        let ys = _mm512_cvtepi32_ps(_mm512_add_epi32(_mm512_set1_epi32(y as i32), rows));
+        let v2y = _mm512_sub_ps(ys, set(p0y));
+        let (a, b) = (_mm512_mul_ps(v0y16, v2y), _mm512_mul_ps(v1y16, v2y));
+        let two_rows = y + 1 < area.ys.end;
+        let row = ((y - oy) * area.width - ox) as isize;
+        let mut x = area.xs.start;
+        while x < area.xs.end {
+            let left = (area.xs.end - x).min(8) as u32;
+            let row_mask = ((1u32 << left) - 1) as u16;
+            let live: __mmask16 = row_mask | if two_rows { row_mask << 8 } else { 0 };
+            let xs = _mm512_cvtepi32_ps(_mm512_add_epi32(_mm512_set1_epi32(x as i32), cols));
+            let v2x = _mm512_sub_ps(xs, set(p0x));
+            let dot02 = _mm512_add_ps(_mm512_mul_ps(v0x16, v2x), a);
+            let dot12 = _mm512_add_ps(_mm512_mul_ps(v1x16, v2x), b);
+            let u = _mm512_mul_ps(
+                _mm512_sub_ps(_mm512_mul_ps(d11, dot02), _mm512_mul_ps(d01, dot12)),
+                inv,
+            );
+            let v = _mm512_mul_ps(
+                _mm512_sub_ps(_mm512_mul_ps(d00, dot12), _mm512_mul_ps(d01, dot02)),
+                inv,
+            );
+            // Ordered comparisons: a NaN weight is outside, as in the scalar test.
+            let inside = _mm512_mask_cmp_ps_mask::<_CMP_GE_OQ>(live, u, zero)
+                & _mm512_cmp_ps_mask::<_CMP_GE_OQ>(v, zero)
+                & _mm512_cmp_ps_mask::<_CMP_LT_OQ>(_mm512_add_ps(u, v), one);
+            let w0 = _mm512_sub_ps(_mm512_sub_ps(one, u), v);
+            let z = _mm512_add_ps(
+                _mm512_add_ps(_mm512_mul_ps(w0, z0), _mm512_mul_ps(v, z1)),
+                _mm512_mul_ps(u, z2),
+            );
+            let at = (row + x as isize) as usize;
+            // Row y + 1's pixel (the row itself when there is none: no lane of it is
+            // live, and the pointer stays inside the buffer).
+            let below = if two_rows {
+                at + area.width as usize
+            } else {
+                at
+            };
+            // The live lanes are pixels of the box inside the window (the box was
+            // clamped to it), so of the buffer: checked, as the scalar path's indexing
+            // checks it.
+            assert!(
+                at + left as usize <= len && (!two_rows || below + left as usize <= len),
+                "a triangle's box outside the window"
+            );
+            // SAFETY: the masked loads and stores touch only the live lanes, the
+            // first `left` pixels from `at` (and from `below` with two rows), inside
+            // both buffers (each `len` long); masked-off lanes are never accessed.
+            unsafe {
+                let depth = buffer.inv_w.as_mut_ptr();
+                let triangle = buffer.triangle.as_mut_ptr().cast::<i32>();
+                let (live_lo, live_hi) = (live as __mmask8, (live >> 8) as __mmask8);
+                let old = _mm512_insertf32x8::<1>(
+                    _mm512_castps256_ps512(_mm256_maskz_loadu_ps(live_lo, depth.add(at))),
+                    _mm256_maskz_loadu_ps(live_hi, depth.add(below)),
+                );
+                let win = _mm512_mask_cmp_ps_mask::<_CMP_GT_OQ>(inside, z, old);
+                let (win_lo, win_hi) = (win as __mmask8, (win >> 8) as __mmask8);
+                _mm256_mask_storeu_ps(depth.add(at), win_lo, _mm512_castps512_ps256(z));
+                _mm256_mask_storeu_ps(depth.add(below), win_hi, _mm512_extractf32x8_ps::<1>(z));
+                _mm256_mask_storeu_epi32(triangle.add(at), win_lo, id);
+                _mm256_mask_storeu_epi32(triangle.add(below), win_hi, id);
+            }
+            x += 8;
+        }
+        y += 2;
     }
 }
 
@@ -1841,8 +1983,9 @@ mod tests {
         // then takes every pixel of the box) and overlapping triangles, vertices at
         // fractional, integer and half-integer positions (weights exactly 0 and sums
         // exactly 1 on the edges), over windows of every width modulo 8 and offset:
-        // the AVX2 lanes and the scalar path give the same triangle, depth and weights
-        // (bits) in every pixel. Without AVX2 both calls take the scalar path.
+        // the SIMD lanes and the scalar path give the same triangle, depth and weights
+        // (bits) in every pixel. Without AVX2 (or AVX-512) the calls fall back to the
+        // widest path the CPU has.
         let mut r = Rng::new(29);
         let mut drawn = 0usize;
         for case in 0..400 {
@@ -1868,15 +2011,17 @@ mod tests {
                 width: w - 3,
                 height: h - 3,
             };
-            let run = |lanes: bool, weights: bool| {
+            let run = |lanes: OfficialLanes, weights: bool| {
                 let mut b = VisibilityBuffer::new(1, 1);
                 b.reset(window.width, window.height);
                 official_in(&mut b, window, &vertices, &triangles, lanes, weights).unwrap();
                 b
             };
-            let (scalar, lanes) = (run(false, true), run(true, true));
-            // Without the weights, each path gives the same triangles and depths.
-            for visibility in [run(false, false), run(true, false)] {
+            use OfficialLanes::{Eight, One, Sixteen};
+            let (scalar, lanes) = (run(One, true), run(Sixteen, true));
+            // Without the weights, each path (AVX-512's two rows where the CPU has it)
+            // gives the same triangles and depths.
+            for visibility in [run(One, false), run(Eight, false), run(Sixteen, false)] {
                 assert_eq!(visibility.triangle, scalar.triangle, "case {case}");
                 let bits =
                     |b: &VisibilityBuffer| b.inv_w.iter().map(|v| v.to_bits()).collect::<Vec<_>>();
