@@ -1403,7 +1403,7 @@ unsafe fn official_triangle_avx2<const WEIGHTS: bool>(
             );
             // SAFETY: the masked loads and stores touch only the live lanes,
             // `at..at + left`, inside all three buffers (each `len` long), and the bary
-            // writes only lanes with a bit in `bits`, a subset of them.
+            // writes only lanes with a bit in `m` (the lanes that won), a subset of them.
             unsafe {
                 let depth_ptr = buffer.inv_w.as_mut_ptr().add(at);
                 let old = _mm256_maskload_ps(depth_ptr, live);

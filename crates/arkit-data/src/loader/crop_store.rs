@@ -613,9 +613,9 @@ unsafe fn band_middle_avx2(
     let row_at = |t: usize| 3 * (band.y0 * side + t);
     let stride = 3 * side - 3;
     let base = buf.as_mut_ptr();
-    // A register's rows from their predictions' inputs: left `a`, above `b`, above-left
-    // `c`, the errors; writes each row's pixel at `at` and returns its planes.
-    // Rows `k0..k0 + 4` of step t, whose row 0 pixel is at `at0`.
+    // One register's rows `k0..k0 + 4` of a step whose row 0 pixel is at byte `at0`,
+    // from their left `a`, above `b` and above-left `c` planes and their errors: writes
+    // each row's pixel and returns the rows' planes.
     let decode = |a: __m256i, b: __m256i, c: __m256i, errors: __m256i, at0: usize, k0: usize| {
         let plane = _mm256_sub_epi16(_mm256_add_epi16(a, b), c);
         let p = _mm256_max_epi16(
