@@ -524,11 +524,16 @@ impl OfficialUvLayout {
     pub fn uv_map_into(&self, verts: &[Point3<f32>], out: &mut [f32]) {
         let colors = self.colours(verts);
         let planes = self.planes_uncovered_filled(out);
-        // SAFETY: SSE2 is part of the x86-64 baseline: every x86-64 CPU has it.
         #[cfg(target_arch = "x86_64")]
-        unsafe {
-            self.covered_sse(&colors, planes)
-        };
+        if std::arch::is_x86_feature_detected!("avx512f")
+            && std::arch::is_x86_feature_detected!("avx512vl")
+        {
+            // SAFETY: AVX-512 F and VL were detected on this CPU.
+            unsafe { self.covered_avx512(&colors, planes) };
+        } else {
+            // SAFETY: SSE2 is part of the x86-64 baseline: every x86-64 CPU has it.
+            unsafe { self.covered_sse(&colors, planes) };
+        }
         #[cfg(not(target_arch = "x86_64"))]
         self.covered_scalar(&colors, planes);
     }
@@ -627,6 +632,64 @@ impl OfficialUvLayout {
                 *u = _mm_cvtss_f32(mapped);
                 *v = _mm_cvtss_f32(_mm_shuffle_ps::<0b01>(mapped, mapped));
                 *w = _mm_cvtss_f32(_mm_shuffle_ps::<0b10>(mapped, mapped));
+            }
+        }
+    }
+
+    /// [`OfficialUvLayout::covered_scalar`] with up to eight texels of a run in the lanes
+    /// of one register, one register per channel: the weights loaded and the values
+    /// stored under a mask of the run's texels, so a run's setup is paid once rather
+    /// than per texel. The same float32 operations in the same order lane by lane (no
+    /// fused multiply-add), and the clamp as [`OfficialUvLayout::covered_sse`] has it;
+    /// so the same bits (tested).
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx512f,avx512vl")]
+    fn covered_avx512(&self, colors: &[[f32; 3]], planes: [&mut [f32]; 3]) {
+        use std::arch::x86_64::*;
+        let [u, v, w] = planes;
+        let [w0s, w1s, w2s] = &self.weights;
+        let (zero, one, two) = (
+            _mm256_setzero_ps(),
+            _mm256_set1_ps(1.0),
+            _mm256_set1_ps(2.0),
+        );
+        let (n, m) = (
+            u.len().min(v.len()).min(w.len()),
+            w0s.len().min(w1s.len()).min(w2s.len()),
+        );
+        for run in &self.covered {
+            let [a, b, c] = run.corners.map(|i| colors[i as usize]);
+            let (start, first, len) = (run.start as usize, run.first as usize, run.len as usize);
+            assert!(start + len <= n && first + len <= m, "a run inside the map");
+            let mut k = 0;
+            while k < len {
+                let lanes: __mmask8 = if len - k >= 8 {
+                    0xff
+                } else {
+                    (1u8 << (len - k)) - 1
+                };
+                // SAFETY: the masked lanes are texels `start + k ..` and weights
+                // `first + k ..` of this run, inside `u`, `v`, `w` and the weight
+                // planes (asserted above); masked-off lanes are neither read nor written.
+                unsafe {
+                    let at = first + k;
+                    let w0 = _mm256_maskz_loadu_ps(lanes, w0s.as_ptr().add(at));
+                    let w1 = _mm256_maskz_loadu_ps(lanes, w1s.as_ptr().add(at));
+                    let w2 = _mm256_maskz_loadu_ps(lanes, w2s.as_ptr().add(at));
+                    for (ch, plane) in [&mut *u, &mut *v, &mut *w].into_iter().enumerate() {
+                        let value = _mm256_add_ps(
+                            _mm256_add_ps(
+                                _mm256_mul_ps(w0, _mm256_set1_ps(a[ch])),
+                                _mm256_mul_ps(w1, _mm256_set1_ps(b[ch])),
+                            ),
+                            _mm256_mul_ps(w2, _mm256_set1_ps(c[ch])),
+                        );
+                        let clamped = _mm256_min_ps(one, _mm256_max_ps(zero, value));
+                        let mapped = _mm256_sub_ps(_mm256_mul_ps(clamped, two), one);
+                        _mm256_mask_storeu_ps(plane.as_mut_ptr().add(start + k), lanes, mapped);
+                    }
+                }
+                k += 8;
             }
         }
     }
@@ -1502,8 +1565,11 @@ mod tests {
         let topology = &face.topology;
         let uv = UvMapper::derive(topology).unwrap();
         let mut r = Rng::new(8);
-        for size in [64u32, 192] {
+        for size in [64u32, 192, 640] {
             let layout = OfficialUvLayout::new(&uv, None, topology.vertex_count, size).unwrap();
+            // At 640 some runs are longer than two registers of lanes (eight each), so the
+            // loop over a run's registers is exercised.
+            assert!(size < 640 || layout.covered.iter().any(|r| r.len > 16));
             let vb = OfficialUvLayout::raster(&uv.uv, &uv.triangles, size).unwrap();
             for case in 0..4 {
                 let mut verts: Vec<Point3<f32>> = (0..topology.vertex_count)
@@ -1537,6 +1603,27 @@ mod tests {
                 let mut scalar = vec![7f32; 3 * n];
                 layout.covered_scalar(&colors, layout.planes_uncovered_filled(&mut scalar));
                 assert_eq!(bits(&scalar), bits(&want), "size {size}, case {case}");
+                // Each lane width on its own, whichever `uv_map_into` picked.
+                #[cfg(target_arch = "x86_64")]
+                {
+                    let mut sse = vec![7f32; 3 * n];
+                    // SAFETY: SSE2 is part of the x86-64 baseline.
+                    unsafe {
+                        layout.covered_sse(&colors, layout.planes_uncovered_filled(&mut sse))
+                    };
+                    assert_eq!(bits(&sse), bits(&want), "sse, size {size}, case {case}");
+                    if std::arch::is_x86_feature_detected!("avx512f")
+                        && std::arch::is_x86_feature_detected!("avx512vl")
+                    {
+                        let mut wide = vec![7f32; 3 * n];
+                        let planes = layout.planes_uncovered_filled(&mut wide);
+                        // SAFETY: AVX-512 F and VL were detected.
+                        unsafe { layout.covered_avx512(&colors, planes) };
+                        assert_eq!(bits(&wide), bits(&want), "avx512, size {size}, case {case}");
+                    } else {
+                        eprintln!("no AVX-512 F/VL on this CPU: its UV-map lanes not checked");
+                    }
+                }
                 assert!(got.iter().any(|x| x.is_nan()) && got.contains(&1.0));
             }
         }
