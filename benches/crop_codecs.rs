@@ -13,7 +13,7 @@
 //! codec on these meshes and on the real face of the resources (bytes, decode time).
 //! The `ratio:` lines compare each codec's record (window plus raw mesh, as format 3
 //! stored it) with the raw record's bytes, with the release's JPEG, and (window plus the
-//! mesh codec's bytes, format 4) with the JPEG again, and its decode time with the
+//! mesh codec's bytes, format 4 on) with the JPEG again, and its decode time with the
 //! `png` codec's; the last ones are whole stores written by `crops` with each of the
 //! store's codecs, bytes a sample against the JPEG.
 
@@ -287,7 +287,7 @@ fn main() {
         mesh_z / n / 1024.0,
         mesh_planes / n / 1024.0
     );
-    // The store's mesh codec (coordinate and byte planes, deflate): on these synthetic
+    // The store's mesh codec (coordinate and byte planes, zstd): on these synthetic
     // meshes and on the real face of the resources, which may compress otherwise.
     let verts: Vec<Vec<_>> = crops.iter().map(|c| c.verts.clone()).collect();
     let (mesh_stored, mesh_us) = mesh_codec(&verts);
@@ -335,7 +335,7 @@ fn main() {
     let png = rows.iter().find(|r| r.name == "png").unwrap().decode_ms;
     let jpeg_kib = jpeg_bytes as f64 / n / 1024.0;
     // Window plus raw mesh (the records of format 3), then window plus the mesh codec's
-    // bytes (format 4), each against the release's JPEG.
+    // bytes (format 4 on), each against the release's JPEG.
     for r in &rows {
         let record = r.bytes + mesh_raw;
         let stored = r.bytes + mesh_stored;
