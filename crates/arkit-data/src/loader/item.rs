@@ -947,9 +947,10 @@ unsafe fn normalise_avx512(rgb: &[u8], planes: [&mut [f32]; 3], table: &[[f32; 2
             c as i8,
         );
         let bit = |b: i32| _mm512_set1_epi32(b);
-        for (px, out) in rgb.chunks_exact(48).zip(plane.chunks_exact_mut(16)) {
+        let mut out = StreamedPlane::new(plane);
+        for px in rgb.chunks_exact(48) {
             // SAFETY: a masked load of the group's 48 bytes (the 16 past them masked
-            // off, neither read nor faulting) and an unaligned store of the plane's 16.
+            // off, neither read nor faulting).
             unsafe {
                 let bytes = _mm512_maskz_loadu_epi8(group_bytes, px.as_ptr().cast());
                 let idx = _mm512_cvtepu8_epi32(_mm512_castsi512_si128(_mm512_permutexvar_epi8(
@@ -965,10 +966,100 @@ unsafe fn normalise_avx512(rgb: &[u8], planes: [&mut [f32]; 3], table: &[[f32; 2
                     by(32, pair(4), pair(5)),
                     by(32, pair(6), pair(7)),
                 ];
-                let v = by(128, by(64, q[0], q[1]), by(64, q[2], q[3]));
-                _mm512_storeu_ps(out.as_mut_ptr(), v);
+                out.push(by(128, by(64, q[0], q[1]), by(64, q[2], q[3])));
             }
         }
+        out.finish();
+    }
+    // Streaming stores are weakly ordered: fenced before anything else reads the planes.
+    _mm_sfence();
+}
+
+/// A plane written sixteen floats at a time, in order, with streaming stores (which do
+/// not read the lines they fill first, where a plain store does): the vectors pushed
+/// are realigned to the plane's 64-byte lines by one two-register permute each, the
+/// part before the first line and after the last written by masked plain stores. The
+/// writer's caller fences (`_mm_sfence`) before the plane is read.
+#[cfg(target_arch = "x86_64")]
+struct StreamedPlane<'a> {
+    plane: &'a mut [f32],
+    /// Floats before the first 64-byte line (0 to 15).
+    head: usize,
+    /// `head..head + 16`: lanes `head..` of one vector, then `..head` of the next.
+    shift: std::arch::x86_64::__m512i,
+    /// The last vector pushed, and how many were.
+    last: std::arch::x86_64::__m512,
+    pushed: usize,
+}
+
+#[cfg(target_arch = "x86_64")]
+impl<'a> StreamedPlane<'a> {
+    /// A writer of `plane`, whose length is a multiple of 16.
+    #[target_feature(enable = "avx512f")]
+    fn new(plane: &'a mut [f32]) -> Self {
+        use std::arch::x86_64::*;
+        assert_eq!(plane.len() % 16, 0, "whole vectors");
+        let head = plane.as_ptr().align_offset(64).min(16) % 16;
+        let h = head as i32;
+        StreamedPlane {
+            plane,
+            head,
+            shift: _mm512_add_epi32(
+                _mm512_set1_epi32(h),
+                _mm512_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15),
+            ),
+            last: _mm512_setzero_ps(),
+            pushed: 0,
+        }
+    }
+
+    /// Writes the plane's next sixteen floats.
+    #[target_feature(enable = "avx512f")]
+    #[inline]
+    fn push(&mut self, v: std::arch::x86_64::__m512) {
+        use std::arch::x86_64::*;
+        let k = self.pushed;
+        assert!(
+            16 * (k + 1) <= self.plane.len(),
+            "no more than the plane holds"
+        );
+        let p = self.plane.as_mut_ptr();
+        // SAFETY: the first vector's lanes below `head` go to floats `0..head` (masked
+        // plain store); a later one completes the line at `head + 16 (k - 1)`, which is
+        // 64-byte aligned and ends at `head + 16 k <= 16 k`, inside the plane.
+        unsafe {
+            if k == 0 {
+                _mm512_mask_storeu_ps(p, ((1u32 << self.head) - 1) as __mmask16, v);
+            } else {
+                let line = _mm512_permutex2var_ps(self.last, self.shift, v);
+                _mm512_stream_ps(p.add(self.head + 16 * (k - 1)), line);
+            }
+        }
+        self.last = v;
+        self.pushed = k + 1;
+    }
+
+    /// Writes what is left of the last vector (its lanes from `head`), plainly;
+    /// checks that the plane was written whole.
+    #[target_feature(enable = "avx512f")]
+    fn finish(self) {
+        use std::arch::x86_64::*;
+        assert_eq!(16 * self.pushed, self.plane.len(), "the whole plane");
+        if self.pushed == 0 {
+            return;
+        }
+        let rest = _mm512_permutex2var_ps(self.last, self.shift, _mm512_setzero_ps());
+        let lanes = ((1u32 << (16 - self.head)) - 1) as __mmask16;
+        // SAFETY: floats `head + 16 (pushed - 1) .. 16 pushed`, the plane's last.
+        unsafe {
+            _mm512_mask_storeu_ps(
+                self.plane
+                    .as_mut_ptr()
+                    .add(self.head + 16 * (self.pushed - 1)),
+                lanes,
+                rest,
+            )
+        };
     }
 }
 
@@ -1847,13 +1938,25 @@ mod tests {
                     }
                 }
             };
+            // Planes at every alignment (the AVX-512 path streams whole 64-byte lines
+            // and writes the floats before the first and after the last plainly).
             let run = |f: unsafe fn(&[u8], [&mut [f32]; 3], &[[f32; 256]; 3]), path: &str| {
-                let mut out = vec![f32::NAN; every.len()];
-                let (r, rest) = out.split_at_mut(512);
-                let (g, b) = rest.split_at_mut(512);
-                // SAFETY: the caller checked the CPU; 512 pixels are whole groups.
-                unsafe { f(&every, [r, g, b], &table) };
-                check(&out, path);
+                for off in 0..16 {
+                    let mut planes = [0, 1, 2].map(|_| vec![f32::NAN; 512 + 32]);
+                    let [r, g, b] = &mut planes;
+                    let [r, g, b] = [r, g, b].map(|p| &mut p[off..off + 512]);
+                    // SAFETY: the caller checked the CPU; 512 pixels are whole groups.
+                    unsafe { f(&every, [r, g, b], &table) };
+                    let out: Vec<f32> = planes
+                        .iter()
+                        .flat_map(|p| p[off..off + 512].to_vec())
+                        .collect();
+                    check(&out, &format!("{path}, offset {off}"));
+                    // Nothing written outside the planes.
+                    for p in &planes {
+                        assert!(p[..off].iter().chain(&p[off + 512..]).all(|v| v.is_nan()));
+                    }
+                }
             };
             if std::arch::is_x86_feature_detected!("avx2") {
                 run(normalise_avx2, "avx2");
