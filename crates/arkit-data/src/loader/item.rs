@@ -1940,7 +1940,8 @@ mod tests {
             };
             // Planes at every alignment (the AVX-512 path streams whole 64-byte lines
             // and writes the floats before the first and after the last plainly).
-            let run = |f: unsafe fn(&[u8], [&mut [f32]; 3], &[[f32; 256]; 3]), path: &str| {
+            type Lanes = unsafe fn(&[u8], [&mut [f32]; 3], &[[f32; 256]; 3]);
+            let run = |f: Lanes, path: &str| {
                 for off in 0..16 {
                     let mut planes = [0, 1, 2].map(|_| vec![f32::NAN; 512 + 32]);
                     let [r, g, b] = &mut planes;
