@@ -401,9 +401,7 @@ impl BatchSlices<'_> {
                     ),
                 ));
             }
-            for (o, &m) in self.mask[at(mask_n)].iter_mut().zip(&item.mask) {
-                *o = m as i64;
-            }
+            arkit_data::loader::item::widen_mask_into(&item.mask, &mut self.mask[at(mask_n)]);
             self.choose[at(choose_n)].copy_from_slice(&item.choose);
             self.model[at(model_n)].copy_from_slice(&item.model);
             self.nocs[at(3 * choose_n)].copy_from_slice(&item.nocs);

@@ -966,7 +966,11 @@ unsafe fn normalise_avx512(rgb: &[u8], planes: [&mut [f32]; 3], table: &[[f32; 2
                     by(32, pair(4), pair(5)),
                     by(32, pair(6), pair(7)),
                 ];
-                out.push(by(128, by(64, q[0], q[1]), by(64, q[2], q[3])));
+                out.push(_mm512_castps_si512(by(
+                    128,
+                    by(64, q[0], q[1]),
+                    by(64, q[2], q[3]),
+                )));
             }
         }
         out.finish();
@@ -975,64 +979,66 @@ unsafe fn normalise_avx512(rgb: &[u8], planes: [&mut [f32]; 3], table: &[[f32; 2
     _mm_sfence();
 }
 
-/// A plane written sixteen floats at a time, in order, with streaming stores (which do
-/// not read the lines they fill first, where a plain store does): the vectors pushed
-/// are realigned to the plane's 64-byte lines by one two-register permute each, the
-/// part before the first line and after the last written by masked plain stores. The
-/// writer's caller fences (`_mm_sfence`) before the plane is read.
+/// A plane of `f32` or `i64` written 64 bytes at a time, in order, with streaming
+/// stores (which do not read the lines they fill first, where a plain store does): the
+/// vectors pushed are realigned to the plane's 64-byte lines by one two-register permute
+/// of their 32-bit lanes each, the part before the first line and after the last
+/// written by masked plain stores. The writer's caller fences (`_mm_sfence`) before the
+/// plane is read.
 #[cfg(target_arch = "x86_64")]
-struct StreamedPlane<'a> {
-    plane: &'a mut [f32],
-    /// Floats before the first 64-byte line (0 to 15).
+struct StreamedPlane<'a, T> {
+    plane: &'a mut [T],
+    /// 32-bit lanes before the first 64-byte line (0 to 15).
     head: usize,
     /// `head..head + 16`: lanes `head..` of one vector, then `..head` of the next.
     shift: std::arch::x86_64::__m512i,
     /// The last vector pushed, and how many were.
-    last: std::arch::x86_64::__m512,
+    last: std::arch::x86_64::__m512i,
     pushed: usize,
 }
 
 #[cfg(target_arch = "x86_64")]
-impl<'a> StreamedPlane<'a> {
-    /// A writer of `plane`, whose length is a multiple of 16.
+impl<'a, T: Copy> StreamedPlane<'a, T> {
+    /// A writer of `plane`, which holds a whole number of 64-byte vectors of `T`
+    /// (4 or 8 bytes a value).
     #[target_feature(enable = "avx512f")]
-    fn new(plane: &'a mut [f32]) -> Self {
+    fn new(plane: &'a mut [T]) -> Self {
         use std::arch::x86_64::*;
-        assert_eq!(plane.len() % 16, 0, "whole vectors");
-        let head = plane.as_ptr().align_offset(64).min(16) % 16;
-        let h = head as i32;
+        let size = std::mem::size_of::<T>();
+        assert!(size == 4 || size == 8, "f32 or i64 lanes");
+        assert_eq!(plane.len() * size % 64, 0, "whole vectors");
+        // A `T` of 4 or 8 bytes is at least 4-aligned, so whole 32-bit lanes.
+        let head = (plane.as_ptr() as usize).wrapping_neg() % 64 / 4;
         StreamedPlane {
             plane,
             head,
             shift: _mm512_add_epi32(
-                _mm512_set1_epi32(h),
+                _mm512_set1_epi32(head as i32),
                 _mm512_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15),
             ),
-            last: _mm512_setzero_ps(),
+            last: _mm512_setzero_si512(),
             pushed: 0,
         }
     }
 
-    /// Writes the plane's next sixteen floats.
+    /// Writes the plane's next 64 bytes.
     #[target_feature(enable = "avx512f")]
     #[inline]
-    fn push(&mut self, v: std::arch::x86_64::__m512) {
+    fn push(&mut self, v: std::arch::x86_64::__m512i) {
         use std::arch::x86_64::*;
         let k = self.pushed;
-        assert!(
-            16 * (k + 1) <= self.plane.len(),
-            "no more than the plane holds"
-        );
-        let p = self.plane.as_mut_ptr();
-        // SAFETY: the first vector's lanes below `head` go to floats `0..head` (masked
-        // plain store); a later one completes the line at `head + 16 (k - 1)`, which is
-        // 64-byte aligned and ends at `head + 16 k <= 16 k`, inside the plane.
+        let lanes = std::mem::size_of_val(self.plane) / 4;
+        assert!(16 * (k + 1) <= lanes, "no more than the plane holds");
+        let p = self.plane.as_mut_ptr().cast::<i32>();
+        // SAFETY: the first vector's lanes below `head` go to lanes `0..head` (masked
+        // plain store); a later one completes the line at lane `head + 16 (k - 1)`,
+        // which is 64-byte aligned and ends at `head + 16 k <= 16 k`, inside the plane.
         unsafe {
             if k == 0 {
-                _mm512_mask_storeu_ps(p, ((1u32 << self.head) - 1) as __mmask16, v);
+                _mm512_mask_storeu_epi32(p, ((1u32 << self.head) - 1) as __mmask16, v);
             } else {
-                let line = _mm512_permutex2var_ps(self.last, self.shift, v);
-                _mm512_stream_ps(p.add(self.head + 16 * (k - 1)), line);
+                let line = _mm512_permutex2var_epi32(self.last, self.shift, v);
+                _mm512_stream_si512(p.add(self.head + 16 * (k - 1)).cast(), line);
             }
         }
         self.last = v;
@@ -1044,23 +1050,59 @@ impl<'a> StreamedPlane<'a> {
     #[target_feature(enable = "avx512f")]
     fn finish(self) {
         use std::arch::x86_64::*;
-        assert_eq!(16 * self.pushed, self.plane.len(), "the whole plane");
+        assert_eq!(
+            16 * self.pushed,
+            std::mem::size_of_val(self.plane) / 4,
+            "the whole plane"
+        );
         if self.pushed == 0 {
             return;
         }
-        let rest = _mm512_permutex2var_ps(self.last, self.shift, _mm512_setzero_ps());
+        let rest = _mm512_permutex2var_epi32(self.last, self.shift, _mm512_setzero_si512());
         let lanes = ((1u32 << (16 - self.head)) - 1) as __mmask16;
-        // SAFETY: floats `head + 16 (pushed - 1) .. 16 pushed`, the plane's last.
-        unsafe {
-            _mm512_mask_storeu_ps(
-                self.plane
-                    .as_mut_ptr()
-                    .add(self.head + 16 * (self.pushed - 1)),
-                lanes,
-                rest,
-            )
-        };
+        let p = self.plane.as_mut_ptr().cast::<i32>();
+        // SAFETY: lanes `head + 16 (pushed - 1) .. 16 pushed`, the plane's last.
+        unsafe { _mm512_mask_storeu_epi32(p.add(self.head + 16 * (self.pushed - 1)), lanes, rest) };
     }
+}
+
+/// A mask's bytes (0 or 1) widened to `int64` into `out`, as a batch's `mask` holds
+/// them: on x86-64 with AVX-512 eight at a time, written with streaming stores
+/// ([`StreamedPlane`]); the rest one at a time. The same values either way (tested).
+///
+/// # Panics
+/// When `out` is not one value per byte of `mask`.
+pub fn widen_mask_into(mask: &[u8], out: &mut [i64]) {
+    assert_eq!(mask.len(), out.len(), "one value per mask byte");
+    #[allow(unused_mut)]
+    let mut done = 0;
+    #[cfg(target_arch = "x86_64")]
+    if std::arch::is_x86_feature_detected!("avx512f") {
+        done = mask.len() / 8 * 8;
+        // SAFETY: AVX-512 F was detected; whole groups of eight.
+        unsafe { widen_mask_avx512(&mask[..done], &mut out[..done]) };
+    }
+    for (o, &m) in out[done..].iter_mut().zip(&mask[done..]) {
+        *o = m as i64;
+    }
+}
+
+/// [`widen_mask_into`] for groups of eight bytes, in AVX-512.
+///
+/// # Safety
+/// The CPU has AVX-512 F.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f")]
+unsafe fn widen_mask_avx512(mask: &[u8], out: &mut [i64]) {
+    use std::arch::x86_64::*;
+    let mut plane = StreamedPlane::new(out);
+    for group in mask.chunks_exact(8) {
+        // SAFETY: an unaligned load of the group's eight bytes.
+        let bytes = unsafe { _mm_loadl_epi64(group.as_ptr().cast()) };
+        plane.push(_mm512_cvtepu8_epi64(bytes));
+    }
+    plane.finish();
+    _mm_sfence();
 }
 
 /// A converted dataset served sample by sample (see the module docs). Holds a small
@@ -1893,6 +1935,23 @@ mod tests {
         assert_eq!(b, [84.0, -6.0, 237.0, 146.0]);
         // int() truncates toward zero: -6.75 -> -6, not -7.
         assert_eq!((90.0f64 - 20.25 - 76.5).trunc(), -6.0);
+    }
+
+    #[test]
+    fn a_widened_mask_is_its_bytes_as_int64_at_every_alignment_and_length() {
+        // Lengths around the lanes' groups of eight and the 64-byte lines, written at
+        // every 8-byte offset of a line: the values, and nothing outside them.
+        let mut r = Rng::new(4);
+        for len in [0usize, 1, 7, 8, 9, 15, 16, 17, 64, 71, 200, 36_864] {
+            let mask: Vec<u8> = (0..len).map(|_| r.below(2) as u8).collect();
+            for off in 0..8 {
+                let mut out = vec![-7i64; len + 16];
+                widen_mask_into(&mask, &mut out[off..off + len]);
+                let want: Vec<i64> = mask.iter().map(|&m| m as i64).collect();
+                assert_eq!(out[off..off + len], want, "length {len}, offset {off}");
+                assert!(out[..off].iter().chain(&out[off + len..]).all(|&v| v == -7));
+            }
+        }
     }
 
     #[test]
