@@ -1006,7 +1006,7 @@ impl<'a, T: Copy> StreamedPlane<'a, T> {
         use std::arch::x86_64::*;
         let size = std::mem::size_of::<T>();
         assert!(size == 4 || size == 8, "f32 or i64 lanes");
-        assert_eq!(plane.len() * size % 64, 0, "whole vectors");
+        assert_eq!(std::mem::size_of_val(plane) % 64, 0, "whole vectors");
         // A `T` of 4 or 8 bytes is at least 4-aligned, so whole 32-bit lanes.
         let head = (plane.as_ptr() as usize).wrapping_neg() % 64 / 4;
         StreamedPlane {
