@@ -160,6 +160,8 @@ pub mod render;
 #[cfg(target_arch = "x86_64")]
 mod rgb_lanes;
 pub mod store;
+#[cfg(target_arch = "x86_64")]
+mod streamed_plane;
 
 // The names a pipeline is written with: open a dataset, render, load, solve, score.
 pub use crate::{

@@ -1000,6 +1000,20 @@ impl UvTexels {
             }
             self.fill_covered(extended, map);
             #[cfg(target_arch = "x86_64")]
+            if std::arch::is_x86_feature_detected!("avx512f") {
+                let done = n / 16 * 16;
+                let [u, v, w] = [u, v, w];
+                let (u, u_rest) = u.split_at_mut(done);
+                let (v, v_rest) = v.split_at_mut(done);
+                let (w, w_rest) = w.split_at_mut(done);
+                // SAFETY: the CPU has AVX-512 F (detected just above); whole groups of
+                // sixteen texels.
+                unsafe { clamp_planes_avx512(&map[..done], scale, [u, v, w]) };
+                let rest = [u_rest, v_rest, w_rest];
+                clamp_planes_from(&map[done..], 0, scale, rest);
+                return;
+            }
+            #[cfg(target_arch = "x86_64")]
             if std::arch::is_x86_feature_detected!("avx") {
                 // SAFETY: the CPU has AVX (detected just above).
                 unsafe { clamp_planes_avx(map, scale, [u, v, w]) };
@@ -1193,6 +1207,71 @@ unsafe fn clamp_planes_avx(map: &[[f32; 3]], scale: f32, planes: [&mut [f32]; 3]
         i += 8;
     }
     clamp_planes_from(map, i, scale, [u, v, w]);
+}
+
+/// [`clamp_planes_avx`] sixteen texels at a time in AVX-512 lanes (`map.len()` a
+/// multiple of 16): the 48 floats split into x, y and z by two two-register permutes
+/// each, the same multiply, `max`, `min` (NaN kept) and -1 where x is NaN, and each
+/// plane written with streaming stores (whole 64-byte lines, not read first). The
+/// same bits (tested against [`clamp_planes_from`] at every plane alignment).
+///
+/// # Safety
+/// The CPU must have AVX-512 F.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f")]
+unsafe fn clamp_planes_avx512(map: &[[f32; 3]], scale: f32, planes: [&mut [f32]; 3]) {
+    use std::arch::x86_64::*;
+    assert!(map.len().is_multiple_of(16) && planes.iter().all(|p| p.len() == map.len()));
+    let (k, lo, hi) = (
+        _mm512_set1_ps(scale),
+        _mm512_set1_ps(-1.0),
+        _mm512_set1_ps(1.0),
+    );
+    // Coordinate `c` of texel `t` is float `3 t + c` of the 48: in the first two
+    // registers (32 floats) for `3 t + c < 32`, else in the third.
+    let first: [__m512i; 3] = std::array::from_fn(|c| {
+        let i: [i32; 16] = std::array::from_fn(|t| ((3 * t + c) % 32) as i32);
+        // SAFETY: an unaligned load of sixteen i32.
+        unsafe { _mm512_loadu_si512(i.as_ptr().cast()) }
+    });
+    let third: [__m512i; 3] = std::array::from_fn(|c| {
+        let i: [i32; 16] = std::array::from_fn(|t| {
+            let f = 3 * t + c;
+            // Lanes 0-15 keep the first permute's value; 16-31 take the third register's.
+            if f < 32 {
+                t as i32
+            } else {
+                (16 + f - 32) as i32
+            }
+        });
+        // SAFETY: an unaligned load of sixteen i32.
+        unsafe { _mm512_loadu_si512(i.as_ptr().cast()) }
+    });
+    let [u, v, w] = planes;
+    let mut out = [u, v, w].map(|p| crate::streamed_plane::StreamedPlane::new(p));
+    let src = map.as_ptr().cast::<f32>();
+    for g in 0..map.len() / 16 {
+        // SAFETY: floats `48 g .. 48 g + 48` of the map's `3 * len`.
+        let [a, b, c] = [0, 1, 2].map(|r| unsafe { _mm512_loadu_ps(src.add(48 * g + 16 * r)) });
+        let coord = |i: usize| {
+            let ab = _mm512_permutex2var_ps(a, first[i], b);
+            _mm512_permutex2var_ps(ab, third[i], c)
+        };
+        let (x, y, z) = (coord(0), coord(1), coord(2));
+        let nan_x = _mm512_cmp_ps_mask::<_CMP_UNORD_Q>(x, x);
+        let value = |c: __m512| {
+            let r = _mm512_min_ps(hi, _mm512_max_ps(lo, _mm512_mul_ps(c, k)));
+            _mm512_castps_si512(_mm512_mask_blend_ps(nan_x, r, lo))
+        };
+        for (plane, c) in out.iter_mut().zip([x, y, z]) {
+            plane.push(value(c));
+        }
+    }
+    for plane in out {
+        plane.finish();
+    }
+    // Streaming stores are weakly ordered: fenced before anything else reads the planes.
+    _mm_sfence();
 }
 
 /// Positions padded to four floats, for one four-float load each.
@@ -1529,6 +1608,43 @@ mod tests {
             assert!(want.contains(&1.0) && want.contains(&-1.0));
             assert!(want.iter().any(|v| v.is_nan()), "size {size}");
             assert!(want.iter().any(|&v| v != 0.0 && v.abs() < 1.0));
+        }
+        // Each lane path on its own, whichever `clamped_planes_into` took, the AVX-512
+        // one (streaming stores) into planes at every 4-byte offset of a 64-byte line:
+        // the definition's bits, and nothing outside the planes written.
+        #[cfg(target_arch = "x86_64")]
+        {
+            let t = uv.texels(64);
+            let map = t.position_map_scalar(&ext);
+            let n = map.len();
+            let mut want = [0, 1, 2].map(|_| vec![7.0f32; n]);
+            let [u, v, w] = &mut want;
+            clamp_planes_from(&map, 0, 9.0, [u, v, w]);
+            let bits = |m: &[f32]| -> Vec<u32> { m.iter().map(|v| v.to_bits()).collect() };
+            type Lanes = unsafe fn(&[[f32; 3]], f32, [&mut [f32]; 3]);
+            let mut paths: Vec<(&str, Lanes)> = Vec::new();
+            if std::arch::is_x86_feature_detected!("avx") {
+                paths.push(("avx", clamp_planes_avx));
+            }
+            if std::arch::is_x86_feature_detected!("avx512f") {
+                paths.push(("avx512", clamp_planes_avx512));
+            } else {
+                eprintln!("no AVX-512 F on this CPU: its UV planes' lanes not checked");
+            }
+            for (name, lanes) in paths {
+                for off in 0..16 {
+                    let mut got = [0, 1, 2].map(|_| vec![7.0f32; n + 32]);
+                    let [u, v, w] = &mut got;
+                    let [u, v, w] = [u, v, w].map(|p| &mut p[off..off + n]);
+                    // SAFETY: the CPU has the path's features (checked above); 4,096
+                    // texels are whole groups of sixteen.
+                    unsafe { lanes(&map, 9.0, [u, v, w]) };
+                    for (g, want) in got.iter().zip(&want) {
+                        assert_eq!(bits(&g[off..off + n]), bits(want), "{name}, offset {off}");
+                        assert!(g[..off].iter().chain(&g[off + n..]).all(|&v| v == 7.0));
+                    }
+                }
+            }
         }
         // Two tables of one size covering different texels, taken in turn on one
         // thread: each gives its own map (a kept map drawn for the other table would
