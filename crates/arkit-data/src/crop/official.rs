@@ -514,34 +514,88 @@ pub fn warp_mask_in(
             .then(|| &mask[k as usize * ww..(k as usize + 1) * ww])
     };
     let scale = 1u32 << (COEF_BITS - 2 * INTER_BITS);
+    // The taps move right with the column (a crop's scale is positive), so the columns
+    // whose taps can touch a span of the blended row are one run, found by bisection;
+    // checked, and every column computed when it is not so.
+    let ordered = taps
+        .windows(2)
+        .all(|p| p[0][0] <= p[1][0] && p[0][1] <= p[1][1]);
     let mut vertical = vec![0u16; ww + 2];
+    // The window columns of `vertical` that may be non-zero (those of the last row).
+    let mut written = 0..0;
     let mut out = Vec::with_capacity(columns.len() * rows.len());
     for &(y, fy) in &rows {
         let (top, bottom) = (in_window(y as i64), in_window(y as i64 + 1));
         let (up, down) = ((32 - fy) as u16, fy as u16);
-        let inner = &mut vertical[1..ww + 1];
+        // Only the columns between the two rows' first and last face pixels can blend
+        // to a non-zero value; the rest of `vertical` is kept zero.
+        let span = match (top.and_then(face_span), bottom.and_then(face_span)) {
+            (Some(a), Some(b)) => a.start.min(b.start)..a.end.max(b.end),
+            (Some(a), None) | (None, Some(a)) => a,
+            (None, None) => 0..0,
+        };
+        vertical[1 + written.start..1 + written.end].fill(0);
+        let inner = &mut vertical[1 + span.start..1 + span.end];
         match (top, bottom) {
             (Some(t), Some(b)) => {
-                for ((v, &t), &b) in inner.iter_mut().zip(t).zip(b) {
+                for ((v, &t), &b) in inner.iter_mut().zip(&t[span.clone()]).zip(&b[span.clone()]) {
                     *v = up * t as u16 + down * b as u16;
                 }
             }
             (Some(t), None) => inner
                 .iter_mut()
-                .zip(t)
+                .zip(&t[span.clone()])
                 .for_each(|(v, &t)| *v = up * t as u16),
             (None, Some(b)) => inner
                 .iter_mut()
-                .zip(b)
+                .zip(&b[span.clone()])
                 .for_each(|(v, &b)| *v = down * b as u16),
-            (None, None) => inner.fill(0),
+            (None, None) => {}
         }
-        out.extend(columns.iter().zip(&taps).map(|(&(_, fx), &[l, r])| {
-            let face_weight = (32 - fx) * vertical[l] as u32 + fx * vertical[r] as u32;
-            face_weight * scale >= HALF_WEIGHT
-        }));
+        written = span.clone();
+        // Columns whose right tap is left of the span, or left tap right of it, see
+        // only zeros.
+        let (first, last) = if !ordered {
+            (0, columns.len())
+        } else if span.is_empty() {
+            (0, 0)
+        } else {
+            let (lo, hi) = (1 + span.start, span.end);
+            let first = taps.partition_point(|&[_, r]| r < lo);
+            (first, taps.partition_point(|&[l, _]| l <= hi).max(first))
+        };
+        out.extend(std::iter::repeat_n(false, first));
+        out.extend(columns[first..last].iter().zip(&taps[first..last]).map(
+            |(&(_, fx), &[l, r])| {
+                let face_weight = (32 - fx) * vertical[l] as u32 + fx * vertical[r] as u32;
+                face_weight * scale >= HALF_WEIGHT
+            },
+        ));
+        out.extend(std::iter::repeat_n(false, columns.len() - last));
     }
     out
+}
+
+/// The columns from a mask row's first face pixel to its last (`None` for a row
+/// without one), eight pixels a test.
+fn face_span(row: &[bool]) -> Option<std::ops::Range<usize>> {
+    // SAFETY: a `bool` is one byte, 0 or 1: the row read as its bytes.
+    let bytes = unsafe { std::slice::from_raw_parts(row.as_ptr().cast::<u8>(), row.len()) };
+    let word = |c: &[u8]| u64::from_le_bytes(c.try_into().expect("chunks of 8"));
+    let chunks = bytes.chunks_exact(8);
+    let tail = chunks.remainder();
+    let first = match chunks.clone().position(|c| word(c) != 0) {
+        Some(k) => 8 * k + word(&bytes[8 * k..8 * k + 8]).trailing_zeros() as usize / 8,
+        None => 8 * (bytes.len() / 8) + tail.iter().position(|&b| b != 0)?,
+    };
+    let last = match tail.iter().rposition(|&b| b != 0) {
+        Some(k) => 8 * (bytes.len() / 8) + k,
+        None => {
+            let k = chunks.clone().rposition(|c| word(c) != 0)?;
+            8 * k + 7 - word(&bytes[8 * k..8 * k + 8]).leading_zeros() as usize / 8
+        }
+    };
+    Some(first..last + 1)
 }
 
 /// For crop pixel tap `t`, the image pixel (row-major index) the official correspondence
@@ -682,8 +736,23 @@ mod tests {
                 height: r.below(50) as u32,
             };
             let density = r.uniform(0.0, 1.0);
+            let (w, h) = (window.width as f64, window.height as f64);
+            // Half the cases a face-like blob (an ellipse with noise at its edge and
+            // holes): rows without a face pixel, and rows whose face pixels are one
+            // run well inside the window; the others uniform noise.
+            let (cx, cy) = (r.uniform(0.0, w), r.uniform(0.0, h));
+            let (rx, ry) = (r.uniform(1.0, w / 2.0 + 1.0), r.uniform(1.0, h / 2.0 + 1.0));
             let mask: Vec<bool> = (0..window.width * window.height)
-                .map(|_| r.uniform(0.0, 1.0) < density)
+                .map(|i| {
+                    let (x, y) = ((i % window.width) as f64, (i / window.width) as f64);
+                    let e = ((x - cx) / rx).powi(2) + ((y - cy) / ry).powi(2);
+                    let noise = r.uniform(0.0, 1.0);
+                    if case % 2 == 0 {
+                        e + 0.3 * noise < 1.0 && noise > 0.05
+                    } else {
+                        noise < density
+                    }
+                })
                 .collect();
             let left = r.uniform(-10.0, 60.0).trunc();
             let top = r.uniform(-10.0, 60.0).trunc();
@@ -700,6 +769,23 @@ mod tests {
                 warp_mask_of(&c, is_face),
                 "case {case}"
             );
+        }
+    }
+
+    #[test]
+    fn a_rows_face_span_runs_from_its_first_face_pixel_to_its_last() {
+        // Every row of up to 20 pixels with one or two face pixels anywhere (around the
+        // eight-pixel words and the tail), and none.
+        for len in 0..20 {
+            assert_eq!(face_span(&vec![false; len]), None, "length {len}");
+            for a in 0..len {
+                for b in a..len {
+                    let mut row = vec![false; len];
+                    row[a] = true;
+                    row[b] = true;
+                    assert_eq!(face_span(&row), Some(a..b + 1), "length {len}, {a} and {b}");
+                }
+            }
         }
     }
 
