@@ -823,17 +823,36 @@ pub fn decode_window(codec: WindowCodec, bytes: &[u8], side: usize) -> Result<Ve
             let bad = |e: String| Error::invalid("crop store", format!("its zstd window: {e}"));
             // Into a buffer of exactly the window's bytes: a frame that would give more
             // is an error, one that gives fewer is refused here.
-            let mut errors = vec![0u8; want];
-            let made = zstd::bulk::Decompressor::new()
-                .and_then(|mut d| d.decompress_to_buffer(bytes, &mut errors[..]))
-                .map_err(|e| bad(e.to_string()))?;
-            if made != want {
-                return Err(bad(format!("{made} bytes, expected {want}")));
+            let mut errors = zstd_frame(bytes, want).map_err(|e| bad(e.to_string()))?;
+            if errors.len() != want {
+                return Err(bad(format!("{} bytes, expected {want}", errors.len())));
             }
             unpredict_window_in_place(&mut errors, side);
             Ok(errors)
         }
     }
+}
+
+/// `bytes` decoded as zstd frames into a new buffer of room for `most` bytes, never
+/// more (a frame that would give more is an error; one that gives fewer returns them,
+/// for the caller to refuse): the buffer is not zeroed first, and the decompression
+/// context is one the thread keeps.
+fn zstd_frame(bytes: &[u8], most: usize) -> std::io::Result<Vec<u8>> {
+    thread_local! {
+        static CONTEXT: std::cell::RefCell<Option<zstd::bulk::Decompressor<'static>>> =
+            const { std::cell::RefCell::new(None) };
+    }
+    CONTEXT.with_borrow_mut(|context| {
+        let d = match context {
+            Some(d) => d,
+            None => context.insert(zstd::bulk::Decompressor::new()?),
+        };
+        let mut out = Vec::with_capacity(most);
+        // Into the buffer's capacity: `most` bytes, or more if the allocator gave more,
+        // which the callers' length checks refuse.
+        d.decompress_to_buffer(bytes, &mut out)?;
+        Ok(out)
+    })
 }
 
 /// The bytes a record stores for `verts`: their float32 bits, coordinate by coordinate
@@ -873,17 +892,15 @@ pub fn decode_mesh(bytes: &[u8], vertex_count: usize) -> Result<Vec<Point3<f32>>
     let n = vertex_count;
     let want = 12 * n;
     let bad = |why: String| Error::invalid("crop store", format!("its mesh: {why}"));
-    let mut planes = vec![0u8; want];
-    let made = zstd::bulk::Decompressor::new()
-        .and_then(|mut d| d.decompress_to_buffer(bytes, &mut planes[..]))
-        .map_err(|e| {
-            bad(format!(
-                "not a zstd frame of at most the {want} bytes of {n} vertices ({e})"
-            ))
-        })?;
-    if made != want {
+    let planes = zstd_frame(bytes, want).map_err(|e| {
+        bad(format!(
+            "not a zstd frame of at most the {want} bytes of {n} vertices ({e})"
+        ))
+    })?;
+    if planes.len() != want {
         return Err(bad(format!(
-            "{made} bytes, expected the {want} of {n} vertices"
+            "{} bytes, expected the {want} of {n} vertices",
+            planes.len()
         )));
     }
     let value = |i: usize, c: usize| {
