@@ -260,7 +260,7 @@ fn blend_bytes(bytes: &mut [u8], grey: f32, f: f32) {
     #[allow(unused_mut)]
     let mut done = 0;
     #[cfg(target_arch = "x86_64")]
-    if has_vbmi() {
+    if crate::rgb_lanes::has_avx512_vbmi() {
         done = bytes.len() / 64 * 64;
         // SAFETY: AVX-512 F, BW and VBMI were detected; whole groups of 64 bytes.
         unsafe { map_bytes_vbmi(&mut bytes[..done], &table) };
@@ -272,14 +272,6 @@ fn blend_bytes(bytes: &mut [u8], grey: f32, f: f32) {
     bytes[done..]
         .iter_mut()
         .for_each(|v| *v = table[*v as usize]);
-}
-
-/// Whether the CPU has AVX-512 F, BW and VBMI ([`map_bytes_vbmi`]).
-#[cfg(target_arch = "x86_64")]
-fn has_vbmi() -> bool {
-    std::arch::is_x86_feature_detected!("avx512f")
-        && std::arch::is_x86_feature_detected!("avx512bw")
-        && std::arch::is_x86_feature_detected!("avx512vbmi")
 }
 
 /// Each byte `v` replaced by `table[v]`, 64 bytes at a time (`bytes.len()` a
@@ -1080,7 +1072,7 @@ mod tests {
                     unsafe { blend_bytes_avx2(&mut lanes, grey, f) };
                     assert_eq!(lanes, by_formula[..whole], "avx2, grey {grey}, factor {f}");
                 }
-                if has_vbmi() {
+                if crate::rgb_lanes::has_avx512_vbmi() {
                     let table: [u8; 256] = std::array::from_fn(|v| blend(v as f32, grey, f));
                     let mut lanes = bytes[..whole].to_vec();
                     // SAFETY: AVX-512 F, BW and VBMI were detected; groups of 64.

@@ -790,7 +790,7 @@ fn normalise_into(rgb: &[u8], out: &mut [f32]) {
     // Sixteen pixels at a time where the CPU has AVX-512 VBMI: the same table, held in
     // registers; else eight at a time where it has AVX2, the table read by gathers.
     #[cfg(target_arch = "x86_64")]
-    if has_avx512_vbmi() {
+    if crate::rgb_lanes::has_avx512_vbmi() {
         done = n / 16 * 16;
         // SAFETY: AVX-512 F, BW and VBMI were detected; whole groups of sixteen
         // pixels of each.
@@ -850,14 +850,6 @@ unsafe fn normalise_avx2(rgb: &[u8], planes: [&mut [f32]; 3], table: &[[f32; 256
             }
         }
     }
-}
-
-/// Whether the CPU has AVX-512 F, BW and VBMI ([`normalise_avx512`]).
-#[cfg(target_arch = "x86_64")]
-fn has_avx512_vbmi() -> bool {
-    std::arch::is_x86_feature_detected!("avx512f")
-        && std::arch::is_x86_feature_detected!("avx512bw")
-        && std::arch::is_x86_feature_detected!("avx512vbmi")
 }
 
 /// The table lookups of [`normalise_into`] for groups of sixteen pixels (`rgb` 48
@@ -1935,7 +1927,7 @@ mod tests {
             if std::arch::is_x86_feature_detected!("avx2") {
                 run(normalise_avx2, "avx2");
             }
-            if has_avx512_vbmi() {
+            if crate::rgb_lanes::has_avx512_vbmi() {
                 run(normalise_avx512, "avx512");
             } else {
                 eprintln!("no AVX-512 VBMI on this CPU: its normalisation lanes not checked");
