@@ -672,15 +672,28 @@ pub fn sample_points(n: usize, m: usize, seed: u64) -> Vec<u32> {
     if n <= m {
         return (0..m).map(|k| (k % n) as u32).collect();
     }
-    // Partial Fisher-Yates, then sorted so the rows keep the pixel order.
+    // Partial Fisher-Yates, then in increasing order so the rows keep the pixel order:
+    // the drawn indices are distinct, so marking them in a bitmap of the `n` and
+    // reading its set bits in order sorts them (in a pass over `n / 64` words rather
+    // than a comparison sort of the `m`).
     let mut idx: Vec<u32> = (0..n as u32).collect();
     let mut rng = Rng::new(seed);
     for k in 0..m {
         let j = k + rng.below((n - k) as u64) as usize;
         idx.swap(k, j);
     }
-    let mut chosen = idx[..m].to_vec();
-    chosen.sort_unstable();
+    let mut drawn = vec![0u64; n.div_ceil(64)];
+    for &i in &idx[..m] {
+        drawn[i as usize / 64] |= 1 << (i % 64);
+    }
+    let mut chosen = Vec::with_capacity(m);
+    for (w, &word) in drawn.iter().enumerate() {
+        let mut bits = word;
+        while bits != 0 {
+            chosen.push((64 * w) as u32 + bits.trailing_zeros());
+            bits &= bits - 1;
+        }
+    }
     chosen
 }
 
@@ -1879,5 +1892,27 @@ mod tests {
         assert_eq!(p, sample_points(5000, 1024, 9));
         assert_ne!(p, sample_points(5000, 1024, 10));
         assert!(sample_points(0, 10, 0).is_empty());
+        // The same draws as the partial Fisher-Yates then a sort (the definition), at
+        // sizes around the bitmap's 64-bit words and the point count.
+        for (n, m) in [
+            (1025usize, 1024usize),
+            (1024 + 63, 1024),
+            (1024 + 64, 1024),
+            (20_000, 1024),
+            (70, 64),
+            (65, 1),
+        ] {
+            for seed in 0..5 {
+                let mut idx: Vec<u32> = (0..n as u32).collect();
+                let mut rng = Rng::new(seed);
+                for k in 0..m {
+                    let j = k + rng.below((n - k) as u64) as usize;
+                    idx.swap(k, j);
+                }
+                let mut want = idx[..m].to_vec();
+                want.sort_unstable();
+                assert_eq!(sample_points(n, m, seed), want, "{m} of {n}, seed {seed}");
+            }
+        }
     }
 }
