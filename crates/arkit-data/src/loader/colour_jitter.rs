@@ -684,10 +684,12 @@ unsafe fn shift_hue_avx2(rgb: &mut [u8], h: f32) {
     }
 }
 
-/// Whether the CPU has AVX-512 F and AVX2 ([`shift_hue_avx512`]).
+/// Whether the CPU has AVX-512 F, AVX2 and FMA ([`shift_hue_avx512`]).
 #[cfg(target_arch = "x86_64")]
 fn has_avx512() -> bool {
-    std::arch::is_x86_feature_detected!("avx512f") && std::arch::is_x86_feature_detected!("avx2")
+    std::arch::is_x86_feature_detected!("avx512f")
+        && std::arch::is_x86_feature_detected!("avx2")
+        && std::arch::is_x86_feature_detected!("fma")
 }
 
 /// [`shift_hue_avx2`] on sixteen pixels a register (`rgb.len()` a multiple of 48), in
@@ -697,7 +699,7 @@ fn has_avx512() -> bool {
 /// [`store_rgb8`]), each eight a half of the register. The same bytes (tested on every
 /// RGB triple).
 #[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx512f,avx2")]
+#[target_feature(enable = "avx512f,avx2,fma")]
 unsafe fn shift_hue_avx512(rgb: &mut [u8], h: f32) {
     use std::arch::x86_64::*;
     // `m ? a : b`, as `shift_hue_avx2`'s `sel`.
@@ -716,6 +718,14 @@ unsafe fn shift_hue_avx512(rgb: &mut [u8], h: f32) {
         sel(low, _mm512_add_ps(x, m), sel(high, _mm512_sub_ps(x, m), x))
     };
     let join = |a: __m256i, b: __m256i| _mm512_inserti64x4::<1>(_mm512_castsi256_si512(a), b);
+    // `a / b` for the constant `b`: the quotient by its reciprocal, and one correction
+    // by the remainder (exact by a fused multiply-add).
+    let (inv255, inv6) = (_mm512_set1_ps(1.0 / 255.0), _mm512_set1_ps(1.0 / 6.0));
+    let div_exact = |a: __m512, b: __m512, inv: __m512| {
+        let q = _mm512_mul_ps(a, inv);
+        let r = _mm512_fnmadd_ps(q, b, a);
+        _mm512_fmadd_ps(r, inv, q)
+    };
     // Sixteen pixels' channels, eight from each half of the 48 bytes.
     let load = |px: &[u8]| -> [__m512i; 3] {
         let (a, b) = px.split_at(24);
@@ -733,7 +743,7 @@ unsafe fn shift_hue_avx512(rgb: &mut [u8], h: f32) {
         let mut hsv = [(_mm512_setzero_si512(), [zero; 3]); GROUPS];
         for (px, out) in block.chunks_exact(48).zip(hsv.iter_mut()) {
             // `UNIT[v]`: the same correctly rounded division.
-            let [r, g, b] = load(px).map(|v| _mm512_div_ps(_mm512_cvtepi32_ps(v), full));
+            let [r, g, b] = load(px).map(|v| div_exact(_mm512_cvtepi32_ps(v), full, inv255));
             let max = _mm512_max_ps(_mm512_max_ps(r, g), b);
             let min = _mm512_min_ps(_mm512_min_ps(r, g), b);
             // Grey pixels (`d == 0`) get NaNs here and keep their bytes in the second pass.
@@ -748,7 +758,7 @@ unsafe fn shift_hue_avx512(rgb: &mut [u8], h: f32) {
             let x = _mm512_div_ps(num, d);
             let off = sel(green, _mm512_set1_ps(2.0), _mm512_set1_ps(4.0));
             let h6 = sel(red, wrap(x, six), _mm512_add_ps(x, off));
-            let hue = wrap(_mm512_add_ps(_mm512_div_ps(h6, six), hv), one);
+            let hue = wrap(_mm512_add_ps(div_exact(h6, six, inv6), hv), one);
             let sat = _mm512_div_ps(d, max);
             let scaled = _mm512_mul_ps(hue, six);
             let i = _mm512_cvttps_epi32(scaled);
