@@ -161,10 +161,10 @@ fn luma_sum(rgb: &[u8]) -> u64 {
 }
 
 /// [`luma`] of eight pixels (one channel a register, as [`load_rgb8`] gives them), in
-/// AVX2: the weighted sum in integers, its division by 1000 a float division truncated
-/// (for sums below 2^24 the quotient's fraction is at least 1/1000 from the next
-/// integer, far more than a float's rounding; tested on every sum a pixel can have,
-/// `0..=255000`).
+/// AVX2: the weighted sum in integers, its division by 1000 as `1000 = 8 x 125`: the
+/// sum shifted down by 3, then multiplied by `ceil(2^22 / 125) = 33555` and shifted
+/// down by 22 (no product passes 2^31; the integer quotient for every sum a pixel can
+/// have, `0..=255000`, tested), instead of a float division.
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2")]
 #[inline]
@@ -175,11 +175,15 @@ fn luma_lanes([r, g, b]: [std::arch::x86_64::__m256i; 3]) -> std::arch::x86_64::
         _mm256_add_epi32(weighted(r, 299), weighted(g, 587)),
         weighted(b, 114),
     );
-    _mm256_cvttps_epi32(_mm256_div_ps(
-        _mm256_cvtepi32_ps(sum),
-        _mm256_set1_ps(1000.0),
+    _mm256_srli_epi32::<22>(_mm256_mullo_epi32(
+        _mm256_srli_epi32::<3>(sum),
+        _mm256_set1_epi32(LUMA_BY_125),
     ))
 }
+
+/// `ceil(2^22 / 125)`: `((s >> 3) * LUMA_BY_125) >> 22` is `s / 1000` for every
+/// weighted luma sum `s` ([`luma_lanes`]).
+const LUMA_BY_125: i32 = 33555;
 
 /// [`blend`] on eight lanes, in AVX2: `grey + f (v - grey)` in `f32`, then
 /// [`round_byte_lanes`].
@@ -1046,9 +1050,31 @@ mod tests {
 
     #[test]
     fn the_luma_sum_lanes_give_the_integer_sum() {
-        // The truncated float division is the integer division on every weighted sum.
+        // The lanes' multiply and shifts are the integer division on every weighted
+        // sum, and no product passes 2^31.
         for s in 0..=255_000u32 {
-            assert_eq!((s as f32 / 1000.0) as u32, s / 1000, "{s}");
+            let product = (s >> 3) * LUMA_BY_125 as u32;
+            assert!(product < 1 << 31, "{s}");
+            assert_eq!(product >> 22, s / 1000, "{s}");
+        }
+        // The lanes themselves, on pixels whose sums run over the whole range.
+        #[cfg(target_arch = "x86_64")]
+        if std::arch::is_x86_feature_detected!("avx2") {
+            let mut rng = Rng::new(29);
+            let mut px: Vec<u8> = (0..65_536 * 3).map(|_| rng.below(256) as u8).collect();
+            px.extend([255u8; 24].iter().chain(&[0u8; 24]));
+            for group in px.chunks_exact(24) {
+                let group: &[u8; 24] = group.try_into().unwrap();
+                let mut out = [0u32; 8];
+                // SAFETY: AVX2 detected; a store of eight u32 into `out`.
+                unsafe {
+                    let lanes = luma_lanes(load_rgb8(group));
+                    std::arch::x86_64::_mm256_storeu_si256(out.as_mut_ptr().cast(), lanes);
+                }
+                for (k, p) in group.chunks_exact(3).enumerate() {
+                    assert_eq!(out[k], luma(p), "pixel {p:?}");
+                }
+            }
         }
         // Images of any length, lanes and remainder, against pixel by pixel.
         let mut rng = Rng::new(23);
