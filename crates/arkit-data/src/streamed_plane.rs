@@ -6,8 +6,8 @@
 /// stores (which do not read the lines they fill first, where a plain store does): the
 /// vectors pushed are realigned to the plane's 64-byte lines by one two-register permute
 /// of their 32-bit lanes each, the part before the first line and after the last
-/// written by masked plain stores. The writer's caller fences (`_mm_sfence`) before the
-/// plane is read.
+/// written by masked plain stores. [`StreamedPlane::finish`] fences the streaming
+/// stores (`_mm_sfence`: they are weakly ordered) before anything reads the plane.
 pub(crate) struct StreamedPlane<'a, T> {
     plane: &'a mut [T],
     /// 32-bit lanes before the first 64-byte line (0 to 15).
@@ -67,7 +67,7 @@ impl<'a, T: Copy> StreamedPlane<'a, T> {
     }
 
     /// Writes what is left of the last vector (its lanes from `head`), plainly;
-    /// checks that the plane was written whole.
+    /// checks that the plane was written whole; fences the streaming stores.
     #[target_feature(enable = "avx512f")]
     pub(crate) fn finish(self) {
         use std::arch::x86_64::*;
@@ -84,5 +84,7 @@ impl<'a, T: Copy> StreamedPlane<'a, T> {
         let p = self.plane.as_mut_ptr().cast::<i32>();
         // SAFETY: lanes `head + 16 (pushed - 1) .. 16 pushed`, the plane's last.
         unsafe { _mm512_mask_storeu_epi32(p.add(self.head + 16 * (self.pushed - 1)), lanes, rest) };
+        // Streaming stores are weakly ordered: fenced before anything reads the plane.
+        _mm_sfence();
     }
 }

@@ -260,22 +260,27 @@ fn blend(v: f32, grey: f32, f: f32) -> u8 {
 /// ([`blend_bytes_avx2`]); the rest one at a time from the table. The same bytes
 /// (tested on every byte value).
 fn blend_bytes(bytes: &mut [u8], grey: f32, f: f32) {
-    let table: [u8; 256] = std::array::from_fn(|v| blend(v as f32, grey, f));
+    let table = || -> [u8; 256] { std::array::from_fn(|v| blend(v as f32, grey, f)) };
     #[allow(unused_mut)]
     let mut done = 0;
     #[cfg(target_arch = "x86_64")]
     if crate::rgb_lanes::has_avx512_vbmi() {
         done = bytes.len() / 64 * 64;
         // SAFETY: AVX-512 F, BW and VBMI were detected; whole groups of 64 bytes.
-        unsafe { map_bytes_vbmi(&mut bytes[..done], &table) };
+        unsafe { map_bytes_vbmi(&mut bytes[..done], &table()) };
     } else if std::arch::is_x86_feature_detected!("avx2") {
         done = bytes.len() / 32 * 32;
         // SAFETY: AVX2 was detected; whole groups of 32 bytes.
         unsafe { blend_bytes_avx2(&mut bytes[..done], grey, f) };
     }
-    bytes[done..]
-        .iter_mut()
-        .for_each(|v| *v = table[*v as usize]);
+    // The table for the rest, made only when there is a rest (the AVX2 path has none
+    // on a crop of whole groups).
+    if done < bytes.len() {
+        let table = table();
+        bytes[done..]
+            .iter_mut()
+            .for_each(|v| *v = table[*v as usize]);
+    }
 }
 
 /// Each byte `v` replaced by `table[v]`, 64 bytes at a time (`bytes.len()` a

@@ -872,72 +872,9 @@ unsafe fn normalise_avx512(rgb: &[u8], planes: [&mut [f32]; 3], table: &[[f32; 2
         let t: [__m512; 16] =
             std::array::from_fn(|j| unsafe { _mm512_loadu_ps(table.as_ptr().add(16 * j)) });
         // Byte `3 k + c` of the group into byte `k`, for the sixteen pixels.
-        let pick = _mm512_set_epi8(
-            0,
-            0,
-            0,
-            0,
-            0,
-            0,
-            0,
-            0,
-            0,
-            0,
-            0,
-            0,
-            0,
-            0,
-            0,
-            0, //
-            0,
-            0,
-            0,
-            0,
-            0,
-            0,
-            0,
-            0,
-            0,
-            0,
-            0,
-            0,
-            0,
-            0,
-            0,
-            0, //
-            0,
-            0,
-            0,
-            0,
-            0,
-            0,
-            0,
-            0,
-            0,
-            0,
-            0,
-            0,
-            0,
-            0,
-            0,
-            0, //
-            45 + c as i8,
-            42 + c as i8,
-            39 + c as i8,
-            36 + c as i8, //
-            33 + c as i8,
-            30 + c as i8,
-            27 + c as i8,
-            24 + c as i8, //
-            21 + c as i8,
-            18 + c as i8,
-            15 + c as i8,
-            12 + c as i8, //
-            9 + c as i8,
-            6 + c as i8,
-            3 + c as i8,
-            c as i8,
-        );
+        let pick: [u8; 64] = std::array::from_fn(|k| if k < 16 { (3 * k + c) as u8 } else { 0 });
+        // SAFETY: an unaligned load of the 64 bytes of `pick`.
+        let pick = unsafe { _mm512_loadu_si512(pick.as_ptr().cast()) };
         let bit = |b: i32| _mm512_set1_epi32(b);
         let mut out = crate::streamed_plane::StreamedPlane::new(plane);
         for px in rgb.chunks_exact(48) {
@@ -967,8 +904,6 @@ unsafe fn normalise_avx512(rgb: &[u8], planes: [&mut [f32]; 3], table: &[[f32; 2
         }
         out.finish();
     }
-    // Streaming stores are weakly ordered: fenced before anything else reads the planes.
-    _mm_sfence();
 }
 
 /// A mask's bytes (0 or 1) widened to `int64` into `out`, as a batch's `mask` holds
@@ -1008,7 +943,6 @@ unsafe fn widen_mask_avx512(mask: &[u8], out: &mut [i64]) {
         plane.push(_mm512_cvtepu8_epi64(bytes));
     }
     plane.finish();
-    _mm_sfence();
 }
 
 /// A converted dataset served sample by sample (see the module docs). Holds a small

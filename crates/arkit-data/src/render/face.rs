@@ -951,8 +951,9 @@ impl UvTexels {
     /// Each covered texel is `(p0 * w0 + p1 * w1) + p2 * w2`, per coordinate, its
     /// texels grouped by triangle so that the triangle's positions are loaded once. On
     /// x86-64 one four-float SSE2 operation per texel (positions padded to four
-    /// floats), or one eight-float AVX operation per two texels where the CPU has AVX
-    /// (`UvTexels::fill_avx`, detected at run time). Invariant: every path gives the
+    /// floats), one eight-float AVX operation per two texels where the CPU has AVX
+    /// (`UvTexels::fill_avx`), or one sixteen-float operation per four texels where it
+    /// has AVX-512 (`UvTexels::fill_avx512`), detected at run time. Invariant: every path gives the
     /// bits of one coordinate at a time (tested). Measurements: `docs/performance.md`
     /// ("The UV position map").
     pub fn position_map(&self, extended: &[Point3<f32>]) -> Vec<[f32; 3]> {
@@ -994,7 +995,8 @@ impl UvTexels {
     /// three planes. Written into `out` (`3 x size x size` values) in one pass over a
     /// position map the thread keeps for this table (no allocation; NaN where the
     /// table covers nothing, its covered texels drawn anew each call), eight texels at
-    /// a time where the CPU has AVX. The same bits as mapping
+    /// a time where the CPU has AVX, sixteen with AVX-512 (the planes then written with
+    /// streaming stores). The same bits as mapping
     /// [`UvTexels::position_map`] one value at a time (tested).
     ///
     /// # Panics
@@ -1020,7 +1022,6 @@ impl UvTexels {
             #[cfg(target_arch = "x86_64")]
             if std::arch::is_x86_feature_detected!("avx512f") {
                 let done = n / 16 * 16;
-                let [u, v, w] = [u, v, w];
                 let (u, u_rest) = u.split_at_mut(done);
                 let (v, v_rest) = v.split_at_mut(done);
                 let (w, w_rest) = w.split_at_mut(done);
@@ -1339,8 +1340,6 @@ unsafe fn clamp_planes_avx512(map: &[[f32; 3]], scale: f32, planes: [&mut [f32];
     for plane in out {
         plane.finish();
     }
-    // Streaming stores are weakly ordered: fenced before anything else reads the planes.
-    _mm_sfence();
 }
 
 /// Positions padded to four floats, for one four-float load each.
