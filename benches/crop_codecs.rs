@@ -19,7 +19,7 @@
 
 mod timing;
 
-use arkit_data::loader::crop_store::{self, WindowCodec};
+use arkit_data::loader::crop_store::{self, WindowCodec, WindowPart};
 use arkit_data::loader::item::{Compat, FaceLoader, LoaderMode, LoaderOptions};
 use image::ImageEncoder;
 use std::path::PathBuf;
@@ -122,16 +122,39 @@ fn main() {
             codec.name(),
             &crops,
             |c| {
-                let bytes = crop_store::encode_window(codec, &c.window).unwrap();
-                let back = crop_store::decode_window(codec, &bytes, w as usize).unwrap();
-                assert_eq!(back, *c.window.as_raw(), "{} round trip", codec.name());
+                let bytes = crop_store::encode_window(codec, &c.window, 192).unwrap();
+                let back = crop_store::decode_window(codec, &bytes, 192, WindowPart::Whole);
+                assert_eq!(
+                    back.unwrap(),
+                    *c.window.as_raw(),
+                    "{} round trip",
+                    codec.name()
+                );
                 bytes
             },
             |b| {
-                std::hint::black_box(crop_store::decode_window(codec, b, w as usize).unwrap());
+                let whole = crop_store::decode_window(codec, b, 192, WindowPart::Whole);
+                std::hint::black_box(whole.unwrap());
             },
         ));
     }
+    // The default codec's centre alone, as evaluation decodes it.
+    rows.push(measure(
+        "pred-zstd, the centre alone",
+        &crops,
+        |c| {
+            let bytes = crop_store::encode_window(WindowCodec::PredZstd, &c.window, 192).unwrap();
+            let centre =
+                crop_store::decode_window(WindowCodec::PredZstd, &bytes, 192, WindowPart::Centre);
+            assert_eq!(centre.unwrap(), c.centre(), "the centre");
+            bytes
+        },
+        |b| {
+            let centre =
+                crop_store::decode_window(WindowCodec::PredZstd, b, 192, WindowPart::Centre);
+            std::hint::black_box(centre.unwrap());
+        },
+    ));
     // PNG at the other compression settings and filters.
     use image::codecs::png::{CompressionType, FilterType};
     for (name, comp, filter) in [
@@ -157,22 +180,29 @@ fn main() {
             },
         ));
     }
-    // The store's prediction at zstd's highest level but the "ultra" ones.
-    rows.push(measure(
-        "pred-zstd-19",
-        &crops,
-        |c| {
-            zstd::bulk::compress(
-                &crop_store::predict_window(c.window.as_raw(), w as usize),
-                19,
-            )
-            .unwrap()
-        },
-        |b| {
-            let d = zstd::bulk::decompress(b, raw_window as usize).unwrap();
-            std::hint::black_box(crop_store::unpredict_window(&d, w as usize));
-        },
-    ));
+    // The store's prediction over the whole window in one frame (format 5's layout),
+    // at the store's level and at zstd's highest but the "ultra" ones.
+    let whole = crop_store::PixelRect {
+        x: 0,
+        y: 0,
+        width: w as usize,
+        height: w as usize,
+    };
+    for level in [15, 19] {
+        rows.push(measure(
+            &format!("pred-zstd-{level}, one frame"),
+            &crops,
+            |c| {
+                let errors = crop_store::predict_rect(c.window.as_raw(), w as usize, whole);
+                zstd::bulk::compress(&errors, level).unwrap()
+            },
+            |b| {
+                let mut d = zstd::bulk::decompress(b, raw_window as usize).unwrap();
+                crop_store::unpredict_in_place(&mut d, w as usize, w as usize);
+                std::hint::black_box(d);
+            },
+        ));
+    }
     // Lossless WebP (image's encoder), decoded by image's decoder.
     rows.push(measure(
         "webp-lossless",

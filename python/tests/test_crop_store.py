@@ -183,15 +183,15 @@ def test_two_crops_into_one_store_never_mix_and_an_old_store_is_refused(tmp_path
             owners += 1
             assert all(isinstance(g, dict) for g in got), got
     assert owners == 2
-    # No temporaries left; an old store (format 4, 3 or 1) is refused with what to do.
+    # No temporaries left; an old store (format 5, 4, 3 or 1) is refused with what to do.
     assert not [n for n in os.listdir(store) if ".tmp-" in n]
     manifest = os.path.join(store, "crops.json")
     text = open(manifest).read()
-    assert '"format": 5' in text and '"codec": "pred-zstd"' in text
-    for old in (4, 3):
-        open(manifest, "w").write(text.replace('"format": 5', f'"format": {old}', 1))
+    assert '"format": 6' in text and '"codec": "pred-zstd"' in text
+    for old in (5, 4, 3):
+        open(manifest, "w").write(text.replace('"format": 6', f'"format": {old}', 1))
         with pytest.raises(DataError, match=f"format {old}.*rerun `arkit-tool crops`"):
             ARKitFaceDataset(a, split=None, mode="train", img_size=64)
-    open(manifest, "w").write(text.replace('"format": 5', '"format": 1', 1))
+    open(manifest, "w").write(text.replace('"format": 6', '"format": 1', 1))
     with pytest.raises(DataError, match="format 1.*rerun `arkit-tool crops`"):
         ARKitFaceDataset(a, split=None, mode="train", img_size=64)

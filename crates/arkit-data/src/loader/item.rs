@@ -49,7 +49,7 @@ use crate::crop::official::{
 use crate::crop::{CropSampling, CropTransform};
 use crate::loader::colour_jitter::UNIT;
 use crate::loader::colour_jitter::jitter_colour;
-use crate::loader::crop_store::{CropStore, StoredCrop};
+use crate::loader::crop_store::{CropStore, StoredCrop, WindowPart};
 use crate::mesh::topology::FaceTopology;
 use crate::render::face::{
     FaceRenderer, RasterMode, UvMapper, UvTexels, WindowMask, sample_points,
@@ -324,7 +324,7 @@ impl PixelSource {
                         ),
                     ));
                 }
-                Ok(stored.crop_pixels(crop))
+                stored.crop_pixels(crop)
             }
         }
     }
@@ -1104,6 +1104,7 @@ impl FaceLoader {
             eval_crop,
             verts,
             window: image::RgbImage::from_raw(w as u32, w as u32, window).expect("window size"),
+            part: WindowPart::Whole,
         })
     }
 
@@ -1274,7 +1275,12 @@ impl FaceLoader {
             Some(store) => {
                 let (shard, r) = row.location;
                 // The record must be this sample's (checked in every mode).
-                let mut stored = store.read(shard, r, &row.sample.key.to_string())?;
+                // Evaluation crops are the window's centre: only that is decoded.
+                let part = match self.options.mode {
+                    LoaderMode::Train => WindowPart::Whole,
+                    LoaderMode::Eval => WindowPart::Centre,
+                };
+                let mut stored = store.read(shard, r, &row.sample.key.to_string(), part)?;
                 (
                     std::mem::take(&mut stored.verts),
                     PixelSource::Stored(stored),
