@@ -215,6 +215,34 @@ impl CropTransform {
         out
     }
 
+    /// The image pixels `crop_window(image, first, count)` can read: the columns and
+    /// the rows (inclusive, in image coordinates, not clipped to any image) its
+    /// bilinear taps reach, two per output pixel and axis. A pixel outside them never
+    /// changes the output; `None` for an empty window. From the same taps the
+    /// resampling uses ([`bilinear_position`]; `cv2.warpAffine`'s fixed-point ones for
+    /// [`CropSampling::Corners`]), so the two cannot drift apart (tested: pixels
+    /// outside changed, the output is the same).
+    pub fn window_reach(&self, first: i64, count: usize) -> Option<[(i64, i64); 2]> {
+        if count == 0 {
+            return None;
+        }
+        let last = first + count as i64 - 1;
+        Some(match self.sampling {
+            CropSampling::Centres => {
+                // The taps move with the pixel index (a positive scale): the window's
+                // first and last pixels reach furthest.
+                let (sx, sy) = self.scales();
+                let reach = |origin: f64, scale: f64| {
+                    let (lo, _) = bilinear_position(first, origin, scale);
+                    let (hi, _) = bilinear_position(last, origin, scale);
+                    (lo, hi + 1)
+                };
+                [reach(self.x0, sx), reach(self.y0, sy)]
+            }
+            CropSampling::Corners => official::warp_reach(self, first, count),
+        })
+    }
+
     /// This crop in the pixel grid of `window`'s crop window `first..first + count`
     /// (see [`CropTransform::crop_window`]): the transform that cuts the same box out
     /// of the window image that `self` cuts out of the image, for the same sampling.
@@ -538,6 +566,82 @@ impl ColumnTaps {
 mod tests {
     use super::*;
     use image::Rgb;
+
+    #[test]
+    fn pixels_past_a_crops_reach_do_not_change_it() {
+        // Boxes inside, across and past the edges of a noise image, both samplings,
+        // windows that start before the crop and after.
+        let (w, h) = (61u32, 47u32);
+        let mut x = 0x1234_5678_u32;
+        let image = RgbImage::from_fn(w, h, |_, _| {
+            x ^= x << 13;
+            x ^= x >> 17;
+            x ^= x << 5;
+            Rgb([x as u8, (x >> 8) as u8, (x >> 16) as u8])
+        });
+        for sampling in [CropSampling::Centres, CropSampling::Corners] {
+            for (x0, y0, side, first, count) in [
+                (10.3, 7.8, 30.0, 0, 16usize),
+                (-5.5, 20.25, 41.7, -3, 22),
+                (40.0, -9.0, 25.0, 2, 9),
+                (0.0, 0.0, 61.0, 0, 16),
+                (12.0, 12.0, 7.5, -4, 24),
+            ] {
+                let crop = CropTransform {
+                    x0,
+                    y0,
+                    side,
+                    side_y: side * 1.03,
+                    size: 16,
+                    sampling,
+                };
+                let want = crop.crop_window(&image, first, count);
+                let [(c0, c1), (r0, r1)] = crop.window_reach(first, count).unwrap();
+                // Within two pixels of the window's box in the image.
+                let (sx, sy) = crop.scales();
+                let box_x = (
+                    x0 + first as f64 / sx,
+                    x0 + (first + count as i64) as f64 / sx,
+                );
+                let box_y = (
+                    y0 + first as f64 / sy,
+                    y0 + (first + count as i64) as f64 / sy,
+                );
+                assert!(
+                    c0 as f64 >= box_x.0 - 2.0 && c1 as f64 <= box_x.1 + 2.0,
+                    "{sampling:?} {c0}..{c1} {box_x:?}"
+                );
+                assert!(
+                    r0 as f64 >= box_y.0 - 2.0 && r1 as f64 <= box_y.1 + 2.0,
+                    "{sampling:?} {r0}..{r1} {box_y:?}"
+                );
+                let mut changed = image.clone();
+                for (px, py, p) in changed.enumerate_pixels_mut() {
+                    let (px, py) = (px as i64, py as i64);
+                    if !((c0..=c1).contains(&px) && (r0..=r1).contains(&py)) {
+                        p.0 = p.0.map(|v| 255 - v);
+                    }
+                }
+                assert_eq!(
+                    crop.crop_window(&changed, first, count),
+                    want,
+                    "{sampling:?} {x0} {y0}"
+                );
+            }
+            assert!(
+                CropTransform {
+                    x0: 0.0,
+                    y0: 0.0,
+                    side: 10.0,
+                    side_y: 10.0,
+                    size: 16,
+                    sampling,
+                }
+                .window_reach(0, 0)
+                .is_none()
+            );
+        }
+    }
 
     #[test]
     fn a_crop_window_holds_the_crop_and_a_box_cut_from_it_matches_the_image() {

@@ -266,6 +266,18 @@ fn warp_axes(crop: &CropTransform, first: i64, count: usize) -> (Vec<AxisTap>, V
     (columns, rows)
 }
 
+/// The columns and rows (inclusive) [`warp_affine_window`]'s taps reach: each output
+/// pixel's `x` and `x + 1` per axis ([`CropTransform::window_reach`]). `count > 0`.
+pub(super) fn warp_reach(crop: &CropTransform, first: i64, count: usize) -> [(i64, i64); 2] {
+    let (columns, rows) = warp_axes(crop, first, count);
+    let reach = |taps: &[AxisTap]| {
+        let lo = taps.iter().map(|t| t.0 as i64).min().unwrap_or(0);
+        let hi = taps.iter().map(|t| t.0 as i64 + 1).max().unwrap_or(0);
+        (lo, hi)
+    };
+    [reach(&columns), reach(&rows)]
+}
+
 /// `cv2.warpAffine(src, M, (S, S))` with its defaults (bilinear, black outside) for an
 /// interleaved 8-bit image of `channels` channels, `width x height`, into the crop.
 pub fn warp_affine(

@@ -31,8 +31,9 @@
 //! the window's and the mesh's byte counts, the window (`(S + 2m)^2` RGB pixels) as its
 //! codec stores it ([`WindowCodec`]: by default its pixels predicted from their
 //! neighbours and the errors compressed by zstd, the centre `S x S` and the ring around
-//! it in two frames so that evaluation decodes the centre alone ([`window_parts`],
-//! [`WindowPart`]); or a PNG, or the raw bytes), then the
+//! it, in four parts, in five frames so that evaluation decodes the centre alone and a
+//! training crop the parts it reaches ([`window_parts`], [`WindowPart`]); or a PNG, or
+//! the raw bytes), then the
 //! mesh (`V x 3` float32, by coordinate and byte plane, compressed by zstd: [`encode_mesh`]). All
 //! are lossless, so the window read is the window resampled and the mesh the mesh, bit
 //! for bit: evaluation crops stay those of the JPEG, and stores of every codec serve the
@@ -51,9 +52,12 @@
 //! this dataset, this shard, this row and this sample's key (a comparison of a few
 //! dozen bytes, no hashing of the data), then its status, then that the window's and
 //! the mesh's lengths fill the record and are within their bounds, and only then decodes
-//! the mesh and the window (each into a buffer of its exact size from the manifest,
-//! never one a file names: a zstd frame that gives more or fewer bytes, or a
-//! PNG of another size or colour type, is refused, the PNG from its header). A record whose sample had no
+//! the mesh; the window is decoded when the loader knows its crop
+//! ([`StoredRecord::crop_pixels`]: the centre alone for the evaluation crop, the parts a
+//! training crop reaches for it). Each is decoded into a buffer of its exact size from
+//! the manifest, never one a file names: a zstd frame that gives more or fewer bytes, or
+//! a PNG of another size or colour type, is refused, the PNG from its header. A record
+//! whose sample had no
 //! readable image when the store was made has status 0, and reading it is an error
 //! naming the sample and the recorded reason. A store of an earlier format is refused
 //! with "rerun `arkit-tool crops`". Files are written under a temporary name and
@@ -83,8 +87,8 @@ pub const MANIFEST_FILE: &str = "crops.json";
 /// dataset, shard and key; 2: fixed-size records of raw windows, before the codecs and
 /// the index; 3: raw meshes, before the window moved ahead of a compressed mesh; 4:
 /// deflated meshes, before zstd's, which decode in a fifth of the time; 5: a
-/// `pred-zstd` window in one frame, before its centre had a frame of its own, which
-/// evaluation decodes alone).
+/// `pred-zstd` window in one frame, before its centre and the four parts of the ring
+/// around it had a frame each, so that a crop decodes only what it reaches).
 pub const FORMAT: u32 = 6;
 /// Bytes of a `part-K.bin` header.
 pub const HEADER_BYTES: u64 = 128;
@@ -119,9 +123,10 @@ pub enum WindowCodec {
     /// The default: each pixel predicted from its decoded neighbours and the
     /// prediction errors compressed by zstd ([`predict_rect`]): green, then red and
     /// blue less green, each plane by the median edge detector of LOCO-I (JPEG-LS).
-    /// The window's centre (the evaluation crop) and the ring around it are two zstd
-    /// frames ([`window_parts`]), the centre's byte count first (four bytes, little
-    /// endian), so that evaluation decodes the centre alone.
+    /// The window's five parts ([`window_parts`]: the centre, which is the evaluation
+    /// crop, and the four parts of the ring around it) are a zstd frame each, after the
+    /// byte counts of the first four (four bytes each, little endian), so that
+    /// evaluation decodes the centre alone and a training crop the parts it reaches.
     #[serde(rename = "pred-zstd")]
     PredZstd,
 }
@@ -182,29 +187,31 @@ pub fn encode_window(codec: WindowCodec, window: &image::RgbImage, size: u32) ->
                 zstd::bulk::compress(errors, ZSTD_LEVEL)
                     .map_err(|e| Error::invalid("crop store", format!("zstd: {e}")))
             };
-            let [centre, above, left, right, below] = window_parts(size);
             let raw = window.as_raw();
-            let centre = zstd(&predict_rect(raw, w, centre))?;
-            let mut ring = predict_rect(raw, w, above);
-            for strip in [left, right] {
-                let upright = PixelRect {
-                    x: 0,
-                    y: 0,
-                    width: strip.height,
-                    height: strip.width,
+            let mut frames = Vec::with_capacity(5);
+            for (i, part) in window_parts(size).into_iter().enumerate() {
+                let errors = if (2..4).contains(&i) {
+                    // A strip, transposed.
+                    let upright = PixelRect {
+                        x: 0,
+                        y: 0,
+                        width: part.height,
+                        height: part.width,
+                    };
+                    predict_rect(&transposed(raw, w, part), upright.width, upright)
+                } else {
+                    predict_rect(raw, w, part)
                 };
-                ring.extend(predict_rect(
-                    &transposed(raw, w, strip),
-                    upright.width,
-                    upright,
-                ));
+                frames.push(zstd(&errors)?);
             }
-            ring.extend(predict_rect(raw, w, below));
-            let ring = zstd(&ring)?;
-            let mut out = Vec::with_capacity(4 + centre.len() + ring.len());
-            out.extend_from_slice(&(centre.len() as u32).to_le_bytes());
-            out.extend_from_slice(&centre);
-            out.extend_from_slice(&ring);
+            let mut out =
+                Vec::with_capacity(FRAME_TABLE + frames.iter().map(Vec::len).sum::<usize>());
+            for f in &frames[..4] {
+                out.extend_from_slice(&(f.len() as u32).to_le_bytes());
+            }
+            for f in &frames {
+                out.extend_from_slice(f);
+            }
             Ok(out)
         }
     }
@@ -272,6 +279,14 @@ impl PixelRect {
     /// Whether it lies inside an image of `width x height` pixels.
     fn inside(&self, width: usize, height: usize) -> bool {
         self.x + self.width <= width && self.y + self.height <= height
+    }
+
+    /// Whether `other` lies inside it.
+    pub fn contains(&self, other: &PixelRect) -> bool {
+        self.x <= other.x
+            && self.y <= other.y
+            && other.x + other.width <= self.x + self.width
+            && other.y + other.height <= self.y + self.height
     }
 }
 
@@ -994,14 +1009,23 @@ unsafe fn decode_inner_pixel_sse2(
     }
 }
 
-/// What of a stored window [`decode_window`] and [`CropStore::read`] decode.
+/// Bytes before a [`WindowCodec::PredZstd`] window's frames: the byte counts of its
+/// first four.
+const FRAME_TABLE: usize = 16;
+
+/// What of a stored window [`decode_window`] and [`StoredRecord::decode`] decode.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum WindowPart {
-    /// The whole `W x W` window, which training crops are resampled from.
+    /// The whole `W x W` window.
     Whole,
     /// Its centre `S x S`, the evaluation crop: with [`WindowCodec::PredZstd`] the
-    /// ring's frame is not decoded.
+    /// ring's frames are not decoded.
     Centre,
+    /// The `W x W` window with at least the pixels of this rectangle of it decoded
+    /// (what a training crop reaches, [`crate::crop::CropTransform::window_reach`]):
+    /// with [`WindowCodec::PredZstd`] the parts of the ring it does not meet are not
+    /// decoded, and their pixels are zero.
+    Region(PixelRect),
 }
 
 /// The pixels `bytes` (stored by `codec`) hold of the window of crop side `size`: the
@@ -1057,7 +1081,7 @@ pub fn decode_window(
         WindowCodec::PredZstd => return decode_pred_zstd(bytes, size, part),
     };
     Ok(match part {
-        WindowPart::Whole => whole,
+        WindowPart::Whole | WindowPart::Region(_) => whole,
         WindowPart::Centre => window_centre(&whole, size),
     })
 }
@@ -1076,63 +1100,108 @@ fn window_centre(window: &[u8], size: u32) -> Vec<u8> {
 /// for the whole window, the ring's.
 fn decode_pred_zstd(bytes: &[u8], size: u32, part: WindowPart) -> Result<Vec<u8>> {
     let bad = |e: String| Error::invalid("crop store", format!("its zstd window: {e}"));
-    let [centre, above, left, right, below] = window_parts(size);
-    let centre_len = bytes
-        .get(..4)
-        .map(|b| u32::from_le_bytes(b.try_into().expect("4 bytes")) as usize)
-        .filter(|&n| n <= bytes.len() - 4)
-        .ok_or_else(|| {
-            bad(format!(
-                "{} bytes, too few for the centre's frame its first four bytes count",
+    let parts = window_parts(size);
+    // The five frames: the table's four byte counts, the last frame the rest.
+    let table = bytes.get(..FRAME_TABLE).ok_or_else(|| {
+        bad(format!(
+            "{} bytes, fewer than its table of frames",
+            bytes.len()
+        ))
+    })?;
+    let mut frames: [&[u8]; 5] = [&[]; 5];
+    let mut rest = &bytes[FRAME_TABLE..];
+    for (i, n) in table.chunks_exact(4).enumerate() {
+        let n = u32::from_le_bytes(n.try_into().expect("4 bytes")) as usize;
+        if n > rest.len() {
+            return Err(bad(format!(
+                "its table counts {n} bytes for frame {i}, past the window's {}",
                 bytes.len()
-            ))
-        })?;
-    let (centre_frame, ring_frame) = bytes[4..].split_at(centre_len);
+            )));
+        }
+        (frames[i], rest) = rest.split_at(n);
+    }
+    frames[4] = rest;
+    const NAMES: [&str; 5] = [
+        "centre",
+        "band above",
+        "left strip",
+        "right strip",
+        "band below",
+    ];
     // Each frame into a buffer of exactly its part's bytes: a frame that would give
     // more is an error, one that gives fewer is refused here.
-    let frame = |frame: &[u8], want: usize, what: &str| {
-        let out = zstd_frame(frame, want).map_err(|e| bad(format!("its {what}: {e}")))?;
+    let frame = |i: usize| {
+        let want = 3 * parts[i].pixels();
+        let out = zstd_frame(frames[i], want).map_err(|e| bad(format!("its {}: {e}", NAMES[i])))?;
         if out.len() != want {
             return Err(bad(format!(
-                "its {what}: {} bytes, expected {want}",
+                "its {}: {} bytes, expected {want}",
+                NAMES[i],
                 out.len()
             )));
         }
         Ok(out)
     };
-    let mut centre_px = frame(centre_frame, 3 * centre.pixels(), "centre")?;
+    let centre = parts[0];
+    let mut centre_px = frame(0)?;
     if part == WindowPart::Centre {
         unpredict_in_place(&mut centre_px, centre.width, centre.height);
         return Ok(centre_px);
     }
-    let (band, strip) = (3 * above.pixels(), 3 * left.pixels());
-    let ring = frame(ring_frame, 2 * band + 2 * strip, "ring")?;
+    // The ring's parts to decode: all, or those the region meets.
+    let wanted = |r: &PixelRect| match part {
+        WindowPart::Region(a) => {
+            a.x < r.x + r.width
+                && r.x < a.x + a.width
+                && a.y < r.y + r.height
+                && r.y < a.y + a.height
+        }
+        _ => true,
+    };
     let side = window_side(size);
     let n = 3 * side * side;
-    // Every byte of the window is written below (the parts cover it), none read:
-    // it is not zeroed first.
+    // Every byte of the window is written below (the parts cover it: decoded or
+    // zero), none read: it is not zeroed first.
     let mut window = Vec::<u8>::with_capacity(n);
     let out = window.as_mut_ptr();
-    let (left_errors, rest) = ring[band..].split_at(strip);
-    let (right_errors, below_errors) = rest.split_at(strip);
     // SAFETY: `out` has room for the `side x side` window; each part's errors are its
-    // own bytes, of another buffer than the window; a strip's transposed image (its
-    // row `y` the window's column `strip.x + y`) is inside the window.
-    unsafe {
-        unpredict_rect_raw(&centre_px, centre, out, side);
-        unpredict_rect_raw(&ring[..band], above, out, side);
-        unpredict_rect_raw(below_errors, below, out, side);
-        for (errors, s) in [(left_errors, left), (right_errors, right)] {
-            unpredict_io(RectIo {
+    // own buffer's.
+    unsafe { unpredict_rect_raw(&centre_px, centre, out, side) };
+    for (i, r) in parts.iter().enumerate().skip(1) {
+        if !wanted(r) {
+            for y in r.y..r.y + r.height {
+                // SAFETY: the part's row is inside the window.
+                unsafe { out.add(3 * (y * side + r.x)).write_bytes(0, 3 * r.width) };
+            }
+            continue;
+        }
+        let errors = frame(i)?;
+        let io = if (2..4).contains(&i) {
+            // A strip, stored transposed: its row `y` is the window's column `r.x + y`.
+            RectIo {
                 src: errors.as_ptr(),
-                src_row: 3 * s.height,
-                dst: out.add(3 * (s.y * side + s.x)),
+                src_row: 3 * r.height,
+                // SAFETY: the part's first pixel is inside the window.
+                dst: unsafe { out.add(3 * (r.y * side + r.x)) },
                 dst_row: 3,
                 dst_col: 3 * side,
-                width: s.height,
-                height: s.width,
-            });
-        }
+                width: r.height,
+                height: r.width,
+            }
+        } else {
+            RectIo {
+                src: errors.as_ptr(),
+                src_row: 3 * r.width,
+                // SAFETY: as above.
+                dst: unsafe { out.add(3 * (r.y * side + r.x)) },
+                dst_row: 3 * side,
+                dst_col: 3,
+                width: r.width,
+                height: r.height,
+            }
+        };
+        // SAFETY: the part's pixels are inside the window, its errors another buffer.
+        unsafe { unpredict_io(io) };
     }
     // SAFETY: the parts cover the window, each of its bytes written above.
     unsafe { window.set_len(n) };
@@ -1316,17 +1385,17 @@ pub struct MissingCrop {
     pub reason: String,
 }
 
-/// One sample's stored values.
+/// One sample's stored values, its window decoded.
 #[derive(Clone, Debug, PartialEq)]
 pub struct StoredCrop {
     /// The evaluation crop's box.
     pub eval_crop: CropTransform,
     /// The mesh.
     pub verts: Vec<Point3<f32>>,
-    /// The window, `W x W` RGB (`W =` [`window_side`]); or, read as
+    /// The window, `W x W` RGB (`W =` [`window_side`]); or, decoded as
     /// [`WindowPart::Centre`], its centre `S x S` only.
     pub window: image::RgbImage,
-    /// Which of the two `window` holds.
+    /// What of its window `window` holds.
     pub part: WindowPart,
 }
 
@@ -1334,29 +1403,153 @@ impl StoredCrop {
     /// The evaluation crop: the window's centre `S x S` (RGB bytes, row-major).
     pub fn centre(&self) -> Vec<u8> {
         match self.part {
-            WindowPart::Whole => window_centre(self.window.as_raw(), self.eval_crop.size),
             WindowPart::Centre => self.window.as_raw().clone(),
+            _ => window_centre(self.window.as_raw(), self.eval_crop.size),
         }
     }
 
     /// The pixels of `crop` (a box in the same image, of the same sampling and size):
     /// the centre when it is the evaluation crop, else resampled from the window. A
-    /// box other than the evaluation crop's, asked of a crop read as its centre only,
-    /// is an error.
+    /// crop that reaches pixels of the window not decoded (read as its centre, or as a
+    /// region the crop reaches past) is an error.
     pub fn crop_pixels(&self, crop: &CropTransform) -> Result<Vec<u8>> {
         if *crop == self.eval_crop {
             return Ok(self.centre());
         }
-        if self.part != WindowPart::Whole {
+        let in_window = crop.in_window(&self.eval_crop, self.first());
+        let decoded = match self.part {
+            WindowPart::Whole => true,
+            WindowPart::Centre => false,
+            WindowPart::Region(r) => reach_in_window(&in_window, self.window.width())
+                .is_none_or(|reach| r.contains(&reach)),
+        };
+        if !decoded {
             return Err(Error::invalid(
                 "crop store",
-                "a crop other than the evaluation one from a record read for its centre only",
+                format!(
+                    "a crop reaching pixels of the window that were not decoded (decoded: {:?})",
+                    self.part
+                ),
             ));
         }
-        let first = -(margin(self.eval_crop.size) as i64);
-        Ok(crop
-            .in_window(&self.eval_crop, first)
-            .crop_window(&self.window, 0, crop.size as usize))
+        Ok(in_window.crop_window(&self.window, 0, crop.size as usize))
+    }
+
+    /// The window's first pixel in the evaluation crop's pixel grid, along each axis:
+    /// `-m`.
+    fn first(&self) -> i64 {
+        -(margin(self.eval_crop.size) as i64)
+    }
+}
+
+/// The pixels of a `side x side` window that the crop `in_window` (in the window's pixel
+/// grid) reaches, clipped to the window; `None` when it reaches none.
+fn reach_in_window(in_window: &CropTransform, side: u32) -> Option<PixelRect> {
+    let [(x0, x1), (y0, y1)] = in_window.window_reach(0, in_window.size as usize)?;
+    let clip = |lo: i64, hi: i64| {
+        let (lo, hi) = (lo.max(0), hi.min(side as i64 - 1));
+        (lo <= hi).then_some((lo as usize, (hi - lo + 1) as usize))
+    };
+    let ((x, width), (y, height)) = (clip(x0, x1)?, clip(y0, y1)?);
+    Some(PixelRect {
+        x,
+        y,
+        width,
+        height,
+    })
+}
+
+/// A record read and checked ([`CropStore::read`]): its box and mesh decoded, its window
+/// as stored, decoded when asked for, as much of it as is asked for.
+#[derive(Clone, Debug)]
+pub struct StoredRecord {
+    /// The evaluation crop's box.
+    pub eval_crop: CropTransform,
+    /// The mesh.
+    pub verts: Vec<Point3<f32>>,
+    window: StoredWindow,
+    codec: WindowCodec,
+    /// The part file and the row, which errors name.
+    path: PathBuf,
+    row: usize,
+}
+
+/// A record's window as read.
+#[derive(Clone, Debug)]
+enum StoredWindow {
+    /// A raw window: its pixels.
+    Raw(image::RgbImage),
+    /// Any other codec's bytes.
+    Encoded(Vec<u8>),
+}
+
+impl StoredRecord {
+    /// Its window's `part` decoded ([`decode_window`]). An error names the part file
+    /// and the record.
+    pub fn decode(&self, part: WindowPart) -> Result<StoredCrop> {
+        let size = self.eval_crop.size;
+        let pixels = match (&self.window, part) {
+            (StoredWindow::Raw(w), WindowPart::Centre) => window_centre(w.as_raw(), size),
+            (StoredWindow::Raw(w), _) => w.as_raw().clone(),
+            (StoredWindow::Encoded(bytes), part) => decode_window(self.codec, bytes, size, part)
+                .map_err(|e| {
+                    Error::format(
+                        &self.path,
+                        format!("record {}: {e}; run `arkit-tool crops` again", self.row),
+                    )
+                })?,
+        };
+        let w = match part {
+            WindowPart::Centre => size,
+            _ => window_side(size) as u32,
+        };
+        let window = image::RgbImage::from_raw(w, w, pixels).ok_or_else(|| {
+            Error::format(
+                &self.path,
+                format!("record {}: a window of another size than {w}x{w}", self.row),
+            )
+        })?;
+        Ok(StoredCrop {
+            eval_crop: self.eval_crop,
+            verts: self.verts.clone(),
+            window,
+            part,
+        })
+    }
+
+    /// The pixels of `crop` (a box in the same image, of the same sampling and size,
+    /// as [`StoredCrop::crop_pixels`]), decoding only what it needs: the centre for the
+    /// evaluation crop, else the parts of the window the crop reaches
+    /// ([`WindowPart::Region`]).
+    pub fn crop_pixels(&self, crop: &CropTransform) -> Result<Vec<u8>> {
+        if let StoredWindow::Raw(window) = &self.window {
+            // Raw pixels are resampled where they were read.
+            let first = -(margin(self.eval_crop.size) as i64);
+            return Ok(if *crop == self.eval_crop {
+                window_centre(window.as_raw(), self.eval_crop.size)
+            } else {
+                crop.in_window(&self.eval_crop, first)
+                    .crop_window(window, 0, crop.size as usize)
+            });
+        }
+        let part = if *crop == self.eval_crop {
+            WindowPart::Centre
+        } else {
+            let first = -(margin(self.eval_crop.size) as i64);
+            let side = window_side(self.eval_crop.size) as u32;
+            let reach = reach_in_window(&crop.in_window(&self.eval_crop, first), side);
+            WindowPart::Region(reach.unwrap_or(PixelRect {
+                x: 0,
+                y: 0,
+                width: 0,
+                height: 0,
+            }))
+        };
+        let decoded = self.decode(part)?;
+        if part == WindowPart::Centre {
+            return Ok(decoded.window.into_raw());
+        }
+        decoded.crop_pixels(crop)
     }
 }
 
@@ -1829,15 +2022,10 @@ impl CropStore {
 
     /// The record of row `row` of samples shard `shard`, which must be that of sample
     /// `key` (`subject/action/img_id`) of this store's dataset: checked, with the
-    /// record's CRC, before anything of it is decoded or returned. `window` says what of
-    /// its window to decode: the whole window (training) or its centre (evaluation).
-    pub fn read(
-        &self,
-        shard: usize,
-        row: usize,
-        key: &str,
-        window: WindowPart,
-    ) -> Result<StoredCrop> {
+    /// record's CRC, before anything of it is decoded or returned. Its mesh is decoded
+    /// here, its window when asked for ([`StoredRecord::crop_pixels`],
+    /// [`StoredRecord::decode`]).
+    pub fn read(&self, shard: usize, row: usize, key: &str) -> Result<StoredRecord> {
         let part = self
             .files
             .get(shard)
@@ -1941,36 +2129,35 @@ impl CropStore {
             )
         };
         let verts = decode_mesh(&tail[window_len..], m.vertex_count).map_err(in_record)?;
-        let w = match window {
-            WindowPart::Whole => window_side(m.img_size),
-            WindowPart::Centre => m.img_size as usize,
-        };
-        let pixels = match (m.codec, window) {
-            // The raw window kept in the buffer it was read into, the mesh cut off.
-            (WindowCodec::Raw, WindowPart::Whole) => {
-                tail.truncate(window_len);
-                tail
+        // The window kept in the buffer it was read into, the mesh cut off.
+        tail.truncate(window_len);
+        let window = match m.codec {
+            WindowCodec::Raw => {
+                let w = window_side(m.img_size) as u32;
+                let len = tail.len();
+                let bad = || {
+                    Error::format(
+                        path,
+                        format!(
+                            "record {row}: a raw window of {len} bytes, expected {}",
+                            3 * w * w
+                        ),
+                    )
+                };
+                if len != 3 * (w * w) as usize {
+                    return Err(bad());
+                }
+                StoredWindow::Raw(image::RgbImage::from_raw(w, w, tail).ok_or_else(bad)?)
             }
-            (codec, part) => {
-                decode_window(codec, &tail[..window_len], m.img_size, part).map_err(in_record)?
-            }
+            _ => StoredWindow::Encoded(tail),
         };
-        if pixels.len() != 3 * w * w {
-            return Err(Error::format(
-                path,
-                format!(
-                    "record {row}: a window of {} bytes, expected {}",
-                    pixels.len(),
-                    3 * w * w
-                ),
-            ));
-        }
-        Ok(StoredCrop {
+        Ok(StoredRecord {
             eval_crop,
             verts,
-            window: image::RgbImage::from_raw(w as u32, w as u32, pixels)
-                .expect("the window's size, checked"),
-            part: window,
+            window,
+            codec: m.codec,
+            path: path.clone(),
+            row,
         })
     }
 }
@@ -2101,9 +2288,16 @@ mod tests {
                 assert_eq!(bytes.len() as u64, raw_record_bytes(16, mesh, m.key_bytes));
             }
             let store = store_of(dir.path(), &m, records);
-            assert_eq!(store.read(0, 5, "s/a/5", WindowPart::Whole).unwrap(), crop);
+            assert_eq!(
+                store
+                    .read(0, 5, "s/a/5")
+                    .and_then(|r| r.decode(WindowPart::Whole))
+                    .unwrap(),
+                crop
+            );
             let e = store
-                .read(0, 2, "s/a/2", WindowPart::Whole)
+                .read(0, 2, "s/a/2")
+                .and_then(|r| r.decode(WindowPart::Whole))
                 .unwrap_err()
                 .to_string();
             assert!(e.contains("part-0.bin") && e.contains("no pixels"), "{e}");
@@ -2117,7 +2311,8 @@ mod tests {
             all[in_window] ^= 1;
             std::fs::write(&path, &all).unwrap();
             let e = store_of_file(&store, &path)
-                .read(0, 5, "s/a/5", WindowPart::Whole)
+                .read(0, 5, "s/a/5")
+                .and_then(|r| r.decode(WindowPart::Whole))
                 .unwrap_err();
             assert!(
                 e.to_string().contains("part-0.bin") && e.to_string().contains("CRC"),
@@ -2157,7 +2352,8 @@ mod tests {
         let store = store_of(dir.path(), &m, six(&m, &crop));
         // Asked as another sample: the key differs.
         let e = store
-            .read(0, 5, "s/a/6", WindowPart::Whole)
+            .read(0, 5, "s/a/6")
+            .and_then(|r| r.decode(WindowPart::Whole))
             .unwrap_err()
             .to_string();
         assert!(
@@ -2171,11 +2367,18 @@ mod tests {
         records[3] = records[5].clone();
         let store = store_of(dir.path(), &m, records);
         let e = store
-            .read(0, 3, "s/a/3", WindowPart::Whole)
+            .read(0, 3, "s/a/3")
+            .and_then(|r| r.decode(WindowPart::Whole))
             .unwrap_err()
             .to_string();
         assert!(e.contains("holds sample s/a/5 (row 5 of shard 0)"), "{e}");
-        assert_eq!(store.read(0, 5, "s/a/5", WindowPart::Whole).unwrap(), crop);
+        assert_eq!(
+            store
+                .read(0, 5, "s/a/5")
+                .and_then(|r| r.decode(WindowPart::Whole))
+                .unwrap(),
+            crop
+        );
         // Another shard's or another dataset's record of the same row and key.
         for (shard, fingerprint, says) in [
             (1, "ab".repeat(32), "row 5 of shard 1)"),
@@ -2193,7 +2396,8 @@ mod tests {
             records[5] = encode_record(&other, shard, 5, "s/a/5", Some(&crop)).unwrap();
             let store = store_of(dir.path(), &m, records);
             let e = store
-                .read(0, 5, "s/a/5", WindowPart::Whole)
+                .read(0, 5, "s/a/5")
+                .and_then(|r| r.decode(WindowPart::Whole))
                 .unwrap_err()
                 .to_string();
             assert!(e.contains("part-0.bin") && e.contains(says), "{e}");
@@ -2296,7 +2500,9 @@ mod tests {
             r[at_lens + 4..at_lens + 8].copy_from_slice(&n.to_le_bytes());
             let crc = crc32fast::hash(&r[4..]);
             r[..4].copy_from_slice(&crc.to_le_bytes());
-            store_of(dir.path(), &m, records).read(0, 5, "s/a/5", WindowPart::Whole)
+            store_of(dir.path(), &m, records)
+                .read(0, 5, "s/a/5")
+                .and_then(|r| r.decode(WindowPart::Whole))
         };
         let good = encode_mesh(&crop.verts);
         assert_eq!(forged(&good, None).unwrap(), crop);
@@ -2560,14 +2766,71 @@ mod tests {
                 );
             }
             assert_eq!(centre.unwrap(), want, "{size}");
-            // Only the centre's frame is read: the ring's cut off, the centre decodes.
-            let centre_len = u32::from_le_bytes(stored[..4].try_into().unwrap()) as usize;
-            let cut = &stored[..4 + centre_len];
-            assert_eq!(
-                decode_window(WindowCodec::PredZstd, cut, size, WindowPart::Centre).unwrap(),
-                want
-            );
-            assert!(decode_window(WindowCodec::PredZstd, cut, size, WindowPart::Whole).is_err());
+            // A region: the parts it meets decoded, the others zero, the centre always.
+            let parts = window_parts(size);
+            let regions = [
+                PixelRect {
+                    x: 0,
+                    y: 0,
+                    width: 1,
+                    height: 1,
+                },
+                PixelRect {
+                    x: m,
+                    y: m,
+                    width: s,
+                    height: s,
+                },
+                PixelRect {
+                    x: side - 1,
+                    y: m,
+                    width: 1,
+                    height: 2,
+                },
+                PixelRect {
+                    x: 1,
+                    y: side - 2,
+                    width: side - 2,
+                    height: 2,
+                },
+                PixelRect {
+                    x: 0,
+                    y: 0,
+                    width: 0,
+                    height: 0,
+                },
+            ];
+            for region in regions {
+                let got = decode_window(
+                    WindowCodec::PredZstd,
+                    &stored,
+                    size,
+                    WindowPart::Region(region),
+                )
+                .unwrap();
+                for (i, r) in parts.iter().enumerate() {
+                    let meets = i == 0
+                        || (region.x < r.x + r.width
+                            && r.x < region.x + region.width
+                            && region.y < r.y + r.height
+                            && r.y < region.y + region.height);
+                    for y in r.y..r.y + r.height {
+                        let at = 3 * (y * side + r.x)..3 * (y * side + r.x + r.width);
+                        if meets {
+                            assert_eq!(
+                                got[at.clone()],
+                                window.as_raw()[at],
+                                "{size} {region:?} part {i}"
+                            );
+                        } else {
+                            assert!(
+                                got[at].iter().all(|&b| b == 0),
+                                "{size} {region:?} part {i}"
+                            );
+                        }
+                    }
+                }
+            }
             // The other way round: any bytes, read as errors, decode to the image
             // whose prediction errors they are (the decoder and the prediction's
             // per-pixel definition agree on every value, wrapping ones included).
@@ -2610,18 +2873,100 @@ mod tests {
         assert!(whole(&[0x28, 0xb5, 0x2f, 0xfd, 1]).is_err());
         assert!(whole(&[]).is_err());
         assert!(whole(&[1, 0]).is_err());
+        // A frame's byte count past the window's end.
         let mut long = stored.clone();
         long[..4].copy_from_slice(&(stored.len() as u32).to_le_bytes());
         let e = whole(&long).unwrap_err().to_string();
-        assert!(e.contains("too few"), "{e}");
-        // The frames swapped: each gives another count of bytes than its part's.
-        let centre_len = u32::from_le_bytes(stored[..4].try_into().unwrap()) as usize;
-        let ring = &stored[4 + centre_len..];
-        let mut swapped = (ring.len() as u32).to_le_bytes().to_vec();
-        swapped.extend_from_slice(ring);
-        swapped.extend_from_slice(&stored[4..4 + centre_len]);
+        assert!(e.contains("past the window"), "{e}");
+        // The centre's and the band above's frames swapped (their counts with them):
+        // each gives another count of bytes than its part's.
+        let count =
+            |i: usize| u32::from_le_bytes(stored[4 * i..4 * i + 4].try_into().unwrap()) as usize;
+        let (c, a) = (count(0), count(1));
+        let mut swapped = stored.clone();
+        swapped[..4].copy_from_slice(&(a as u32).to_le_bytes());
+        swapped[4..8].copy_from_slice(&(c as u32).to_le_bytes());
+        let frames = &stored[FRAME_TABLE..];
+        swapped[FRAME_TABLE..FRAME_TABLE + a].copy_from_slice(&frames[c..c + a]);
+        swapped[FRAME_TABLE + a..FRAME_TABLE + a + c].copy_from_slice(&frames[..c]);
         let e = whole(&swapped).unwrap_err().to_string();
         assert!(e.contains("its centre"), "{e}");
+    }
+
+    #[test]
+    fn a_records_training_crops_decode_only_what_they_reach_and_equal_the_whole_windows() {
+        let mut next = noise(0x0bad_cafe);
+        for sampling in [CropSampling::Centres, CropSampling::Corners] {
+            let size = 32u32;
+            let side = window_side(size);
+            let window = image::RgbImage::from_fn(side as u32, side as u32, |x, y| {
+                image::Rgb([(x * 5 + y) as u8, next(), (y * 3) as u8])
+            });
+            let eval_crop = CropTransform {
+                x0: 100.25,
+                y0: 80.5,
+                side: 60.0,
+                side_y: 61.0,
+                size,
+                sampling,
+            };
+            let whole = StoredCrop {
+                eval_crop,
+                verts: Vec::new(),
+                window: window.clone(),
+                part: WindowPart::Whole,
+            };
+            let record = StoredRecord {
+                eval_crop,
+                verts: Vec::new(),
+                window: StoredWindow::Encoded(
+                    encode_window(WindowCodec::PredZstd, &window, size).unwrap(),
+                ),
+                codec: WindowCodec::PredZstd,
+                path: PathBuf::from("part-0.bin"),
+                row: 3,
+            };
+            assert_eq!(record.crop_pixels(&eval_crop).unwrap(), whole.centre());
+            // Boxes moved and scaled as far as the training jitter goes, and past the
+            // window (where the crop reads zero).
+            for (dx, dy, scale) in [
+                (0.1, 0.1, 1.05),
+                (-0.1, 0.1, 0.95),
+                (0.1, -0.1, 1.0),
+                (-0.1, -0.1, 1.05),
+                (0.0, 0.0, 1.05),
+                (0.02, -0.01, 0.95),
+                (0.3, 0.0, 1.0),
+            ] {
+                let crop = CropTransform {
+                    x0: eval_crop.x0 + dx * 60.0 - (scale - 1.0) * 30.0,
+                    y0: eval_crop.y0 + dy * 61.0 - (scale - 1.0) * 30.5,
+                    side: 60.0 * scale,
+                    side_y: 61.0 * scale,
+                    ..eval_crop
+                };
+                assert_eq!(
+                    record.crop_pixels(&crop).unwrap(),
+                    whole.crop_pixels(&crop).unwrap(),
+                    "{sampling:?} {dx} {dy} {scale}"
+                );
+            }
+            // A window decoded for a small region refuses a crop reaching past it.
+            let small = record
+                .decode(WindowPart::Region(PixelRect {
+                    x: 20,
+                    y: 20,
+                    width: 4,
+                    height: 4,
+                }))
+                .unwrap();
+            let moved = CropTransform {
+                x0: eval_crop.x0 - 6.0,
+                ..eval_crop
+            };
+            let e = small.crop_pixels(&moved).unwrap_err().to_string();
+            assert!(e.contains("not decoded"), "{e}");
+        }
     }
 
     #[test]

@@ -49,7 +49,7 @@ use crate::crop::official::{
 use crate::crop::{CropSampling, CropTransform};
 use crate::loader::colour_jitter::UNIT;
 use crate::loader::colour_jitter::jitter_colour;
-use crate::loader::crop_store::{CropStore, StoredCrop, WindowPart};
+use crate::loader::crop_store::{CropStore, StoredCrop, StoredRecord, WindowPart};
 use crate::mesh::topology::FaceTopology;
 use crate::render::face::{
     FaceRenderer, RasterMode, UvMapper, UvTexels, WindowMask, sample_points,
@@ -304,8 +304,8 @@ impl Drop for KeptBuffer<'_> {
 enum PixelSource {
     /// The decoded full-resolution image.
     Image(image::RgbImage),
-    /// A crop store's window around the evaluation crop.
-    Stored(StoredCrop),
+    /// A crop store's record: the window around the evaluation crop, not yet decoded.
+    Stored(StoredRecord),
 }
 
 impl PixelSource {
@@ -1275,12 +1275,9 @@ impl FaceLoader {
             Some(store) => {
                 let (shard, r) = row.location;
                 // The record must be this sample's (checked in every mode).
-                // Evaluation crops are the window's centre: only that is decoded.
-                let part = match self.options.mode {
-                    LoaderMode::Train => WindowPart::Whole,
-                    LoaderMode::Eval => WindowPart::Centre,
-                };
-                let mut stored = store.read(shard, r, &row.sample.key.to_string(), part)?;
+                // The window is decoded when the crop is known, as much of it as the
+                // crop reaches.
+                let mut stored = store.read(shard, r, &row.sample.key.to_string())?;
                 (
                     std::mem::take(&mut stored.verts),
                     PixelSource::Stored(stored),
