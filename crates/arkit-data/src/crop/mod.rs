@@ -219,7 +219,7 @@ impl CropTransform {
     /// the rows (inclusive, in image coordinates, not clipped to any image) its
     /// bilinear taps reach, two per output pixel and axis. A pixel outside them never
     /// changes the output; `None` for an empty window. From the same taps the
-    /// resampling uses ([`bilinear_position`]; `cv2.warpAffine`'s fixed-point ones for
+    /// resampling uses (`bilinear_position`; `cv2.warpAffine`'s fixed-point ones for
     /// [`CropSampling::Corners`]), so the two cannot drift apart (tested: pixels
     /// outside changed, the output is the same).
     pub fn window_reach(&self, first: i64, count: usize) -> Option<[(i64, i64); 2]> {
