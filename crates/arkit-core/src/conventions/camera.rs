@@ -235,19 +235,18 @@ impl Camera {
     }
 
     /// Projects points to rasterizer input: image position and `1 / depth`.
+    ///
+    /// The same operations as [`Camera::project`] (each output the chain's row of four
+    /// products summed left to right, then the three divisions), written out over
+    /// eight points at a time so that they run in vector lanes: the divisions were a
+    /// point's cost one at a time (tested against the matrix chain, bit for bit).
     pub fn project_to_screen(&self, pose: &Pose, points: &[Point3<f32>]) -> Vec<ScreenVertex> {
         let chain = pose.release_matrix() * self.projection * self.viewport_matrix();
-        points
-            .iter()
-            .map(|p| {
-                let q = self.project_with_chain(&chain, &p.cast());
-                ScreenVertex {
-                    x: q.u as f32,
-                    y: q.v as f32,
-                    inv_w: (1.0 / q.depth_m) as f32,
-                }
-            })
-            .collect()
+        let c = |i: usize, j: usize| chain[(i, j)];
+        let col = |j: usize| [c(0, j), c(1, j), c(2, j), c(3, j)];
+        let columns = [col(0), col(1), col(3)];
+        let height = self.height as f64;
+        screen_vertices(points, columns, height)
     }
 
     /// Projects a point already in OpenGL camera coordinates with the pinhole model.
@@ -285,12 +284,96 @@ impl Camera {
     }
 }
 
+/// [`Camera::project_to_screen`]'s arithmetic with the chain's columns for `u`, `v`
+/// and `w` and the image height: eight points at a time, so that the divisions run in
+/// vector lanes.
+fn screen_vertices(
+    points: &[Point3<f32>],
+    [cu, cv, cw]: [[f64; 4]; 3],
+    height: f64,
+) -> Vec<ScreenVertex> {
+    let mut out = Vec::with_capacity(points.len());
+    for chunk in points.chunks(8) {
+        let mut x = [0f64; 8];
+        let mut y = [0f64; 8];
+        let mut z = [0f64; 8];
+        for (k, p) in chunk.iter().enumerate() {
+            (x[k], y[k], z[k]) = (p.x as f64, p.y as f64, p.z as f64);
+        }
+        let row = |m: [f64; 4], k: usize| x[k] * m[0] + y[k] * m[1] + z[k] * m[2] + m[3];
+        let mut sx = [0f32; 8];
+        let mut sy = [0f32; 8];
+        let mut sw = [0f32; 8];
+        for k in 0..8 {
+            let w = row(cw, k);
+            sx[k] = (row(cu, k) / w) as f32;
+            sy[k] = (height - row(cv, k) / w) as f32;
+            sw[k] = (1.0 / w) as f32;
+        }
+        out.extend((0..chunk.len()).map(|k| ScreenVertex {
+            x: sx[k],
+            y: sy[k],
+            inv_w: sw[k],
+        }));
+    }
+    out
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
     use crate::conventions::EulerAngles;
     use nalgebra::Vector3;
     use proptest::prelude::*;
+
+    #[test]
+    fn screen_vertices_are_the_matrix_chains_bit_for_bit() {
+        // Many points (every remainder of the eight-point groups) at several poses.
+        let mut x = 0x51ed_270b_u32;
+        let mut next = || {
+            x ^= x << 13;
+            x ^= x >> 17;
+            x ^= x << 5;
+            x as f32 / u32::MAX as f32 - 0.5
+        };
+        for (i, angles) in [(0.0, 0.0, 0.0), (17.0, -30.0, 12.0), (-63.0, 40.0, 166.0)]
+            .into_iter()
+            .enumerate()
+        {
+            let (pitch_deg, yaw_deg, roll_deg) = angles;
+            let pose = Pose::from_euler(
+                EulerAngles {
+                    yaw_deg,
+                    pitch_deg,
+                    roll_deg,
+                },
+                Vector3::new(0.01 * i as f64, -0.02, -0.4 - 0.1 * i as f64),
+            );
+            let camera = Camera::release(800, 640 + 80 * i as u32);
+            for n in [0usize, 1, 7, 8, 9, 1220] {
+                let points: Vec<Point3<f32>> = (0..n)
+                    .map(|_| Point3::new(0.2 * next(), 0.2 * next(), 0.1 * next()))
+                    .collect();
+                let screen = camera.project_to_screen(&pose, &points);
+                assert_eq!(screen.len(), n);
+                // The same as the arithmetic written out from the chain's columns.
+                let chain = pose.release_matrix() * camera.projection * camera.viewport_matrix();
+                let col = |j: usize| [0, 1, 2, 3].map(|i| chain[(i, j)]);
+                let plain =
+                    screen_vertices(&points, [col(0), col(1), col(3)], camera.height as f64);
+                assert_eq!(plain, screen);
+                for (p, s) in points.iter().zip(&screen) {
+                    let q = camera.project(&pose, &p.cast());
+                    let want = (q.u as f32, q.v as f32, (1.0 / q.depth_m) as f32);
+                    assert_eq!(
+                        (s.x.to_bits(), s.y.to_bits(), s.inv_w.to_bits()),
+                        (want.0.to_bits(), want.1.to_bits(), want.2.to_bits()),
+                        "{p:?} at {angles:?}"
+                    );
+                }
+            }
+        }
+    }
 
     #[test]
     fn release_pinhole_at_800() {
