@@ -159,15 +159,17 @@ def main():
             ds = arkit_tool.ARKitFaceDataset(data, split=None, mode=mode, compat=compat, corr=corr,
                                              crop_store=store)
             loader = warmed_loader(torch, ds, collate)
-            ratios = []
+            ratios, times = [], []
             for _ in range(ROUNDS):
                 theirs = official_epoch(mode)
                 ours = time_epochs(loader, EPOCHS)
                 ratios.append(theirs / ours)
+                times.append((ours, theirs))
             name = f"{mode}/{compat}/{corr}/{source}/{collate}"
             each = ", ".join(f"{r:.1f}x" for r in ratios)
+            ms = ", ".join(f"{o:.3f}/{t:.1f}" for o, t in times)
             print(f"ratio: official get_item / arkit_tool {name}, in turn (median of {ROUNDS}: {each}; "
-                  f"goal {goal}x) = {sorted(ratios)[ROUNDS // 2]:.1f}x")
+                  f"goal {goal}x; ms a sample, ours/theirs: {ms}) = {sorted(ratios)[ROUNDS // 2]:.1f}x")
 
 
 def warmed_loader(torch, ds, collate):

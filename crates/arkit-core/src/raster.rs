@@ -725,6 +725,11 @@ pub fn rasterize_triangle(
     }
 }
 
+/// Every vertex snapped to the fixed-point grid, `None` where it cannot be drawn.
+fn fixed_vertices(vertices: &[ScreenVertex]) -> Vec<Option<FixedVertex>> {
+    vertices.iter().map(|&p| FixedVertex::new(p)).collect()
+}
+
 /// The triangles of `triangles` that can be drawn in a `width x height` viewport with
 /// `culling`, in order, with their index: each vertex snapped and checked once (not once
 /// per triangle using it), then each triangle's setup. The indices must have been
@@ -736,7 +741,7 @@ fn drawable<'t>(
     height: u32,
     culling: Culling,
 ) -> impl Iterator<Item = (u32, TriangleSetup)> + use<'t> {
-    let fixed: Vec<Option<FixedVertex>> = vertices.iter().map(|&p| FixedVertex::new(p)).collect();
+    let fixed = fixed_vertices(vertices);
     triangles.iter().enumerate().filter_map(move |(ti, t)| {
         let [a, b, c] = t.map(|v| fixed[v as usize]);
         let setup = TriangleSetup::from_fixed([a?, b?, c?], width, height, culling)?;
@@ -879,10 +884,22 @@ impl VisibilityBuffer {
             return Ok(());
         }
         let width = self.width as usize;
-        let drawn = drawable(vertices, triangles, self.width, self.height, self.culling);
-        for (ti, setup) in drawn {
-            let n = self.triangle.len();
-            let (depth, triangle) = (&mut self.inv_w[..n], &mut self.triangle[..n]);
+        let n = self.triangle.len();
+        let (depth, triangle) = (&mut self.inv_w[..n], &mut self.triangle[..n]);
+        // A plain loop over the triangles, each set up where it is drawn: through an
+        // iterator of setups, each came back from a call of its own, by a copy.
+        let fixed = fixed_vertices(vertices);
+        for (ti, t) in triangles.iter().enumerate() {
+            let [a, b, c] = t.map(|v| fixed[v as usize]);
+            let (Some(a), Some(b), Some(c)) = (a, b, c) else {
+                continue;
+            };
+            let Some(setup) =
+                TriangleSetup::from_fixed([a, b, c], self.width, self.height, self.culling)
+            else {
+                continue;
+            };
+            let ti = ti as u32;
             setup.for_each_nearer_key(depth, width, |idx| triangle[idx] = ti);
         }
         Ok(())
