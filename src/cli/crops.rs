@@ -10,16 +10,19 @@ use std::process::ExitCode;
 /// Store every sample's crop pixels and mesh once, for the Python loader.
 ///
 /// `arkit_tool.ARKitFaceDataset` otherwise decodes each sample's full-resolution JPEG
-/// and reads its `_info.npz` in every epoch. With a store it reads one fixed-size record
-/// per sample instead: the mesh, the evaluation crop's box, and the crop pixels of a
-/// window around that box, margin S/8 + 2 pixels on each side, wide enough for the
-/// training jitter (centre +/- 0.15 of the face's size, scale 0.95-1.05).
+/// and reads its `_info.npz` in every epoch. With a store it reads one record per
+/// sample instead: the mesh, the evaluation crop's box, and the crop pixels of a window
+/// around that box, margin S/8 + 2 pixels on each side, wide enough for the training
+/// jitter (centre +/- 0.15 of the face's size, scale 0.95-1.05). It decodes only what
+/// the crop needs: the window's centre in evaluation, the parts a jittered box reaches
+/// in training.
 ///
 /// In evaluation the loader's crops from the store are bit for bit those it cuts from
 /// the JPEG; in training the jittered crop is resampled from the window (a second
 /// bilinear pass, slightly smoother; the mask, points and correspondences are the
-/// same). One store serves one rule set (--compat) and one crop side (--size):
-/// 188.8 KiB per sample for 192 pixels and 1,220 vertices.
+/// same). One store serves one rule set (--compat) and one crop side (--size): about
+/// 45 KiB per sample for 192 pixels and 1,220 vertices with the default codec, about
+/// the size of the release's JPEGs (188.8 KiB raw).
 ///
 /// A sample whose image or annotation cannot be read is stored without pixels and
 /// listed with the reason in crops.json (the loader raises that reason for it); the
@@ -52,9 +55,11 @@ pub struct CropsArgs {
     #[arg(long, value_enum, default_value = "exact")]
     compat: CompatArg,
     /// How the windows are stored, all lossless: `pred-zstd` (the default: each pixel
-    /// predicted from its neighbours, the errors compressed by zstd; about a fifth of
-    /// the raw bytes), `png` (a quarter, decoded faster) or `raw` (the bytes as they
-    /// are: no decoding, about four times the disk).
+    /// predicted from its neighbours, the errors compressed by zstd, the window's centre
+    /// and the four parts of the ring around it apart so that a crop decodes only what
+    /// it reaches; about a fifth of the raw bytes), `png` (a quarter, slower to read) or
+    /// `raw` (the bytes as they are: no decoding, about four times the disk, the
+    /// fastest).
     #[arg(long, value_enum, default_value = "pred-zstd")]
     codec: CodecArg,
     /// The release's resource folder (real topology); the built-in face without it.
