@@ -1176,9 +1176,9 @@ fn decode_pred_zstd(bytes: &[u8], size: u32, part: WindowPart) -> Result<Vec<u8>
             continue;
         }
         let errors = frame(i)?;
-        let io = if (2..4).contains(&i) {
+        if (2..4).contains(&i) {
             // A strip, stored transposed: its row `y` is the window's column `r.x + y`.
-            RectIo {
+            let io = RectIo {
                 src: errors.as_ptr(),
                 src_row: 3 * r.height,
                 // SAFETY: the part's first pixel is inside the window.
@@ -1187,21 +1187,14 @@ fn decode_pred_zstd(bytes: &[u8], size: u32, part: WindowPart) -> Result<Vec<u8>
                 dst_col: 3 * side,
                 width: r.height,
                 height: r.width,
-            }
+            };
+            // SAFETY: the strip's pixels are inside the window, its errors another
+            // buffer.
+            unsafe { unpredict_io(io) };
         } else {
-            RectIo {
-                src: errors.as_ptr(),
-                src_row: 3 * r.width,
-                // SAFETY: as above.
-                dst: unsafe { out.add(3 * (r.y * side + r.x)) },
-                dst_row: 3 * side,
-                dst_col: 3,
-                width: r.width,
-                height: r.height,
-            }
-        };
-        // SAFETY: the part's pixels are inside the window, its errors another buffer.
-        unsafe { unpredict_io(io) };
+            // SAFETY: as above.
+            unsafe { unpredict_rect_raw(&errors, *r, out, side) };
+        }
     }
     // SAFETY: the parts cover the window, each of its bytes written above.
     unsafe { window.set_len(n) };
@@ -2220,6 +2213,11 @@ mod tests {
         }
     }
 
+    /// The record of row `row` of shard `shard` of `store`, its window decoded whole.
+    fn whole(store: &CropStore, shard: usize, row: usize, key: &str) -> Result<StoredCrop> {
+        store.read(shard, row, key)?.decode(WindowPart::Whole)
+    }
+
     fn crop() -> StoredCrop {
         let w = window_side(16);
         StoredCrop {
@@ -2288,18 +2286,8 @@ mod tests {
                 assert_eq!(bytes.len() as u64, raw_record_bytes(16, mesh, m.key_bytes));
             }
             let store = store_of(dir.path(), &m, records);
-            assert_eq!(
-                store
-                    .read(0, 5, "s/a/5")
-                    .and_then(|r| r.decode(WindowPart::Whole))
-                    .unwrap(),
-                crop
-            );
-            let e = store
-                .read(0, 2, "s/a/2")
-                .and_then(|r| r.decode(WindowPart::Whole))
-                .unwrap_err()
-                .to_string();
+            assert_eq!(whole(&store, 0, 5, "s/a/5").unwrap(), crop);
+            let e = whole(&store, 0, 2, "s/a/2").unwrap_err().to_string();
             assert!(e.contains("part-0.bin") && e.contains("no pixels"), "{e}");
             // One byte of the window flipped: refused by the CRC before it is decoded,
             // naming the file.
@@ -2310,10 +2298,7 @@ mod tests {
             assert!(in_window + encode_mesh(&crop.verts).len() < (at + len) as usize);
             all[in_window] ^= 1;
             std::fs::write(&path, &all).unwrap();
-            let e = store_of_file(&store, &path)
-                .read(0, 5, "s/a/5")
-                .and_then(|r| r.decode(WindowPart::Whole))
-                .unwrap_err();
+            let e = whole(&store_of_file(&store, &path), 0, 5, "s/a/5").unwrap_err();
             assert!(
                 e.to_string().contains("part-0.bin") && e.to_string().contains("CRC"),
                 "{e}"
@@ -2351,11 +2336,7 @@ mod tests {
         let (m, crop) = (manifest(), crop());
         let store = store_of(dir.path(), &m, six(&m, &crop));
         // Asked as another sample: the key differs.
-        let e = store
-            .read(0, 5, "s/a/6")
-            .and_then(|r| r.decode(WindowPart::Whole))
-            .unwrap_err()
-            .to_string();
+        let e = whole(&store, 0, 5, "s/a/6").unwrap_err().to_string();
         assert!(
             e.contains("part-0.bin")
                 && e.contains("should be sample s/a/6, but it holds sample s/a/5"),
@@ -2366,19 +2347,9 @@ mod tests {
         let mut records = six(&m, &crop);
         records[3] = records[5].clone();
         let store = store_of(dir.path(), &m, records);
-        let e = store
-            .read(0, 3, "s/a/3")
-            .and_then(|r| r.decode(WindowPart::Whole))
-            .unwrap_err()
-            .to_string();
+        let e = whole(&store, 0, 3, "s/a/3").unwrap_err().to_string();
         assert!(e.contains("holds sample s/a/5 (row 5 of shard 0)"), "{e}");
-        assert_eq!(
-            store
-                .read(0, 5, "s/a/5")
-                .and_then(|r| r.decode(WindowPart::Whole))
-                .unwrap(),
-            crop
-        );
+        assert_eq!(whole(&store, 0, 5, "s/a/5").unwrap(), crop);
         // Another shard's or another dataset's record of the same row and key.
         for (shard, fingerprint, says) in [
             (1, "ab".repeat(32), "row 5 of shard 1)"),
@@ -2395,11 +2366,7 @@ mod tests {
             let mut records = six(&m, &crop);
             records[5] = encode_record(&other, shard, 5, "s/a/5", Some(&crop)).unwrap();
             let store = store_of(dir.path(), &m, records);
-            let e = store
-                .read(0, 5, "s/a/5")
-                .and_then(|r| r.decode(WindowPart::Whole))
-                .unwrap_err()
-                .to_string();
+            let e = whole(&store, 0, 5, "s/a/5").unwrap_err().to_string();
             assert!(e.contains("part-0.bin") && e.contains(says), "{e}");
         }
         // A key longer than the key field is refused when written, never cut.
@@ -2500,9 +2467,7 @@ mod tests {
             r[at_lens + 4..at_lens + 8].copy_from_slice(&n.to_le_bytes());
             let crc = crc32fast::hash(&r[4..]);
             r[..4].copy_from_slice(&crc.to_le_bytes());
-            store_of(dir.path(), &m, records)
-                .read(0, 5, "s/a/5")
-                .and_then(|r| r.decode(WindowPart::Whole))
+            whole(&store_of(dir.path(), &m, records), 0, 5, "s/a/5")
         };
         let good = encode_mesh(&crop.verts);
         assert_eq!(forged(&good, None).unwrap(), crop);
