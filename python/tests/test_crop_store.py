@@ -13,7 +13,7 @@ from arkit_tool import ARKitFaceDataset, DataError
 
 from conftest import BIN, make_dataset, run
 
-HEADER = 128  # bytes of a part-K.bin header (crop store format 5)
+HEADER = 128  # bytes of a part-K.bin header (crop store format 6)
 FOOTER = 16  # bytes of its footer, after the record index
 
 
