@@ -293,9 +293,10 @@ impl PixelRect {
 /// The parts of the window of crop side `size` that a [`WindowCodec::PredZstd`] window
 /// stores: the evaluation crop (the window's centre `S x S`) first, then the ring of
 /// margin `m` around it, as the band above (`W x m`), the strips left and right of the
-/// centre (`m x S` each) and the band below (`W x m`). The centre is one zstd frame and
-/// the ring another, so an evaluation item decodes the centre alone (`S^2` of the
-/// window's `W^2` pixels: 62% at `S = 192`). Each part is predicted as an image of its
+/// centre (`m x S` each) and the band below (`W x m`). Each part is a zstd frame of its
+/// own, so an evaluation item decodes the centre alone (`S^2` of the window's `W^2`
+/// pixels: 62% at `S = 192`) and a training crop the centre and the parts it reaches
+/// ([`WindowPart::Region`]). Each part is predicted as an image of its
 /// own ([`predict_rect`]), the strips transposed (`S` wide and `m` tall, [`transposed`]):
 /// upright, a strip is so narrow that the decoder's rows would spend half their steps
 /// at its edges (1.6 against 0.9 ns a pixel). The parts cover the window, each pixel
@@ -1029,7 +1030,8 @@ pub enum WindowPart {
 }
 
 /// The pixels `bytes` (stored by `codec`) hold of the window of crop side `size`: the
-/// `W x W x 3` window or its centre's `S x S x 3` bytes, as `part` asks. Bounded: the
+/// `W x W x 3` window (for a region, with the parts it does not meet zero where the
+/// codec stores parts) or its centre's `S x S x 3` bytes, as `part` asks. Bounded: the
 /// output is allocated from `size` (the store's, checked against its manifest), never
 /// from a size read from `bytes`; a zstd frame that gives more or fewer bytes than its
 /// part has is refused, and a PNG whose header is not `W x W` 8-bit RGB is refused
@@ -1096,8 +1098,9 @@ fn window_centre(window: &[u8], size: u32) -> Vec<u8> {
     out
 }
 
-/// [`decode_window`] of a [`WindowCodec::PredZstd`] window: the centre's frame, then,
-/// for the whole window, the ring's.
+/// [`decode_window`] of a [`WindowCodec::PredZstd`] window: the centre's frame, then
+/// the frames of the ring's parts `part` asks for (all for the whole window, those
+/// meeting a region's rectangle, none for the centre).
 fn decode_pred_zstd(bytes: &[u8], size: u32, part: WindowPart) -> Result<Vec<u8>> {
     let bad = |e: String| Error::invalid("crop store", format!("its zstd window: {e}"));
     let parts = window_parts(size);
