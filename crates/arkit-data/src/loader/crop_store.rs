@@ -297,7 +297,7 @@ impl PixelRect {
 /// own, so an evaluation item decodes the centre alone (`S^2` of the window's `W^2`
 /// pixels: 62% at `S = 192`) and a training crop the centre and the parts it reaches
 /// ([`WindowPart::Region`]). Each part is predicted as an image of its
-/// own ([`predict_rect`]), the strips transposed (`S` wide and `m` tall, [`transposed`]):
+/// own ([`predict_rect`]), the strips transposed (`S` wide and `m` tall):
 /// upright, a strip is so narrow that the decoder's rows would spend half their steps
 /// at its edges (1.6 against 0.9 ns a pixel). The parts cover the window, each pixel
 /// once (tested).
@@ -567,7 +567,7 @@ unsafe fn unpredict_rows_vex(io: RectIo) {
     unsafe { unpredict_rows_sse2::<true>(io) }
 }
 
-/// [`unpredict_window_in_place`] in SSE2: a pixel's planes (green, red less green, blue
+/// [`unpredict_io`] in SSE2: a pixel's planes (green, red less green, blue
 /// less green) in the first three `i16` lanes of a register, [`med`] lane by lane, and
 /// rows decoded [`WAVEFRONT`] at a time, row `k` of a group at column `t - k` in step
 /// `t`, so that every pixel's left, above and above-left neighbours are decoded before
