@@ -730,23 +730,29 @@ fn fixed_vertices(vertices: &[ScreenVertex]) -> Vec<Option<FixedVertex>> {
     vertices.iter().map(|&p| FixedVertex::new(p)).collect()
 }
 
-/// The triangles of `triangles` that can be drawn in a `width x height` viewport with
-/// `culling`, in order, with their index: each vertex snapped and checked once (not once
-/// per triangle using it), then each triangle's setup. The indices must have been
-/// checked ([`check_indices`]).
-fn drawable<'t>(
+/// Calls `draw(index, setup)` for each triangle of `triangles` that can be drawn in a
+/// `width x height` viewport with `culling`, in order: each vertex snapped and checked
+/// once (not once per triangle using it), then each triangle set up where it is drawn.
+/// A plain loop, inlined into its callers: through an iterator of setups, each came
+/// back from a call of its own, by a copy. The indices must have been checked
+/// ([`check_indices`]).
+#[inline(always)]
+fn for_each_drawable(
     vertices: &[ScreenVertex],
-    triangles: &'t [[u32; 3]],
+    triangles: &[[u32; 3]],
     width: u32,
     height: u32,
     culling: Culling,
-) -> impl Iterator<Item = (u32, TriangleSetup)> + use<'t> {
+    mut draw: impl FnMut(u32, TriangleSetup),
+) {
     let fixed = fixed_vertices(vertices);
-    triangles.iter().enumerate().filter_map(move |(ti, t)| {
-        let [a, b, c] = t.map(|v| fixed[v as usize]);
-        let setup = TriangleSetup::from_fixed([a?, b?, c?], width, height, culling)?;
-        Some((ti as u32, setup))
-    })
+    for (ti, t) in triangles.iter().enumerate() {
+        if let [Some(a), Some(b), Some(c)] = t.map(|v| fixed[v as usize])
+            && let Some(setup) = TriangleSetup::from_fixed([a, b, c], width, height, culling)
+        {
+            draw(ti as u32, setup);
+        }
+    }
 }
 
 /// The first triangle that refers to a vertex `>= vertex_count`, as an error.
@@ -886,22 +892,10 @@ impl VisibilityBuffer {
         let width = self.width as usize;
         let n = self.triangle.len();
         let (depth, triangle) = (&mut self.inv_w[..n], &mut self.triangle[..n]);
-        // A plain loop over the triangles, each set up where it is drawn: through an
-        // iterator of setups, each came back from a call of its own, by a copy.
-        let fixed = fixed_vertices(vertices);
-        for (ti, t) in triangles.iter().enumerate() {
-            let [a, b, c] = t.map(|v| fixed[v as usize]);
-            let (Some(a), Some(b), Some(c)) = (a, b, c) else {
-                continue;
-            };
-            let Some(setup) =
-                TriangleSetup::from_fixed([a, b, c], self.width, self.height, self.culling)
-            else {
-                continue;
-            };
-            let ti = ti as u32;
+        let (w, h, culling) = (self.width, self.height, self.culling);
+        for_each_drawable(vertices, triangles, w, h, culling, |ti, setup| {
             setup.for_each_nearer_key(depth, width, |idx| triangle[idx] = ti);
-        }
+        });
         Ok(())
     }
 
@@ -967,22 +961,22 @@ impl VisibilityBuffer {
             return Ok(());
         }
         let width = self.width as usize;
-        let drawn = drawable(vertices, triangles, self.width, self.height, self.culling);
-        for (ti, setup) in drawn {
-            // All three cut to the same length, so that the depth test's bounds check
-            // covers the two stores (LLVM drops theirs).
-            let n = self.triangle.len();
-            let (depth, triangle, bary) = (
-                &mut self.inv_w[..n],
-                &mut self.triangle[..n],
-                &mut self.bary[..n],
-            );
+        // All three cut to the same length, so that the depth test's bounds check
+        // covers the two stores (LLVM drops theirs).
+        let n = self.triangle.len();
+        let (depth, triangle, bary) = (
+            &mut self.inv_w[..n],
+            &mut self.triangle[..n],
+            &mut self.bary[..n],
+        );
+        let (w, h, culling) = (self.width, self.height, self.culling);
+        for_each_drawable(vertices, triangles, w, h, culling, |ti, setup| {
             setup.for_each_nearer(depth, width, |idx, f| {
                 triangle[idx] = ti;
                 bary[idx] = f.bary;
                 on_visible(idx, ti, &f);
             });
-        }
+        });
         Ok(())
     }
 }
