@@ -1412,7 +1412,7 @@ impl StoredCrop {
         if *crop == self.eval_crop {
             return Ok(self.centre());
         }
-        let in_window = crop.in_window(&self.eval_crop, self.first());
+        let in_window = crop.in_window(&self.eval_crop, window_first(self.eval_crop.size));
         let decoded = match self.part {
             WindowPart::Whole => true,
             WindowPart::Centre => false,
@@ -1430,12 +1430,12 @@ impl StoredCrop {
         }
         Ok(in_window.crop_window(&self.window, 0, crop.size as usize))
     }
+}
 
-    /// The window's first pixel in the evaluation crop's pixel grid, along each axis:
-    /// `-m`.
-    fn first(&self) -> i64 {
-        -(margin(self.eval_crop.size) as i64)
-    }
+/// The first pixel of the window of crop side `size` in the evaluation crop's pixel
+/// grid, along each axis: `-m`.
+fn window_first(size: u32) -> i64 {
+    -(margin(size) as i64)
 }
 
 /// The pixels of a `side x side` window that the crop `in_window` (in the window's pixel
@@ -1518,9 +1518,9 @@ impl StoredRecord {
     /// evaluation crop, else the parts of the window the crop reaches
     /// ([`WindowPart::Region`]).
     pub fn crop_pixels(&self, crop: &CropTransform) -> Result<Vec<u8>> {
+        let first = window_first(self.eval_crop.size);
         if let StoredWindow::Raw(window) = &self.window {
             // Raw pixels are resampled where they were read.
-            let first = -(margin(self.eval_crop.size) as i64);
             return Ok(if *crop == self.eval_crop {
                 window_centre(window.as_raw(), self.eval_crop.size)
             } else {
@@ -1531,7 +1531,6 @@ impl StoredRecord {
         let part = if *crop == self.eval_crop {
             WindowPart::Centre
         } else {
-            let first = -(margin(self.eval_crop.size) as i64);
             let side = window_side(self.eval_crop.size) as u32;
             let reach = reach_in_window(&crop.in_window(&self.eval_crop, first), side);
             WindowPart::Region(reach.unwrap_or(PixelRect {
