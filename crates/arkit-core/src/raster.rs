@@ -1037,9 +1037,12 @@ unsafe fn visibility_avx512(
 ) {
     let row = width as usize;
     for_each_drawable(vertices, triangles, width, height, culling, |ti, setup| {
-        if setup.small && setup.x1 - setup.x0 < 8 {
+        if setup.small && setup.x1 - setup.x0 < 4 {
             // SAFETY: this function's caller promised the features.
-            unsafe { nearer_rows_avx512(&setup, depth, triangle, row, ti) }
+            unsafe { nearer_rows_avx512::<2>(&setup, depth, triangle, row, ti) }
+        } else if setup.small && setup.x1 - setup.x0 < 8 {
+            // SAFETY: as above.
+            unsafe { nearer_rows_avx512::<1>(&setup, depth, triangle, row, ti) }
         } else {
             setup.for_each_nearer_key(depth, row, |idx| triangle[idx] = ti);
         }
@@ -1047,21 +1050,22 @@ unsafe fn visibility_avx512(
 }
 
 /// [`TriangleSetup::for_each_nearer_key`] storing `id` into `triangle` where a pixel
-/// passes, for a `small` triangle whose box is at most eight pixels wide, a row of the
-/// box at a time: the row's edge values as `i32` in eight lanes (exact, as in
-/// [`BoxCoverage`]: the box widened to eight pixels stays within its bound), the
-/// coverage from their biased signs, the depth keys in `f64` lanes with the scalar
-/// key's operations in its order (so the same bits), and the test and both stores
-/// masked to the covered pixels. A triangle covers each pixel once, so taking its
-/// pixels in another order leaves the same buffer (tested against the pixel walk).
-/// Rows without a covered pixel are skipped; no branch depends on a single pixel.
+/// passes, for a `small` triangle whose box is at most eight pixels wide (`ROWS` 1) or
+/// at most four (`ROWS` 2), `ROWS` rows of the box at a time in eight lanes: the edge
+/// values as `i32` (exact, as in [`BoxCoverage`]: the box widened to eight pixels, or
+/// by a row, stays within its bound), the coverage from their biased signs, the depth
+/// keys in `f64` lanes with the scalar key's operations in its order (so the same
+/// bits), and the test and both stores masked to the covered pixels. A triangle covers
+/// each pixel once, so taking its pixels in another order leaves the same buffer
+/// (tested against the pixel walk). Steps without a covered pixel are skipped; no
+/// branch depends on a single pixel.
 ///
 /// # Safety
 /// The CPU has AVX-512 F, VL and DQ.
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx512f,avx512vl,avx512dq")]
 #[inline]
-unsafe fn nearer_rows_avx512(
+unsafe fn nearer_rows_avx512<const ROWS: usize>(
     t: &TriangleSetup,
     depth: &mut [f32],
     triangle: &mut [u32],
@@ -1069,29 +1073,51 @@ unsafe fn nearer_rows_avx512(
     id: u32,
 ) {
     use std::arch::x86_64::*;
-    debug_assert!(t.small && t.x1 - t.x0 < 8);
+    debug_assert!(t.small && ((t.x1 - t.x0) as usize) < 8 / ROWS && (ROWS == 1 || ROWS == 2));
     let (x0, y0, y1) = (t.x0 as usize, t.y0 as usize, t.y1 as usize);
     // The box is inside the viewport (the setup clipped it), so its last pixel is in
     // both buffers: checked once, as the pixel walk's indexing checks each pixel.
     let last = y1 * width + t.x1 as usize;
     assert!(
-        t.x1 as usize <= width && last < depth.len() && last < triangle.len(),
+        (t.x1 as usize) < width && last < depth.len() && last < triangle.len(),
         "a triangle's box outside the buffer"
     );
-    let columns = _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7);
+    // Lane `l`: column `l % (8 / ROWS)` of row `l / (8 / ROWS)`.
+    let (columns, rows) = if ROWS == 2 {
+        (
+            _mm256_setr_epi32(0, 1, 2, 3, 0, 1, 2, 3),
+            _mm256_setr_epi32(0, 0, 0, 0, 1, 1, 1, 1),
+        )
+    } else {
+        (
+            _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7),
+            _mm256_setzero_si256(),
+        )
+    };
     let mut e = [0, 1, 2].map(|k| {
         let along = _mm256_mullo_epi32(columns, _mm256_set1_epi32(t.dx[k] as i32));
-        _mm256_add_epi32(_mm256_set1_epi32(t.e0[k] as i32), along)
+        let below = _mm256_mullo_epi32(rows, _mm256_set1_epi32(t.dy[k] as i32));
+        _mm256_add_epi32(
+            _mm256_set1_epi32(t.e0[k] as i32),
+            _mm256_add_epi32(along, below),
+        )
     });
-    let down = t.dy.map(|d| _mm256_set1_epi32(d as i32));
+    let down = t.dy.map(|d| _mm256_set1_epi32(ROWS as i32 * d as i32));
     let bias = t.bias.map(|b| _mm256_set1_epi32(b as i32));
     // As in `walk_nearer`: each vertex's `1 / w` over twice the area, in f64.
     let inv_area = 1.0 / t.area2 as f64;
     let w = t.inv_w.map(|v| _mm512_set1_pd(v as f64 * inv_area));
-    let in_box = ((1u32 << (t.x1 - t.x0 + 1)) - 1) as __mmask8;
+    let row_box = ((1u32 << (t.x1 - t.x0 + 1)) - 1) as __mmask8;
     let id = _mm256_set1_epi32(id as i32);
     let zero = _mm256_setzero_si256();
-    for y in y0..=y1 {
+    let mut y = y0;
+    while y <= y1 {
+        // With two rows, the second is in the box unless `y` is the last.
+        let in_box = if ROWS == 2 && y < y1 {
+            row_box | row_box << 4
+        } else {
+            row_box
+        };
         let any = _mm256_or_si256(
             _mm256_or_si256(
                 _mm256_add_epi32(e[0], bias[0]),
@@ -1105,18 +1131,39 @@ unsafe fn nearer_rows_avx512(
             let key = _mm512_cvtpd_ps(_mm512_add_pd(_mm512_add_pd(term(0), term(1)), term(2)));
             let at = y * width + x0;
             // SAFETY: the masked loads and stores touch only covered pixels, columns
-            // `x0..=x1` of row `y` of the box, inside both buffers (checked above);
-            // masked-off lanes are never accessed.
+            // `x0..=x1` of rows `y` and (with two rows, when it is in the box) `y + 1`,
+            // inside both buffers (checked above); masked-off lanes are never accessed.
             unsafe {
-                let old = _mm256_maskz_loadu_ps(inside, depth.as_ptr().add(at));
-                let nearer = _mm256_mask_cmp_ps_mask::<_CMP_GT_OQ>(inside, key, old);
-                _mm256_mask_storeu_ps(depth.as_mut_ptr().add(at), nearer, key);
-                _mm256_mask_storeu_epi32(triangle.as_mut_ptr().add(at).cast(), nearer, id);
+                let depth = depth.as_mut_ptr();
+                let triangle = triangle.as_mut_ptr().cast::<i32>();
+                if ROWS == 2 {
+                    // Row `y + 1`'s pixels (row `y`'s when there is none: no lane of
+                    // it is live, and the pointer stays inside the buffers).
+                    let below = if y < y1 { at + width } else { at };
+                    let (lo, hi) = (inside & 0xf, inside >> 4);
+                    let old = _mm256_set_m128(
+                        _mm_maskz_loadu_ps(hi, depth.add(below)),
+                        _mm_maskz_loadu_ps(lo, depth.add(at)),
+                    );
+                    let nearer = _mm256_mask_cmp_ps_mask::<_CMP_GT_OQ>(inside, key, old);
+                    let (lo, hi) = (nearer & 0xf, nearer >> 4);
+                    _mm_mask_storeu_ps(depth.add(at), lo, _mm256_castps256_ps128(key));
+                    _mm_mask_storeu_ps(depth.add(below), hi, _mm256_extractf128_ps::<1>(key));
+                    let id4 = _mm256_castsi256_si128(id);
+                    _mm_mask_storeu_epi32(triangle.add(at), lo, id4);
+                    _mm_mask_storeu_epi32(triangle.add(below), hi, id4);
+                } else {
+                    let old = _mm256_maskz_loadu_ps(inside, depth.add(at));
+                    let nearer = _mm256_mask_cmp_ps_mask::<_CMP_GT_OQ>(inside, key, old);
+                    _mm256_mask_storeu_ps(depth.add(at), nearer, key);
+                    _mm256_mask_storeu_epi32(triangle.add(at), nearer, id);
+                }
             }
         }
         for k in 0..3 {
             e[k] = _mm256_add_epi32(e[k], down[k]);
         }
+        y += ROWS;
     }
 }
 
