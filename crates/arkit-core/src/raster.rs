@@ -1013,15 +1013,20 @@ enum VisibilityLanes {
     /// (Chosen by the tests; the library asks for the widest.)
     #[cfg_attr(not(test), allow(dead_code))]
     Scalar,
-    /// On CPUs with AVX-512 (F, VL, DQ), a row of a box up to eight pixels wide at a
-    /// time ([`nearer_rows_avx512`]); one pixel at a time elsewhere.
+    /// On CPUs with AVX-512 (F, VL, DQ), a small triangle's box up to sixteen pixels
+    /// wide a row or two at a time ([`visibility_avx512`]); one pixel at a time
+    /// elsewhere.
     Widest,
 }
 
 /// [`VisibilityBuffer::rasterize_visibility`]'s triangle loop in AVX-512: a `small`
-/// triangle whose box is at most eight pixels wide (96% of a 192x192 face crop's) takes
-/// its rows whole ([`nearer_rows_avx512`]), any other one the pixel walk. `depth` and
-/// `triangle` are the buffer's, `size.0 * size.1` long.
+/// triangle takes its box's rows whole, two at a time in eight lanes up to four pixels
+/// wide ([`nearer_row_pairs_avx512`]: three quarters of a 192x192 face crop's
+/// triangles), two at a time in sixteen lanes up to eight, one at a time up to sixteen
+/// ([`nearer_rows16_avx512`]); any other triangle takes the pixel walk. `depth` and
+/// `triangle` are the buffer's, `size.0 * size.1` long. (Eight lanes of one row for
+/// boxes up to eight wide ran at 0.459-0.465 ms an evaluation item; two rows for
+/// boxes up to four, 0.444-0.446; sixteen lanes for the wider ones, 0.427-0.433.)
 ///
 /// # Safety
 /// The CPU has AVX-512 F, VL and DQ.
@@ -1039,10 +1044,13 @@ unsafe fn visibility_avx512(
     for_each_drawable(vertices, triangles, width, height, culling, |ti, setup| {
         if setup.small && setup.x1 - setup.x0 < 4 {
             // SAFETY: this function's caller promised the features.
-            unsafe { nearer_rows_avx512::<2>(&setup, depth, triangle, row, ti) }
+            unsafe { nearer_row_pairs_avx512(&setup, depth, triangle, row, ti) }
         } else if setup.small && setup.x1 - setup.x0 < 8 {
             // SAFETY: as above.
-            unsafe { nearer_rows_avx512::<1>(&setup, depth, triangle, row, ti) }
+            unsafe { nearer_rows16_avx512::<2>(&setup, depth, triangle, row, ti) }
+        } else if setup.small && setup.x1 - setup.x0 < 16 {
+            // SAFETY: as above.
+            unsafe { nearer_rows16_avx512::<1>(&setup, depth, triangle, row, ti) }
         } else {
             setup.for_each_nearer_key(depth, row, |idx| triangle[idx] = ti);
         }
@@ -1050,22 +1058,22 @@ unsafe fn visibility_avx512(
 }
 
 /// [`TriangleSetup::for_each_nearer_key`] storing `id` into `triangle` where a pixel
-/// passes, for a `small` triangle whose box is at most eight pixels wide (`ROWS` 1) or
-/// at most four (`ROWS` 2), `ROWS` rows of the box at a time in eight lanes: the edge
-/// values as `i32` (exact, as in [`BoxCoverage`]: the box widened to eight pixels, or
-/// by a row, stays within its bound), the coverage from their biased signs, the depth
-/// keys in `f64` lanes with the scalar key's operations in its order (so the same
-/// bits), and the test and both stores masked to the covered pixels. A triangle covers
-/// each pixel once, so taking its pixels in another order leaves the same buffer
-/// (tested against the pixel walk). Steps without a covered pixel are skipped; no
-/// branch depends on a single pixel.
+/// passes, for a `small` triangle whose box is at most four pixels wide: two rows of
+/// the box at a time in eight lanes (four columns of each). The row pair's edge values
+/// as `i32` (exact, as in [`BoxCoverage`]: the box widened to eight pixels, or by a
+/// row, stays within its bound), the coverage from their biased signs, the depth keys
+/// in `f64` lanes with the scalar key's operations in its order (so the same bits),
+/// and the test and both stores masked to the covered pixels. A triangle covers each
+/// pixel once, so taking its pixels in another order leaves the same buffer (tested
+/// against the pixel walk). Row pairs without a covered pixel are skipped; no branch
+/// depends on a single pixel. Wider boxes: [`nearer_rows16_avx512`].
 ///
 /// # Safety
 /// The CPU has AVX-512 F, VL and DQ.
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx512f,avx512vl,avx512dq")]
 #[inline]
-unsafe fn nearer_rows_avx512<const ROWS: usize>(
+unsafe fn nearer_row_pairs_avx512(
     t: &TriangleSetup,
     depth: &mut [f32],
     triangle: &mut [u32],
@@ -1073,7 +1081,7 @@ unsafe fn nearer_rows_avx512<const ROWS: usize>(
     id: u32,
 ) {
     use std::arch::x86_64::*;
-    debug_assert!(t.small && ((t.x1 - t.x0) as usize) < 8 / ROWS && (ROWS == 1 || ROWS == 2));
+    debug_assert!(t.small && t.x1 - t.x0 < 4);
     let (x0, y0, y1) = (t.x0 as usize, t.y0 as usize, t.y1 as usize);
     // The box is inside the viewport (the setup clipped it), so its last pixel is in
     // both buffers: checked once, as the pixel walk's indexing checks each pixel.
@@ -1082,18 +1090,9 @@ unsafe fn nearer_rows_avx512<const ROWS: usize>(
         (t.x1 as usize) < width && last < depth.len() && last < triangle.len(),
         "a triangle's box outside the buffer"
     );
-    // Lane `l`: column `l % (8 / ROWS)` of row `l / (8 / ROWS)`.
-    let (columns, rows) = if ROWS == 2 {
-        (
-            _mm256_setr_epi32(0, 1, 2, 3, 0, 1, 2, 3),
-            _mm256_setr_epi32(0, 0, 0, 0, 1, 1, 1, 1),
-        )
-    } else {
-        (
-            _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7),
-            _mm256_setzero_si256(),
-        )
-    };
+    // Lane `l`: column `l % 4` of row `l / 4` of the pair.
+    let columns = _mm256_setr_epi32(0, 1, 2, 3, 0, 1, 2, 3);
+    let rows = _mm256_setr_epi32(0, 0, 0, 0, 1, 1, 1, 1);
     let mut e = [0, 1, 2].map(|k| {
         let along = _mm256_mullo_epi32(columns, _mm256_set1_epi32(t.dx[k] as i32));
         let below = _mm256_mullo_epi32(rows, _mm256_set1_epi32(t.dy[k] as i32));
@@ -1102,18 +1101,18 @@ unsafe fn nearer_rows_avx512<const ROWS: usize>(
             _mm256_add_epi32(along, below),
         )
     });
-    let down = t.dy.map(|d| _mm256_set1_epi32(ROWS as i32 * d as i32));
+    let down = t.dy.map(|d| _mm256_set1_epi32(2 * d as i32));
     let bias = t.bias.map(|b| _mm256_set1_epi32(b as i32));
     // As in `walk_nearer`: each vertex's `1 / w` over twice the area, in f64.
     let inv_area = 1.0 / t.area2 as f64;
     let w = t.inv_w.map(|v| _mm512_set1_pd(v as f64 * inv_area));
     let row_box = ((1u32 << (t.x1 - t.x0 + 1)) - 1) as __mmask8;
-    let id = _mm256_set1_epi32(id as i32);
+    let id = _mm_set1_epi32(id as i32);
     let zero = _mm256_setzero_si256();
     let mut y = y0;
     while y <= y1 {
-        // With two rows, the second is in the box unless `y` is the last.
-        let in_box = if ROWS == 2 && y < y1 {
+        // The pair's second row is in the box unless `y` is the last.
+        let in_box = if y < y1 {
             row_box | row_box << 4
         } else {
             row_box
@@ -1127,41 +1126,155 @@ unsafe fn nearer_rows_avx512<const ROWS: usize>(
         );
         let inside = _mm256_mask_cmpge_epi32_mask(in_box, any, zero);
         if inside != 0 {
-            let term = |k: usize| _mm512_mul_pd(_mm512_cvtepi32_pd(e[k]), w[k]);
-            let key = _mm512_cvtpd_ps(_mm512_add_pd(_mm512_add_pd(term(0), term(1)), term(2)));
+            // Written out: as a closure, this was a call of its own.
+            let term0 = _mm512_mul_pd(_mm512_cvtepi32_pd(e[0]), w[0]);
+            let term1 = _mm512_mul_pd(_mm512_cvtepi32_pd(e[1]), w[1]);
+            let term2 = _mm512_mul_pd(_mm512_cvtepi32_pd(e[2]), w[2]);
+            let key = _mm512_cvtpd_ps(_mm512_add_pd(_mm512_add_pd(term0, term1), term2));
             let at = y * width + x0;
+            // Row `y + 1`'s pixels (row `y`'s when there is none: no lane of it is
+            // live, and the pointer stays inside the buffers).
+            let below = if y < y1 { at + width } else { at };
             // SAFETY: the masked loads and stores touch only covered pixels, columns
-            // `x0..=x1` of rows `y` and (with two rows, when it is in the box) `y + 1`,
-            // inside both buffers (checked above); masked-off lanes are never accessed.
+            // `x0..=x1` of rows `y` and (when it is in the box) `y + 1`, inside both
+            // buffers (checked above); masked-off lanes are never accessed.
             unsafe {
                 let depth = depth.as_mut_ptr();
                 let triangle = triangle.as_mut_ptr().cast::<i32>();
-                if ROWS == 2 {
-                    // Row `y + 1`'s pixels (row `y`'s when there is none: no lane of
-                    // it is live, and the pointer stays inside the buffers).
-                    let below = if y < y1 { at + width } else { at };
-                    let (lo, hi) = (inside & 0xf, inside >> 4);
-                    let old = _mm256_set_m128(
-                        _mm_maskz_loadu_ps(hi, depth.add(below)),
-                        _mm_maskz_loadu_ps(lo, depth.add(at)),
-                    );
-                    let nearer = _mm256_mask_cmp_ps_mask::<_CMP_GT_OQ>(inside, key, old);
-                    let (lo, hi) = (nearer & 0xf, nearer >> 4);
-                    _mm_mask_storeu_ps(depth.add(at), lo, _mm256_castps256_ps128(key));
-                    _mm_mask_storeu_ps(depth.add(below), hi, _mm256_extractf128_ps::<1>(key));
-                    let id4 = _mm256_castsi256_si128(id);
-                    _mm_mask_storeu_epi32(triangle.add(at), lo, id4);
-                    _mm_mask_storeu_epi32(triangle.add(below), hi, id4);
-                } else {
-                    let old = _mm256_maskz_loadu_ps(inside, depth.add(at));
-                    let nearer = _mm256_mask_cmp_ps_mask::<_CMP_GT_OQ>(inside, key, old);
-                    _mm256_mask_storeu_ps(depth.add(at), nearer, key);
-                    _mm256_mask_storeu_epi32(triangle.add(at), nearer, id);
-                }
+                let (lo, hi) = (inside & 0xf, inside >> 4);
+                let old = _mm256_set_m128(
+                    _mm_maskz_loadu_ps(hi, depth.add(below)),
+                    _mm_maskz_loadu_ps(lo, depth.add(at)),
+                );
+                let nearer = _mm256_mask_cmp_ps_mask::<_CMP_GT_OQ>(inside, key, old);
+                let (lo, hi) = (nearer & 0xf, nearer >> 4);
+                _mm_mask_storeu_ps(depth.add(at), lo, _mm256_castps256_ps128(key));
+                _mm_mask_storeu_ps(depth.add(below), hi, _mm256_extractf128_ps::<1>(key));
+                _mm_mask_storeu_epi32(triangle.add(at), lo, id);
+                _mm_mask_storeu_epi32(triangle.add(below), hi, id);
             }
         }
         for k in 0..3 {
             e[k] = _mm256_add_epi32(e[k], down[k]);
+        }
+        y += 2;
+    }
+}
+
+/// [`nearer_row_pairs_avx512`] in sixteen lanes: `ROWS` rows (1 or 2) of a `small`
+/// triangle's box up to `16 / ROWS` pixels wide at a time, the depth keys in two
+/// eight-lane `f64` halves. The `i32` edge values stay exact: a box widened to sixteen
+/// pixels (or by a row) keeps each product below `(64 + 16) * 256 * 64 * 256`, the
+/// sum below `2^30`.
+///
+/// # Safety
+/// The CPU has AVX-512 F, VL and DQ.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f,avx512vl,avx512dq")]
+#[inline]
+unsafe fn nearer_rows16_avx512<const ROWS: usize>(
+    t: &TriangleSetup,
+    depth: &mut [f32],
+    triangle: &mut [u32],
+    width: usize,
+    id: u32,
+) {
+    use std::arch::x86_64::*;
+    let cols = 16 / ROWS;
+    debug_assert!(t.small && ((t.x1 - t.x0) as usize) < cols && (ROWS == 1 || ROWS == 2));
+    let (x0, y0, y1) = (t.x0 as usize, t.y0 as usize, t.y1 as usize);
+    // As in `nearer_row_pairs_avx512`.
+    let last = y1 * width + t.x1 as usize;
+    assert!(
+        (t.x1 as usize) < width && last < depth.len() && last < triangle.len(),
+        "a triangle's box outside the buffer"
+    );
+    let lane: [i32; 16] = std::array::from_fn(|l| l as i32);
+    // SAFETY: an unaligned load of sixteen i32.
+    let lane = unsafe { _mm512_loadu_si512(lane.as_ptr().cast()) };
+    let (columns, rows) = if ROWS == 2 {
+        (
+            _mm512_and_si512(lane, _mm512_set1_epi32(7)),
+            _mm512_srli_epi32::<3>(lane),
+        )
+    } else {
+        (lane, _mm512_setzero_si512())
+    };
+    let mut e = [0, 1, 2].map(|k| {
+        let along = _mm512_mullo_epi32(columns, _mm512_set1_epi32(t.dx[k] as i32));
+        let below = _mm512_mullo_epi32(rows, _mm512_set1_epi32(t.dy[k] as i32));
+        _mm512_add_epi32(
+            _mm512_set1_epi32(t.e0[k] as i32),
+            _mm512_add_epi32(along, below),
+        )
+    });
+    let down = t.dy.map(|d| _mm512_set1_epi32(ROWS as i32 * d as i32));
+    let bias = t.bias.map(|b| _mm512_set1_epi32(b as i32));
+    let inv_area = 1.0 / t.area2 as f64;
+    let w = t.inv_w.map(|v| _mm512_set1_pd(v as f64 * inv_area));
+    let row_box = ((1u32 << (t.x1 - t.x0 + 1)) - 1) as __mmask16;
+    let id = _mm512_set1_epi32(id as i32);
+    let zero = _mm512_setzero_si512();
+    let mut y = y0;
+    while y <= y1 {
+        let in_box = if ROWS == 2 && y < y1 {
+            row_box | row_box << 8
+        } else {
+            row_box
+        };
+        let any = _mm512_or_si512(
+            _mm512_or_si512(
+                _mm512_add_epi32(e[0], bias[0]),
+                _mm512_add_epi32(e[1], bias[1]),
+            ),
+            _mm512_add_epi32(e[2], bias[2]),
+        );
+        let inside = _mm512_mask_cmpge_epi32_mask(in_box, any, zero);
+        if inside != 0 {
+            let half = |lo: bool| {
+                let pick = |v: __m512i| {
+                    if lo {
+                        _mm512_castsi512_si256(v)
+                    } else {
+                        _mm512_extracti64x4_epi64::<1>(v)
+                    }
+                };
+                let term0 = _mm512_mul_pd(_mm512_cvtepi32_pd(pick(e[0])), w[0]);
+                let term1 = _mm512_mul_pd(_mm512_cvtepi32_pd(pick(e[1])), w[1]);
+                let term2 = _mm512_mul_pd(_mm512_cvtepi32_pd(pick(e[2])), w[2]);
+                _mm512_cvtpd_ps(_mm512_add_pd(_mm512_add_pd(term0, term1), term2))
+            };
+            let key = _mm512_insertf32x8::<1>(_mm512_castps256_ps512(half(true)), half(false));
+            let at = y * width + x0;
+            // SAFETY: as in `nearer_row_pairs_avx512`: only covered pixels of rows `y` and
+            // (with two rows, in the box) `y + 1` are touched, inside both buffers.
+            unsafe {
+                let depth = depth.as_mut_ptr();
+                let triangle = triangle.as_mut_ptr().cast::<i32>();
+                if ROWS == 2 {
+                    let below = if y < y1 { at + width } else { at };
+                    let (lo, hi) = (inside as __mmask8, (inside >> 8) as __mmask8);
+                    let old = _mm512_insertf32x8::<1>(
+                        _mm512_castps256_ps512(_mm256_maskz_loadu_ps(lo, depth.add(at))),
+                        _mm256_maskz_loadu_ps(hi, depth.add(below)),
+                    );
+                    let nearer = _mm512_mask_cmp_ps_mask::<_CMP_GT_OQ>(inside, key, old);
+                    let (lo, hi) = (nearer as __mmask8, (nearer >> 8) as __mmask8);
+                    _mm256_mask_storeu_ps(depth.add(at), lo, _mm512_castps512_ps256(key));
+                    _mm256_mask_storeu_ps(depth.add(below), hi, _mm512_extractf32x8_ps::<1>(key));
+                    let id8 = _mm512_castsi512_si256(id);
+                    _mm256_mask_storeu_epi32(triangle.add(at), lo, id8);
+                    _mm256_mask_storeu_epi32(triangle.add(below), hi, id8);
+                } else {
+                    let old = _mm512_maskz_loadu_ps(inside, depth.add(at));
+                    let nearer = _mm512_mask_cmp_ps_mask::<_CMP_GT_OQ>(inside, key, old);
+                    _mm512_mask_storeu_ps(depth.add(at), nearer, key);
+                    _mm512_mask_storeu_epi32(triangle.add(at), nearer, id);
+                }
+            }
+        }
+        for k in 0..3 {
+            e[k] = _mm512_add_epi32(e[k], down[k]);
         }
         y += ROWS;
     }
@@ -2187,13 +2300,13 @@ mod tests {
     #[test]
     fn visibility_lanes_give_the_pixel_walks_buffer_for_small_triangles() {
         // Crowds of small triangles (each within a few pixels of its own centre, as a
-        // face crop's are: boxes from one pixel to past eight wide, up to 30 tall),
+        // face crop's are: boxes from one pixel to past sixteen wide, up to 30 tall),
         // overlapping, of both windings, some cut by the viewport's edges, vertices at
         // fractional and pixel-centre positions (edge values exactly 0), depths drawn
         // from a few values (exact ties: the earlier triangle keeps the pixel): the
         // widest lanes give the pixel walk's triangles and depths bit for bit.
         let mut r = Rng::new(47);
-        let (mut rows, mut drawn) = (0usize, 0usize);
+        let (mut widths, mut drawn) = ([0usize; 3], 0usize);
         for case in 0..400 {
             let (w, h) = (1 + r.below(60) as u32, 1 + r.below(60) as u32);
             let snap = |v: f64| if case % 3 == 0 { v.round() + 0.5 } else { v };
@@ -2204,8 +2317,8 @@ mod tests {
                     r.uniform(-4.0, w as f64 + 4.0),
                     r.uniform(-4.0, h as f64 + 4.0),
                 );
-                let (sx, sy) = if t % 7 == 0 {
-                    (r.uniform(0.5, 9.0), r.uniform(0.5, 30.0))
+                let (sx, sy) = if t % 4 == 0 {
+                    (r.uniform(3.5, 9.0), r.uniform(0.5, 30.0))
                 } else {
                     (r.uniform(0.3, 5.0), r.uniform(0.3, 5.0))
                 };
@@ -2240,16 +2353,26 @@ mod tests {
                 assert_eq!(bits(&wide.inv_w), bits(&scalar.inv_w), "case {case}");
                 drawn += scalar.covered_pixels();
             }
-            rows += triangles
-                .iter()
-                .filter_map(|t| {
-                    TriangleSetup::new(t.map(|i| vertices[i as usize]), w, h, Culling::None)
-                })
-                .filter(|s| s.small && s.x1 - s.x0 < 8)
-                .count();
+            for t in &triangles {
+                let v = t.map(|i| vertices[i as usize]);
+                if let Some(s) = TriangleSetup::new(v, w, h, Culling::None)
+                    && s.small
+                {
+                    // Boxes up to 4, 8 and 16 pixels wide: each a path of its own.
+                    match s.x1 - s.x0 {
+                        0..4 => widths[0] += 1,
+                        4..8 => widths[1] += 1,
+                        8..16 => widths[2] += 1,
+                        _ => {}
+                    }
+                }
+            }
         }
         assert!(drawn > 50_000, "{drawn} pixels drawn");
-        assert!(rows > 10_000, "{rows} triangles for the rows' lanes");
+        assert!(
+            widths.iter().all(|&n| n > 500),
+            "{widths:?} triangles by width"
+        );
     }
 
     #[test]
