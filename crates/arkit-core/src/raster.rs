@@ -1093,19 +1093,23 @@ unsafe fn nearer_row_pairs_avx512(
     // Lane `l`: column `l % 4` of row `l / 4` of the pair.
     let columns = _mm256_setr_epi32(0, 1, 2, 3, 0, 1, 2, 3);
     let rows = _mm256_setr_epi32(0, 0, 0, 0, 1, 1, 1, 1);
-    let mut e = [0, 1, 2].map(|k| {
-        let along = _mm256_mullo_epi32(columns, _mm256_set1_epi32(t.dx[k] as i32));
-        let below = _mm256_mullo_epi32(rows, _mm256_set1_epi32(t.dy[k] as i32));
-        _mm256_add_epi32(
-            _mm256_set1_epi32(t.e0[k] as i32),
-            _mm256_add_epi32(along, below),
-        )
-    });
-    let down = t.dy.map(|d| _mm256_set1_epi32(2 * d as i32));
-    let bias = t.bias.map(|b| _mm256_set1_epi32(b as i32));
+    // Each edge's values in a plain loop (through `map`, its closure was a call of its
+    // own, outside the AVX-512 code).
+    let mut e = [_mm256_setzero_si256(); 3];
+    let (mut down, mut bias, mut w) = (e, e, [_mm512_setzero_pd(); 3]);
     // As in `walk_nearer`: each vertex's `1 / w` over twice the area, in f64.
     let inv_area = 1.0 / t.area2 as f64;
-    let w = t.inv_w.map(|v| _mm512_set1_pd(v as f64 * inv_area));
+    for k in 0..3 {
+        let along = _mm256_mullo_epi32(columns, _mm256_set1_epi32(t.dx[k] as i32));
+        let below = _mm256_mullo_epi32(rows, _mm256_set1_epi32(t.dy[k] as i32));
+        e[k] = _mm256_add_epi32(
+            _mm256_set1_epi32(t.e0[k] as i32),
+            _mm256_add_epi32(along, below),
+        );
+        down[k] = _mm256_set1_epi32(2 * t.dy[k] as i32);
+        bias[k] = _mm256_set1_epi32(t.bias[k] as i32);
+        w[k] = _mm512_set1_pd(t.inv_w[k] as f64 * inv_area);
+    }
     let row_box = ((1u32 << (t.x1 - t.x0 + 1)) - 1) as __mmask8;
     let id = _mm_set1_epi32(id as i32);
     let zero = _mm256_setzero_si256();
@@ -1200,18 +1204,21 @@ unsafe fn nearer_rows16_avx512<const ROWS: usize>(
     } else {
         (lane, _mm512_setzero_si512())
     };
-    let mut e = [0, 1, 2].map(|k| {
+    // As in `nearer_row_pairs_avx512`, in a plain loop.
+    let mut e = [_mm512_setzero_si512(); 3];
+    let (mut down, mut bias, mut w) = (e, e, [_mm512_setzero_pd(); 3]);
+    let inv_area = 1.0 / t.area2 as f64;
+    for k in 0..3 {
         let along = _mm512_mullo_epi32(columns, _mm512_set1_epi32(t.dx[k] as i32));
         let below = _mm512_mullo_epi32(rows, _mm512_set1_epi32(t.dy[k] as i32));
-        _mm512_add_epi32(
+        e[k] = _mm512_add_epi32(
             _mm512_set1_epi32(t.e0[k] as i32),
             _mm512_add_epi32(along, below),
-        )
-    });
-    let down = t.dy.map(|d| _mm512_set1_epi32(ROWS as i32 * d as i32));
-    let bias = t.bias.map(|b| _mm512_set1_epi32(b as i32));
-    let inv_area = 1.0 / t.area2 as f64;
-    let w = t.inv_w.map(|v| _mm512_set1_pd(v as f64 * inv_area));
+        );
+        down[k] = _mm512_set1_epi32(ROWS as i32 * t.dy[k] as i32);
+        bias[k] = _mm512_set1_epi32(t.bias[k] as i32);
+        w[k] = _mm512_set1_pd(t.inv_w[k] as f64 * inv_area);
+    }
     let row_box = ((1u32 << (t.x1 - t.x0 + 1)) - 1) as __mmask16;
     let id = _mm512_set1_epi32(id as i32);
     let zero = _mm512_setzero_si512();
@@ -1231,20 +1238,28 @@ unsafe fn nearer_rows16_avx512<const ROWS: usize>(
         );
         let inside = _mm512_mask_cmpge_epi32_mask(in_box, any, zero);
         if inside != 0 {
-            let half = |lo: bool| {
-                let pick = |v: __m512i| {
-                    if lo {
-                        _mm512_castsi512_si256(v)
-                    } else {
-                        _mm512_extracti64x4_epi64::<1>(v)
-                    }
-                };
-                let term0 = _mm512_mul_pd(_mm512_cvtepi32_pd(pick(e[0])), w[0]);
-                let term1 = _mm512_mul_pd(_mm512_cvtepi32_pd(pick(e[1])), w[1]);
-                let term2 = _mm512_mul_pd(_mm512_cvtepi32_pd(pick(e[2])), w[2]);
-                _mm512_cvtpd_ps(_mm512_add_pd(_mm512_add_pd(term0, term1), term2))
-            };
-            let key = _mm512_insertf32x8::<1>(_mm512_castps256_ps512(half(true)), half(false));
+            // Lanes 0-7, then 8-15, each in the scalar key's order (written out: no
+            // closure, see above).
+            let (lo, hi) = (
+                [
+                    _mm512_castsi512_si256(e[0]),
+                    _mm512_castsi512_si256(e[1]),
+                    _mm512_castsi512_si256(e[2]),
+                ],
+                [
+                    _mm512_extracti64x4_epi64::<1>(e[0]),
+                    _mm512_extracti64x4_epi64::<1>(e[1]),
+                    _mm512_extracti64x4_epi64::<1>(e[2]),
+                ],
+            );
+            let mut halves = [_mm256_setzero_ps(); 2];
+            for (half, lanes) in halves.iter_mut().zip([lo, hi]) {
+                let term0 = _mm512_mul_pd(_mm512_cvtepi32_pd(lanes[0]), w[0]);
+                let term1 = _mm512_mul_pd(_mm512_cvtepi32_pd(lanes[1]), w[1]);
+                let term2 = _mm512_mul_pd(_mm512_cvtepi32_pd(lanes[2]), w[2]);
+                *half = _mm512_cvtpd_ps(_mm512_add_pd(_mm512_add_pd(term0, term1), term2));
+            }
+            let key = _mm512_insertf32x8::<1>(_mm512_castps256_ps512(halves[0]), halves[1]);
             let at = y * width + x0;
             // SAFETY: as in `nearer_row_pairs_avx512`: only covered pixels of rows `y` and
             // (with two rows, in the box) `y + 1` are touched, inside both buffers.
