@@ -150,6 +150,7 @@ struct FixedVertex {
 impl FixedVertex {
     /// Snaps a vertex; `None` when it cannot be drawn (non-finite, outside the guard
     /// band, or behind the camera).
+    #[inline]
     fn new(p: ScreenVertex) -> Option<Self> {
         let finite = p.x.is_finite() && p.y.is_finite() && p.inv_w.is_finite();
         let in_band = p.x.abs() < GUARD_BAND && p.y.abs() < GUARD_BAND;
@@ -929,6 +930,7 @@ impl VisibilityBuffer {
     /// `vertices` and `triangles`: the same operations on the triangle recorded there,
     /// so the same bits (`inv_w` is the depth key the buffer holds). `None` where no
     /// triangle covers the pixel or `(x, y)` is outside the buffer.
+    #[inline]
     pub fn fragment_at(
         &self,
         vertices: &[ScreenVertex],
@@ -941,8 +943,10 @@ impl VisibilityBuffer {
         }
         let idx = self.index(x, y);
         let t = triangles.get(self.triangle[idx] as usize)?;
-        let v = t.map(|i| vertices.get(i as usize).and_then(|&p| FixedVertex::new(p)));
-        let [Some(a), Some(b), Some(c)] = v else {
+        // Three calls written out: through `map`, the snapping was a call of its own
+        // per pixel (a sampled point's fragment is 1,024 per item in the loader).
+        let fixed = |i: u32| vertices.get(i as usize).and_then(|&p| FixedVertex::new(p));
+        let (Some(a), Some(b), Some(c)) = (fixed(t[0]), fixed(t[1]), fixed(t[2])) else {
             return None;
         };
         let (px, py) = ([a.x, b.x, c.x], [a.y, b.y, c.y]);

@@ -1375,17 +1375,18 @@ impl FaceLoader {
             ));
         }
         let chosen = sample_points(pixels.len(), self.options.n_pts, rng.next_u64());
-        let correspondences = chosen
-            .iter()
-            .map(|&c| {
-                t.correspondence_at(pixels[c as usize]).ok_or_else(|| {
-                    Error::invalid(
-                        "crop",
-                        format!("a mask pixel of {} has no triangle", row.sample.key),
-                    )
-                })
-            })
-            .collect::<Result<Vec<_>>>()?;
+        // A plain loop: collected through `Result`, the iterator's adapters were calls
+        // of their own per point.
+        let mut correspondences = Vec::with_capacity(chosen.len());
+        for &c in &chosen {
+            let Some(found) = t.correspondence_at(pixels[c as usize]) else {
+                return Err(Error::invalid(
+                    "crop",
+                    format!("a mask pixel of {} has no triangle", row.sample.key),
+                ));
+            };
+            correspondences.push(found);
+        }
         let mut rgb = source.crop(&crop, train, &row.sample.key)?;
         if train {
             jitter_colour(&mut rgb, rng);

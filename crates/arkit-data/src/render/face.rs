@@ -495,6 +495,7 @@ impl CropVisibility<'_> {
     /// [`FaceRenderer::render`] gives that pixel in [`FaceTargets::corr_vertices`] and
     /// [`FaceTargets::corr_weights`] (same bits). `None` where the pixel is not face
     /// (or outside the crop).
+    #[inline]
     pub fn correspondence_at(&self, pixel: u32) -> Option<([u16; 3], [f32; 3])> {
         if !*self.mask.get(pixel as usize)? {
             return None;
