@@ -908,11 +908,7 @@ impl VisibilityBuffer {
         let (depth, triangle) = (&mut self.inv_w[..n], &mut self.triangle[..n]);
         let (w, h, culling) = (self.width, self.height, self.culling);
         #[cfg(target_arch = "x86_64")]
-        if lanes == VisibilityLanes::Widest
-            && std::arch::is_x86_feature_detected!("avx512f")
-            && std::arch::is_x86_feature_detected!("avx512vl")
-            && std::arch::is_x86_feature_detected!("avx512dq")
-        {
+        if lanes == VisibilityLanes::Widest && has_avx512_f_vl_dq() {
             // SAFETY: AVX-512 F, VL and DQ were detected on this CPU.
             unsafe { visibility_avx512(vertices, triangles, (w, h), culling, depth, triangle) };
             return Ok(true);
@@ -1008,6 +1004,15 @@ impl VisibilityBuffer {
         });
         Ok(())
     }
+}
+
+/// Whether the CPU has AVX-512 F, VL and DQ, which both rasterizers' widest lanes
+/// need ([`visibility_avx512`], [`official_visibility_avx512`]).
+#[cfg(target_arch = "x86_64")]
+fn has_avx512_f_vl_dq() -> bool {
+    std::arch::is_x86_feature_detected!("avx512f")
+        && std::arch::is_x86_feature_detected!("avx512vl")
+        && std::arch::is_x86_feature_detected!("avx512dq")
 }
 
 /// How [`VisibilityBuffer::rasterize_visibility`] draws a small triangle.
@@ -1475,11 +1480,7 @@ fn official_in(
     #[cfg(target_arch = "x86_64")]
     let avx2 = lanes != OfficialLanes::One && std::arch::is_x86_feature_detected!("avx2");
     #[cfg(target_arch = "x86_64")]
-    let avx512 = lanes == OfficialLanes::Sixteen
-        && !weights
-        && std::arch::is_x86_feature_detected!("avx512f")
-        && std::arch::is_x86_feature_detected!("avx512vl")
-        && std::arch::is_x86_feature_detected!("avx512dq");
+    let avx512 = lanes == OfficialLanes::Sixteen && !weights && has_avx512_f_vl_dq();
     #[cfg(not(target_arch = "x86_64"))]
     let _ = lanes;
     // Each vertex's depth once (`-1 / inv_w`), NaN where it is not drawn.
@@ -2309,9 +2310,7 @@ mod tests {
     /// Whether this CPU takes [`VisibilityLanes::Widest`]'s AVX-512 rows.
     fn avx512() -> bool {
         #[cfg(target_arch = "x86_64")]
-        return std::arch::is_x86_feature_detected!("avx512f")
-            && std::arch::is_x86_feature_detected!("avx512vl")
-            && std::arch::is_x86_feature_detected!("avx512dq");
+        return has_avx512_f_vl_dq();
         #[cfg(not(target_arch = "x86_64"))]
         false
     }
