@@ -1051,17 +1051,12 @@ unsafe fn visibility_avx512(
 ) {
     let row = width as usize;
     for_each_drawable(vertices, triangles, width, height, culling, |ti, setup| {
-        if setup.small && setup.x1 - setup.x0 < 4 {
-            // SAFETY: this function's caller promised the features.
-            unsafe { nearer_row_pairs_avx512(&setup, depth, triangle, row, ti) }
-        } else if setup.small && setup.x1 - setup.x0 < 8 {
-            // SAFETY: as above.
-            unsafe { nearer_rows16_avx512::<2>(&setup, depth, triangle, row, ti) }
-        } else if setup.small && setup.x1 - setup.x0 < 16 {
-            // SAFETY: as above.
-            unsafe { nearer_rows16_avx512::<1>(&setup, depth, triangle, row, ti) }
-        } else {
-            setup.for_each_nearer_key(depth, row, |idx| triangle[idx] = ti);
+        // SAFETY (each call): this function's caller promised the features.
+        match (setup.small, setup.x1 - setup.x0) {
+            (true, 0..4) => unsafe { nearer_row_pairs_avx512(&setup, depth, triangle, row, ti) },
+            (true, 4..8) => unsafe { nearer_rows16_avx512::<2>(&setup, depth, triangle, row, ti) },
+            (true, 8..16) => unsafe { nearer_rows16_avx512::<1>(&setup, depth, triangle, row, ti) },
+            _ => setup.for_each_nearer_key(depth, row, |idx| triangle[idx] = ti),
         }
     });
 }
