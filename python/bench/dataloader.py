@@ -203,11 +203,11 @@ def time_epochs(loader, epochs):
     return (time.perf_counter() - t) / n * 1e3
 
 
-def official_loader(code, release):
-    """A function timing one epoch of the official `ARKitDataset.get_item` (milliseconds a
-    sample, one thread) in a mode (`eval` or `train`), on the release-layout dataset
-    `release` (its train list): imported from `code`, whose data module reads
-    `<data_root>/image` and `<data_root>/info`, linked here."""
+def official_datasets(code, release):
+    """The official `ARKitDataset` in each mode (`eval`, `train`) on the release-layout
+    dataset `release` (its train list), imported from `code`, whose data module reads
+    `<data_root>/image` and `<data_root>/info`, linked here. The official code opens its
+    files relative to its checkout: use them with the working directory at `code`."""
     import sys
     import types
 
@@ -234,6 +234,13 @@ def official_loader(code, release):
             datasets[mode] = official.ARKitDataset(opt)
     finally:
         os.chdir(cwd)
+    return datasets
+
+
+def official_loader(code, release):
+    """A function timing one epoch of the official `ARKitDataset.get_item` (milliseconds a
+    sample, one thread) in a mode (`eval` or `train`) (`official_datasets`)."""
+    datasets = official_datasets(code, release)
 
     def epoch(mode):
         ds = datasets[mode]

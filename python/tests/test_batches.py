@@ -10,7 +10,7 @@ import pytest
 torch = pytest.importorskip("torch", reason="SKIPPED: torch is not installed")
 
 import arkit_tool  # noqa: E402
-from arkit_tool import ARKitFaceDataset, DataError, ItemBatch  # noqa: E402
+from arkit_tool import ARKitFaceDataset, CorrespondenceMatrix, DataError, ItemBatch  # noqa: E402
 
 
 class OneByOne(torch.utils.data.Dataset):
@@ -29,7 +29,7 @@ class OneByOne(torch.utils.data.Dataset):
 def assert_same_sample(a, b, where):
     assert a.keys() == b.keys(), where
     for k in a:
-        if isinstance(a[k], (np.ndarray, torch.Tensor)):
+        if isinstance(a[k], (np.ndarray, torch.Tensor, CorrespondenceMatrix)):
             x, y = np.asarray(a[k]), np.asarray(b[k])
             assert x.dtype == y.dtype and x.shape == y.shape, (where, k)
             np.testing.assert_array_equal(x, y, err_msg=f"{where} {k}")
@@ -37,8 +37,16 @@ def assert_same_sample(a, b, where):
             assert a[k] == b[k], (where, k)
 
 
+def as_set_input(v):
+    """A batch value as the official set_input has it: `.to(device)` of a tensor (the
+    dense matrix of a `CorrespondenceMatrix`)."""
+    return v.to("cpu") if isinstance(v, CorrespondenceMatrix) else v
+
+
 def assert_same_batch(a, b, where):
     assert a.keys() == b.keys(), where
+    a = {k: as_set_input(v) for k, v in a.items()}
+    b = {k: as_set_input(v) for k, v in b.items()}
     for k in a:
         if torch.is_tensor(a[k]):
             assert a[k].dtype == b[k].dtype and a[k].shape == b[k].shape, (where, k)
@@ -127,12 +135,12 @@ def test_batch_arrays_are_reused_only_once_nobody_holds_them(dataset, compat):
     pointers = set()
     for order in orders[1:] * 2:
         batch = arkit_tool.collate(ds.__getitems__(order))
-        pointers.add(batch["corr_mat"].data_ptr())
+        pointers.add(batch["corr_ids"].data_ptr())
         # Every value is the sample's own, whatever the reused arrays held before
         # (corr_mat's rows of another sample among them).
         assert_same_batch(batch, torch.utils.data.default_collate([ds[i] for i in order]), order)
         del batch
-    assert held["corr_mat"].data_ptr() not in pointers  # never written over while held
+    assert held["corr_ids"].data_ptr() not in pointers  # never written over while held
     assert_same_batch(held, kept, "held")
     assert len(pointers) == 1  # dropped batches are written over again
     # A batch of another size gets arrays of its own.

@@ -878,6 +878,69 @@ fn topology<'py>(
     Ok(d)
 }
 
+/// Writes the dense correspondence matrices of `ids` (..., n, 3) int64 and `weights`
+/// (..., n, 3) float32 into `out` (..., n, V) float32, C-contiguous and writeable: every
+/// value written (zeros but for each row's weights at its vertex columns, the later of
+/// a repeated vertex's weights staying, as the official loader assigns them), without
+/// the GIL. A vertex id outside `0..V` or shapes that do not fit raise `DataError`
+/// before anything is written.
+#[pyfunction]
+fn write_correspondence_matrix_into<'py>(
+    py: Python<'py>,
+    out: Bound<'py, PyArrayDyn<f32>>,
+    ids: numpy::PyReadonlyArrayDyn<'py, i64>,
+    weights: numpy::PyReadonlyArrayDyn<'py, f32>,
+) -> PyResult<()> {
+    let (shape, id_shape) = (out.shape().to_vec(), ids.shape().to_vec());
+    let writeable: bool = out.getattr("flags")?.getattr("writeable")?.extract()?;
+    let fits = !shape.is_empty()
+        && id_shape.len() == shape.len()
+        && id_shape.last() == Some(&3)
+        && id_shape[..id_shape.len() - 1] == shape[..shape.len() - 1]
+        && weights.shape() == id_shape.as_slice();
+    if !fits || !out.is_c_contiguous() || !writeable {
+        return Err(DataError::new_err(format!(
+            "correspondence matrix: out {shape:?}, ids {id_shape:?}, weights {:?}: expected \
+             (..., n, V) C-contiguous writeable float32 and two (..., n, 3)",
+            weights.shape()
+        )));
+    }
+    let v = shape[shape.len() - 1];
+    let ids = ids.as_array();
+    let weights = weights.as_array();
+    let mut vertices = Vec::with_capacity(ids.len() / 3);
+    for (row, id) in ids
+        .iter()
+        .copied()
+        .collect::<Vec<_>>()
+        .chunks_exact(3)
+        .enumerate()
+    {
+        let mut r = [0u32; 3];
+        for (k, &x) in id.iter().enumerate() {
+            if x < 0 || x as usize >= v {
+                return Err(DataError::new_err(format!(
+                    "correspondence matrix: row {row}: vertex id {x} outside 0..{v}"
+                )));
+            }
+            r[k] = x as u32;
+        }
+        vertices.push(r);
+    }
+    let w: Vec<[f32; 3]> = weights
+        .iter()
+        .copied()
+        .collect::<Vec<_>>()
+        .chunks_exact(3)
+        .map(|c| [c[0], c[1], c[2]])
+        .collect();
+    // SAFETY: `out` was checked C-contiguous and writeable; nothing else writes it while
+    // the GIL is released (the caller owns it: a buffer it made for this matrix).
+    let slice = unsafe { out.as_slice_mut()? };
+    py.detach(|| write_correspondence_matrix(slice, v, &vertices, &w));
+    Ok(())
+}
+
 #[pymodule]
 fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<Loader>()?;
@@ -888,6 +951,7 @@ fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(read_image, m)?)?;
     m.add_function(wrap_pyfunction!(default_crop_store, m)?)?;
     m.add_function(wrap_pyfunction!(topology, m)?)?;
+    m.add_function(wrap_pyfunction!(write_correspondence_matrix_into, m)?)?;
     m.add("DataError", m.py().get_type::<DataError>())?;
     m.add("__version__", env!("CARGO_PKG_VERSION"))?;
     Ok(())

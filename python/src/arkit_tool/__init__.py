@@ -30,13 +30,15 @@ from typing import Any, Dict, Iterable, List, Optional, Sequence, Tuple, Union
 
 import numpy as np
 
-from . import _native
+from . import _native, _shared_batches
 from ._native import DataError
+from .correspondences import CorrespondenceMatrix
 from .sampling import EpochSampler, _check_u64, distributed_rank
 
 __all__ = [
     "ARKitFaceDataset",
     "ConvertedDataset",
+    "CorrespondenceMatrix",
     "DataError",
     "EpochSampler",
     "ItemBatch",
@@ -260,6 +262,7 @@ class ARKitFaceDataset:
         if multiprocessing.context.get_spawning_popen() is None:
             state["_epoch"] = int(self._epoch.value)
         state.pop("_batch_pool", None)
+        state.pop("_segment_pool", None)
         return state
 
     def __setstate__(self, state):
@@ -363,14 +366,46 @@ class ARKitFaceDataset:
         if len(epochs) > 1:
             raise ValueError(f"a batch of indices of several epochs {sorted(epochs)}: one epoch per batch")
         epoch = epochs.pop() if epochs else self.current_epoch()
-        pool = self.__dict__.setdefault("_batch_pool", [])
-        reuse = _free_batch(pool, len(pairs))
-        arrays = self._loader.batch([i for _, i in pairs], epoch, self.corr, self.mode == "eval", reuse)
-        if reuse is None:
-            _keep_batch(pool, arrays)
+        # The dense matrix is carried as its sparse form (`CorrespondenceMatrix`) and
+        # built where it is read: 24 KB a sample instead of 5 MB.
+        native_corr = "sparse" if self.corr in ("dense", "both") else self.corr
+        evaluation = self.mode == "eval"
+        positions = [i for _, i in pairs]
+        segment = None
+        if _shared_batches.in_worker() and _shared_batches.enabled():
+            # In a DataLoader worker: computed straight into shared memory that the
+            # training process maps once and reuses (no copy on the way out).
+            arrays, segment = self._batch_in_segment(positions, epoch, native_corr, evaluation)
+        else:
+            pool = self.__dict__.setdefault("_batch_pool", [])
+            reuse = _free_batch(pool, len(pairs))
+            arrays = self._loader.batch(positions, epoch, native_corr, evaluation, reuse)
+            if reuse is None:
+                _keep_batch(pool, arrays)
+        arrays = _with_corr_mat(arrays, self.corr)
         if "torch" in sys.modules:
             _teach_default_collate()
-        return ItemBatch(arrays, self.tensors)
+        return ItemBatch(arrays, self.tensors, segment)
+
+    def _batch_in_segment(self, positions, epoch, corr, evaluation):
+        """A batch computed into one of this worker's shared-memory segments."""
+        pool = self.__dict__.get("_segment_pool")
+        if pool is None or pool.pid != os.getpid():
+            pool = self.__dict__["_segment_pool"] = _shared_batches.SegmentPool()
+        shapes = pool.shapes.get((corr, evaluation))
+        if shapes is None:
+            # The first batch of these options: its arrays give the shapes; it is
+            # copied into a segment once.
+            first = self._loader.batch(positions, epoch, corr, evaluation, None)
+            shapes = pool.shapes[(corr, evaluation)] = _shared_batches.per_sample_shapes(first)
+            segment = pool.acquire(_shared_batches.batch_shapes(shapes, len(positions)))
+            for k, a in segment.arrays.items():
+                a[...] = first[k]
+                first[k] = a
+            return first, segment
+        segment = pool.acquire(_shared_batches.batch_shapes(shapes, len(positions)))
+        arrays = self._loader.batch(positions, epoch, corr, evaluation, segment.arrays)
+        return arrays, segment
 
     def sampler(
         self,
@@ -478,12 +513,12 @@ class ItemBatch(list):
     dicts (`SampleView`), as torch's default collate expects, whose arrays are views of
     one set of batch arrays, `arrays` (the batch axis first; strings as lists)."""
 
-    def __init__(self, arrays: Dict[str, Any], tensors: bool = False):
+    def __init__(self, arrays: Dict[str, Any], tensors: bool = False, segment=None):
         if tensors:
-            import torch
-
-            arrays = {k: torch.from_numpy(v) if isinstance(v, np.ndarray) else v for k, v in arrays.items()}
+            arrays = {k: _as_torch(v) for k, v in arrays.items()}
         self.arrays = arrays
+        # The shared memory the arrays live in, in a DataLoader worker (else None).
+        self.segment = segment
         b = len(arrays["img"])
         super().__init__(SampleView((k, v[i]) for k, v in arrays.items()) for i in range(b))
         self._views = tuple(self)
@@ -510,10 +545,46 @@ class ItemBatch(list):
         return True
 
 
+def _with_corr_mat(arrays: Dict[str, Any], corr: str) -> Dict[str, Any]:
+    """A batch computed with sparse correspondences, with `corr_mat` (the dense
+    matrix, as a `CorrespondenceMatrix`) where it belongs and `corr_ids` /
+    `corr_weights` kept only for `corr="both"`."""
+    if corr == "sparse":
+        return arrays
+    matrix = CorrespondenceMatrix(arrays["corr_ids"], arrays["corr_weights"], arrays["model"].shape[-2])
+    out: Dict[str, Any] = {}
+    for k, v in arrays.items():
+        if k == "corr_ids":
+            out["corr_mat"] = matrix
+        if k in ("corr_ids", "corr_weights") and corr != "both":
+            continue
+        out[k] = v
+    return out
+
+
+def _as_torch(v):
+    """A batch value as torch gives it: arrays as tensors sharing their memory, a
+    `CorrespondenceMatrix` over tensors, lists as they are."""
+    import torch
+
+    if isinstance(v, np.ndarray):
+        return torch.from_numpy(v)
+    if isinstance(v, CorrespondenceMatrix) and isinstance(v.ids, np.ndarray):
+        return CorrespondenceMatrix(torch.from_numpy(v.ids), torch.from_numpy(v.weights), v.vertex_count)
+    return v
+
+
 def _is_row(v, whole, i: int) -> bool:
     """Whether `v` is row `i` of the array (numpy) or tensor `whole`, unchanged: the
     same memory, shape and dtype (an index into a batch array makes a new view object
     each time, so identity cannot be asked)."""
+    if isinstance(whole, CorrespondenceMatrix):
+        return (
+            type(v) is CorrespondenceMatrix
+            and v.vertex_count == whole.vertex_count
+            and _is_row(v.ids, whole.ids, i)
+            and _is_row(v.weights, whole.weights, i)
+        )
     if type(v) is not type(whole) or v.shape != whole.shape[1:] or v.dtype != whole.dtype:
         return False
     if isinstance(whole, np.ndarray):
@@ -541,17 +612,46 @@ def collate(batch):
     official train.py's, gets its batches without the stacking copy too."""
     import torch
 
+    _teach_default_collate()
     if isinstance(batch, ItemBatch) and batch.intact():
         # torch.as_tensor shares a numpy array's memory and returns a tensor as it is.
-        return {k: list(v) if isinstance(v, list) else torch.as_tensor(v) for k, v in batch.arrays.items()}
+        out = {
+            k: list(v) if isinstance(v, list) else _as_torch(v) if isinstance(v, CorrespondenceMatrix)
+            else torch.as_tensor(v)
+            for k, v in batch.arrays.items()
+        }
+        if batch.segment is not None:
+            # In a worker: pickled as the shared memory's name, not copied.
+            return _shared_batches.SharedBatch(out, batch.segment)
+        return out
     return torch.utils.data.default_collate(_plain(batch))
 
 
 def _plain(batch):
-    """`batch` with its `SampleView`s as plain dicts (what default_collate stacks)."""
+    """`batch` with its `SampleView`s as plain dicts (what default_collate stacks), a
+    `CorrespondenceMatrix` as its dense matrix."""
     if isinstance(batch, list) and batch and isinstance(batch[0], SampleView):
-        return [dict(s) for s in batch]
+        return [_plain_sample(s) for s in batch]
     return batch
+
+
+def _plain_sample(sample) -> Dict[str, Any]:
+    return dict(sample)
+
+
+def _collate_correspondences(batch, *, collate_fn_map=None):
+    """torch's `default_collate` for `CorrespondenceMatrix` samples: one
+    `CorrespondenceMatrix` of the stacked sparse forms (stacked as torch stacks tensors:
+    in a worker, into shared memory)."""
+    import torch
+    from torch.utils.data._utils.collate import collate as torch_collate
+
+    first = batch[0]
+    if any(not isinstance(m, CorrespondenceMatrix) or m.vertex_count != first.vertex_count for m in batch):
+        raise TypeError("default_collate: a batch mixing correspondence matrices with other values")
+    ids = torch_collate([torch.as_tensor(m.ids) for m in batch], collate_fn_map=collate_fn_map)
+    weights = torch_collate([torch.as_tensor(m.weights) for m in batch], collate_fn_map=collate_fn_map)
+    return CorrespondenceMatrix(ids, weights, first.vertex_count)
 
 
 def _collate_sample_views(batch, *, collate_fn_map=None):
@@ -562,7 +662,7 @@ def _collate_sample_views(batch, *, collate_fn_map=None):
         return collate(batch)
     from torch.utils.data._utils.collate import collate as torch_collate
 
-    return torch_collate([dict(s) for s in batch], collate_fn_map=collate_fn_map)
+    return torch_collate([_plain_sample(s) for s in batch], collate_fn_map=collate_fn_map)
 
 
 def _teach_default_collate() -> None:
@@ -577,6 +677,7 @@ def _teach_default_collate() -> None:
     fn_map = getattr(torch_collate, "default_collate_fn_map", None)
     if fn_map is not None and SampleView not in fn_map:
         fn_map[SampleView] = _collate_sample_views
+        fn_map[CorrespondenceMatrix] = _collate_correspondences
 
 
 def _position(index, n: int) -> int:

@@ -21,6 +21,7 @@ __all__ = [
     "read_image",
     "default_crop_store",
     "topology",
+    "write_correspondence_matrix_into",
     "DataError",
     "__version__",
 ]
@@ -93,3 +94,6 @@ def evaluate(
 def default_crop_store(dir: _Path, compat: str, img_size: int) -> str: ...
 def read_image(path: _Path) -> npt.NDArray[np.uint8]: ...
 def topology(dir: _Path, resources: Optional[_Path] = None) -> Dict[str, Any]: ...
+def write_correspondence_matrix_into(
+    out: npt.NDArray[np.float32], ids: npt.NDArray[np.int64], weights: npt.NDArray[np.float32]
+) -> None: ...

@@ -1,0 +1,167 @@
+"""The official train.py's DataLoader with worker processes, side by side with the official
+loader under the same DataLoader, printed as `ratio:` lines.
+
+    python python/bench/dataloader_workers.py --official DIR [--samples 512]
+        [--workers 0,2] [--batch 16,64] [--rounds 3] [--scaling 1,2]
+
+Makes an 800x800 synthetic dataset with the arkit-tool binary (the real topology when the
+resource files are there) and its default crop stores, then times training epochs of
+three loaders, each a `torch.utils.data.DataLoader` built as the official
+`CustomDatasetDataLoader` builds it (shuffle, `drop_last`, the default collate, workers
+started anew each epoch: not persistent):
+
+- `official`: the official `ARKitDataset` (a checkout of cbsropenproject/6dof_face with
+  its Cython rasterizers built, `--official DIR`; not part of this repository);
+- `train.py path`: `ARKitFaceDataset(compat="official", corr="dense")`, what the plugin
+  (`python -m arkit_tool.official`) gives train.py;
+- `ds.loader`: our rules with sparse correspondences through `ds.loader(B, shuffle=True,
+  num_workers=W, drop_last=True)`.
+
+The training process does what the official `set_input` does with each batch: `.to(device)`
+of every tensor it reads (the CPU here; a `CorrespondenceMatrix` builds its dense matrix
+then). Figures, per sample: the epoch's wall time (worker start-up included, as train.py
+pays it), and the training process's own CPU time (`time.process_time`) spent receiving
+batches (`next()` on the loader) and in `set_input`. For each number of workers and batch
+size the three loaders run in turn, an epoch each, `--rounds` times (after one warm epoch
+each), and the median ratio is printed. `--scaling` times our train.py path alone for each
+number of workers listed (samples a second). torch threads: 1 in every process.
+"""
+
+import argparse
+import os
+import pathlib
+import subprocess
+import sys
+import tempfile
+import time
+
+HERE = pathlib.Path(__file__).resolve().parent
+ROOT = HERE.parents[1]
+sys.path.insert(0, str(HERE))
+
+# What the official PerspNetModel.set_input moves to its device.
+SET_INPUT = ["img", "choose", "model", "uvmap", "nocs", "mask", "corr_mat"]
+
+
+def main():
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--samples", type=int, default=512)
+    p.add_argument("--resources", default=str(ROOT.parent / "shared" / "arkitface-resources"))
+    p.add_argument("--bin", default=str(ROOT / "target" / "release" / "arkit-tool"))
+    p.add_argument("--official", metavar="DIR",
+                   help="a checkout of the official code with its Cython rasterizers built "
+                        "(without it only our loaders are timed, and no ratio is printed)")
+    p.add_argument("--workers", default="0,2", help="numbers of DataLoader workers, comma-separated")
+    p.add_argument("--batch", default="16,64", help="batch sizes, comma-separated")
+    p.add_argument("--rounds", type=int, default=3)
+    p.add_argument("--scaling", default="1,2",
+                   help="numbers of workers to time our train.py path alone with (empty: none)")
+    a = p.parse_args()
+    os.environ.setdefault("OMP_NUM_THREADS", "1")
+    import torch
+
+    torch.set_num_threads(1)
+    import arkit_tool
+
+    tmp = pathlib.Path(tempfile.mkdtemp())
+    res = ["--resources", a.resources] if (pathlib.Path(a.resources) / "triangles.npy").exists() else []
+    per_subject = 16
+    subjects = max(1, (a.samples + per_subject - 1) // per_subject)
+    run = lambda *args: subprocess.run([a.bin, *args], check=True, stdout=subprocess.DEVNULL)  # noqa: E731
+    run("synth", "--output", tmp / "release", "--subjects", str(subjects), "--images-per-subject",
+        str(per_subject), "--size", "800x800", "--test-fraction", "0", "--seed", "1", *res)
+    run("convert", "--input", tmp / "release", "--output", tmp / "data", *res)
+    data = tmp / "data"
+    for compat in ["official", "exact"]:
+        run("crops", "--dataset", data, "--compat", compat, *res)
+    n = subjects * per_subject
+    print(f"dataset: {n} samples, 800x800, topology: {'real' if res else 'built-in'}, default crop stores; "
+          f"{os.cpu_count()} cores; torch {torch.__version__}")
+
+    official = None
+    if a.official:
+        from dataloader import official_datasets
+
+        official = official_datasets(pathlib.Path(a.official), tmp / "release")["train"]
+        os.chdir(a.official)  # the official code opens its files relative to its checkout
+
+    def make(kind, workers, batch):
+        kw = dict(batch_size=batch, shuffle=True, num_workers=workers, drop_last=True)
+        if kind == "official":
+            return torch.utils.data.DataLoader(official, **kw), SET_INPUT
+        if kind == "train.py path":
+            ds = arkit_tool.ARKitFaceDataset(data, split=None, mode="train", compat="official", corr="dense")
+            return torch.utils.data.DataLoader(ds, **kw), SET_INPUT
+        ds = arkit_tool.ARKitFaceDataset(data, split=None, mode="train", compat="exact", corr="sparse")
+        keys = ["img", "choose", "model", "uvmap", "nocs", "mask", "corr_ids", "corr_weights"]
+        return ds.loader(batch, shuffle=True, num_workers=workers, drop_last=True), keys
+
+    kinds = (["official"] if official is not None else []) + ["train.py path", "ds.loader"]
+    workers_list = [int(x) for x in a.workers.split(",") if x]
+    batches = [int(x) for x in a.batch.split(",") if x]
+    for workers in workers_list:
+        for batch in batches:
+            loaders = {k: make(k, workers, batch) for k in kinds}
+            for k in kinds:  # a warm epoch each: imports, first calls, the page cache
+                epoch(*loaders[k])
+            rounds = {k: [] for k in kinds}
+            for _ in range(a.rounds):
+                for k in kinds:
+                    rounds[k].append(epoch(*loaders[k]))
+            for k in kinds:
+                walls = sorted(r[0] for r in rounds[k])
+                recv = sorted(r[1] for r in rounds[k])
+                setin = sorted(r[2] for r in rounds[k])
+                mid = a.rounds // 2
+                print(f"{k}, {workers} workers, batch {batch}: {walls[mid]:.3f} ms a sample "
+                      f"({1e3 / walls[mid]:.0f} samples/s; rounds {', '.join(f'{w:.3f}' for w in walls)}); "
+                      f"training process: receiving {recv[mid]:.3f} ms, set_input {setin[mid]:.3f} ms a sample")
+            if official is not None:
+                for k in kinds[1:]:
+                    ratios = sorted(o[0] / r[0] for o, r in zip(rounds["official"], rounds[k]))
+                    each = ", ".join(f"{x:.1f}x" for x in ratios)
+                    print(f"ratio: official / {k}, {workers} workers, batch {batch}, in turn "
+                          f"(median of {a.rounds}: {each}) = {ratios[a.rounds // 2]:.1f}x")
+            del loaders
+
+    scaling = [int(x) for x in a.scaling.split(",") if x]
+    if scaling:
+        base = None
+        for workers in scaling:
+            loader, keys = make("train.py path", workers, 64)
+            epoch(loader, keys)
+            walls = sorted(epoch(loader, keys)[0] for _ in range(a.rounds))
+            rate = 1e3 / walls[a.rounds // 2]
+            base = base or rate
+            print(f"scaling: train.py path, batch 64, {workers} workers: {rate:.0f} samples/s")
+            print(f"ratio: train.py path {workers} workers / {scaling[0]} workers, samples a second = "
+                  f"{rate / base:.2f}")
+
+
+def epoch(loader, keys):
+    """One epoch through `loader` as train.py runs it: (wall ms a sample, the training
+    process's CPU ms a sample receiving batches, its CPU ms a sample in set_input)."""
+    n = 0
+    receiving = setting = 0.0
+    wall = time.perf_counter()
+    it = iter(loader)
+    while True:
+        c0 = time.process_time()
+        try:
+            batch = next(it)
+        except StopIteration:
+            break
+        c1 = time.process_time()
+        moved = [batch[k].to("cpu") for k in keys]
+        c2 = time.process_time()
+        receiving += c1 - c0
+        setting += c2 - c1
+        n += len(moved[0])
+        del batch, moved
+    wall = time.perf_counter() - wall
+    del it
+    return wall / n * 1e3, receiving / n * 1e3, setting / n * 1e3
+
+
+if __name__ == "__main__":
+    main()

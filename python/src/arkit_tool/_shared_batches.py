@@ -1,0 +1,328 @@
+"""Batches computed in DataLoader workers, handed to the training process without a copy.
+
+torch sends every tensor a worker returns through shared memory: a tensor not already
+there is copied into fresh shared pages, its file descriptor crosses a socket, and the
+training process maps it anew and faults its pages in, batch after batch. Here a worker
+computes each batch straight into a *segment* (a `memfd` shared-memory file it keeps
+and reuses), and what crosses the queue is the segment's name and layout (a few hundred
+bytes: `SharedBatch.__reduce__`). The training process maps each segment once
+(`/proc/<worker>/fd/<fd>`, checked against a random token in the segment's header) and
+keeps the mapping; the tensors it receives are views of it. When the last of them is
+gone (`_Lease.__del__`), the segment's header says so and the worker writes its next
+batch there.
+
+A segment's state byte: `FREE` (the worker may write it), `SENT` (set when the batch is
+pickled for the queue; the training process may hold it). The worker takes a segment
+when no object of its own refers to it any more and the byte is `FREE`.
+
+Linux only (memfd and /proc); elsewhere, or with `ARKIT_TOOL_SHARED_BATCHES=0`,
+batches go the usual way (torch's shared memory, one copy).
+"""
+
+from __future__ import annotations
+
+import mmap
+import os
+import secrets
+import struct
+import sys
+from typing import Any, Dict, List, Optional, Tuple
+
+import numpy as np
+
+from .correspondences import CorrespondenceMatrix
+
+MAGIC = b"ARKITBAT"
+HEADER = 64  # bytes before the first array
+ALIGN = 64
+STATE_AT = 16
+FREE, SENT = 0, 1
+ENV = "ARKIT_TOOL_SHARED_BATCHES"
+
+# The arrays a batch is computed into (what `Loader.batch` takes as `reuse`).
+SEGMENT_KEYS = ("img", "uvmap", "mask", "choose", "model", "nocs", "corr_ids", "corr_weights", "corr_mat")
+
+# Counters for tests and benches: segments made and bytes mapped, in this process.
+stats = {"segments_created": 0, "segment_bytes_created": 0, "mappings_opened": 0}
+
+
+def enabled() -> bool:
+    """Whether batches computed in a worker go through segments."""
+    return (
+        sys.platform.startswith("linux")
+        and hasattr(os, "memfd_create")
+        and os.environ.get(ENV, "1") not in ("0", "false", "no")
+    )
+
+
+def in_worker() -> bool:
+    """Whether this process is a torch DataLoader worker."""
+    torch = sys.modules.get("torch")
+    if torch is None:
+        return False
+    info = torch.utils.data.get_worker_info()
+    return info is not None
+
+
+Layout = Tuple[Tuple[str, str, Tuple[int, ...], int], ...]  # (key, dtype, shape, offset)
+
+
+def _layout(shapes: Dict[str, Tuple[str, Tuple[int, ...]]]) -> Tuple[Layout, int]:
+    at = HEADER
+    entries = []
+    for key in SEGMENT_KEYS:
+        if key not in shapes:
+            continue
+        dtype, shape = shapes[key]
+        nbytes = int(np.dtype(dtype).itemsize * int(np.prod(shape, dtype=np.int64)))
+        entries.append((key, dtype, tuple(int(s) for s in shape), at))
+        at += (nbytes + ALIGN - 1) // ALIGN * ALIGN
+    return tuple(entries), at
+
+
+class Segment:
+    """A worker's shared-memory file holding one batch's arrays."""
+
+    def __init__(self, layout: Layout, size: int):
+        self.layout = layout
+        self.size = size
+        self.fd = os.memfd_create("arkit-tool-batch", os.MFD_CLOEXEC)
+        try:
+            os.ftruncate(self.fd, size)
+            self.map = mmap.mmap(self.fd, size, mmap.MAP_SHARED, mmap.PROT_READ | mmap.PROT_WRITE)
+        except BaseException:
+            os.close(self.fd)
+            raise
+        self.token = secrets.randbits(64)
+        self.map[: len(MAGIC)] = MAGIC
+        struct.pack_into("<Q", self.map, 8, self.token)
+        self.map[STATE_AT] = FREE
+        self.root = np.frombuffer(self.map, dtype=np.uint8)
+        self.arrays = {
+            key: self.root[at : at + np.dtype(dtype).itemsize * int(np.prod(shape, dtype=np.int64))]
+            .view(dtype)
+            .reshape(shape)
+            for key, dtype, shape, at in layout
+        }
+        stats["segments_created"] += 1
+        stats["segment_bytes_created"] += size
+
+    def free(self) -> bool:
+        """No object of this process refers to the segment's arrays but its own, and the
+        training process holds nothing of it."""
+        # The root is referred to by this object and by each of its own arrays; any other
+        # view (numpy's or a tensor's, through the arrays) adds a reference to an array or
+        # to the root.
+        if sys.getrefcount(self.root) > 2 + len(self.arrays):
+            return False
+        for a in self.arrays.values():
+            # The dict's reference, the loop's and getrefcount's own.
+            if sys.getrefcount(a) > 3:
+                return False
+        return self.map[STATE_AT] == FREE
+
+    def sent(self) -> None:
+        self.map[STATE_AT] = SENT
+
+    def descriptor(self) -> Tuple[int, int, int, int, Layout]:
+        return (os.getpid(), self.fd, self.token, self.size, self.layout)
+
+
+class SegmentPool:
+    """A worker's segments, reused once free."""
+
+    def __init__(self):
+        self.pid = os.getpid()
+        self.segments: List[Segment] = []
+        # Per-sample shapes learnt from a first batch: (corr, eval) -> {key: (dtype, shape)}.
+        self.shapes: Dict[Any, Dict[str, Tuple[str, Tuple[int, ...]]]] = {}
+
+    def acquire(self, shapes: Dict[str, Tuple[str, Tuple[int, ...]]]) -> Segment:
+        layout, size = _layout(shapes)
+        for seg in self.segments:
+            if seg.layout == layout and seg.free():
+                return seg
+        seg = Segment(layout, size)
+        self.segments.append(seg)
+        return seg
+
+
+def batch_shapes(per_sample: Dict[str, Tuple[str, Tuple[int, ...]]], b: int):
+    return {k: (dtype, (b,) + shape) for k, (dtype, shape) in per_sample.items()}
+
+
+def per_sample_shapes(arrays: Dict[str, Any]) -> Dict[str, Tuple[str, Tuple[int, ...]]]:
+    return {
+        k: (arrays[k].dtype.str, tuple(arrays[k].shape[1:]))
+        for k in SEGMENT_KEYS
+        if isinstance(arrays.get(k), np.ndarray)
+    }
+
+
+class SharedBatch(dict):
+    """A collated batch (a dict) whose arrays live in a worker's segment: pickled as the
+    segment's name and layout, rebuilt in the training process as a plain dict of tensors
+    viewing the segment (`receive`)."""
+
+    __slots__ = ("segment",)
+
+    def __init__(self, values: Dict[str, Any], segment: Segment):
+        super().__init__(values)
+        self.segment = segment
+
+    def __reduce__(self):
+        import torch
+
+        seg = self.segment
+        where = {}
+        for key, dtype, shape, at in seg.layout:
+            where[key] = (dtype, shape, at)
+        base = seg.root.ctypes.data
+        items = []
+        for k, v in self.items():
+            if isinstance(v, torch.Tensor) and _in_segment(v, where.get(k), base):
+                items.append((k, "segment", k))
+            elif (
+                isinstance(v, CorrespondenceMatrix)
+                and isinstance(v.ids, torch.Tensor)
+                and _in_segment(v.ids, where.get("corr_ids"), base)
+                and _in_segment(v.weights, where.get("corr_weights"), base)
+            ):
+                items.append((k, "corr", v.vertex_count))
+            elif isinstance(v, torch.Tensor) and v.device.type == "cpu" and v.numel() * v.element_size() <= 4096:
+                # Small arrays (the evaluation's tform_inv and R_t) travel in the pickle.
+                items.append((k, "inline", v.numpy()))
+            else:
+                items.append((k, "value", v))
+        seg.sent()
+        return (receive, (seg.descriptor(), items))
+
+
+def _in_segment(t, entry, base: int) -> bool:
+    """Whether tensor `t` is the segment's array `entry` as it was laid out."""
+    if entry is None:
+        return False
+    dtype, shape, at = entry
+    return (
+        t.device.type == "cpu"
+        and tuple(t.shape) == shape
+        and t.is_contiguous()
+        and t.data_ptr() == base + at
+        and t.numpy().dtype.str == dtype
+    )
+
+
+# -- the training process's side ----------------------------------------------------------
+
+# Open mappings, by (pid, fd, token): a segment is mapped once and reused.
+_mappings: Dict[Tuple[int, int, int], Any] = {}
+_pids_seen: set = set()
+
+
+class _Mapping:
+    def __init__(self, pid: int, fd: int, token: int, size: int):
+        path = f"/proc/{pid}/fd/{fd}"
+        try:
+            f = os.open(path, os.O_RDWR | os.O_CLOEXEC)
+        except OSError as e:
+            raise RuntimeError(
+                f"arkit_tool: a batch from DataLoader worker {pid}: cannot open its shared memory "
+                f"({path}: {e.strerror}); set {ENV}=0 to send batches through torch's shared memory"
+            ) from None
+        try:
+            actual = os.fstat(f).st_size
+            if actual < size or size < HEADER:
+                raise RuntimeError(f"arkit_tool: {path}: {actual} bytes, the batch needs {size}")
+            self.map = mmap.mmap(f, size, mmap.MAP_SHARED, mmap.PROT_READ | mmap.PROT_WRITE)
+        finally:
+            os.close(f)
+        if bytes(self.map[: len(MAGIC)]) != MAGIC or struct.unpack_from("<Q", self.map, 8)[0] != token:
+            raise RuntimeError(f"arkit_tool: {path}: not the shared memory of the batch sent (token differs)")
+        self.root = np.frombuffer(self.map, dtype=np.uint8)
+        self.base = self.root.ctypes.data
+        stats["mappings_opened"] += 1
+
+
+class _Lease:
+    """Held by every array of one received batch; frees the segment when the last goes."""
+
+    __slots__ = ("mapping", "__weakref__")
+
+    def __init__(self, mapping: _Mapping):
+        self.mapping = mapping
+
+    def __del__(self):
+        try:
+            self.mapping.map[STATE_AT] = FREE
+        except (ValueError, TypeError):  # the mapping closed at interpreter exit
+            pass
+
+
+class _View:
+    """An array of a received batch (numpy's `__array_interface__`), keeping its lease."""
+
+    __slots__ = ("__array_interface__", "lease")
+
+    def __init__(self, lease: _Lease, at: int, dtype: str, shape: Tuple[int, ...]):
+        self.lease = lease
+        self.__array_interface__ = {
+            "data": (lease.mapping.base + at, False),
+            "shape": shape,
+            "typestr": dtype,
+            "version": 3,
+        }
+
+
+def _mapping(pid: int, fd: int, token: int, size: int) -> _Mapping:
+    key = (pid, fd, token)
+    m = _mappings.get(key)
+    if m is not None:
+        return m
+    if pid not in _pids_seen:
+        # A new worker: forget the segments of workers that have ended (their batches
+        # still held keep their mappings through their leases).
+        _pids_seen.add(pid)
+        for old in [k for k in _mappings if not _alive(k[0])]:
+            del _mappings[old]
+            _pids_seen.discard(old[0])
+    m = _Mapping(pid, fd, token, size)
+    _mappings[key] = m
+    return m
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def receive(descriptor, items) -> Dict[str, Any]:
+    """The batch a worker sent (`SharedBatch.__reduce__`): a plain dict of tensors."""
+    import torch
+
+    pid, fd, token, size, layout = descriptor
+    mapping = _mapping(pid, fd, token, size)
+    lease = _Lease(mapping)
+    tensors = {}
+    for key, dtype, shape, at in layout:
+        nbytes = np.dtype(dtype).itemsize * int(np.prod(shape, dtype=np.int64))
+        if at < HEADER or at + nbytes > size:
+            raise RuntimeError(f"arkit_tool: a batch's array '{key}' lies outside its shared memory")
+        tensors[key] = torch.from_numpy(np.asarray(_View(lease, at, dtype, shape)))
+    out: Dict[str, Any] = {}
+    for k, kind, value in items:
+        if kind == "segment":
+            out[k] = tensors[value]
+        elif kind == "corr":
+            out[k] = CorrespondenceMatrix(tensors["corr_ids"], tensors["corr_weights"], value)
+        elif kind == "inline":
+            out[k] = torch.from_numpy(value)
+        else:
+            out[k] = value
+    # A batch nothing refers to any more frees its segment at once.
+    del lease, tensors
+    return out

@@ -1,0 +1,227 @@
+"""Batches from DataLoader workers: computed in shared memory the training process maps
+once (no copy on the way), `corr_mat` carried sparse and built dense by `.to(device)`,
+bit for bit the official matrix."""
+
+import gc
+import pickle
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch", reason="SKIPPED: torch is not installed")
+
+from arkit_tool import ARKitFaceDataset, CorrespondenceMatrix, _shared_batches  # noqa: E402
+from arkit_tool.correspondences import dense_matrix, scatter_matrix  # noqa: E402
+
+# What the official PerspNetModel.set_input moves to its device.
+SET_INPUT = ["img", "choose", "model", "uvmap", "nocs", "mask", "corr_mat"]
+
+
+def official_dense(ids, weights, v):
+    """The official loader's three assignments (data/arkit_dataset.py), in numpy."""
+    ids, weights = np.asarray(ids), np.asarray(weights)
+    out = np.zeros(ids.shape[:-1] + (v,), dtype=np.float32)
+    flat_ids, flat_w, flat_out = ids.reshape(-1, 3), weights.reshape(-1, 3), out.reshape(-1, v)
+    r = np.arange(len(flat_ids))
+    for k in range(3):
+        flat_out[r, flat_ids[:, k]] = flat_w[:, k]
+    return out
+
+
+def test_both_ways_of_building_the_matrix_give_the_official_one():
+    rng = np.random.default_rng(0)
+    ids = rng.integers(0, 50, size=(2, 40, 3)).astype(np.int64)
+    ids[0, 0] = [5, 5, 7]  # a triangle repeating a vertex: the later weight stays
+    ids[0, 1] = [9, 9, 9]
+    weights = rng.random((2, 40, 3), dtype=np.float32)
+    weights[0, 0] = [0.1, 0.2, 0.7]
+    weights[0, 1] = [0.25, -0.0, 0.5]
+    want = official_dense(ids, weights, 50)
+    assert want[0, 0, 5] == np.float32(0.2) and want[0, 0, 7] == np.float32(0.7)
+    assert want[0, 1, 9] == np.float32(0.5) and np.count_nonzero(want[0, 1]) == 1
+    rust = dense_matrix(ids, weights, 50)
+    torch_cpu = scatter_matrix(torch.from_numpy(ids), torch.from_numpy(weights), 50)
+    # Bit for bit (a -0.0 that stays would show in the bytes).
+    assert rust.tobytes() == want.tobytes()
+    assert torch_cpu.numpy().tobytes() == want.tobytes()
+    m = CorrespondenceMatrix(torch.from_numpy(ids), torch.from_numpy(weights), 50)
+    assert m.to("cpu").numpy().tobytes() == want.tobytes()
+    assert m.shape == (2, 40, 50) and m.dtype == torch.float32 and len(m) == 2
+    with pytest.raises(ValueError, match="vertex id 50 outside 0..50"):
+        dense_matrix(np.full((1, 2, 3), 50, dtype=np.int64), weights[:1, :2], 50)
+
+
+def test_the_matrix_acts_as_the_dense_tensor_where_torch_reads_it():
+    rng = np.random.default_rng(1)
+    ids = torch.from_numpy(rng.integers(0, 30, size=(3, 8, 3)).astype(np.int64))
+    weights = torch.from_numpy(rng.random((3, 8, 3), dtype=np.float32))
+    m = CorrespondenceMatrix(ids, weights, 30)
+    dense = torch.from_numpy(official_dense(ids, weights, 30))
+    verts = torch.randn(3, 30, 3)
+    assert torch.equal(m.to(torch.device("cpu")), dense)
+    assert m.to(torch.float64).dtype == torch.float64 and torch.equal(m.to(torch.float64), dense.double())
+    assert torch.equal(torch.bmm(m, verts), torch.bmm(dense, verts))
+    assert torch.equal(m @ verts, dense @ verts)
+    assert torch.equal(m.sum(2), dense.sum(2))
+    assert torch.equal(m[1].to("cpu"), dense[1]) and isinstance(m[1], CorrespondenceMatrix)
+    assert torch.equal(m[:, 2], dense[:, 2])
+    np.testing.assert_array_equal(np.asarray(m), dense.numpy())
+    assert not isinstance(m, torch.Tensor)  # the documented limit
+    again = pickle.loads(pickle.dumps(m))
+    assert torch.equal(again.to("cpu"), dense)
+
+
+def test_a_held_dense_matrix_is_never_written_over():
+    ids = torch.zeros(2, 4, 3, dtype=torch.int64)
+    m1 = CorrespondenceMatrix(ids, torch.full((2, 4, 3), 0.5), 10)
+    m2 = CorrespondenceMatrix(ids + 1, torch.full((2, 4, 3), 0.25), 10)
+    held = m1.to("cpu")
+    views = [m2.to("cpu") for _ in range(4)]  # each held: a buffer of its own
+    assert len({v.data_ptr() for v in views} | {held.data_ptr()}) == 5
+    assert torch.all(held[..., 0] == 0.5) and torch.all(held[..., 1:] == 0)
+    del views
+    gc.collect()
+    again = m2.to("cpu")
+    assert again.data_ptr() != held.data_ptr() and torch.all(held[..., 0] == 0.5)
+
+
+class OneByOne(torch.utils.data.Dataset):
+    """The dataset seen without `__getitems__`: torch then asks for samples one by one."""
+
+    def __init__(self, ds):
+        self.ds = ds
+
+    def __len__(self):
+        return len(self.ds)
+
+    def __getitem__(self, i):
+        return self.ds[i]
+
+
+def loader(ds, workers, **kw):
+    return torch.utils.data.DataLoader(ds, batch_size=4, shuffle=True, drop_last=True,
+                                       generator=torch.Generator().manual_seed(0), num_workers=workers, **kw)
+
+
+@pytest.mark.parametrize("compat", ["exact", "official"])
+def test_train_py_batches_through_workers_are_the_official_tensors(dataset, compat):
+    # The official train.py's DataLoader (default collate, shuffle, drop_last), its
+    # set_input's `.to(device)`: the tensors of the one-by-one samples, bit for bit.
+    ds = ARKitFaceDataset(dataset, split=None, mode="train", compat=compat, n_pts=96)
+    ds.set_epoch(5)
+    # The same DataLoader asking for the samples one by one (`ds[i]`: dense, as the
+    # official get_item), stacked by the default collate.
+    reference = list(loader(OneByOne(ds), 0))
+    for workers in [0, 2]:
+        got = list(loader(ds, workers))
+        assert len(got) == len(reference) == len(ds) // 4
+        for b, (batch, want) in enumerate(zip(got, reference)):
+            assert isinstance(batch["corr_mat"], CorrespondenceMatrix)
+            assert type(want["corr_mat"]) is torch.Tensor
+            for k in SET_INPUT:
+                t = batch[k].to("cpu")
+                assert type(t) is torch.Tensor and t.dtype == want[k].dtype, (workers, k)
+                assert t.shape == want[k].shape and torch.equal(t, want[k]), (workers, b, k)
+                assert t.numpy().tobytes() == want[k].numpy().tobytes(), (workers, b, k)
+
+
+def test_a_segment_is_free_only_when_nothing_holds_it():
+    shapes = {"img": ("<f4", (2, 3, 4, 4)), "choose": ("<i8", (2, 5))}
+    pool = _shared_batches.SegmentPool()
+    seg = pool.acquire(shapes)
+    assert seg.free()
+    row = seg.arrays["img"][1]  # a view, as a sample of an ItemBatch holds
+    assert not seg.free()
+    del row
+    tensor = torch.as_tensor(seg.arrays["choose"])  # as collate hands it to torch
+    assert not seg.free() and pool.acquire(shapes) is not seg
+    del tensor
+    assert seg.free() and pool.acquire(shapes) is seg
+    seg.sent()  # the training process holds it
+    assert not seg.free()
+    seg.map[_shared_batches.STATE_AT] = _shared_batches.FREE  # its lease let it go
+    assert seg.free()
+    other = pool.acquire({"img": ("<f4", (3, 3, 4, 4)), "choose": ("<i8", (3, 5))})
+    assert other is not seg and other.layout != seg.layout
+
+
+def mapped_ranges():
+    return [(m.base, m.base + len(m.map)) for m in _shared_batches._mappings.values()]
+
+
+def test_a_workers_batch_reaches_the_training_process_without_a_copy(dataset):
+    ds = ARKitFaceDataset(dataset, split=None, mode="train", compat="official", n_pts=64)
+    before = _shared_batches.stats["mappings_opened"]
+    batches = 0
+    dl = loader(ds, 2, persistent_workers=True)
+    for epoch in range(4):
+        ds.set_epoch(epoch)
+        for batch in dl:
+            batches += 1
+            ranges = mapped_ranges()
+            arrays = [batch[k] for k in SET_INPUT if k != "corr_mat"]
+            arrays += [batch["corr_mat"].ids, batch["corr_mat"].weights]
+            for t in arrays:
+                # Every array is a view of a worker's segment, mapped here: nothing was
+                # copied into torch's shared memory on the way.
+                assert not t.untyped_storage().is_shared()
+                assert any(lo <= t.data_ptr() and t.data_ptr() + t.nbytes <= hi for lo, hi in ranges)
+    opened = _shared_batches.stats["mappings_opened"] - before
+    # Segments are reused: each worker maps a few (prefetched batches, the one held),
+    # not one a batch.
+    assert batches >= 12 and opened <= 2 * 4, (batches, opened)
+    del batch, arrays, dl
+    gc.collect()
+
+
+def test_a_received_batch_frees_its_segment_when_dropped(dataset):
+    ds = ARKitFaceDataset(dataset, split=None, mode="eval", n_pts=32, corr="sparse")
+    dl = loader(ds, 1, persistent_workers=True)
+    it = iter(dl)
+    got = list(it)  # the whole epoch: the (persistent) worker then waits, writing nothing
+    assert len(got) == 3
+
+    def owner(t):
+        return next(m for m in _shared_batches._mappings.values() if m.base <= t.data_ptr() < m.base + len(m.map))
+
+    owners = [owner(b["img"]) for b in got]
+    assert len({id(o) for o in owners}) == 3  # each batch held: a segment of its own
+    assert all(o.map[_shared_batches.STATE_AT] == _shared_batches.SENT for o in owners)
+    view = got[0]["img"][1:]  # a view keeps its batch's segment
+    del got
+    gc.collect()
+    states = [o.map[_shared_batches.STATE_AT] for o in owners]
+    assert states == [_shared_batches.SENT, _shared_batches.FREE, _shared_batches.FREE]
+    del view
+    gc.collect()
+    assert owners[0].map[_shared_batches.STATE_AT] == _shared_batches.FREE
+    del it, dl
+
+
+def test_a_batch_whose_shared_memory_is_not_the_one_sent_is_refused(dataset):
+    ds = ARKitFaceDataset(dataset, split=None, mode="eval", n_pts=16, corr="sparse")
+    it = iter(loader(ds, 1, persistent_workers=True))  # the worker lives while `it` does
+    batch = next(it)
+    (pid, fd, token, size, _), = [(k[0], k[1], k[2], len(m.map), None) for k, m in _shared_batches._mappings.items()
+                                  if m.base <= batch["img"].data_ptr() < m.base + len(m.map)]
+    with pytest.raises(RuntimeError, match="token differs"):
+        _shared_batches._Mapping(pid, fd, token ^ 1, size)
+    with pytest.raises(RuntimeError, match="bytes, the batch needs"):
+        _shared_batches._Mapping(pid, fd, token, size + 4096)
+    with pytest.raises(RuntimeError, match="cannot open its shared memory"):
+        _shared_batches._Mapping(pid, 10**6, token, size)
+    del batch, it
+
+
+def test_without_shared_batches_workers_give_the_same_batches(dataset, monkeypatch):
+    ds = ARKitFaceDataset(dataset, split=None, mode="train", compat="official", n_pts=48)
+    ds.set_epoch(1)
+    shared = list(loader(ds, 2))
+    monkeypatch.setenv(_shared_batches.ENV, "0")
+    plain = list(loader(ds, 2))
+    assert len(shared) == len(plain)
+    for a, b in zip(shared, plain):
+        for k in SET_INPUT:
+            assert torch.equal(a[k].to("cpu"), b[k].to("cpu")), k
+        # torch's own way: its shared memory, not a segment of ours.
+        assert b["img"].untyped_storage().is_shared()
