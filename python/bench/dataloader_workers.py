@@ -1,8 +1,8 @@
 """The official train.py's DataLoader with worker processes, side by side with the official
 loader under the same DataLoader, printed as `ratio:` lines.
 
-    python python/bench/dataloader_workers.py --official DIR [--samples 512]
-        [--workers 0,2] [--batch 16,64] [--rounds 3] [--scaling 1,2]
+    python python/bench/dataloader_workers.py --official DIR [--samples 1024]
+        [--workers 0,2[,6]] [--batch 16,64] [--rounds 3] [--scaling 1,2]
 
 Makes an 800x800 synthetic dataset with the arkit-tool binary (the real topology when the
 resource files are there) and its default crop stores, then times training epochs of
@@ -12,15 +12,16 @@ started anew each epoch: not persistent):
 
 - `official`: the official `ARKitDataset` (a checkout of cbsropenproject/6dof_face with
   its Cython rasterizers built, `--official DIR`; not part of this repository);
-- `train.py path`: `ARKitFaceDataset(compat="official", corr="dense")`, what the plugin
-  (`python -m arkit_tool.official`) gives train.py;
+- `train.py path`: the dataset class `python -m arkit_tool.official` gives train.py
+  (`ARKitFaceDataset(compat="official", corr="dense")` on the `train` split, which is the
+  official loader's train list);
 - `ds.loader`: our rules with sparse correspondences through `ds.loader(B, shuffle=True,
   num_workers=W, drop_last=True)`.
 
 The training process does what the official `set_input` does with each batch: `.to(device)`
 of every tensor it reads (the CPU here; a `CorrespondenceMatrix` builds its dense matrix
 then). Figures, per sample: the epoch's wall time (worker start-up included, as train.py
-pays it), and the training process's own CPU time (`time.process_time`) spent receiving
+pays it; the time to the first batch is printed too), and the training process's own CPU time (`time.process_time`) spent receiving
 batches (`next()` on the loader) and in `set_input`. For each number of workers and batch
 size the three loaders run in turn, an epoch each, `--rounds` times (after one warm epoch
 each), and the median ratio is printed. `--scaling` times our train.py path alone for each
@@ -34,6 +35,7 @@ import subprocess
 import sys
 import tempfile
 import time
+import types
 
 HERE = pathlib.Path(__file__).resolve().parent
 ROOT = HERE.parents[1]
@@ -45,13 +47,15 @@ SET_INPUT = ["img", "choose", "model", "uvmap", "nocs", "mask", "corr_mat"]
 
 def main():
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    p.add_argument("--samples", type=int, default=512)
+    p.add_argument("--samples", type=int, default=1024)
     p.add_argument("--resources", default=str(ROOT.parent / "shared" / "arkitface-resources"))
     p.add_argument("--bin", default=str(ROOT / "target" / "release" / "arkit-tool"))
     p.add_argument("--official", metavar="DIR",
                    help="a checkout of the official code with its Cython rasterizers built "
                         "(without it only our loaders are timed, and no ratio is printed)")
-    p.add_argument("--workers", default="0,2", help="numbers of DataLoader workers, comma-separated")
+    p.add_argument("--workers", default="0,2,6" if (os.cpu_count() or 1) >= 6 else "0,2",
+                   help="numbers of DataLoader workers, comma-separated (default 0,2, and 6 (train.py's "
+                        "default) on a machine with at least six cores)")
     p.add_argument("--batch", default="16,64", help="batch sizes, comma-separated")
     p.add_argument("--rounds", type=int, default=3)
     p.add_argument("--scaling", default="1,2",
@@ -62,6 +66,7 @@ def main():
 
     torch.set_num_threads(1)
     import arkit_tool
+    from arkit_tool.official import OfficialScriptsDataset
 
     tmp = pathlib.Path(tempfile.mkdtemp())
     res = ["--resources", a.resources] if (pathlib.Path(a.resources) / "triangles.npy").exists() else []
@@ -90,9 +95,16 @@ def main():
         if kind == "official":
             return torch.utils.data.DataLoader(official, **kw), SET_INPUT
         if kind == "train.py path":
-            ds = arkit_tool.ARKitFaceDataset(data, split=None, mode="train", compat="official", corr="dense")
-            return torch.utils.data.DataLoader(ds, **kw), SET_INPUT
-        ds = arkit_tool.ARKitFaceDataset(data, split=None, mode="train", compat="exact", corr="sparse")
+            # The class `python -m arkit_tool.official` gives train.py, with the options
+            # train.py passes it (a sample the official rules cannot crop is reported and
+            # left out, as there).
+            opt = types.SimpleNamespace(
+                isTrain=True, arkittool_dataset=str(data), arkittool_train_split="train",
+                arkittool_test_split="test", arkittool_compat="official", arkittool_seed=0,
+                arkittool_crop_store="auto", img_size=192, n_pts=1024, batch_size=batch,
+                max_dataset_size=float("inf"), debug=False)
+            return torch.utils.data.DataLoader(OfficialScriptsDataset(opt), **kw), SET_INPUT
+        ds = arkit_tool.ARKitFaceDataset(data, split="train", mode="train", compat="exact", corr="sparse")
         keys = ["img", "choose", "model", "uvmap", "nocs", "mask", "corr_ids", "corr_weights"]
         return ds.loader(batch, shuffle=True, num_workers=workers, drop_last=True), keys
 
@@ -112,10 +124,12 @@ def main():
                 walls = sorted(r[0] for r in rounds[k])
                 recv = sorted(r[1] for r in rounds[k])
                 setin = sorted(r[2] for r in rounds[k])
+                start = sorted(r[3] for r in rounds[k])
                 mid = a.rounds // 2
                 print(f"{k}, {workers} workers, batch {batch}: {walls[mid]:.3f} ms a sample "
                       f"({1e3 / walls[mid]:.0f} samples/s; rounds {', '.join(f'{w:.3f}' for w in walls)}); "
-                      f"training process: receiving {recv[mid]:.3f} ms, set_input {setin[mid]:.3f} ms a sample")
+                      f"training process: receiving {recv[mid]:.3f} ms, set_input {setin[mid]:.3f} ms a sample; "
+                      f"first batch after {start[mid]:.0f} ms")
             if official is not None:
                 for k in kinds[1:]:
                     ratios = sorted(o[0] / r[0] for o, r in zip(rounds["official"], rounds[k]))
@@ -140,10 +154,12 @@ def main():
 
 def epoch(loader, keys):
     """One epoch through `loader` as train.py runs it: (wall ms a sample, the training
-    process's CPU ms a sample receiving batches, its CPU ms a sample in set_input)."""
+    process's CPU ms a sample receiving batches, its CPU ms a sample in set_input, ms
+    from the epoch's start to its first batch: the workers' start-up)."""
     n = 0
     receiving = setting = 0.0
     wall = time.perf_counter()
+    first = None
     it = iter(loader)
     while True:
         c0 = time.process_time()
@@ -152,6 +168,8 @@ def epoch(loader, keys):
         except StopIteration:
             break
         c1 = time.process_time()
+        if first is None:
+            first = time.perf_counter() - wall
         moved = [batch[k].to("cpu") for k in keys]
         c2 = time.process_time()
         receiving += c1 - c0
@@ -160,7 +178,7 @@ def epoch(loader, keys):
         del batch, moved
     wall = time.perf_counter() - wall
     del it
-    return wall / n * 1e3, receiving / n * 1e3, setting / n * 1e3
+    return wall / n * 1e3, receiving / n * 1e3, setting / n * 1e3, first * 1e3
 
 
 if __name__ == "__main__":

@@ -109,6 +109,10 @@ def test_a_bad_sample_in_a_batch_raises_naming_the_file(dataset):
             ds.__getitems__([0, 1, 2, 3])
         with pytest.raises(DataError, match=str(path)):
             list(ds.loader(4))
+        # From a worker process too: the error reaches the training process, naming
+        # the file (it used to be unpicklable there, and the batch never came).
+        with pytest.raises(DataError, match=str(path)):
+            list(ds.loader(4, num_workers=2, timeout=60))
         assert len(ds.__getitems__([0, 1, 3])) == 3  # the others are unaffected
     finally:
         moved.rename(path)

@@ -198,19 +198,21 @@ def test_a_received_batch_frees_its_segment_when_dropped(dataset):
     del it, dl
 
 
-def test_a_batch_whose_shared_memory_is_not_the_one_sent_is_refused(dataset):
-    ds = ARKitFaceDataset(dataset, split=None, mode="eval", n_pts=16, corr="sparse")
-    it = iter(loader(ds, 1, persistent_workers=True))  # the worker lives while `it` does
-    batch = next(it)
-    (pid, fd, token, size, _), = [(k[0], k[1], k[2], len(m.map), None) for k, m in _shared_batches._mappings.items()
-                                  if m.base <= batch["img"].data_ptr() < m.base + len(m.map)]
+def test_a_batch_whose_shared_memory_is_not_the_one_sent_is_refused():
+    seg = _shared_batches.SegmentPool().acquire({"img": ("<f4", (2, 3, 4, 4))})
+    pid, fd, token = seg.key
+    good = _shared_batches._Mapping(pid, fd, token, seg.size, seg.layout)
+    assert good.map[: len(_shared_batches.MAGIC)] == _shared_batches.MAGIC
     with pytest.raises(RuntimeError, match="token differs"):
-        _shared_batches._Mapping(pid, fd, token ^ 1, size)
+        _shared_batches._Mapping(pid, fd, token ^ 1, seg.size)
     with pytest.raises(RuntimeError, match="bytes, the batch needs"):
-        _shared_batches._Mapping(pid, fd, token, size + 4096)
+        _shared_batches._Mapping(pid, fd, token, seg.size + 4096)
     with pytest.raises(RuntimeError, match="cannot open its shared memory"):
-        _shared_batches._Mapping(pid, 10**6, token, size)
-    del batch, it
+        _shared_batches._Mapping(pid, 10**6, token, seg.size)
+    # A layout reaching past the segment is refused before any array is made.
+    bad = (("img", "<f4", (2, 3, 4, 4), seg.size - 8),)
+    with pytest.raises(RuntimeError, match="outside its shared memory"):
+        _shared_batches.receive((pid, fd, token, seg.size, bad), [])
 
 
 def test_without_shared_batches_workers_give_the_same_batches(dataset, monkeypatch):
@@ -225,3 +227,68 @@ def test_without_shared_batches_workers_give_the_same_batches(dataset, monkeypat
             assert torch.equal(a[k].to("cpu"), b[k].to("cpu")), k
         # torch's own way: its shared memory, not a segment of ours.
         assert b["img"].untyped_storage().is_shared()
+
+
+def test_workers_of_later_epochs_reuse_the_segments_of_earlier_ones(dataset):
+    # train.py's DataLoader is not persistent: new workers every epoch. They adopt the
+    # segments the training process has mapped (fresh pages cost more than the work).
+    ds = ARKitFaceDataset(dataset, split=None, mode="train", compat="official", n_pts=64)
+    dl = loader(ds, 2)
+    reference = loader(OneByOne(ds), 0)  # its generator draws the same orders, epoch by epoch
+    opened = []
+    for epoch in range(4):
+        for b, (batch, want) in enumerate(zip(dl, list(reference))):
+            for k in SET_INPUT:
+                assert torch.equal(batch[k].to("cpu"), want[k]), (epoch, b, k)
+            del batch
+        opened.append(_shared_batches.stats["mappings_opened"])
+    assert opened[1] == opened[2] == opened[3], opened  # nothing new mapped after the first epoch
+
+
+def test_two_loaders_at_once_never_write_into_each_others_batches(dataset):
+    # Workers of two loaders alive together (a validation loader inside a training
+    # epoch, say): a segment is adopted only from a worker that has ended, under a lock.
+    train = ARKitFaceDataset(dataset, split=None, mode="train", compat="official", n_pts=64)
+    val = ARKitFaceDataset(dataset, split=None, mode="eval", compat="official", n_pts=64)
+    want_train = list(loader(OneByOne(train), 0))
+    want_val = list(loader(OneByOne(val), 0))
+    held = []
+    for epoch in range(3):
+        for b, (x, y) in enumerate(zip(loader(train, 2), loader(val, 2))):
+            held.append((epoch, b, x, y))  # every batch kept: nothing may write over them
+    for epoch, b, x, y in held:
+        for k in SET_INPUT:
+            assert torch.equal(x[k].to("cpu"), want_train[b][k]), ("train", epoch, b, k)
+            assert torch.equal(y[k].to("cpu"), want_val[b][k]), ("val", epoch, b, k)
+
+
+def test_a_segment_is_adopted_only_from_an_owner_that_has_ended():
+    import os
+
+    shapes = {"img": ("<f4", (2, 3, 4, 4))}
+    seg = _shared_batches.SegmentPool().acquire(shapes)
+    # The training process's mapping of it, as a forked worker inherits it.
+    mapping = _shared_batches._Mapping(*seg.key, seg.size, seg.layout)
+    _shared_batches._mappings[mapping.key] = mapping
+    try:
+        def adopted_in_child():
+            pid = os.fork()
+            if pid == 0:
+                got = _shared_batches.Segment.adopt(seg.layout, seg.size)
+                os._exit(0 if got is None else 1)
+            return os.waitpid(pid, 0)[1] >> 8 == 1
+
+        assert not adopted_in_child()  # its owner (this process) is alive
+        ended = os.fork()
+        if ended == 0:
+            os._exit(0)
+        os.waitpid(ended, 0)
+        import struct
+
+        struct.pack_into("<I", mapping.map, _shared_batches.OWNER_AT, ended)  # an owner that has ended
+        assert adopted_in_child()
+        seg.sent()  # held by the training process: not free
+        struct.pack_into("<I", mapping.map, _shared_batches.OWNER_AT, ended)
+        assert not adopted_in_child()
+    finally:
+        del _shared_batches._mappings[mapping.key]

@@ -33,6 +33,11 @@ import numpy as np
 from . import _native, _shared_batches
 from ._native import DataError
 from .correspondences import CorrespondenceMatrix
+
+# Named where users import it, so that it pickles: a DataLoader worker sends the
+# exception of a sample that fails to the training process (under its Rust module's
+# name it could not be found there, and the batch never arrived).
+DataError.__module__ = "arkit_tool"
 from .sampling import EpochSampler, _check_u64, distributed_rank
 
 __all__ = [
@@ -394,15 +399,9 @@ class ARKitFaceDataset:
             pool = self.__dict__["_segment_pool"] = _shared_batches.SegmentPool()
         shapes = pool.shapes.get((corr, evaluation))
         if shapes is None:
-            # The first batch of these options: its arrays give the shapes; it is
-            # copied into a segment once.
-            first = self._loader.batch(positions, epoch, corr, evaluation, None)
-            shapes = pool.shapes[(corr, evaluation)] = _shared_batches.per_sample_shapes(first)
-            segment = pool.acquire(_shared_batches.batch_shapes(shapes, len(positions)))
-            for k, a in segment.arrays.items():
-                a[...] = first[k]
-                first[k] = a
-            return first, segment
+            # An empty batch of these options gives the arrays' shapes.
+            empty = self._loader.batch([], epoch, corr, evaluation, None)
+            shapes = pool.shapes[(corr, evaluation)] = _shared_batches.per_sample_shapes(empty)
         segment = pool.acquire(_shared_batches.batch_shapes(shapes, len(positions)))
         arrays = self._loader.batch(positions, epoch, corr, evaluation, segment.arrays)
         return arrays, segment

@@ -15,6 +15,15 @@ A segment's state byte: `FREE` (the worker may write it), `SENT` (set when the b
 pickled for the queue; the training process may hold it). The worker takes a segment
 when no object of its own refers to it any more and the byte is `FREE`.
 
+Segments outlive their workers. A DataLoader that is not persistent (train.py's) starts
+new workers every epoch, and fresh shared pages cost more than computing the samples
+(on the machines measured, about 2 ms a MB in page faults). The training process keeps
+every segment it has mapped, and a worker forked from it inherits those mappings: it
+*adopts* a free one of the layout it needs whose owner (the pid in its header) has
+ended, under a lock all forked workers share, and writes its header's owner. The batch
+it sends names the segment as the training process first mapped it, so nothing is
+opened again. Spawned workers inherit nothing and make their own.
+
 Linux only (memfd and /proc); elsewhere, or with `ARKIT_TOOL_SHARED_BATCHES=0`,
 batches go the usual way (torch's shared memory, one copy).
 """
@@ -22,6 +31,7 @@ batches go the usual way (torch's shared memory, one copy).
 from __future__ import annotations
 
 import mmap
+import multiprocessing
 import os
 import secrets
 import struct
@@ -36,6 +46,7 @@ MAGIC = b"ARKITBAT"
 HEADER = 64  # bytes before the first array
 ALIGN = 64
 STATE_AT = 16
+OWNER_AT = 20  # the pid of the process that writes the segment (u32)
 FREE, SENT = 0, 1
 ENV = "ARKIT_TOOL_SHARED_BATCHES"
 
@@ -43,7 +54,14 @@ ENV = "ARKIT_TOOL_SHARED_BATCHES"
 SEGMENT_KEYS = ("img", "uvmap", "mask", "choose", "model", "nocs", "corr_ids", "corr_weights", "corr_mat")
 
 # Counters for tests and benches: segments made and bytes mapped, in this process.
-stats = {"segments_created": 0, "segment_bytes_created": 0, "mappings_opened": 0}
+stats = {"segments_created": 0, "segment_bytes_created": 0, "mappings_opened": 0, "segments_adopted": 0}
+
+# Serialises adoptions among the processes forked from this one (made at import, so that
+# every forked worker shares it).
+try:
+    _adopt_lock = multiprocessing.Lock()
+except (OSError, ImportError):  # no POSIX semaphores: workers never adopt
+    _adopt_lock = None
 
 
 def enabled() -> bool:
@@ -81,22 +99,34 @@ def _layout(shapes: Dict[str, Tuple[str, Tuple[int, ...]]]) -> Tuple[Layout, int
 
 
 class Segment:
-    """A worker's shared-memory file holding one batch's arrays."""
+    """A worker's shared-memory file holding one batch's arrays: made by the worker, or
+    adopted (`Segment.adopt`) from those the training process had mapped when the
+    worker was forked."""
 
-    def __init__(self, layout: Layout, size: int):
+    def __init__(self, layout: Layout, size: int, mapping: Optional["_Mapping"] = None):
         self.layout = layout
         self.size = size
-        self.fd = os.memfd_create("arkit-tool-batch", os.MFD_CLOEXEC)
-        try:
-            os.ftruncate(self.fd, size)
-            self.map = mmap.mmap(self.fd, size, mmap.MAP_SHARED, mmap.PROT_READ | mmap.PROT_WRITE)
-        except BaseException:
-            os.close(self.fd)
-            raise
-        self.token = secrets.randbits(64)
-        self.map[: len(MAGIC)] = MAGIC
-        struct.pack_into("<Q", self.map, 8, self.token)
-        self.map[STATE_AT] = FREE
+        if mapping is None:
+            fd = os.memfd_create("arkit-tool-batch", os.MFD_CLOEXEC)
+            try:
+                os.ftruncate(fd, size)
+                self.map = mmap.mmap(fd, size, mmap.MAP_SHARED, mmap.PROT_READ | mmap.PROT_WRITE)
+            except BaseException:
+                os.close(fd)
+                raise
+            token = secrets.randbits(64)
+            self.map[: len(MAGIC)] = MAGIC
+            struct.pack_into("<Q", self.map, 8, token)
+            struct.pack_into("<I", self.map, OWNER_AT, os.getpid())
+            self.map[STATE_AT] = FREE
+            # How the training process finds it: (pid, fd, token), the fd kept open.
+            self.key = (os.getpid(), fd, token)
+            stats["segments_created"] += 1
+            stats["segment_bytes_created"] += size
+        else:
+            self.map = mapping.map
+            self.key = mapping.key
+            stats["segments_adopted"] += 1
         self.root = np.frombuffer(self.map, dtype=np.uint8)
         self.arrays = {
             key: self.root[at : at + np.dtype(dtype).itemsize * int(np.prod(shape, dtype=np.int64))]
@@ -104,8 +134,24 @@ class Segment:
             .reshape(shape)
             for key, dtype, shape, at in layout
         }
-        stats["segments_created"] += 1
-        stats["segment_bytes_created"] += size
+
+    @staticmethod
+    def adopt(layout: Layout, size: int) -> Optional["Segment"]:
+        """A free segment of `layout` that the training process had mapped when this
+        worker was forked and whose owner has ended, now this process's; or None."""
+        if _adopt_lock is None:
+            return None
+        me = os.getpid()
+        with _adopt_lock:
+            for m in list(_mappings.values()):
+                if m.layout != layout or m.size != size or m.map[STATE_AT] != FREE:
+                    continue
+                owner = struct.unpack_from("<I", m.map, OWNER_AT)[0]
+                if owner == me or _alive(owner):
+                    continue
+                struct.pack_into("<I", m.map, OWNER_AT, me)
+                return Segment(layout, size, m)
+        return None
 
     def free(self) -> bool:
         """No object of this process refers to the segment's arrays but its own, and the
@@ -125,7 +171,8 @@ class Segment:
         self.map[STATE_AT] = SENT
 
     def descriptor(self) -> Tuple[int, int, int, int, Layout]:
-        return (os.getpid(), self.fd, self.token, self.size, self.layout)
+        pid, fd, token = self.key
+        return (pid, fd, token, self.size, self.layout)
 
 
 class SegmentPool:
@@ -142,7 +189,7 @@ class SegmentPool:
         for seg in self.segments:
             if seg.layout == layout and seg.free():
                 return seg
-        seg = Segment(layout, size)
+        seg = Segment.adopt(layout, size) or Segment(layout, size)
         self.segments.append(seg)
         return seg
 
@@ -214,13 +261,16 @@ def _in_segment(t, entry, base: int) -> bool:
 
 # -- the training process's side ----------------------------------------------------------
 
-# Open mappings, by (pid, fd, token): a segment is mapped once and reused.
+# Open mappings, by (pid, fd, token) of the worker that made the segment: a segment is
+# mapped once and kept for the rest of the run (workers forked later adopt them).
 _mappings: Dict[Tuple[int, int, int], Any] = {}
-_pids_seen: set = set()
 
 
 class _Mapping:
-    def __init__(self, pid: int, fd: int, token: int, size: int):
+    def __init__(self, pid: int, fd: int, token: int, size: int, layout: Layout = ()):
+        self.key = (pid, fd, token)
+        self.size = size
+        self.layout = layout
         path = f"/proc/{pid}/fd/{fd}"
         try:
             f = os.open(path, os.O_RDWR | os.O_CLOEXEC)
@@ -273,19 +323,15 @@ class _View:
         }
 
 
-def _mapping(pid: int, fd: int, token: int, size: int) -> _Mapping:
+def _mapping(pid: int, fd: int, token: int, size: int, layout: Layout) -> _Mapping:
     key = (pid, fd, token)
     m = _mappings.get(key)
     if m is not None:
+        if m.size != size or m.layout != layout:
+            raise RuntimeError(f"arkit_tool: a batch from DataLoader worker {pid}: its shared memory "
+                               "is described otherwise than when it was first mapped")
         return m
-    if pid not in _pids_seen:
-        # A new worker: forget the segments of workers that have ended (their batches
-        # still held keep their mappings through their leases).
-        _pids_seen.add(pid)
-        for old in [k for k in _mappings if not _alive(k[0])]:
-            del _mappings[old]
-            _pids_seen.discard(old[0])
-    m = _Mapping(pid, fd, token, size)
+    m = _Mapping(pid, fd, token, size, layout)
     _mappings[key] = m
     return m
 
@@ -305,7 +351,7 @@ def receive(descriptor, items) -> Dict[str, Any]:
     import torch
 
     pid, fd, token, size, layout = descriptor
-    mapping = _mapping(pid, fd, token, size)
+    mapping = _mapping(pid, fd, token, size, layout)
     lease = _Lease(mapping)
     tensors = {}
     for key, dtype, shape, at in layout:
