@@ -20,12 +20,15 @@ started anew each epoch: not persistent):
 
 The training process does what the official `set_input` does with each batch: `.to(device)`
 of every tensor it reads (the CPU here; a `CorrespondenceMatrix` builds its dense matrix
-then). Figures, per sample: the epoch's wall time (worker start-up included, as train.py
-pays it; the time to the first batch is printed too), and the training process's own CPU time (`time.process_time`) spent receiving
+then). Figures, per sample: the epoch's wall time (worker start-up included, as
+train.py pays it; the time to the first batch is printed too), the steady state's (from
+an epoch's first batch to its last: the rate of an epoch of the release's size, where
+the start-up is spread over 11,000 batches), and the training process's own CPU time
+(`time.process_time`) spent receiving
 batches (`next()` on the loader) and in `set_input`. For each number of workers and batch
 size the three loaders run in turn, an epoch each, `--rounds` times (after one warm epoch
-each), and the median ratio is printed. `--scaling` times our train.py path alone for each
-number of workers listed (samples a second). torch threads: 1 in every process.
+each), and the median ratio is printed. `--scaling` times our two loaders alone for each
+number of workers listed (samples a second, batch 64). torch threads: 1 in every process.
 """
 
 import argparse
@@ -125,37 +128,42 @@ def main():
                 recv = sorted(r[1] for r in rounds[k])
                 setin = sorted(r[2] for r in rounds[k])
                 start = sorted(r[3] for r in rounds[k])
+                steady = sorted(r[4] for r in rounds[k])
                 mid = a.rounds // 2
                 print(f"{k}, {workers} workers, batch {batch}: {walls[mid]:.3f} ms a sample "
                       f"({1e3 / walls[mid]:.0f} samples/s; rounds {', '.join(f'{w:.3f}' for w in walls)}); "
-                      f"training process: receiving {recv[mid]:.3f} ms, set_input {setin[mid]:.3f} ms a sample; "
-                      f"first batch after {start[mid]:.0f} ms")
+                      f"steady {steady[mid]:.3f} ms; training process: receiving {recv[mid]:.3f} ms, "
+                      f"set_input {setin[mid]:.3f} ms a sample; first batch after {start[mid]:.0f} ms")
             if official is not None:
                 for k in kinds[1:]:
-                    ratios = sorted(o[0] / r[0] for o, r in zip(rounds["official"], rounds[k]))
-                    each = ", ".join(f"{x:.1f}x" for x in ratios)
-                    print(f"ratio: official / {k}, {workers} workers, batch {batch}, in turn "
-                          f"(median of {a.rounds}: {each}) = {ratios[a.rounds // 2]:.1f}x")
+                    for what, at in (("epoch", 0), ("steady state", 4)):
+                        ratios = sorted(o[at] / r[at] for o, r in zip(rounds["official"], rounds[k]))
+                        each = ", ".join(f"{x:.1f}x" for x in ratios)
+                        print(f"ratio: official / {k}, {workers} workers, batch {batch}, {what}, in turn "
+                              f"(median of {a.rounds}: {each}) = {ratios[a.rounds // 2]:.1f}x")
             del loaders
 
     scaling = [int(x) for x in a.scaling.split(",") if x]
-    if scaling:
+    for kind in ["train.py path", "ds.loader"] if scaling else []:
         base = None
         for workers in scaling:
-            loader, keys = make("train.py path", workers, 64)
+            loader, keys = make(kind, workers, 64)
             epoch(loader, keys)
-            walls = sorted(epoch(loader, keys)[0] for _ in range(a.rounds))
-            rate = 1e3 / walls[a.rounds // 2]
-            base = base or rate
-            print(f"scaling: train.py path, batch 64, {workers} workers: {rate:.0f} samples/s")
-            print(f"ratio: train.py path {workers} workers / {scaling[0]} workers, samples a second = "
-                  f"{rate / base:.2f}")
+            runs = [epoch(loader, keys) for _ in range(a.rounds)]
+            rate = 1e3 / sorted(r[0] for r in runs)[a.rounds // 2]
+            steady = 1e3 / sorted(r[4] for r in runs)[a.rounds // 2]  # nan: one batch an epoch
+            base = base or (rate, steady)
+            print(f"scaling: {kind}, batch 64, {workers} workers: {rate:.0f} samples/s "
+                  f"(steady state {steady:.0f})")
+            print(f"ratio: {kind} {workers} workers / {scaling[0]} workers, samples a second = "
+                  f"{rate / base[0]:.2f} (steady state {steady / base[1]:.2f})")
 
 
 def epoch(loader, keys):
     """One epoch through `loader` as train.py runs it: (wall ms a sample, the training
     process's CPU ms a sample receiving batches, its CPU ms a sample in set_input, ms
-    from the epoch's start to its first batch: the workers' start-up)."""
+    from the epoch's start to its first batch: the workers' start-up, and the steady
+    state's wall ms a sample: between the first batch and the last)."""
     n = 0
     receiving = setting = 0.0
     wall = time.perf_counter()
@@ -168,17 +176,24 @@ def epoch(loader, keys):
         except StopIteration:
             break
         c1 = time.process_time()
+        now = time.perf_counter()
         if first is None:
-            first = time.perf_counter() - wall
+            first, first_n = now - wall, None
         moved = [batch[k].to("cpu") for k in keys]
         c2 = time.process_time()
         receiving += c1 - c0
         setting += c2 - c1
         n += len(moved[0])
+        if first_n is None:
+            first_n = n
+        last, last_n = now, n
         del batch, moved
-    wall = time.perf_counter() - wall
+    end = time.perf_counter()
     del it
-    return wall / n * 1e3, receiving / n * 1e3, setting / n * 1e3, first * 1e3
+    # Steady state: from the first batch received to the last, the samples of the
+    # batches after the first (an epoch of the release's size runs at this rate).
+    steady = (last - (wall + first)) / (last_n - first_n) if last_n > first_n else float("nan")
+    return (end - wall) / n * 1e3, receiving / n * 1e3, setting / n * 1e3, first * 1e3, steady * 1e3
 
 
 if __name__ == "__main__":
