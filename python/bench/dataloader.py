@@ -68,16 +68,8 @@ def main():
     import arkit_tool
 
     tmp = pathlib.Path(tempfile.mkdtemp())
-    res = ["--resources", a.resources] if (pathlib.Path(a.resources) / "triangles.npy").exists() else []
-    per_subject = 16
-    subjects = max(1, (a.samples + per_subject - 1) // per_subject)
-    subprocess.run([a.bin, "synth", "--output", tmp / "release", "--subjects", str(subjects),
-                    "--images-per-subject", str(per_subject), "--size", "800x800",
-                    "--test-fraction", "0", "--seed", "1", *res], check=True, stdout=subprocess.DEVNULL)
-    subprocess.run([a.bin, "convert", "--input", tmp / "release", "--output", tmp / "data", *res],
-                   check=True, stdout=subprocess.DEVNULL)
-    data = tmp / "data"
-    print(f"dataset: {subjects * per_subject} samples, 800x800, topology: {'real' if res else 'built-in'}")
+    data, res, n = synthetic_dataset(a.bin, tmp, a.samples, a.resources)
+    print(f"dataset: {n} samples, 800x800, topology: {'real' if res else 'built-in'}")
 
     probe = arkit_tool.ARKitFaceDataset(data, split=None, mode="eval", n_pts=16)
     paths = [probe.item(i, extras=True)["image_path"] for i in range(len(probe))]
@@ -170,6 +162,22 @@ def main():
             ms = ", ".join(f"{o:.3f}/{t:.1f}" for o, t in times)
             print(f"ratio: official get_item / arkit_tool {name}, in turn (median of {ROUNDS}: {each}; "
                   f"goal {goal}x; ms a sample, ours/theirs: {ms}) = {sorted(ratios)[ROUNDS // 2]:.1f}x")
+
+
+def synthetic_dataset(binary, tmp, samples, resources):
+    """`samples` (rounded up to whole subjects of 16) 800x800 synthetic images in the
+    release's layout under `tmp/release` (the real topology when `resources` holds it),
+    converted into `tmp/data`: (the dataset folder, the `--resources` arguments used,
+    the number of images)."""
+    res = ["--resources", resources] if (pathlib.Path(resources) / "triangles.npy").exists() else []
+    per_subject = 16
+    subjects = max(1, (samples + per_subject - 1) // per_subject)
+    subprocess.run([binary, "synth", "--output", tmp / "release", "--subjects", str(subjects),
+                    "--images-per-subject", str(per_subject), "--size", "800x800",
+                    "--test-fraction", "0", "--seed", "1", *res], check=True, stdout=subprocess.DEVNULL)
+    subprocess.run([binary, "convert", "--input", tmp / "release", "--output", tmp / "data", *res],
+                   check=True, stdout=subprocess.DEVNULL)
+    return tmp / "data", res, subjects * per_subject
 
 
 def warmed_loader(torch, ds, collate):

@@ -70,25 +70,19 @@ def main():
     torch.set_num_threads(1)
     import arkit_tool
     from arkit_tool.official import OfficialScriptsDataset
+    from dataloader import synthetic_dataset
 
     tmp = pathlib.Path(tempfile.mkdtemp())
-    res = ["--resources", a.resources] if (pathlib.Path(a.resources) / "triangles.npy").exists() else []
-    per_subject = 16
-    subjects = max(1, (a.samples + per_subject - 1) // per_subject)
-    run = lambda *args: subprocess.run([a.bin, *args], check=True, stdout=subprocess.DEVNULL)  # noqa: E731
-    run("synth", "--output", tmp / "release", "--subjects", str(subjects), "--images-per-subject",
-        str(per_subject), "--size", "800x800", "--test-fraction", "0", "--seed", "1", *res)
-    run("convert", "--input", tmp / "release", "--output", tmp / "data", *res)
-    data = tmp / "data"
+    data, res, n = synthetic_dataset(a.bin, tmp, a.samples, a.resources)
     for compat in ["official", "exact"]:
-        run("crops", "--dataset", data, "--compat", compat, *res)
-    n = subjects * per_subject
+        subprocess.run([a.bin, "crops", "--dataset", data, "--compat", compat, *res], check=True,
+                       stdout=subprocess.DEVNULL)
     print(f"dataset: {n} samples, 800x800, topology: {'real' if res else 'built-in'}, default crop stores; "
           f"{os.cpu_count()} cores; torch {torch.__version__}")
 
     official = None
     if a.official:
-        from dataloader import official_datasets
+        from dataloader import official_datasets  # noqa: E402
 
         official = official_datasets(pathlib.Path(a.official), tmp / "release")["train"]
         os.chdir(a.official)  # the official code opens its files relative to its checkout

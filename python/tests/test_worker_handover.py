@@ -12,6 +12,7 @@ torch = pytest.importorskip("torch", reason="SKIPPED: torch is not installed")
 
 from arkit_tool import ARKitFaceDataset, CorrespondenceMatrix, _shared_batches  # noqa: E402
 from arkit_tool.correspondences import dense_matrix, scatter_matrix  # noqa: E402
+from test_batches import OneByOne  # noqa: E402  (the dataset asked for samples one by one)
 
 # What the official PerspNetModel.set_input moves to its device.
 SET_INPUT = ["img", "choose", "model", "uvmap", "nocs", "mask", "corr_mat"]
@@ -83,19 +84,6 @@ def test_a_held_dense_matrix_is_never_written_over():
     gc.collect()
     again = m2.to("cpu")
     assert again.data_ptr() != held.data_ptr() and torch.all(held[..., 0] == 0.5)
-
-
-class OneByOne(torch.utils.data.Dataset):
-    """The dataset seen without `__getitems__`: torch then asks for samples one by one."""
-
-    def __init__(self, ds):
-        self.ds = ds
-
-    def __len__(self):
-        return len(self.ds)
-
-    def __getitem__(self, i):
-        return self.ds[i]
 
 
 def loader(ds, workers, **kw):
