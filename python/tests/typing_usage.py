@@ -44,3 +44,17 @@ def the_error_is_a_value_error(e: _native.DataError) -> ValueError:
 
 def the_dataset_class() -> type:
     return arkit_tool.ARKitFaceDataset
+
+
+def corr_mat_usage(batch: "dict[str, object]") -> None:
+    import numpy as np
+    import torch
+
+    from arkit_tool import CorrespondenceMatrix
+
+    m = batch["corr_mat"]
+    assert isinstance(m, CorrespondenceMatrix)
+    dense: torch.Tensor = m.to("cpu")
+    rows: int = m.shape[1]
+    host: np.ndarray = m.numpy()
+    print(dense.shape, rows, host.dtype, m.row(0).vertex_count)

@@ -24,16 +24,19 @@ from __future__ import annotations
 
 import sys
 import threading
-from typing import Any, Dict, List, Tuple
+from typing import TYPE_CHECKING, Any, Dict, Iterator, List, Optional, Tuple
 
 import numpy as np
 
 from . import _native
 
+if TYPE_CHECKING:
+    import torch
+
 __all__ = ["CorrespondenceMatrix", "dense_matrix", "scatter_matrix"]
 
 
-def dense_matrix(ids, weights, vertex_count: int):
+def dense_matrix(ids: Any, weights: Any, vertex_count: int) -> Any:
     """The dense correspondence matrix of `ids` (..., n, 3) and `weights` (..., n, 3)
     (torch tensors on one device, or numpy arrays): (..., n, vertex_count) float32,
     zeros but for each row's three weights at its three vertex columns; where a
@@ -59,7 +62,7 @@ def dense_matrix(ids, weights, vertex_count: int):
     return scatter_matrix(ids, weights, vertex_count)
 
 
-def scatter_matrix(ids, weights, vertex_count: int):
+def scatter_matrix(ids: "torch.Tensor", weights: "torch.Tensor", vertex_count: int) -> "torch.Tensor":
     """`dense_matrix` built by torch on the tensors' device: zeros, then each of the
     three columns assigned in turn (what the official loader's three assignments do)."""
     import torch
@@ -98,12 +101,12 @@ def _cpu_buffer(shape: Tuple[int, ...]) -> np.ndarray:
         return buf
 
 
-def _is_tensor(x) -> bool:
+def _is_tensor(x: Any) -> bool:
     torch = sys.modules.get("torch")
     return torch is not None and isinstance(x, torch.Tensor)
 
 
-def _device_of(args, kwargs):
+def _device_of(args: Tuple[Any, ...], kwargs: Dict[str, Any]) -> Any:
     """The device a `Tensor.to(...)` call names, or None (a dtype only)."""
     import torch
 
@@ -124,7 +127,7 @@ class CorrespondenceMatrix:
 
     __slots__ = ("ids", "weights", "vertex_count")
 
-    def __init__(self, ids, weights, vertex_count: int):
+    def __init__(self, ids: Any, weights: Any, vertex_count: int) -> None:
         if tuple(ids.shape) != tuple(weights.shape) or len(ids.shape) < 2 or ids.shape[-1] != 3:
             raise ValueError(
                 f"CorrespondenceMatrix: ids {tuple(ids.shape)} and weights {tuple(weights.shape)}: "
@@ -136,7 +139,7 @@ class CorrespondenceMatrix:
 
     # -- what it is ------------------------------------------------------------------
     @property
-    def shape(self):
+    def shape(self) -> Tuple[int, ...]:
         dims = tuple(self.ids.shape[:-1]) + (self.vertex_count,)
         if _is_tensor(self.ids):
             import torch
@@ -145,7 +148,7 @@ class CorrespondenceMatrix:
         return dims
 
     @property
-    def dtype(self):
+    def dtype(self) -> Any:
         if _is_tensor(self.ids):
             import torch
 
@@ -157,10 +160,10 @@ class CorrespondenceMatrix:
         return len(self.ids.shape)
 
     @property
-    def device(self):
+    def device(self) -> Any:
         return self.ids.device if _is_tensor(self.ids) else None
 
-    def size(self, dim=None):
+    def size(self, dim: Optional[int] = None) -> Any:
         shape = self.shape
         return shape if dim is None else shape[dim]
 
@@ -175,19 +178,19 @@ class CorrespondenceMatrix:
         return f"CorrespondenceMatrix(shape={tuple(self.shape)}, dtype=float32, sparse {kind})"
 
     # -- the dense matrix ------------------------------------------------------------
-    def dense(self):
+    def dense(self) -> Any:
         """The dense matrix where the sparse form is: a torch tensor on its device, or a
         numpy array when the sparse form is numpy."""
         return dense_matrix(self.ids, self.weights, self.vertex_count)
 
-    def _tensors(self):
+    def _tensors(self) -> Tuple["torch.Tensor", "torch.Tensor"]:
         import torch
 
         if _is_tensor(self.ids):
             return self.ids, self.weights
         return torch.as_tensor(self.ids), torch.as_tensor(self.weights)
 
-    def to(self, *args, **kwargs):
+    def to(self, *args: Any, **kwargs: Any) -> "torch.Tensor":
         """`Tensor.to`'s arguments: the dense matrix built on the device named (this
         one's when none), then converted as asked (a dtype, `copy`, ...). A plain
         `torch.Tensor`."""
@@ -200,28 +203,28 @@ class CorrespondenceMatrix:
         out = dense_matrix(ids, weights, self.vertex_count)
         return out.to(*args, **kwargs)
 
-    def cuda(self, *args, **kwargs):
+    def cuda(self, *args: Any, **kwargs: Any) -> "torch.Tensor":
         import torch
 
         return self.to(torch.device("cuda", *args) if args else "cuda", **kwargs)
 
-    def cpu(self):
+    def cpu(self) -> "torch.Tensor":
         return self.to("cpu")
 
-    def float(self):
+    def float(self) -> "torch.Tensor":
         return self.to("cpu") if not _is_tensor(self.ids) else self.dense()
 
-    def numpy(self):
+    def numpy(self) -> np.ndarray:
         out = self.dense()
         return out if isinstance(out, np.ndarray) else out.numpy()
 
-    def pin_memory(self, *args):
+    def pin_memory(self, *args: Any) -> "CorrespondenceMatrix":
         """The sparse form in pinned memory (what a DataLoader's `pin_memory=True` asks);
         `.to("cuda", non_blocking=True)` then copies it without blocking."""
         ids, weights = self._tensors()
         return CorrespondenceMatrix(ids.pin_memory(*args), weights.pin_memory(*args), self.vertex_count)
 
-    def __array__(self, dtype=None, copy=None):
+    def __array__(self, dtype: Any = None, copy: Optional[bool] = None) -> np.ndarray:
         out = self.numpy()
         return out if dtype is None else out.astype(dtype)
 
@@ -229,12 +232,12 @@ class CorrespondenceMatrix:
         """Sample `i` of a batch (the sparse form's rows: no dense matrix built)."""
         return CorrespondenceMatrix(self.ids[i], self.weights[i], self.vertex_count)
 
-    def __getitem__(self, index):
+    def __getitem__(self, index: Any) -> Any:
         if isinstance(index, (int, np.integer)) and not isinstance(index, bool) and self.ndim > 2:
             return self.row(int(index))
         return self.dense()[index]
 
-    def __iter__(self):
+    def __iter__(self) -> Iterator[Any]:
         if self.ndim > 2:
             return (self.row(i) for i in range(len(self)))
         return iter(self.dense())
@@ -246,7 +249,7 @@ class CorrespondenceMatrix:
         return getattr(self.dense(), name)
 
     @classmethod
-    def __torch_function__(cls, func, types, args=(), kwargs=None):
+    def __torch_function__(cls, func: Any, types: Any, args: Any = (), kwargs: Any = None) -> Any:
         kwargs = kwargs or {}
         return func(*_densify(args), **_densify(kwargs))
 
@@ -254,7 +257,7 @@ class CorrespondenceMatrix:
         return (CorrespondenceMatrix, (self.ids, self.weights, self.vertex_count))
 
 
-def _densify(value):
+def _densify(value: Any) -> Any:
     if isinstance(value, CorrespondenceMatrix):
         return value.dense()
     if isinstance(value, (list, tuple)):
@@ -264,8 +267,8 @@ def _densify(value):
     return value
 
 
-def _operator(name: str):
-    def op(self, *args):
+def _operator(name: str) -> Any:
+    def op(self: "CorrespondenceMatrix", *args: Any) -> Any:
         return getattr(self.dense(), name)(*_densify(args))
 
     op.__name__ = name
