@@ -68,6 +68,20 @@ def test_the_matrix_acts_as_the_dense_tensor_where_torch_reads_it():
     assert torch.equal(m[:, 2], dense[:, 2])
     np.testing.assert_array_equal(np.asarray(m), dense.numpy())
     assert not isinstance(m, torch.Tensor)  # the documented limit
+    # A probe for what a tensor does not have builds nothing.
+    from arkit_tool import correspondences
+
+    built = []
+    real = correspondences.dense_matrix
+    correspondences.dense_matrix = lambda *a: built.append(1) or real(*a)
+    try:
+        assert not hasattr(m, "_fields") and not hasattr(m, "no_such_method")
+        with pytest.raises(AttributeError, match="no_such_method"):
+            m.no_such_method()
+        assert not built
+        assert m.abs().shape == (3, 8, 30) and built == [1]  # a tensor method builds it
+    finally:
+        correspondences.dense_matrix = real
     again = pickle.loads(pickle.dumps(m))
     assert torch.equal(again.to("cpu"), dense)
 

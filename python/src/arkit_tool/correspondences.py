@@ -244,8 +244,12 @@ class CorrespondenceMatrix:
 
     # Everything else a tensor has, on the dense matrix.
     def __getattr__(self, name: str) -> Any:
-        if name.startswith("__"):
-            raise AttributeError(name)
+        # Only what a tensor has (or numpy's array, for a numpy-held matrix): a probe for
+        # anything else (`hasattr(m, "_fields")`) must not build the dense matrix.
+        torch = sys.modules.get("torch")
+        kind = torch.Tensor if torch is not None and _is_tensor(self.ids) else np.ndarray
+        if name.startswith("__") or not hasattr(kind, name):
+            raise AttributeError(f"'CorrespondenceMatrix' object has no attribute {name!r}")
         return getattr(self.dense(), name)
 
     @classmethod
