@@ -57,10 +57,11 @@ SEGMENT_KEYS = ("img", "uvmap", "mask", "choose", "model", "nocs", "corr_ids", "
 stats = {"segments_created": 0, "segment_bytes_created": 0, "mappings_opened": 0, "segments_adopted": 0}
 
 # Serialises adoptions among the processes forked from this one (made at import, so that
-# every forked worker shares it).
+# every forked worker shares it; made for fork, so it is an unnamed semaphore that needs
+# no resource tracker whatever the default start method).
 try:
-    _adopt_lock = multiprocessing.Lock()
-except (OSError, ImportError):  # no POSIX semaphores: workers never adopt
+    _adopt_lock: Any = multiprocessing.get_context("fork").Lock()
+except (OSError, ImportError, ValueError):  # no fork or no POSIX semaphores: workers never adopt
     _adopt_lock = None
 
 
