@@ -627,15 +627,11 @@ def collate(batch):
 
 
 def _plain(batch):
-    """`batch` with its `SampleView`s as plain dicts (what default_collate stacks), a
-    `CorrespondenceMatrix` as its dense matrix."""
+    """`batch` with its `SampleView`s as plain dicts (what default_collate stacks; a
+    `CorrespondenceMatrix` is stacked in its sparse form, `_collate_correspondences`)."""
     if isinstance(batch, list) and batch and isinstance(batch[0], SampleView):
-        return [_plain_sample(s) for s in batch]
+        return [dict(s) for s in batch]
     return batch
-
-
-def _plain_sample(sample) -> Dict[str, Any]:
-    return dict(sample)
 
 
 def _collate_correspondences(batch, *, collate_fn_map=None):
@@ -661,7 +657,7 @@ def _collate_sample_views(batch, *, collate_fn_map=None):
         return collate(batch)
     from torch.utils.data._utils.collate import collate as torch_collate
 
-    return torch_collate([_plain_sample(s) for s in batch], collate_fn_map=collate_fn_map)
+    return torch_collate([dict(s) for s in batch], collate_fn_map=collate_fn_map)
 
 
 def _teach_default_collate() -> None:
