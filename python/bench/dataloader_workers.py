@@ -20,7 +20,8 @@ started anew each epoch: not persistent):
 
 The training process does what the official `set_input` does with each batch: `.to(device)`
 of every tensor it reads (the CPU here; a `CorrespondenceMatrix` builds its dense matrix
-then). Figures, per sample: the epoch's wall time (worker start-up included, as
+then), keeping them until the next batch's have been made, as the model's attributes
+do. Figures, per sample: the epoch's wall time (worker start-up included, as
 train.py pays it; the time to the first batch is printed too), the steady state's (from
 an epoch's first batch to its last: the rate of an epoch of the release's size, where
 the start-up is spread over 11,000 batches), and the training process's own CPU time
@@ -161,7 +162,7 @@ def epoch(loader, keys):
     n = 0
     receiving = setting = 0.0
     wall = time.perf_counter()
-    first = None
+    first = held = None
     it = iter(loader)
     while True:
         c0 = time.process_time()
@@ -181,9 +182,12 @@ def epoch(loader, keys):
         if first_n is None:
             first_n = n
         last, last_n = now, n
+        # The model keeps the batch's tensors (`self.img = ...`) until the next batch's
+        # `set_input` has replaced them.
+        held = moved  # noqa: F841
         del batch, moved
     end = time.perf_counter()
-    del it
+    del it, held
     # Steady state: from the first batch received to the last, the samples of the
     # batches after the first (an epoch of the release's size runs at this rate).
     steady = (last - (wall + first)) / (last_n - first_n) if last_n > first_n else float("nan")

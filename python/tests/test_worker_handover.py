@@ -3,6 +3,8 @@ once (no copy on the way), `corr_mat` carried sparse and built dense by `.to(dev
 bit for bit the official matrix."""
 
 import gc
+import os
+import sys
 import pickle
 
 import numpy as np
@@ -72,8 +74,8 @@ def test_the_matrix_acts_as_the_dense_tensor_where_torch_reads_it():
     from arkit_tool import correspondences
 
     built = []
-    real = correspondences.dense_matrix
-    correspondences.dense_matrix = lambda *a: built.append(1) or real(*a)
+    real = correspondences._dense
+    correspondences._dense = lambda *a, **k: built.append(1) or real(*a, **k)
     try:
         assert not hasattr(m, "_fields") and not hasattr(m, "no_such_method")
         with pytest.raises(AttributeError, match="no_such_method"):
@@ -81,7 +83,7 @@ def test_the_matrix_acts_as_the_dense_tensor_where_torch_reads_it():
         assert not built
         assert m.abs().shape == (3, 8, 30) and built == [1]  # a tensor method builds it
     finally:
-        correspondences.dense_matrix = real
+        correspondences._dense = real
     again = pickle.loads(pickle.dumps(m))
     assert torch.equal(again.to("cpu"), dense)
 
@@ -98,6 +100,98 @@ def test_a_held_dense_matrix_is_never_written_over():
     gc.collect()
     again = m2.to("cpu")
     assert again.data_ptr() != held.data_ptr() and torch.all(held[..., 0] == 0.5)
+
+
+def official_matrix(m):
+    return torch.from_numpy(official_dense(m.ids.numpy(), m.weights.numpy(), m.vertex_count))
+
+
+def sparse_batch(seed, n=64, b=3, v=1220):
+    g = torch.Generator().manual_seed(seed)
+    ids = torch.randint(0, v, (b, n, 3), generator=g)
+    ids[:, ::5, 2] = ids[:, ::5, 0]  # triangles repeating a vertex: the later weight stays
+    return CorrespondenceMatrix(ids, torch.rand(b, n, 3, generator=g) - 0.25, v)
+
+
+class RustCalls:
+    """Records whether each dense CPU matrix was written whole or at its old columns."""
+
+    def __init__(self, monkeypatch):
+        from arkit_tool import _native, correspondences
+
+        self.kinds = []
+        real = _native.write_correspondence_matrix_into
+
+        def spy(out, ids, weights, previous_ids=None):
+            self.kinds.append("whole" if previous_ids is None else "columns")
+            return real(out, ids, weights, previous_ids)
+
+        monkeypatch.setattr(correspondences._native, "write_correspondence_matrix_into", spy)
+
+
+def test_a_reused_buffer_is_rewritten_at_its_columns_to_the_same_bits(monkeypatch):
+    calls = RustCalls(monkeypatch)
+    first = sparse_batch(1).to("cpu")
+    ptr = first.data_ptr()
+    del first
+    for seed in range(2, 6):
+        m = sparse_batch(seed)
+        t = m.to("cpu")
+        assert t.data_ptr() == ptr  # the buffer nobody held, again
+        assert t.numpy().tobytes() == official_matrix(m).numpy().tobytes(), seed
+        del t
+    assert calls.kinds == ["whole"] + ["columns"] * 4
+
+
+@pytest.mark.parametrize("write", ["in place", "through a view", "index", "numpy of the batch", "data"])
+def test_a_buffer_written_by_its_user_is_written_whole_next_time(monkeypatch, write):
+    # Whatever the user wrote into the last matrix never shows in the next one.
+    calls = RustCalls(monkeypatch)
+    m1, m2 = sparse_batch(7), sparse_batch(8)
+    t = m1.to("cpu")
+    ptr = t.data_ptr()
+    if write == "in place":
+        t.add_(3.0)
+    elif write == "through a view":
+        t[0].view(-1)[:100].fill_(9.0)
+    elif write == "index":
+        t[1, 2, 3] = 5.0
+    elif write == "numpy of the batch":
+        del t
+        m1.numpy()[:, :, 7] = 2.0
+    else:
+        del t
+        m1.data.fill_(4.0)  # `.data` writes past torch's version counter
+    t = None
+    gc.collect()
+    t2 = m2.to("cpu")
+    assert t2.data_ptr() == ptr
+    assert t2.numpy().tobytes() == official_matrix(m2).numpy().tobytes()
+    assert calls.kinds[-1] == "whole"
+
+
+@pytest.mark.parametrize("hold", ["view", "numpy", "tensor of its numpy"])
+def test_a_buffer_held_in_any_form_is_not_reused(hold):
+    m1, m2 = sparse_batch(9), sparse_batch(10)
+    t = m1.to("cpu")
+    want = t.clone()
+    held = {"view": lambda: t[1:], "numpy": lambda: t.numpy(), "tensor of its numpy": lambda: torch.from_numpy(t.numpy())}[hold]()
+    ptr = t.data_ptr()
+    del t
+    gc.collect()
+    others = [m2.to("cpu") for _ in range(3)]
+    assert all(o.data_ptr() != ptr for o in others)
+    assert torch.equal(torch.as_tensor(held), want[1:] if hold == "view" else want)
+
+
+def test_a_numpy_matrix_held_through_a_view_is_not_reused():
+    m1, m2 = sparse_batch(11), sparse_batch(12)
+    a = dense_matrix(m1.ids.numpy(), m1.weights.numpy(), 1220)
+    held, want = a[1:], a[1:].copy()
+    del a
+    others = [dense_matrix(m2.ids.numpy(), m2.weights.numpy(), 1220) for _ in range(3)]
+    assert all(not np.shares_memory(o, held) for o in others)
+    np.testing.assert_array_equal(held, want)
 
 
 def loader(ds, workers, **kw):
@@ -294,3 +388,37 @@ def test_a_segment_is_adopted_only_from_an_owner_that_has_ended():
         assert not adopted_in_child()
     finally:
         del _shared_batches._mappings[mapping.key]
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="fork and madvise: Linux")
+def test_dense_buffers_are_the_training_process_s_alone_after_a_fork():
+    # DataLoader workers are forked at every epoch: the training process's dense buffers
+    # are not shared with them (no copy-on-write fault a page afterwards; the child sees
+    # zeros there and forgets them), and a matrix the child builds is its own and right.
+    from arkit_tool import correspondences
+
+    m1, m2 = sparse_batch(13), sparse_batch(14)
+    t = m1.to("cpu")
+    want1, want2 = official_matrix(m1), official_matrix(m2)
+    read, write = os.pipe()
+    pid = os.fork()
+    if pid == 0:
+        try:
+            ok = (
+                not correspondences._buffers  # forgotten
+                # (numpy here: torch's OpenMP pool does not survive a fork)
+                and not np.any(t.numpy())  # the parent's buffer reads as zeros here
+                and np.array_equal(m2.to("cpu").numpy(), want2.numpy())
+            )
+            os.write(write, b"1" if ok else b"0")
+        finally:
+            os._exit(0)
+    os.close(write)
+    answer = os.read(read, 1)
+    os.waitpid(pid, 0)
+    os.close(read)
+    assert answer == b"1"
+    assert torch.equal(t, want1)  # untouched by the child
+    del t
+    again = m2.to("cpu")
+    assert torch.equal(again, want2)

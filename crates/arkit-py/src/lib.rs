@@ -16,7 +16,9 @@
 
 use arkit_core::conventions::Camera;
 use arkit_core::release::SampleKey;
-use arkit_data::loader::correspondence_matrix::write_correspondence_matrix;
+use arkit_data::loader::correspondence_matrix::{
+    rewrite_correspondence_matrix, write_correspondence_matrix,
+};
 use arkit_data::loader::item::{Compat, FaceLoader, LoaderItem, LoaderMode, LoaderOptions};
 use arkit_data::store::samples_table::SampleRecord;
 
@@ -879,17 +881,21 @@ fn topology<'py>(
 }
 
 /// Writes the dense correspondence matrices of `ids` (..., n, 3) int64 and `weights`
-/// (..., n, 3) float32 into `out` (..., n, V) float32, C-contiguous and writeable: every
-/// value written (zeros but for each row's weights at its vertex columns, the later of
-/// a repeated vertex's weights staying, as the official loader assigns them), without
-/// the GIL. A vertex id outside `0..V` or shapes that do not fit raise `DataError`
-/// before anything is written.
+/// (..., n, 3) float32 into `out` (..., n, V) float32, C-contiguous and writeable: zeros
+/// but for each row's weights at its vertex columns, the later of a repeated vertex's
+/// weights staying, as the official loader assigns them, without the GIL. With
+/// `previous_ids` (the ids `out` was last written with, and the caller's promise that
+/// nothing else has written it since) only those columns are cleared before the new
+/// weights go in; otherwise every value is written. A vertex id outside `0..V` or
+/// shapes that do not fit raise `DataError` before anything is written.
 #[pyfunction]
+#[pyo3(signature = (out, ids, weights, previous_ids=None))]
 fn write_correspondence_matrix_into<'py>(
     py: Python<'py>,
     out: Bound<'py, PyArrayDyn<f32>>,
     ids: numpy::PyReadonlyArrayDyn<'py, i64>,
     weights: numpy::PyReadonlyArrayDyn<'py, f32>,
+    previous_ids: Option<numpy::PyReadonlyArrayDyn<'py, i64>>,
 ) -> PyResult<()> {
     let (shape, id_shape) = (out.shape().to_vec(), ids.shape().to_vec());
     let writeable: bool = out.getattr("flags")?.getattr("writeable")?.extract()?;
@@ -897,47 +903,56 @@ fn write_correspondence_matrix_into<'py>(
         && id_shape.len() == shape.len()
         && id_shape.last() == Some(&3)
         && id_shape[..id_shape.len() - 1] == shape[..shape.len() - 1]
-        && weights.shape() == id_shape.as_slice();
+        && weights.shape() == id_shape.as_slice()
+        && previous_ids
+            .as_ref()
+            .is_none_or(|p| p.shape() == id_shape.as_slice());
     if !fits || !out.is_c_contiguous() || !writeable {
         return Err(DataError::new_err(format!(
-            "correspondence matrix: out {shape:?}, ids {id_shape:?}, weights {:?}: expected \
-             (..., n, V) C-contiguous writeable float32 and two (..., n, 3)",
-            weights.shape()
+            "correspondence matrix: out {shape:?}, ids {id_shape:?}, weights {:?}, previous \
+             ids {:?}: expected (..., n, V) C-contiguous writeable float32 and (..., n, 3)",
+            weights.shape(),
+            previous_ids.as_ref().map(|p| p.shape().to_vec())
         )));
     }
     let v = shape[shape.len() - 1];
-    let ids = ids.as_array();
-    let weights = weights.as_array();
-    let mut vertices = Vec::with_capacity(ids.len() / 3);
-    for (row, id) in ids
-        .iter()
-        .copied()
-        .collect::<Vec<_>>()
-        .chunks_exact(3)
-        .enumerate()
-    {
-        let mut r = [0u32; 3];
-        for (k, &x) in id.iter().enumerate() {
+    let triples = |ids: &numpy::PyReadonlyArrayDyn<'py, i64>, what: &str| {
+        let mut out = Vec::with_capacity(ids.len() / 3);
+        let mut row = [0u32; 3];
+        for (i, &x) in ids.as_array().iter().enumerate() {
             if x < 0 || x as usize >= v {
                 return Err(DataError::new_err(format!(
-                    "correspondence matrix: row {row}: vertex id {x} outside 0..{v}"
+                    "correspondence matrix: row {}: {what}vertex id {x} outside 0..{v}",
+                    i / 3
                 )));
             }
-            r[k] = x as u32;
+            row[i % 3] = x as u32;
+            if i % 3 == 2 {
+                out.push(row);
+            }
         }
-        vertices.push(r);
+        Ok(out)
+    };
+    let vertices = triples(&ids, "")?;
+    let previous = previous_ids
+        .as_ref()
+        .map(|p| triples(p, "previous "))
+        .transpose()?;
+    let mut w = Vec::with_capacity(vertices.len());
+    let mut row = [0f32; 3];
+    for (i, &x) in weights.as_array().iter().enumerate() {
+        row[i % 3] = x;
+        if i % 3 == 2 {
+            w.push(row);
+        }
     }
-    let w: Vec<[f32; 3]> = weights
-        .iter()
-        .copied()
-        .collect::<Vec<_>>()
-        .chunks_exact(3)
-        .map(|c| [c[0], c[1], c[2]])
-        .collect();
     // SAFETY: `out` was checked C-contiguous and writeable; nothing else writes it while
     // the GIL is released (the caller owns it: a buffer it made for this matrix).
     let slice = unsafe { out.as_slice_mut()? };
-    py.detach(|| write_correspondence_matrix(slice, v, &vertices, &w));
+    py.detach(|| match &previous {
+        Some(previous) => rewrite_correspondence_matrix(slice, v, previous, &vertices, &w),
+        None => write_correspondence_matrix(slice, v, &vertices, &w),
+    });
     Ok(())
 }
 

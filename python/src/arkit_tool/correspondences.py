@@ -22,6 +22,8 @@ torch.Tensor)` is False, and an API that checks that type (a `TensorDataset`, a
 
 from __future__ import annotations
 
+import mmap
+import os
 import sys
 import threading
 from typing import TYPE_CHECKING, Any, Dict, Iterator, List, Optional, Tuple
@@ -41,25 +43,43 @@ def dense_matrix(ids: Any, weights: Any, vertex_count: int) -> Any:
     (torch tensors on one device, or numpy arrays): (..., n, vertex_count) float32,
     zeros but for each row's three weights at its three vertex columns; where a
     triangle repeats a vertex the later weight stays, as the official loader assigns
-    them. On the CPU Rust writes it (`_native.write_correspondence_matrix_into`, into a
-    buffer reused once nothing refers to it: a fresh 5 MB a sample costs more in page
-    faults than writing it); on another device torch builds it there (`scatter_`, one
-    column at a time, so no assignment has two values for one place: the same bits on
-    any device)."""
-    if isinstance(ids, np.ndarray) or ids.device.type == "cpu":
-        numpy_in = isinstance(ids, np.ndarray)
-        ids_np = ids if numpy_in else ids.numpy()
-        weights_np = weights if isinstance(weights, np.ndarray) else weights.numpy()
-        out = _cpu_buffer(tuple(ids_np.shape[:-1]) + (int(vertex_count),))
-        _native.write_correspondence_matrix_into(
-            out, np.asarray(ids_np, dtype=np.int64), np.asarray(weights_np, dtype=np.float32)
-        )
-        if numpy_in:
-            return out
-        import torch
+    them. On the CPU Rust writes it (`_native.write_correspondence_matrix_into`) into a
+    buffer reused once nothing refers to it (see `_Slot`); on another device torch
+    builds it there (`scatter_`, one column at a time, so no assignment has two values
+    for one place: the same bits on any device)."""
+    return _dense(ids, weights, vertex_count, tracked=True)
 
-        return torch.from_numpy(out)
-    return scatter_matrix(ids, weights, vertex_count)
+
+def _dense(ids: Any, weights: Any, vertex_count: int, tracked: bool) -> Any:
+    """`dense_matrix`; `tracked=False`: the caller hands the matrix on in a form whose
+    writes torch does not count (a numpy array), so the buffer's contents are not known
+    afterwards and its next use writes it whole."""
+    if not (isinstance(ids, np.ndarray) or ids.device.type == "cpu"):
+        return scatter_matrix(ids, weights, vertex_count)
+    numpy_in = isinstance(ids, np.ndarray)
+    ids_np = np.asarray(ids if numpy_in else ids.numpy(), dtype=np.int64)
+    weights_np = np.asarray(weights if isinstance(weights, np.ndarray) else weights.numpy(), dtype=np.float32)
+    slot = _cpu_slot(tuple(ids_np.shape[:-1]) + (int(vertex_count),))
+    try:
+        _native.write_correspondence_matrix_into(slot.buf, ids_np, weights_np, slot.clean_ids())
+        if numpy_in or slot.tensor is None or not tracked:
+            # Writes through a numpy array (or a tensor made anew on it) are counted
+            # nowhere: the next use writes the buffer whole.
+            slot.written = None
+        else:
+            slot.written = (ids_np.copy(), slot.tensor._version)
+        if numpy_in:
+            return slot.buf
+        if slot.tensor is None:
+            import torch
+
+            return torch.from_numpy(slot.buf)
+        return slot.tensor
+    except BaseException:
+        slot.written = None
+        raise
+    finally:
+        slot.busy = False
 
 
 def scatter_matrix(ids: "torch.Tensor", weights: "torch.Tensor", vertex_count: int) -> "torch.Tensor":
@@ -75,30 +95,123 @@ def scatter_matrix(ids: "torch.Tensor", weights: "torch.Tensor", vertex_count: i
     return out
 
 
+class _Slot:
+    """A dense CPU matrix buffer (`buf`, numpy) and the one tensor handed out on it
+    (`tensor`, made once, where torch is imported and tells how many tensors use a
+    storage), with what was last written into it: `written` = (the ids, the tensor's
+    version counter just after), or None when its contents are not known (new, or
+    handed out in a form whose writes torch does not count)."""
+
+    __slots__ = ("buf", "tensor", "written", "busy", "refs")
+
+    def __init__(self, shape: Tuple[int, ...]) -> None:
+        self.buf = _private_buffer(shape)
+        self.written: Optional[Tuple[np.ndarray, int]] = None
+        self.busy = True
+        torch = sys.modules.get("torch")
+        self.tensor: Any = None
+        if torch is not None and _storage_users is not None:
+            self.tensor = torch.from_numpy(self.buf)
+        # The references when nobody else holds the buffer, as counted here: the
+        # slot's own (and the tensor's storage's) to `buf`; the tensor and the storage
+        # object asked for, among the storage's users.
+        self.refs = (sys.getrefcount(self.buf) - 1, self._users())
+
+    def _users(self) -> int:
+        if self.tensor is None:
+            return 0
+        return int(_storage_users(self.tensor.untyped_storage()._cdata))
+
+    def free(self) -> bool:
+        """Nobody else refers to the buffer: not through numpy (a view holds `buf`), not
+        through torch (the tensor itself, or a view of it or its `.numpy()`, which share
+        its storage)."""
+        if self.busy or sys.getrefcount(self.buf) - 1 > self.refs[0]:
+            return False
+        return self.tensor is None or (sys.getrefcount(self.tensor) <= 2 and self._users() <= self.refs[1])
+
+    def clean_ids(self) -> Optional[np.ndarray]:
+        """The ids the buffer holds the matrix of, when nothing has written the tensor
+        since (torch counts every in-place write to it and its views), so that only
+        their columns need clearing; None: write it whole."""
+        if self.written is None or self.tensor is None:
+            return None
+        ids, version = self.written
+        return ids if self.tensor._version == version else None
+
+
+# Linux's madvise(MADV_WIPEONFORK) (4.14+; Python's mmap does not name it).
+_MADV_WIPEONFORK = 18
+
+
+def _private_buffer(shape: Tuple[int, ...]) -> np.ndarray:
+    """A float32 array for the training process alone. On Linux its memory is not shared
+    with processes forked later (DataLoader workers, forked at every epoch): they see
+    zeros there, and the training process's next write into it is not a copy-on-write
+    fault a page (170 ms for a batch of 64 here, every epoch). Elsewhere, or where the
+    kernel refuses, an ordinary array."""
+    nbytes = int(np.prod(shape, dtype=np.int64)) * 4
+    if sys.platform.startswith("linux") and nbytes > 0:
+        try:
+            region = mmap.mmap(-1, nbytes, flags=mmap.MAP_PRIVATE)
+            region.madvise(_MADV_WIPEONFORK)
+            # One array on the region: every view of it names it as its base.
+            return np.ndarray(shape, dtype=np.float32, buffer=region)
+        except (OSError, ValueError, AttributeError):
+            pass
+    return np.empty(shape, dtype=np.float32)
+
+
+def _forget_buffers() -> None:
+    """In a forked child: the buffers' memory reads as zeros there, and is not its."""
+    global _buffers_lock
+    _buffers.clear()
+    _buffers_lock = threading.Lock()
+
+
+def _find_storage_users() -> Any:
+    torch = sys.modules.get("torch")
+    return getattr(getattr(torch, "_C", None), "_storage_Use_Count", None)
+
+
 # Dense CPU matrices handed out, by shape: one is written over again only once nothing
-# refers to it (each numpy view and tensor made from it holds a reference to it). Two a
-# shape: a training step holds the previous batch's matrix while the next is built.
-_buffers: Dict[Tuple[int, ...], List[np.ndarray]] = {}
+# refers to it. Two a shape: a training step holds the previous batch's matrix while the
+# next is built. Where torch (2.x) tells how many tensors use a storage, each buffer's
+# tensor is handed out again and again, and a buffer whose tensor nobody wrote is
+# rewritten at its non-zero columns only (24 bytes a row, not 4.9 KB); where it does not,
+# a new tensor is made on the buffer each time and the buffer is written whole. A write
+# torch does not count (through `.numpy()` or `.data` of the tensor, after which it is
+# dropped) would leave its values in the next matrix: torch's own autograd has the same
+# blind spot, and the package never writes that way.
+_buffers: Dict[Tuple[int, ...], List[_Slot]] = {}
 _buffers_lock = threading.Lock()
 _BUFFERS_PER_SHAPE = 2
+_storage_users: Any = None
 # Counted for tests: buffers made.
 buffer_stats = {"made": 0}
+if hasattr(os, "register_at_fork"):
+    os.register_at_fork(after_in_child=_forget_buffers)
 
 
-def _cpu_buffer(shape: Tuple[int, ...]) -> np.ndarray:
+def _cpu_slot(shape: Tuple[int, ...]) -> _Slot:
+    """A free buffer of `shape` (marked busy until `_dense` has written it)."""
+    global _storage_users
     with _buffers_lock:
+        if _storage_users is None:
+            _storage_users = _find_storage_users()
         kept = _buffers.setdefault(shape, [])
         for i in range(len(kept)):
-            # The list's reference and getrefcount's own: nobody else holds it.
-            if sys.getrefcount(kept[i]) <= 2:
-                buf = kept.pop(i)
-                kept.insert(0, buf)
-                return buf
-        buf = np.empty(shape, dtype=np.float32)
+            slot = kept[i]
+            # A buffer made before torch was imported is replaced by one with a tensor.
+            if slot.free() and (slot.tensor is not None or _storage_users is None):
+                kept.insert(0, kept.pop(i))
+                slot.busy = True
+                return slot
+        slot = _Slot(shape)
         buffer_stats["made"] += 1
-        kept.insert(0, buf)
+        kept.insert(0, slot)
         del kept[_BUFFERS_PER_SHAPE:]
-        return buf
+        return slot
 
 
 def _is_tensor(x: Any) -> bool:
@@ -181,7 +294,7 @@ class CorrespondenceMatrix:
     def dense(self) -> Any:
         """The dense matrix where the sparse form is: a torch tensor on its device, or a
         numpy array when the sparse form is numpy."""
-        return dense_matrix(self.ids, self.weights, self.vertex_count)
+        return _dense(self.ids, self.weights, self.vertex_count, tracked=True)
 
     def _tensors(self) -> Tuple["torch.Tensor", "torch.Tensor"]:
         import torch
@@ -215,7 +328,7 @@ class CorrespondenceMatrix:
         return self.to("cpu") if not _is_tensor(self.ids) else self.dense()
 
     def numpy(self) -> np.ndarray:
-        out = self.dense()
+        out = _dense(self.ids, self.weights, self.vertex_count, tracked=False)
         return out if isinstance(out, np.ndarray) else out.numpy()
 
     def pin_memory(self, *args: Any) -> "CorrespondenceMatrix":
@@ -250,7 +363,8 @@ class CorrespondenceMatrix:
         kind = torch.Tensor if torch is not None and _is_tensor(self.ids) else np.ndarray
         if name.startswith("__") or not hasattr(kind, name):
             raise AttributeError(f"'CorrespondenceMatrix' object has no attribute {name!r}")
-        return getattr(self.dense(), name)
+        # `.data` and the like write past torch's version counter: not tracked.
+        return getattr(_dense(self.ids, self.weights, self.vertex_count, tracked=False), name)
 
     @classmethod
     def __torch_function__(cls, func: Any, types: Any, args: Any = (), kwargs: Any = None) -> Any:

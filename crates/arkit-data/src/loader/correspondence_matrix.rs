@@ -44,6 +44,48 @@ pub fn write_correspondence_matrix(
     write_plain(out, &entries);
 }
 
+/// Turns `out`, which holds the matrix of `previous` (zeros but at `previous`'s
+/// columns, as [`write_correspondence_matrix`] left it), into the matrix of
+/// `vertices` and `weights`: `previous`'s columns set to zero, then the new weights
+/// written, about 24 bytes a row instead of the whole row. The result is bit for bit
+/// what [`write_correspondence_matrix`] writes, provided `out` held only `previous`'s
+/// values (the caller's promise: anything else written into `out` stays).
+///
+/// Panics as [`write_correspondence_matrix`] does, and if `previous` is not one triple
+/// a row with columns below `vertex_count`.
+pub fn rewrite_correspondence_matrix(
+    out: &mut [f32],
+    vertex_count: usize,
+    previous: &[[u32; 3]],
+    vertices: &[[u32; 3]],
+    weights: &[[f32; 3]],
+) {
+    let entries = matrix_entries(vertex_count, vertices, weights);
+    assert_eq!(
+        out.len(),
+        vertices.len() * vertex_count,
+        "a {} x {vertex_count} matrix",
+        vertices.len()
+    );
+    assert_eq!(
+        previous.len(),
+        vertices.len(),
+        "a previous triple for each row"
+    );
+    for (r, ids) in previous.iter().enumerate() {
+        for &id in ids {
+            assert!(
+                (id as usize) < vertex_count,
+                "previous vertex {id} of a {vertex_count}-vertex mesh"
+            );
+            out[r * vertex_count + id as usize] = 0.0;
+        }
+    }
+    for &(at, w) in &entries {
+        out[at] = w;
+    }
+}
+
 /// The matrix's non-zero candidates as `(position, weight)` in increasing position,
 /// one per position (the later of a row's equal columns).
 fn matrix_entries(
@@ -156,6 +198,58 @@ mod tests {
         write_correspondence_matrix(&mut m, 5, &ids, &w);
         assert_eq!(m, [0.25, 0.25, 0.5, 0.0, 0.0, 0.0, 0.0, 0.0, 0.25, 0.25]);
         assert_eq!(plain(2, 5, &ids, &w), m);
+    }
+
+    #[test]
+    fn rewriting_over_the_previous_matrix_gives_the_written_one() {
+        // Random matrices written in turn into one buffer, each over the last (its
+        // repeated vertices and negative zeros included): bit for bit the plain matrix
+        // of each, so the previous one's columns were all cleared.
+        let mut r = arkit_core::rng::Rng::new(11);
+        let (n, v) = (97usize, 1220usize);
+        let draw = |r: &mut arkit_core::rng::Rng| {
+            let ids: Vec<[u32; 3]> = (0..n)
+                .map(|_| {
+                    let a = r.below(v as u64) as u32;
+                    [
+                        a,
+                        r.below(v as u64) as u32,
+                        if r.below(4) == 0 {
+                            a
+                        } else {
+                            r.below(v as u64) as u32
+                        },
+                    ]
+                })
+                .collect();
+            let w: Vec<[f32; 3]> = (0..n)
+                .map(|_| {
+                    [0; 3].map(|_| {
+                        if r.below(9) == 0 {
+                            -0.0
+                        } else {
+                            r.uniform(-1.0, 1.0) as f32
+                        }
+                    })
+                })
+                .collect();
+            (ids, w)
+        };
+        let (mut prev, w) = draw(&mut r);
+        let mut out = vec![f32::NAN; n * v];
+        write_correspondence_matrix(&mut out, v, &prev, &w);
+        for round in 0..6 {
+            let (ids, w) = draw(&mut r);
+            rewrite_correspondence_matrix(&mut out, v, &prev, &ids, &w);
+            let want = plain(n, v, &ids, &w);
+            assert!(
+                out.iter()
+                    .zip(&want)
+                    .all(|(a, b)| a.to_bits() == b.to_bits()),
+                "round {round}"
+            );
+            prev = ids;
+        }
     }
 
     #[test]
