@@ -60,7 +60,6 @@ pub fn rewrite_correspondence_matrix(
     vertices: &[[u32; 3]],
     weights: &[[f32; 3]],
 ) {
-    let entries = matrix_entries(vertex_count, vertices, weights);
     assert_eq!(
         out.len(),
         vertices.len() * vertex_count,
@@ -72,17 +71,30 @@ pub fn rewrite_correspondence_matrix(
         vertices.len(),
         "a previous triple for each row"
     );
-    for (r, ids) in previous.iter().enumerate() {
-        for &id in ids {
+    assert_eq!(
+        weights.len(),
+        vertices.len(),
+        "a weight triple for each point"
+    );
+    if vertices.is_empty() {
+        return;
+    }
+    for (r, row) in out.chunks_exact_mut(vertex_count).enumerate() {
+        for &id in &previous[r] {
             assert!(
                 (id as usize) < vertex_count,
                 "previous vertex {id} of a {vertex_count}-vertex mesh"
             );
-            out[r * vertex_count + id as usize] = 0.0;
+            row[id as usize] = 0.0;
         }
-    }
-    for &(at, w) in &entries {
-        out[at] = w;
+        // The three columns assigned in turn: a repeated vertex keeps the later weight.
+        for (&id, &w) in vertices[r].iter().zip(&weights[r]) {
+            assert!(
+                (id as usize) < vertex_count,
+                "vertex {id} of a {vertex_count}-vertex mesh"
+            );
+            row[id as usize] = w;
+        }
     }
 }
 
