@@ -6,7 +6,9 @@ triangle's three vertex columns. A batch hands it over as those three vertex ids
 weights (24 KB a sample) and builds the dense matrix where the model reads it:
 `batch["corr_mat"].to(device)`, the call the official `set_input` makes, returns a plain
 `torch.Tensor` on `device`, bit for bit the official matrix (built there: a GPU never
-receives the zeros).
+receives the zeros). On the CPU the matrix goes into a buffer reused once nothing refers
+to it, rewritten at the previous matrix's columns only when torch says nothing wrote it
+since (see `_Slot`).
 
 What it supports, beside `.to(...)`: `.shape`, `.dtype`, `.ndim`, `len()`, `.device`,
 `.size()`, `.dim()`, `.cpu()`, `.cuda()`, `.float()`, `.numpy()`, `.dense()`,
