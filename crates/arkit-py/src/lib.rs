@@ -856,6 +856,66 @@ fn read_image<'py>(py: Python<'py>, path: PathBuf) -> PyResult<Bound<'py, PyAny>
         .into_any())
 }
 
+/// A photo made ready for the network as the official `demo.py` makes it
+/// (`arkit_data::picture::photo`): padded with black to a square, resized to `side`
+/// (`cv2.resize`, bilinear), and the crop of `box` (`[x0, y0, x1, y1]` in the photo's
+/// pixels) by the 0.75 rule through `cv2.warpAffine`. Returns a dict: `square` (side x
+/// side x 3 uint8), `crop` (size x size x 3 uint8), `pad_left`, `pad_top`, `scale` and
+/// `box_square` (the box in the square's pixels).
+#[pyfunction]
+#[pyo3(signature = (photo, r#box, size=192, side=800))]
+fn photo_crop<'py>(
+    py: Python<'py>,
+    photo: numpy::PyReadonlyArray3<'py, u8>,
+    r#box: [f64; 4],
+    size: u32,
+    side: u32,
+) -> PyResult<Bound<'py, PyDict>> {
+    use arkit_data::picture::photo::{DemoSquare, demo_crop};
+    let shape = photo.shape().to_vec();
+    let limit = arkit_core::limits::MAX_IMAGE_SIDE as usize;
+    if shape[2] != 3
+        || !(1..=limit).contains(&shape[0])
+        || !(1..=limit).contains(&shape[1])
+        || !(2..=arkit_core::limits::MAX_CROP_SIZE).contains(&size)
+        || !(1..=8192).contains(&side)
+    {
+        return Err(DataError::new_err(format!(
+            "photo_crop: photo {shape:?}, size {size}, side {side}: expected (H, W, 3) \
+             uint8 with H and W in 1..={limit}, size in 2..=4096, side in 1..=8192"
+        )));
+    }
+    let raw: Vec<u8> = photo.as_array().iter().copied().collect();
+    let (h, w) = (shape[0] as u32, shape[1] as u32);
+    let (square, crop, frame, b) = run(py, || {
+        let img = image::RgbImage::from_raw(w, h, raw).expect("size matches");
+        let frame = DemoSquare::of(w, h, side);
+        let square = frame.image(&img);
+        let b = frame.box_to_square(r#box);
+        let crop = demo_crop(b, size)?.crop_image(&square);
+        Ok::<_, Error>((square, crop, frame, b))
+    })?;
+    let d = PyDict::new(py);
+    let side = side as usize;
+    d.set_item(
+        "square",
+        square
+            .into_raw()
+            .into_pyarray(py)
+            .reshape([side, side, 3])?,
+    )?;
+    let size = size as usize;
+    d.set_item(
+        "crop",
+        crop.into_raw().into_pyarray(py).reshape([size, size, 3])?,
+    )?;
+    d.set_item("pad_left", frame.pad_left)?;
+    d.set_item("pad_top", frame.pad_top)?;
+    d.set_item("scale", frame.scale())?;
+    d.set_item("box_square", b.to_vec())?;
+    Ok(d)
+}
+
 /// The face topology a converted dataset was converted with (see [`topology_for`]):
 /// `triangles` (T x 3 uint32), `landmarks` (68 uint32 vertex ids), `uv` (V x 2 float32),
 /// `vertex_count` and `source`.
@@ -964,6 +1024,7 @@ fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(project, m)?)?;
     m.add_function(wrap_pyfunction!(evaluate, m)?)?;
     m.add_function(wrap_pyfunction!(read_image, m)?)?;
+    m.add_function(wrap_pyfunction!(photo_crop, m)?)?;
     m.add_function(wrap_pyfunction!(default_crop_store, m)?)?;
     m.add_function(wrap_pyfunction!(topology, m)?)?;
     m.add_function(wrap_pyfunction!(write_correspondence_matrix_into, m)?)?;

@@ -22,6 +22,7 @@ __all__ = [
     "default_crop_store",
     "topology",
     "write_correspondence_matrix_into",
+    "photo_crop",
     "DataError",
     "__version__",
 ]
@@ -100,3 +101,10 @@ def write_correspondence_matrix_into(
     weights: npt.NDArray[np.float32],
     previous_ids: Optional[npt.NDArray[np.int64]] = None,
 ) -> None: ...
+
+def photo_crop(
+    photo: npt.NDArray[np.uint8],
+    box: Sequence[float],
+    size: int = 192,
+    side: int = 800,
+) -> Dict[str, Any]: ...

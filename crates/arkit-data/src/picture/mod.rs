@@ -8,4 +8,5 @@
 pub mod encode;
 pub mod image_decode;
 pub mod overlay;
+pub mod photo;
 pub mod plot;
