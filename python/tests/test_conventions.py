@@ -211,7 +211,9 @@ def test_against_opencv_rodrigues():
         ours, _ = cv.to_opencv(rt)
         np.testing.assert_allclose(np.linalg.norm(ours), angle, atol=1e-12)
         np.testing.assert_allclose(cv2.Rodrigues(ours)[0], r, atol=1e-12)
-        np.testing.assert_allclose(cv.from_opencv(cv2.Rodrigues(r)[0], [0, 0, 0.5]), rt, atol=1e-9)
+        # OpenCV's own matrix-to-vector branch for angles within about 1e-5 of 0 or pi
+        # is approximate (a rotation of 1e-6 rad comes back as zero): ours is not.
+        np.testing.assert_allclose(cv.from_opencv(cv2.Rodrigues(r)[0], [0, 0, 0.5]), rt, atol=2e-5)
     # solvePnP's (3, 1) vectors, as they come.
     ok, rv, tv = cv2.solvePnP(np.array([[0, 0, 0], [0.1, 0, 0], [0, 0.1, 0], [0, 0, 0.1], [0.1, 0.1, 0], [0.05, 0, 0.1]]),
                               np.array([[400, 400], [460, 402], [398, 340], [405, 398], [462, 341], [433, 400.0]]),
