@@ -53,8 +53,10 @@ def test_mypy_accepts_the_usage_and_refuses_wrong_calls(tmp_path):
         "_native.solve_pnp_ransac(1, 2)\n"  # two arguments short
         "_native.Loader('d', None, 'train', 'official', '192', 1024, 0)\n"  # a str size
         "n: str = len(_native.Dataset('d'))\n"  # an int
+        "from arkit_tool import conventions\n"
+        "conventions.angles([[1.0]], 'opencv')\n"  # not a convention's name
     )
     r = run([*flags, os.fspath(wrong)], tmp_path, PACKAGE.parent)
     assert r.returncode != 0
-    for line in [2, 3, 4]:
+    for line in [2, 3, 4, 6]:
         assert f"wrong.py:{line}:" in r.stdout, r.stdout

@@ -58,3 +58,12 @@ def corr_mat_usage(batch: "dict[str, object]") -> None:
     rows: int = m.shape[1]
     host: np.ndarray = m.numpy()
     print(dense.shape, rows, host.dtype, m.row(0).vertex_count)
+
+
+def pose_conventions(r_t: np.ndarray) -> np.ndarray:
+    from arkit_tool import conventions
+
+    rvec, tvec = conventions.to_opencv(r_t)
+    name: conventions.Convention = "6drepnet"
+    same: np.ndarray = conventions.from_opencv(rvec, tvec)
+    return conventions.angles(same, name) + conventions.to_img2pose(r_t)[:3]

@@ -13,6 +13,8 @@
   projection, the paper's metrics.
 - `decode_targets(row)`: one row of `arkit-tool render`'s compact targets table as numpy
   arrays (plain numpy; the layouts are in schemas/targets.json).
+- `conventions`: the release's `R_t` to and from OpenCV's `rvec`/`tvec`, ARKit's
+  transforms, TRG's and img2pose's poses, and each tool's Euler angles.
 
 Errors are `DataError` (a `ValueError`) with a message naming the file and the problem.
 See docs/python.md in the repository.
@@ -30,7 +32,7 @@ from typing import Any, Dict, Iterable, List, Optional, Sequence, Tuple, Union
 
 import numpy as np
 
-from . import _native, _shared_batches
+from . import _native, _shared_batches, conventions
 from ._native import DataError
 from .correspondences import CorrespondenceMatrix
 
@@ -48,6 +50,7 @@ __all__ = [
     "EpochSampler",
     "ItemBatch",
     "collate",
+    "conventions",
     "decode_targets",
     "distributed_rank",
     "evaluate",

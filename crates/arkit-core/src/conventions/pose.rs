@@ -73,7 +73,7 @@ impl EulerAngles {
 
 /// Quaternion `[x, y, z, w]` of a rotation matrix as SciPy's `from_matrix` computes it
 /// (the largest of the diagonal and the trace picks the stable formula).
-fn scipy_quaternion(m: &Matrix3<f64>) -> [f64; 4] {
+pub(super) fn scipy_quaternion(m: &Matrix3<f64>) -> [f64; 4] {
     let trace = m[(0, 0)] + m[(1, 1)] + m[(2, 2)];
     let decision = [m[(0, 0)], m[(1, 1)], m[(2, 2)], trace];
     let mut choice = 0;
@@ -104,7 +104,7 @@ fn scipy_quaternion(m: &Matrix3<f64>) -> [f64; 4] {
 /// Extrinsic Tait-Bryan angles (radians) about the axes `axes` (0 = x, 1 = y, 2 = z) of
 /// the quaternion `q = [x, y, z, w]`, by the direct method of Bernardes and Viollet
 /// (2022), with SciPy's gimbal-lock rule.
-fn tait_bryan_from_quaternion(q: [f64; 4], axes: [usize; 3]) -> [f64; 3] {
+pub(super) fn tait_bryan_from_quaternion(q: [f64; 4], axes: [usize; 3]) -> [f64; 3] {
     use std::f64::consts::PI;
     let [i, j, k] = axes;
     let sign = ((i as i64 - j as i64) * (j as i64 - k as i64) * (k as i64 - i as i64) / 2) as f64;
@@ -168,10 +168,39 @@ impl Pose {
         Ok(Pose::new(rotation, t))
     }
 
-    /// Checks that `rt` is a pose the release's projection can use: finite values,
-    /// last column `(0, 0, 0, 1)`, an orthonormal right-handed rotation (within
-    /// [`ORTHONORMAL_TOLERANCE`]) and `tz < 0` (the face in front of the camera).
+    /// Reads a row-vector `R_t` (row-major, 16 numbers) that need not put the face in
+    /// front of the camera: the checks of [`Pose::check_rigid_rt`] only. The
+    /// conversions to other tools' conventions accept such poses.
+    pub fn from_rigid_rt(rt: &[f64; 16]) -> Result<Self> {
+        Pose::check_rigid_rt(rt)?;
+        let m = Matrix4::from_row_slice(rt);
+        let rotation = Rotation3::from_matrix(&m.fixed_view::<3, 3>(0, 0).transpose());
+        Ok(Pose::new(
+            rotation,
+            Vector3::new(m[(3, 0)], m[(3, 1)], m[(3, 2)]),
+        ))
+    }
+
+    /// Checks that `rt` is a pose the release's projection can use: the checks of
+    /// [`Pose::check_rigid_rt`] and `tz < 0` (the face in front of the camera).
     pub fn check_release_rt(rt: &[f64; 16]) -> Result<()> {
+        Pose::check_rigid_rt(rt)?;
+        if rt[14] >= 0.0 {
+            return Err(Error::invalid(
+                "R_t",
+                format!(
+                    "tz = {} m must be negative (the camera looks down -z)",
+                    rt[14]
+                ),
+            ));
+        }
+        Ok(())
+    }
+
+    /// Checks that `rt` is a rigid row-vector transform: finite values, last column
+    /// `(0, 0, 0, 1)` and an orthonormal right-handed rotation (within
+    /// [`ORTHONORMAL_TOLERANCE`]).
+    pub fn check_rigid_rt(rt: &[f64; 16]) -> Result<()> {
         if let Some(i) = rt.iter().position(|v| !v.is_finite()) {
             return Err(Error::invalid(
                 "R_t",
@@ -201,15 +230,6 @@ impl Pose {
             return Err(Error::invalid(
                 "R_t",
                 "rotation is a reflection (determinant <= 0)",
-            ));
-        }
-        if rt[14] >= 0.0 {
-            return Err(Error::invalid(
-                "R_t",
-                format!(
-                    "tz = {} m must be negative (the camera looks down -z)",
-                    rt[14]
-                ),
             ));
         }
         Ok(())
