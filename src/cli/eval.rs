@@ -46,6 +46,13 @@ pub struct EvalArgs {
     /// (the shortest angle).
     #[arg(long, value_enum, default_value = "official")]
     euler: Euler,
+    /// Whose yaw, pitch and roll the per-axis errors use: `official` (the release's and
+    /// the paper's: SciPy 'yxz' of R_t[:3,:3]^T), `wcpa` (the same angles), `trg` (its
+    /// frame flipped: the same errors, the yaw and roll signs reversed), `6drepnet` or
+    /// `img2pose` (their own decomposition, another order: other numbers). Rotation,
+    /// translation, ADD and 3D errors do not depend on it. docs/conventions.md.
+    #[arg(long, default_value = "official", value_name = "CONVENTION")]
+    angles: arkit_core::conventions::AngleConvention,
     /// Where `render` wrote targets/ (for mask scores; default: the dataset).
     #[arg(long)]
     targets: Option<PathBuf>,
@@ -85,6 +92,7 @@ pub fn run(a: EvalArgs) -> Result<ExitCode> {
             Euler::Official => EulerDifference::Official,
             Euler::Wrapped => EulerDifference::Wrapped,
         },
+        angles: a.angles,
         targets: a.targets.clone(),
         keep_worst: if a.report.is_some() { 8 } else { 0 },
         exclude: match &a.exclude {
@@ -108,6 +116,7 @@ pub fn run(a: EvalArgs) -> Result<ExitCode> {
     let p = &ev.problems;
     if a.json {
         let out = serde_json::json!({
+            "angles": a.angles.name(),
             "summary": ev.summary,
             "problems": {
                 "unknown": p.unknown.len(),
@@ -127,6 +136,12 @@ pub fn run(a: EvalArgs) -> Result<ExitCode> {
         println!("{}", serde_json::to_string_pretty(&out).expect("json"));
     } else {
         print!("{}", ev.summary.table());
+        if a.angles != arkit_core::conventions::AngleConvention::Official {
+            eprintln!(
+                "note: yaw, pitch and roll are {}'s (docs/conventions.md)",
+                a.angles
+            );
+        }
         if p.unscored_verts > 0 {
             eprintln!(
                 "note: {} predicted meshes not scored for 3D reconstruction: the dataset's head mesh is another topology",

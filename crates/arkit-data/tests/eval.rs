@@ -228,6 +228,33 @@ fn ground_truth_scores_zero_and_bad_rows_are_reported() {
     };
     let w = arkit_data::eval::dataset::evaluate(dir.path(), &preds, &wrapped).unwrap();
     assert!(w.summary.mae_r_deg <= ev.summary.mae_r_deg + 1e-12);
+    // Another tool's angles: TRG's frame flips the signs of yaw and roll, so its errors
+    // are the release's; 6DRepNet's decomposition gives other per-axis numbers; nothing
+    // else depends on the angles.
+    let in_angles = |angles| {
+        let o = EvalOptions { angles, ..all() };
+        arkit_data::eval::dataset::evaluate(dir.path(), &preds, &o)
+            .unwrap()
+            .summary
+    };
+    use arkit_core::conventions::AngleConvention;
+    let (trg, six) = (
+        in_angles(AngleConvention::Trg),
+        in_angles(AngleConvention::SixDRepNet),
+    );
+    let s = &ev.summary;
+    for (a, b) in [
+        (trg.mae_r_deg, s.mae_r_deg),
+        (trg.yaw_mae_deg, s.yaw_mae_deg),
+        (trg.roll_mae_deg, s.roll_mae_deg),
+    ] {
+        assert!((a - b).abs() < 1e-9, "{a} {b}");
+    }
+    assert!((six.yaw_mae_deg - s.yaw_mae_deg).abs() > 1e-6);
+    assert_eq!(
+        (six.samples, six.mae_t_mm, six.add_mm),
+        (s.samples, s.mae_t_mm, s.add_mm)
+    );
     // An unknown split is an error naming the splits there are.
     let bad = EvalOptions {
         split: Some("nope".into()),

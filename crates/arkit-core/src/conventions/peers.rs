@@ -285,7 +285,28 @@ impl AngleConvention {
     /// The pose's angles in this convention's order ([`AngleConvention::order`]) and
     /// unit ([`AngleConvention::unit`]).
     pub fn angles(self, pose: &Pose) -> [f64; 3] {
-        let r = pose.rotation();
+        self.angles_of(&pose.rotation())
+    }
+
+    /// This convention's yaw, pitch and roll of the release's rotation `r` (column
+    /// form), in degrees whatever the convention's order and unit: what `eval
+    /// --angles` scores. For [`AngleConvention::Official`] exactly
+    /// [`EulerAngles::from_rotation`].
+    pub fn euler_of(self, r: &Rotation3<f64>) -> EulerAngles {
+        if self == AngleConvention::Official {
+            return EulerAngles::from_rotation(r);
+        }
+        let mut a = self.angles_of(r);
+        if self.unit() == AngleUnit::Radians {
+            a = a.map(f64::to_degrees);
+        }
+        let pick = |name: &str| a[self.order().iter().position(|&n| n == name).expect("named")];
+        EulerAngles::new(pick("yaw"), pick("pitch"), pick("roll"))
+    }
+
+    /// [`AngleConvention::angles`] of a rotation (column form).
+    fn angles_of(self, r: &Rotation3<f64>) -> [f64; 3] {
+        let r = *r;
         match self {
             AngleConvention::Official => {
                 let e = EulerAngles::from_rotation(&r);
@@ -878,5 +899,34 @@ mod tests {
         assert!(e.contains("\"opencv\"") && e.contains("official, wcpa, trg, 6drepnet, img2pose"));
         assert_eq!(AngleConvention::Wcpa.order(), ["pitch", "yaw", "roll"]);
         assert_eq!(AngleConvention::Trg.unit(), AngleUnit::Degrees);
+    }
+
+    #[test]
+    fn euler_of_reads_each_convention_s_yaw_pitch_and_roll_in_degrees() {
+        // The official angles unchanged; WCPA's are the official ones (radians, another
+        // order); TRG's are (-yaw, pitch, -roll) of the official ones (its frame is the
+        // release's conjugated by diag(1, -1, -1)); 6DRepNet's by its own order.
+        let pose = Pose::from_euler(
+            EulerAngles::new(20.0, 10.0, 5.0),
+            Vector3::new(0.0, 0.0, -0.5),
+        );
+        let r = pose.rotation();
+        let official = AngleConvention::Official.euler_of(&r);
+        assert_eq!(official, EulerAngles::from_rotation(&r));
+        let wcpa = AngleConvention::Wcpa.euler_of(&r);
+        let trg = AngleConvention::Trg.euler_of(&r);
+        for (a, b) in [
+            (wcpa.yaw_deg, official.yaw_deg),
+            (wcpa.pitch_deg, official.pitch_deg),
+            (wcpa.roll_deg, official.roll_deg),
+            (trg.yaw_deg, -official.yaw_deg),
+            (trg.pitch_deg, official.pitch_deg),
+            (trg.roll_deg, -official.roll_deg),
+        ] {
+            assert!((a - b).abs() < 1e-9, "{a} {b}");
+        }
+        let six = AngleConvention::SixDRepNet.euler_of(&r);
+        let [p, y, ro] = AngleConvention::SixDRepNet.angles(&pose);
+        assert_eq!((six.pitch_deg, six.yaw_deg, six.roll_deg), (p, y, ro));
     }
 }

@@ -34,6 +34,8 @@ pub struct EvalOptions {
     pub split: Option<String>,
     /// Euler difference rule.
     pub euler: EulerDifference,
+    /// Whose yaw, pitch and roll are scored (the release's by default).
+    pub angles: arkit_core::conventions::AngleConvention,
     /// Folder holding `targets/part-*.parquet` (for mask scores); default the dataset.
     pub targets: Option<PathBuf>,
     /// How many of the worst samples to keep for drawing.
@@ -49,6 +51,7 @@ impl Default for EvalOptions {
         EvalOptions {
             split: None,
             euler: EulerDifference::Official,
+            angles: arkit_core::conventions::AngleConvention::Official,
             targets: None,
             keep_worst: 8,
             exclude: HashSet::new(),
@@ -232,12 +235,13 @@ pub fn evaluate(
                     ),
                 ));
             }
-            let mut errors = crate::eval::metrics::sample_errors(
+            let mut errors = crate::eval::metrics::sample_errors_in(
                 &r.rt,
                 checked,
                 &r.verts,
                 pred_verts,
                 options.euler,
+                options.angles,
             );
             if let Some(rle) = pred.and_then(|p| p.mask_rle.as_ref()) {
                 match masks.get(&r.key) {

@@ -25,7 +25,9 @@
 //!
 //! [`Summary`] averages them over samples (means; medians where a mean hides the tail).
 
-use arkit_core::conventions::{EulerAngles, geodesic_angle_deg};
+#[cfg(test)]
+use arkit_core::conventions::EulerAngles;
+use arkit_core::conventions::{AngleConvention, geodesic_angle_deg};
 use nalgebra::{Matrix3, Matrix4, Rotation3, Vector3};
 use serde::Serialize;
 
@@ -186,15 +188,32 @@ pub fn sample_errors(
     pred_verts: Option<&[f32]>,
     euler: EulerDifference,
 ) -> SampleErrors {
+    sample_errors_in(
+        gt_rt,
+        prediction,
+        gt_verts,
+        pred_verts,
+        euler,
+        AngleConvention::Official,
+    )
+}
+
+/// [`sample_errors`] with yaw, pitch and roll read in another tool's convention
+/// (`eval --angles`; [`AngleConvention::euler_of`]); every other error is the same.
+pub fn sample_errors_in(
+    gt_rt: &[f64; 16],
+    prediction: Result<[f64; 16], PoseFailure>,
+    gt_verts: &[f32],
+    pred_verts: Option<&[f32]>,
+    euler: EulerDifference,
+    angles: AngleConvention,
+) -> SampleErrors {
     let (failure, rt) = match prediction {
         Ok(rt) => (None, rt),
         Err(f) => (Some(f), IDENTITY_RT),
     };
     let (rg, rp) = (rotation_of(gt_rt), rotation_of(&rt));
-    let (eg, ep) = (
-        EulerAngles::from_rotation(&rg),
-        EulerAngles::from_rotation(&rp),
-    );
+    let (eg, ep) = (angles.euler_of(&rg), angles.euler_of(&rp));
     let (tg, tp) = (translation_of(gt_rt), translation_of(&rt));
     let mg = Matrix4::from_row_slice(gt_rt);
     let mp = Matrix4::from_row_slice(&rt);

@@ -189,7 +189,7 @@ pub fn resize_linear(image: &RgbImage, width: u32, height: u32) -> RgbImage {
 pub fn demo_crop(b: [f64; 4], size: u32) -> Result<CropTransform> {
     let [x0, y0, x1, y1] = b;
     let extent = (x1 - x0).max(y1 - y0);
-    if !b.iter().all(|v| v.is_finite()) || !(extent > 0.0) || x1 < x0 || y1 < y0 {
+    if !b.iter().all(|v| v.is_finite()) || extent <= 0.0 || x1 < x0 || y1 < y0 {
         return Err(Error::invalid(
             "face box",
             format!("[{x0}, {y0}, {x1}, {y1}]: expected x0 <= x1, y0 <= y1, finite, not a point"),
