@@ -171,9 +171,20 @@ pub fn resize_linear(image: &RgbImage, width: u32, height: u32) -> RgbImage {
         out
     };
     let mut out = Vec::with_capacity(width as usize * height as usize * 3);
+    // Output rows read source rows in increasing order, each for a few output rows in a
+    // row (as OpenCV keeps them): the horizontal sums of the two last read are kept.
+    let mut kept: [(usize, Vec<i32>); 2] = [(usize::MAX, Vec::new()), (usize::MAX, Vec::new())];
     for &(a, b, wa, wb) in &ys {
-        let (r0, r1) = (row(a), row(b));
-        for (&s0, &s1) in r0.iter().zip(&r1) {
+        for (slot, y) in [a, b].into_iter().enumerate() {
+            if kept[slot].0 != y {
+                kept[slot] = match kept.iter().position(|k| k.0 == y) {
+                    Some(other) => kept[other].clone(),
+                    None => (y, row(y)),
+                };
+            }
+        }
+        let [(_, r0), (_, r1)] = &kept;
+        for (&s0, &s1) in r0.iter().zip(r1) {
             // The vector path: each sum to 16 bits (>> 4), times the weight, the high
             // 16 bits of each product, then (sum + 2) >> 2.
             let v = (((s0 >> 4) * wa) >> 16) + (((s1 >> 4) * wb) >> 16);
