@@ -136,7 +136,7 @@ class _Slot:
         """The ids the buffer holds the matrix of, when nothing has written the tensor
         since (torch counts every in-place write to it and its views), so that only
         their columns need clearing; None: write it whole."""
-        if self.written is None or self.tensor is None:
+        if self.written is None:  # only ever set where the slot has its tensor
             return None
         ids, version = self.written
         return ids if self.tensor._version == version else None
