@@ -78,8 +78,11 @@ pub fn is_temporary_name(name: &str) -> bool {
 }
 
 /// Removes the temporaries that killed writers left in `dir` and, when `recursive`, in
-/// its sub-folders; a temporary that a live writer holds locked is left alone. Returns
-/// the files removed. A folder that does not exist has none.
+/// its sub-folders. A temporary is left alone when a live writer holds it locked, or
+/// when the process its name ends with (`.tmp-PID`) is still running: a writer creates
+/// its temporary an instant before it locks it, and another process cleaning the same
+/// folder in that instant must not take the file from under it. Returns the files
+/// removed. A folder that does not exist has none.
 pub fn remove_stale_temporaries(dir: &Path, recursive: bool) -> Result<Vec<PathBuf>> {
     let mut removed = Vec::new();
     let mut stack = vec![dir.to_path_buf()];
@@ -100,7 +103,8 @@ pub fn remove_stale_temporaries(dir: &Path, recursive: bool) -> Result<Vec<PathB
                 continue;
             }
             let name = entry.file_name();
-            if !kind.is_file() || !is_temporary_name(&name.to_string_lossy()) {
+            let name = name.to_string_lossy();
+            if !kind.is_file() || !is_temporary_name(&name) || writer_is_running(&name) {
                 continue;
             }
             let Ok(file) = fs::File::open(&path) else {
@@ -114,6 +118,20 @@ pub fn remove_stale_temporaries(dir: &Path, recursive: bool) -> Result<Vec<PathB
     }
     removed.sort();
     Ok(removed)
+}
+
+/// Whether the process named by a temporary's `.tmp-PID` suffix is running (this
+/// process included: another of its threads may be writing). Where processes cannot
+/// be looked up (no `/proc`), only the lock tells.
+fn writer_is_running(name: &str) -> bool {
+    let Some((_, pid)) = name.rsplit_once(".tmp-") else {
+        return false;
+    };
+    let Ok(pid) = pid.parse::<u32>() else {
+        return false;
+    };
+    pid == std::process::id()
+        || (Path::new("/proc/self").exists() && Path::new(&format!("/proc/{pid}")).exists())
 }
 
 /// Opens (creating it and its folder if needed) the lock file `dir/.NAME.lock`.
@@ -230,8 +248,14 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         let sub = dir.path().join("samples");
         fs::create_dir_all(&sub).unwrap();
-        let stale = sub.join(".part-00000.parquet.tmp-12345");
-        let live = sub.join(".part-00001.parquet.tmp-12346");
+        // Named after processes that have ended (reaped children).
+        let ended = || {
+            let mut child = std::process::Command::new("true").spawn().unwrap();
+            child.wait().unwrap();
+            child.id()
+        };
+        let stale = sub.join(format!(".part-00000.parquet.tmp-{}", ended()));
+        let live = sub.join(format!(".part-00001.parquet.tmp-{}", ended()));
         let kept = sub.join("part-00000.parquet");
         let dotted = sub.join(".hidden");
         for p in [&stale, &live, &kept, &dotted] {
@@ -258,6 +282,35 @@ mod tests {
                 .unwrap()
                 .is_empty()
         );
+    }
+
+    #[test]
+    fn a_running_writers_temporary_stays_before_it_is_locked() {
+        // A writer creates its temporary an instant before it locks it; a cleaner in
+        // that instant sees an unlocked file named after a running process.
+        let dir = tempfile::tempdir().unwrap();
+        let mut writer = std::process::Command::new("sleep")
+            .arg("30")
+            .spawn()
+            .unwrap();
+        let theirs = dir.path().join(format!(".a.parquet.tmp-{}", writer.id()));
+        let ours = temporary_name(&dir.path().join("b.parquet"));
+        for p in [&theirs, &ours] {
+            fs::write(p, b"x").unwrap();
+        }
+        assert!(
+            remove_stale_temporaries(dir.path(), false)
+                .unwrap()
+                .is_empty()
+        );
+        assert!(theirs.exists() && ours.exists());
+        writer.kill().unwrap();
+        writer.wait().unwrap();
+        assert_eq!(
+            remove_stale_temporaries(dir.path(), false).unwrap(),
+            vec![theirs]
+        );
+        assert!(ours.exists());
     }
 
     #[test]
