@@ -11,6 +11,8 @@ mod import_arkit;
 mod info;
 mod inspect;
 mod predict;
+#[cfg(feature = "model")]
+mod predict_image;
 mod render;
 mod split;
 mod synth;

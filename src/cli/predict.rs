@@ -31,15 +31,71 @@ use std::process::ExitCode;
 /// --mean-pose: the training split's mean pose for every sample, the baseline a model
 /// must beat (no mesh or mask, so `eval` scores the pose only).
 ///
+/// --image PHOTO --model DIR: the faces of photos (files or folders), as the official
+/// demo.py finds them: the photo padded to a square and resized to 800 px, each face
+/// box (--box, --boxes FILE, or the built-in detector when none is given) cut by the
+/// 0.75 x max(w, h) rule into the network's crop, the network, our PnP in the demo's
+/// camera (or the photo's own: --focal-px, --fov-deg). Prints JSON (R_t in the
+/// release's convention, yaw/pitch/roll in --angles' convention, the translation,
+/// OpenCV's rvec/tvec, the inlier count), or writes it to --output (.json, or .csv
+/// with one row per face); --draw pictures the mesh on the photo. docs/photos.md.
+///
 /// Example: arkit-tool predict --oracle --dataset data/pq --noise-px 1 --output oracle.parquet
 ///          arkit-tool predict --model model/ --dataset data/pq --output pred.parquet
 ///          arkit-tool predict --mean-pose --dataset data/pq --output baseline.parquet
+///          arkit-tool predict --model model/ --image group.jpg --draw result.jpg
+///          arkit-tool predict --model model/ --image photo.jpg --box "120 80 260 240" --fov-deg 70
 #[derive(Args, Debug)]
 #[command(group(ArgGroup::new("predictor").required(true).args(["oracle", "model", "mean_pose"])))]
+#[command(group(ArgGroup::new("input").required(true).args(["dataset", "image"])))]
 pub struct PredictArgs {
     /// A folder written by `convert` (and `render`).
     #[arg(long)]
-    dataset: PathBuf,
+    dataset: Option<PathBuf>,
+    /// Photos to find head poses in (PNG, JPEG or WebP files, or folders of them; repeat
+    /// for several), with --model (a PerspNet).
+    #[arg(long, value_name = "PHOTO", num_args = 1..)]
+    image: Vec<PathBuf>,
+    /// With --image (one photo): a face box "x0 y0 x1 y1" in the photo's pixels, as the
+    /// official demo takes it; repeat for several faces.
+    #[arg(long = "box", value_name = "X0 Y0 X1 Y1", allow_hyphen_values = true)]
+    boxes: Vec<String>,
+    /// With --image: face boxes from a file: JSON (`[[x0, y0, x1, y1], ...]` for one
+    /// photo, or `{"PHOTO": [[...], ...]}`) or CSV (header `image,x0,y0,x1,y1`), photos
+    /// named as given or by file name. A photo with no box is given to the detector.
+    #[arg(long = "boxes", value_name = "FILE")]
+    boxes_file: Option<PathBuf>,
+    /// With --image: the detector's smallest face, pixels (at least 20).
+    #[arg(long, default_value_t = 40)]
+    min_face_px: u32,
+    /// With --image: the detector's score a face needs (default 2.0; lower finds more
+    /// faces, and more false ones).
+    #[arg(long, default_value_t = 2.0, allow_negative_numbers = true)]
+    detector_score: f64,
+    /// With --image: the photo's focal length in its pixels (principal point at its
+    /// centre); the pose is then in that camera's metres. Default: the demo's camera.
+    #[arg(long)]
+    focal_px: Option<f64>,
+    /// With --image: the photo's horizontal field of view, degrees (instead of
+    /// --focal-px).
+    #[arg(long)]
+    fov_deg: Option<f64>,
+    /// With --image: whose yaw, pitch and roll to print: official (default), wcpa, trg,
+    /// 6drepnet or img2pose (docs/conventions.md).
+    #[arg(long, default_value = "official", value_name = "CONVENTION")]
+    angles: arkit_core::conventions::AngleConvention,
+    /// With --image: also print each face's 1,220 vertices in camera space (the
+    /// release's frame, metres).
+    #[arg(long)]
+    vertices: bool,
+    /// With --image: draw each face's mesh and box on the photo into this JPEG (a folder
+    /// of NAME.jpg for several photos), as the official demo's result.jpg.
+    #[arg(long, value_name = "OUT.jpg")]
+    draw: Option<PathBuf>,
+    /// With --image: write each face's crop as the network saw it (before
+    /// normalisation) into this folder, as NAME-faceK.png.
+    #[arg(long, value_name = "DIR")]
+    dump_crops: Option<PathBuf>,
     /// With --model: exit with status 1 if any sample's image could not be read (the
     /// predictions of the others are still written; without it such samples are
     /// reported and left out, and `eval` counts them missing).
@@ -78,9 +134,10 @@ pub struct PredictArgs {
     /// RANSAC reprojection threshold, pixels, in (0, 1000].
     #[arg(long, allow_negative_numbers = true, default_value_t = 8.0, value_parser = super::threshold_px)]
     threshold_px: f64,
-    /// The predictions file to write (Parquet, schemas/predictions.json).
+    /// The predictions file to write (Parquet, schemas/predictions.json). With --image:
+    /// .json or .csv (default: JSON on the standard output).
     #[arg(long)]
-    output: PathBuf,
+    output: Option<PathBuf>,
     /// Worker threads, 1..=1024 (default: all cores).
     #[arg(long, allow_negative_numbers = true, value_parser = super::jobs)]
     jobs: Option<usize>,
@@ -122,6 +179,41 @@ enum MaskSource {
 }
 
 pub fn run(a: PredictArgs) -> Result<ExitCode> {
+    let ransac = RansacParams {
+        reprojection_threshold_px: a.threshold_px,
+        seed: a.seed,
+        ..RansacParams::default()
+    };
+    if !a.image.is_empty() {
+        return run_image(&a, ransac);
+    }
+    let image_only = [
+        (!a.boxes.is_empty(), "--box"),
+        (a.boxes_file.is_some(), "--boxes"),
+        (a.focal_px.is_some(), "--focal-px"),
+        (a.fov_deg.is_some(), "--fov-deg"),
+        (a.vertices, "--vertices"),
+        (a.draw.is_some(), "--draw"),
+        (a.dump_crops.is_some(), "--dump-crops"),
+    ];
+    if let Some((_, flag)) = image_only.iter().find(|(given, _)| *given) {
+        return Err(arkit_core::error::Error::invalid(
+            *flag,
+            "is for photos: it needs --image",
+        ));
+    }
+    let dataset = a.dataset.clone().expect("clap: --dataset or --image");
+    let Some(output) = a.output.clone() else {
+        return Err(arkit_core::error::Error::invalid(
+            "--output",
+            "predict --dataset writes a predictions file: give --output FILE.parquet",
+        ));
+    };
+    let a = DatasetArgs {
+        dataset,
+        output,
+        args: a,
+    };
     if !(0.0..1.0).contains(&a.outliers) || a.noise_px < 0.0 || !a.noise_px.is_finite() {
         return Err(arkit_core::error::Error::invalid(
             "--noise-px/--outliers",
@@ -137,11 +229,6 @@ pub fn run(a: PredictArgs) -> Result<ExitCode> {
     let manifest = arkit_data::store::dataset::Dataset::open(&a.dataset)?
         .manifest()
         .clone();
-    let ransac = RansacParams {
-        reprojection_threshold_px: a.threshold_px,
-        seed: a.seed,
-        ..RansacParams::default()
-    };
     let split = (a.split != "all").then_some(a.split.as_str());
     if a.mean_pose {
         let (rows, summary) = predict::mean_pose_predictions(&a.dataset, Some("train"), split)?;
@@ -256,4 +343,72 @@ pub fn run(a: PredictArgs) -> Result<ExitCode> {
         );
     }
     Ok(ExitCode::SUCCESS)
+}
+
+/// `predict --dataset`'s arguments, with the dataset and the output given.
+struct DatasetArgs {
+    dataset: PathBuf,
+    output: PathBuf,
+    args: PredictArgs,
+}
+
+impl std::ops::Deref for DatasetArgs {
+    type Target = PredictArgs;
+    fn deref(&self) -> &PredictArgs {
+        &self.args
+    }
+}
+
+#[cfg(feature = "model")]
+fn run_image(a: &PredictArgs, ransac: RansacParams) -> Result<ExitCode> {
+    let Some(model) = a.model.as_deref() else {
+        return Err(arkit_core::error::Error::invalid(
+            "--image",
+            "poses faces with a trained PerspNet: give --model DIR (models/tiny-synthetic is shipped)",
+        ));
+    };
+    for (given, flag) in [
+        (a.dump.is_some(), "--dump"),
+        (a.targets.is_some(), "--targets"),
+        (
+            a.noise_px != 0.0 || a.outliers != 0.0,
+            "--noise-px/--outliers",
+        ),
+        (matches!(a.mask, MaskSource::Truth), "--mask truth"),
+    ] {
+        if given {
+            return Err(arkit_core::error::Error::invalid(
+                flag,
+                "is for --dataset; with --image use --dump-crops, --draw or --vertices",
+            ));
+        }
+    }
+    super::predict_image::run(super::predict_image::ImageRequest {
+        images: &a.image,
+        model,
+        resources: a.resources.as_deref(),
+        boxes: &a.boxes,
+        boxes_file: a.boxes_file.as_deref(),
+        min_face_px: a.min_face_px,
+        detector_score: a.detector_score,
+        focal_px: a.focal_px,
+        fov_deg: a.fov_deg,
+        angles: a.angles,
+        vertices: a.vertices,
+        draw: a.draw.as_deref(),
+        dump_crops: a.dump_crops.as_deref(),
+        output: a.output.as_deref(),
+        seed: a.seed,
+        ransac,
+        strict: a.strict,
+        json: a.json,
+    })
+}
+
+#[cfg(not(feature = "model"))]
+fn run_image(_: &PredictArgs, _: RansacParams) -> Result<ExitCode> {
+    Err(arkit_core::error::Error::invalid(
+        "--image",
+        "this arkit-tool was built without the `model` feature (candle); rebuild with default features",
+    ))
 }

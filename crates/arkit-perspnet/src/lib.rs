@@ -17,7 +17,8 @@
 //!   ([`Example`]), the loop, checkpoints ([`Checkpoint`], [`load`]);
 //! - weights ([`load_weights`], [`import_weights`], [`export_weights`],
 //!   [`write_half_model`]);
-//! - inference ([`predict_crop`], [`model_predictions`]).
+//! - inference ([`predict_crop`], [`model_predictions`]) and the faces of a photo
+//!   ([`predict_photo`]).
 //!
 //! What the network sees as input (docs/train.md, "What the network sees"): the
 //! `S x S` crop, ImageNet-normalised ([`network_input`]); in training, that crop
@@ -37,6 +38,7 @@ mod loss;
 mod model;
 mod network;
 mod ops;
+mod photo;
 mod training;
 mod weights;
 
@@ -59,6 +61,7 @@ pub use model::{
     parameter_count, synthetic_vertex_uv, trainable_vars,
 };
 pub use network::{Network, vertex_uv};
+pub use photo::{PhotoFace, check_box, face_seed, predict_photo};
 pub use training::checkpoint::{
     ADAM_FILE, CHECKPOINT_RECORD, Checkpoint, SHIPPED_MODEL_DIR, TrainedModel, load,
     shipped_checkpoint, shipped_model, verify_checkpoint,

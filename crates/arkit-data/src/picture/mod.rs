@@ -5,6 +5,7 @@
 //! (mesh overlays, SVG charts, contact sheets, preview JPEGs) is drawn and encoded here. Depends on
 //! `mesh` and `arkit_core`.
 
+pub mod detect;
 pub mod encode;
 pub mod image_decode;
 pub mod overlay;

@@ -46,28 +46,48 @@ pub fn draw_mesh(
     style: &MeshStyle,
 ) -> Result<()> {
     let camera = Camera::release(image.width(), image.height());
-    let p = camera.project_all(pose, verts);
+    let p: Vec<Option<(f64, f64)>> = camera
+        .project_all(pose, verts)
+        .iter()
+        .map(|q| Some((q.u, q.v)))
+        .collect();
+    draw_projected_mesh(image, topology, &p, style)
+}
+
+/// Draws a mesh whose vertices are already projected to the image's pixels (`None`: a
+/// vertex behind the camera; its edges are left out).
+pub fn draw_projected_mesh(
+    image: &mut RgbImage,
+    topology: &FaceTopology,
+    p: &[Option<(f64, f64)>],
+    style: &MeshStyle,
+) -> Result<()> {
+    let edge = |image: &mut RgbImage, a: u32, b: u32, colour: Rgb<u8>| {
+        if let (Some(Some(a)), Some(Some(b))) = (p.get(a as usize), p.get(b as usize)) {
+            draw_line(image, *a, *b, colour);
+        }
+    };
     if let Some(colour) = style.edges {
         for t in topology.triangles.iter().step_by(7) {
-            let (a, b) = (&p[t[0] as usize], &p[t[1] as usize]);
-            draw_line(image, (a.u, a.v), (b.u, b.v), colour);
+            edge(image, t[0], t[1], colour);
         }
     }
     for (_, l) in &topology.boundary_loops()?.loops {
         for k in 0..l.len() {
-            let (a, b) = (&p[l[k] as usize], &p[l[(k + 1) % l.len()] as usize]);
-            draw_line(image, (a.u, a.v), (b.u, b.v), style.outline);
+            edge(image, l[k], l[(k + 1) % l.len()], style.outline);
         }
     }
     if let Some(colour) = style.landmarks {
         for &l in &topology.landmarks {
-            let q = &p[l as usize];
+            let Some(Some(q)) = p.get(l as usize) else {
+                continue;
+            };
             for dy in -1..=1 {
                 for dx in -1..=1 {
                     put(
                         image,
-                        q.u.floor() as i64 + dx,
-                        q.v.floor() as i64 + dy,
+                        q.0.floor() as i64 + dx,
+                        q.1.floor() as i64 + dy,
                         colour,
                     );
                 }
@@ -75,6 +95,19 @@ pub fn draw_mesh(
         }
     }
     Ok(())
+}
+
+/// Draws the rectangle `[x0, y0, x1, y1]` (pixels), `width` pixels wide inwards.
+pub fn draw_box(image: &mut RgbImage, b: [f64; 4], width: u32, colour: Rgb<u8>) {
+    let [x0, y0, x1, y1] = b;
+    for k in 0..width.max(1) {
+        let k = k as f64;
+        let (a0, b0, a1, b1) = (x0 + k, y0 + k, x1 - 1.0 - k, y1 - 1.0 - k);
+        draw_line(image, (a0, b0), (a1, b0), colour);
+        draw_line(image, (a1, b0), (a1, b1), colour);
+        draw_line(image, (a1, b1), (a0, b1), colour);
+        draw_line(image, (a0, b1), (a0, b0), colour);
+    }
 }
 
 fn put(image: &mut RgbImage, x: i64, y: i64, colour: Rgb<u8>) {

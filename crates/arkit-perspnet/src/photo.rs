@@ -1,0 +1,111 @@
+//! Poses of the faces in a photo, as the official `demo.py` finds them: the photo padded
+//! to a square and resized to 800 px ([`DemoSquare`]), each face box cut by the 0.75 rule
+//! into the network's crop ([`demo_crop`]), the network's mask, chosen pixels and
+//! correspondences ([`predict_crop`]), and the pose by our PnP in the camera asked for
+//! ([`face_pose`]).
+
+use crate::inference::{NetworkPrediction, predict_crop};
+use crate::training::checkpoint::TrainedModel;
+use arkit_core::error::{Error, Result};
+use arkit_data::crop::CropTransform;
+use arkit_data::loader::item::normalise;
+use arkit_data::picture::photo::{DEMO_SIDE, DemoSquare, demo_crop};
+use arkit_data::pose::photo::{FacePose, PhotoCamera, face_pose};
+use arkit_data::pose::pnp::RansacParams;
+use image::RgbImage;
+
+/// One face of a photo, every stage kept so that each can be checked.
+#[derive(Clone, Debug)]
+pub struct PhotoFace {
+    /// The face box `[x0, y0, x1, y1]` in the photo's pixels, as given or detected.
+    pub bbox: [f64; 4],
+    /// The crop, in the demo's square.
+    pub crop: CropTransform,
+    /// The crop fed to the network (8-bit RGB, before normalisation).
+    pub crop_image: RgbImage,
+    /// The network's mask, chosen pixels, correspondences and mesh.
+    pub prediction: NetworkPrediction,
+    /// The pose, or `None` when PnP failed.
+    pub pose: Option<FacePose>,
+}
+
+/// The seed of face `face` of a photo predicted with `seed` (the chosen pixels and
+/// RANSAC follow from it): `seed ^ face`, so that face 0 uses `seed` itself, as sample
+/// `i` of shard `k` uses `seed ^ (k << 32 | i)` in `predict --dataset`.
+pub fn face_seed(seed: u64, face: usize) -> u64 {
+    seed ^ face as u64
+}
+
+/// Checks a face box against a `width x height` photo: finite, `x0 < x1`, `y0 < y1`, and
+/// overlapping the photo (a box may reach past the edges: the crop reads black there,
+/// as the demo's `cv2.warpAffine` does).
+pub fn check_box(b: [f64; 4], width: u32, height: u32) -> Result<()> {
+    let [x0, y0, x1, y1] = b;
+    if !b.iter().all(|v| v.is_finite()) || x1 <= x0 || y1 <= y0 {
+        return Err(Error::invalid(
+            "face box",
+            format!("[{x0}, {y0}, {x1}, {y1}]: expected x0 < x1 and y0 < y1, all finite"),
+        ));
+    }
+    if x1 <= 0.0 || y1 <= 0.0 || x0 >= width as f64 || y0 >= height as f64 {
+        return Err(Error::invalid(
+            "face box",
+            format!("[{x0}, {y0}, {x1}, {y1}] lies outside the {width}x{height} photo"),
+        ));
+    }
+    Ok(())
+}
+
+/// Predicts the pose of each face box of `photo` with a PerspNet (the direct baseline is
+/// refused: it regresses a pose in the crop's own camera). Face `k` uses
+/// [`face_seed`]`(seed, k)`.
+pub fn predict_photo(
+    model: &TrainedModel,
+    photo: &RgbImage,
+    boxes: &[[f64; 4]],
+    camera: &PhotoCamera,
+    seed: u64,
+    ransac: &RansacParams,
+) -> Result<Vec<PhotoFace>> {
+    model.net.perspnet("predict --image")?;
+    camera.check()?;
+    let (w, h) = photo.dimensions();
+    for b in boxes {
+        check_box(*b, w, h)?;
+    }
+    if boxes.is_empty() {
+        return Ok(Vec::new());
+    }
+    let size = model.checkpoint.config.input_size as u32;
+    let square = DemoSquare::of(w, h, DEMO_SIDE);
+    let padded = square.image(photo);
+    boxes
+        .iter()
+        .enumerate()
+        .map(|(k, b)| {
+            let crop = demo_crop(square.box_to_square(*b), size)?;
+            let crop_image = crop.crop_image(&padded);
+            let input = normalise(crop_image.as_raw());
+            let prediction = predict_crop(model, &input, face_seed(seed, k), None)?;
+            let ransac = RansacParams {
+                seed: face_seed(ransac.seed, k),
+                ..*ransac
+            };
+            let pose = face_pose(
+                &square,
+                &crop,
+                camera,
+                &prediction.pixels,
+                &prediction.points,
+                &ransac,
+            )?;
+            Ok(PhotoFace {
+                bbox: *b,
+                crop,
+                crop_image,
+                prediction,
+                pose,
+            })
+        })
+        .collect()
+}

@@ -1,0 +1,491 @@
+//! `arkit-tool predict --image`: the poses of the faces in photos, as the official
+//! `demo.py` finds them (docs/photos.md).
+
+use arkit_core::conventions::{AngleConvention, AngleUnit};
+use arkit_core::error::{Error, Result};
+use arkit_data::picture::detect::{DetectOptions, detect_faces};
+use arkit_data::picture::image_decode::read_rgb8_checked;
+use arkit_data::picture::photo::{DEMO_SIDE, DemoSquare};
+use arkit_data::pose::photo::PhotoCamera;
+use arkit_data::pose::pnp::RansacParams;
+use serde_json::{Value, json};
+use std::collections::HashMap;
+use std::path::{Path, PathBuf};
+use std::process::ExitCode;
+
+/// What `predict --image` was asked.
+pub struct ImageRequest<'a> {
+    pub images: &'a [PathBuf],
+    pub model: &'a Path,
+    pub resources: Option<&'a Path>,
+    pub boxes: &'a [String],
+    pub boxes_file: Option<&'a Path>,
+    pub min_face_px: u32,
+    pub detector_score: f64,
+    pub focal_px: Option<f64>,
+    pub fov_deg: Option<f64>,
+    pub angles: AngleConvention,
+    pub vertices: bool,
+    pub draw: Option<&'a Path>,
+    pub dump_crops: Option<&'a Path>,
+    pub output: Option<&'a Path>,
+    pub seed: u64,
+    pub ransac: RansacParams,
+    pub strict: bool,
+    pub json: bool,
+}
+
+/// The image files of `--image` arguments: files as given, folders' images (`.jpg`,
+/// `.jpeg`, `.png`, `.webp`, any case) sorted by name, not recursing.
+fn photo_files(images: &[PathBuf]) -> Result<Vec<PathBuf>> {
+    let mut out = Vec::new();
+    for p in images {
+        let meta = std::fs::metadata(p).map_err(|e| Error::io(p, e))?;
+        if meta.is_dir() {
+            let mut found: Vec<PathBuf> = std::fs::read_dir(p)
+                .map_err(|e| Error::io(p, e))?
+                .filter_map(|e| e.ok().map(|e| e.path()))
+                .filter(|f| {
+                    f.is_file()
+                        && f.extension().is_some_and(|x| {
+                            let x = x.to_string_lossy().to_ascii_lowercase();
+                            matches!(x.as_str(), "jpg" | "jpeg" | "png" | "webp")
+                        })
+                })
+                .collect();
+            found.sort();
+            if found.is_empty() {
+                return Err(Error::invalid(
+                    "--image",
+                    format!(
+                        "{}: a folder with no .jpg, .jpeg, .png or .webp file",
+                        p.display()
+                    ),
+                ));
+            }
+            out.extend(found);
+        } else {
+            out.push(p.clone());
+        }
+    }
+    Ok(out)
+}
+
+/// One `--box "x0 y0 x1 y1"` (spaces or commas).
+fn parse_box(s: &str) -> Result<[f64; 4]> {
+    let v: Vec<f64> = s
+        .split(|c: char| c == ',' || c.is_whitespace())
+        .filter(|t| !t.is_empty())
+        .map(|t| t.parse::<f64>())
+        .collect::<std::result::Result<_, _>>()
+        .map_err(|_| {
+            Error::invalid("--box", format!("'{s}': expected four numbers x0 y0 x1 y1"))
+        })?;
+    <[f64; 4]>::try_from(v)
+        .map_err(|_| Error::invalid("--box", format!("'{s}': expected four numbers x0 y0 x1 y1")))
+}
+
+/// Face boxes by photo, from a `--boxes` file: JSON (`[[x0, y0, x1, y1], ...]` for a
+/// single photo, or `{"PHOTO": [[...], ...], ...}`) or CSV with the header
+/// `image,x0,y0,x1,y1`. Photos are named as given on the command line or by file name.
+fn read_boxes_file(path: &Path) -> Result<HashMap<String, Vec<[f64; 4]>>> {
+    const MAX_BYTES: u64 = 64 << 20;
+    let meta = std::fs::metadata(path).map_err(|e| Error::io(path, e))?;
+    if meta.len() > MAX_BYTES {
+        return Err(Error::format(
+            path,
+            format!("{} bytes: a boxes file may hold 64 MiB", meta.len()),
+        ));
+    }
+    let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
+    let is_json = path
+        .extension()
+        .is_some_and(|x| x.eq_ignore_ascii_case("json"));
+    let mut out: HashMap<String, Vec<[f64; 4]>> = HashMap::new();
+    if is_json {
+        let v: Value = serde_json::from_str(&text)
+            .map_err(|e| Error::format(path, format!("not JSON: {e}")))?;
+        let list = |v: &Value, what: &str| -> Result<Vec<[f64; 4]>> {
+            let items = v.as_array().ok_or_else(|| {
+                Error::format(path, format!("{what}: expected a list of [x0, y0, x1, y1]"))
+            })?;
+            items
+                .iter()
+                .map(|b| {
+                    let nums: Option<Vec<f64>> = b
+                        .as_array()
+                        .map(|a| a.iter().map(|x| x.as_f64()).collect::<Option<Vec<f64>>>())
+                        .unwrap_or(None);
+                    nums.and_then(|n| <[f64; 4]>::try_from(n).ok())
+                        .ok_or_else(|| {
+                            Error::format(path, format!("{what}: {b} is not [x0, y0, x1, y1]"))
+                        })
+                })
+                .collect()
+        };
+        match &v {
+            Value::Array(_) => {
+                out.insert(String::new(), list(&v, "the boxes")?);
+            }
+            Value::Object(m) => {
+                for (k, b) in m {
+                    out.insert(k.clone(), list(b, k)?);
+                }
+            }
+            _ => {
+                return Err(Error::format(
+                    path,
+                    "expected a list of boxes or an object of photo -> boxes",
+                ));
+            }
+        }
+    } else {
+        let mut lines = text
+            .lines()
+            .enumerate()
+            .filter(|(_, l)| !l.trim().is_empty());
+        let header = lines.next().map(|(_, l)| l.trim().to_ascii_lowercase());
+        if header.as_deref().map(|h| h.replace(' ', "")) != Some("image,x0,y0,x1,y1".into()) {
+            return Err(Error::format(
+                path,
+                "a CSV of boxes starts with the header image,x0,y0,x1,y1 (or use a .json file)",
+            ));
+        }
+        for (n, line) in lines {
+            let cells: Vec<&str> = line.split(',').map(str::trim).collect();
+            let parsed = (cells.len() == 5)
+                .then(|| {
+                    cells[1..]
+                        .iter()
+                        .map(|c| c.parse::<f64>().ok())
+                        .collect::<Option<Vec<f64>>>()
+                })
+                .flatten()
+                .and_then(|v| <[f64; 4]>::try_from(v).ok());
+            let Some(b) = parsed else {
+                return Err(Error::format(
+                    path,
+                    format!("line {}: expected image,x0,y0,x1,y1, got '{line}'", n + 1),
+                ));
+            };
+            out.entry(cells[0].to_string()).or_default().push(b);
+        }
+    }
+    Ok(out)
+}
+
+/// The boxes a `--boxes` file gives `photo` (by the path as given, or its file name).
+fn boxes_for<'a>(
+    table: &'a HashMap<String, Vec<[f64; 4]>>,
+    photo: &Path,
+    single: bool,
+) -> Option<&'a Vec<[f64; 4]>> {
+    if let Some(b) = table.get("").filter(|_| single) {
+        return Some(b);
+    }
+    table.get(&photo.display().to_string()).or_else(|| {
+        photo
+            .file_name()
+            .and_then(|n| table.get(&n.to_string_lossy().to_string()))
+    })
+}
+
+fn rt_rows(rt: &[f64; 16]) -> Value {
+    json!([
+        [rt[0], rt[1], rt[2], rt[3]],
+        [rt[4], rt[5], rt[6], rt[7]],
+        [rt[8], rt[9], rt[10], rt[11]],
+        [rt[12], rt[13], rt[14], rt[15]]
+    ])
+}
+
+/// Runs `predict --image`.
+pub fn run(r: ImageRequest<'_>) -> Result<ExitCode> {
+    if r.focal_px.is_some() && r.fov_deg.is_some() {
+        return Err(Error::invalid(
+            "--focal-px/--fov-deg",
+            "give the photo's camera once: a focal length in pixels or a horizontal field of view",
+        ));
+    }
+    let photos = photo_files(r.images)?;
+    let single = photos.len() == 1;
+    if !r.boxes.is_empty() && !single {
+        return Err(Error::invalid(
+            "--box",
+            format!(
+                "boxes on the command line are for one photo; {} photos were given: use --boxes FILE",
+                photos.len()
+            ),
+        ));
+    }
+    let given: Vec<[f64; 4]> = r
+        .boxes
+        .iter()
+        .map(|s| parse_box(s))
+        .collect::<Result<_>>()?;
+    let table = match r.boxes_file {
+        Some(p) => Some(read_boxes_file(p)?),
+        None => None,
+    };
+    if let Some(f) = r.focal_px {
+        PhotoCamera::FocalPx(f).check()?;
+    }
+    if let Some(fov) = r.fov_deg {
+        PhotoCamera::from_horizontal_fov(fov, 1)?;
+    }
+    let topology = super::load_topology(r.resources)?;
+    let model = arkit_perspnet::load(r.model, &topology)?;
+    model.net.perspnet("predict --image")?;
+    if let Some(dir) = r.dump_crops {
+        std::fs::create_dir_all(dir).map_err(|e| Error::io(dir, e))?;
+    }
+    let draw_into_folder = r.draw.is_some() && !single;
+    if let (Some(dir), true) = (r.draw, draw_into_folder) {
+        std::fs::create_dir_all(dir).map_err(|e| Error::io(dir, e))?;
+    }
+    let detect = DetectOptions {
+        min_face_px: r.min_face_px,
+        score_threshold: r.detector_score,
+    };
+    let names = r.angles.order();
+    let unit = match r.angles.unit() {
+        AngleUnit::Degrees => "deg",
+        AngleUnit::Radians => "rad",
+    };
+    let bar = super::progress_bar(photos.len() as u64, "predict", "photos");
+    let (mut out_photos, mut rows) = (Vec::new(), Vec::new());
+    let (mut failed, mut faces_total, mut posed) = (0usize, 0usize, 0usize);
+    for (pi, path) in photos.iter().enumerate() {
+        bar.inc(1);
+        let photo = match read_rgb8_checked(path, |_| Ok(())) {
+            Ok(p) => p,
+            Err(e) => {
+                bar.suspend(|| eprintln!("predict: skipped {}: {e}", path.display()));
+                failed += 1;
+                out_photos
+                    .push(json!({"path": path.display().to_string(), "error": e.to_string()}));
+                continue;
+            }
+        };
+        let (w, h) = photo.dimensions();
+        let camera = match (r.focal_px, r.fov_deg) {
+            (Some(f), _) => PhotoCamera::FocalPx(f),
+            (None, Some(fov)) => PhotoCamera::from_horizontal_fov(fov, w)?,
+            (None, None) => PhotoCamera::Demo,
+        };
+        let square = DemoSquare::of(w, h, DEMO_SIDE);
+        let from_table = table.as_ref().and_then(|t| boxes_for(t, path, single));
+        let (boxes, scores, source): (Vec<[f64; 4]>, Vec<Option<f64>>, &str) = if !given.is_empty()
+        {
+            (given.clone(), vec![None; given.len()], "--box")
+        } else if let Some(b) = from_table {
+            (b.clone(), vec![None; b.len()], "--boxes")
+        } else {
+            let found = detect_faces(&photo, &detect)?;
+            (
+                found.iter().map(|f| f.bbox).collect(),
+                found.iter().map(|f| Some(f.score)).collect(),
+                "detector",
+            )
+        };
+        let faces = match arkit_perspnet::predict_photo(
+            &model,
+            &photo,
+            &boxes,
+            &camera,
+            r.seed ^ ((pi as u64) << 32),
+            &r.ransac,
+        ) {
+            Ok(f) => f,
+            Err(e) => {
+                bar.suspend(|| eprintln!("predict: skipped {}: {e}", path.display()));
+                failed += 1;
+                out_photos
+                    .push(json!({"path": path.display().to_string(), "error": e.to_string()}));
+                continue;
+            }
+        };
+        if faces.is_empty() {
+            bar.suspend(|| {
+                eprintln!(
+                    "predict: {}: no face found (the detector finds roughly frontal faces of at least {} px; give boxes with --box or --boxes)",
+                    path.display(),
+                    r.min_face_px
+                )
+            });
+        }
+        let k = camera.intrinsics(&square);
+        let stem = path
+            .file_stem()
+            .map(|s| s.to_string_lossy().to_string())
+            .unwrap_or_else(|| format!("photo-{pi}"));
+        let mut drawn = r.draw.map(|_| photo.clone());
+        let mut face_values = Vec::new();
+        for (fi, face) in faces.iter().enumerate() {
+            faces_total += 1;
+            let mut v = json!({
+                "face": fi,
+                "box": face.bbox,
+                "detector_score": scores[fi],
+                "points": face.prediction.pixels.len(),
+            });
+            if let Some(dir) = r.dump_crops {
+                let file = dir.join(format!("{stem}-face{fi}.png"));
+                let mut png = Vec::new();
+                face.crop_image
+                    .write_to(&mut std::io::Cursor::new(&mut png), image::ImageFormat::Png)
+                    .map_err(|e| Error::invalid("crop", e.to_string()))?;
+                arkit_core::atomic_file::write_bytes(&file, &png)?;
+                v["crop"] = json!(file.display().to_string());
+            }
+            let mut row = vec![
+                path.display().to_string(),
+                fi.to_string(),
+                source.to_string(),
+            ];
+            row.extend(face.bbox.iter().map(|x| x.to_string()));
+            match &face.pose {
+                Some(fp) => {
+                    posed += 1;
+                    let rt = fp.pose.to_release_rt();
+                    let a = r.angles.angles(&fp.pose);
+                    let t = fp.pose.translation_m();
+                    let (rvec, tvec) = fp.pose.to_opencv_rvec();
+                    v["status"] = json!("ok");
+                    v["R_t"] = rt_rows(&rt);
+                    v["angles"] = json!({names[0]: a[0], names[1]: a[1], names[2]: a[2]});
+                    v["translation_m"] = json!([t.x, t.y, t.z]);
+                    v["rvec"] = json!([rvec.x, rvec.y, rvec.z]);
+                    v["tvec_m"] = json!([tvec.x, tvec.y, tvec.z]);
+                    v["inliers"] = json!(fp.inliers);
+                    v["distinct_points"] = json!(fp.points);
+                    let (r_cv, t_cv) = fp.pose.to_opencv();
+                    let canonical: Vec<nalgebra::Point3<f64>> = face
+                        .prediction
+                        .verts
+                        .chunks_exact(3)
+                        .map(|p| nalgebra::Point3::new(p[0] as f64, p[1] as f64, p[2] as f64))
+                        .collect();
+                    if r.vertices {
+                        let cam: Vec<[f64; 3]> = canonical
+                            .iter()
+                            .map(|p| {
+                                let q = fp.pose.to_camera(p);
+                                [q.x, q.y, q.z]
+                            })
+                            .collect();
+                        v["vertices_m"] = json!(cam);
+                    }
+                    if let Some(img) = drawn.as_mut() {
+                        let projected: Vec<Option<(f64, f64)>> = canonical
+                            .iter()
+                            .map(|p| camera.project_to_photo(&square, &(r_cv * p + t_cv)))
+                            .collect();
+                        arkit_data::picture::overlay::draw_projected_mesh(
+                            img,
+                            &topology,
+                            &projected,
+                            &arkit_data::picture::overlay::MeshStyle::ANNOTATION,
+                        )?;
+                    }
+                    row.extend(["ok".to_string()]);
+                    row.extend(a.iter().map(|x| x.to_string()));
+                    row.extend([t.x, t.y, t.z].iter().map(|x| x.to_string()));
+                    row.extend([fp.inliers.to_string(), fp.points.to_string()]);
+                    row.extend(rt.iter().map(|x| x.to_string()));
+                }
+                None => {
+                    v["status"] = json!("pnp failed");
+                    row.push("pnp failed".into());
+                    row.extend(std::iter::repeat_n(String::new(), 3 + 3 + 2 + 16));
+                }
+            }
+            if let Some(img) = drawn.as_mut() {
+                arkit_data::picture::overlay::draw_box(
+                    img,
+                    face.bbox,
+                    2,
+                    image::Rgb([255, 200, 0]),
+                );
+            }
+            rows.push(row);
+            face_values.push(v);
+        }
+        if let (Some(target), Some(img)) = (r.draw, drawn) {
+            let file = if draw_into_folder {
+                target.join(format!("{stem}.jpg"))
+            } else {
+                target.to_path_buf()
+            };
+            let bytes = arkit_data::picture::encode::jpeg_bytes(&img, 90)?;
+            arkit_core::atomic_file::write_bytes(&file, &bytes)?;
+        }
+        out_photos.push(json!({
+            "path": path.display().to_string(),
+            "width": w,
+            "height": h,
+            "boxes_from": source,
+            "camera": {"fx": k.fx, "fy": k.fy, "cx": k.cx, "cy": k.cy,
+                       "pixels": if matches!(camera, PhotoCamera::Demo) { "the demo's 800-px square" } else { "the photo's" }},
+            "faces": face_values,
+        }));
+    }
+    bar.finish_and_clear();
+    let report = json!({
+        "model": r.model.display().to_string(),
+        "angles": {"convention": r.angles.name(), "order": names, "unit": unit},
+        "frame": "R_t: the release's (row vectors, OpenGL camera: x right, y up, looking down -z), metres; rvec/tvec_m: OpenCV's (x right, y down, looking down +z)",
+        "photos": out_photos,
+        "summary": {"photos": photos.len(), "unreadable": failed, "faces": faces_total, "posed": posed},
+    });
+    match r.output {
+        Some(p) if p.extension().is_some_and(|x| x.eq_ignore_ascii_case("csv")) => {
+            let mut text = format!(
+                "image,face,boxes_from,x0,y0,x1,y1,status,{},{},{},tx_m,ty_m,tz_m,inliers,distinct_points",
+                names[0], names[1], names[2]
+            );
+            for i in 0..16 {
+                text.push_str(&format!(",r_t_{}{}", i / 4, i % 4));
+            }
+            text.push('\n');
+            for row in &rows {
+                let cells: Vec<String> = row
+                    .iter()
+                    .map(|c| {
+                        if c.contains([',', '"', '\n']) {
+                            format!("\"{}\"", c.replace('"', "\"\""))
+                        } else {
+                            c.clone()
+                        }
+                    })
+                    .collect();
+                text.push_str(&cells.join(","));
+                text.push('\n');
+            }
+            arkit_core::atomic_file::write_bytes(p, text.as_bytes())?;
+        }
+        Some(p) => {
+            let text = serde_json::to_string_pretty(&report).expect("json");
+            arkit_core::atomic_file::write_bytes(p, text.as_bytes())?;
+        }
+        None => {}
+    }
+    if r.json || r.output.is_none() {
+        println!("{}", serde_json::to_string_pretty(&report).expect("json"));
+    } else {
+        println!(
+            "{} photos ({} unreadable): {} faces, {} posed -> {}",
+            photos.len(),
+            failed,
+            faces_total,
+            posed,
+            r.output
+                .map(|p| p.display().to_string())
+                .unwrap_or_default()
+        );
+    }
+    if r.strict && failed > 0 {
+        return Ok(ExitCode::FAILURE);
+    }
+    Ok(ExitCode::SUCCESS)
+}
