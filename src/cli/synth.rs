@@ -17,12 +17,26 @@ use std::process::ExitCode;
 /// cover the paper's ranges (yaw -78..77, pitch -64..51, roll -90..63 degrees,
 /// distance 0.3..0.9 m). The same seed gives byte-identical output.
 ///
+/// --group-photo FILE.jpg instead writes one photo of several faces side by side, at
+/// several distances, in a camera with square pixels (`1.57443701 x max(W, H) / 2` px:
+/// padded and resized to 800 px, the official demo's camera), for `predict --image`;
+/// beside it FILE.boxes.json (the faces' landmark boxes, for --boxes) and
+/// FILE.truth.json (each face's box, R_t, yaw/pitch/roll and translation).
+///
 /// Example: arkit-tool synth --output data/synth --subjects 10 --images-per-subject 20
+///          arkit-tool synth --group-photo group.jpg --faces 3 --size 1280x720
 #[derive(Args, Debug)]
 pub struct SynthArgs {
     /// Folder to write (`ARKitFace_image_train/`, `ARKitFace_info_train/`, ..., `ARKitFace_list/`).
-    #[arg(long)]
-    output: PathBuf,
+    #[arg(long, required_unless_present = "group_photo")]
+    output: Option<PathBuf>,
+    /// Write a group photo (JPEG) instead of a dataset (see above); --size is the
+    /// photo's (e.g. 1280x720).
+    #[arg(long, value_name = "FILE.jpg", conflicts_with = "output")]
+    group_photo: Option<PathBuf>,
+    /// With --group-photo: how many faces, 1..=8.
+    #[arg(long, default_value_t = 3)]
+    faces: usize,
     /// Number of subjects (identities), 1..=100000.
     #[arg(long, allow_negative_numbers = true, default_value_t = 10,
           value_parser = clap::builder::RangedU64ValueParser::<usize>::new().range(1..=100_000))]
@@ -75,9 +89,13 @@ pub fn run(a: SynthArgs) -> Result<ExitCode> {
         )?)?,
         None => FaceSource::builtin(),
     };
+    if let Some(path) = &a.group_photo {
+        return group_photo(&source, &options, a.faces, path, a.json);
+    }
+    let output = a.output.clone().expect("clap: --output or --group-photo");
     let total = (options.subjects * options.images_per_subject) as u64;
     let bar = super::progress_bar(total, "synth", "samples");
-    let summary = synth::generate(&source, &options, &a.output, &|| bar.inc(1))?;
+    let summary = synth::generate(&source, &options, &output, &|| bar.inc(1))?;
     bar.finish_and_clear();
     if let Some(path) = &a.preview {
         // Each sample twice: as written, and with its annotation drawn over it.
@@ -117,6 +135,76 @@ pub fn run(a: SynthArgs) -> Result<ExitCode> {
         if let Some(p) = &a.preview {
             println!("preview: {}", p.display());
         }
+    }
+    Ok(ExitCode::SUCCESS)
+}
+
+/// `synth --group-photo`: the photo, its boxes and its truth.
+fn group_photo(
+    source: &FaceSource,
+    options: &SynthOptions,
+    faces: usize,
+    path: &std::path::Path,
+    json: bool,
+) -> Result<ExitCode> {
+    let photo = synth::group_photo(source, options, faces)?;
+    let beside = |suffix: &str| {
+        let stem = path
+            .file_stem()
+            .map(|s| s.to_string_lossy().to_string())
+            .unwrap_or_default();
+        path.with_file_name(format!("{stem}.{suffix}"))
+    };
+    let boxes: Vec<[f64; 4]> = photo.faces.iter().map(|f| f.bbox).collect();
+    let truth = serde_json::json!({
+        "photo": path.display().to_string(),
+        "width": options.width,
+        "height": options.height,
+        "focal_px": photo.focal_px,
+        "seed": options.seed,
+        "faces": photo.faces.iter().map(|f| {
+            let rt = f.pose.to_release_rt();
+            let e = f.pose.euler();
+            let t = f.pose.translation_m();
+            serde_json::json!({
+                "box": f.bbox,
+                "R_t": [[rt[0], rt[1], rt[2], rt[3]], [rt[4], rt[5], rt[6], rt[7]],
+                        [rt[8], rt[9], rt[10], rt[11]], [rt[12], rt[13], rt[14], rt[15]]],
+                "angles": {"yaw": e.yaw_deg, "pitch": e.pitch_deg, "roll": e.roll_deg},
+                "translation_m": [t.x, t.y, t.z],
+            })
+        }).collect::<Vec<_>>(),
+    });
+    let (boxes_path, truth_path) = (beside("boxes.json"), beside("truth.json"));
+    arkit_core::atomic_file::write_bytes(
+        path,
+        &arkit_data::picture::encode::jpeg_bytes(&photo.image, options.jpeg_quality)?,
+    )?;
+    arkit_core::atomic_file::write_bytes(
+        &boxes_path,
+        serde_json::to_string_pretty(&boxes)
+            .expect("json")
+            .as_bytes(),
+    )?;
+    arkit_core::atomic_file::write_bytes(
+        &truth_path,
+        serde_json::to_string_pretty(&truth)
+            .expect("json")
+            .as_bytes(),
+    )?;
+    if json {
+        println!("{}", serde_json::to_string_pretty(&truth).expect("json"));
+    } else {
+        println!(
+            "wrote a {}x{} group photo of {} faces (focal length {:.1} px) to {}, its boxes to {} and its truth to {}",
+            options.width,
+            options.height,
+            photo.faces.len(),
+            photo.focal_px,
+            path.display(),
+            boxes_path.display(),
+            truth_path.display()
+        );
     }
     Ok(ExitCode::SUCCESS)
 }
