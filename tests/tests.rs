@@ -16,6 +16,8 @@ mod import_arkit;
 mod official_crop;
 mod options;
 #[cfg(feature = "model")]
+mod photos;
+#[cfg(feature = "model")]
 mod report_browser;
 mod shard_processes;
 #[cfg(feature = "model")]

@@ -288,23 +288,28 @@ pub fn run(r: ImageRequest<'_>) -> Result<ExitCode> {
                 "detector",
             )
         };
-        let faces = match arkit_perspnet::predict_photo(
+        // A box given on the command line that does not fit the photo is a mistake in
+        // the command; one in a --boxes file skips its photo only.
+        if let Some(e) = boxes
+            .iter()
+            .find_map(|b| arkit_perspnet::check_box(*b, w, h).err())
+        {
+            if source == "--box" {
+                return Err(e);
+            }
+            bar.suspend(|| eprintln!("predict: skipped {}: {e}", path.display()));
+            failed += 1;
+            out_photos.push(json!({"path": path.display().to_string(), "error": e.to_string()}));
+            continue;
+        }
+        let faces = arkit_perspnet::predict_photo(
             &model,
             &photo,
             &boxes,
             &camera,
             r.seed ^ ((pi as u64) << 32),
             &r.ransac,
-        ) {
-            Ok(f) => f,
-            Err(e) => {
-                bar.suspend(|| eprintln!("predict: skipped {}: {e}", path.display()));
-                failed += 1;
-                out_photos
-                    .push(json!({"path": path.display().to_string(), "error": e.to_string()}));
-                continue;
-            }
-        };
+        )?;
         if faces.is_empty() {
             bar.suspend(|| {
                 eprintln!(
@@ -436,7 +441,7 @@ pub fn run(r: ImageRequest<'_>) -> Result<ExitCode> {
         "angles": {"convention": r.angles.name(), "order": names, "unit": unit},
         "frame": "R_t: the release's (row vectors, OpenGL camera: x right, y up, looking down -z), metres; rvec/tvec_m: OpenCV's (x right, y down, looking down +z)",
         "photos": out_photos,
-        "summary": {"photos": photos.len(), "unreadable": failed, "faces": faces_total, "posed": posed},
+        "summary": {"photos": photos.len(), "skipped": failed, "faces": faces_total, "posed": posed},
     });
     match r.output {
         Some(p) if p.extension().is_some_and(|x| x.eq_ignore_ascii_case("csv")) => {
@@ -474,7 +479,7 @@ pub fn run(r: ImageRequest<'_>) -> Result<ExitCode> {
         println!("{}", serde_json::to_string_pretty(&report).expect("json"));
     } else {
         println!(
-            "{} photos ({} unreadable): {} faces, {} posed -> {}",
+            "{} photos ({} skipped): {} faces, {} posed -> {}",
             photos.len(),
             failed,
             faces_total,
