@@ -292,7 +292,7 @@ pub fn run(r: ImageRequest<'_>) -> Result<ExitCode> {
         // the command; one in a --boxes file skips its photo only.
         if let Some(e) = boxes
             .iter()
-            .find_map(|b| arkit_perspnet::check_box(*b, w, h).err())
+            .find_map(|b| arkit_data::pose::photo::check_box(*b, w, h).err())
         {
             if source == "--box" {
                 return Err(e);

@@ -61,7 +61,7 @@ pub use model::{
     parameter_count, synthetic_vertex_uv, trainable_vars,
 };
 pub use network::{Network, vertex_uv};
-pub use photo::{PhotoFace, check_box, face_seed, predict_photo};
+pub use photo::{PhotoFace, face_seed, predict_photo};
 pub use training::checkpoint::{
     ADAM_FILE, CHECKPOINT_RECORD, Checkpoint, SHIPPED_MODEL_DIR, TrainedModel, load,
     shipped_checkpoint, shipped_model, verify_checkpoint,

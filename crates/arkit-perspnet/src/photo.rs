@@ -6,11 +6,11 @@
 
 use crate::inference::{NetworkPrediction, predict_crop};
 use crate::training::checkpoint::TrainedModel;
-use arkit_core::error::{Error, Result};
+use arkit_core::error::Result;
 use arkit_data::crop::CropTransform;
 use arkit_data::loader::item::normalise;
 use arkit_data::picture::photo::{DEMO_SIDE, DemoSquare, demo_crop};
-use arkit_data::pose::photo::{FacePose, PhotoCamera, face_pose};
+use arkit_data::pose::photo::{FacePose, PhotoCamera, check_box, face_pose};
 use arkit_data::pose::pnp::RansacParams;
 use image::RgbImage;
 
@@ -34,26 +34,6 @@ pub struct PhotoFace {
 /// `i` of shard `k` uses `seed ^ (k << 32 | i)` in `predict --dataset`.
 pub fn face_seed(seed: u64, face: usize) -> u64 {
     seed ^ face as u64
-}
-
-/// Checks a face box against a `width x height` photo: finite, `x0 < x1`, `y0 < y1`, and
-/// overlapping the photo (a box may reach past the edges: the crop reads black there,
-/// as the demo's `cv2.warpAffine` does).
-pub fn check_box(b: [f64; 4], width: u32, height: u32) -> Result<()> {
-    let [x0, y0, x1, y1] = b;
-    if !b.iter().all(|v| v.is_finite()) || x1 <= x0 || y1 <= y0 {
-        return Err(Error::invalid(
-            "face box",
-            format!("[{x0}, {y0}, {x1}, {y1}]: expected x0 < x1 and y0 < y1, all finite"),
-        ));
-    }
-    if x1 <= 0.0 || y1 <= 0.0 || x0 >= width as f64 || y0 >= height as f64 {
-        return Err(Error::invalid(
-            "face box",
-            format!("[{x0}, {y0}, {x1}, {y1}] lies outside the {width}x{height} photo"),
-        ));
-    }
-    Ok(())
 }
 
 /// Predicts the pose of each face box of `photo` with a PerspNet (the direct baseline is

@@ -119,6 +119,21 @@ def photo_crop(
     side: int = 800,
 ) -> Dict[str, Any]: ...
 
+def photo_pose(
+    width: int,
+    height: int,
+    box: Sequence[float],
+    size: int,
+    pixels: npt.NDArray[np.int64],
+    points: npt.NDArray[np.float32],
+    focal_px: Optional[float] = None,
+    threshold_px: float = 8.0,
+    seed: int = 0,
+) -> Optional[Dict[str, Any]]: ...
+def detect_faces(
+    photo: npt.NDArray[np.uint8], min_face_px: int = 40, score_threshold: float = 2.0
+) -> List[Tuple[List[float], float]]: ...
+
 def poses_to_opencv(r_t: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]: ...
 def poses_from_opencv(rvec_tvec: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]: ...
 def poses_from_arkit(

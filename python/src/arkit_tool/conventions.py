@@ -59,10 +59,12 @@ __all__ = [
     "from_img2pose",
     "from_opencv",
     "from_trg",
+    "order",
     "to_arkit",
     "to_img2pose",
     "to_opencv",
     "to_trg",
+    "unit",
 ]
 
 
@@ -153,6 +155,18 @@ def from_angles(
     a, a_single = _vectors("angles", angles, 3)
     t, t_single = _vectors("translation", translation, 3)
     return _out(_native.poses_from_angles(a, t, _convention(convention)), a_single and t_single, (4, 4))
+
+
+def order(convention: Convention = "official") -> Tuple[str, str, str]:
+    """The names of `angles`' three values in `convention`: `("yaw", "pitch", "roll")`
+    for `official` and `trg`, `("pitch", "yaw", "roll")` for the others."""
+    name = _convention(convention)
+    return ("yaw", "pitch", "roll") if name in ("official", "trg") else ("pitch", "yaw", "roll")
+
+
+def unit(convention: Convention = "official") -> Literal["deg", "rad"]:
+    """The unit of `angles`' values in `convention`: radians for `wcpa`, else degrees."""
+    return "rad" if _convention(convention) == "wcpa" else "deg"
 
 
 def to_trg(R_t: npt.ArrayLike) -> Array:

@@ -101,6 +101,26 @@ impl PhotoCamera {
     }
 }
 
+/// Checks a face box against a `width x height` photo: finite, `x0 < x1`, `y0 < y1`, and
+/// overlapping the photo (a box may reach past the edges: the crop reads black there,
+/// as the demo's `cv2.warpAffine` does).
+pub fn check_box(b: [f64; 4], width: u32, height: u32) -> Result<()> {
+    let [x0, y0, x1, y1] = b;
+    if !b.iter().all(|v| v.is_finite()) || x1 <= x0 || y1 <= y0 {
+        return Err(Error::invalid(
+            "face box",
+            format!("[{x0}, {y0}, {x1}, {y1}]: expected x0 < x1 and y0 < y1, all finite"),
+        ));
+    }
+    if x1 <= 0.0 || y1 <= 0.0 || x0 >= width as f64 || y0 >= height as f64 {
+        return Err(Error::invalid(
+            "face box",
+            format!("[{x0}, {y0}, {x1}, {y1}] lies outside the {width}x{height} photo"),
+        ));
+    }
+    Ok(())
+}
+
 /// A face's solved pose.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct FacePose {
