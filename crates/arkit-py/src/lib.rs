@@ -951,7 +951,7 @@ fn photo_pose<'py>(
     let limit = arkit_core::limits::MAX_IMAGE_SIDE;
     if !(1..=limit).contains(&width)
         || !(1..=limit).contains(&height)
-        || !(2..=arkit_core::limits::MAX_CROP_SIZE as u32).contains(&size)
+        || !(2..=arkit_core::limits::MAX_CROP_SIZE).contains(&size)
     {
         return Err(DataError::new_err(format!(
             "photo_pose: photo {width}x{height}, crop {size}: sides in 1..={limit}, crop in 2..=4096"
