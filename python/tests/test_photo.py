@@ -96,6 +96,12 @@ def test_the_crop_is_the_official_demo_s(shape, box):
     square, crop, b, version = run_demo_steps(img, box)
     got = _native.photo_crop(img, box)
     np.testing.assert_allclose(got["box_square"], b, rtol=0, atol=1e-9)
+    # The network's input: torchvision's ToTensor() then Normalize(ImageNet), in float32.
+    mean = np.array([0.485, 0.456, 0.406], np.float32)[:, None, None]
+    std = np.array([0.229, 0.224, 0.225], np.float32)[:, None, None]
+    expected = (got["crop"].transpose(2, 0, 1).astype(np.float32) / np.float32(255) - mean) / std
+    assert got["input"].shape == (3, 192, 192) and got["input"].dtype == np.float32
+    np.testing.assert_allclose(got["input"], expected, rtol=0, atol=2e-6)
     if version.startswith("4."):
         assert np.array_equal(got["square"], square), version
         assert np.array_equal(got["crop"], crop), version
