@@ -299,7 +299,7 @@ pub fn warp_affine(
 /// vertical one, in integers, hence exactly the same sum. Each crop row's two image
 /// rows are blended once for the whole row (`(32 - fy) top + fy bottom`, a loop the
 /// compiler vectorises), then each pixel whose four taps are all in the image blends
-/// two of those values per channel ([`blend_columns`]); the border's pixels sum their
+/// two of those values per channel (`blend_columns`); the border's pixels sum their
 /// taps one by one.
 pub fn warp_affine_window(
     src: &[u8],

@@ -109,7 +109,7 @@ impl ColourJitter {
     /// the grey of the image's mean luma (ITU-R 601 integer luma, as PIL's `L`),
     /// saturation with each pixel's luma; the hue shift rotates the HSV hue.
     ///
-    /// Brightness and contrast map each byte alone ([`blend_bytes`]: 32 bytes at a time
+    /// Brightness and contrast map each byte alone (`blend_bytes`: 32 bytes at a time
     /// where the CPU has AVX2, else a 256-entry table of the same formula); every
     /// rounding is `round_half_away`, `f32::round`'s values without its library call.
     /// Saturation and hue run eight pixels at a time where the CPU has AVX2
