@@ -302,7 +302,7 @@ fn portrait_turns_the_captured_image_clockwise() {
         }
     }
     let k = Matrix3::new(300.0, 0.0, 199.5, 0.0, 300.0, 149.5, 0.0, 0.0, 1.0);
-    let out = import_arkit::resample_to_release(
+    let out = arkit_data::ingest::release_camera::resample_to_release(
         &captured,
         &k,
         &InterfaceOrientation::Portrait.rotation(),
@@ -321,7 +321,7 @@ fn portrait_turns_the_captured_image_clockwise() {
     assert!(mx > 340.0 && mx < 360.0, "{mx}");
     assert!((my - 200.0).abs() < 3.0, "{my}");
     // landscapeRight keeps it at the top.
-    let out = import_arkit::resample_to_release(
+    let out = arkit_data::ingest::release_camera::resample_to_release(
         &captured,
         &k,
         &InterfaceOrientation::LandscapeRight.rotation(),

@@ -31,7 +31,7 @@
 //! **Image**: the official code pads or crops each image to the release's field of
 //! view (64.84 degrees, centred on the principal point) and resizes it to 800x800; the
 //! same is done here by resampling into the release camera
-//! ([`crate::ingest::import_arkit::resample_to_release`]), which also honours `fx != fy` and a
+//! ([`crate::ingest::release_camera::resample_to_release`]), which also honours `fx != fy` and a
 //! sub-pixel principal point. The lens distortion of `rgb.cal` is not modelled, so a
 //! sequence whose distortion coefficients are not zero is refused.
 //!
@@ -41,7 +41,7 @@
 //! vertices. The 68 landmarks (for the crop box) are the BIWI-mesh vertices the official
 //! code names ([`BIWI_LANDMARKS`]).
 
-use crate::ingest::import_arkit::resample_to_release;
+use crate::ingest::release_camera::{principal_point_check, resample_to_release};
 use crate::mesh::topology::FaceTopology;
 use arkit_core::atomic_file;
 use arkit_core::conventions::{Camera, Pose};
@@ -242,26 +242,6 @@ impl Calibration {
         }
         principal_point_check(&self.k, width, height).map_err(|m| format!("{m} (rgb.cal)"))
     }
-}
-
-/// Checks that the principal point of `k` lies in the middle half of a `width x
-/// height` image (`|cx - w/2| <= w/4`, the same for y): true of every real camera's
-/// intrinsics for the image they were calibrated on, false when the image was resized
-/// by a factor of 2 or more, or the intrinsics belong to another resolution. The error
-/// says what was found.
-pub fn principal_point_check(
-    k: &Matrix3<f64>,
-    width: u32,
-    height: u32,
-) -> std::result::Result<(), String> {
-    let (cx, cy) = (k[(0, 2)], k[(1, 2)]);
-    let (w, h) = (width as f64, height as f64);
-    if (cx - w / 2.0).abs() > w / 4.0 || (cy - h / 2.0).abs() > h / 4.0 {
-        return Err(format!(
-            "the intrinsics' principal point ({cx}, {cy}) is far from the centre of this {width}x{height} image: the intrinsics are for another image size (was the image resized?)"
-        ));
-    }
-    Ok(())
 }
 
 /// A frame's head pose in the depth camera: `x_depth = rotation p + translation_mm`.
