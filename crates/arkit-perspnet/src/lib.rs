@@ -63,7 +63,7 @@ pub use model::{
 pub use network::{Network, vertex_uv};
 pub use photo::{PhotoFace, face_seed, predict_photo};
 pub use training::checkpoint::{
-    ADAM_FILE, CHECKPOINT_RECORD, Checkpoint, SHIPPED_MODEL_DIR, TrainedModel, load,
+    ADAM_FILE, CHECKPOINT_RECORD, Checkpoint, SHIPPED_MODEL_DIR, StepLoss, TrainedModel, load,
     shipped_checkpoint, shipped_model, verify_checkpoint,
 };
 pub use training::data::{
@@ -71,7 +71,7 @@ pub use training::data::{
     network_input, read_examples,
 };
 pub use training::run::{
-    StepLoss, TrainOptions, learning_rate_at, reseed, steps_per_epoch, total_steps, train,
+    TrainOptions, learning_rate_at, reseed, steps_per_epoch, total_steps, train,
 };
 pub use weights::safetensors_file::SafetensorsFile;
 pub use weights::state_dict::{export_state_dict, state_dict_entries};

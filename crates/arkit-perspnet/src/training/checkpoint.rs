@@ -6,7 +6,6 @@
 //! is loaded for prediction by [`load`]; the shipped model is compiled in.
 
 use super::data::Augmentation;
-use super::run::StepLoss;
 use crate::adam::Adam;
 use crate::candle_err;
 use crate::network::{Network, vertex_uv};
@@ -20,6 +19,27 @@ use candle_core::{DType, Device};
 use candle_nn::{VarBuilder, VarMap};
 use serde::{Deserialize, Serialize};
 use std::path::Path;
+
+/// One step's losses (weighted, as summed into the total).
+#[derive(Clone, Copy, Debug, Serialize)]
+pub struct StepLoss {
+    /// Step number (0-based).
+    pub step: usize,
+    /// Epoch.
+    pub epoch: usize,
+    /// Total.
+    pub total: f32,
+    /// Correspondence smooth L1.
+    pub corr: f32,
+    /// Shape L1.
+    pub shape: f32,
+    /// KL to the barycentric targets.
+    pub kl: f32,
+    /// Entropy.
+    pub entropy: f32,
+    /// Segmentation.
+    pub seg: f32,
+}
 
 /// How a checkpoint was made (`perspnet.json`).
 #[derive(Clone, Debug, Serialize, Deserialize)]

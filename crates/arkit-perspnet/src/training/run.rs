@@ -3,7 +3,7 @@
 //! after every epoch, and `--resume`.
 
 use super::checkpoint::{
-    ADAM_FILE, Checkpoint, holds_checkpoint, verify_checkpoint, write_checkpoint,
+    ADAM_FILE, Checkpoint, StepLoss, holds_checkpoint, verify_checkpoint, write_checkpoint,
 };
 use super::data::{Augmentation, Example, ExampleShards, batch};
 use crate::candle_err;
@@ -18,7 +18,6 @@ use arkit_data::loader::item::LoaderItem;
 use arkit_data::mesh::topology::FaceTopology;
 use candle_core::{DType, Device, Tensor};
 use candle_nn::{VarBuilder, VarMap};
-use serde::Serialize;
 use std::path::{Path, PathBuf};
 
 /// The learning rate of `step` of `total`: `base` for the first `hold` share of the
@@ -120,27 +119,6 @@ impl TrainOptions {
         }
         Ok(())
     }
-}
-
-/// One step's losses (weighted, as summed into the total).
-#[derive(Clone, Copy, Debug, Serialize)]
-pub struct StepLoss {
-    /// Step number (0-based).
-    pub step: usize,
-    /// Epoch.
-    pub epoch: usize,
-    /// Total.
-    pub total: f32,
-    /// Correspondence smooth L1.
-    pub corr: f32,
-    /// Shape L1.
-    pub shape: f32,
-    /// KL to the barycentric targets.
-    pub kl: f32,
-    /// Entropy.
-    pub entropy: f32,
-    /// Segmentation.
-    pub seg: f32,
 }
 
 /// Optimiser steps of a run: `epochs` passes over `examples` in batches of `batch`
