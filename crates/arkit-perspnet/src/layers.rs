@@ -15,6 +15,9 @@
 //! path on other devices (what this saves: docs/performance.md, "Where the
 //! PerspNet time goes").
 
+// The activation and the interpolation weights are defined beside the kernels that
+// use them; this module is their public path.
+pub use crate::ops::{Act, interp_matrix_align_corners};
 use crate::ops::{
     Activation, AddRelu, AddRowsRelu, ApplyF32Op, FastConv2d, FusedBn, GatherPixels,
     LogSoftmaxLast, MaxPool3x3S2, MeanPoints, PointLinearOp, ResizeAlignCorners, RowEntropy,
@@ -38,25 +41,6 @@ pub fn imagenet_normalize(img: &Tensor) -> Result<Tensor> {
         .to_dtype(img.dtype())?
         .reshape((1, 3, 1, 1))?;
     img.broadcast_sub(&mean)?.broadcast_div(&std)
-}
-
-/// The `(out, n)` matrix of 1-D linear interpolation from `n` to `out`
-/// samples with `align_corners=True` (source position `i * (n-1)/(out-1)`).
-pub fn interp_matrix_align_corners(n: usize, out: usize) -> Vec<f32> {
-    let mut m = vec![0f32; out * n];
-    for i in 0..out {
-        let src = if out > 1 && n > 1 {
-            i as f64 * (n - 1) as f64 / (out - 1) as f64
-        } else {
-            0.0
-        };
-        let i0 = (src.floor() as usize).min(n - 1);
-        let i1 = (i0 + 1).min(n - 1);
-        let w1 = (src - i0 as f64) as f32;
-        m[i * n + i0] += 1.0 - w1;
-        m[i * n + i1] += w1;
-    }
-    m
 }
 
 /// Bilinear up-sampling of a `B x C x H x W` tensor by 2 with
@@ -658,17 +642,6 @@ pub fn linear(vb: VarBuilder, c_in: usize, c_out: usize, std: f64) -> Result<Lin
     )?;
     let b = vb.get_with_hints(c_out, "bias", Init::Const(0.0))?;
     Ok(Linear::new(w, Some(b)))
-}
-
-/// Activation following a [`ConvBn`].
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub enum Act {
-    /// No activation.
-    None,
-    /// ReLU.
-    Relu,
-    /// LeakyReLU with the given negative slope.
-    Leaky(f64),
 }
 
 /// Conv (no bias) + batch norm + activation.

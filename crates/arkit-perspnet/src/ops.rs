@@ -9,9 +9,38 @@
 
 use crate::blas::{self, Mat};
 use crate::conv::{self, ConvShape};
-use crate::layers::{Act, interp_matrix_align_corners};
 use candle_core::{CpuStorage, Layout, Result, Shape, Tensor};
 use rayon::prelude::*;
+
+/// Activation following a [`crate::layers::ConvBn`].
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Act {
+    /// No activation.
+    None,
+    /// ReLU.
+    Relu,
+    /// LeakyReLU with the given negative slope.
+    Leaky(f64),
+}
+
+/// The `(out, n)` matrix of 1-D linear interpolation from `n` to `out`
+/// samples with `align_corners=True` (source position `i * (n-1)/(out-1)`).
+pub fn interp_matrix_align_corners(n: usize, out: usize) -> Vec<f32> {
+    let mut m = vec![0f32; out * n];
+    for i in 0..out {
+        let src = if out > 1 && n > 1 {
+            i as f64 * (n - 1) as f64 / (out - 1) as f64
+        } else {
+            0.0
+        };
+        let i0 = (src.floor() as usize).min(n - 1);
+        let i1 = (i0 + 1).min(n - 1);
+        let w1 = (src - i0 as f64) as f32;
+        m[i * n + i0] += 1.0 - w1;
+        m[i * n + i1] += w1;
+    }
+    m
+}
 
 /// A custom op with `N` inputs on contiguous f32 CPU tensors.
 pub(crate) trait F32Op<const N: usize>: Send + Sync + 'static {
