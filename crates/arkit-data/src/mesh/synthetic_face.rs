@@ -611,6 +611,30 @@ fn deform(p: &Point3<f32>, id: &[f64; IDENTITY_DIMS], ex: &[f64; EXPRESSION_DIMS
 
 #[cfg(test)]
 mod tests {
+    #[test]
+    fn obj_round_trip_of_the_built_in_face() {
+        let topo = &builtin().topology;
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("face.obj");
+        topo.write_obj(&path, topo.template.as_ref().unwrap())
+            .unwrap();
+        let back =
+            crate::mesh::topology::FaceTopology::from_obj(&path, topo.landmarks.clone()).unwrap();
+        assert_eq!(back.vertex_count, topo.vertex_count);
+        assert_eq!(back.triangles, topo.triangles);
+        for (a, b) in back.uv.iter().zip(&topo.uv) {
+            assert!((a[0] - b[0]).abs() < 1e-6 && (a[1] - b[1]).abs() < 1e-6);
+        }
+        for (a, b) in back
+            .template
+            .unwrap()
+            .iter()
+            .zip(topo.template.as_ref().unwrap())
+        {
+            assert!((a - b).norm() < 1e-7);
+        }
+    }
+
     use super::*;
     use crate::mesh::topology::{LANDMARK_MIRROR, NOSE_TIP_LANDMARK, nearest_mirror_partners};
 
