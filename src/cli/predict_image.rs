@@ -199,6 +199,45 @@ fn rt_rows(rt: &[f64; 16]) -> Value {
     ])
 }
 
+/// A photo's boxes, their detector scores (`None` for a given box), and where they came
+/// from (`--box`, `--boxes` or `detector`).
+type PhotoBoxes = (Vec<[f64; 4]>, Vec<Option<f64>>, &'static str);
+
+/// What every photo of a run shares.
+struct Run<'a> {
+    r: &'a ImageRequest<'a>,
+    model: arkit_perspnet::TrainedModel,
+    topology: arkit_data::mesh::topology::FaceTopology,
+    detect: DetectOptions,
+    given: Vec<[f64; 4]>,
+    table: Option<HashMap<String, Vec<[f64; 4]>>>,
+    single: bool,
+    names: [&'static str; 3],
+}
+
+/// One photo's part of the report: its JSON entry, its CSV rows, and whether it was
+/// skipped.
+struct PhotoOutcome {
+    entry: Value,
+    rows: Vec<Vec<String>>,
+    skipped: bool,
+    faces: usize,
+    posed: usize,
+}
+
+impl PhotoOutcome {
+    fn skipped(path: &Path, e: &Error) -> Self {
+        eprintln!("predict: skipped {}: {e}", path.display());
+        PhotoOutcome {
+            entry: json!({"path": path.display().to_string(), "error": e.to_string()}),
+            rows: Vec::new(),
+            skipped: true,
+            faces: 0,
+            posed: 0,
+        }
+    }
+}
+
 /// Runs `predict --image`.
 pub fn run(r: ImageRequest<'_>) -> Result<ExitCode> {
     if r.focal_px.is_some() && r.fov_deg.is_some() {
@@ -223,10 +262,7 @@ pub fn run(r: ImageRequest<'_>) -> Result<ExitCode> {
         .iter()
         .map(|s| parse_box(s))
         .collect::<Result<_>>()?;
-    let table = match r.boxes_file {
-        Some(p) => Some(read_boxes_file(p)?),
-        None => None,
-    };
+    let table = r.boxes_file.map(read_boxes_file).transpose()?;
     if let Some(f) = r.focal_px {
         PhotoCamera::FocalPx(f).check()?;
     }
@@ -236,238 +272,52 @@ pub fn run(r: ImageRequest<'_>) -> Result<ExitCode> {
     let topology = super::load_topology(r.resources)?;
     let model = arkit_perspnet::load(r.model, &topology)?;
     model.net.perspnet("predict --image")?;
-    if let Some(dir) = r.dump_crops {
+    for dir in [r.dump_crops, r.draw.filter(|_| !single)]
+        .into_iter()
+        .flatten()
+    {
         std::fs::create_dir_all(dir).map_err(|e| Error::io(dir, e))?;
     }
-    let draw_into_folder = r.draw.is_some() && !single;
-    if let (Some(dir), true) = (r.draw, draw_into_folder) {
-        std::fs::create_dir_all(dir).map_err(|e| Error::io(dir, e))?;
-    }
-    let detect = DetectOptions {
-        min_face_px: r.min_face_px,
-        score_threshold: r.detector_score,
+    let run = Run {
+        r: &r,
+        model,
+        topology,
+        detect: DetectOptions {
+            min_face_px: r.min_face_px,
+            score_threshold: r.detector_score,
+        },
+        given,
+        table,
+        single,
+        names: r.angles.order(),
     };
-    let names = r.angles.order();
+    let bar = super::progress_bar(photos.len() as u64, "predict", "photos");
+    let (mut entries, mut rows) = (Vec::new(), Vec::new());
+    let (mut skipped, mut faces, mut posed) = (0usize, 0usize, 0usize);
+    for (pi, path) in photos.iter().enumerate() {
+        bar.inc(1);
+        let outcome = bar.suspend(|| run.photo(pi, path))?;
+        skipped += outcome.skipped as usize;
+        faces += outcome.faces;
+        posed += outcome.posed;
+        entries.push(outcome.entry);
+        rows.extend(outcome.rows);
+    }
+    bar.finish_and_clear();
     let unit = match r.angles.unit() {
         AngleUnit::Degrees => "deg",
         AngleUnit::Radians => "rad",
     };
-    let bar = super::progress_bar(photos.len() as u64, "predict", "photos");
-    let (mut out_photos, mut rows) = (Vec::new(), Vec::new());
-    let (mut failed, mut faces_total, mut posed) = (0usize, 0usize, 0usize);
-    for (pi, path) in photos.iter().enumerate() {
-        bar.inc(1);
-        let photo = match read_rgb8_checked(path, |_| Ok(())) {
-            Ok(p) => p,
-            Err(e) => {
-                bar.suspend(|| eprintln!("predict: skipped {}: {e}", path.display()));
-                failed += 1;
-                out_photos
-                    .push(json!({"path": path.display().to_string(), "error": e.to_string()}));
-                continue;
-            }
-        };
-        let (w, h) = photo.dimensions();
-        let camera = match (r.focal_px, r.fov_deg) {
-            (Some(f), _) => PhotoCamera::FocalPx(f),
-            (None, Some(fov)) => PhotoCamera::from_horizontal_fov(fov, w)?,
-            (None, None) => PhotoCamera::Demo,
-        };
-        let square = DemoSquare::of(w, h, DEMO_SIDE);
-        let from_table = table.as_ref().and_then(|t| boxes_for(t, path, single));
-        let (boxes, scores, source): (Vec<[f64; 4]>, Vec<Option<f64>>, &str) = if !given.is_empty()
-        {
-            (given.clone(), vec![None; given.len()], "--box")
-        } else if let Some(b) = from_table {
-            (b.clone(), vec![None; b.len()], "--boxes")
-        } else {
-            let found = detect_faces(&photo, &detect)?;
-            (
-                found.iter().map(|f| f.bbox).collect(),
-                found.iter().map(|f| Some(f.score)).collect(),
-                "detector",
-            )
-        };
-        // A box given on the command line that does not fit the photo is a mistake in
-        // the command; one in a --boxes file skips its photo only.
-        if let Some(e) = boxes
-            .iter()
-            .find_map(|b| arkit_data::pose::photo::check_box(*b, w, h).err())
-        {
-            if source == "--box" {
-                return Err(e);
-            }
-            bar.suspend(|| eprintln!("predict: skipped {}: {e}", path.display()));
-            failed += 1;
-            out_photos.push(json!({"path": path.display().to_string(), "error": e.to_string()}));
-            continue;
-        }
-        let faces = arkit_perspnet::predict_photo(
-            &model,
-            &photo,
-            &boxes,
-            &camera,
-            r.seed ^ ((pi as u64) << 32),
-            &r.ransac,
-        )?;
-        if faces.is_empty() {
-            bar.suspend(|| {
-                eprintln!(
-                    "predict: {}: no face found (the detector finds roughly frontal faces of at least {} px; give boxes with --box or --boxes)",
-                    path.display(),
-                    r.min_face_px
-                )
-            });
-        }
-        let k = camera.intrinsics(&square);
-        let stem = path
-            .file_stem()
-            .map(|s| s.to_string_lossy().to_string())
-            .unwrap_or_else(|| format!("photo-{pi}"));
-        let mut drawn = r.draw.map(|_| photo.clone());
-        let mut face_values = Vec::new();
-        for (fi, face) in faces.iter().enumerate() {
-            faces_total += 1;
-            let mut v = json!({
-                "face": fi,
-                "box": face.bbox,
-                "detector_score": scores[fi],
-                "points": face.prediction.pixels.len(),
-            });
-            if let Some(dir) = r.dump_crops {
-                let file = dir.join(format!("{stem}-face{fi}.png"));
-                let mut png = Vec::new();
-                face.crop_image
-                    .write_to(&mut std::io::Cursor::new(&mut png), image::ImageFormat::Png)
-                    .map_err(|e| Error::invalid("crop", e.to_string()))?;
-                arkit_core::atomic_file::write_bytes(&file, &png)?;
-                v["crop"] = json!(file.display().to_string());
-            }
-            let mut row = vec![
-                path.display().to_string(),
-                fi.to_string(),
-                source.to_string(),
-            ];
-            row.extend(face.bbox.iter().map(|x| x.to_string()));
-            match &face.pose {
-                Some(fp) => {
-                    posed += 1;
-                    let rt = fp.pose.to_release_rt();
-                    let a = r.angles.angles(&fp.pose);
-                    let t = fp.pose.translation_m();
-                    let (rvec, tvec) = fp.pose.to_opencv_rvec();
-                    v["status"] = json!("ok");
-                    v["R_t"] = rt_rows(&rt);
-                    v["angles"] = json!({names[0]: a[0], names[1]: a[1], names[2]: a[2]});
-                    v["translation_m"] = json!([t.x, t.y, t.z]);
-                    v["rvec"] = json!([rvec.x, rvec.y, rvec.z]);
-                    v["tvec_m"] = json!([tvec.x, tvec.y, tvec.z]);
-                    v["inliers"] = json!(fp.inliers);
-                    v["distinct_points"] = json!(fp.points);
-                    let (r_cv, t_cv) = fp.pose.to_opencv();
-                    let canonical: Vec<nalgebra::Point3<f64>> = face
-                        .prediction
-                        .verts
-                        .chunks_exact(3)
-                        .map(|p| nalgebra::Point3::new(p[0] as f64, p[1] as f64, p[2] as f64))
-                        .collect();
-                    if r.vertices {
-                        let cam: Vec<[f64; 3]> = canonical
-                            .iter()
-                            .map(|p| {
-                                let q = fp.pose.to_camera(p);
-                                [q.x, q.y, q.z]
-                            })
-                            .collect();
-                        v["vertices_m"] = json!(cam);
-                    }
-                    if let Some(img) = drawn.as_mut() {
-                        let projected: Vec<Option<(f64, f64)>> = canonical
-                            .iter()
-                            .map(|p| camera.project_to_photo(&square, &(r_cv * p + t_cv)))
-                            .collect();
-                        arkit_data::picture::overlay::draw_projected_mesh(
-                            img,
-                            &topology,
-                            &projected,
-                            &arkit_data::picture::overlay::MeshStyle::ANNOTATION,
-                        )?;
-                    }
-                    row.extend(["ok".to_string()]);
-                    row.extend(a.iter().map(|x| x.to_string()));
-                    row.extend([t.x, t.y, t.z].iter().map(|x| x.to_string()));
-                    row.extend([fp.inliers.to_string(), fp.points.to_string()]);
-                    row.extend(rt.iter().map(|x| x.to_string()));
-                }
-                None => {
-                    v["status"] = json!("pnp failed");
-                    row.push("pnp failed".into());
-                    row.extend(std::iter::repeat_n(String::new(), 3 + 3 + 2 + 16));
-                }
-            }
-            if let Some(img) = drawn.as_mut() {
-                arkit_data::picture::overlay::draw_box(
-                    img,
-                    face.bbox,
-                    2,
-                    image::Rgb([255, 200, 0]),
-                );
-            }
-            rows.push(row);
-            face_values.push(v);
-        }
-        if let (Some(target), Some(img)) = (r.draw, drawn) {
-            let file = if draw_into_folder {
-                target.join(format!("{stem}.jpg"))
-            } else {
-                target.to_path_buf()
-            };
-            let bytes = arkit_data::picture::encode::jpeg_bytes(&img, 90)?;
-            arkit_core::atomic_file::write_bytes(&file, &bytes)?;
-        }
-        out_photos.push(json!({
-            "path": path.display().to_string(),
-            "width": w,
-            "height": h,
-            "boxes_from": source,
-            "camera": {"fx": k.fx, "fy": k.fy, "cx": k.cx, "cy": k.cy,
-                       "pixels": if matches!(camera, PhotoCamera::Demo) { "the demo's 800-px square" } else { "the photo's" }},
-            "faces": face_values,
-        }));
-    }
-    bar.finish_and_clear();
     let report = json!({
         "model": r.model.display().to_string(),
-        "angles": {"convention": r.angles.name(), "order": names, "unit": unit},
+        "angles": {"convention": r.angles.name(), "order": run.names, "unit": unit},
         "frame": "R_t: the release's (row vectors, OpenGL camera: x right, y up, looking down -z), metres; rvec/tvec_m: OpenCV's (x right, y down, looking down +z)",
-        "photos": out_photos,
-        "summary": {"photos": photos.len(), "skipped": failed, "faces": faces_total, "posed": posed},
+        "photos": entries,
+        "summary": {"photos": photos.len(), "skipped": skipped, "faces": faces, "posed": posed},
     });
     match r.output {
         Some(p) if p.extension().is_some_and(|x| x.eq_ignore_ascii_case("csv")) => {
-            let mut text = format!(
-                "image,face,boxes_from,x0,y0,x1,y1,status,{},{},{},tx_m,ty_m,tz_m,inliers,distinct_points",
-                names[0], names[1], names[2]
-            );
-            for i in 0..16 {
-                text.push_str(&format!(",r_t_{}{}", i / 4, i % 4));
-            }
-            text.push('\n');
-            for row in &rows {
-                let cells: Vec<String> = row
-                    .iter()
-                    .map(|c| {
-                        if c.contains([',', '"', '\n']) {
-                            format!("\"{}\"", c.replace('"', "\"\""))
-                        } else {
-                            c.clone()
-                        }
-                    })
-                    .collect();
-                text.push_str(&cells.join(","));
-                text.push('\n');
-            }
-            arkit_core::atomic_file::write_bytes(p, text.as_bytes())?;
+            arkit_core::atomic_file::write_bytes(p, csv_text(&run.names, &rows).as_bytes())?;
         }
         Some(p) => {
             let text = serde_json::to_string_pretty(&report).expect("json");
@@ -481,16 +331,251 @@ pub fn run(r: ImageRequest<'_>) -> Result<ExitCode> {
         println!(
             "{} photos ({} skipped): {} faces, {} posed -> {}",
             photos.len(),
-            failed,
-            faces_total,
+            skipped,
+            faces,
             posed,
             r.output
                 .map(|p| p.display().to_string())
                 .unwrap_or_default()
         );
     }
-    if r.strict && failed > 0 {
-        return Ok(ExitCode::FAILURE);
+    Ok(if r.strict && skipped > 0 {
+        ExitCode::FAILURE
+    } else {
+        ExitCode::SUCCESS
+    })
+}
+
+/// The CSV table of the faces: a header, then one row per face.
+fn csv_text(names: &[&str; 3], rows: &[Vec<String>]) -> String {
+    let mut text = format!(
+        "image,face,boxes_from,x0,y0,x1,y1,status,{},{},{},tx_m,ty_m,tz_m,inliers,distinct_points",
+        names[0], names[1], names[2]
+    );
+    for i in 0..16 {
+        text.push_str(&format!(",r_t_{}{}", i / 4, i % 4));
     }
-    Ok(ExitCode::SUCCESS)
+    text.push('\n');
+    for row in rows {
+        let cells: Vec<String> = row
+            .iter()
+            .map(|c| {
+                if c.contains([',', '"', '\n']) {
+                    format!("\"{}\"", c.replace('"', "\"\""))
+                } else {
+                    c.clone()
+                }
+            })
+            .collect();
+        text.push_str(&cells.join(","));
+        text.push('\n');
+    }
+    text
+}
+
+impl Run<'_> {
+    /// The boxes of a photo: `--box`, its `--boxes` entry, or the detector's (with
+    /// their scores), and where they came from.
+    fn boxes(
+        &self,
+        photo: &image::RgbImage,
+        path: &Path,
+    ) -> Result<PhotoBoxes> {
+        if !self.given.is_empty() {
+            return Ok((self.given.clone(), vec![None; self.given.len()], "--box"));
+        }
+        if let Some(b) = self
+            .table
+            .as_ref()
+            .and_then(|t| boxes_for(t, path, self.single))
+        {
+            return Ok((b.clone(), vec![None; b.len()], "--boxes"));
+        }
+        let found = detect_faces(photo, &self.detect)?;
+        Ok((
+            found.iter().map(|f| f.bbox).collect(),
+            found.iter().map(|f| Some(f.score)).collect(),
+            "detector",
+        ))
+    }
+
+    /// Predicts one photo (the `pi`-th): an unreadable photo, or a bad box from a
+    /// `--boxes` file, skips it; a bad `--box` or a model error stops the run.
+    fn photo(&self, pi: usize, path: &Path) -> Result<PhotoOutcome> {
+        let r = self.r;
+        let photo = match read_rgb8_checked(path, |_| Ok(())) {
+            Ok(p) => p,
+            Err(e) => return Ok(PhotoOutcome::skipped(path, &e)),
+        };
+        let (w, h) = photo.dimensions();
+        let camera = match (r.focal_px, r.fov_deg) {
+            (Some(f), _) => PhotoCamera::FocalPx(f),
+            (None, Some(fov)) => PhotoCamera::from_horizontal_fov(fov, w)?,
+            (None, None) => PhotoCamera::Demo,
+        };
+        let square = DemoSquare::of(w, h, DEMO_SIDE);
+        let (boxes, scores, source) = self.boxes(&photo, path)?;
+        // A box given on the command line that does not fit the photo is a mistake in
+        // the command; one in a --boxes file skips its photo only.
+        if let Some(e) = boxes
+            .iter()
+            .find_map(|b| arkit_data::pose::photo::check_box(*b, w, h).err())
+        {
+            if source == "--box" {
+                return Err(e);
+            }
+            return Ok(PhotoOutcome::skipped(path, &e));
+        }
+        let faces = arkit_perspnet::predict_photo(
+            &self.model,
+            &photo,
+            &boxes,
+            &camera,
+            r.seed ^ ((pi as u64) << 32),
+            &r.ransac,
+        )?;
+        if faces.is_empty() {
+            eprintln!(
+                "predict: {}: no face found (the detector finds roughly frontal faces of at least {} px; give boxes with --box or --boxes)",
+                path.display(),
+                r.min_face_px
+            );
+        }
+        let stem = path
+            .file_stem()
+            .map(|s| s.to_string_lossy().to_string())
+            .unwrap_or_else(|| format!("photo-{pi}"));
+        let mut drawn = r.draw.map(|_| photo.clone());
+        let (mut entries, mut rows, mut posed) = (Vec::new(), Vec::new(), 0);
+        for (fi, face) in faces.iter().enumerate() {
+            let mut row = vec![
+                path.display().to_string(),
+                fi.to_string(),
+                source.to_string(),
+            ];
+            row.extend(face.bbox.iter().map(|x| x.to_string()));
+            let mut entry = json!({
+                "face": fi,
+                "box": face.bbox,
+                "detector_score": scores[fi],
+                "points": face.prediction.pixels.len(),
+            });
+            if let Some(dir) = r.dump_crops {
+                let file = dir.join(format!("{stem}-face{fi}.png"));
+                let mut png = Vec::new();
+                face.crop_image
+                    .write_to(&mut std::io::Cursor::new(&mut png), image::ImageFormat::Png)
+                    .map_err(|e| Error::invalid("crop", e.to_string()))?;
+                arkit_core::atomic_file::write_bytes(&file, &png)?;
+                entry["crop"] = json!(file.display().to_string());
+            }
+            posed += face.pose.is_some() as usize;
+            self.pose_fields(face, &camera, &square, &mut entry, &mut row, drawn.as_mut())?;
+            if let Some(img) = drawn.as_mut() {
+                arkit_data::picture::overlay::draw_box(
+                    img,
+                    face.bbox,
+                    2,
+                    image::Rgb([255, 200, 0]),
+                );
+            }
+            rows.push(row);
+            entries.push(entry);
+        }
+        if let (Some(target), Some(img)) = (r.draw, drawn) {
+            let file = if self.single {
+                target.to_path_buf()
+            } else {
+                target.join(format!("{stem}.jpg"))
+            };
+            let bytes = arkit_data::picture::encode::jpeg_bytes(&img, 90)?;
+            arkit_core::atomic_file::write_bytes(&file, &bytes)?;
+        }
+        let k = camera.intrinsics(&square);
+        let pixels = match camera {
+            PhotoCamera::Demo => "the demo's 800-px square",
+            PhotoCamera::FocalPx(_) => "the photo's",
+        };
+        Ok(PhotoOutcome {
+            entry: json!({
+                "path": path.display().to_string(),
+                "width": w,
+                "height": h,
+                "boxes_from": source,
+                "camera": {"fx": k.fx, "fy": k.fy, "cx": k.cx, "cy": k.cy, "pixels": pixels},
+                "faces": entries,
+            }),
+            rows,
+            skipped: false,
+            faces: faces.len(),
+            posed,
+        })
+    }
+
+    /// A face's pose into its JSON entry and CSV row (empty cells when PnP failed), and
+    /// its mesh onto the drawing.
+    fn pose_fields(
+        &self,
+        face: &arkit_perspnet::PhotoFace,
+        camera: &PhotoCamera,
+        square: &DemoSquare,
+        entry: &mut Value,
+        row: &mut Vec<String>,
+        drawn: Option<&mut image::RgbImage>,
+    ) -> Result<()> {
+        let Some(fp) = &face.pose else {
+            entry["status"] = json!("pnp failed");
+            row.push("pnp failed".into());
+            row.extend(std::iter::repeat_n(String::new(), 3 + 3 + 2 + 16));
+            return Ok(());
+        };
+        let names = self.names;
+        let rt = fp.pose.to_release_rt();
+        let a = self.r.angles.angles(&fp.pose);
+        let t = fp.pose.translation_m();
+        let (rvec, tvec) = fp.pose.to_opencv_rvec();
+        entry["status"] = json!("ok");
+        entry["R_t"] = rt_rows(&rt);
+        entry["angles"] = json!({names[0]: a[0], names[1]: a[1], names[2]: a[2]});
+        entry["translation_m"] = json!([t.x, t.y, t.z]);
+        entry["rvec"] = json!([rvec.x, rvec.y, rvec.z]);
+        entry["tvec_m"] = json!([tvec.x, tvec.y, tvec.z]);
+        entry["inliers"] = json!(fp.inliers);
+        entry["distinct_points"] = json!(fp.points);
+        let canonical: Vec<nalgebra::Point3<f64>> = face
+            .prediction
+            .verts
+            .chunks_exact(3)
+            .map(|p| nalgebra::Point3::new(p[0] as f64, p[1] as f64, p[2] as f64))
+            .collect();
+        if self.r.vertices {
+            let cam: Vec<[f64; 3]> = canonical
+                .iter()
+                .map(|p| {
+                    let q = fp.pose.to_camera(p);
+                    [q.x, q.y, q.z]
+                })
+                .collect();
+            entry["vertices_m"] = json!(cam);
+        }
+        if let Some(img) = drawn {
+            let (r_cv, t_cv) = fp.pose.to_opencv();
+            let projected: Vec<Option<(f64, f64)>> = canonical
+                .iter()
+                .map(|p| camera.project_to_photo(square, &(r_cv * p + t_cv)))
+                .collect();
+            arkit_data::picture::overlay::draw_projected_mesh(
+                img,
+                &self.topology,
+                &projected,
+                &arkit_data::picture::overlay::MeshStyle::ANNOTATION,
+            )?;
+        }
+        row.push("ok".to_string());
+        row.extend(a.iter().map(|x| x.to_string()));
+        row.extend([t.x, t.y, t.z].iter().map(|x| x.to_string()));
+        row.extend([fp.inliers.to_string(), fp.points.to_string()]);
+        row.extend(rt.iter().map(|x| x.to_string()));
+        Ok(())
+    }
 }
