@@ -296,7 +296,7 @@ pub fn run(r: ImageRequest<'_>) -> Result<ExitCode> {
     let (mut skipped, mut faces, mut posed) = (0usize, 0usize, 0usize);
     for (pi, path) in photos.iter().enumerate() {
         bar.inc(1);
-        let outcome = bar.suspend(|| run.photo(pi, path))?;
+        let outcome = run.photo(pi, path)?;
         skipped += outcome.skipped as usize;
         faces += outcome.faces;
         posed += outcome.posed;
