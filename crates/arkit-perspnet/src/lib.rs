@@ -17,7 +17,8 @@
 //!   ([`Example`]), the loop, checkpoints ([`Checkpoint`], [`load`]);
 //! - weights ([`load_weights`], [`import_weights`], [`export_weights`],
 //!   [`write_half_model`]);
-//! - inference ([`predict_crop`], [`model_predictions`]).
+//! - inference ([`predict_crop`], [`model_predictions`]);
+//! - ONNX export ([`export_onnx`]: the network as two ONNX graphs, docs/onnx.md).
 //!
 //! What the network sees as input (docs/train.md, "What the network sees"): the
 //! `S x S` crop, ImageNet-normalised ([`network_input`]); in training, that crop
@@ -36,6 +37,7 @@ pub mod layers;
 mod loss;
 mod model;
 mod network;
+mod onnx;
 mod ops;
 mod training;
 mod weights;
@@ -59,6 +61,10 @@ pub use model::{
     parameter_count, synthetic_vertex_uv, trainable_vars,
 };
 pub use network::{Network, vertex_uv};
+pub use onnx::{
+    ONNX_FILES, ONNX_OPSET, OnnxExport, OnnxGraphInfo, OnnxManifest, OnnxValue, POINT_SELECTION,
+    export_onnx,
+};
 pub use training::checkpoint::{
     ADAM_FILE, CHECKPOINT_RECORD, Checkpoint, SHIPPED_MODEL_DIR, TrainedModel, load,
     shipped_checkpoint, shipped_model, verify_checkpoint,

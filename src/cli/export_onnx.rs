@@ -1,0 +1,96 @@
+//! `arkit-tool export-onnx`: a trained PerspNet as ONNX graphs.
+
+use arkit_core::error::{Error, Result};
+use clap::Args;
+use std::path::PathBuf;
+use std::process::ExitCode;
+
+/// Write a trained PerspNet as ONNX (opset 17, float32, any batch size) for other runtimes.
+///
+/// Writes three files into OUTPUT (created if missing, each file written atomically):
+///
+///   dense.onnx   image [batch,3,S,S] (the crop, ImageNet-normalised)
+///                -> seg_logits [batch,2,S,S], uv_map [batch,3,S,S],
+///                   image_features, uv_features [batch,F,S,S]
+///   points.onnx  image_features, uv_features, uv_map, choose [batch,M] (int64 pixel
+///                indices y*S+x) -> assignment [batch,M,V], points [batch,M,3],
+///                vertices [batch,V,3] (points and vertices in 9 x canonical metres)
+///   onnx.json    the config, S, M, V, the normalisation, the inputs and outputs with
+///                their units, and the rule that picks `choose` from the mask
+///
+/// The network is cut in two because the pixels it reads are chosen from its own
+/// predicted mask by our seeded sampler, which no ONNX operator reproduces: run
+/// dense.onnx, take the mask (logit 1 >= logit 0), choose M pixels as onnx.json says
+/// (Python: arkit_tool.onnx.OnnxPerspNet does all three steps), run points.onnx.
+/// With the same crop and seed the outputs equal `predict --model`'s (the measured
+/// differences are in docs/onnx.md). The direct baseline (`train --architecture
+/// direct`) is not exported.
+///
+/// --resources must be the folder the model was trained or imported with (none for
+/// the built-in face): the vertex UVs at which points.onnx reads the UV map come from
+/// it. --json prints the manifest (onnx.json) on stdout.
+///
+/// Example: arkit-tool export-onnx --model models/tiny-synthetic --output tiny-onnx/
+///          python -c "from arkit_tool.onnx import OnnxPerspNet; net = OnnxPerspNet('tiny-onnx')"
+#[derive(Args, Debug)]
+pub struct ExportOnnxArgs {
+    /// A PerspNet model folder written by `train` or `import-weights` (with
+    /// perspnet.json and model.safetensors), for example models/tiny-synthetic.
+    #[arg(long)]
+    model: PathBuf,
+    /// The release's resource folder the model was trained or imported with (its
+    /// topology's vertex UVs); the built-in face without it.
+    #[arg(long)]
+    resources: Option<PathBuf>,
+    /// The folder to write dense.onnx, points.onnx and onnx.json into.
+    #[arg(long)]
+    output: PathBuf,
+    /// Print the manifest (onnx.json) as JSON on stdout.
+    #[arg(long)]
+    json: bool,
+}
+
+pub fn run(a: ExportOnnxArgs) -> Result<ExitCode> {
+    let config = a.model.join("perspnet.json");
+    if !config.is_file() {
+        return Err(Error::invalid(
+            "--model",
+            format!(
+                "{} has no perspnet.json: give a model folder written by `train` or `import-weights`",
+                a.model.display()
+            ),
+        ));
+    }
+    let topology = super::load_topology(a.resources.as_deref())?;
+    let model = arkit_perspnet::load(&a.model, &topology)?;
+    if model.checkpoint.config.architecture != arkit_perspnet::Architecture::PerspNet {
+        return Err(Error::invalid(
+            "--model",
+            format!(
+                "{} holds the direct baseline (architecture \"direct\" in perspnet.json); export-onnx exports PerspNet models only",
+                a.model.display()
+            ),
+        ));
+    }
+    let export = arkit_perspnet::export_onnx(&model, &topology, &a.output)?;
+    if a.json {
+        println!(
+            "{}",
+            serde_json::to_string_pretty(&export.manifest).expect("json")
+        );
+    } else {
+        let m = &export.manifest;
+        eprintln!(
+            "exported {} (S = {}, M = {}, V = {}, opset {}) -> {}: dense.onnx ({:.2} MB), points.onnx ({:.2} MB), onnx.json",
+            a.model.display(),
+            m.input_size,
+            m.points,
+            m.vertices,
+            m.opset,
+            a.output.display(),
+            m.dense.bytes as f64 / 1e6,
+            m.points_graph.bytes as f64 / 1e6,
+        );
+    }
+    Ok(ExitCode::SUCCESS)
+}
