@@ -61,17 +61,21 @@ pub fn run(a: ExportOnnxArgs) -> Result<ExitCode> {
             ),
         ));
     }
-    let topology = super::load_topology(a.resources.as_deref())?;
-    let model = arkit_perspnet::load(&a.model, &topology)?;
-    if model.checkpoint.config.architecture != arkit_perspnet::Architecture::PerspNet {
+    // The config first: a direct baseline is refused before its weights are read.
+    let text = std::fs::read_to_string(&config).map_err(|e| Error::io(&config, e))?;
+    let checkpoint: arkit_perspnet::Checkpoint =
+        serde_json::from_str(&text).map_err(|e| Error::format(&config, e.to_string()))?;
+    if checkpoint.config.architecture != arkit_perspnet::Architecture::PerspNet {
         return Err(Error::invalid(
             "--model",
             format!(
-                "{} holds the direct baseline (architecture \"direct\" in perspnet.json); export-onnx exports PerspNet models only",
+                "{} holds the paper's direct baseline (\"architecture\": \"direct\" in perspnet.json), which has no mask or correspondences; export-onnx exports PerspNet models only",
                 a.model.display()
             ),
         ));
     }
+    let topology = super::load_topology(a.resources.as_deref())?;
+    let model = arkit_perspnet::load(&a.model, &topology)?;
     let export = arkit_perspnet::export_onnx(&model, &topology, &a.output)?;
     if a.json {
         println!(
