@@ -159,7 +159,7 @@ class OnnxPerspNet:
             raise ValueError(f"choose must be (B, {self.points}), got {c.shape}")
         if c.size and (c.min() < 0 or c.max() >= s * s):
             raise ValueError(f"choose holds pixels outside the {s} x {s} crop")
-        feeds = {k: dense[k] for k in ("image_features", "uv_features", "uv_map")}
+        feeds: Dict[str, npt.NDArray[Any]] = {k: dense[k] for k in ("image_features", "uv_features", "uv_map")}
         feeds["choose"] = c
         names = [o.name for o in self.points_session.get_outputs()]
         return dict(zip(names, self.points_session.run(names, feeds)))
