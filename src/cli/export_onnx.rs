@@ -7,31 +7,29 @@ use std::process::ExitCode;
 
 /// Write a trained PerspNet as ONNX (opset 17, float32, any batch size) for other runtimes.
 ///
-/// Writes three files into OUTPUT (created if missing, each file written atomically):
-///
-///   dense.onnx   image [batch,3,S,S] (the crop, ImageNet-normalised)
-///                -> seg_logits [batch,2,S,S], uv_map [batch,3,S,S],
-///                   image_features, uv_features [batch,F,S,S]
-///   points.onnx  image_features, uv_features, uv_map, choose [batch,M] (int64 pixel
-///                indices y*S+x) -> assignment [batch,M,V], points [batch,M,3],
-///                vertices [batch,V,3] (points and vertices in 9 x canonical metres)
-///   onnx.json    the config, S, M, V, the normalisation, the inputs and outputs with
-///                their units, and the rule that picks `choose` from the mask
+/// Writes three files into OUTPUT (created if missing; each file written atomically).
+/// dense.onnx: input `image` [batch, 3, S, S], the crop ImageNet-normalised; outputs
+/// `seg_logits` [batch, 2, S, S], `uv_map` [batch, 3, S, S] (9 x canonical metres),
+/// `image_features` and `uv_features` [batch, F, S, S]. points.onnx: inputs those three
+/// maps and `choose` [batch, M] (int64 pixel indices y * S + x); outputs `assignment`
+/// [batch, M, V], `points` [batch, M, 3] and `vertices` [batch, V, 3], both in 9 x
+/// canonical metres. onnx.json: the config, S, M, V, the normalisation, every input and
+/// output with its units, and the rule that picks `choose`.
 ///
 /// The network is cut in two because the pixels it reads are chosen from its own
 /// predicted mask by our seeded sampler, which no ONNX operator reproduces: run
-/// dense.onnx, take the mask (logit 1 >= logit 0), choose M pixels as onnx.json says
-/// (Python: arkit_tool.onnx.OnnxPerspNet does all three steps), run points.onnx.
-/// With the same crop and seed the outputs equal `predict --model`'s (the measured
-/// differences are in docs/onnx.md). The direct baseline (`train --architecture
-/// direct`) is not exported.
+/// dense.onnx, take the mask (logit 1 >= logit 0), choose M of its pixels as onnx.json
+/// says, run points.onnx. In Python, arkit_tool.onnx.OnnxPerspNet(OUTPUT) does the three
+/// steps with onnxruntime, without torch. With the same crop and seed, the chosen pixels
+/// are `predict --model`'s and the outputs equal its `--dump` (the measured differences
+/// are in docs/onnx.md). The direct baseline (`train --architecture direct`) is refused.
 ///
-/// --resources must be the folder the model was trained or imported with (none for
-/// the built-in face): the vertex UVs at which points.onnx reads the UV map come from
-/// it. --json prints the manifest (onnx.json) on stdout.
+/// --resources must be the folder the model was trained or imported with (none for the
+/// built-in face): points.onnx reads the UV map at that topology's vertex UVs. --json
+/// prints the manifest (onnx.json) on stdout.
 ///
 /// Example: arkit-tool export-onnx --model models/tiny-synthetic --output tiny-onnx/
-///          python -c "from arkit_tool.onnx import OnnxPerspNet; net = OnnxPerspNet('tiny-onnx')"
+///          arkit-tool export-onnx --model official-model/ --resources ../shared/arkitface-resources --output paper-onnx/
 #[derive(Args, Debug)]
 pub struct ExportOnnxArgs {
     /// A PerspNet model folder written by `train` or `import-weights` (with
