@@ -780,3 +780,45 @@ fn points_graph(
         info,
     ))
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The shipped model exports to the three files; each graph is a `ModelProto` that
+    /// starts with `ir_version = 8` (key 0x08, value 0x08) and the manifest matches.
+    #[test]
+    fn the_shipped_model_exports_and_the_manifest_describes_it() {
+        let topology = arkit_data::mesh::synthetic_face::builtin().topology.clone();
+        let model = crate::shipped_model(&topology).unwrap();
+        let dir = tempfile::tempdir().unwrap();
+        let out = dir.path().join("onnx");
+        let e = export_onnx(&model, &topology, &out).unwrap();
+        let names: Vec<String> = e
+            .files
+            .iter()
+            .map(|p| p.file_name().unwrap().to_string_lossy().into_owned())
+            .collect();
+        assert_eq!(names, ONNX_FILES);
+        for g in [&e.manifest.dense, &e.manifest.points_graph] {
+            let bytes = std::fs::read(out.join(&g.file)).unwrap();
+            assert_eq!(&bytes[..2], [0x08, 0x08]);
+            assert_eq!(bytes.len() as u64, g.bytes);
+            assert_eq!(hex(&sha2::Sha256::digest(&bytes)), g.sha256);
+        }
+        let m = &e.manifest;
+        assert_eq!(
+            (m.input_size, m.points, m.vertices, m.opset),
+            (64, 256, 1220, 17)
+        );
+        let text = std::fs::read_to_string(out.join("onnx.json")).unwrap();
+        let v: serde_json::Value = serde_json::from_str(&text).unwrap();
+        assert_eq!(
+            v["dense"]["inputs"][0]["shape"],
+            serde_json::json!(["batch", 3, 64, 64])
+        );
+        assert_eq!(v["points_graph"]["inputs"][3]["dtype"], "int64");
+        // No temporary is left behind.
+        assert_eq!(std::fs::read_dir(&out).unwrap().count(), 3);
+    }
+}
