@@ -7,6 +7,8 @@ mod crops;
 #[cfg(feature = "model")]
 mod demo;
 mod eval;
+#[cfg(feature = "model")]
+mod export_onnx;
 mod import_arkit;
 mod info;
 mod inspect;
@@ -59,6 +61,8 @@ enum Command {
     ExportWeights(weights::ExportWeightsArgs),
     #[cfg(feature = "model")]
     HalfModel(weights::HalfModelArgs),
+    #[cfg(feature = "model")]
+    ExportOnnx(export_onnx::ExportOnnxArgs),
     Predict(predict::PredictArgs),
     Eval(eval::EvalArgs),
     Augment(augment::AugmentArgs),
@@ -87,6 +91,8 @@ pub fn run(cli: Cli) -> Result<ExitCode> {
         Command::ExportWeights(a) => weights::run_export(a),
         #[cfg(feature = "model")]
         Command::HalfModel(a) => weights::run_half(a),
+        #[cfg(feature = "model")]
+        Command::ExportOnnx(a) => export_onnx::run(a),
         Command::Predict(a) => predict::run(a),
         Command::Eval(a) => eval::run(a),
         Command::Augment(a) => augment::run(a),

@@ -151,6 +151,12 @@ impl PointSampler {
         })
     }
 
+    /// The flat neighbour indices (4 blocks of `P`) and their weights (`4 x P`),
+    /// for the ONNX export's constant gather.
+    pub(crate) fn taps(&self) -> (&[u32], &[f32]) {
+        (&self.taps.0, &self.taps.1)
+    }
+
     /// Number of sampled points `P`.
     pub fn points(&self) -> usize {
         self.points

@@ -18,7 +18,8 @@
 //! - weights ([`load_weights`], [`import_weights`], [`export_weights`],
 //!   [`write_half_model`]);
 //! - inference ([`predict_crop`], [`model_predictions`]) and the faces of a photo
-//!   ([`predict_photo`]).
+//!   ([`predict_photo`]);
+//! - ONNX export ([`export_onnx`]: the network as two ONNX graphs, docs/onnx.md).
 //!
 //! What the network sees as input (docs/train.md, "What the network sees"): the
 //! `S x S` crop, ImageNet-normalised ([`network_input`]); in training, that crop
@@ -37,6 +38,7 @@ pub mod layers;
 mod loss;
 mod model;
 mod network;
+mod onnx;
 mod ops;
 mod photo;
 mod training;
@@ -61,6 +63,10 @@ pub use model::{
     parameter_count, synthetic_vertex_uv, trainable_vars,
 };
 pub use network::{Network, vertex_uv};
+pub use onnx::{
+    ONNX_FILES, ONNX_OPSET, OnnxExport, OnnxGraphInfo, OnnxManifest, OnnxValue, POINT_SELECTION,
+    export_onnx,
+};
 pub use photo::{PhotoFace, face_seed, predict_photo};
 pub use training::checkpoint::{
     ADAM_FILE, CHECKPOINT_RECORD, Checkpoint, SHIPPED_MODEL_DIR, StepLoss, TrainedModel, load,

@@ -1364,6 +1364,51 @@ fn finite(v: &[f64], name: &str) -> arkit_core::error::Result<()> {
     }
 }
 
+// ---- ONNX export: the point choice (arkit_tool.onnx) ----
+
+/// The pixels PerspNet reads, chosen from a predicted mask as `predict --model` chooses
+/// them (`arkit_perspnet::predict_crop_raw`): the candidates are the mask's pixels in
+/// flat order (every pixel when the mask is empty), and
+/// `arkit_data::render::face::sample_points(len(candidates), m, seed)` picks `m` of
+/// them (distinct, increasing, when there are more than `m`; else with wrap-around).
+/// `mask`: bool, any shape, read in C order. Returns the `m` flat indices (int64).
+#[pyfunction]
+fn choose_points<'py>(
+    py: Python<'py>,
+    mask: numpy::PyReadonlyArrayDyn<'py, bool>,
+    m: usize,
+    seed: u64,
+) -> PyResult<Bound<'py, numpy::PyArray1<i64>>> {
+    if m == 0 || m > 1 << 20 {
+        return Err(py_err(Error::invalid(
+            "m",
+            format!("{m} points: must be in 1..=1048576"),
+        )));
+    }
+    let flat: Vec<bool> = mask.as_array().iter().copied().collect();
+    if flat.is_empty() || flat.len() > u32::MAX as usize {
+        return Err(py_err(Error::invalid(
+            "mask",
+            format!("{} pixels: must be in 1..=4294967295", flat.len()),
+        )));
+    }
+    let chosen = py.detach(|| {
+        let mut candidates: Vec<u32> = (0..flat.len() as u32)
+            .filter(|&i| flat[i as usize])
+            .collect();
+        if candidates.is_empty() {
+            candidates = (0..flat.len() as u32).collect();
+        }
+        arkit_data::render::face::sample_points(candidates.len(), m, seed)
+            .into_iter()
+            .map(|k| candidates[k as usize] as i64)
+            .collect::<Vec<i64>>()
+    });
+    Ok(chosen.into_pyarray(py))
+}
+
+// ---- end of the ONNX block ----
+
 #[pymodule]
 fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<Loader>()?;
@@ -1388,6 +1433,7 @@ fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(poses_from_trg, m)?)?;
     m.add_function(wrap_pyfunction!(poses_to_img2pose, m)?)?;
     m.add_function(wrap_pyfunction!(poses_from_img2pose, m)?)?;
+    m.add_function(wrap_pyfunction!(choose_points, m)?)?; // ONNX block
     m.add("DataError", m.py().get_type::<DataError>())?;
     m.add("__version__", env!("CARGO_PKG_VERSION"))?;
     Ok(())
