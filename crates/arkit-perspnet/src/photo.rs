@@ -29,16 +29,17 @@ pub struct PhotoFace {
     pub pose: Option<FacePose>,
 }
 
-/// The seed of face `face` of a photo predicted with `seed` (the chosen pixels and
-/// RANSAC follow from it): `seed ^ face`, so that face 0 uses `seed` itself, as sample
-/// `i` of shard `k` uses `seed ^ (k << 32 | i)` in `predict --dataset`.
+/// The seed of the pixels chosen for face `face` of a photo predicted with `seed`:
+/// `seed ^ face`, so that face 0 uses `seed` itself, as sample `i` of shard `k` uses
+/// `seed ^ (k << 32 | i)` in `predict --dataset`. RANSAC takes `ransac`'s seed for
+/// every face, as `predict --dataset` does for every sample.
 pub fn face_seed(seed: u64, face: usize) -> u64 {
     seed ^ face as u64
 }
 
 /// Predicts the pose of each face box of `photo` with a PerspNet (the direct baseline is
-/// refused: it regresses a pose in the crop's own camera). Face `k` uses
-/// [`face_seed`]`(seed, k)`.
+/// refused: it regresses a pose in the crop's own camera). Face `k` chooses its pixels
+/// with [`face_seed`]`(seed, k)`; RANSAC runs with `ransac` as given.
 pub fn predict_photo(
     model: &TrainedModel,
     photo: &RgbImage,
@@ -67,17 +68,13 @@ pub fn predict_photo(
             let crop_image = crop.crop_image(&padded);
             let input = normalise(crop_image.as_raw());
             let prediction = predict_crop(model, &input, face_seed(seed, k), None)?;
-            let ransac = RansacParams {
-                seed: face_seed(ransac.seed, k),
-                ..*ransac
-            };
             let pose = face_pose(
                 &square,
                 &crop,
                 camera,
                 &prediction.pixels,
                 &prediction.points,
-                &ransac,
+                ransac,
             )?;
             Ok(PhotoFace {
                 bbox: *b,

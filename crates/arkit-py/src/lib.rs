@@ -865,7 +865,8 @@ fn read_image<'py>(py: Python<'py>, path: PathBuf) -> PyResult<Bound<'py, PyAny>
 /// A photo made ready for the network as the official `demo.py` makes it
 /// (`arkit_data::picture::photo`): padded with black to a square, resized to `side`
 /// (`cv2.resize`, bilinear), and the crop of `box` (`[x0, y0, x1, y1]` in the photo's
-/// pixels) by the 0.75 rule through `cv2.warpAffine`. Returns a dict: `square` (side x
+/// pixels; finite, `x0 < x1`, `y0 < y1`, overlapping the photo) by the 0.75 rule through
+/// `cv2.warpAffine`. Returns a dict: `square` (side x
 /// side x 3 uint8), `crop` (size x size x 3 uint8), `input` (the crop as the network
 /// takes it: 3 x size x size float32, ImageNet-normalised exactly as `predict` does),
 /// `pad_left`, `pad_top`, `scale` and `box_square` (the box in the square's pixels).
@@ -895,6 +896,7 @@ fn photo_crop<'py>(
     let raw: Vec<u8> = photo.as_array().iter().copied().collect();
     let (h, w) = (shape[0] as u32, shape[1] as u32);
     let (square, crop, frame, b) = run(py, || {
+        arkit_data::pose::photo::check_box(r#box, w, h)?;
         let img = image::RgbImage::from_raw(w, h, raw).expect("size matches");
         let frame = DemoSquare::of(w, h, side);
         let square = frame.image(&img);

@@ -7,16 +7,16 @@ crop (`cv2.warpAffine`'s rule) and ImageNet-normalised, the network's mask, chos
 pixels and correspondences, and our PnP in the demo's camera (or the photo's own with
 `focal_px` / `fov_deg`). Every step but the network runs in arkit-tool's Rust core.
 
-The network is any object with an `input_size` and a `predict_crops(inputs, seeds)`
-that returns, for a `(N, 3, S, S)` float32 batch, at least `choose` (`(N, M)` flat
-crop pixel indices `y * S + x`) and `points` (`(N, M, 3)` canonical metres) and
-optionally `vertices` (`(N, V, 3)` canonical metres): `arkit_tool.onnx.OnnxPerspNet`
-(an exported model run by onnxruntime) is one.
+The network is any object with an `input_size` and a `predict(inputs, seeds)` that
+returns, for a `(N, 3, S, S)` float32 batch and one seed per crop, an object with
+`choose` (`(N, M)` flat crop pixel indices `y * S + x`, chosen from its mask with the
+seed), `points` (`(N, M, 3)` canonical metres) and `vertices` (`(N, V, 3)` canonical
+metres): `arkit_tool.onnx.OnnxPerspNet` (an exported model run by onnxruntime) is one.
 
     >>> from arkit_tool.onnx import OnnxPerspNet
     >>> from arkit_tool.photo import detect_faces, predict_photo, read_photo
     >>> photo = read_photo("group.jpg")
-    >>> faces = predict_photo(photo, network=OnnxPerspNet("model.onnx.d"))
+    >>> faces = predict_photo(photo, network=OnnxPerspNet("tiny-onnx"))
     >>> faces[0]["angles"]  # yaw, pitch, roll in degrees (the official convention)
 
 Face `k` of a photo uses `seed ^ k` for its chosen pixels, and `seed` for RANSAC, as
@@ -42,10 +42,24 @@ DEMO_SIDE = 800
 __all__ = [
     "DEMO_SIDE",
     "CropNetwork",
+    "CropPrediction",
     "detect_faces",
     "predict_photo",
     "read_photo",
 ]
+
+
+class CropPrediction(Protocol):
+    """What a network's `predict` returns (see the module docs)."""
+
+    @property
+    def choose(self) -> npt.NDArray[np.int64]: ...
+
+    @property
+    def points(self) -> npt.NDArray[np.float32]: ...
+
+    @property
+    def vertices(self) -> npt.NDArray[np.float32]: ...
 
 
 class CropNetwork(Protocol):
@@ -54,9 +68,7 @@ class CropNetwork(Protocol):
     @property
     def input_size(self) -> int: ...
 
-    def predict_crops(
-        self, inputs: npt.NDArray[np.float32], seeds: Sequence[int]
-    ) -> Dict[str, npt.NDArray[Any]]: ...
+    def predict(self, image: npt.NDArray[np.float32], seeds: Sequence[int]) -> CropPrediction: ...
 
 
 def read_photo(path: Union[str, "os.PathLike[str]"]) -> npt.NDArray[np.uint8]:
@@ -107,8 +119,7 @@ def predict_photo(
     (`"ok"` or `"pnp failed"`) and, when posed, `R_t` (`(4, 4)`, the release's
     convention, the camera's metres), `angles` (`{name: value}` in `angles`'
     convention, order and unit), `translation_m`, `rvec` and `tvec_m` (OpenCV's),
-    `inliers` and, when the network gives them, `vertices_m` (`(V, 3)` in camera space,
-    the release's frame)."""
+    `inliers` and `vertices_m` (`(V, 3)` in camera space, the release's frame)."""
     photo = np.ascontiguousarray(photo)
     if photo.ndim != 3 or photo.shape[2] != 3 or photo.dtype != np.uint8:
         raise DataError(f"photo: expected (H, W, 3) uint8, got {photo.shape} {photo.dtype}")
@@ -125,12 +136,12 @@ def predict_photo(
     size = int(network.input_size)
     crops = [_native.photo_crop(photo, b, size, DEMO_SIDE) for b in boxes]
     inputs = np.stack([c["input"] for c in crops]).astype(np.float32, copy=False)
-    out = network.predict_crops(inputs, [seed ^ k for k in range(len(boxes))])
+    out = network.predict(inputs, [seed ^ k for k in range(len(boxes))])
     names = conventions.order(angles)
     faces: List[Dict[str, Any]] = []
     for k, b in enumerate(boxes):
-        choose = np.asarray(out["choose"][k], dtype=np.int64)
-        points = np.ascontiguousarray(out["points"][k], dtype=np.float32)
+        choose = np.asarray(out.choose[k], dtype=np.int64)
+        points = np.ascontiguousarray(out.points[k], dtype=np.float32)
         face: Dict[str, Any] = {
             "box": b,
             "crop": crops[k]["crop"],
@@ -153,8 +164,7 @@ def predict_photo(
                 tvec_m=tvec,
                 inliers=int(posed["inliers"]),
             )
-            if "vertices" in out:
-                v = np.asarray(out["vertices"][k], dtype=np.float64)
-                face["vertices_m"] = (np.c_[v, np.ones(len(v))] @ rt)[:, :3]
+            v = np.asarray(out.vertices[k], dtype=np.float64)
+            face["vertices_m"] = (np.c_[v, np.ones(len(v))] @ rt)[:, :3]
         faces.append(face)
     return faces
