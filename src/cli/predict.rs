@@ -231,26 +231,7 @@ pub fn run(a: PredictArgs) -> Result<ExitCode> {
         .clone();
     let split = (a.split != "all").then_some(a.split.as_str());
     if a.mean_pose {
-        let (rows, summary) = predict::mean_pose_predictions(&a.dataset, Some("train"), split)?;
-        write_predictions(&a.output, &rows)?;
-        if a.json {
-            println!("{}", serde_json::to_string_pretty(&summary).expect("json"));
-        } else {
-            let e = summary.euler_deg;
-            println!(
-                "mean pose of {} training samples (yaw {:.2}, pitch {:.2}, roll {:.2} deg; t {:.1}, {:.1}, {:.1} mm) for {} samples -> {}",
-                summary.fitted_on,
-                e[0],
-                e[1],
-                e[2],
-                summary.rt[12] * 1e3,
-                summary.rt[13] * 1e3,
-                summary.rt[14] * 1e3,
-                summary.samples,
-                a.output.display()
-            );
-        }
-        return Ok(ExitCode::SUCCESS);
+        return mean_pose(&a, split);
     }
     #[cfg(not(feature = "model"))]
     if a.model.is_some() {
@@ -261,59 +242,7 @@ pub fn run(a: PredictArgs) -> Result<ExitCode> {
     }
     #[cfg(feature = "model")]
     if let Some(dir) = &a.model {
-        let topology = super::load_topology(a.resources.as_deref())?;
-        let model = arkit_perspnet::load(dir, &topology)?;
-        let bar = super::progress_bar(manifest.converted as u64, "predict", "samples");
-        let targets = a.targets.clone().unwrap_or_else(|| a.dataset.clone());
-        let mut dump = Vec::new();
-        let (rows, summary) = arkit_perspnet::model_predictions_dump(
-            &a.dataset,
-            &model,
-            split,
-            match a.crop {
-                CropChoice::Ours => CropRule::Ours,
-                CropChoice::Official => CropRule::Official,
-            },
-            matches!(a.mask, MaskSource::Truth).then_some(targets.as_path()),
-            a.seed,
-            &ransac,
-            &|n| bar.inc(n as u64),
-            a.dump.is_some().then_some(&mut dump),
-        )?;
-        bar.finish_and_clear();
-        write_predictions(&a.output, &rows)?;
-        if let Some(path) = &a.dump {
-            arkit_perspnet::write_dump(path, &model.checkpoint.config, &topology, &dump)?;
-            if !a.json {
-                eprintln!(
-                    "dumped {} samples' network inputs and outputs -> {}",
-                    dump.len(),
-                    path.display()
-                );
-            }
-        }
-        if a.json {
-            println!("{}", serde_json::to_string_pretty(&summary).expect("json"));
-        } else {
-            println!(
-                "model {}: {} samples, {} PnP failures -> {}",
-                dir.display(),
-                summary.samples,
-                summary.failures,
-                a.output.display()
-            );
-            if summary.without_true_mask > 0 {
-                eprintln!(
-                    "left out {} samples that render could not render (no true mask; see the targets' errors/)",
-                    summary.without_true_mask
-                );
-            }
-        }
-        super::report_unreadable(&summary.unreadable, "predict");
-        if a.strict && !summary.unreadable.is_empty() {
-            return Ok(ExitCode::FAILURE);
-        }
-        return Ok(ExitCode::SUCCESS);
+        return model(&a, dir, split, &manifest, &ransac);
     }
     let options = OracleOptions {
         noise_px: a.noise_px,
@@ -341,6 +270,94 @@ pub fn run(a: PredictArgs) -> Result<ExitCode> {
             summary.without_targets,
             a.output.display()
         );
+    }
+    Ok(ExitCode::SUCCESS)
+}
+
+/// `predict --mean-pose`.
+fn mean_pose(a: &DatasetArgs, split: Option<&str>) -> Result<ExitCode> {
+    let (rows, summary) = predict::mean_pose_predictions(&a.dataset, Some("train"), split)?;
+    write_predictions(&a.output, &rows)?;
+    if a.json {
+        println!("{}", serde_json::to_string_pretty(&summary).expect("json"));
+    } else {
+        let e = summary.euler_deg;
+        println!(
+            "mean pose of {} training samples (yaw {:.2}, pitch {:.2}, roll {:.2} deg; t {:.1}, {:.1}, {:.1} mm) for {} samples -> {}",
+            summary.fitted_on,
+            e[0],
+            e[1],
+            e[2],
+            summary.rt[12] * 1e3,
+            summary.rt[13] * 1e3,
+            summary.rt[14] * 1e3,
+            summary.samples,
+            a.output.display()
+        );
+    }
+    Ok(ExitCode::SUCCESS)
+}
+
+/// `predict --model DIR --dataset`.
+#[cfg(feature = "model")]
+fn model(
+    a: &DatasetArgs,
+    dir: &std::path::Path,
+    split: Option<&str>,
+    manifest: &arkit_data::store::manifest::Manifest,
+    ransac: &RansacParams,
+) -> Result<ExitCode> {
+    let topology = super::load_topology(a.resources.as_deref())?;
+    let model = arkit_perspnet::load(dir, &topology)?;
+    let bar = super::progress_bar(manifest.converted as u64, "predict", "samples");
+    let targets = a.targets.clone().unwrap_or_else(|| a.dataset.clone());
+    let mut dump = Vec::new();
+    let (rows, summary) = arkit_perspnet::model_predictions_dump(
+        &a.dataset,
+        &model,
+        split,
+        match a.crop {
+            CropChoice::Ours => CropRule::Ours,
+            CropChoice::Official => CropRule::Official,
+        },
+        matches!(a.mask, MaskSource::Truth).then_some(targets.as_path()),
+        a.seed,
+        ransac,
+        &|n| bar.inc(n as u64),
+        a.dump.is_some().then_some(&mut dump),
+    )?;
+    bar.finish_and_clear();
+    write_predictions(&a.output, &rows)?;
+    if let Some(path) = &a.dump {
+        arkit_perspnet::write_dump(path, &model.checkpoint.config, &topology, &dump)?;
+        if !a.json {
+            eprintln!(
+                "dumped {} samples' network inputs and outputs -> {}",
+                dump.len(),
+                path.display()
+            );
+        }
+    }
+    if a.json {
+        println!("{}", serde_json::to_string_pretty(&summary).expect("json"));
+    } else {
+        println!(
+            "model {}: {} samples, {} PnP failures -> {}",
+            dir.display(),
+            summary.samples,
+            summary.failures,
+            a.output.display()
+        );
+        if summary.without_true_mask > 0 {
+            eprintln!(
+                "left out {} samples that render could not render (no true mask; see the targets' errors/)",
+                summary.without_true_mask
+            );
+        }
+    }
+    super::report_unreadable(&summary.unreadable, "predict");
+    if a.strict && !summary.unreadable.is_empty() {
+        return Ok(ExitCode::FAILURE);
     }
     Ok(ExitCode::SUCCESS)
 }
