@@ -572,6 +572,9 @@ impl<'a> Machine<'a> {
         self.push(v)
     }
 
+    /// Runs the pickle program to its `STOP`. Long (over 150 lines) on purpose: one
+    /// `match` over the opcodes a `torch.save` state dict uses, each arm a few lines
+    /// against the stack and memo; anything else is refused by name.
     fn run(&mut self) -> Result<V> {
         loop {
             let op = self.u8()?;

@@ -1463,6 +1463,9 @@ impl FaceLoader {
         }
     }
 
+    /// An item by the official loader's rules. Long (over 150 lines) on purpose: it
+    /// follows `ARKitDataset.get_item` step by step, in its order, so that the two can
+    /// be read side by side; each step calls a function of its own.
     #[allow(clippy::too_many_arguments)]
     fn official_from(
         &self,

@@ -537,6 +537,10 @@ fn frame_align(
 // EPnP (all-points closed-form initialiser)
 // ---------------------------------------------------------------------------
 
+/// EPnP (Lepetit et al., 2009) from all points: control points, the barycentric system,
+/// its null space and the best of the one-to-three-vector solutions. Long (over 150
+/// lines) on purpose: the steps follow the paper's sections in order and share their
+/// intermediate matrices; split, each part would take and return most of them.
 fn epnp(
     object: &[Point3<f64>],
     image: &[Point2<f64>],

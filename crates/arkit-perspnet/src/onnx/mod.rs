@@ -382,6 +382,9 @@ fn upsample(g: &mut Graph, x: &str, scales: &str) -> String {
     )
 }
 
+/// The `dense.onnx` graph. Long (over 150 lines) on purpose: it walks
+/// `PerspNet::forward_dense` layer by layer in the same order, so that the two read side
+/// by side.
 fn dense_graph(cfg: &PerspNetConfig, w: &Weights) -> Result<(proto::Message, OnnxGraphInfo)> {
     let (s, f, eps) = (cfg.input_size, cfg.feature_channels, cfg.bn_eps);
     let mut g = Graph::new();
