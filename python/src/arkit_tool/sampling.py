@@ -312,3 +312,13 @@ def _check_u64(name: str, value) -> int:
     if v != value or not 0 <= v < 1 << 64:
         raise ValueError(f"{name}: {value!r}: expected an integer in [0, 2^64)")
     return v
+
+
+def _position(index, n: int) -> int:
+    """A sample position from a Python index (negative counts from the end)."""
+    if not isinstance(index, (int, np.integer)) or isinstance(index, bool):
+        raise TypeError(f"index {index!r}: expected an integer")
+    i = int(index)
+    if not -n <= i < n:
+        raise IndexError(f"index {i} out of range for {n} samples")
+    return i + n if i < 0 else i
