@@ -1,4 +1,4 @@
-"""arkit_tool: the ARKitFace dataset for PyTorch, computed by the arkit-tool Rust library.
+"""arkit_tool: the ARKitFace dataset for PyTorch, computed in Rust (the `arkit_data` library).
 
 - `open_dataset(DIR)`: a dataset written by `arkit-tool convert`: its samples table, its
   splits, one sample by position or key.
@@ -15,6 +15,8 @@
   arrays (plain numpy; the layouts are in schemas/targets.json).
 - `conventions`: the release's `R_t` to and from OpenCV's `rvec`/`tvec`, ARKit's
   transforms, TRG's and img2pose's poses, and each tool's Euler angles.
+- `types`: the options' values (`Literal`s) and the dicts returned (`TypedDict`s), for
+  annotations; the package is typed (`py.typed`).
 
 Errors are `DataError` (a `ValueError`) with a message naming the file and the problem.
 See docs/python.md in the repository.
@@ -22,21 +24,17 @@ See docs/python.md in the repository.
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING, Any
+
 from . import _native, conventions
+from ._collate import ItemBatch, SampleView, collate
+from ._converted import ConvertedDataset, open_dataset, read_image
+from ._dataset import ARKitFaceDataset
+from ._geometry import evaluate, project, solve_pnp_ransac
 from ._native import DataError
-
-# Named where users import it, so that it pickles: a DataLoader worker sends the
-# exception of a sample that fails to the training process (under its Rust module's
-# name it could not be found there, and the batch never arrived).
-DataError.__module__ = "arkit_tool"
-
-from ._collate import ItemBatch, SampleView, collate  # noqa: E402
-from ._converted import ConvertedDataset, Key, open_dataset, read_image  # noqa: E402
-from ._dataset import ARKitFaceDataset  # noqa: E402
-from ._geometry import evaluate, project, solve_pnp_ransac  # noqa: E402
-from ._targets import decode_targets  # noqa: E402
-from .correspondences import CorrespondenceMatrix  # noqa: E402
-from .sampling import EpochSampler, distributed_rank  # noqa: E402
+from ._targets import decode_targets
+from .correspondences import CorrespondenceMatrix
+from .sampling import EpochSampler, distributed_rank
 
 __all__ = [
     "ARKitFaceDataset",
@@ -57,12 +55,20 @@ __all__ = [
 ]
 __version__ = _native.__version__
 
+# Named where users import it, so that it pickles: a DataLoader worker sends the
+# exception of a sample that fails to the training process (under its Rust module's
+# name it could not be found there, and the batch never arrived).
+DataError.__module__ = "arkit_tool"
 
-def __getattr__(name):
-    # EpochLoader subclasses torch's DataLoader: made on first use, so that importing
-    # arkit_tool does not import torch (not in __all__ for the same reason).
-    if name == "EpochLoader":
-        from .sampling import loader_class
+if TYPE_CHECKING:
+    from .sampling import EpochLoader as EpochLoader
+else:
 
-        return loader_class()
-    raise AttributeError(f"module 'arkit_tool' has no attribute {name!r}")
+    def __getattr__(name: str) -> Any:
+        # EpochLoader subclasses torch's DataLoader: made on first use, so that importing
+        # arkit_tool does not import torch (not in __all__ for the same reason).
+        if name == "EpochLoader":
+            from .sampling import loader_class
+
+            return loader_class()
+        raise AttributeError(f"module 'arkit_tool' has no attribute {name!r}")

@@ -5,15 +5,19 @@ torch without stacking them again), and the same taught to torch's `default_coll
 from __future__ import annotations
 
 import sys
-from typing import Any, Dict
+from typing import Any, Callable, Dict, Optional, Sequence, Tuple, Type, Union, overload
 
 import numpy as np
 
 from . import _shared_batches
 from .correspondences import CorrespondenceMatrix
+from .types import Batch
+
+# torch's `default_collate_fn_map`: a type to the function that collates its values.
+_CollateFnMap = Dict[Union[Type[Any], Tuple[Type[Any], ...]], Callable[..., Any]]
 
 
-class SampleView(dict):
+class SampleView(dict[str, Any]):
     """One sample of an `ItemBatch`: a plain dict (`ds[i]`'s keys and values) whose
     arrays are views of the batch's arrays. Its type is what lets torch's default collate
     recognise a whole batch that needs no stacking (`collate`)."""
@@ -21,12 +25,14 @@ class SampleView(dict):
     __slots__ = ()
 
 
-class ItemBatch(list):
+class ItemBatch(list[SampleView]):
     """The samples of one batch (`ARKitFaceDataset.__getitems__`): a list of per-sample
     dicts (`SampleView`), as torch's default collate expects, whose arrays are views of
     one set of batch arrays, `arrays` (the batch axis first; strings as lists)."""
 
-    def __init__(self, arrays: Dict[str, Any], tensors: bool = False, segment=None):
+    def __init__(
+        self, arrays: Dict[str, Any], tensors: bool = False, segment: Optional[_shared_batches.Segment] = None
+    ) -> None:
         if tensors:
             arrays = {k: _as_torch(v) for k, v in arrays.items()}
         self.arrays = arrays
@@ -34,7 +40,7 @@ class ItemBatch(list):
         self.segment = segment
         b = len(arrays["img"])
         super().__init__(SampleView((k, v[i]) for k, v in arrays.items()) for i in range(b))
-        self._views = tuple(self)
+        self._views: Tuple[SampleView, ...] = tuple(self)
 
     def intact(self) -> bool:
         """Whether the list still holds exactly the samples it was made with, each with
@@ -58,7 +64,7 @@ class ItemBatch(list):
         return True
 
 
-def _as_torch(v):
+def _as_torch(v: Any) -> Any:
     """A batch value as torch gives it: arrays as tensors sharing their memory, a
     `CorrespondenceMatrix` over tensors, lists as they are."""
     import torch
@@ -70,7 +76,7 @@ def _as_torch(v):
     return v
 
 
-def _is_row(v, whole, i: int) -> bool:
+def _is_row(v: Any, whole: Any, i: int) -> bool:
     """Whether `v` is row `i` of the array (numpy) or tensor `whole`, unchanged: the
     same memory, shape and dtype (an index into a batch array makes a new view object
     each time, so identity cannot be asked)."""
@@ -88,15 +94,25 @@ def _is_row(v, whole, i: int) -> bool:
             return False
         at = v.__array_interface__["data"][0]
         start = whole.__array_interface__["data"][0]
-        return at == start + i * whole.strides[0] and v.strides == whole.strides[1:]
-    return (
+        row: bool = at == start + i * whole.strides[0] and v.strides == whole.strides[1:]
+        return row
+    row = (
         v.untyped_storage().data_ptr() == whole.untyped_storage().data_ptr()
         and v.storage_offset() == whole.storage_offset() + i * whole.stride(0)
         and v.stride() == whole.stride()[1:]
     )
+    return row
 
 
-def collate(batch):
+@overload
+def collate(batch: ItemBatch) -> Batch: ...
+
+
+@overload
+def collate(batch: Any) -> Any: ...
+
+
+def collate(batch: Any) -> Any:
     """A DataLoader `collate_fn`: for an intact `ItemBatch` its batch arrays as torch
     tensors (no copy; strings as lists), the same keys, shapes, dtypes and values as
     `torch.utils.data.default_collate` of its samples; anything else goes to
@@ -123,7 +139,7 @@ def collate(batch):
     return torch.utils.data.default_collate(_plain(batch))
 
 
-def _plain(batch):
+def _plain(batch: Any) -> Any:
     """`batch` with its `SampleView`s as plain dicts (what default_collate stacks; a
     `CorrespondenceMatrix` is stacked in its sparse form, `_collate_correspondences`)."""
     if isinstance(batch, list) and batch and isinstance(batch[0], SampleView):
@@ -131,7 +147,9 @@ def _plain(batch):
     return batch
 
 
-def _collate_correspondences(batch, *, collate_fn_map=None):
+def _collate_correspondences(
+    batch: Sequence[Any], *, collate_fn_map: Optional[_CollateFnMap] = None
+) -> CorrespondenceMatrix:
     """torch's `default_collate` for `CorrespondenceMatrix` samples: one
     `CorrespondenceMatrix` of the stacked sparse forms (stacked as torch stacks tensors:
     in a worker, into shared memory)."""
@@ -146,7 +164,9 @@ def _collate_correspondences(batch, *, collate_fn_map=None):
     return CorrespondenceMatrix(ids, weights, first.vertex_count)
 
 
-def _collate_sample_views(batch, *, collate_fn_map=None):
+def _collate_sample_views(
+    batch: Sequence[Any], *, collate_fn_map: Optional[_CollateFnMap] = None
+) -> Any:
     """torch's `default_collate` for a batch whose first sample is a `SampleView`:
     `collate(batch)` when it is an intact `ItemBatch`, else each key stacked as
     `default_collate` stacks a dict's values."""

@@ -6,21 +6,21 @@ from __future__ import annotations
 
 import json
 import os
-from typing import Any, Dict, List, Optional, Tuple, Union
+from typing import Any, Dict, List, Optional, Union, cast
 
 import numpy as np
+import numpy.typing as npt
 
 from . import _native
 from ._native import DataError
 from .sampling import _position
-
-Key = Tuple[str, str, str]
+from .types import Key, PathLike, SampleRow
 
 
 class ConvertedDataset:
     """A dataset written by `arkit-tool convert` (the folder holding `dataset.json`)."""
 
-    def __init__(self, path: Union[str, os.PathLike]):
+    def __init__(self, path: PathLike) -> None:
         self.path = os.fspath(path)
         self._native = _native.Dataset(self.path)
         self._keys = self._native.keys()
@@ -35,7 +35,8 @@ class ConvertedDataset:
     @property
     def manifest(self) -> Dict[str, Any]:
         """The conversion's manifest (`dataset.json`)."""
-        return json.loads(self._native.manifest_json())
+        manifest: Dict[str, Any] = json.loads(self._native.manifest_json())
+        return manifest
 
     @property
     def keys(self) -> List[Key]:
@@ -59,11 +60,11 @@ class ConvertedDataset:
         if self._index is None:
             self._index = {k[:3]: i for i, k in enumerate(self._keys)}
         try:
-            return self._index[tuple(str(x) for x in key)]
+            return self._index[cast(Key, tuple(str(x) for x in key))]
         except KeyError:
             raise DataError(f"{self.path}: no sample {tuple(key)}") from None
 
-    def sample(self, which: Union[int, Key]) -> Dict[str, Any]:
+    def sample(self, which: Union[int, np.integer[Any], Key]) -> SampleRow:
         """One sample's row: verts (1220x3), R_t (4x4), image path and size, keys, pose."""
         index = _position(which, len(self)) if isinstance(which, (int, np.integer)) else self.index_of(which)
         return self._native.sample(index)
@@ -74,7 +75,7 @@ class ConvertedDataset:
         return self._native.shard_files()
 
     @property
-    def samples(self):
+    def samples(self) -> Any:
         """The samples table: a polars DataFrame when polars is installed, else a pyarrow
         Table (one of the two is needed)."""
         try:
@@ -84,8 +85,8 @@ class ConvertedDataset:
         except ImportError:
             pass
         try:
-            import pyarrow as pa
-            import pyarrow.parquet as pq
+            import pyarrow as pa  # type: ignore[import-untyped,unused-ignore]
+            import pyarrow.parquet as pq  # type: ignore[import-untyped,unused-ignore]
         except ImportError:
             raise ImportError(
                 "the samples table needs polars or pyarrow: pip install pyarrow"
@@ -93,11 +94,11 @@ class ConvertedDataset:
         return pa.concat_tables([pq.read_table(f) for f in self.shard_files])
 
 
-def open_dataset(path: Union[str, os.PathLike]) -> ConvertedDataset:
+def open_dataset(path: PathLike) -> ConvertedDataset:
     """Opens a dataset written by `arkit-tool convert`."""
     return ConvertedDataset(path)
 
 
-def read_image(path: Union[str, os.PathLike]) -> np.ndarray:
+def read_image(path: PathLike) -> npt.NDArray[np.uint8]:
     """An image file decoded as the loader decodes it: (H, W, 3) uint8 RGB."""
     return _native.read_image(os.fspath(path))

@@ -10,7 +10,21 @@ import multiprocessing.context
 import os
 import sys
 import weakref
-from typing import Any, Dict, Optional, Sequence, Tuple, Union
+from typing import (
+    TYPE_CHECKING,
+    Any,
+    Callable,
+    Dict,
+    Generic,
+    List,
+    Literal,
+    Optional,
+    Sequence,
+    Tuple,
+    Union,
+    cast,
+    overload,
+)
 
 import numpy as np
 
@@ -19,9 +33,29 @@ from ._collate import ItemBatch, _teach_default_collate, collate
 from ._native import DataError
 from .correspondences import CorrespondenceMatrix
 from .sampling import EpochSampler, _check_u64, _position
+from .types import Batch, Compat, Corr, Item, Mode, PathLike, Remainder, SplitKey, TensorItem
+
+if TYPE_CHECKING:
+    from torch.utils.data import DataLoader, Dataset
+    from typing_extensions import TypeVar
+
+    from .sampling import EpochLoader
+
+    _ItemT = TypeVar("_ItemT", bound=Union[Item, TensorItem], default=Item)
+    _BatchT = TypeVar("_BatchT")
+
+    class _DatasetBase(Dataset[_ItemT], Generic[_ItemT]):
+        """To type checkers, a torch `Dataset` (what DataLoader takes); at run time
+        `Generic` (torch is imported only when it is used)."""
+
+else:
+    from typing import TypeVar
+
+    _ItemT = TypeVar("_ItemT")
+    _DatasetBase = Generic
 
 
-class ARKitFaceDataset:
+class ARKitFaceDataset(_DatasetBase[_ItemT]):
     """What the official `ARKitDataset.get_item` returns, computed on the fly.
 
     Keys: `img` (3 x S x S float32, normalised as the official transform), `choose`
@@ -61,22 +95,75 @@ class ARKitFaceDataset:
     Batches: torch's DataLoader asks for a whole batch at once (`__getitems__`), which
     Rust computes into one set of batch arrays; `ds.loader(batch_size, ...)` is a
     DataLoader whose `collate` hands those arrays to torch without copying them again.
+
+    Types: `ds[i]` is an `arkit_tool.types.Item` (numpy arrays), or a `TensorItem` with
+    `tensors=True` (`ARKitFaceDataset[TensorItem]` to type checkers); the batches of
+    `ds.loader(...)` are `Batch`es.
     """
+
+    @overload
+    def __init__(
+        self: ARKitFaceDataset[Item],
+        path: PathLike,
+        split: Optional[str] = ...,
+        mode: Mode = ...,
+        compat: Compat = ...,
+        img_size: int = ...,
+        n_pts: int = ...,
+        seed: int = ...,
+        resources: Optional[PathLike] = ...,
+        corr: Corr = ...,
+        tensors: Literal[False] = ...,
+        crop_store: Optional[PathLike] = ...,
+    ) -> None: ...
+
+    @overload
+    def __init__(
+        self: ARKitFaceDataset[TensorItem],
+        path: PathLike,
+        split: Optional[str] = ...,
+        mode: Mode = ...,
+        compat: Compat = ...,
+        img_size: int = ...,
+        n_pts: int = ...,
+        seed: int = ...,
+        resources: Optional[PathLike] = ...,
+        corr: Corr = ...,
+        *,
+        tensors: Literal[True],
+        crop_store: Optional[PathLike] = ...,
+    ) -> None: ...
+
+    @overload
+    def __init__(
+        self: ARKitFaceDataset[Union[Item, TensorItem]],
+        path: PathLike,
+        split: Optional[str] = ...,
+        mode: Mode = ...,
+        compat: Compat = ...,
+        img_size: int = ...,
+        n_pts: int = ...,
+        seed: int = ...,
+        resources: Optional[PathLike] = ...,
+        corr: Corr = ...,
+        tensors: bool = ...,
+        crop_store: Optional[PathLike] = ...,
+    ) -> None: ...
 
     def __init__(
         self,
-        path: Union[str, os.PathLike],
+        path: PathLike,
         split: Optional[str] = "train",
-        mode: str = "train",
-        compat: str = "exact",
+        mode: Mode = "train",
+        compat: Compat = "exact",
         img_size: int = 192,
         n_pts: int = 1024,
         seed: int = 0,
-        resources: Optional[Union[str, os.PathLike]] = None,
-        corr: str = "dense",
+        resources: Optional[PathLike] = None,
+        corr: Corr = "dense",
         tensors: bool = False,
-        crop_store: Optional[Union[str, os.PathLike]] = "auto",
-    ):
+        crop_store: Optional[PathLike] = "auto",
+    ) -> None:
         if corr not in ("dense", "sparse", "both"):
             raise DataError(f"corr: {corr!r}: expected 'dense', 'sparse' or 'both'")
         for name, value, low, high in (("img_size", img_size, 1, 1 << 32), ("n_pts", n_pts, 0, 1 << 63)):
@@ -99,13 +186,13 @@ class ARKitFaceDataset:
         self.crop_store = self._find_store(crop_store)
         # The epoch of `ds[i]`, in shared memory: worker processes (forked or spawned,
         # persistent or not) read the value `set_epoch` wrote.
-        self._epoch = multiprocessing.RawValue("Q", 0)
-        self._samplers: "weakref.WeakSet[EpochSampler]" = weakref.WeakSet()
+        self._epoch: Any = multiprocessing.RawValue("Q", 0)
+        self._samplers: Optional[weakref.WeakSet[EpochSampler]] = weakref.WeakSet()
         self._loader = self._open()
         if self.tensors:
             import torch  # noqa: F401  (fail now, not in a worker)
 
-    def _find_store(self, crop_store) -> Optional[str]:
+    def _find_store(self, crop_store: Optional[PathLike]) -> Optional[str]:
         if crop_store is None:
             return None
         if isinstance(crop_store, str) and crop_store == "auto":
@@ -113,7 +200,7 @@ class ARKitFaceDataset:
             return folder if os.path.isfile(os.path.join(folder, "crops.json")) else None
         return os.fspath(crop_store)
 
-    def _open(self):
+    def _open(self) -> _native.Loader:
         return _native.Loader(
             self.path,
             self.split,
@@ -129,7 +216,7 @@ class ARKitFaceDataset:
     # Pickled for spawn-started workers: the native loader is reopened there, the
     # epoch's shared memory is passed on (only possible while a process is started;
     # any other copy, e.g. copy.deepcopy, gets the value).
-    def __getstate__(self):
+    def __getstate__(self) -> Dict[str, Any]:
         state = dict(self.__dict__)
         state["_loader"] = None
         state["_samplers"] = None
@@ -139,7 +226,7 @@ class ARKitFaceDataset:
         state.pop("_segment_pool", None)
         return state
 
-    def __setstate__(self, state):
+    def __setstate__(self, state: Dict[str, Any]) -> None:
         self.__dict__.update(state)
         if isinstance(self._epoch, int):
             self._epoch = multiprocessing.RawValue("Q", self._epoch)
@@ -180,7 +267,7 @@ class ARKitFaceDataset:
         if self._samplers is not None:
             self._samplers.add(sampler)
 
-    def _split(self, index) -> Tuple[int, int]:
+    def _split(self, index: Any) -> Tuple[int, int]:
         """`(epoch, position)` of an index: `i` (the current epoch) or `(epoch, i)`."""
         if isinstance(index, tuple):
             if len(index) != 2:
@@ -194,11 +281,11 @@ class ARKitFaceDataset:
             epoch = self.current_epoch()
         return epoch, _position(index, len(self))
 
-    def key(self, index: int) -> Tuple[str, str, str, str]:
+    def key(self, index: int) -> SplitKey:
         """`(subject_id, facial_action, img_id, split)` of sample `index`."""
         return self._loader.key(_position(index, len(self)))
 
-    def item(self, index: int, epoch: Optional[int] = None, extras: bool = False) -> Dict[str, Any]:
+    def item(self, index: int, epoch: Optional[int] = None, extras: bool = False) -> _ItemT:
         """Sample `index` (of `epoch`, default the current one). `extras` adds, for
         checks: `choose_box` and `box` (official: the points before mapping, the integer
         box), `box_clipped`, `crop` (x0, y0, side_x, side_y) and `image_path`."""
@@ -210,7 +297,7 @@ class ARKitFaceDataset:
                 epoch = _check_u64("epoch", epoch)
             except ValueError as err:
                 raise DataError(str(err)) from None
-        d = self._loader.item(
+        d: Any = self._loader.item(
             index,
             epoch,
             self.corr,
@@ -221,14 +308,14 @@ class ARKitFaceDataset:
             import torch
 
             d = {k: torch.from_numpy(v) if isinstance(v, np.ndarray) else v for k, v in d.items()}
-        return d
+        return cast(_ItemT, d)
 
-    def __getitem__(self, index) -> Dict[str, Any]:
+    def __getitem__(self, index: Union[int, np.integer[Any], Tuple[int, int]]) -> _ItemT:
         """`ds[i]`: sample `i` of the current epoch; `ds[epoch, i]`: of `epoch`."""
         epoch, index = self._split(index)
         return self.item(index, epoch)
 
-    def __getitems__(self, indices: Sequence) -> "ItemBatch":
+    def __getitems__(self, indices: Sequence[Any]) -> ItemBatch:
         """Samples `indices` (positions, of the current epoch, or `(epoch, position)`
         pairs, as `EpochSampler` yields; one epoch per batch), computed together into
         batch arrays (what torch's DataLoader calls, since torch 2.0, for a whole batch
@@ -242,16 +329,16 @@ class ARKitFaceDataset:
         epoch = epochs.pop() if epochs else self.current_epoch()
         # The dense matrix is carried as its sparse form (`CorrespondenceMatrix`) and
         # built where it is read: 24 KB a sample instead of 5 MB.
-        native_corr = "sparse" if self.corr in ("dense", "both") else self.corr
+        native_corr: Corr = "sparse" if self.corr in ("dense", "both") else self.corr
         evaluation = self.mode == "eval"
         positions = [i for _, i in pairs]
-        segment = None
+        segment: Optional[_shared_batches.Segment] = None
         if _shared_batches.in_worker() and _shared_batches.enabled():
             # In a DataLoader worker: computed straight into shared memory that the
             # training process maps once and reuses (no copy on the way out).
             arrays, segment = self._batch_in_segment(positions, epoch, native_corr, evaluation)
         else:
-            pool = self.__dict__.setdefault("_batch_pool", [])
+            pool: List[Dict[str, Any]] = self.__dict__.setdefault("_batch_pool", [])
             reuse = _free_batch(pool, len(pairs))
             arrays = self._loader.batch(positions, epoch, native_corr, evaluation, reuse)
             if reuse is None:
@@ -261,7 +348,9 @@ class ARKitFaceDataset:
             _teach_default_collate()
         return ItemBatch(arrays, self.tensors, segment)
 
-    def _batch_in_segment(self, positions, epoch, corr, evaluation):
+    def _batch_in_segment(
+        self, positions: List[int], epoch: int, corr: Corr, evaluation: bool
+    ) -> Tuple[Dict[str, Any], _shared_batches.Segment]:
         """A batch computed into one of this worker's shared-memory segments."""
         pool = self.__dict__.get("_segment_pool")
         if pool is None or pool.pid != os.getpid():
@@ -281,7 +370,7 @@ class ARKitFaceDataset:
         seed: Optional[int] = None,
         num_replicas: Optional[int] = None,
         rank: Optional[int] = None,
-        remainder: str = "pad",
+        remainder: Remainder = "pad",
         epoch: Optional[int] = None,
     ) -> EpochSampler:
         """An `EpochSampler` over this dataset (seed: the dataset's by default; shard:
@@ -297,6 +386,61 @@ class ARKitFaceDataset:
             epoch=self.current_epoch() if epoch is None else epoch,
         )
 
+    @overload
+    def loader(
+        self,
+        batch_size: int = ...,
+        shuffle: bool = ...,
+        *,
+        seed: Optional[int] = ...,
+        num_replicas: Optional[int] = ...,
+        rank: Optional[int] = ...,
+        remainder: Remainder = ...,
+        sampler: Any,
+        **kwargs: Any,
+    ) -> DataLoader[_ItemT]: ...
+
+    @overload
+    def loader(
+        self,
+        batch_size: int = ...,
+        shuffle: bool = ...,
+        *,
+        seed: Optional[int] = ...,
+        num_replicas: Optional[int] = ...,
+        rank: Optional[int] = ...,
+        remainder: Remainder = ...,
+        batch_sampler: Any,
+        **kwargs: Any,
+    ) -> DataLoader[_ItemT]: ...
+
+    @overload
+    def loader(
+        self,
+        batch_size: int = ...,
+        shuffle: bool = ...,
+        *,
+        seed: Optional[int] = ...,
+        num_replicas: Optional[int] = ...,
+        rank: Optional[int] = ...,
+        remainder: Remainder = ...,
+        collate_fn: Callable[[Any], _BatchT],
+        **kwargs: Any,
+    ) -> EpochLoader[_BatchT]: ...
+
+    @overload
+    def loader(
+        self,
+        batch_size: int = ...,
+        shuffle: bool = ...,
+        *,
+        seed: Optional[int] = ...,
+        num_replicas: Optional[int] = ...,
+        rank: Optional[int] = ...,
+        remainder: Remainder = ...,
+        **kwargs: Any,
+    ) -> EpochLoader[Batch]: ...
+
     def loader(
         self,
         batch_size: int = 64,
@@ -305,9 +449,9 @@ class ARKitFaceDataset:
         seed: Optional[int] = None,
         num_replicas: Optional[int] = None,
         rank: Optional[int] = None,
-        remainder: str = "pad",
-        **kwargs,
-    ):
+        remainder: Remainder = "pad",
+        **kwargs: Any,
+    ) -> Any:
         """An `EpochLoader`: `torch.utils.data.DataLoader(self, batch_size,
         sampler=self.sampler(shuffle, ...), collate_fn=collate, **kwargs)` (`num_workers`,
         `persistent_workers`, `drop_last`, `multiprocessing_context`, ... pass through).
@@ -348,7 +492,7 @@ _REUSED = ("img", "uvmap", "mask", "choose", "model", "nocs", "corr_ids", "corr_
 _POOL_SIZE = 2
 
 
-def _free_batch(pool, b):
+def _free_batch(pool: List[Dict[str, Any]], b: int) -> Optional[Dict[str, Any]]:
     """A kept batch of `b` samples none of whose arrays is referenced outside `pool`, or
     None. Every view (numpy's, torch's tensors from `collate`) holds a reference to the array
     that owns the memory, so an owner referenced only by the pool is free; the probe, held
@@ -361,14 +505,14 @@ def _free_batch(pool, b):
     return None
 
 
-def _keep_batch(pool, arrays):
+def _keep_batch(pool: List[Dict[str, Any]], arrays: Dict[str, Any]) -> None:
     kept = {k: arrays[k] for k in _REUSED if k in arrays}
     kept["_probe"] = np.empty(0)
     pool.insert(0, kept)
     del pool[_POOL_SIZE:]
 
 
-def _with_corr_mat(arrays: Dict[str, Any], corr: str) -> Dict[str, Any]:
+def _with_corr_mat(arrays: Dict[str, Any], corr: Corr) -> Dict[str, Any]:
     """A batch computed with sparse correspondences, with `corr_mat` (the dense
     matrix, as a `CorrespondenceMatrix`) where it belongs and `corr_ids` /
     `corr_weights` kept only for `corr="both"`."""

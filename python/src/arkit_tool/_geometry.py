@@ -5,25 +5,28 @@ from __future__ import annotations
 
 import json
 import os
-from typing import Any, Dict, Iterable, Optional, Sequence, Tuple, Union
+from typing import Any, Dict, Iterable, List, Optional, Sequence, Tuple, Union
 
 import numpy as np
+import numpy.typing as npt
 
 from . import _native
-from ._converted import Key
 from ._native import DataError
+from .types import Key, Metrics, PathLike
+
+_F64 = npt.NDArray[np.float64]
 
 
 def solve_pnp_ransac(
-    object_points,
-    image_points,
-    camera_matrix,
-    dist_coeffs=None,
+    object_points: npt.ArrayLike,
+    image_points: npt.ArrayLike,
+    camera_matrix: npt.ArrayLike,
+    dist_coeffs: Optional[npt.ArrayLike] = None,
     reprojection_error: float = 8.0,
     iterations_count: int = 100,
     confidence: float = 0.99,
     seed: int = 0,
-):
+) -> Tuple[bool, Optional[_F64], Optional[_F64], Optional[npt.NDArray[np.int32]]]:
     """PnP with RANSAC, OpenCV's conventions (`cv2.solvePnPRansac`'s arguments and
     result): `X_cam = R X + t`. `object_points` (N, 3), `image_points` (N, 2) (or
     OpenCV's (N, 1, 3) and (N, 1, 2)); any other shape, a transposed (3, N) among
@@ -45,7 +48,7 @@ def solve_pnp_ransac(
     )
 
 
-def _points(name: str, value, width: int) -> np.ndarray:
+def _points(name: str, value: npt.ArrayLike, width: int) -> _F64:
     """(N, width) float64 points; OpenCV's (N, 1, width) accepted; anything else refused."""
     a = np.asarray(value, dtype=np.float64)
     if a.ndim == 3 and a.shape[1] == 1:
@@ -56,7 +59,7 @@ def _points(name: str, value, width: int) -> np.ndarray:
     return np.ascontiguousarray(a)
 
 
-def _pose(name: str, value) -> np.ndarray:
+def _pose(name: str, value: npt.ArrayLike) -> _F64:
     """A 4x4 float64 pose from (4, 4) or its 16 values row by row."""
     a = np.asarray(value, dtype=np.float64)
     if a.shape == (16,):
@@ -66,7 +69,7 @@ def _pose(name: str, value) -> np.ndarray:
     return np.ascontiguousarray(a)
 
 
-def project(verts, R_t, width: int, height: int) -> np.ndarray:
+def project(verts: npt.ArrayLike, R_t: npt.ArrayLike, width: int, height: int) -> _F64:
     """Canonical points (N, 3) to image pixels (N, 2) with the release's row-vector
     `R_t` (4, 4), or its 16 values row by row (the samples table's flat form), and
     camera, for a `width x height` image. Any other shape (transposed points among
@@ -77,19 +80,20 @@ def project(verts, R_t, width: int, height: int) -> np.ndarray:
 
 
 def evaluate(
-    dataset: Union[str, os.PathLike],
-    predictions: Union[str, os.PathLike, Dict[Key, Any], Iterable[Tuple[str, str, str, Any]]],
+    dataset: PathLike,
+    predictions: Union[PathLike, Dict[Key, Any], Iterable[Tuple[str, str, str, Any]]],
     split: Optional[str] = None,
-) -> Dict[str, Any]:
+) -> Metrics:
     """The paper's metrics (what `arkit-tool eval --json` prints) of `predictions`: a
     predictions file (Parquet or CSV), a dict `{(subject_id, facial_action, img_id):
     R_t}` or rows `(subject_id, facial_action, img_id, R_t)`; an `R_t` (4 x 4, or its
     16 values row by row) of None is a failed prediction."""
     if isinstance(predictions, (str, os.PathLike)):
         text = _native.evaluate(os.fspath(dataset), None, os.fspath(predictions), split)
-        return json.loads(text)
-    items: Sequence = list(predictions.items()) if isinstance(predictions, dict) else list(predictions)
-    rows = []
+        metrics: Metrics = json.loads(text)
+        return metrics
+    items: Sequence[Any] = list(predictions.items()) if isinstance(predictions, dict) else list(predictions)
+    rows: List[Tuple[str, str, str, Optional[List[float]]]] = []
     for item in items:
         if isinstance(predictions, dict):
             (s, a, i), rt = item
@@ -97,4 +101,5 @@ def evaluate(
             s, a, i, rt = item
         flat = None if rt is None else [float(x) for x in _pose(f"R_t of {(s, a, i)}", rt).reshape(-1)]
         rows.append((str(s), str(a), str(i), flat))
-    return json.loads(_native.evaluate(os.fspath(dataset), rows, None, split))
+    metrics = json.loads(_native.evaluate(os.fspath(dataset), rows, None, split))
+    return metrics

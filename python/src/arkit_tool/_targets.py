@@ -3,18 +3,20 @@
 
 from __future__ import annotations
 
-from typing import Any, Dict
+from typing import Any, Dict, Mapping, Optional, cast
 
 import numpy as np
+import numpy.typing as npt
 
 from ._native import DataError
+from .types import Targets
 
 # Largest mask and UV map a targets row may describe (arkit_core::limits).
 _MAX_MASK_PIXELS = 1 << 26
 _MAX_UV_SIZE = 4096
 
 
-def _blob(row: Dict[str, Any], name: str, dtype: str, width: int) -> np.ndarray:
+def _blob(row: Mapping[str, Any], name: str, dtype: str, width: int) -> npt.NDArray[Any]:
     data = row.get(name)
     if data is None:
         raise DataError(f"targets: column '{name}' is null or missing")
@@ -25,14 +27,14 @@ def _blob(row: Dict[str, Any], name: str, dtype: str, width: int) -> np.ndarray:
     return a.reshape(-1, width) if width > 1 else a
 
 
-def _rle(row: Dict[str, Any], name: str, pixels: int) -> np.ndarray:
+def _rle(row: Mapping[str, Any], name: str, pixels: int) -> npt.NDArray[np.bool_]:
     runs = _blob(row, name, "<u4", 1)
     if int(runs.sum(dtype=np.uint64)) != pixels:
         raise DataError(f"targets: column '{name}': runs cover {int(runs.sum(dtype=np.uint64))} pixels, expected {pixels}")
     return np.repeat(np.arange(len(runs)) % 2 == 1, runs)
 
 
-def decode_targets(row: Dict[str, Any]) -> Dict[str, Any]:
+def decode_targets(row: Mapping[str, Any]) -> Targets:
     """One row of `render`'s targets table (a dict, e.g. from pyarrow's
     `Table.to_pylist()`) as numpy arrays, decoding the compact layouts of
     schemas/targets.json: `mask` (S x S bool, S = crop_size), `corr_vertices` (k x 3
@@ -68,13 +70,13 @@ def decode_targets(row: Dict[str, Any]) -> Dict[str, Any]:
     bits = np.cumsum(delta, axis=2, dtype=np.uint16)  # wrapping sums along each row
     uv_map = np.ascontiguousarray(bits.transpose(1, 2, 0)).view(np.float16)
     full = row.get("full_mask_rle")
-    full_mask = None
+    full_mask: Optional[npt.NDArray[np.bool_]] = None
     if full:
         w, h = row.get("image_width"), row.get("image_height")
         if not isinstance(w, int) or not isinstance(h, int) or not 0 < w * h <= _MAX_MASK_PIXELS:
             raise DataError(f"targets: columns 'image_width', 'image_height': {w!r} x {h!r}")
         full_mask = _rle(row, "full_mask_rle", w * h).reshape(h, w)
-    out = {k: v for k, v in row.items() if not isinstance(v, (bytes, bytearray))}
+    out: Dict[str, Any] = {k: v for k, v in row.items() if not isinstance(v, (bytes, bytearray))}
     out.update(mask=mask, corr_vertices=ids, corr_weights=weights, points=points,
                uv_map=uv_map, full_mask=full_mask)
-    return out
+    return cast(Targets, out)
