@@ -85,8 +85,8 @@ class ConvertedDataset:
         except ImportError:
             pass
         try:
-            import pyarrow as pa  # type: ignore[import-untyped,unused-ignore]
-            import pyarrow.parquet as pq  # type: ignore[import-untyped,unused-ignore]
+            import pyarrow as pa  # type: ignore[import-untyped,import-not-found,unused-ignore]
+            import pyarrow.parquet as pq  # type: ignore[import-untyped,import-not-found,unused-ignore]
         except ImportError:
             raise ImportError(
                 "the samples table needs polars or pyarrow: pip install pyarrow"

@@ -66,7 +66,7 @@ _AUGMENTED = re.compile(r"^(?P<source>.+)_(aug\d+|flip)$")
 
 def _rerun() -> Any:
     try:
-        import rerun as rr  # type: ignore[import-not-found,unused-ignore]
+        import rerun as rr  # type: ignore[import-untyped,import-not-found,unused-ignore]
     except ImportError:
         raise ImportError(INSTALL_HINT) from None
     return rr
@@ -128,7 +128,7 @@ def sample_errors(verts: np.ndarray, truth: np.ndarray, predicted: Optional[np.n
 
 
 def _read_table(path: str, columns: Optional[List[str]] = None) -> Any:
-    import pyarrow.parquet as pq  # type: ignore[import-untyped,unused-ignore]
+    import pyarrow.parquet as pq  # type: ignore[import-untyped,import-not-found,unused-ignore]
 
     try:
         return pq.read_table(path, columns=columns)
