@@ -195,6 +195,12 @@ def photo(path: str, network: CropNetwork) -> List[Tuple[List[float], float]]:
     return detect_faces(picture, min_face_px=60)
 
 
+def photo_without_torch(path: str, exported: str) -> int:
+    from arkit_tool.onnx import OnnxPerspNet  # a CropNetwork
+
+    return len(predict_photo(read_photo(path), network=OnnxPerspNet(exported), focal_px=1400.0))
+
+
 # -- the extension module ----------------------------------------------------------------
 
 
