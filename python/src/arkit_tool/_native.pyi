@@ -2,15 +2,17 @@
 
 Checked against the built module by `mypy.stubtest` (python/tests/test_typing.py)."""
 
-import os
-from typing import Any, Dict, List, Optional, Sequence, Tuple, Union
+import pathlib
+from typing import Any, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 import numpy.typing as npt
 from typing_extensions import final
 
-_Path = Union[str, "os.PathLike[str]"]
-_Key = Tuple[str, str, str, str]
+from .conventions import Convention
+from .types import Compat, Corr, Item, Mode, PhotoCrop, PhotoPose, SampleRow, Topology
+from .types import PathLike as _Path
+from .types import SplitKey as _Key
 
 __all__ = [
     "Loader",
@@ -23,6 +25,8 @@ __all__ = [
     "topology",
     "write_correspondence_matrix_into",
     "photo_crop",
+    "photo_pose",
+    "detect_faces",
     "poses_to_opencv",
     "poses_from_opencv",
     "poses_from_arkit",
@@ -47,8 +51,8 @@ class Loader:
         cls,
         dir: _Path,
         split: Optional[str],
-        mode: str,
-        compat: str,
+        mode: Mode,
+        compat: Compat,
         img_size: int,
         n_pts: int,
         seed: int,
@@ -57,23 +61,23 @@ class Loader:
     ) -> "Loader": ...
     def __len__(self) -> int: ...
     @property
-    def crop_store(self) -> Optional[str]: ...
+    def crop_store(self) -> Optional[pathlib.Path]: ...
     def key(self, index: int) -> _Key: ...
     def item(
         self,
         index: int,
         epoch: int = 0,
-        corr: str = "dense",
+        corr: Corr = "dense",
         eval_keys: bool = False,
         extras: bool = False,
-    ) -> Dict[str, Any]: ...
+    ) -> Item: ...
     def batch(
         self,
         indices: Sequence[int],
         epoch: int = 0,
-        corr: str = "dense",
+        corr: Corr = "dense",
         eval_keys: bool = False,
-        reuse: Optional[Dict[str, Any]] = None,
+        reuse: Optional[Dict[str, npt.NDArray[Any]]] = None,
     ) -> Dict[str, Any]: ...
 
 @final
@@ -83,7 +87,7 @@ class Dataset:
     def keys(self) -> List[_Key]: ...
     def shard_files(self) -> List[str]: ...
     def manifest_json(self) -> str: ...
-    def sample(self, index: int) -> Dict[str, Any]: ...
+    def sample(self, index: int) -> SampleRow: ...
 
 def solve_pnp_ransac(
     object_points: npt.NDArray[np.float64],
@@ -93,7 +97,9 @@ def solve_pnp_ransac(
     iterations_count: int = 100,
     confidence: float = 0.99,
     seed: int = 0,
-) -> Tuple[bool, Optional[npt.NDArray[np.float64]], Optional[npt.NDArray[np.float64]], Optional[npt.NDArray[np.int64]]]: ...
+) -> Tuple[
+    bool, Optional[npt.NDArray[np.float64]], Optional[npt.NDArray[np.float64]], Optional[npt.NDArray[np.int32]]
+]: ...
 def project(
     verts: npt.NDArray[np.float64], r_t: npt.NDArray[np.float64], width: int, height: int
 ) -> npt.NDArray[np.float64]: ...
@@ -103,9 +109,9 @@ def evaluate(
     predictions_path: Optional[_Path] = None,
     split: Optional[str] = None,
 ) -> str: ...
-def default_crop_store(dir: _Path, compat: str, img_size: int) -> str: ...
+def default_crop_store(dir: _Path, compat: Compat, img_size: int) -> pathlib.Path: ...
 def read_image(path: _Path) -> npt.NDArray[np.uint8]: ...
-def topology(dir: _Path, resources: Optional[_Path] = None) -> Dict[str, Any]: ...
+def topology(dir: _Path, resources: Optional[_Path] = None) -> Topology: ...
 def write_correspondence_matrix_into(
     out: npt.NDArray[np.float32],
     ids: npt.NDArray[np.int64],
@@ -118,7 +124,7 @@ def photo_crop(
     box: Sequence[float],
     size: int = 192,
     side: int = 800,
-) -> Dict[str, Any]: ...
+) -> PhotoCrop: ...
 
 def photo_pose(
     width: int,
@@ -130,7 +136,7 @@ def photo_pose(
     focal_px: Optional[float] = None,
     threshold_px: float = 8.0,
     seed: int = 0,
-) -> Optional[Dict[str, Any]]: ...
+) -> Optional[PhotoPose]: ...
 def detect_faces(
     photo: npt.NDArray[np.uint8], min_face_px: int = 40, score_threshold: float = 2.0
 ) -> List[Tuple[List[float], float]]: ...
@@ -141,9 +147,9 @@ def poses_from_arkit(
     face_anchor: npt.NDArray[np.float64], camera: npt.NDArray[np.float64]
 ) -> npt.NDArray[np.float64]: ...
 def poses_to_arkit(r_t: npt.NDArray[np.float64], camera: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]: ...
-def pose_angles(r_t: npt.NDArray[np.float64], convention: str) -> npt.NDArray[np.float64]: ...
+def pose_angles(r_t: npt.NDArray[np.float64], convention: Convention) -> npt.NDArray[np.float64]: ...
 def poses_from_angles(
-    angles: npt.NDArray[np.float64], translation: npt.NDArray[np.float64], convention: str
+    angles: npt.NDArray[np.float64], translation: npt.NDArray[np.float64], convention: Convention
 ) -> npt.NDArray[np.float64]: ...
 def poses_to_trg(r_t: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]: ...
 def poses_from_trg(r_t: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]: ...

@@ -36,7 +36,7 @@ import os
 import secrets
 import struct
 import sys
-from typing import Any, Dict, List, Optional, Tuple
+from typing import Any, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 
@@ -179,7 +179,7 @@ class Segment:
 class SegmentPool:
     """A worker's segments, reused once free."""
 
-    def __init__(self):
+    def __init__(self) -> None:
         self.pid = os.getpid()
         self.segments: List[Segment] = []
         # Per-sample shapes learnt from a first batch: (corr, eval) -> {key: (dtype, shape)}.
@@ -195,7 +195,7 @@ class SegmentPool:
         return seg
 
 
-def batch_shapes(per_sample: Dict[str, Tuple[str, Tuple[int, ...]]], b: int):
+def batch_shapes(per_sample: Dict[str, Tuple[str, Tuple[int, ...]]], b: int) -> Dict[str, Tuple[str, Tuple[int, ...]]]:
     return {k: (dtype, (b,) + shape) for k, (dtype, shape) in per_sample.items()}
 
 
@@ -207,26 +207,26 @@ def per_sample_shapes(arrays: Dict[str, Any]) -> Dict[str, Tuple[str, Tuple[int,
     }
 
 
-class SharedBatch(dict):
+class SharedBatch(dict[str, Any]):
     """A collated batch (a dict) whose arrays live in a worker's segment: pickled as the
     segment's name and layout, rebuilt in the training process as a plain dict of tensors
     viewing the segment (`receive`)."""
 
     __slots__ = ("segment",)
 
-    def __init__(self, values: Dict[str, Any], segment: Segment):
+    def __init__(self, values: Dict[str, Any], segment: Segment) -> None:
         super().__init__(values)
         self.segment = segment
 
-    def __reduce__(self):
+    def __reduce__(self) -> Tuple[Any, ...]:
         import torch
 
         seg = self.segment
-        where = {}
+        where: Dict[str, Tuple[str, Tuple[int, ...], int]] = {}
         for key, dtype, shape, at in seg.layout:
             where[key] = (dtype, shape, at)
         base = seg.root.ctypes.data
-        items = []
+        items: List[Tuple[str, str, Any]] = []
         for k, v in self.items():
             if isinstance(v, torch.Tensor) and _in_segment(v, where.get(k), base):
                 items.append((k, "segment", k))
@@ -246,25 +246,26 @@ class SharedBatch(dict):
         return (receive, (seg.descriptor(), items))
 
 
-def _in_segment(t, entry, base: int) -> bool:
+def _in_segment(t: Any, entry: Optional[Tuple[str, Tuple[int, ...], int]], base: int) -> bool:
     """Whether tensor `t` is the segment's array `entry` as it was laid out."""
     if entry is None:
         return False
     dtype, shape, at = entry
-    return (
+    inside: bool = (
         t.device.type == "cpu"
         and tuple(t.shape) == shape
         and t.is_contiguous()
         and t.data_ptr() == base + at
         and t.numpy().dtype.str == dtype
     )
+    return inside
 
 
 # -- the training process's side ----------------------------------------------------------
 
 # Open mappings, by (pid, fd, token) of the worker that made the segment: a segment is
 # mapped once and kept for the rest of the run (workers forked later adopt them).
-_mappings: Dict[Tuple[int, int, int], Any] = {}
+_mappings: Dict[Tuple[int, int, int], _Mapping] = {}
 
 
 class _Mapping:
@@ -299,10 +300,10 @@ class _Lease:
 
     __slots__ = ("mapping", "__weakref__")
 
-    def __init__(self, mapping: _Mapping):
+    def __init__(self, mapping: _Mapping) -> None:
         self.mapping = mapping
 
-    def __del__(self):
+    def __del__(self) -> None:
         try:
             self.mapping.map[STATE_AT] = FREE
         except (ValueError, TypeError):  # the mapping closed at interpreter exit
@@ -314,7 +315,7 @@ class _View:
 
     __slots__ = ("__array_interface__", "lease")
 
-    def __init__(self, lease: _Lease, at: int, dtype: str, shape: Tuple[int, ...]):
+    def __init__(self, lease: _Lease, at: int, dtype: str, shape: Tuple[int, ...]) -> None:
         self.lease = lease
         self.__array_interface__ = {
             "data": (lease.mapping.base + at, False),
@@ -347,14 +348,16 @@ def _alive(pid: int) -> bool:
     return True
 
 
-def receive(descriptor, items) -> Dict[str, Any]:
+def receive(
+    descriptor: Tuple[int, int, int, int, Layout], items: Sequence[Tuple[str, str, Any]]
+) -> Dict[str, Any]:
     """The batch a worker sent (`SharedBatch.__reduce__`): a plain dict of tensors."""
     import torch
 
     pid, fd, token, size, layout = descriptor
     mapping = _mapping(pid, fd, token, size, layout)
     lease = _Lease(mapping)
-    tensors = {}
+    tensors: Dict[str, torch.Tensor] = {}
     for key, dtype, shape, at in layout:
         nbytes = np.dtype(dtype).itemsize * int(np.prod(shape, dtype=np.int64))
         if at < HEADER or at + nbytes > size:

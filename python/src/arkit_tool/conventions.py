@@ -97,7 +97,7 @@ def _out(rows: Array, single: bool, shape: Tuple[int, ...]) -> Array:
     return out[0] if single else out
 
 
-def _convention(convention: str) -> str:
+def _convention(convention: Convention) -> Convention:
     if convention not in CONVENTIONS:
         raise DataError(f"convention: {convention!r}: expected one of {', '.join(CONVENTIONS)}")
     return convention

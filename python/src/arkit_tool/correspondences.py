@@ -315,7 +315,7 @@ class CorrespondenceMatrix:
             blocking = {"non_blocking": kwargs["non_blocking"]} if "non_blocking" in kwargs else {}
             ids = ids.to(device, **blocking)
             weights = weights.to(device, **blocking)
-        out = dense_matrix(ids, weights, self.vertex_count)
+        out: torch.Tensor = dense_matrix(ids, weights, self.vertex_count)
         return out.to(*args, **kwargs)
 
     def cuda(self, *args: Any, **kwargs: Any) -> "torch.Tensor":
@@ -373,7 +373,7 @@ class CorrespondenceMatrix:
         kwargs = kwargs or {}
         return func(*_densify(args), **_densify(kwargs))
 
-    def __reduce__(self) -> Tuple:
+    def __reduce__(self) -> Tuple[Any, ...]:
         return (CorrespondenceMatrix, (self.ids, self.weights, self.vertex_count))
 
 

@@ -90,7 +90,7 @@ def _log(record: Dict[str, Any]) -> None:
         f.write(line)
 
 
-def _jsonable(x):
+def _jsonable(x: Any) -> Any:
     if isinstance(x, np.generic):
         return x.item()
     if isinstance(x, np.ndarray):
@@ -145,7 +145,7 @@ def compute_metrics(inference_data: Dict[str, Any], evaluation: bool) -> Dict[st
     return out
 
 
-def _served_per_epoch(n: int, batch_size: int, max_dataset_size) -> int:
+def _served_per_epoch(n: int, batch_size: int, max_dataset_size: Any) -> int:
     """Training samples the official `CustomDatasetDataLoader` takes in one epoch with
     no worker processes: whole batches (drop_last), and its loop stops after the batch
     `i` with `i * batch_size >= max_dataset_size` (that batch is fetched)."""
@@ -171,7 +171,7 @@ class OfficialScriptsDataset:
     options do not define. Only plain values are kept from `opt` (train.py later
     attaches its visualizer to it)."""
 
-    def __init__(self, opt):
+    def __init__(self, opt: Any) -> None:
         import arkit_tool
 
         path = getattr(opt, "arkittool_dataset", None)
@@ -217,7 +217,7 @@ class OfficialScriptsDataset:
         )
 
     @staticmethod
-    def modify_commandline_options(parser, is_train):
+    def modify_commandline_options(parser: Any, is_train: bool) -> Any:
         g = parser.add_argument_group("arkittool (a dataset converted by arkit-tool)")
         g.add_argument("--arkittool_dataset", default=None, metavar="DIR",
                        help="the folder `arkit-tool convert` wrote (holding dataset.json)")
@@ -262,7 +262,7 @@ class OfficialScriptsDataset:
             out.append(i)
         return out
 
-    def __getitems__(self, indices: Sequence[int]):
+    def __getitems__(self, indices: Sequence[int]) -> List[Any]:
         import arkit_tool
 
         idx = self._check(indices)
@@ -274,7 +274,7 @@ class OfficialScriptsDataset:
         except arkit_tool.DataError:
             pass
         # One sample failed: serve the others, report each that fails.
-        items = []
+        items: List[Any] = []
         for i in idx:
             try:
                 items.append(self.ds.item(i))
@@ -286,7 +286,7 @@ class OfficialScriptsDataset:
             raise arkit_tool.DataError(f"arkittool: no sample of the batch {idx} could be served (see above)")
         return items
 
-    def __getitem__(self, index: int):
+    def __getitem__(self, index: int) -> Any:
         return self.__getitems__([index])[0]
 
     def compute_metrics(self, inference_data: Dict[str, Any]) -> Dict[str, Any]:

@@ -18,9 +18,17 @@ torch is imported only when a loader is made; the sampler itself needs numpy onl
 
 from __future__ import annotations
 
-from typing import Any, Dict, Iterator, List, Optional, Tuple
+from typing import TYPE_CHECKING, Any, Dict, Generic, Iterator, List, Mapping, Optional, Tuple, cast
 
 import numpy as np
+
+from .types import LoaderState, Remainder, SamplerState
+
+if TYPE_CHECKING:
+    from torch.utils.data import DataLoader
+    from typing_extensions import TypeVar
+
+    from .types import Batch
 
 __all__ = ["EpochSampler", "distributed_rank"]  # and EpochLoader, made on first use (torch)
 
@@ -67,15 +75,15 @@ class EpochSampler:
 
     def __init__(
         self,
-        size,
+        size: Any,
         shuffle: bool = True,
         seed: int = 0,
         num_replicas: Optional[int] = None,
         rank: Optional[int] = None,
-        remainder: str = "pad",
+        remainder: Remainder = "pad",
         epoch: int = 0,
-    ):
-        dataset = None
+    ) -> None:
+        dataset: Any = None
         if not isinstance(size, (int, np.integer)):
             dataset, size = size, len(size)
         self.size = int(size)
@@ -148,7 +156,7 @@ class EpochSampler:
         if self._live is live:
             self._live = None
 
-    def state_dict(self) -> Dict[str, Any]:
+    def state_dict(self) -> SamplerState:
         """The next index to be drawn: `epoch` and `position` in this shard's order, with
         the order's `seed`, `size`, `shuffle`, `num_replicas`, `rank` and `remainder`."""
         if self._live is not None and self._live[1] < self.shard_size:
@@ -157,7 +165,7 @@ class EpochSampler:
             epoch, position = self._next
         return self._state(epoch, position)
 
-    def _state(self, epoch: int, position: int) -> Dict[str, Any]:
+    def _state(self, epoch: int, position: int) -> SamplerState:
         return {
             "version": _STATE_VERSION,
             "epoch": int(epoch),
@@ -170,13 +178,13 @@ class EpochSampler:
             "remainder": self.remainder,
         }
 
-    def load_state_dict(self, state: Dict[str, Any]) -> None:
+    def load_state_dict(self, state: Mapping[str, Any]) -> None:
         """The next pass continues at `state`'s epoch and position (a position at the
         end of the shard means the next epoch's start). Refuses a state of another
         order or shard, naming what differs."""
         if not isinstance(state, dict) or state.get("version") != _STATE_VERSION:
             raise ValueError(f"sampler state: not a state saved by EpochSampler (version {_STATE_VERSION}): {state!r}")
-        mine = self._state(0, 0)
+        mine = cast(Dict[str, Any], self._state(0, 0))
         differ = [
             f"{k} {state.get(k)!r} (this sampler: {mine[k]!r})"
             for k in ("seed", "size", "shuffle", "num_replicas", "rank", "remainder")
@@ -198,7 +206,7 @@ class EpochSampler:
 class _Pass:
     """Where one pass of an `EpochLoader` stands: its epoch, start and batches handed out."""
 
-    def __init__(self, epoch: int, start: int):
+    def __init__(self, epoch: int, start: int) -> None:
         self.epoch, self.start, self.batches, self.finished = epoch, start, 0, False
 
 
@@ -207,16 +215,16 @@ class _PassIterator:
     handed out (in `pass_`, which the loader keeps; the loader does not keep this
     iterator, so dropping it shuts the workers down as torch's would)."""
 
-    def __init__(self, inner, pass_: _Pass):
+    def __init__(self, inner: Iterator[Any], pass_: _Pass) -> None:
         self.inner, self.pass_ = inner, pass_
 
-    def __iter__(self):
+    def __iter__(self) -> _PassIterator:
         return self
 
     def __len__(self) -> int:
-        return len(self.inner)
+        return len(self.inner)  # type: ignore[arg-type]  # torch's iterator has a length
 
-    def __next__(self):
+    def __next__(self) -> Any:
         try:
             batch = next(self.inner)
         except StopIteration:
@@ -226,10 +234,10 @@ class _PassIterator:
         return batch
 
 
-def _make_loader_class():
+def _make_loader_class() -> Any:
     import torch
 
-    class EpochLoader(torch.utils.data.DataLoader):
+    class EpochLoader(torch.utils.data.DataLoader):  # type: ignore[type-arg]
         """A DataLoader over an `EpochSampler` (what `ARKitFaceDataset.loader` returns).
 
         - `set_epoch(e)`: the next pass is epoch `e` (optional: passes advance by one).
@@ -242,7 +250,12 @@ def _make_loader_class():
           Lightning uses.
         """
 
-        def __iter__(self):
+        # Annotations only: what this class holds (torch's DataLoader declares wider types).
+        sampler: EpochSampler
+        batch_size: int
+        _pass: Optional[_Pass]
+
+        def __iter__(self) -> _PassIterator:  # type: ignore[override]
             sampler: EpochSampler = self.sampler
             epoch, start = sampler._claim()
             sampler._claimed = (epoch, start)
@@ -258,19 +271,19 @@ def _make_loader_class():
             """The next pass is epoch `epoch`, from its start."""
             self.sampler.set_epoch(epoch)
 
-        def state_dict(self) -> Dict[str, Any]:
+        def state_dict(self) -> LoaderState:
             """Where the data stands: the next batch to hand out (see the class)."""
             sampler: EpochSampler = self.sampler
             p: Optional[_Pass] = getattr(self, "_pass", None)
             position = None if p is None else min(p.start + p.batches * self.batch_size, sampler.shard_size)
-            if p is not None and not p.finished and position < sampler.shard_size:
-                state = sampler._state(p.epoch, position)
+            if p is not None and not p.finished and position is not None and position < sampler.shard_size:
+                state = cast(LoaderState, sampler._state(p.epoch, position))
             else:
-                state = sampler._state(*sampler._next)
+                state = cast(LoaderState, sampler._state(*sampler._next))
             state["batch_size"] = self.batch_size
             return state
 
-        def load_state_dict(self, state: Dict[str, Any]) -> None:
+        def load_state_dict(self, state: Mapping[str, Any]) -> None:
             """The next pass continues where `state` (from `state_dict`) stood."""
             saved = state.get("batch_size") if isinstance(state, dict) else None
             if saved != self.batch_size:
@@ -286,10 +299,10 @@ def _make_loader_class():
     return EpochLoader
 
 
-_LOADER_CLASS = None
+_LOADER_CLASS: Any = None
 
 
-def loader_class():
+def loader_class() -> Any:
     """The `EpochLoader` class (made on first use, so that importing this module does
     not import torch)."""
     global _LOADER_CLASS
@@ -298,13 +311,29 @@ def loader_class():
     return _LOADER_CLASS
 
 
-def __getattr__(name):
-    if name == "EpochLoader":
-        return loader_class()
-    raise AttributeError(name)
+if TYPE_CHECKING:
+    _BatchT = TypeVar("_BatchT", default=Batch)
+
+    class EpochLoader(DataLoader[Any], Generic[_BatchT]):
+        """What type checkers see of `EpochLoader` (made on first use: `loader_class`)."""
+
+        sampler: EpochSampler
+        batch_size: int
+
+        def __iter__(self) -> Iterator[_BatchT]: ...  # type: ignore[override]
+        def set_epoch(self, epoch: int) -> None: ...
+        def state_dict(self) -> LoaderState: ...
+        def load_state_dict(self, state: Mapping[str, Any]) -> None: ...
+
+else:
+
+    def __getattr__(name: str) -> Any:
+        if name == "EpochLoader":
+            return loader_class()
+        raise AttributeError(name)
 
 
-def _check_u64(name: str, value) -> int:
+def _check_u64(name: str, value: Any) -> int:
     try:
         v = int(value)
     except (TypeError, ValueError):
@@ -312,3 +341,13 @@ def _check_u64(name: str, value) -> int:
     if v != value or not 0 <= v < 1 << 64:
         raise ValueError(f"{name}: {value!r}: expected an integer in [0, 2^64)")
     return v
+
+
+def _position(index: Any, n: int) -> int:
+    """A sample position from a Python index (negative counts from the end)."""
+    if not isinstance(index, (int, np.integer)) or isinstance(index, bool):
+        raise TypeError(f"index {index!r}: expected an integer")
+    i = int(index)
+    if not -n <= i < n:
+        raise IndexError(f"index {i} out of range for {n} samples")
+    return i + n if i < 0 else i

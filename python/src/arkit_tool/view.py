@@ -40,15 +40,14 @@ import math
 import os
 import re
 import sys
-from typing import Any, Dict, Iterable, List, Optional, Sequence, Tuple, Union
+from typing import Any, Dict, Iterable, List, Optional, Sequence, Tuple, Union, cast
 
 import numpy as np
 
 from . import DataError, ConvertedDataset, _native, decode_targets, open_dataset, read_image
+from .types import Key, PathLike, SampleRow, Targets
 
 __all__ = ["record", "intrinsics", "select", "sample_errors", "main"]
-
-Key = Tuple[str, str, str]
 
 INSTALL_HINT = (
     'the viewer needs rerun-sdk: pip install "arkit-tool[view]" (or pip install rerun-sdk)'
@@ -65,9 +64,9 @@ RELEASE_PROJECTION = (
 _AUGMENTED = re.compile(r"^(?P<source>.+)_(aug\d+|flip)$")
 
 
-def _rerun():
+def _rerun() -> Any:
     try:
-        import rerun as rr
+        import rerun as rr  # type: ignore[import-untyped,import-not-found,unused-ignore]
     except ImportError:
         raise ImportError(INSTALL_HINT) from None
     return rr
@@ -128,8 +127,8 @@ def sample_errors(verts: np.ndarray, truth: np.ndarray, predicted: Optional[np.n
     }
 
 
-def _read_table(path: str, columns: Optional[List[str]] = None):
-    import pyarrow.parquet as pq
+def _read_table(path: str, columns: Optional[List[str]] = None) -> Any:
+    import pyarrow.parquet as pq  # type: ignore[import-untyped,import-not-found,unused-ignore]
 
     try:
         return pq.read_table(path, columns=columns)
@@ -137,7 +136,7 @@ def _read_table(path: str, columns: Optional[List[str]] = None):
         raise DataError(f"{path}: {e}") from None
 
 
-def read_predictions(path: Union[str, os.PathLike]) -> Dict[Key, Dict[str, Any]]:
+def read_predictions(path: PathLike) -> Dict[Key, Dict[str, Any]]:
     """A predictions file (Parquet, schemas/predictions.json) as `{key: {"R_t": 4x4 or
     None, "verts": (N, 3) or None}}`."""
     path = os.fspath(path)
@@ -198,8 +197,8 @@ def select(
     want_keys = None if keys is None else {tuple(str(x) for x in k) for k in keys}
     ranges = [("yaw_deg", _range("yaw_range", yaw_range)), ("pitch_deg", _range("pitch_range", pitch_range)),
               ("roll_deg", _range("roll_range", roll_range))]
-    ranges = [(c, r) for c, r in ranges if r is not None]
-    pose = _pose_columns(dataset) if ranges else {}
+    limits = [(c, r) for c, r in ranges if r is not None]
+    pose = _pose_columns(dataset) if limits else {}
     out = []
     for i, k in enumerate(dataset._keys):
         if split is not None and k[3] != split:
@@ -210,7 +209,7 @@ def select(
             continue
         if want_keys is not None and tuple(k[:3]) not in want_keys:
             continue
-        if any(not lo <= pose[c][i] <= hi for c, (lo, hi) in ranges):
+        if any(not lo <= pose[c][i] <= hi for c, (lo, hi) in limits):
             continue
         out.append(i)
     return out
@@ -237,7 +236,7 @@ def _targets_rows(dataset_dir: str, keys: Iterable[Key]) -> Dict[Key, Dict[str, 
     return out
 
 
-def _bilinear_crop(image: np.ndarray, t: Dict[str, Any]) -> np.ndarray:
+def _bilinear_crop(image: np.ndarray, t: Targets) -> np.ndarray:
     """The targets' crop of `image` (for display: bilinear, black outside)."""
     s = int(t["crop_size"])
     side_x, side_y = float(t["crop_side"]), float(t["crop_side_y"] or t["crop_side"])
@@ -256,16 +255,20 @@ def _bilinear_crop(image: np.ndarray, t: Dict[str, Any]) -> np.ndarray:
     a, b = pad[yi][:, xi], pad[yi][:, xj]
     c, d = pad[yj][:, xi], pad[yj][:, xj]
     out = (a * (1 - fx) + b * fx) * (1 - fy) + (c * (1 - fx) + d * fx) * fy
-    return np.clip(out + 0.5, 0, 255).astype(np.uint8)
+    crop: np.ndarray = np.clip(out + 0.5, 0, 255).astype(np.uint8)
+    return crop
 
 
 def _position_colours(points: np.ndarray, verts: np.ndarray) -> np.ndarray:
     lo, hi = verts.min(axis=0), verts.max(axis=0)
     span = np.maximum(hi - lo, 1e-9)
-    return (np.clip((points - lo) / span, 0, 1) * 235 + 20).astype(np.uint8)
+    colours: np.ndarray = (np.clip((points - lo) / span, 0, 1) * 235 + 20).astype(np.uint8)
+    return colours
 
 
-def _pose_text(key: Key, split: str, sample: Dict[str, Any], prediction, errors) -> str:
+def _pose_text(
+    key: Key, split: str, sample: SampleRow, prediction: Optional[Dict[str, Any]], errors: Optional[Dict[str, float]]
+) -> str:
     rt = np.asarray(sample["R_t"]).reshape(4, 4)
     lines = [
         f"subject {key[0]}, action {key[1]}, image {key[2]} ({split})",
@@ -297,11 +300,12 @@ def _vertex_normals(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     for k in range(3):
         np.add.at(out, triangles[:, k], n)
     norm = np.linalg.norm(out, axis=1, keepdims=True)
-    return out / np.maximum(norm, 1e-12)
+    normals: np.ndarray = out / np.maximum(norm, 1e-12)
+    return normals
 
 
 def record(
-    dataset: Union[str, os.PathLike, ConvertedDataset],
+    dataset: Union[PathLike, ConvertedDataset],
     *,
     split: Optional[str] = None,
     subjects: Optional[Iterable[str]] = None,
@@ -310,14 +314,14 @@ def record(
     pitch_range: Optional[Sequence[float]] = None,
     roll_range: Optional[Sequence[float]] = None,
     keys: Optional[Iterable[Key]] = None,
-    predictions: Optional[Union[str, os.PathLike]] = None,
+    predictions: Optional[PathLike] = None,
     worst: Optional[int] = None,
     limit: Optional[int] = None,
     correspondences: int = 8,
-    resources: Optional[Union[str, os.PathLike]] = None,
-    path: Optional[Union[str, os.PathLike]] = None,
+    resources: Optional[PathLike] = None,
+    path: Optional[PathLike] = None,
     spawn: bool = False,
-    recording=None,
+    recording: Any = None,
 ) -> Dict[str, Any]:
     """Logs a selection of `dataset`'s samples to Rerun (see the module's docs for what
     and where). Selection: the filters of `select`; with `predictions` (a Parquet
@@ -340,10 +344,10 @@ def record(
     landmark_ids = np.asarray(topo["landmarks"], dtype=np.int64)
     projection = projection_of(ds)
 
-    samples: Dict[int, Dict[str, Any]] = {}
+    samples: Dict[int, SampleRow] = {}
     errors: Dict[int, Dict[str, float]] = {}
 
-    def sample(i: int) -> Dict[str, Any]:
+    def sample(i: int) -> SampleRow:
         if i not in samples:
             samples[i] = ds.sample(i)
         return samples[i]
@@ -351,16 +355,16 @@ def record(
     if preds is not None:
         for i in chosen:
             s = sample(i)
-            p = preds.get(tuple(ds._keys[i][:3]))
+            p = preds.get(ds._keys[i][:3])
             errors[i] = sample_errors(s["verts"], s["R_t"], None if p is None else p["R_t"])
         if worst is not None:
             # Largest rotation error first; ties in dataset order.
             chosen = sorted(chosen, key=lambda i: -errors[i]["rotation_deg"])[: max(int(worst), 0)]
     if limit is not None:
         chosen = chosen[: max(int(limit), 0)]
-    chosen_keys = [tuple(ds._keys[i][:3]) for i in chosen]
+    chosen_keys = [ds._keys[i][:3] for i in chosen]
     targets = _targets_rows(ds.path, chosen_keys)
-    by_key = {tuple(k[:3]): i for i, k in enumerate(ds._keys)}
+    by_key = {k[:3]: i for i, k in enumerate(ds._keys)}
 
     tmp = None
     if recording is None:
@@ -368,7 +372,7 @@ def record(
         if spawn:
             rec.spawn()
         else:
-            tmp = os.fspath(path) + ".partial"
+            tmp = os.fspath(cast(PathLike, path)) + ".partial"
             rec.save(tmp)
     else:
         rec = recording
@@ -395,8 +399,9 @@ def record(
             rec.log("world/camera", rr.Pinhole(image_from_camera=k_matrix, resolution=[w, h],
                                                camera_xyz=rr.ViewCoordinates.RUB, image_plane_distance=0.2))
             image = None
-            if s.get("image_path"):
-                image = read_image(s["image_path"])
+            image_path = s["image_path"]  # None when the image is embedded
+            if image_path:
+                image = read_image(image_path)
                 rec.log("world/camera/image", rr.Image(image))
             lm = np.asarray(s["landmarks_2d"], dtype=np.float64)
             rec.log("world/camera/image/landmarks", rr.Points2D(lm, colors=(255, 220, 0), radii=1.5))
@@ -437,8 +442,9 @@ def record(
             src = None if m is None else by_key.get((key[0], key[1], m.group("source")))
             if src is not None:
                 ss = sample(src)
-                if ss.get("image_path"):
-                    rec.log("source/image", rr.Image(read_image(ss["image_path"])))
+                source_path = ss["image_path"]
+                if source_path:
+                    rec.log("source/image", rr.Image(read_image(source_path)))
                 rec.log("source/landmarks", rr.Points2D(np.asarray(ss["landmarks_2d"]), colors=(255, 220, 0),
                                                         radii=1.5))
             logged.append(key)
@@ -450,12 +456,21 @@ def record(
     if tmp is not None:
         rec.flush()
         rec.disconnect()
-        os.replace(tmp, os.fspath(path))
-        out_path = os.fspath(path)
+        os.replace(tmp, os.fspath(cast(PathLike, path)))
+        out_path = os.fspath(cast(PathLike, path))
     return {"samples": logged, "path": out_path, "skipped": skipped}
 
 
-def _log_targets(rr, rec, t: Dict[str, Any], image, verts, rt, count: int, rng) -> None:
+def _log_targets(
+    rr: Any,
+    rec: Any,
+    t: Targets,
+    image: Optional[np.ndarray],
+    verts: np.ndarray,
+    rt: np.ndarray,
+    count: int,
+    rng: np.random.Generator,
+) -> None:
     s = int(t["crop_size"])
     if image is not None:
         rec.log("crop/image", rr.Image(_bilinear_crop(image, t)))
