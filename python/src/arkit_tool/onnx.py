@@ -80,7 +80,7 @@ class OnnxPerspNet:
         session_options: Optional[Any] = None,
     ) -> None:
         try:
-            import onnxruntime as ort
+            import onnxruntime as ort  # type: ignore[import-untyped,import-not-found,unused-ignore]
         except ImportError as e:  # pragma: no cover - depends on the environment
             raise ImportError(
                 "arkit_tool.onnx needs onnxruntime: pip install onnxruntime"

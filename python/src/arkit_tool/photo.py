@@ -35,6 +35,7 @@ import numpy.typing as npt
 
 from . import _native, conventions
 from ._native import DataError
+from .types import PhotoFace
 
 DEMO_SIDE = 800
 """The side of the official demo's square."""
@@ -112,7 +113,7 @@ def predict_photo(
     threshold_px: float = 8.0,
     angles: conventions.Convention = "official",
     min_face_px: int = 40,
-) -> List[Dict[str, Any]]:
+) -> List[PhotoFace]:
     """The pose of each face of `photo` (`(H, W, 3)` RGB uint8); `boxes` as the demo
     takes them, or found by `detect_faces` when `None`. One dict per face: `box`,
     `crop` (`(S, S, 3)` uint8, what the network saw), `choose`, `points`, `status`
@@ -127,43 +128,40 @@ def predict_photo(
     focal = _camera_focal(w, focal_px, fov_deg)
     if boxes is None:
         boxes = [b for b, _ in detect_faces(photo, min_face_px)]
-    boxes = [[float(v) for v in b] for b in boxes]
-    for b in boxes:
+    given: List[List[float]] = [[float(v) for v in b] for b in boxes]
+    for b in given:
         if len(b) != 4:
             raise DataError(f"face box {b}: expected [x0, y0, x1, y1]")
-    if not boxes:
+    if not given:
         return []
     size = int(network.input_size)
-    crops = [_native.photo_crop(photo, b, size, DEMO_SIDE) for b in boxes]
+    crops = [_native.photo_crop(photo, b, size, DEMO_SIDE) for b in given]
     inputs = np.stack([c["input"] for c in crops]).astype(np.float32, copy=False)
-    out = network.predict(inputs, [seed ^ k for k in range(len(boxes))])
+    out = network.predict(inputs, [seed ^ k for k in range(len(given))])
     names = conventions.order(angles)
-    faces: List[Dict[str, Any]] = []
-    for k, b in enumerate(boxes):
+    faces: List[PhotoFace] = []
+    for k, b in enumerate(given):
         choose = np.asarray(out.choose[k], dtype=np.int64)
         points = np.ascontiguousarray(out.points[k], dtype=np.float32)
-        face: Dict[str, Any] = {
+        face: PhotoFace = {
             "box": b,
             "crop": crops[k]["crop"],
             "choose": choose,
             "points": points,
+            "status": "pnp failed",
         }
         posed = _native.photo_pose(w, h, b, size, choose, points, focal, threshold_px, seed)
-        if posed is None:
-            face["status"] = "pnp failed"
-        else:
+        if posed is not None:
             rt = posed["R_t"]
             a = conventions.angles(rt, angles)
             rvec, tvec = conventions.to_opencv(rt)
-            face.update(
-                status="ok",
-                R_t=rt,
-                angles=dict(zip(names, a.tolist())),
-                translation_m=rt[3, :3].copy(),
-                rvec=rvec,
-                tvec_m=tvec,
-                inliers=int(posed["inliers"]),
-            )
+            face["status"] = "ok"
+            face["R_t"] = rt
+            face["angles"] = dict(zip(names, (float(x) for x in a.tolist())))
+            face["translation_m"] = rt[3, :3].copy()
+            face["rvec"] = rvec
+            face["tvec_m"] = tvec
+            face["inliers"] = int(posed["inliers"])
             v = np.asarray(out.vertices[k], dtype=np.float64)
             face["vertices_m"] = (np.c_[v, np.ones(len(v))] @ rt)[:, :3]
         faces.append(face)

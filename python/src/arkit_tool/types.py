@@ -15,7 +15,7 @@ torch.
 from __future__ import annotations
 
 import os
-from typing import TYPE_CHECKING, List, Literal, Optional, Tuple, TypedDict, Union
+from typing import TYPE_CHECKING, Dict, List, Literal, Optional, Tuple, TypedDict, Union
 
 import numpy as np
 import numpy.typing as npt
@@ -41,6 +41,7 @@ __all__ = [
     "Mode",
     "PathLike",
     "PhotoCrop",
+    "PhotoFace",
     "PhotoPose",
     "Remainder",
     "SampleRow",
@@ -346,3 +347,24 @@ class PhotoPose(TypedDict):
     R_t: _F64
     inliers: int
     points: int
+
+
+class _PhotoFaceBase(TypedDict):
+    box: List[float]
+    crop: npt.NDArray[np.uint8]
+    choose: npt.NDArray[np.int64]
+    points: npt.NDArray[np.float32]
+    status: Literal["ok", "pnp failed"]
+
+
+class PhotoFace(_PhotoFaceBase, total=False):
+    """One face of `arkit_tool.photo.predict_photo`: always its box, crop, chosen pixels,
+    their points and status; when posed (`status == "ok"`) also the pose fields."""
+
+    R_t: _F64
+    angles: Dict[str, float]
+    translation_m: _F64
+    rvec: _F64
+    tvec_m: _F64
+    inliers: int
+    vertices_m: _F64
