@@ -376,7 +376,11 @@ fn csv_text(names: &[&str; 3], rows: &[Vec<String>]) -> String {
 impl Run<'_> {
     /// The boxes of a photo: `--box`, its `--boxes` entry, or the detector's (with
     /// their scores), and where they came from.
-    fn boxes(&self, photo: &image::RgbImage, path: &Path) -> Result<PhotoBoxes> {
+    fn boxes(
+        &self,
+        photo: &image::RgbImage,
+        path: &Path,
+    ) -> Result<PhotoBoxes> {
         if !self.given.is_empty() {
             return Ok((self.given.clone(), vec![None; self.given.len()], "--box"));
         }
