@@ -10,7 +10,8 @@
 //!   its training and its predictions.
 //!
 //! This crate holds [`report`] and [`demo`] (pictures of each stage in one `index.html`,
-//! and the whole pipeline on synthetic data) and [`allocator`] (the process's allocator
+//! and the whole pipeline on synthetic data), [`folder_state`] (what state each output of
+//! a dataset folder is in, for `inspect`) and [`allocator`] (the process's allocator
 //! settings, applied by the binary at start-up).
 //!
 //! Build without the network (no candle) with `--no-default-features`: every command
@@ -21,4 +22,5 @@
 pub mod allocator;
 #[cfg(feature = "model")]
 pub mod demo;
+pub mod folder_state;
 pub mod report;

@@ -13,6 +13,7 @@ mod convert;
 mod direct_commands;
 mod hostile;
 mod import_arkit;
+mod kill;
 mod official_crop;
 mod options;
 #[cfg(feature = "model")]

@@ -7,8 +7,14 @@ use std::collections::BTreeSet;
 use std::path::PathBuf;
 use std::process::ExitCode;
 
-/// Summarise a converted dataset: subjects, images, actions, errors, and the pose
-/// distributions (yaw, pitch, roll, distance) as histograms.
+/// Summarise a converted dataset: the state of each output (samples, targets/, crop
+/// stores, temporaries left by killed runs), subjects, images, actions, errors, and the
+/// pose distributions (yaw, pitch, roll, distance) as histograms.
+///
+/// An output an interrupted run left unfinished is named with the command that
+/// completes it (for example "targets: 7 of 30 shards, rerun `arkit-tool render ...`");
+/// a folder whose samples are unfinished (no dataset.json) gets the state alone and
+/// exit status 1.
 ///
 /// Example: arkit-tool inspect --dataset data/parquet --plot poses.svg
 #[derive(Args, Debug)]
@@ -42,6 +48,25 @@ pub fn run(a: InspectArgs) -> Result<ExitCode> {
                 "{}: the chart is written as SVG; name the file .svg (for a PNG, convert it: rsvg-convert -o poses.png poses.svg)",
                 path.display()
             ),
+        ));
+    }
+    let state = arkit_tool::folder_state::folder_state(&a.dataset);
+    if state.samples.state != arkit_tool::folder_state::State::Complete {
+        // Nothing else can be read: the state, and the way out, alone.
+        if a.json {
+            println!(
+                "{}",
+                serde_json::to_string_pretty(&serde_json::json!({"state": state})).expect("json")
+            );
+        } else {
+            println!("{}", a.dataset.display());
+            for line in state.lines() {
+                println!("  {line}");
+            }
+        }
+        return Err(arkit_core::error::Error::format(
+            &a.dataset,
+            state.samples.message.clone(),
         ));
     }
     let data = arkit_data::store::dataset::Dataset::open(&a.dataset)?;
@@ -97,11 +122,15 @@ pub fn run(a: InspectArgs) -> Result<ExitCode> {
                 "skipped": m.skipped, "listing_problems": m.listing_problems, "shards": m.shards.len(),
                 "official_loader_failures": official_failures,
                 "histograms": h,
+                "state": state,
             }))
             .expect("json")
         );
     } else {
         println!("{}", a.dataset.display());
+        for line in state.lines() {
+            println!("  {line}");
+        }
         println!(
             "  {} subjects, {} images, {} facial actions, {} shards",
             subjects.len(),

@@ -83,7 +83,9 @@ pub struct OracleSummary {
     pub samples: usize,
     /// PnP failures (null `R_t` written).
     pub failures: usize,
-    /// Samples of the split with no targets row (not predicted).
+    /// Samples of the split with no targets row (not predicted): those `render` could
+    /// not render (listed in `targets/errors/`). A shard without its targets file is
+    /// refused instead.
     pub without_targets: usize,
     /// Mean distinct points per sample.
     pub mean_points: f64,
@@ -140,11 +142,16 @@ pub fn oracle_predictions(
     for shard in data.shards() {
         let rows = data.read_samples(shard)?;
         let tpath = crate::store::targets_table::shard_path(targets_dir, shard.index);
-        let targets: HashMap<SampleKey, TargetsRecord> = if tpath.exists() {
-            targets_table::read_targets_by_key(&tpath)?
-        } else {
-            HashMap::new()
-        };
+        // A shard without its targets file is a render that has not finished (or has
+        // not run): refused, never predicted as if its samples had no targets.
+        if !tpath.exists() {
+            return Err(Error::format(
+                &tpath,
+                "no targets for this shard: `arkit-tool render` has not finished here (`arkit-tool inspect` says how far it got); rerun it",
+            ));
+        }
+        let targets: HashMap<SampleKey, TargetsRecord> =
+            targets_table::read_targets_by_key(&tpath)?;
         let chosen: Vec<_> = rows
             .iter()
             .enumerate()
