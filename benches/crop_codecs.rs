@@ -19,7 +19,7 @@
 
 mod timing;
 
-use arkit_data::loader::crop_store::{self, WindowCodec, WindowPart};
+use arkit_data::store::crop_store::{self, WindowCodec, WindowPart};
 use arkit_data::loader::item::{Compat, FaceLoader, LoaderMode, LoaderOptions};
 use image::ImageEncoder;
 use std::path::PathBuf;
