@@ -19,7 +19,7 @@
 
 use crate::crop::CropTransform;
 use crate::render::face::{FaceRenderer, RasterMode, UvMapper, sample_points};
-use crate::store::manifest::{Manifest, dataset_fingerprint};
+use crate::store::manifest::dataset_fingerprint;
 use crate::store::parquet;
 use crate::store::samples_table::{self, ErrorRecord};
 use crate::store::targets_table::{self, TargetsRecord};
@@ -539,6 +539,7 @@ impl SkipTally {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::store::manifest::Manifest;
     use arkit_core::release::SampleKey;
 
     fn records(range: std::ops::Range<usize>) -> Vec<ErrorRecord> {

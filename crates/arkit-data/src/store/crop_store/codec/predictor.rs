@@ -45,9 +45,6 @@ fn predict(prev: &[[i16; 3]], cur: &[[i16; 3]], y: usize, x: usize) -> [i16; 3] 
     }
 }
 
-/// A rectangle of an image's pixels: columns `x..x + width` of rows `y..y + height`.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-
 /// `rect` of the RGB image `image` (`image_width` pixels wide) transposed: an RGB
 /// image `rect.height` wide and `rect.width` tall, whose pixel `(y, x)` is the image's
 /// pixel at row `rect.y + x`, column `rect.x + y`.
