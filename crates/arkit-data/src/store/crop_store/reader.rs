@@ -38,11 +38,55 @@ pub struct CropStore {
     files: Vec<Option<PartFile>>,
 }
 
+/// One opened `part-K.bin`: the file, its path (which errors name) and its record
+/// offsets (`records + 1`).
 #[derive(Debug)]
 struct PartFile {
     file: File,
     path: PathBuf,
     offsets: Vec<u64>,
+}
+
+impl PartFile {
+    /// Opens the part file `path` of samples shard `index` (`records` records) of the
+    /// store `manifest`: its header checked first (a file of another store, dataset or
+    /// shard is named as such, whatever its length), then its index ([`read_index`]).
+    fn open(
+        path: PathBuf,
+        manifest: &CropStoreManifest,
+        index: usize,
+        records: usize,
+    ) -> Result<PartFile> {
+        let file = File::open(&path).map_err(|e| Error::io(&path, e))?;
+        let len = file.metadata().map_err(|e| Error::io(&path, e))?.len();
+        let mut head = [0u8; HEADER_BYTES as usize];
+        if len >= HEADER_BYTES {
+            read_exact_at(&file, &mut head, 0).map_err(|e| Error::io(&path, e))?;
+        }
+        let want_head = manifest.part_header(index, records)?;
+        if len >= HEADER_BYTES && head != want_head {
+            return Err(header_mismatch(
+                &path,
+                &head,
+                &want_head,
+                &manifest.dataset_fingerprint,
+            ));
+        }
+        if len < HEADER_BYTES {
+            return Err(Error::format(
+                &path,
+                format!(
+                    "{len} bytes, shorter than a header: the file is truncated or not this store's"
+                ),
+            ));
+        }
+        let offsets = read_index(&file, &path, len, records, manifest)?;
+        Ok(PartFile {
+            file,
+            path,
+            offsets,
+        })
+    }
 }
 
 /// The record offsets of the part file `path` (`len` bytes, `records` records, of the
@@ -192,37 +236,7 @@ impl CropStore {
                 ));
             }
             let path = dir.join(&entry.file);
-            let file = File::open(&path).map_err(|e| Error::io(&path, e))?;
-            let len = file.metadata().map_err(|e| Error::io(&path, e))?.len();
-            let mut head = [0u8; HEADER_BYTES as usize];
-            if len >= HEADER_BYTES {
-                read_exact_at(&file, &mut head, 0).map_err(|e| Error::io(&path, e))?;
-            }
-            let want_head = manifest.part_header(s.index, entry.records)?;
-            // The header first: a file of another store, dataset or shard is named as
-            // such, whatever its length.
-            if len >= HEADER_BYTES && head != want_head {
-                return Err(header_mismatch(
-                    &path,
-                    &head,
-                    &want_head,
-                    &manifest.dataset_fingerprint,
-                ));
-            }
-            if len < HEADER_BYTES {
-                return Err(Error::format(
-                    &path,
-                    format!(
-                        "{len} bytes, shorter than a header: the file is truncated or not this store's"
-                    ),
-                ));
-            }
-            let offsets = read_index(&file, &path, len, entry.records, &manifest)?;
-            files[s.index] = Some(PartFile {
-                file,
-                path,
-                offsets,
-            });
+            files[s.index] = Some(PartFile::open(path, &manifest, s.index, entry.records)?);
         }
         Ok(CropStore {
             dir: dir.to_path_buf(),
@@ -232,7 +246,8 @@ impl CropStore {
     }
 
     /// The store of one part file, samples shard 0's at `path` (of `records` records,
-    /// in the folder `dir`), opened with `manifest` and no other check than its index's.
+    /// in the folder `dir`), opened with `manifest`: the part's checks, not the
+    /// manifest's against a dataset.
     #[cfg(test)]
     pub(super) fn of_part(
         dir: &Path,
@@ -240,17 +255,11 @@ impl CropStore {
         path: &Path,
         records: usize,
     ) -> Result<Self> {
-        let file = File::open(path).map_err(|e| Error::io(path, e))?;
-        let len = file.metadata().map_err(|e| Error::io(path, e))?.len();
-        let offsets = read_index(&file, path, len, records, manifest)?;
+        let part = PartFile::open(path.to_path_buf(), manifest, 0, records)?;
         Ok(CropStore {
             dir: dir.to_path_buf(),
             manifest: manifest.clone(),
-            files: vec![Some(PartFile {
-                file,
-                path: path.to_path_buf(),
-                offsets,
-            })],
+            files: vec![Some(part)],
         })
     }
 

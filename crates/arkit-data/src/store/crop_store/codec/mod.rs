@@ -26,8 +26,8 @@ use coder::WindowCoder;
 /// Declares each codec's file and builds [`WindowCodec`] and its dispatch from the table.
 macro_rules! window_codecs {
     ($(
-        $(#[doc = $doc:literal])*
         $(#[cfg($cfg:meta)])?
+        $(#[doc = $doc:literal])*
         $variant:ident = $code:literal, $name:literal, $file:ident::$coder:ident;
     )*) => {
         $( $(#[cfg($cfg)])? mod $file; )*
@@ -95,7 +95,7 @@ window_codecs! {
     /// after the byte counts of the first four (four bytes each, little endian), so that
     /// evaluation decodes the centre alone and a training crop the parts it reaches.
     PredZstd = 2, "pred-zstd", pred_zstd::PredZstd;
-    #[cfg(test)] Xor = 255, "xor", xor::Xor;
+    #[cfg(test)] #[doc = "A codec of the tests only."] Xor = 255, "xor", xor::Xor;
 }
 
 impl serde::Serialize for WindowCodec {
