@@ -22,10 +22,10 @@
 //!
 //! Tested in `tests/crop_store.rs`.
 
+use crate::loader::item::FaceLoader;
 use crate::store::crop_store::{
     self, CropStoreManifest, FORMAT, MissingCrop, WindowCodec, encode_record, margin,
 };
-use crate::loader::item::FaceLoader;
 use arkit_core::error::{Error, Result};
 use rayon::prelude::*;
 use serde::Serialize;

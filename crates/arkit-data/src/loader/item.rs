@@ -49,11 +49,11 @@ use crate::crop::official::{
 use crate::crop::{CropSampling, CropTransform};
 use crate::loader::colour_jitter::UNIT;
 use crate::loader::colour_jitter::jitter_colour;
-use crate::store::crop_store::{CropStore, StoredCrop, StoredRecord, WindowPart};
 use crate::mesh::topology::FaceTopology;
 use crate::render::face::{
     FaceRenderer, RasterMode, UvMapper, UvTexels, WindowMask, sample_points,
 };
+use crate::store::crop_store::{CropStore, StoredCrop, StoredRecord, WindowPart};
 use crate::store::dataset::Dataset;
 use crate::store::face_targets::{canonical_position, mask_pixel_indices};
 use arkit_core::conventions::{Camera, Pose};
