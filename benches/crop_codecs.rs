@@ -19,8 +19,8 @@
 
 mod timing;
 
-use arkit_data::loader::crop_store::{self, WindowCodec, WindowPart};
 use arkit_data::loader::item::{Compat, FaceLoader, LoaderMode, LoaderOptions};
+use arkit_data::store::crop_store::{self, WindowCodec, WindowPart};
 use image::ImageEncoder;
 use std::path::PathBuf;
 

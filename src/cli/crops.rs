@@ -3,6 +3,7 @@
 use arkit_core::error::Result;
 use arkit_data::loader::crops_dataset;
 use arkit_data::loader::item::{Compat, FaceLoader, LoaderMode, LoaderOptions};
+use arkit_data::store::crop_store::WindowCodec;
 use clap::Args;
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -111,9 +112,9 @@ pub fn run(a: CropsArgs) -> Result<ExitCode> {
     let bar = super::progress_bar(loader.len() as u64, "crops", "samples");
     let pool = super::thread_pool(a.jobs)?;
     let codec = match a.codec {
-        CodecArg::PredZstd => arkit_data::loader::crop_store::WindowCodec::PredZstd,
-        CodecArg::Png => arkit_data::loader::crop_store::WindowCodec::Png,
-        CodecArg::Raw => arkit_data::loader::crop_store::WindowCodec::Raw,
+        CodecArg::PredZstd => WindowCodec::PredZstd,
+        CodecArg::Png => WindowCodec::Png,
+        CodecArg::Raw => WindowCodec::Raw,
     };
     let summary = pool.install(|| {
         crops_dataset::write_crop_store_with(&loader, &output, codec, &|n| bar.inc(n as u64))

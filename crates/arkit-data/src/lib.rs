@@ -10,14 +10,14 @@
 //! - [`crop`]: the square crop around a face and the image resampled into it (ours, and
 //!   the official loader's box and `cv2.warpAffine` in [`crop::official`]).
 //! - [`picture`]: images read (bounded before decoding) and pictures drawn for people.
-//! - [`store`]: a converted dataset on disk: manifest, shards, the tables.
+//! - [`store`]: a converted dataset on disk: manifest, shards, the tables, the crop store.
 //! - [`ingest`]: the release, BIWI, a user's captures and synthetic data into a dataset;
 //!   subject-disjoint splits.
 //! - [`render`]: masks, correspondences and UV position maps, per sample and per dataset.
 //! - [`augment`]: face profiling.
 //! - [`pose`]: PnP and predictions in the release's form.
 //! - [`eval`]: the paper's metrics, a predictions file scored, the report.
-//! - [`loader`]: the Python package's items, both rule sets, and the crop store.
+//! - [`loader`]: the Python package's items, both rule sets, and the crop store written.
 //!
 //! Every item has its home in one stage, and is used by that path. The names a pipeline
 //! is usually written with are also at the crate root (the one block of `pub use`

@@ -4,10 +4,9 @@
 //! earlier format) refused with the file named, in training as in evaluation; one
 //! writer per store, and no temporaries of killed runs left after a rerun.
 
-use arkit_data::loader::crop_store::WindowCodec;
-use arkit_data::loader::crop_store::{self, CropStore};
 use arkit_data::loader::crops_dataset::{write_crop_store, write_crop_store_with};
 use arkit_data::loader::item::{Compat, FaceLoader, LoaderMode, LoaderOptions};
+use arkit_data::store::crop_store::{self, CropStore, WindowCodec};
 use arkit_data::store::dataset::Dataset;
 use std::path::Path;
 

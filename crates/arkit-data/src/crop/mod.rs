@@ -182,7 +182,7 @@ impl CropTransform {
     /// negative) with every pixel computed by the same formula as in
     /// [`CropTransform::crop_image`], so the pixels the two share are bit for bit the
     /// same. `crop_image` is `crop_window(image, 0, size)`; the crop store keeps such a
-    /// window around each sample's evaluation crop (`crate::loader::crop_store`).
+    /// window around each sample's evaluation crop (`crate::store::crop_store`).
     pub fn crop_window(&self, image: &RgbImage, first: i64, count: usize) -> Vec<u8> {
         if self.sampling == CropSampling::Corners {
             let (w, h) = image.dimensions();

@@ -1,4 +1,4 @@
-//! `crops_dataset`: the crop store ([`crate::loader::crop_store`]) of a whole converted
+//! `crops_dataset`: the crop store ([`crate::store::crop_store`]) of a whole converted
 //! dataset, written shard by shard: what `arkit-tool crops` runs.
 //!
 //! Every sample is read as the loader reads it without a store (its `_info.npz`, checked
@@ -22,10 +22,10 @@
 //!
 //! Tested in `tests/crop_store.rs`.
 
-use crate::loader::crop_store::{
+use crate::loader::item::FaceLoader;
+use crate::store::crop_store::{
     self, CropStoreManifest, FORMAT, MissingCrop, WindowCodec, encode_record, margin,
 };
-use crate::loader::item::FaceLoader;
 use arkit_core::error::{Error, Result};
 use rayon::prelude::*;
 use serde::Serialize;
@@ -122,7 +122,7 @@ pub fn write_crop_store_with(
         margin: margin(s),
         vertex_count,
         key_bytes,
-        dataset_fingerprint: crate::render::dataset::dataset_fingerprint(dataset.manifest()),
+        dataset_fingerprint: crate::store::manifest::dataset_fingerprint(dataset.manifest()),
         shards: Vec::new(),
         missing: Vec::new(),
     };

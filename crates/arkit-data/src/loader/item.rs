@@ -49,11 +49,11 @@ use crate::crop::official::{
 use crate::crop::{CropSampling, CropTransform};
 use crate::loader::colour_jitter::UNIT;
 use crate::loader::colour_jitter::jitter_colour;
-use crate::loader::crop_store::{CropStore, StoredCrop, StoredRecord, WindowPart};
 use crate::mesh::topology::FaceTopology;
 use crate::render::face::{
     FaceRenderer, RasterMode, UvMapper, UvTexels, WindowMask, sample_points,
 };
+use crate::store::crop_store::{CropStore, StoredCrop, StoredRecord, WindowPart};
 use crate::store::dataset::Dataset;
 use crate::store::face_targets::{canonical_position, mask_pixel_indices};
 use arkit_core::conventions::{Camera, Pose};
@@ -1097,8 +1097,8 @@ impl FaceLoader {
         let landmarks = self.landmarks(row, &verts, &pose)?;
         let eval_crop = self.eval_crop(row, &landmarks)?;
         let s = self.options.img_size;
-        let first = -(crate::loader::crop_store::margin(s) as i64);
-        let w = crate::loader::crop_store::window_side(s);
+        let first = -(crate::store::crop_store::margin(s) as i64);
+        let w = crate::store::crop_store::window_side(s);
         let window = eval_crop.crop_window(&image, first, w);
         Ok(StoredCrop {
             eval_crop,

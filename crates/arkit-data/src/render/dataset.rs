@@ -19,7 +19,7 @@
 
 use crate::crop::CropTransform;
 use crate::render::face::{FaceRenderer, RasterMode, UvMapper, sample_points};
-use crate::store::manifest::Manifest;
+use crate::store::manifest::dataset_fingerprint;
 use crate::store::parquet;
 use crate::store::samples_table::{self, ErrorRecord};
 use crate::store::targets_table::{self, TargetsRecord};
@@ -28,7 +28,6 @@ use arkit_core::error::{Error, Result};
 use arkit_core::raster::VisibilityBuffer;
 use nalgebra::Point3;
 use rayon::prelude::*;
-use sha2::{Digest, Sha256};
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 
@@ -101,24 +100,6 @@ impl RenderOptions {
         }
         Ok(())
     }
-}
-
-/// SHA-256 (hex) of what a dataset's targets depend on in its manifest: every samples
-/// shard's index, file, rows and checksum (a sample's seed follows from the rows before
-/// it) and the topology it was converted with. Unlike the bytes of `dataset.json`, it
-/// does not change when the same samples are converted again from another path or
-/// merged from `convert --shard` parts.
-pub fn dataset_fingerprint(manifest: &Manifest) -> String {
-    let shards: Vec<serde_json::Value> = manifest
-        .shards
-        .iter()
-        .map(|s| serde_json::json!([s.index, s.samples_file, s.rows, s.sha256]))
-        .collect();
-    let text = serde_json::json!({"topology": manifest.topology, "shards": shards}).to_string();
-    Sha256::digest(text.as_bytes())
-        .iter()
-        .map(|b| format!("{b:02x}"))
-        .collect()
 }
 
 /// Refuses to render a dataset with another topology than it was converted with (the
@@ -558,6 +539,7 @@ impl SkipTally {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::store::manifest::Manifest;
     use arkit_core::release::SampleKey;
 
     fn records(range: std::ops::Range<usize>) -> Vec<ErrorRecord> {

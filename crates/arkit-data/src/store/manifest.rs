@@ -1,7 +1,8 @@
 //! `manifest`: a converted dataset's `dataset.json`: what `convert` made and from what
 //! ([`Manifest`]), its shards with their sizes and hashes ([`ShardEntry`]), and the checks
 //! every reader runs before it trusts a shard ([`check_shard_file`]: size and the hash of
-//! its last [`TAIL_BYTES`]) or a topology ([`check_topology`]).
+//! its last [`TAIL_BYTES`]) or a topology ([`check_topology`]); the fingerprint of its
+//! samples that rendered targets and crop stores are tied to ([`dataset_fingerprint`]).
 //!
 //! A leaf below `convert` (which writes it) and `dataset` (which reads it). Tested
 //! through both: `tests/convert.rs` rewrites and truncates shards and expects the
@@ -225,4 +226,22 @@ pub fn check_topology(manifest: &Manifest, topology: &FaceTopology) -> Result<()
 pub fn read_manifest(path: &Path) -> Result<Manifest> {
     let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
     serde_json::from_str(&text).map_err(|e| Error::format(path, format!("not a manifest: {e}")))
+}
+
+/// SHA-256 (hex) of what a dataset's targets and crop stores depend on in its manifest:
+/// every samples shard's index, file, rows and checksum (a sample's seed follows from
+/// the rows before it) and the topology it was converted with. Unlike the bytes of `dataset.json`, it
+/// does not change when the same samples are converted again from another path or
+/// merged from `convert --shard` parts.
+pub fn dataset_fingerprint(manifest: &Manifest) -> String {
+    let shards: Vec<serde_json::Value> = manifest
+        .shards
+        .iter()
+        .map(|s| serde_json::json!([s.index, s.samples_file, s.rows, s.sha256]))
+        .collect();
+    let text = serde_json::json!({"topology": manifest.topology, "shards": shards}).to_string();
+    Sha256::digest(text.as_bytes())
+        .iter()
+        .map(|b| format!("{b:02x}"))
+        .collect()
 }

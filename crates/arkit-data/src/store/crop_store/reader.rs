@@ -1,0 +1,340 @@
+//! `reader`: an opened store ([`CropStore`]): its manifest and every part file's header
+//! and index checked when it is opened, each record read with two positional reads and
+//! checked ([`super::records::StoredRecord::from_bytes`]) before anything of it is
+//! decoded. Uses `format`, `manifest`, `records` and `mesh_codec`.
+
+use super::format::{
+    FOOTER_BYTES, HEADER_BYTES, INDEX_MAGIC, MANIFEST_FILE, MAX_KEY_BYTES, header_mismatch, margin,
+    max_window_bytes, record_prefix, shard_file_name,
+};
+use super::manifest::{CropStoreManifest, read_manifest};
+use super::mesh_codec::max_mesh_bytes;
+use super::records::StoredRecord;
+use arkit_core::error::{Error, Result};
+use std::fs::File;
+use std::path::{Path, PathBuf};
+
+/// The largest record a store accepts: the largest window and the largest mesh.
+fn max_record_bytes(size: u32, vertex_count: usize, key_bytes: usize) -> u64 {
+    (record_prefix(key_bytes) + max_window_bytes(size) + max_mesh_bytes(vertex_count)) as u64
+}
+
+/// An opened store: its manifest and, per samples shard, its part file and record
+/// offsets. Nothing read is trusted before it is checked, and nothing is served from
+/// another place than the one asked for: [`CropStore::open`] checks the manifest
+/// against the dataset (its fingerprint, [`crate::store::manifest::dataset_fingerprint`]:
+/// the checksums of its samples shards, so a store of another or a re-converted dataset
+/// is refused, never served stale), the rules, `S` and `V` the loader asks for, and
+/// every file's header and record index (a part of another store, of another dataset or
+/// of another shard, swapped or renamed, is refused by name; a truncated part or a
+/// damaged index when the store is opened); [`CropStore::read`] checks each record, in
+/// training and in evaluation alike. Reads are positional (`pread`): a store is safe to
+/// share between threads and forked processes.
+#[derive(Debug)]
+pub struct CropStore {
+    dir: PathBuf,
+    manifest: CropStoreManifest,
+    /// Per samples shard index, its file, path and record offsets (`records + 1`).
+    files: Vec<Option<PartFile>>,
+}
+
+/// One opened `part-K.bin`: the file, its path (which errors name) and its record
+/// offsets (`records + 1`).
+#[derive(Debug)]
+struct PartFile {
+    file: File,
+    path: PathBuf,
+    offsets: Vec<u64>,
+}
+
+impl PartFile {
+    /// Opens the part file `path` of samples shard `index` (`records` records) of the
+    /// store `manifest`: its header checked first (a file of another store, dataset or
+    /// shard is named as such, whatever its length), then its index ([`read_index`]).
+    fn open(
+        path: PathBuf,
+        manifest: &CropStoreManifest,
+        index: usize,
+        records: usize,
+    ) -> Result<PartFile> {
+        let file = File::open(&path).map_err(|e| Error::io(&path, e))?;
+        let len = file.metadata().map_err(|e| Error::io(&path, e))?.len();
+        let mut head = [0u8; HEADER_BYTES as usize];
+        if len >= HEADER_BYTES {
+            read_exact_at(&file, &mut head, 0).map_err(|e| Error::io(&path, e))?;
+        }
+        let want_head = manifest.part_header(index, records)?;
+        if len >= HEADER_BYTES && head != want_head {
+            return Err(header_mismatch(
+                &path,
+                &head,
+                &want_head,
+                &manifest.dataset_fingerprint,
+            ));
+        }
+        if len < HEADER_BYTES {
+            return Err(Error::format(
+                &path,
+                format!(
+                    "{len} bytes, shorter than a header: the file is truncated or not this store's"
+                ),
+            ));
+        }
+        let offsets = read_index(&file, &path, len, records, manifest)?;
+        Ok(PartFile {
+            file,
+            path,
+            offsets,
+        })
+    }
+}
+
+/// The record offsets of the part file `path` (`len` bytes, `records` records, of the
+/// store `manifest`), read from its index and checked: the footer's magic and the
+/// index's CRC, offsets that start after the header, increase by at least a record's
+/// prefix and at most [`max_record_bytes`], and end where the index starts.
+fn read_index(
+    file: &File,
+    path: &Path,
+    len: u64,
+    records: usize,
+    manifest: &CropStoreManifest,
+) -> Result<Vec<u64>> {
+    let index_bytes = 8 * (records as u64 + 1);
+    let truncated = |what: &str| {
+        Error::format(
+            path,
+            format!(
+                "{len} bytes: {what}; the file is truncated or not this store's (rerun `arkit-tool crops`)"
+            ),
+        )
+    };
+    if len < HEADER_BYTES + index_bytes + FOOTER_BYTES {
+        return Err(truncated("too short for its header, index and footer"));
+    }
+    let mut footer = [0u8; FOOTER_BYTES as usize];
+    read_exact_at(file, &mut footer, len - FOOTER_BYTES).map_err(|e| Error::io(path, e))?;
+    if &footer[..8] != INDEX_MAGIC {
+        return Err(truncated("no index footer at its end"));
+    }
+    let index_at = len - FOOTER_BYTES - index_bytes;
+    let mut index = vec![0u8; index_bytes as usize];
+    read_exact_at(file, &mut index, index_at).map_err(|e| Error::io(path, e))?;
+    if crc32fast::hash(&index).to_le_bytes() != footer[8..12] {
+        return Err(Error::format(
+            path,
+            "its record index's CRC does not match (the file is damaged); rerun `arkit-tool crops`",
+        ));
+    }
+    let offsets: Vec<u64> = index
+        .chunks_exact(8)
+        .map(|c| u64::from_le_bytes(c.try_into().expect("8 bytes")))
+        .collect();
+    let (least, most) = (
+        record_prefix(manifest.key_bytes) as u64,
+        max_record_bytes(manifest.img_size, manifest.vertex_count, manifest.key_bytes),
+    );
+    let ok = offsets[0] == HEADER_BYTES
+        && offsets[records] == index_at
+        && offsets
+            .windows(2)
+            .all(|p| p[1] >= p[0] + least && p[1] - p[0] <= most);
+    if !ok {
+        return Err(Error::format(
+            path,
+            format!(
+                "its record index does not fit the file (records of {least}..={most} bytes from byte {HEADER_BYTES} to the index at {index_at}); rerun `arkit-tool crops`"
+            ),
+        ));
+    }
+    Ok(offsets)
+}
+
+impl CropStore {
+    /// Opens the store in `dir` for `dataset`, crops of rules `compat` and side
+    /// `img_size`, meshes of `vertex_count` vertices; every check of [`CropStore`]'s
+    /// docs but the records'.
+    pub fn open(
+        dir: &Path,
+        dataset: &crate::store::dataset::Dataset,
+        compat: &str,
+        img_size: u32,
+        vertex_count: usize,
+    ) -> Result<Self> {
+        let manifest = read_manifest(dir)?;
+        let mpath = dir.join(MANIFEST_FILE);
+        let expect = |what: &str, found: String, want: String| -> Result<()> {
+            if found == want {
+                Ok(())
+            } else {
+                Err(Error::format(
+                    &mpath,
+                    format!(
+                        "{what} is {found}, the loader needs {want}: make a store for it with `arkit-tool crops`"
+                    ),
+                ))
+            }
+        };
+        expect("compat", manifest.compat.clone(), compat.to_string())?;
+        expect(
+            "img_size",
+            manifest.img_size.to_string(),
+            img_size.to_string(),
+        )?;
+        expect(
+            "margin",
+            manifest.margin.to_string(),
+            margin(img_size).to_string(),
+        )?;
+        expect(
+            "vertex_count",
+            manifest.vertex_count.to_string(),
+            vertex_count.to_string(),
+        )?;
+        if manifest.key_bytes == 0
+            || manifest.key_bytes > MAX_KEY_BYTES
+            || !manifest.key_bytes.is_multiple_of(8)
+        {
+            return Err(Error::format(
+                &mpath,
+                format!(
+                    "key_bytes is {}, not a multiple of 8 in 8..={MAX_KEY_BYTES}",
+                    manifest.key_bytes
+                ),
+            ));
+        }
+        let fingerprint = crate::store::manifest::dataset_fingerprint(dataset.manifest());
+        if manifest.dataset_fingerprint != fingerprint {
+            return Err(Error::format(
+                &mpath,
+                format!(
+                    "made from another dataset than {} (or before it was converted again): run `arkit-tool crops` again",
+                    dataset.dir().display()
+                ),
+            ));
+        }
+        let shards = dataset.shards();
+        let mut files: Vec<Option<PartFile>> =
+            (0..shards.iter().map(|s| s.index + 1).max().unwrap_or(0))
+                .map(|_| None)
+                .collect();
+        for s in shards {
+            let entry = manifest
+                .shards
+                .iter()
+                .find(|c| c.index == s.index)
+                .ok_or_else(|| {
+                    Error::format(&mpath, format!("no file for samples shard {}", s.index))
+                })?;
+            if entry.records != s.rows || entry.file != shard_file_name(s.index) {
+                return Err(Error::format(
+                    &mpath,
+                    format!(
+                        "shard {}: {} records in '{}', the dataset has {} rows",
+                        s.index, entry.records, entry.file, s.rows
+                    ),
+                ));
+            }
+            let path = dir.join(&entry.file);
+            files[s.index] = Some(PartFile::open(path, &manifest, s.index, entry.records)?);
+        }
+        Ok(CropStore {
+            dir: dir.to_path_buf(),
+            manifest,
+            files,
+        })
+    }
+
+    /// The store of one part file, samples shard 0's at `path` (of `records` records,
+    /// in the folder `dir`), opened with `manifest`: the part's checks, not the
+    /// manifest's against a dataset.
+    #[cfg(test)]
+    pub(super) fn of_part(
+        dir: &Path,
+        manifest: &CropStoreManifest,
+        path: &Path,
+        records: usize,
+    ) -> Result<Self> {
+        let part = PartFile::open(path.to_path_buf(), manifest, 0, records)?;
+        Ok(CropStore {
+            dir: dir.to_path_buf(),
+            manifest: manifest.clone(),
+            files: vec![Some(part)],
+        })
+    }
+
+    /// The store folder.
+    pub fn dir(&self) -> &Path {
+        &self.dir
+    }
+
+    /// Its manifest.
+    pub fn manifest(&self) -> &CropStoreManifest {
+        &self.manifest
+    }
+
+    /// Where the record of row `row` of samples shard `shard` lies in its part file:
+    /// its first byte and its length.
+    pub fn record_span(&self, shard: usize, row: usize) -> Option<(u64, u64)> {
+        let o = &self.files.get(shard)?.as_ref()?.offsets;
+        (row + 1 < o.len()).then(|| (o[row], o[row + 1] - o[row]))
+    }
+
+    /// The record of row `row` of samples shard `shard`, which must be that of sample
+    /// `key` (`subject/action/img_id`) of this store's dataset: checked before anything
+    /// of it is decoded or returned (its CRC; that it is the record of this dataset,
+    /// shard, row and sample, a comparison of a few dozen bytes; its status: a sample
+    /// that had no readable image when the store was made is an error naming it and the
+    /// recorded reason; that the window's and the mesh's lengths fill the record and are
+    /// within their bounds). Its mesh is decoded here, into a buffer of its exact size,
+    /// its window when asked for ([`StoredRecord::crop_pixels`],
+    /// [`StoredRecord::decode`]).
+    pub fn read(&self, shard: usize, row: usize, key: &str) -> Result<StoredRecord> {
+        let part = self
+            .files
+            .get(shard)
+            .and_then(|f| f.as_ref())
+            .ok_or_else(|| Error::invalid("crop store", format!("no samples shard {shard}")))?;
+        let path = &part.path;
+        let (at, len) = self.record_span(shard, row).ok_or_else(|| {
+            Error::invalid("crop store", format!("{}: no record {row}", path.display()))
+        })?;
+        let m = &self.manifest;
+        // `len` was bounded when the index was read. The head (CRC to the lengths) and
+        // the rest (the window, then the mesh) read into their own buffers, so a raw
+        // window is returned as read, not moved out of the record.
+        let prefix = record_prefix(m.key_bytes);
+        let head_len = (len as usize).min(prefix);
+        let mut r = vec![0u8; head_len];
+        let mut tail = vec![0u8; len as usize - head_len];
+        read_exact_at(&part.file, &mut r, at).map_err(|e| Error::io(path, e))?;
+        read_exact_at(&part.file, &mut tail, at + head_len as u64)
+            .map_err(|e| Error::io(path, e))?;
+        StoredRecord::from_bytes(m, path, (shard, row, key), r, tail)
+    }
+}
+
+/// `pread` of exactly `buf.len()` bytes at `offset` (positional: safe to share the file
+/// between threads and forked processes).
+fn read_exact_at(file: &File, buf: &mut [u8], offset: u64) -> std::io::Result<()> {
+    #[cfg(unix)]
+    {
+        std::os::unix::fs::FileExt::read_exact_at(file, buf, offset)
+    }
+    #[cfg(windows)]
+    {
+        let mut done = 0;
+        while done < buf.len() {
+            let n = std::os::windows::fs::FileExt::seek_read(
+                file,
+                &mut buf[done..],
+                offset + done as u64,
+            )?;
+            if n == 0 {
+                return Err(std::io::ErrorKind::UnexpectedEof.into());
+            }
+            done += n;
+        }
+        Ok(())
+    }
+}
