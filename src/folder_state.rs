@@ -120,7 +120,7 @@ pub fn folder_state(dir: &Path) -> FolderState {
     let targets = manifest.as_ref().map(|m| targets_state(dir, m));
     let fingerprint = manifest
         .as_ref()
-        .map(arkit_data::render::dataset::dataset_fingerprint);
+        .map(arkit_data::store::manifest::dataset_fingerprint);
     let shards = manifest.as_ref().map(|m| m.shards.len());
     FolderState {
         samples,
@@ -354,7 +354,7 @@ fn targets_state(dir: &Path, m: &Manifest) -> OutputState {
             ),
         );
     };
-    let fingerprint = arkit_data::render::dataset::dataset_fingerprint(m);
+    let fingerprint = arkit_data::store::manifest::dataset_fingerprint(m);
     if settings.get("dataset").and_then(|d| d.as_str()) != Some(fingerprint.as_str()) {
         return state(
             "targets",
