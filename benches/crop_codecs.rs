@@ -19,7 +19,8 @@
 
 mod timing;
 
-use arkit_data::loader::item::{Compat, FaceLoader, LoaderMode, LoaderOptions};
+use arkit_data::crop::RuleSet;
+use arkit_data::loader::item::{FaceLoader, LoaderMode, LoaderOptions};
 use arkit_data::store::crop_store::{self, WindowCodec, WindowPart};
 use image::ImageEncoder;
 use std::path::PathBuf;
@@ -92,7 +93,7 @@ fn main() {
         LoaderOptions {
             split: None,
             mode: LoaderMode::Eval,
-            compat: Compat::Exact,
+            rules: RuleSet::Exact,
             img_size: 192,
             n_pts: 1,
             seed: 0,

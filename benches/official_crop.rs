@@ -9,8 +9,8 @@ use arkit_core::conventions::{Camera, EulerAngles, Pose};
 use arkit_core::raster::VisibilityBuffer;
 use arkit_core::rng::Rng;
 use arkit_data::crop::official::{box_crop, warp_mask};
-use arkit_data::crop::{CropSampling, CropTransform};
-use arkit_data::render::face::{FaceRenderer, RasterMode};
+use arkit_data::crop::{CropTransform, RuleSet};
+use arkit_data::render::face::FaceRenderer;
 use image::RgbImage;
 use nalgebra::Vector3;
 
@@ -31,7 +31,7 @@ fn main() {
         .collect();
     let crop = box_crop(230.0, 210.0, 570.0, 550.0, 192);
     let ours = CropTransform {
-        sampling: CropSampling::Centres,
+        rules: RuleSet::Exact,
         side_y: crop.side,
         ..crop
     };
@@ -83,7 +83,7 @@ fn main() {
         || drop(renderer.render(&verts, &pose, w, h, &exact_crop, &mut vb)),
         n,
     );
-    renderer.mode = RasterMode::Official;
+    renderer.rules = RuleSet::Official;
     let t_pipeline = median_ms(
         || drop(renderer.render(&verts, &pose, w, h, &official_crop, &mut vb)),
         n,

@@ -413,7 +413,7 @@ pub fn run_demo(
             &dataset,
             model,
             Some("test"),
-            arkit_data::crop::CropRule::Ours,
+            arkit_data::crop::RuleSet::Exact,
             None,
             plan.seed,
             &RansacParams::default(),

@@ -918,7 +918,7 @@ fn render_reports_and_skips_a_sample_it_cannot_render() {
         out.path(),
         &model,
         None,
-        arkit_data::crop::CropRule::Ours,
+        arkit_data::crop::RuleSet::Exact,
         Some(out.path()),
         1,
         &arkit_data::pose::pnp::RansacParams::default(),

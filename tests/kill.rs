@@ -404,11 +404,12 @@ fn check_readers(stage: Stage, dir: &Path, finished: bool, scratch: &Path) -> Ve
         }
         Stage::Crops => {
             // The loader the Python package uses, given the store.
-            use arkit_data::loader::item::{Compat, FaceLoader, LoaderMode, LoaderOptions};
+            use arkit_data::crop::RuleSet;
+            use arkit_data::loader::item::{FaceLoader, LoaderMode, LoaderOptions};
             let options = LoaderOptions {
                 split: None,
                 mode: LoaderMode::Eval,
-                compat: Compat::Exact,
+                rules: RuleSet::Exact,
                 img_size: CROP_SIZE.parse().unwrap(),
                 n_pts: 16,
                 seed: 0,
@@ -416,7 +417,7 @@ fn check_readers(stage: Stage, dir: &Path, finished: bool, scratch: &Path) -> Ve
             let topology = arkit_data::mesh::synthetic_face::builtin().topology.clone();
             let mut loader = FaceLoader::open(dir, topology, None, options).unwrap();
             let store =
-                FaceLoader::default_crop_store(dir, Compat::Exact, CROP_SIZE.parse().unwrap());
+                FaceLoader::default_crop_store(dir, RuleSet::Exact, CROP_SIZE.parse().unwrap());
             match loader.open_crop_store(&store) {
                 Ok(()) => {
                     assert!(

@@ -6,7 +6,7 @@
 
 use crate::support::tool;
 use arkit_data::crop::official::{LandmarkExtent, official_box};
-use arkit_data::crop::{CropRule, CropTransform};
+use arkit_data::crop::{CropTransform, RuleSet};
 use arkit_data::picture::photo::{DEMO_SIDE, DemoSquare, demo_crop};
 use arkit_data::store::dataset::Dataset;
 use serde_json::Value;
@@ -89,8 +89,8 @@ fn one_sample_with_a_demo_box(dir: &Path) -> (PathBuf, PathBuf, [f64; 4], CropTr
             cx + side / 3.0,
             cy + side / 3.0,
         ];
-        let official = CropRule::Official
-            .around_landmarks(&sample.landmarks_2d, 64)
+        let official = RuleSet::Official
+            .crop_around_landmarks(&sample.landmarks_2d, 64)
             .unwrap();
         let image = data.image_path(&sample).unwrap();
         return (pq, image, face, official);

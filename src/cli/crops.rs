@@ -2,7 +2,7 @@
 
 use arkit_core::error::Result;
 use arkit_data::loader::crops_dataset;
-use arkit_data::loader::item::{Compat, FaceLoader, LoaderMode, LoaderOptions};
+use arkit_data::loader::item::{FaceLoader, LoaderMode, LoaderOptions};
 use arkit_data::store::crop_store::WindowCodec;
 use clap::Args;
 use std::path::PathBuf;
@@ -54,7 +54,7 @@ pub struct CropsArgs {
     /// Whose box and resampling: `exact` (ours) or `official` (the official loader's
     /// integer box and cv2.warpAffine), as the loader's `compat`.
     #[arg(long, value_enum, default_value = "exact")]
-    compat: CompatArg,
+    compat: super::RulesArg,
     /// How the windows are stored, all lossless: `pred-zstd` (the default: each pixel
     /// predicted from its neighbours, the errors compressed by zstd, the window's centre
     /// and the four parts of the ring around it apart so that a crop decodes only what
@@ -83,23 +83,13 @@ enum CodecArg {
     Raw,
 }
 
-/// `--compat` values.
-#[derive(Clone, Copy, Debug, clap::ValueEnum)]
-enum CompatArg {
-    Exact,
-    Official,
-}
-
 pub fn run(a: CropsArgs) -> Result<ExitCode> {
-    let compat = match a.compat {
-        CompatArg::Exact => Compat::Exact,
-        CompatArg::Official => Compat::Official,
-    };
+    let rules = a.compat.into();
     let topology = super::load_topology(a.resources.as_deref())?;
     let options = LoaderOptions {
         split: None,
         mode: LoaderMode::Eval,
-        compat,
+        rules,
         img_size: a.size,
         n_pts: 1,
         seed: 0,
@@ -108,7 +98,7 @@ pub fn run(a: CropsArgs) -> Result<ExitCode> {
     let output = a
         .output
         .clone()
-        .unwrap_or_else(|| FaceLoader::default_crop_store(&a.dataset, compat, a.size));
+        .unwrap_or_else(|| FaceLoader::default_crop_store(&a.dataset, rules, a.size));
     let bar = super::progress_bar(loader.len() as u64, "crops", "samples");
     let pool = super::thread_pool(a.jobs)?;
     let codec = match a.codec {
@@ -127,7 +117,7 @@ pub fn run(a: CropsArgs) -> Result<ExitCode> {
             "stored {} of {} samples ({} rules, {}x{} crops in {}x{} {} windows): {:.1} KiB per sample, {:.1} MiB -> {}",
             summary.samples - summary.missing,
             summary.samples,
-            summary.compat,
+            summary.rules,
             summary.img_size,
             summary.img_size,
             summary.window,

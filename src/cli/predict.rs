@@ -2,7 +2,7 @@
 
 use arkit_core::error::Result;
 #[cfg(feature = "model")]
-use arkit_data::crop::CropRule;
+use arkit_data::crop::RuleSet;
 use arkit_data::pose::pnp::RansacParams;
 use arkit_data::pose::predict::{self, OracleOptions};
 use arkit_data::store::predictions_table::write_predictions;
@@ -317,8 +317,8 @@ fn model(
         &model,
         split,
         match a.crop {
-            CropChoice::Ours => CropRule::Ours,
-            CropChoice::Official => CropRule::Official,
+            CropChoice::Ours => RuleSet::Exact,
+            CropChoice::Official => RuleSet::Official,
         },
         matches!(a.mask, MaskSource::Truth).then_some(targets.as_path()),
         a.seed,

@@ -3,7 +3,7 @@
 use arkit_core::conventions::Camera;
 use arkit_core::error::Result;
 use arkit_data::render::dataset::RenderOptions;
-use arkit_data::render::face::{FaceRenderer, RasterMode};
+use arkit_data::render::face::FaceRenderer;
 use clap::Args;
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -64,7 +64,7 @@ pub struct RenderArgs {
     /// pixel corners, its rasterizer over the whole image, the mask and image warped into
     /// the crop as cv2.warpAffine does, screen-space weights).
     #[arg(long, value_enum, default_value = "exact")]
-    compat: Compat,
+    compat: super::RulesArg,
     /// Also render the face mask over the whole image (`full_mask_rle`, run lengths;
     /// about 0.5 KiB more per 800x800 sample), with the same rules as the crop's.
     #[arg(long)]
@@ -78,13 +78,6 @@ pub struct RenderArgs {
     /// Print the summary as JSON.
     #[arg(long)]
     json: bool,
-}
-
-/// `--compat` values.
-#[derive(Clone, Copy, Debug, clap::ValueEnum)]
-enum Compat {
-    Exact,
-    Official,
 }
 
 pub fn run(a: RenderArgs) -> Result<ExitCode> {
@@ -105,10 +98,7 @@ pub fn run(a: RenderArgs) -> Result<ExitCode> {
     let topology = super::load_topology(a.resources.as_deref())?;
     arkit_data::store::manifest::check_topology(&manifest, &topology)?;
     let mut renderer = FaceRenderer::new(topology, Camera::release_projection())?;
-    renderer.mode = match a.compat {
-        Compat::Exact => RasterMode::Exact,
-        Compat::Official => RasterMode::Official,
-    };
+    renderer.rules = a.compat.into();
     let (part, parts) = options.shard;
     let mine: usize = manifest
         .shards
@@ -132,7 +122,7 @@ pub fn run(a: RenderArgs) -> Result<ExitCode> {
         println!(
             "rendered {} samples ({:?} rules) in {} shards: {:.1} KiB per sample ({} distinct meshes) -> {}",
             summary.samples - summary.skipped,
-            summary.mode,
+            summary.rules,
             summary.shards,
             summary.bytes_per_sample / 1024.0,
             summary.distinct_meshes,

@@ -165,7 +165,7 @@ mod streamed_plane;
 
 // The names a pipeline is written with: open a dataset, render, load, solve, score.
 pub use crate::{
-    crop::{CropRule, CropTransform},
+    crop::{CropTransform, RuleSet},
     eval::metrics::Summary as EvalSummary,
     loader::item::{FaceLoader, LoaderItem, LoaderOptions},
     mesh::topology::FaceTopology,

@@ -4,19 +4,20 @@
 //! earlier format) refused with the file named, in training as in evaluation; one
 //! writer per store, and no temporaries of killed runs left after a rerun.
 
+use arkit_data::crop::RuleSet;
 use arkit_data::loader::crops_dataset::{write_crop_store, write_crop_store_with};
-use arkit_data::loader::item::{Compat, FaceLoader, LoaderMode, LoaderOptions};
+use arkit_data::loader::item::{FaceLoader, LoaderMode, LoaderOptions};
 use arkit_data::store::crop_store::{self, CropStore, WindowCodec};
 use arkit_data::store::dataset::Dataset;
 use std::path::Path;
 
 const S: u32 = 96;
 
-fn loader(dir: &Path, mode: LoaderMode, compat: Compat) -> FaceLoader {
+fn loader(dir: &Path, mode: LoaderMode, compat: RuleSet) -> FaceLoader {
     let options = LoaderOptions {
         split: None,
         mode,
-        compat,
+        rules: compat,
         img_size: S,
         n_pts: 128,
         seed: 9,
@@ -26,7 +27,7 @@ fn loader(dir: &Path, mode: LoaderMode, compat: Compat) -> FaceLoader {
 }
 
 /// The store of `dir` for `compat`, in its default folder.
-fn store(dir: &Path, compat: Compat) -> std::path::PathBuf {
+fn store(dir: &Path, compat: RuleSet) -> std::path::PathBuf {
     let out = FaceLoader::default_crop_store(dir, compat, S);
     let summary = write_crop_store(&loader(dir, LoaderMode::Eval, compat), &out, &|_| {}).unwrap();
     assert_eq!(summary.missing, 0, "{:?}", summary.missing_examples);
@@ -53,7 +54,7 @@ fn dir_shards(dir: &Path) -> usize {
 fn items_from_the_store_equal_items_from_the_release() {
     let (release, dir) = (tempfile::tempdir().unwrap(), tempfile::tempdir().unwrap());
     crate::support::converted::converted_synthetic(release.path(), dir.path(), 3, 3, 320, 41);
-    for compat in [Compat::Exact, Compat::Official] {
+    for compat in [RuleSet::Exact, RuleSet::Official] {
         let out = store(dir.path(), compat);
         for mode in [LoaderMode::Eval, LoaderMode::Train] {
             let plain = loader(dir.path(), mode, compat);
@@ -109,11 +110,11 @@ fn items_from_the_store_equal_items_from_the_release() {
 fn a_damaged_stale_or_foreign_store_is_refused_naming_the_file() {
     let (release, dir) = (tempfile::tempdir().unwrap(), tempfile::tempdir().unwrap());
     crate::support::converted::converted_synthetic(release.path(), dir.path(), 2, 3, 256, 5);
-    let out = store(dir.path(), Compat::Exact);
-    let mut l = loader(dir.path(), LoaderMode::Eval, Compat::Exact);
+    let out = store(dir.path(), RuleSet::Exact);
+    let mut l = loader(dir.path(), LoaderMode::Eval, RuleSet::Exact);
 
     // Other rules or another size than the store's.
-    let mut official = loader(dir.path(), LoaderMode::Eval, Compat::Official);
+    let mut official = loader(dir.path(), LoaderMode::Eval, RuleSet::Official);
     let e = official.open_crop_store(&out).unwrap_err().to_string();
     assert!(
         e.contains("crops.json") && e.contains("compat is exact"),
@@ -123,7 +124,7 @@ fn a_damaged_stale_or_foreign_store_is_refused_naming_the_file() {
     // Another dataset.
     let (release2, dir2) = (tempfile::tempdir().unwrap(), tempfile::tempdir().unwrap());
     crate::support::converted::converted_synthetic(release2.path(), dir2.path(), 2, 3, 256, 6);
-    let mut other = loader(dir2.path(), LoaderMode::Eval, Compat::Exact);
+    let mut other = loader(dir2.path(), LoaderMode::Eval, RuleSet::Exact);
     let e = other.open_crop_store(&out).unwrap_err().to_string();
     assert!(
         e.contains("crops.json") && e.contains("another dataset"),
@@ -136,7 +137,7 @@ fn a_damaged_stale_or_foreign_store_is_refused_naming_the_file() {
     let opened = CropStore::open(
         &out,
         &Dataset::open(dir.path()).unwrap(),
-        "exact",
+        RuleSet::Exact,
         S,
         l.mesh_vertex_count(),
     )
@@ -155,7 +156,7 @@ fn a_damaged_stale_or_foreign_store_is_refused_naming_the_file() {
     let e = CropStore::open(
         &out,
         &Dataset::open(dir.path()).unwrap(),
-        "exact",
+        RuleSet::Exact,
         S,
         l.mesh_vertex_count(),
     )
@@ -172,10 +173,10 @@ fn a_damaged_stale_or_foreign_store_is_refused_naming_the_file() {
 fn a_sample_without_an_image_is_stored_without_pixels_and_named() {
     let (release, dir) = (tempfile::tempdir().unwrap(), tempfile::tempdir().unwrap());
     crate::support::converted::converted_synthetic(release.path(), dir.path(), 2, 2, 256, 8);
-    let plain = loader(dir.path(), LoaderMode::Eval, Compat::Exact);
+    let plain = loader(dir.path(), LoaderMode::Eval, RuleSet::Exact);
     let gone = plain.item(2, 0).unwrap().image_path;
     std::fs::remove_file(&gone).unwrap();
-    let out = FaceLoader::default_crop_store(dir.path(), Compat::Exact, S);
+    let out = FaceLoader::default_crop_store(dir.path(), RuleSet::Exact, S);
     let summary = write_crop_store(&plain, &out, &|_| {}).unwrap();
     assert_eq!((summary.samples, summary.missing), (4, 1));
     let name = gone.file_name().unwrap().to_string_lossy().into_owned();
@@ -184,7 +185,7 @@ fn a_sample_without_an_image_is_stored_without_pixels_and_named() {
         "{:?}",
         summary.missing_examples
     );
-    let mut l = loader(dir.path(), LoaderMode::Eval, Compat::Exact);
+    let mut l = loader(dir.path(), LoaderMode::Eval, RuleSet::Exact);
     l.open_crop_store(&out).unwrap();
     let e = l.item(2, 0).unwrap_err().to_string();
     assert!(e.contains("no pixels") && e.contains(&name), "{e}");
@@ -197,7 +198,7 @@ fn a_sample_without_an_image_is_stored_without_pixels_and_named() {
 /// refused at open, else each item's result as text (the error's, or the item's debug
 /// form minus the image for training items, whose pixels are resampled).
 fn served(dir: &Path, out: &Path, mode: LoaderMode) -> Result<Vec<String>, String> {
-    let mut l = loader(dir, mode, Compat::Exact);
+    let mut l = loader(dir, mode, RuleSet::Exact);
     l.open_crop_store(out).map_err(|e| e.to_string())?;
     Ok((0..l.len())
         .map(|i| match l.item(i, 2) {
@@ -212,7 +213,7 @@ fn served(dir: &Path, out: &Path, mode: LoaderMode) -> Result<Vec<String>, Strin
 
 /// The items of `dir`'s loader without a store, as [`served`] gives them.
 fn plain_items(dir: &Path, mode: LoaderMode) -> Vec<String> {
-    let l = loader(dir, mode, Compat::Exact);
+    let l = loader(dir, mode, RuleSet::Exact);
     (0..l.len())
         .map(|i| {
             let mut item = l.item(i, 2).unwrap();
@@ -228,7 +229,7 @@ fn part_files_swapped_by_hand_are_refused_in_training_and_evaluation() {
     // Two shards of four rows: part files of one size.
     crate::support::converted::converted_synthetic(release.path(), dir.path(), 2, 4, 256, 12);
     assert_eq!(dir_shards(dir.path()), 2);
-    let out = store(dir.path(), Compat::Exact);
+    let out = store(dir.path(), RuleSet::Exact);
     let (p0, p1) = (out.join("part-0.bin"), out.join("part-1.bin"));
     let (b0, b1) = (std::fs::read(&p0).unwrap(), std::fs::read(&p1).unwrap());
     // Whole files swapped: each names the shard it holds.
@@ -252,7 +253,7 @@ fn part_files_swapped_by_hand_are_refused_in_training_and_evaluation() {
     hybrid.extend_from_slice(&b1[h..]);
     std::fs::write(&p0, &hybrid).unwrap();
     std::fs::write(&p1, &b1).unwrap();
-    let l = loader(dir.path(), LoaderMode::Eval, Compat::Exact);
+    let l = loader(dir.path(), LoaderMode::Eval, RuleSet::Exact);
     for mode in [LoaderMode::Train, LoaderMode::Eval] {
         let items = served(dir.path(), &out, mode).unwrap();
         let plain = plain_items(dir.path(), mode);
@@ -284,8 +285,8 @@ fn two_crops_into_one_store_never_mix() {
     crate::support::converted::converted_synthetic(rb.path(), b.path(), 2, 4, 256, 22);
     let out = tempfile::tempdir().unwrap();
     let out = out.path().join("store");
-    let la = loader(a.path(), LoaderMode::Eval, Compat::Exact);
-    let lb = loader(b.path(), LoaderMode::Eval, Compat::Exact);
+    let la = loader(a.path(), LoaderMode::Eval, RuleSet::Exact);
+    let lb = loader(b.path(), LoaderMode::Eval, RuleSet::Exact);
 
     // While one run holds the store, a second (of another dataset) is refused at once
     // and writes nothing.
@@ -359,7 +360,7 @@ fn two_crops_into_one_store_never_mix() {
 fn a_rerun_removes_killed_runs_temporaries_and_an_old_store_is_refused() {
     let (release, dir) = (tempfile::tempdir().unwrap(), tempfile::tempdir().unwrap());
     crate::support::converted::converted_synthetic(release.path(), dir.path(), 2, 4, 256, 31);
-    let out = FaceLoader::default_crop_store(dir.path(), Compat::Exact, S);
+    let out = FaceLoader::default_crop_store(dir.path(), RuleSet::Exact, S);
     std::fs::create_dir_all(&out).unwrap();
     // What a killed run leaves: its part under the temporary name (nobody holds it),
     // and a part of a shard the dataset no longer has.
@@ -368,7 +369,7 @@ fn a_rerun_removes_killed_runs_temporaries_and_an_old_store_is_refused() {
     std::fs::write(out.join("part-7.bin"), b"old").unwrap();
     let kept = out.join("notes.txt");
     std::fs::write(&kept, b"mine").unwrap();
-    store(dir.path(), Compat::Exact);
+    store(dir.path(), RuleSet::Exact);
     let mut left: Vec<String> = std::fs::read_dir(&out)
         .unwrap()
         .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
@@ -424,7 +425,7 @@ fn a_rerun_removes_killed_runs_temporaries_and_an_old_store_is_refused() {
 fn pred_zstd_png_and_raw_stores_serve_the_same_items_and_pred_zstd_is_smallest() {
     let (release, dir) = (tempfile::tempdir().unwrap(), tempfile::tempdir().unwrap());
     crate::support::converted::converted_synthetic(release.path(), dir.path(), 2, 3, 320, 44);
-    for compat in [Compat::Exact, Compat::Official] {
+    for compat in [RuleSet::Exact, RuleSet::Official] {
         let base = tempfile::tempdir().unwrap();
         let mut sizes = Vec::new();
         let mut items = Vec::new();

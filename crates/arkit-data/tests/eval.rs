@@ -4,7 +4,7 @@
 use arkit_core::conventions::Camera;
 use arkit_core::predictions_csv::PredictionRecord;
 use arkit_core::release::SampleKey;
-use arkit_data::crop::CropSampling;
+use arkit_data::crop::RuleSet;
 use arkit_data::eval::dataset::EvalOptions;
 use arkit_data::eval::metrics::{EulerDifference, PoseFailure};
 use arkit_data::ingest::convert::{self, ConvertOptions, ValidationContext};
@@ -12,16 +12,16 @@ use arkit_data::ingest::synth::{self, FaceSource, SynthOptions};
 use arkit_data::pose::pnp::RansacParams;
 use arkit_data::pose::predict::{self, OracleOptions};
 use arkit_data::render::dataset::RenderOptions;
-use arkit_data::render::face::{FaceRenderer, RasterMode};
+use arkit_data::render::face::FaceRenderer;
 use std::path::Path;
 
 /// A converted and rendered synthetic dataset of 12 samples at 400x400.
 fn rendered(dir: &Path) {
-    rendered_in(dir, RasterMode::Exact)
+    rendered_in(dir, RuleSet::Exact)
 }
 
 /// As [`rendered`], with `render --compat` `mode`.
-fn rendered_in(dir: &Path, mode: RasterMode) {
+fn rendered_in(dir: &Path, mode: RuleSet) {
     let release = tempfile::tempdir().unwrap();
     let options = SynthOptions {
         subjects: 4,
@@ -50,7 +50,7 @@ fn rendered_in(dir: &Path, mode: RasterMode) {
     };
     convert::convert(&copts, &ctx, &|_| {}).unwrap();
     let mut renderer = FaceRenderer::new(topology, Camera::release_projection()).unwrap();
-    renderer.mode = mode;
+    renderer.rules = mode;
     let ro = RenderOptions {
         size: 192,
         uv_size: 32,
@@ -88,13 +88,13 @@ fn all() -> EvalOptions {
 #[test]
 fn official_targets_carry_their_crop_and_the_oracle_reads_them_at_pixel_corners() {
     let dir = tempfile::tempdir().unwrap();
-    rendered_in(dir.path(), RasterMode::Official);
+    rendered_in(dir.path(), RuleSet::Official);
     let mut rows = 0;
     for k in 0..3 {
         let path = dir.path().join(format!("targets/part-{k:05}.parquet"));
         for t in arkit_data::store::targets_table::read_targets(&path).unwrap() {
             // The official box: integer corners, pixel i at the integer point i.
-            assert_eq!(t.crop.sampling, CropSampling::Corners);
+            assert_eq!(t.crop.rules, RuleSet::Official);
             assert_eq!((t.crop.x0.fract(), t.crop.y0.fract()), (0.0, 0.0));
             assert!((t.crop.side - t.crop.side_y).abs() <= 192.0 / 191.0 + 1e-9);
             rows += 1;

@@ -6,10 +6,11 @@
 
 use arkit_core::conventions::Camera;
 use arkit_core::conventions::Pose;
+use arkit_data::crop::RuleSet;
 use arkit_data::crop::{CropTransform, official};
-use arkit_data::loader::item::{Compat, FaceLoader, ItemPlanes, LoaderMode, LoaderOptions};
+use arkit_data::loader::item::{FaceLoader, ItemPlanes, LoaderMode, LoaderOptions};
 use arkit_data::render::dataset::RenderOptions;
-use arkit_data::render::face::{FaceRenderer, RasterMode};
+use arkit_data::render::face::FaceRenderer;
 
 use arkit_data::store::targets_table;
 use nalgebra::Point3;
@@ -24,11 +25,11 @@ fn converted(release: &Path, dir: &Path) {
     crate::support::converted::converted_synthetic(release, dir, 3, 3, 400, 23);
 }
 
-fn loader(dir: &Path, mode: LoaderMode, compat: Compat, n_pts: usize) -> FaceLoader {
+fn loader(dir: &Path, mode: LoaderMode, compat: RuleSet, n_pts: usize) -> FaceLoader {
     let options = LoaderOptions {
         split: None,
         mode,
-        compat,
+        rules: compat,
         img_size: S,
         n_pts,
         seed: 4,
@@ -62,7 +63,7 @@ fn exact_items_agree_with_the_targets_render_stores() {
             targets.insert(t.key.clone(), t);
         }
     }
-    let l = loader(dir.path(), LoaderMode::Eval, Compat::Exact, 300);
+    let l = loader(dir.path(), LoaderMode::Eval, RuleSet::Exact, 300);
     assert_eq!(l.len(), samples.len());
     for (i, sample) in samples.iter().enumerate() {
         let item = l.item(i, 0).unwrap();
@@ -128,7 +129,7 @@ fn official_items_follow_the_official_rules() {
     let samples = data.read_all_samples().unwrap();
     let topology = arkit_data::mesh::synthetic_face::builtin().topology.clone();
     let mut renderer = FaceRenderer::new(topology.clone(), Camera::release_projection()).unwrap();
-    renderer.mode = RasterMode::Official;
+    renderer.rules = RuleSet::Official;
     // The holes closed as the official mask closes them: eyes first, then the mouth.
     let loops = arkit_data::render::face::UvMapper::derive(&topology)
         .unwrap()
@@ -139,7 +140,7 @@ fn official_items_follow_the_official_rules() {
     );
     renderer.set_hole_triangles(&organs).unwrap();
     for n_pts in [256, 20_000] {
-        let l = loader(dir.path(), LoaderMode::Eval, Compat::Official, n_pts);
+        let l = loader(dir.path(), LoaderMode::Eval, RuleSet::Official, n_pts);
         for (i, sample) in samples.iter().enumerate() {
             let item = l.item(i, 0).unwrap();
             let verts: Vec<Point3<f32>> = sample
@@ -246,7 +247,7 @@ fn official_items_follow_the_official_rules() {
 fn training_items_are_a_function_of_seed_epoch_and_index() {
     let (release, dir) = (tempfile::tempdir().unwrap(), tempfile::tempdir().unwrap());
     converted(release.path(), dir.path());
-    for compat in [Compat::Exact, Compat::Official] {
+    for compat in [RuleSet::Exact, RuleSet::Official] {
         let a = loader(dir.path(), LoaderMode::Train, compat, 128);
         let b = loader(dir.path(), LoaderMode::Train, compat, 128);
         // Order of calls does not matter: item (3, epoch 1) is the same either way.
@@ -267,7 +268,7 @@ fn training_items_are_a_function_of_seed_epoch_and_index() {
 fn items_written_into_planes_equal_items_allocated() {
     let (release, dir) = (tempfile::tempdir().unwrap(), tempfile::tempdir().unwrap());
     converted(release.path(), dir.path());
-    for compat in [Compat::Exact, Compat::Official] {
+    for compat in [RuleSet::Exact, RuleSet::Official] {
         for mode in [LoaderMode::Eval, LoaderMode::Train] {
             let l = loader(dir.path(), mode, compat, 64);
             let (s, u) = (S as usize, l.uvmap_size() as usize);
@@ -310,7 +311,7 @@ fn items_written_into_planes_equal_items_allocated() {
 fn a_missing_image_or_annotation_is_an_error_naming_the_file() {
     let (release, dir) = (tempfile::tempdir().unwrap(), tempfile::tempdir().unwrap());
     converted(release.path(), dir.path());
-    let l = loader(dir.path(), LoaderMode::Eval, Compat::Exact, 64);
+    let l = loader(dir.path(), LoaderMode::Eval, RuleSet::Exact, 64);
     let item = l.item(0, 0).unwrap();
     std::fs::remove_file(&item.image_path).unwrap();
     let e = l.item(0, 0).unwrap_err().to_string();

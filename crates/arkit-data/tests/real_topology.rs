@@ -224,7 +224,7 @@ fn real_mask_area_agrees_with_the_projected_contour() {
         side: 400.0,
         side_y: 400.0,
         size: 400,
-        sampling: arkit_data::crop::CropSampling::Centres,
+        rules: arkit_data::crop::RuleSet::Exact,
     };
     let mut vb = VisibilityBuffer::new(400, 400);
     let t = renderer

@@ -205,7 +205,7 @@ pub fn model_predictions(
     dataset: &Path,
     model: &TrainedModel,
     split: Option<&str>,
-    crop_rule: arkit_data::crop::CropRule,
+    crop_rule: arkit_data::crop::RuleSet,
     true_masks: Option<&Path>,
     seed: u64,
     ransac: &arkit_data::pose::pnp::RansacParams,
@@ -226,7 +226,7 @@ pub fn model_predictions_dump(
     dataset: &Path,
     model: &TrainedModel,
     split: Option<&str>,
-    crop_rule: arkit_data::crop::CropRule,
+    crop_rule: arkit_data::crop::RuleSet,
     true_masks: Option<&Path>,
     seed: u64,
     ransac: &arkit_data::pose::pnp::RansacParams,
@@ -272,7 +272,7 @@ pub fn model_predictions_dump(
                 progress(1);
                 continue;
             }
-            let Some(mut crop) = crop_rule.around_landmarks(&r.landmarks_2d, size) else {
+            let Some(mut crop) = crop_rule.crop_around_landmarks(&r.landmarks_2d, size) else {
                 return Err(Error::invalid(
                     "landmarks",
                     format!("{}: the official crop box is empty", r.key),

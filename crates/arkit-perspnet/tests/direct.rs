@@ -105,7 +105,7 @@ fn targets_map_back_to_the_pose_through_crop_and_camera() {
             side: rng.uniform(60.0, 120.0),
             side_y: rng.uniform(60.0, 120.0),
             size: 64,
-            sampling: Default::default(),
+            rules: Default::default(),
         };
         let t = direct_target(&pose, &crop, &k, (0, 0));
         // The network's 6D is R's first two columns; R is row-major in the target.
@@ -274,7 +274,7 @@ fn trains_saves_loads_predicts_and_evaluates() {
             &pq,
             &m,
             None,
-            arkit_data::crop::CropRule::Ours,
+            arkit_data::crop::RuleSet::Exact,
             None,
             0,
             &RansacParams::default(),

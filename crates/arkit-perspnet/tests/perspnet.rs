@@ -1216,12 +1216,12 @@ mod pipeline {
             )
             .unwrap()
         };
-        let run = || run_with(arkit_data::crop::CropRule::Ours);
+        let run = || run_with(arkit_data::crop::RuleSet::Exact);
         let (a, sa) = run();
         let (b, _) = run();
         assert_eq!(a, b);
         // The official crop is another input: the same samples, other predictions.
-        let (c, sc) = run_with(arkit_data::crop::CropRule::Official);
+        let (c, sc) = run_with(arkit_data::crop::RuleSet::Official);
         assert_eq!(sc.samples, 6);
         assert!(a.iter().zip(&c).all(|(p, q)| p.key == q.key));
         assert_ne!(a, c);
@@ -1266,7 +1266,7 @@ mod pipeline {
             biwi_pq.path(),
             &model,
             None,
-            arkit_data::crop::CropRule::Ours,
+            arkit_data::crop::RuleSet::Exact,
             None,
             5,
             &RansacParams::default(),

@@ -19,10 +19,11 @@
 
 use arkit_core::conventions::Camera;
 use arkit_core::release::SampleKey;
+use arkit_data::crop::RuleSet;
 use arkit_data::loader::correspondence_matrix::{
     rewrite_correspondence_matrix, write_correspondence_matrix,
 };
-use arkit_data::loader::item::{Compat, FaceLoader, LoaderItem, LoaderMode, LoaderOptions};
+use arkit_data::loader::item::{FaceLoader, LoaderItem, LoaderMode, LoaderOptions};
 use arkit_data::store::samples_table::SampleRecord;
 
 use arkit_core::error::Error;
@@ -120,7 +121,7 @@ impl Loader {
         let options = LoaderOptions {
             split,
             mode: LoaderMode::parse(mode).map_err(py_err)?,
-            compat: Compat::parse(compat).map_err(py_err)?,
+            rules: RuleSet::parse(compat).map_err(py_err)?,
             img_size,
             n_pts,
             seed,
@@ -841,7 +842,7 @@ fn evaluate(
 fn default_crop_store(dir: PathBuf, compat: &str, img_size: u32) -> PyResult<PathBuf> {
     Ok(FaceLoader::default_crop_store(
         &dir,
-        Compat::parse(compat).map_err(py_err)?,
+        RuleSet::parse(compat).map_err(py_err)?,
         img_size,
     ))
 }

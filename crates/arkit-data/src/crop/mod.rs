@@ -2,10 +2,10 @@
 //!
 //! [`CropTransform`] is the axis-aligned map from image pixels to a `size x size` crop:
 //! the box edge `[x0, x0 + side]` maps to `[0, size]` in the crop's continuous
-//! coordinates. Where a crop pixel samples the box is its [`CropSampling`]: at its centre
+//! coordinates. Where a crop pixel samples the box follows its [`RuleSet`]: at its centre
 //! `(i + 0.5, j + 0.5)` (ours, the crate's pixel-centre rule of `conventions::camera`) or
 //! at the integer point `(i, j)` (OpenCV's, the official loader's). Which box is cut
-//! around a face is a [`CropRule`]: ours ([`CropTransform::around_landmarks`], the
+//! around a face follows the [`RuleSet`] too: ours ([`CropTransform::around_landmarks`], the
 //! square of half-side 0.75 x the larger side of the 68 projected landmarks' bounding
 //! box) or the official loader's ([`official::official_crop`]).
 //!
@@ -20,6 +20,9 @@
 //! against OpenCV's formulas (and `tests/official_crop.rs` against OpenCV's output).
 
 pub mod official;
+mod rules;
+
+pub use rules::RuleSet;
 
 use image::RgbImage;
 
@@ -37,67 +40,9 @@ pub struct CropTransform {
     pub side_y: f64,
     /// Side of the crop in pixels.
     pub size: u32,
-    /// Where a crop pixel samples the box.
-    pub sampling: CropSampling,
-}
-
-/// Where crop pixel `(i, j)` sits in the crop's continuous coordinates.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize)]
-#[serde(rename_all = "snake_case")]
-pub enum CropSampling {
-    /// At its centre `(i + 0.5, j + 0.5)`: the crate's pixel-centre rule (`render`'s
-    /// default).
-    #[default]
-    Centres,
-    /// At the integer point `(i, j)`, as OpenCV and the official loader put it
-    /// (`render --compat official`).
-    Corners,
-}
-
-/// Whose crop box is cut around a face: ours ([`CropTransform::around_landmarks`]) or
-/// the official loader's ([`official::official_crop`]).
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize)]
-#[serde(rename_all = "snake_case")]
-pub enum CropRule {
-    /// Ours: the square box, pixel centres, our bilinear crop.
-    #[default]
-    Ours,
-    /// The official loader's: integer box, pixel corners, `cv2.warpAffine`.
-    Official,
-}
-
-impl CropRule {
-    /// The crop of this rule around projected landmarks `[u0, v0, u1, v1, ...]`;
-    /// `None` when the official box is empty.
-    pub fn around_landmarks(self, landmarks_2d: &[f32], size: u32) -> Option<CropTransform> {
-        match self {
-            CropRule::Ours => Some(CropTransform::around_landmarks(landmarks_2d, size)),
-            CropRule::Official => official::official_crop(
-                landmarks_2d
-                    .chunks_exact(2)
-                    .map(|p| (p[0] as f64, p[1] as f64)),
-                size,
-            ),
-        }
-    }
-}
-
-impl CropSampling {
-    /// The offset of a pixel's sample point from its index.
-    pub fn offset(self) -> f64 {
-        match self {
-            CropSampling::Centres => 0.5,
-            CropSampling::Corners => 0.0,
-        }
-    }
-
-    /// The name stored in the `crop_sampling` column.
-    pub fn name(self) -> &'static str {
-        match self {
-            CropSampling::Centres => "centre",
-            CropSampling::Corners => "corner",
-        }
-    }
+    /// Whose rules the crop follows: where a crop pixel samples the box
+    /// ([`RuleSet::sample_offset`]) and how the image is resampled.
+    pub rules: RuleSet,
 }
 
 impl CropTransform {
@@ -120,7 +65,7 @@ impl CropTransform {
             side: 2.0 * half,
             side_y: 2.0 * half,
             size,
-            sampling: CropSampling::Centres,
+            rules: RuleSet::Exact,
         }
     }
 
@@ -142,9 +87,9 @@ impl CropTransform {
     }
 
     /// The image point crop pixel `(i, j)` samples (its centre or its corner, by
-    /// [`CropTransform::sampling`]).
+    /// [`CropTransform::rules`]).
     pub fn pixel_to_image(&self, i: u32, j: u32) -> (f64, f64) {
-        let o = self.sampling.offset();
+        let o = self.rules.sample_offset();
         self.to_image(i as f64 + o, j as f64 + o)
     }
 
@@ -170,7 +115,7 @@ impl CropTransform {
     /// sampling with black outside (tested across the image border). The measurements
     /// that chose this shape are in `docs/performance.md` ("The crop").
     ///
-    /// A crop with [`CropSampling::Corners`] is resampled as `cv2.warpAffine` does
+    /// A crop with [`RuleSet::Official`] is resampled as `cv2.warpAffine` does
     /// instead ([`official::warp_affine`]).
     pub fn crop_image(&self, image: &RgbImage) -> RgbImage {
         let out = self.crop_window(image, 0, self.size as usize);
@@ -184,7 +129,7 @@ impl CropTransform {
     /// same. `crop_image` is `crop_window(image, 0, size)`; the crop store keeps such a
     /// window around each sample's evaluation crop (`crate::store::crop_store`).
     pub fn crop_window(&self, image: &RgbImage, first: i64, count: usize) -> Vec<u8> {
-        if self.sampling == CropSampling::Corners {
+        if self.rules == RuleSet::Official {
             let (w, h) = image.dimensions();
             return official::warp_affine_window(image.as_raw(), w, h, 3, self, first, count);
         }
@@ -220,15 +165,15 @@ impl CropTransform {
     /// bilinear taps reach, two per output pixel and axis. A pixel outside them never
     /// changes the output; `None` for an empty window. From the same taps the
     /// resampling uses (`bilinear_position`; `cv2.warpAffine`'s fixed-point ones for
-    /// [`CropSampling::Corners`]), so the two cannot drift apart (tested: pixels
+    /// [`RuleSet::Official`]), so the two cannot drift apart (tested: pixels
     /// outside changed, the output is the same).
     pub fn window_reach(&self, first: i64, count: usize) -> Option<[(i64, i64); 2]> {
         if count == 0 {
             return None;
         }
         let last = first + count as i64 - 1;
-        Some(match self.sampling {
-            CropSampling::Centres => {
+        Some(match self.rules {
+            RuleSet::Exact => {
                 // The taps move with the pixel index (a positive scale): the window's
                 // first and last pixels reach furthest.
                 let (sx, sy) = self.scales();
@@ -239,7 +184,7 @@ impl CropTransform {
                 };
                 [reach(self.x0, sx), reach(self.y0, sy)]
             }
-            CropSampling::Corners => official::warp_reach(self, first, count),
+            RuleSet::Official => official::warp_reach(self, first, count),
         })
     }
 
@@ -260,7 +205,7 @@ impl CropTransform {
             side: self.side / px,
             side_y: self.side_y / py,
             size: self.size,
-            sampling: self.sampling,
+            rules: self.rules,
         }
     }
 }
@@ -579,7 +524,7 @@ mod tests {
             x ^= x << 5;
             Rgb([x as u8, (x >> 8) as u8, (x >> 16) as u8])
         });
-        for sampling in [CropSampling::Centres, CropSampling::Corners] {
+        for rules in RuleSet::ALL {
             for (x0, y0, side, first, count) in [
                 (10.3, 7.8, 30.0, 0, 16usize),
                 (-5.5, 20.25, 41.7, -3, 22),
@@ -593,7 +538,7 @@ mod tests {
                     side,
                     side_y: side * 1.03,
                     size: 16,
-                    sampling,
+                    rules,
                 };
                 let want = crop.crop_window(&image, first, count);
                 let [(c0, c1), (r0, r1)] = crop.window_reach(first, count).unwrap();
@@ -609,11 +554,11 @@ mod tests {
                 );
                 assert!(
                     c0 as f64 >= box_x.0 - 2.0 && c1 as f64 <= box_x.1 + 2.0,
-                    "{sampling:?} {c0}..{c1} {box_x:?}"
+                    "{rules:?} {c0}..{c1} {box_x:?}"
                 );
                 assert!(
                     r0 as f64 >= box_y.0 - 2.0 && r1 as f64 <= box_y.1 + 2.0,
-                    "{sampling:?} {r0}..{r1} {box_y:?}"
+                    "{rules:?} {r0}..{r1} {box_y:?}"
                 );
                 let mut changed = image.clone();
                 for (px, py, p) in changed.enumerate_pixels_mut() {
@@ -625,7 +570,7 @@ mod tests {
                 assert_eq!(
                     crop.crop_window(&changed, first, count),
                     want,
-                    "{sampling:?} {x0} {y0}"
+                    "{rules:?} {x0} {y0}"
                 );
             }
             assert!(
@@ -635,7 +580,7 @@ mod tests {
                     side: 10.0,
                     side_y: 10.0,
                     size: 16,
-                    sampling,
+                    rules,
                 }
                 .window_reach(0, 0)
                 .is_none()
@@ -652,7 +597,7 @@ mod tests {
             let v = |a: f32| (128.0 + 100.0 * a.sin()) as u8;
             Rgb([v(x / 17.0), v(y / 23.0 + x / 41.0), v((x - y) / 29.0)])
         });
-        for sampling in [CropSampling::Centres, CropSampling::Corners] {
+        for rules in RuleSet::ALL {
             // Near the image's corner, so the window runs off the image.
             let c = CropTransform {
                 x0: -12.3,
@@ -660,7 +605,7 @@ mod tests {
                 side: 141.9,
                 side_y: 143.2,
                 size: 37,
-                sampling,
+                rules,
             };
             let (first, count) = (-7i64, 51usize);
             let window = c.crop_window(&img, first, count);
@@ -670,7 +615,7 @@ mod tests {
                 assert_eq!(
                     &window[w..w + 3 * 37],
                     &crop[3 * r * 37..3 * (r + 1) * 37],
-                    "{sampling:?} row {r}"
+                    "{rules:?} row {r}"
                 );
             }
             // The crop itself, cut from the window, is the window's centre again up to
@@ -695,7 +640,7 @@ mod tests {
                     / direct.len() as f64;
                 assert!(
                     mean < if dx == 0.0 { 0.01 } else { 6.0 },
-                    "{sampling:?} {dx}: {mean}"
+                    "{rules:?} {dx}: {mean}"
                 );
             }
         }
@@ -709,7 +654,7 @@ mod tests {
             side: 300.0,
             side_y: 300.0,
             size: 192,
-            sampling: CropSampling::Centres,
+            rules: RuleSet::Exact,
         };
         let (cu, cv) = c.to_crop(250.0, 200.0);
         assert!((cu - 96.0).abs() < 1e-12 && (cv - 96.0).abs() < 1e-12);
@@ -814,7 +759,7 @@ mod tests {
                 side,
                 side_y: side,
                 size: 50,
-                sampling: CropSampling::Centres,
+                rules: RuleSet::Exact,
             };
             assert_crop_is_bilinear(&img, &c);
         }
@@ -825,7 +770,7 @@ mod tests {
             side: 83.7,
             side_y: 83.7,
             size: 50,
-            sampling: CropSampling::Centres,
+            rules: RuleSet::Exact,
         };
         assert!(
             c.crop_image(&RgbImage::new(0, 0))

@@ -12,7 +12,7 @@
 //!    bottom)`, `(right, top)` onto `(0, 0)`, `(0, S - 1)`, `(S - 1, 0)`: image pixel
 //!    `left` lands on crop pixel `0` and `right` on `S - 1`. OpenCV puts pixel `i` at
 //!    the integer coordinate `i`, as the official rasterizer samples it, so this
-//!    [`CropTransform`] has [`CropSampling::Corners`], `x0 = left`, `y0 = top`, and box
+//!    [`CropTransform`] has [`RuleSet::Official`], `x0 = left`, `y0 = top`, and box
 //!    sides `S (right - left) / (S - 1)` and `S (bottom - top) / (S - 1)`.
 //! 3. **Resampling** ([`warp_affine`]): `cv2.warpAffine` with its defaults (bilinear,
 //!    black outside), for the image crop and for the full-resolution 0/1 mask, which
@@ -33,7 +33,7 @@
 //! bottom-right on a tie): every stored row is one the official loader computes, at the
 //! image pixel nearest to where the crop pixel looks.
 
-use super::{CropSampling, CropTransform};
+use super::{CropTransform, RuleSet};
 
 /// The official crop box and its affine map (module docs, steps 1-2) around the
 /// projected landmarks `(u, v)`, or `None` when the box is empty (the official loader
@@ -114,7 +114,7 @@ pub fn box_crop(left: f64, top: f64, right: f64, bottom: f64, size: u32) -> Crop
         side: s * (right - left) / (s - 1.0),
         side_y: s * (bottom - top) / (s - 1.0),
         size,
-        sampling: CropSampling::Corners,
+        rules: RuleSet::Official,
     }
 }
 
@@ -215,7 +215,7 @@ fn cv_round(v: f64) -> i64 {
 }
 
 /// The taps of every crop pixel, row-major, as `cv2.warpAffine` computes them for
-/// `crop` (which should have [`CropSampling::Corners`]).
+/// `crop` (which should have [`RuleSet::Official`]).
 pub fn warp_taps(crop: &CropTransform) -> Vec<WarpTap> {
     warp_taps_window(crop, 0, crop.size as usize)
 }

@@ -22,6 +22,7 @@
 //!
 //! Tested in `tests/crop_store.rs`.
 
+use crate::crop::RuleSet;
 use crate::loader::item::FaceLoader;
 use crate::store::crop_store::{
     self, CropStoreManifest, FORMAT, MissingCrop, WindowCodec, encode_record, margin,
@@ -40,8 +41,9 @@ const CHUNK: usize = 64;
 pub struct CropStoreSummary {
     /// The store folder.
     pub output: PathBuf,
-    /// `"exact"` or `"official"`.
-    pub compat: String,
+    /// The rules the crops follow (`"compat"` in `--json`: `"exact"` or `"official"`).
+    #[serde(rename = "compat")]
+    pub rules: RuleSet,
     /// How the windows are stored (`pred-zstd`, `png` or `raw`).
     pub codec: WindowCodec,
     /// Crop side.
@@ -86,7 +88,7 @@ pub fn write_crop_store_with(
             "the loader must serve every sample (no split)",
         ));
     }
-    let (compat, s) = (options.compat, options.img_size);
+    let (rules, s) = (options.rules, options.img_size);
     let vertex_count = loader.mesh_vertex_count();
     let dataset = loader.dataset();
     // Every sample's key fits the records' key field (checked before anything is
@@ -116,7 +118,7 @@ pub fn write_crop_store_with(
     }
     let mut manifest = CropStoreManifest {
         format: FORMAT,
-        compat: compat.name().to_string(),
+        rules,
         codec,
         img_size: s,
         margin: margin(s),
@@ -181,7 +183,7 @@ pub fn write_crop_store_with(
     let bytes: u64 = manifest.shards.iter().map(|c| c.bytes).sum();
     Ok(CropStoreSummary {
         output: output.to_path_buf(),
-        compat: manifest.compat.clone(),
+        rules: manifest.rules,
         codec,
         img_size: s,
         window: crop_store::window_side(s),

@@ -12,8 +12,8 @@
 //! and weights are kept sparse ([`LoaderItem::corr_vertices`]), the dense matrix is the
 //! caller's choice.
 //!
-//! Two rule sets ([`Compat`]):
-//! - [`Compat::Official`]: every value by the official loader's rules: its integer box
+//! Two rule sets ([`RuleSet`]):
+//! - [`RuleSet::Official`]: every value by the official loader's rules: its integer box
 //!   ([`crate::crop::official::official_box`]: `int()` of the landmarks' box edges), the
 //!   `cv2` affine map and `cv2.warpAffine` resampling ([`crate::crop::official`]), its rasterizer over the whole
 //!   image (screen-space weights; held only over the window the face can cover,
@@ -22,7 +22,7 @@
 //!   without repetition or repeated cyclically, mapped to crop pixels by the affine map
 //!   and `floor`), its UV map (the UV triangles drawn at `uv * (S - 1)`, the ring at 1.1
 //!   times the contour in the `4.5 v + 0.5` space, [`OfficialUvLayout`]).
-//! - [`Compat::Exact`]: ours, as `render` stores them: the square box at pixel centres,
+//! - [`RuleSet::Exact`]: ours, as `render` stores them: the square box at pixel centres,
 //!   our bilinear crop, our rasterizer at crop resolution (perspective-correct weights),
 //!   points drawn from the crop mask, our UV map (texel centres, `--uv-size` = `S`).
 //!
@@ -46,13 +46,11 @@
 use crate::crop::official::{
     LandmarkExtent, affine_transform, box_crop, official_box, warp_mask_in,
 };
-use crate::crop::{CropSampling, CropTransform};
+use crate::crop::{CropTransform, RuleSet};
 use crate::loader::colour_jitter::UNIT;
 use crate::loader::colour_jitter::jitter_colour;
 use crate::mesh::topology::FaceTopology;
-use crate::render::face::{
-    FaceRenderer, RasterMode, UvMapper, UvTexels, WindowMask, sample_points,
-};
+use crate::render::face::{FaceRenderer, UvMapper, UvTexels, WindowMask, sample_points};
 use crate::store::crop_store::{CropStore, StoredCrop, StoredRecord, WindowPart};
 use crate::store::dataset::Dataset;
 use crate::store::face_targets::{canonical_position, mask_pixel_indices};
@@ -63,37 +61,6 @@ use arkit_core::release::SampleKey;
 use arkit_core::rng::Rng;
 use nalgebra::Point3;
 use std::path::{Path, PathBuf};
-
-/// Which rules the values follow (see the module docs).
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum Compat {
-    /// Ours (`render`'s default).
-    Exact,
-    /// The official loader's.
-    Official,
-}
-
-impl Compat {
-    /// `"exact"` or `"official"`.
-    pub fn parse(s: &str) -> Result<Self> {
-        match s {
-            "exact" => Ok(Compat::Exact),
-            "official" => Ok(Compat::Official),
-            _ => Err(Error::invalid(
-                "compat",
-                format!("'{s}': expected 'exact' or 'official'"),
-            )),
-        }
-    }
-
-    /// `"exact"` or `"official"`.
-    pub fn name(self) -> &'static str {
-        match self {
-            Compat::Exact => "exact",
-            Compat::Official => "official",
-        }
-    }
-}
 
 /// Training (random box jitter and colour jitter) or evaluation (neither).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -126,8 +93,8 @@ pub struct LoaderOptions {
     pub split: Option<String>,
     /// Training or evaluation.
     pub mode: LoaderMode,
-    /// Whose rules.
-    pub compat: Compat,
+    /// Whose rules (`--compat`, Python's `compat=`).
+    pub rules: RuleSet,
     /// Crop side `S` (the official 192), 16..=1024.
     pub img_size: u32,
     /// Points per sample (the official 1024), 1..=65536.
@@ -197,12 +164,12 @@ pub struct LoaderItem {
     pub rt: [f64; 16],
     /// The crop.
     pub crop: CropTransform,
-    /// [`Compat::Official`] only: the integer box `[left, top, right, bottom]`.
+    /// [`RuleSet::Official`] only: the integer box `[left, top, right, bottom]`.
     pub official_box: Option<[i64; 4]>,
-    /// [`Compat::Official`] only: the chosen points as indices into the flattened
+    /// [`RuleSet::Official`] only: the chosen points as indices into the flattened
     /// `mask[top:bottom+1, left:right+1]` (the official `choose` before it is mapped).
     pub choose_box: Vec<i64>,
-    /// [`Compat::Official`] only: whether the box leaves the image, so that the slice
+    /// [`RuleSet::Official`] only: whether the box leaves the image, so that the slice
     /// is clipped (right or bottom) or wrapped (left or top, Python's negative indices)
     /// and the official mapping of points to crop pixels misplaces them (points mapped
     /// outside the crop are then replaced by a random pixel, as the official loader does).
@@ -756,7 +723,7 @@ fn python_slice(start: i64, stop: i64, len: i64) -> std::ops::Range<i64> {
 /// The official `tform_inv` of a crop ([`LoaderItem::tform_inv`]): crop pixel
 /// `(col, row)` to image point by the crop's sampling rule.
 pub fn tform_inv(crop: &CropTransform) -> [f64; 6] {
-    let o = crop.sampling.offset();
+    let o = crop.rules.sample_offset();
     let s = crop.size as f64;
     let (sx, sy) = (crop.side / s, crop.side_y / s);
     [sx, 0.0, crop.x0 + o * sx, 0.0, sy, crop.y0 + o * sy]
@@ -968,7 +935,7 @@ pub struct FaceLoader {
 
 impl FaceLoader {
     /// Opens `dir` (what `convert` wrote) for `options`, with `topology` (the one the
-    /// dataset was converted with; checked) and, for [`Compat::Official`], the release's
+    /// dataset was converted with; checked) and, for [`RuleSet::Official`], the release's
     /// UV triangles `uv_triangles` when known.
     pub fn open(
         dir: &Path,
@@ -1018,17 +985,14 @@ impl FaceLoader {
             OfficialUvLayout::new(&uv, release_uv, topology.vertex_count, options.img_size)?;
         // The official loader reads the projection matrix as float32
         // (`np.loadtxt(..., dtype=np.float32)`): its screen positions follow those values.
-        let projection = match options.compat {
-            Compat::Exact => Camera::release_projection(),
-            Compat::Official => Camera::release_projection().map(|x| x as f32 as f64),
+        let projection = match options.rules {
+            RuleSet::Exact => Camera::release_projection(),
+            RuleSet::Official => Camera::release_projection().map(|x| x as f32 as f64),
         };
         let topology_uv = topology.uv.clone();
         let mut renderer = FaceRenderer::new(topology, projection)?;
-        renderer.mode = match options.compat {
-            Compat::Exact => RasterMode::Exact,
-            Compat::Official => RasterMode::Official,
-        };
-        if options.compat == Compat::Official {
+        renderer.rules = options.rules;
+        if options.rules == RuleSet::Official {
             // The holes as the official mask closes them. The layout's loops are the
             // mouth's and the two eyes'; the official list has the eyes first.
             let l = &official_uv.centroid_loops;
@@ -1052,10 +1016,10 @@ impl FaceLoader {
     }
 
     /// Where `crops` writes the store of a dataset for these options by default:
-    /// `DIR/crops/<compat>-<S>`.
-    pub fn default_crop_store(dir: &Path, compat: Compat, img_size: u32) -> PathBuf {
+    /// `DIR/crops/<rules>-<S>` (`exact-192`, `official-192`, ...).
+    pub fn default_crop_store(dir: &Path, rules: RuleSet, img_size: u32) -> PathBuf {
         dir.join("crops")
-            .join(format!("{}-{img_size}", compat.name()))
+            .join(format!("{}-{img_size}", rules.name()))
     }
 
     /// Reads pixels and meshes from the crop store in `dir` from now on (checked
@@ -1065,7 +1029,7 @@ impl FaceLoader {
         self.store = Some(CropStore::open(
             dir,
             &self.dataset,
-            self.options.compat.name(),
+            self.options.rules,
             self.options.img_size,
             self.renderer.topology().vertex_count,
         )?);
@@ -1138,12 +1102,12 @@ impl FaceLoader {
     /// official integer box (an error when that box is empty).
     fn eval_crop(&self, row: &IndexRow, landmarks: &[(f64, f64)]) -> Result<CropTransform> {
         let s = self.options.img_size;
-        match self.options.compat {
-            Compat::Exact => Ok(CropTransform::around_landmarks(
+        match self.options.rules {
+            RuleSet::Exact => Ok(CropTransform::around_landmarks(
                 &flat_landmarks(landmarks),
                 s,
             )),
-            Compat::Official => {
+            RuleSet::Official => {
                 let [l, t, r, b] =
                     official_box(LandmarkExtent::of(landmarks.iter().copied()), None);
                 if r <= l || b <= t {
@@ -1263,9 +1227,9 @@ impl FaceLoader {
 
     /// The side, in texels, of an item's `uvmap` (`S` under both rule sets).
     pub fn uvmap_size(&self) -> u32 {
-        match self.options.compat {
-            Compat::Exact => self.options.img_size,
-            Compat::Official => self.official_uv.size(),
+        match self.options.rules {
+            RuleSet::Exact => self.options.img_size,
+            RuleSet::Official => self.official_uv.size(),
         }
     }
 
@@ -1297,11 +1261,11 @@ impl FaceLoader {
         let mut rng = Rng::for_stream(self.options.seed, stream);
         let landmarks = self.landmarks(row, &verts, &pose)?;
         let train = self.options.mode == LoaderMode::Train;
-        let mut item = match self.options.compat {
-            Compat::Exact => self.exact(
+        let mut item = match self.options.rules {
+            RuleSet::Exact => self.exact(
                 row, &verts, &pose, &source, &landmarks, train, &mut rng, planes,
             )?,
-            Compat::Official => self.official(
+            RuleSet::Official => self.official(
                 row, &verts, &pose, &source, &landmarks, train, &mut rng, planes,
             )?,
         };
@@ -1353,7 +1317,7 @@ impl FaceLoader {
                 side,
                 side_y: side,
                 size: s,
-                sampling: CropSampling::Centres,
+                rules: RuleSet::Exact,
             };
         }
         let mut buffer = self.take_buffer();
@@ -1887,7 +1851,7 @@ mod tests {
         let o = LoaderOptions {
             split: None,
             mode: LoaderMode::Eval,
-            compat: Compat::Exact,
+            rules: RuleSet::Exact,
             img_size: 8,
             n_pts: 1024,
             seed: 0,
@@ -1899,6 +1863,6 @@ mod tests {
             ..o
         };
         assert!(o.validate().unwrap_err().to_string().contains("n_pts"));
-        assert!(Compat::parse("opencv").is_err() && LoaderMode::parse("test").is_err());
+        assert!(RuleSet::parse("opencv").is_err() && LoaderMode::parse("test").is_err());
     }
 }

@@ -227,7 +227,7 @@ mod tests {
                 let sq = (x + square.pad_left as f64) * square.scale();
                 let sv = (y + square.pad_top as f64) * square.scale();
                 let (cu, cv) = crop.to_crop(sq, sv);
-                let o = crop.sampling.offset();
+                let o = crop.rules.sample_offset();
                 let (i, j) = ((cu - o).round() as u32, (cv - o).round() as u32);
                 pixels.push(j * 192 + i);
                 // The 3D point on the ray through that pixel, at the point's depth.

@@ -313,12 +313,12 @@ mod tests {
             side: 96.0,
             side_y: 96.0,
             size: 192,
-            sampling: crate::crop::CropSampling::Centres,
+            rules: crate::crop::RuleSet::Exact,
         };
         // Pixel (3, 2) of the crop: centre at (3.5, 2.5) crop px = half-size image px.
         let p = crop_pixel_to_image(&crop, 2 * 192 + 3);
         assert_eq!((p.x, p.y), (101.75, 51.25));
-        crop.sampling = crate::crop::CropSampling::Corners;
+        crop.rules = crate::crop::RuleSet::Official;
         let q = crop_pixel_to_image(&crop, 2 * 192 + 3);
         assert_eq!((q.x, q.y), (101.5, 51.0));
         // A taller box scales rows by its own height.

@@ -17,8 +17,8 @@
 //! so a shard is finished when both files account for all of its samples. Readers
 //! ([`crate::store::targets_table::read_skipped_keys`]) skip those samples.
 
-use crate::crop::CropTransform;
-use crate::render::face::{FaceRenderer, RasterMode, UvMapper, sample_points};
+use crate::crop::{CropTransform, RuleSet};
+use crate::render::face::{FaceRenderer, UvMapper, sample_points};
 use crate::store::manifest::dataset_fingerprint;
 use crate::store::parquet;
 use crate::store::samples_table::{self, ErrorRecord};
@@ -179,8 +179,9 @@ pub struct RenderSummary {
     pub skipped: usize,
     /// The first few of them, `key: reason` (all are in `targets/errors/`).
     pub skipped_examples: Vec<String>,
-    /// The rasterization rules used.
-    pub mode: RasterMode,
+    /// The rasterization rules used (`"mode"` in `--json`, as `render.json` names it).
+    #[serde(rename = "mode")]
+    pub rules: RuleSet,
 }
 
 fn mesh_key(verts: &[f32]) -> Vec<u32> {
@@ -240,7 +241,7 @@ fn render(
     // same topology and from the same samples.
     let settings = serde_json::json!({
         "size": options.size, "uv_size": options.uv_size, "points": options.points, "seed": options.seed,
-        "mode": renderer.mode, "topology": renderer.topology().source, "full_mask": options.full_mask,
+        "mode": renderer.rules, "topology": renderer.topology().source, "full_mask": options.full_mask,
         "dataset": dataset_fingerprint(&manifest),
     });
     let targets_dir = options.output.join("targets");
@@ -362,11 +363,11 @@ fn render(
                                 .map(|c| Point3::new(c[0], c[1], c[2]))
                                 .collect();
                             let pose = Pose::from_release_rt(&r.rt)?;
-                            let crop = match renderer.mode {
-                                RasterMode::Exact => {
+                            let crop = match renderer.rules {
+                                RuleSet::Exact => {
                                     CropTransform::around_landmarks(&r.landmarks_2d, options.size)
                                 }
-                                RasterMode::Official => renderer.official_crop(
+                                RuleSet::Official => renderer.official_crop(
                                     &verts,
                                     &pose,
                                     r.image_width,
@@ -386,7 +387,7 @@ fn render(
                                 ^ (offset + i as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15);
                             let points = sample_points(t.corr_vertices.len(), options.points, seed);
                             let full_mask =
-                                if options.full_mask && renderer.mode == RasterMode::Official {
+                                if options.full_mask && renderer.rules == RuleSet::Official {
                                     // The official pipeline rendered the whole image already.
                                     Some(renderer.face_pixels(buffer))
                                 } else if options.full_mask {
@@ -458,7 +459,7 @@ fn render(
         bytes,
         bytes_per_sample: bytes as f64 / (samples - skipped.count).max(1) as f64,
         distinct_meshes: distinct,
-        mode: renderer.mode,
+        rules: renderer.rules,
         skipped: skipped.count,
         skipped_examples: skipped.examples,
     })

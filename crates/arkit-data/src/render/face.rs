@@ -35,7 +35,7 @@ use arkit_core::error::{Error, Result};
 use arkit_core::raster::{PixelWindow, ScreenVertex, VisibilityBuffer};
 use arkit_core::rng::Rng;
 
-use crate::crop::{CropSampling, CropTransform};
+use crate::crop::{CropTransform, RuleSet};
 use crate::store::face_targets::{FaceTargets, for_each_set_run};
 use nalgebra::Point3;
 use std::ops::Range;
@@ -46,24 +46,16 @@ pub struct FaceRenderer {
     hole_fill: HoleFill,
     triangles: Vec<[u32; 3]>,
     camera_projection: nalgebra::Matrix4<f64>,
-    /// How pixels are sampled and weights interpolated.
-    pub mode: RasterMode,
-}
-
-/// Which rasterization rules [`FaceRenderer::render`] follows.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize)]
-#[serde(rename_all = "snake_case")]
-pub enum RasterMode {
-    /// Ours: pixel centres, the top-left fill rule, perspective-correct weights.
-    #[default]
-    Exact,
-    /// The official loader's pipeline ([`crate::crop::official`]): its crop box and
-    /// `cv2` affine map (corner sampling), its rasterizer over the whole image
-    /// ([`arkit_core::raster::rasterize_mesh_official`]: integer sample points, its inside
-    /// test, screen-space weights, earlier triangle on ties), its mask warped into the
-    /// crop as `cv2.warpAffine` does, and each crop mask pixel's correspondence from
-    /// the full-resolution buffer at its heaviest face tap.
-    Official,
+    /// Whose rasterization rules [`FaceRenderer::render`] follows:
+    /// [`RuleSet::Exact`] (pixel centres, the top-left fill rule, perspective-correct
+    /// weights) or [`RuleSet::Official`] (the official loader's pipeline,
+    /// [`crate::crop::official`]: its crop box and `cv2` affine map (corner sampling),
+    /// its rasterizer over the whole image
+    /// ([`arkit_core::raster::rasterize_mesh_official`]: integer sample points, its
+    /// inside test, screen-space weights, earlier triangle on ties), its mask warped
+    /// into the crop as `cv2.warpAffine` does, and each crop mask pixel's
+    /// correspondence from the full-resolution buffer at its heaviest face tap).
+    pub rules: RuleSet,
 }
 
 impl FaceRenderer {
@@ -83,13 +75,13 @@ impl FaceRenderer {
             hole_fill,
             triangles,
             camera_projection: projection,
-            mode: RasterMode::Exact,
+            rules: RuleSet::Exact,
         })
     }
 
     /// Closes the eye and mouth holes with `holes` (triangles over the mesh's own
     /// vertices, drawn after the mesh) instead of the centroid fans: in
-    /// [`RasterMode::Official`], the official loader's organ triangles
+    /// [`RuleSet::Official`], the official loader's organ triangles
     /// ([`crate::loader::item::official_organ_triangles`]). Which fill is drawn decides, where
     /// a fill triangle overlaps the mesh on screen, which pixels are face: the fans and
     /// the official strips cover a non-convex hole outline differently.
@@ -127,7 +119,7 @@ impl FaceRenderer {
         crop: &CropTransform,
         buffer: &mut VisibilityBuffer,
     ) -> Result<FaceTargets> {
-        if self.mode == RasterMode::Official {
+        if self.rules == RuleSet::Official {
             return self.render_official(verts, pose, width, height, crop, buffer);
         }
         self.rasterize(verts, pose, width, height, Some(crop), buffer, true)?;
@@ -142,7 +134,7 @@ impl FaceRenderer {
         })
     }
 
-    /// [`FaceRenderer::render`]'s mask in [`RasterMode::Exact`], with the
+    /// [`FaceRenderer::render`]'s mask in [`RuleSet::Exact`], with the
     /// correspondences left to be computed at the pixels a caller needs
     /// ([`CropVisibility::correspondence_at`]): the rasterizer records which triangle
     /// each pixel shows and not its weights
@@ -150,7 +142,7 @@ impl FaceRenderer {
     /// pixel's work when a few of the mask's pixels are used (the loader's sampled
     /// points). The mask, and the correspondences wherever they are asked for, are
     /// [`FaceRenderer::render`]'s, bit for bit (tested). `buffer` is reused between
-    /// calls and borrowed by the result. In [`RasterMode::Official`], whose targets go
+    /// calls and borrowed by the result. In [`RuleSet::Official`], whose targets go
     /// through the whole image and a warp ([`FaceRenderer::render`]), an error.
     pub fn render_visibility<'a>(
         &'a self,
@@ -161,7 +153,7 @@ impl FaceRenderer {
         crop: &CropTransform,
         buffer: &'a mut VisibilityBuffer,
     ) -> Result<CropVisibility<'a>> {
-        if self.mode != RasterMode::Exact {
+        if self.rules != RuleSet::Exact {
             return Err(Error::invalid(
                 "raster mode",
                 "render_visibility follows the exact rules; the official rules' targets come from render",
@@ -206,7 +198,7 @@ impl FaceRenderer {
             .ok_or_else(|| Error::invalid("landmarks", "the official crop box is empty"))
     }
 
-    /// [`FaceRenderer::render`] in [`RasterMode::Official`]: the official loader's
+    /// [`FaceRenderer::render`] in [`RuleSet::Official`]: the official loader's
     /// pipeline ([`crate::crop::official`]): rasterize over the whole image with its
     /// rules, warp the mask into the crop as `cv2.warpAffine` does, and take each crop
     /// mask pixel's correspondence from the heaviest face pixel among its bilinear taps.
@@ -219,7 +211,7 @@ impl FaceRenderer {
         crop: &CropTransform,
         buffer: &mut VisibilityBuffer,
     ) -> Result<FaceTargets> {
-        if crop.sampling != CropSampling::Corners {
+        if crop.rules != RuleSet::Official {
             return Err(Error::invalid(
                 "crop",
                 "the official pipeline needs the official crop (corner sampling)",
@@ -323,11 +315,11 @@ impl FaceRenderer {
     }
 
     /// [`FaceRenderer::render_full_mask`] held over a window of the image: in
-    /// [`RasterMode::Official`] the official rasterizer fills `buffer` only over the
+    /// [`RuleSet::Official`] the official rasterizer fills `buffer` only over the
     /// window of every pixel the face's vertices can cover
     /// ([`PixelWindow::official_extent`]), so the cost follows the face's extent, not
     /// the image's; the mask is the whole-image one over the window and no face
-    /// outside it. In [`RasterMode::Exact`] the window is the whole image. `buffer`
+    /// outside it. In [`RuleSet::Exact`] the window is the whole image. `buffer`
     /// (reused between calls, keeping its allocation) is left holding the window's
     /// raster, pixel `(x, y)` at `window.index(x, y)`: in official mode its triangles
     /// and depths only, the weights computed where needed by
@@ -340,7 +332,7 @@ impl FaceRenderer {
         height: u32,
         buffer: &mut VisibilityBuffer,
     ) -> Result<WindowMask> {
-        if self.mode == RasterMode::Exact {
+        if self.rules == RuleSet::Exact {
             let mask = self.render_full_mask(verts, pose, width, height, buffer)?;
             let window = PixelWindow::whole(width, height);
             let screen = Vec::new();
@@ -370,7 +362,7 @@ impl FaceRenderer {
 
     /// The face mask of a buffer this renderer filled (row-major): pixels whose
     /// visible triangle is a mesh triangle, not a hole fan. After
-    /// [`FaceRenderer::render`] in [`RasterMode::Official`] the buffer holds the whole
+    /// [`FaceRenderer::render`] in [`RuleSet::Official`] the buffer holds the whole
     /// image, so this is the full-image mask without rendering it again.
     pub fn face_pixels(&self, buffer: &VisibilityBuffer) -> Vec<bool> {
         face_mask(&buffer.triangle, self.topology.triangles.len() as u32)
@@ -403,7 +395,7 @@ impl FaceRenderer {
 
     /// Projects the mesh and its hole fans and rasterizes them into `buffer` (resized to
     /// the crop, or to the whole image when `crop` is `None`) with the renderer's rules:
-    /// with the weights, or in [`RasterMode::Exact`] without them (`weights`,
+    /// with the weights, or in [`RuleSet::Exact`] without them (`weights`,
     /// [`VisibilityBuffer::rasterize_visibility`]). Returns the vertices as drawn.
     #[allow(clippy::too_many_arguments)]
     fn rasterize(
@@ -424,7 +416,7 @@ impl FaceRenderer {
                 let (x0, y0) = (crop.x0 as f32, crop.y0 as f32);
                 // A corner-sampled crop's pixel i sits at i, where our rules sample
                 // i + 0.5: shift the mesh by half a crop pixel to sample there.
-                let o = 0.5 - crop.sampling.offset() as f32;
+                let o = 0.5 - crop.rules.sample_offset() as f32;
                 for p in &mut screen {
                     p.x = (p.x - x0) * sx + o;
                     p.y = (p.y - y0) * sy + o;
@@ -447,10 +439,10 @@ impl FaceRenderer {
         } else {
             buffer.clear();
         }
-        match self.mode {
-            RasterMode::Exact if weights => buffer.rasterize_mesh(&screen, &self.triangles),
-            RasterMode::Exact => buffer.rasterize_visibility(&screen, &self.triangles),
-            RasterMode::Official => {
+        match self.rules {
+            RuleSet::Exact if weights => buffer.rasterize_mesh(&screen, &self.triangles),
+            RuleSet::Exact => buffer.rasterize_visibility(&screen, &self.triangles),
+            RuleSet::Official => {
                 arkit_core::raster::rasterize_mesh_official(buffer, &screen, &self.triangles)
             }
         }
@@ -519,14 +511,14 @@ pub struct WindowMask {
     pub window: PixelWindow,
     /// Per window pixel, whether it shows the face.
     pub mask: Vec<bool>,
-    /// In [`RasterMode::Official`], the vertices (and hole centroids) projected to
+    /// In [`RuleSet::Official`], the vertices (and hole centroids) projected to
     /// image pixels that the mask was drawn from, for [`WindowMask::official_weights`];
-    /// empty in [`RasterMode::Exact`].
+    /// empty in [`RuleSet::Exact`].
     pub screen: Vec<ScreenVertex>,
 }
 
 impl WindowMask {
-    /// In [`RasterMode::Official`], the weights the official rasterizer gives image
+    /// In [`RuleSet::Official`], the weights the official rasterizer gives image
     /// pixel `(x, y)` when `triangle` (the renderer's, as the buffer's triangle index
     /// names it) is the one shown there: the buffer's weights are left out of the
     /// window raster, and computed here with the same float32 operations
@@ -1410,7 +1402,6 @@ mod tests {
             assert_eq!(got[1..], want[..], "case {case}: {row:?}");
         }
     }
-    use crate::crop::CropRule;
     use arkit_core::conventions::EulerAngles;
     use nalgebra::Vector3;
 
@@ -1508,7 +1499,7 @@ mod tests {
         assert!(compared > 20_000, "{compared}");
         // The official rules' targets come only from `render`.
         let mut official = r.clone();
-        official.mode = RasterMode::Official;
+        official.rules = RuleSet::Official;
         let pose = Pose::from_euler(
             EulerAngles::new(0.0, 0.0, 0.0),
             Vector3::new(0.0, 0.0, -0.5),
@@ -1540,7 +1531,7 @@ mod tests {
             side: 300.0,
             side_y: 300.0,
             size: 128,
-            sampling: crate::crop::CropSampling::Centres,
+            rules: RuleSet::Exact,
         };
         let a = r
             .render(&verts, &base, 800, 800, &crop, &mut vb)
@@ -1817,7 +1808,7 @@ mod tests {
         );
         let mut vb = VisibilityBuffer::new(192, 192);
         let exact = r.render(&verts, &pose, 800, 800, &ours, &mut vb).unwrap();
-        r.mode = RasterMode::Official;
+        r.rules = RuleSet::Official;
         // The official pipeline needs the official (corner-sampled) crop.
         assert!(r.render(&verts, &pose, 800, 800, &ours, &mut vb).is_err());
         let official = r.render(&verts, &pose, 800, 800, &crop, &mut vb).unwrap();
@@ -1865,7 +1856,7 @@ mod tests {
         // vertices can cover. A face cut by the image's left and top edges, and one in
         // the middle: the same mask, and the same triangle and weights on every pixel.
         let (mut r, verts) = face();
-        r.mode = RasterMode::Official;
+        r.rules = RuleSet::Official;
         let at = |x: f64, y: f64| {
             Pose::from_euler(EulerAngles::new(20.0, -5.0, 10.0), Vector3::new(x, y, -0.5))
         };
@@ -1920,7 +1911,7 @@ mod tests {
             }
         }
         // In exact mode the window is the whole image.
-        r.mode = RasterMode::Exact;
+        r.rules = RuleSet::Exact;
         let pose = at(0.0, 0.0);
         let face = r
             .render_window_mask(&verts, &pose, w, h, &mut part)
@@ -1933,18 +1924,18 @@ mod tests {
     #[test]
     fn crop_rules_cut_our_box_or_the_official_one() {
         let lm = [10.0f32, -5.0, 30.0, 5.0];
-        let ours = CropRule::Ours.around_landmarks(&lm, 192).unwrap();
+        let ours = RuleSet::Exact.crop_around_landmarks(&lm, 192).unwrap();
         assert_eq!(ours, CropTransform::around_landmarks(&lm, 192));
-        let official = CropRule::Official.around_landmarks(&lm, 192).unwrap();
-        assert_eq!(official.sampling, CropSampling::Corners);
+        let official = RuleSet::Official.crop_around_landmarks(&lm, 192).unwrap();
+        assert_eq!(official.rules, RuleSet::Official);
         // int(20 - 15) = 5 and int(0 - 15) = -15; ours starts at 20 - 15 = 5 and -15
         // too, but its box is 30 wide where the official one maps 30 pixels onto 191.
         assert_eq!((official.x0, official.y0), (5.0, -15.0));
         assert_eq!((ours.x0, ours.side), (5.0, 30.0));
         assert!((official.side - 30.0 * 192.0 / 191.0).abs() < 1e-12);
         assert!(
-            CropRule::Official
-                .around_landmarks(&[3.0, 3.0, 3.0, 3.0], 192)
+            RuleSet::Official
+                .crop_around_landmarks(&[3.0, 3.0, 3.0, 3.0], 192)
                 .is_none()
         );
     }

@@ -30,7 +30,7 @@
 //! [`dense`] checks every point and the matrix size before allocating. Tested below with
 //! crafted files and records.
 
-use crate::crop::{CropSampling, CropTransform};
+use crate::crop::{CropTransform, RuleSet};
 use crate::store::face_targets::FaceTargets;
 use arkit_core::error::{Error, Result};
 use arkit_core::limits;
@@ -192,7 +192,9 @@ pub fn targets_frame(rows: &[TargetsRecord]) -> Result<DataFrame> {
         f("crop_side", &|r| r.crop.side),
         f("crop_side_y", &|r| r.crop.side_y),
         u("crop_size", &|r| r.crop.size),
-        s("crop_sampling", &|r| r.crop.sampling.name().to_string()),
+        s("crop_sampling", &|r| {
+            r.crop.rules.sampling_name().to_string()
+        }),
         b("mask_rle", &|r| pack_u32_le(&r.mask_rle)),
         b("corr_vertices", &|r| {
             pack_u16_le(r.corr_vertices.iter().flatten().copied())
@@ -255,17 +257,17 @@ pub fn read_targets(path: &Path) -> Result<Vec<TargetsRecord>> {
     let sampling = if has("crop_sampling") {
         st("crop_sampling")?
             .iter()
-            .map(|name| match name.as_str() {
-                "centre" => Ok(CropSampling::Centres),
-                "corner" => Ok(CropSampling::Corners),
-                other => Err(Error::format(
-                    path,
-                    format!("crop_sampling {other:?} is neither \"centre\" nor \"corner\""),
-                )),
+            .map(|name| {
+                RuleSet::from_sampling_name(name).ok_or_else(|| {
+                    Error::format(
+                        path,
+                        format!("crop_sampling {name:?} is neither \"centre\" nor \"corner\""),
+                    )
+                })
             })
             .collect::<Result<Vec<_>>>()?
     } else {
-        vec![CropSampling::Centres; df.height()]
+        vec![RuleSet::Exact; df.height()]
     };
     let size = u32s("crop_size", limits::MAX_CROP_SIZE)?;
     let uv_size = u32s("uv_size", limits::MAX_UV_SIZE)?;
@@ -296,7 +298,7 @@ pub fn read_targets(path: &Path) -> Result<Vec<TargetsRecord>> {
                 side: side[i],
                 side_y: side_y[i],
                 size: size[i],
-                sampling: sampling[i],
+                rules: sampling[i],
             },
             mask_rle: unpack_u32_le(&mask[i], "mask_rle").map_err(at(i))?,
             corr_vertices,
@@ -506,7 +508,7 @@ mod tests {
                 side: 2.0,
                 side_y: 2.0,
                 size: 2,
-                sampling: CropSampling::Centres,
+                rules: RuleSet::Exact,
             },
             mask_rle: vec![3, 1],
             corr_vertices: vec![[0, 1, 2]],

@@ -5,7 +5,7 @@
 
 use super::codec::WindowCodec;
 use super::format::{FORMAT, HEADER_BYTES, MANIFEST_FILE, PartHeader};
-use crate::crop::CropSampling;
+use crate::crop::RuleSet;
 use arkit_core::error::{Error, Result};
 use serde::{Deserialize, Serialize};
 use std::path::Path;
@@ -18,8 +18,9 @@ const MAX_MANIFEST_BYTES: u64 = 256 << 20;
 pub struct CropStoreManifest {
     /// [`FORMAT`].
     pub format: u32,
-    /// The rules the boxes and windows follow: `"exact"` or `"official"`.
-    pub compat: String,
+    /// The rules the boxes and windows follow (`"compat"`: `"exact"` or `"official"`).
+    #[serde(rename = "compat")]
+    pub rules: RuleSet,
     /// How the windows are stored.
     pub codec: WindowCodec,
     /// Crop side `S`.
@@ -65,29 +66,13 @@ pub struct MissingCrop {
 }
 
 impl CropStoreManifest {
-    /// The sampling of the crops of its rules (`exact`: pixel centres, `official`:
-    /// corners); other rules are an error.
-    pub(super) fn sampling(&self) -> Result<CropSampling> {
-        match self.compat.as_str() {
-            "exact" => Ok(CropSampling::Centres),
-            "official" => Ok(CropSampling::Corners),
-            other => Err(Error::invalid(
-                "compat",
-                format!("'{other}': expected 'exact' or 'official'"),
-            )),
-        }
-    }
-
     /// The header of the `part-K.bin` of samples shard `index`, with `records` records.
     pub(super) fn part_header(
         &self,
         index: usize,
         records: usize,
     ) -> Result<[u8; HEADER_BYTES as usize]> {
-        let rules = match self.sampling()? {
-            CropSampling::Centres => 0,
-            CropSampling::Corners => 1,
-        };
+        let rules = self.rules.header_code();
         PartHeader {
             format: self.format,
             rules,

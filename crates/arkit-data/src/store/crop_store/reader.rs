@@ -10,6 +10,7 @@ use super::format::{
 use super::manifest::{CropStoreManifest, read_manifest};
 use super::mesh_codec::max_mesh_bytes;
 use super::records::StoredRecord;
+use crate::crop::RuleSet;
 use arkit_core::error::{Error, Result};
 use std::fs::File;
 use std::path::{Path, PathBuf};
@@ -151,13 +152,13 @@ fn read_index(
 }
 
 impl CropStore {
-    /// Opens the store in `dir` for `dataset`, crops of rules `compat` and side
+    /// Opens the store in `dir` for `dataset`, crops of rule set `rules` and side
     /// `img_size`, meshes of `vertex_count` vertices; every check of [`CropStore`]'s
     /// docs but the records'.
     pub fn open(
         dir: &Path,
         dataset: &crate::store::dataset::Dataset,
-        compat: &str,
+        rules: RuleSet,
         img_size: u32,
         vertex_count: usize,
     ) -> Result<Self> {
@@ -175,7 +176,7 @@ impl CropStore {
                 ))
             }
         };
-        expect("compat", manifest.compat.clone(), compat.to_string())?;
+        expect("compat", manifest.rules.to_string(), rules.to_string())?;
         expect(
             "img_size",
             manifest.img_size.to_string(),

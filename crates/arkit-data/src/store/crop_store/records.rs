@@ -334,7 +334,7 @@ impl StoredRecord {
             side: f64_at(at_box + 16),
             side_y: f64_at(at_box + 24),
             size: m.img_size,
-            sampling: m.sampling()?,
+            rules: m.rules,
         };
         let in_record = |e: Error| {
             Error::format(
@@ -378,7 +378,7 @@ impl StoredRecord {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::crop::CropSampling;
+    use crate::crop::RuleSet;
 
     #[test]
     fn a_records_training_crops_decode_only_what_they_reach_and_equal_the_whole_windows() {
@@ -389,7 +389,7 @@ mod tests {
             x ^= x << 5;
             x as u8
         };
-        for sampling in [CropSampling::Centres, CropSampling::Corners] {
+        for rules in RuleSet::ALL {
             let size = 32u32;
             let side = window_side(size);
             let window = image::RgbImage::from_fn(side as u32, side as u32, |x, y| {
@@ -401,7 +401,7 @@ mod tests {
                 side: 60.0,
                 side_y: 61.0,
                 size,
-                sampling,
+                rules,
             };
             let whole = StoredCrop {
                 eval_crop,
@@ -441,7 +441,7 @@ mod tests {
                 assert_eq!(
                     record.crop_pixels(&crop).unwrap(),
                     whole.crop_pixels(&crop).unwrap(),
-                    "{sampling:?} {dx} {dy} {scale}"
+                    "{rules:?} {dx} {dy} {scale}"
                 );
             }
             // A window decoded for a small region refuses a crop reaching past it.

@@ -13,7 +13,7 @@ use super::mesh_codec::encode_mesh;
 use super::reader::CropStore;
 use super::records::{StoredCrop, encode_record};
 use super::writer::write_shard_file;
-use crate::crop::{CropSampling, CropTransform};
+use crate::crop::{CropTransform, RuleSet};
 use arkit_core::error::Result;
 use nalgebra::Point3;
 use std::path::Path;
@@ -21,7 +21,7 @@ use std::path::Path;
 fn manifest() -> CropStoreManifest {
     CropStoreManifest {
         format: FORMAT,
-        compat: "official".into(),
+        rules: RuleSet::Official,
         codec: WindowCodec::Png,
         img_size: 16,
         margin: margin(16),
@@ -47,7 +47,7 @@ fn crop() -> StoredCrop {
             side: 30.0,
             side_y: 31.0,
             size: 16,
-            sampling: CropSampling::Corners,
+            rules: RuleSet::Official,
         },
         verts: vec![Point3::new(0.1, -0.2, 0.3), Point3::new(1.0, 2.0, 3.0)],
         window: image::RgbImage::from_raw(
