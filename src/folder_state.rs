@@ -299,10 +299,13 @@ fn render_arguments(settings: &serde_json::Value) -> String {
             args.push(format!("{flag} {v}"));
         }
     }
-    if let Some(mode) = settings.get("mode").and_then(|m| m.as_str())
-        && mode != "exact"
+    if let Some(rules) = settings
+        .get("mode")
+        .and_then(|m| m.as_str())
+        .and_then(|m| arkit_data::crop::RuleSet::parse(m).ok())
+        && rules != arkit_data::crop::RuleSet::default()
     {
-        args.push(format!("--compat {mode}"));
+        args.push(format!("--compat {rules}"));
     }
     if settings.get("full_mask").and_then(|f| f.as_bool()) == Some(true) {
         args.push("--full-mask".into());

@@ -789,7 +789,7 @@ impl Npz {
     }
 
     /// The array of `key` with exactly `shape`.
-    pub fn require_shape(&self, key: &str, shape: &[usize]) -> Result<&NpyArray> {
+    pub(crate) fn require_shape(&self, key: &str, shape: &[usize]) -> Result<&NpyArray> {
         let a = self.require(key)?;
         if a.shape() != shape {
             return Err(Error::format(

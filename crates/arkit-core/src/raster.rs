@@ -60,7 +60,7 @@
 /// Largest supported viewport side, in pixels.
 pub const MAX_VIEWPORT: u32 = 16384;
 /// Sub-pixel bits of the fixed-point grid.
-pub const SUBPIXEL_BITS: u32 = 8;
+pub(crate) const SUBPIXEL_BITS: u32 = 8;
 const ONE: i64 = 1 << SUBPIXEL_BITS;
 const HALF: i64 = ONE / 2;
 /// Vertices farther than this outside the viewport (pixels) are rejected with their
@@ -359,7 +359,7 @@ impl TriangleSetup {
     /// larger than `depth[idx]` (row-major, `width` wide), stores it there and calls
     /// `emit(idx, fragment)`. The depth key is computed first and the barycentrics only
     /// for pixels that pass, so hidden pixels cost one multiply-add per edge.
-    pub fn for_each_nearer(
+    pub(crate) fn for_each_nearer(
         &self,
         depth: &mut [f32],
         width: usize,
@@ -377,7 +377,7 @@ impl TriangleSetup {
     /// (the same depth keys, tests and stores into `depth`), calling `emit(idx)` where a
     /// pixel passes. The barycentrics are left to [`VisibilityBuffer::fragment_at`], for
     /// the pixels a caller needs.
-    pub fn for_each_nearer_key(
+    pub(crate) fn for_each_nearer_key(
         &self,
         depth: &mut [f32],
         width: usize,
@@ -412,11 +412,6 @@ impl TriangleSetup {
     #[inline]
     fn fragment(&self, x: u32, y: u32, e: [i64; 3], inv_area: f64) -> Fragment {
         fragment_of(self.inv_w, x, y, e, inv_area)
-    }
-
-    /// The clipped pixel box `(x0, y0, x1, y1)`, inclusive.
-    pub fn pixel_box(&self) -> (u32, u32, u32, u32) {
-        (self.x0, self.y0, self.x1, self.y1)
     }
 }
 
@@ -714,8 +709,9 @@ fn top_left_bias(ex: i64, ey: i64) -> i64 {
     ((ex << 26) + ey - 1) >> 63
 }
 
+#[cfg(test)]
 /// Calls `emit` for every pixel covered by one triangle (no depth test).
-pub fn rasterize_triangle(
+pub(crate) fn rasterize_triangle(
     v: [ScreenVertex; 3],
     width: u32,
     height: u32,
@@ -1376,7 +1372,7 @@ impl PixelWindow {
 
 /// Whether [`rasterize_mesh_official`] draws triangles using vertex `p`: finite
 /// coordinates in front of the camera (`inv_w > 0`).
-pub fn official_vertex_ok(p: &ScreenVertex) -> bool {
+pub(crate) fn official_vertex_ok(p: &ScreenVertex) -> bool {
     p.x.is_finite() && p.y.is_finite() && p.inv_w > 0.0
 }
 

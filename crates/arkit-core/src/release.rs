@@ -160,13 +160,17 @@ impl InfoAnnotation {
     }
 
     /// Parses an `_info.npz` archive; `path` names it in errors.
-    pub fn from_npz(npz: &Npz, path: &Path) -> Result<Self> {
+    pub(crate) fn from_npz(npz: &Npz, path: &Path) -> Result<Self> {
         Self::from_npz_with_vertex_count(npz, path, ARKIT_VERTEX_COUNT)
     }
 
     /// As [`InfoAnnotation::from_npz`] for a mesh of `vertex_count` vertices (another
     /// head mesh than ARKit's, such as BIWI's, converted into the release's layout).
-    pub fn from_npz_with_vertex_count(npz: &Npz, path: &Path, vertex_count: usize) -> Result<Self> {
+    pub(crate) fn from_npz_with_vertex_count(
+        npz: &Npz,
+        path: &Path,
+        vertex_count: usize,
+    ) -> Result<Self> {
         let verts = points3(npz.require_finite_f64("verts", &[vertex_count, 3])?);
         let rt = mat16(npz.require_finite_f64("R_t", &[4, 4])?);
         Pose::check_release_rt(&rt).map_err(|e| e.in_file(path))?;
@@ -326,7 +330,7 @@ pub fn read_list(path: &Path) -> Result<Vec<ListRow>> {
 /// Parses list CSV text; `path` names it in errors. See [`read_list`].
 ///
 /// A leading UTF-8 byte-order mark (as Excel writes "CSV UTF-8") is skipped.
-pub fn parse_list(text: &str, path: &Path) -> Result<Vec<ListRow>> {
+pub(crate) fn parse_list(text: &str, path: &Path) -> Result<Vec<ListRow>> {
     let text = text.strip_prefix('\u{feff}').unwrap_or(text);
     let mut lines = text.lines().enumerate();
     let header = loop {

@@ -175,7 +175,7 @@ pub fn unpack_u32_le(b: &[u8], what: &str) -> Result<Vec<u32>> {
 
 /// Little-endian `u16`s of a blob; errors (naming the blob `what`) unless its length is
 /// even.
-pub fn unpack_u16_le(b: &[u8], what: &str) -> Result<Vec<u16>> {
+pub(crate) fn unpack_u16_le(b: &[u8], what: &str) -> Result<Vec<u16>> {
     if !b.len().is_multiple_of(2) {
         return Err(Error::invalid(
             what,

@@ -776,7 +776,7 @@ impl<'a> Machine<'a> {
 /// that is not a dict of tensors (an entry that is not a tensor is named), a name
 /// given twice, more than [`limits::MAX_TORCH_TENSORS`] tensors, a tensor reaching
 /// beyond its storage.
-pub fn parse_state_dict_pickle(data: &[u8], source: &Path) -> Result<Vec<TorchTensor>> {
+pub(crate) fn parse_state_dict_pickle(data: &[u8], source: &Path) -> Result<Vec<TorchTensor>> {
     if data.len() as u64 > limits::MAX_PICKLE_BYTES {
         return Err(Error::format(
             source,

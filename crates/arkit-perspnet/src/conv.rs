@@ -33,12 +33,12 @@ use rayon::prelude::*;
 use super::blas::{Mat, gemm, gemm_raw};
 
 /// Target size of one block of the patch matrix, in floats (1 MiB).
-pub const BLOCK_FLOATS: usize = 1 << 18;
+pub(crate) const BLOCK_FLOATS: usize = 1 << 18;
 
 /// The shape of one convolution: input `b x c x h x w`, kernel
 /// `co x c x kh x kw`, stride and zero padding (the same on both axes).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub struct ConvShape {
+pub(crate) struct ConvShape {
     /// Batch size.
     pub b: usize,
     /// Input channels.
@@ -61,12 +61,12 @@ pub struct ConvShape {
 
 impl ConvShape {
     /// Output height.
-    pub fn ho(&self) -> usize {
+    pub(crate) fn ho(&self) -> usize {
         (self.h + 2 * self.pad - self.kh) / self.stride + 1
     }
 
     /// Output width.
-    pub fn wo(&self) -> usize {
+    pub(crate) fn wo(&self) -> usize {
         (self.w + 2 * self.pad - self.kw) / self.stride + 1
     }
 
@@ -281,7 +281,7 @@ fn with_scratch<R>(len: usize, f: impl FnOnce(&mut [f32]) -> R) -> R {
 
 /// Input gradient: `g` is the output gradient (`b x co x ho x wo`), `w` the
 /// kernel; returns `b x c x h x w`.
-pub fn input_grad(g: &[f32], w: &[f32], s: &ConvShape) -> Vec<f32> {
+pub(crate) fn input_grad(g: &[f32], w: &[f32], s: &ConvShape) -> Vec<f32> {
     let (k, n, co, wo) = (s.k(), s.n(), s.co, s.wo());
     let img = s.c * s.h * s.w;
     let mut dx = vec![0f32; s.b * img];
@@ -325,7 +325,7 @@ pub fn input_grad(g: &[f32], w: &[f32], s: &ConvShape) -> Vec<f32> {
 
 /// Kernel gradient: `x` is the input (`b x c x h x w`), `g` the output gradient;
 /// returns `co x c x kh x kw`.
-pub fn kernel_grad(x: &[f32], g: &[f32], s: &ConvShape) -> Vec<f32> {
+pub(crate) fn kernel_grad(x: &[f32], g: &[f32], s: &ConvShape) -> Vec<f32> {
     let (k, n, co, wo) = (s.k(), s.n(), s.co, s.wo());
     let img = s.c * s.h * s.w;
     s.check(x.len(), co * k, g.len());

@@ -49,7 +49,7 @@ use arkit_data::pose::pnp::Intrinsics;
 
 /// The depth unit of `oz`: the box's width at the face's depth, in units of this
 /// many metres.
-pub const DEPTH_UNIT_M: f64 = 0.2;
+pub(crate) const DEPTH_UNIT_M: f64 = 0.2;
 
 /// Added to the head's output: the 6D of `R = diag(1, -1, -1)` (the face looking at
 /// the camera, in OpenCV's frame), and `(ox, oy, oz) = (0, 0, 1)`.

@@ -111,7 +111,12 @@ impl PointSampler {
     }
 
     /// Builds a sampler from `(u, v)` pairs on `device` (see [`PointSampler::new`]).
-    pub fn from_uv(uv: &[Vec<f32>], height: usize, width: usize, device: &Device) -> Result<Self> {
+    pub(crate) fn from_uv(
+        uv: &[Vec<f32>],
+        height: usize,
+        width: usize,
+        device: &Device,
+    ) -> Result<Self> {
         let p = uv.len();
         let mut idx = vec![0u32; 4 * p];
         let mut wts = vec![0f32; 4 * p];
@@ -259,7 +264,7 @@ pub fn positional_encoding_map(d_model: usize, height: usize, width: usize) -> V
 
 /// Position encodings of the chosen pixels: `choose` is `B x M` (u32 flat
 /// indices in an image of width `width`); returns `B x M x d_model`.
-pub fn positional_encoding_points(
+pub(crate) fn positional_encoding_points(
     choose: &Tensor,
     d_model: usize,
     width: usize,
@@ -355,7 +360,7 @@ pub fn relu(x: &Tensor) -> Result<Tensor> {
 /// from the output `y` (ReLU and LeakyReLU keep the sign), instead of candle's
 /// five tensors for `relu`'s backward (compare, convert, multiply, ...).
 /// f32 CPU tensors; other devices fall back to candle's ops.
-pub fn activate(x: &Tensor, act: Act) -> Result<Tensor> {
+pub(crate) fn activate(x: &Tensor, act: Act) -> Result<Tensor> {
     if x.dtype() != DType::F32 || !x.device().is_cpu() {
         return match act {
             Act::None => Ok(x.clone()),
@@ -420,23 +425,6 @@ impl Conv2d {
     }
 }
 
-impl Conv2d {
-    /// The convolution through candle's built-in `conv2d` (fast forward, but its
-    /// CPU backward goes through a naive `conv_transpose2d` and a whole-image
-    /// kernel, which is very slow).
-    pub fn forward_builtin(&self, x: &Tensor) -> Result<Tensor> {
-        let y = x.conv2d(&self.weight, self.padding, self.stride, 1, 1)?;
-        self.add_bias(y)
-    }
-
-    fn add_bias(&self, y: Tensor) -> Result<Tensor> {
-        match &self.bias {
-            Some(b) => y.broadcast_add(&b.reshape((1, (), 1, 1))?),
-            None => Ok(y),
-        }
-    }
-}
-
 /// `t[..., start : start + len * stride : stride, ...]` along `dim` (the tensor
 /// must have at least `start + len * stride` entries there).
 fn strided_narrow(
@@ -487,27 +475,6 @@ pub fn conv2d_im2col(x: &Tensor, weight: &Tensor, stride: usize, padding: usize)
     }
     let cols = Tensor::stack(&views, 2)?.reshape((b, c * kh * kw, ho * wo))?;
     wmat.broadcast_matmul(&cols)?.reshape((b, co, ho, wo))
-}
-
-/// `B x (C*kh*kw) x (Ho*Wo)` patches of `x` (the im2col matrix), built from
-/// strided views (differentiable).
-pub fn im2col(x: &Tensor, kh: usize, kw: usize, stride: usize, padding: usize) -> Result<Tensor> {
-    let (b, c, h, w) = x.dims4()?;
-    let ho = (h + 2 * padding - kh) / stride + 1;
-    let wo = (w + 2 * padding - kw) / stride + 1;
-    let need_h = kh - 1 + ho * stride;
-    let need_w = kw - 1 + wo * stride;
-    let xp = x
-        .pad_with_zeros(2, padding, need_h.saturating_sub(h + padding))?
-        .pad_with_zeros(3, padding, need_w.saturating_sub(w + padding))?;
-    let mut views = Vec::with_capacity(kh * kw);
-    for di in 0..kh {
-        let rows = strided_narrow(&xp, 2, di, ho, stride)?;
-        for dj in 0..kw {
-            views.push(strided_narrow(&rows, 3, dj, wo, stride)?);
-        }
-    }
-    Tensor::stack(&views, 2)?.reshape((b, c * kh * kw, ho * wo))
 }
 
 /// 2-D convolution (f32, CPU) with candle's fast forward and a GEMM-based
@@ -652,7 +619,7 @@ pub fn linear(vb: VarBuilder, c_in: usize, c_out: usize, std: f64) -> Result<Lin
 
 /// Conv (no bias) + batch norm + activation.
 #[derive(Debug, Clone)]
-pub struct ConvBn {
+pub(crate) struct ConvBn {
     conv: Conv2d,
     bn: BatchNorm2d,
     act: Act,
@@ -724,7 +691,7 @@ pub fn row_entropy(log_p: &Tensor) -> Result<Tensor> {
 }
 
 /// Softmax over the last dimension computed as `exp(log_softmax)`.
-pub fn softmax_last(x: &Tensor) -> Result<Tensor> {
+pub(crate) fn softmax_last(x: &Tensor) -> Result<Tensor> {
     log_softmax_last(x)?.exp()
 }
 

@@ -214,7 +214,7 @@ impl PerspNetLoss {
     }
 
     /// The loss a network of `cfg` trains with: its variant, with or without `L_M`.
-    pub fn for_config(cfg: &super::PerspNetConfig) -> Self {
+    pub(crate) fn for_config(cfg: &super::PerspNetConfig) -> Self {
         Self {
             assignment: cfg.assignment_loss,
             ..Self::new(cfg.loss)
@@ -223,7 +223,7 @@ impl PerspNetLoss {
 
     /// The weights the terms are computed with: [`Self::weights`], with the KL and
     /// entropy weights 0 when `L_M` is off.
-    pub fn effective_weights(&self) -> LossWeights {
+    pub(crate) fn effective_weights(&self) -> LossWeights {
         let mut w = self.weights;
         if !self.assignment {
             w.kl = 0.0;

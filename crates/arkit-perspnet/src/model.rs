@@ -208,7 +208,7 @@ impl PerspNetOutput {
     }
 
     /// Vertices in canonical mesh units (`vertices / 9`), as used for PnP in the official eval.
-    pub fn vertices_canonical(&self) -> Result<Tensor> {
+    pub(crate) fn vertices_canonical(&self) -> Result<Tensor> {
         self.vertices.affine(1.0 / UV_SCALE, 0.0)
     }
 }
@@ -340,7 +340,7 @@ impl PerspNet {
 
     /// Restarts the dropout generator from `seed` (training calls it every step, so a
     /// run, and a resumed run, follow from its seed).
-    pub fn seed_dropout(&self, seed: u64) {
+    pub(crate) fn seed_dropout(&self, seed: u64) {
         *self.dropout_rng.lock().expect("dropout generator") = arkit_core::rng::Rng::new(seed);
     }
 

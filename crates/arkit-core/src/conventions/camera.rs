@@ -26,7 +26,7 @@
 use super::pose::Pose;
 use crate::error::{Error, Result};
 use crate::raster::ScreenVertex;
-use nalgebra::{Matrix3, Matrix4, Point2, Point3, RowVector4};
+use nalgebra::{Matrix3, Matrix4, Point3, RowVector4};
 use std::path::Path;
 
 /// Pinhole intrinsics in the image coordinates described in the module docs.
@@ -76,7 +76,7 @@ impl Camera {
     /// `P[0][0] = P[1][1]` of the release's `projection_matrix.txt`.
     pub const RELEASE_FOCAL_NDC: f64 = 1.57443701;
     /// The release's near plane in metres.
-    pub const RELEASE_NEAR_M: f64 = 0.001;
+    pub(crate) const RELEASE_NEAR_M: f64 = 0.001;
 
     /// The release's projection matrix (the values of `projection_matrix.txt`).
     pub fn release_projection() -> Matrix4<f64> {
@@ -186,7 +186,7 @@ impl Camera {
     }
 
     /// The viewport matrix `M1` of the release (row-vector form).
-    pub fn viewport_matrix(&self) -> Matrix4<f64> {
+    pub(crate) fn viewport_matrix(&self) -> Matrix4<f64> {
         let (w2, h2) = (self.width as f64 / 2.0, self.height as f64 / 2.0);
         Matrix4::new(
             w2, 0.0, 0.0, 0.0, //
@@ -249,12 +249,13 @@ impl Camera {
         screen_vertices(points, columns, height)
     }
 
+    #[cfg(test)]
     /// Projects a point already in OpenGL camera coordinates with the pinhole model.
     /// Independent of the matrix chain; the two must agree.
-    pub fn project_camera_point(&self, pc: &Point3<f64>) -> Point2<f64> {
+    pub(crate) fn project_camera_point(&self, pc: &Point3<f64>) -> nalgebra::Point2<f64> {
         let k = self.pinhole();
         let (x, y, z) = (pc.x, -pc.y, -pc.z);
-        Point2::new(k.fx * x / z + k.cx, k.fy * y / z + k.cy)
+        nalgebra::Point2::new(k.fx * x / z + k.cx, k.fy * y / z + k.cy)
     }
 
     /// Checks that `pose` can be projected by this camera and that every point of

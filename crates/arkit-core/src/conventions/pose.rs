@@ -200,7 +200,7 @@ impl Pose {
     /// Checks that `rt` is a rigid row-vector transform: finite values, last column
     /// `(0, 0, 0, 1)` and an orthonormal right-handed rotation (within
     /// [`ORTHONORMAL_TOLERANCE`]).
-    pub fn check_rigid_rt(rt: &[f64; 16]) -> Result<()> {
+    pub(crate) fn check_rigid_rt(rt: &[f64; 16]) -> Result<()> {
         if let Some(i) = rt.iter().position(|v| !v.is_finite()) {
             return Err(Error::invalid(
                 "R_t",

@@ -52,7 +52,7 @@ use image::{Rgb, RgbImage};
 use nalgebra::{Matrix3, Point2, Point3, Rotation3, Vector3};
 
 /// Ring scales about the nose tip (the official code's).
-pub const RING_SCALES: [f64; 4] = [1.05, 1.1, 1.15, 1.2];
+pub(crate) const RING_SCALES: [f64; 4] = [1.05, 1.1, 1.15, 1.2];
 
 /// The official landmark index of the nose tip.
 pub const NOSE_TIP_LANDMARK: usize = 30;

@@ -128,7 +128,7 @@ impl CropTransform {
     /// [`CropTransform::crop_image`], so the pixels the two share are bit for bit the
     /// same. `crop_image` is `crop_window(image, 0, size)`; the crop store keeps such a
     /// window around each sample's evaluation crop (`crate::store::crop_store`).
-    pub fn crop_window(&self, image: &RgbImage, first: i64, count: usize) -> Vec<u8> {
+    pub(crate) fn crop_window(&self, image: &RgbImage, first: i64, count: usize) -> Vec<u8> {
         if self.rules == RuleSet::Official {
             let (w, h) = image.dimensions();
             return official::warp_affine_window(image.as_raw(), w, h, 3, self, first, count);
@@ -167,7 +167,7 @@ impl CropTransform {
     /// resampling uses (`bilinear_position`; `cv2.warpAffine`'s fixed-point ones for
     /// [`RuleSet::Official`]), so the two cannot drift apart (tested: pixels
     /// outside changed, the output is the same).
-    pub fn window_reach(&self, first: i64, count: usize) -> Option<[(i64, i64); 2]> {
+    pub(crate) fn window_reach(&self, first: i64, count: usize) -> Option<[(i64, i64); 2]> {
         if count == 0 {
             return None;
         }
@@ -194,7 +194,7 @@ impl CropTransform {
     /// A window pixel `j` sits at image position `window.x0 + (first + j + o) * p`
     /// (`p = window.side / size`, `o` the sampling offset), so a box edge `x` is at
     /// `(x - window.x0) / p - first` in the window, and a side `s` is `s / p` there.
-    pub fn in_window(&self, window: &CropTransform, first: i64) -> CropTransform {
+    pub(crate) fn in_window(&self, window: &CropTransform, first: i64) -> CropTransform {
         let (px, py) = (
             window.side / window.size as f64,
             window.side_y / window.size as f64,

@@ -178,12 +178,12 @@ const AB_BITS: u32 = 10;
 const COEF_BITS: u32 = 15;
 
 /// Half of the weights' sum: the warped 0/1 mask rounds to 1 from this face weight up.
-pub const HALF_WEIGHT: u32 = 1 << (COEF_BITS - 1);
+pub(crate) const HALF_WEIGHT: u32 = 1 << (COEF_BITS - 1);
 
 /// Where one crop pixel reads: the top-left tap `(x, y)` and the position's fraction in
 /// 1/32 pixel.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub struct WarpTap {
+pub(crate) struct WarpTap {
     /// Column of the top-left tap (may be outside the image).
     pub x: i32,
     /// Row of the top-left tap.
@@ -216,7 +216,7 @@ fn cv_round(v: f64) -> i64 {
 
 /// The taps of every crop pixel, row-major, as `cv2.warpAffine` computes them for
 /// `crop` (which should have [`RuleSet::Official`]).
-pub fn warp_taps(crop: &CropTransform) -> Vec<WarpTap> {
+pub(crate) fn warp_taps(crop: &CropTransform) -> Vec<WarpTap> {
     warp_taps_window(crop, 0, crop.size as usize)
 }
 
@@ -301,7 +301,7 @@ pub fn warp_affine(
 /// compiler vectorises), then each pixel whose four taps are all in the image blends
 /// two of those values per channel (`blend_columns`); the border's pixels sum their
 /// taps one by one.
-pub fn warp_affine_window(
+pub(crate) fn warp_affine_window(
     src: &[u8],
     width: u32,
     height: u32,
@@ -473,12 +473,13 @@ pub fn warp_mask(full_mask: &[bool], width: u32, height: u32, crop: &CropTransfo
         .collect()
 }
 
+#[cfg(test)]
 /// [`warp_mask`] of the mask `is_face(x, y)` (called only for pixels some tap weighs,
 /// which may be outside the image: answer `false` there): a crop pixel is face when
 /// its face taps weigh at least [`HALF_WEIGHT`], which is where `cv2.warpAffine`'s
 /// rounding of the warped 0/1 mask is above 0. For a mask held over a window of the
 /// image, without the whole image's mask.
-pub fn warp_mask_of(crop: &CropTransform, is_face: impl Fn(i64, i64) -> bool) -> Vec<bool> {
+pub(crate) fn warp_mask_of(crop: &CropTransform, is_face: impl Fn(i64, i64) -> bool) -> Vec<bool> {
     let (columns, rows) = warp_axes(crop, 0, crop.size as usize);
     let mut out = Vec::with_capacity(columns.len() * rows.len());
     for &(y, fy) in &rows {
@@ -504,7 +505,7 @@ pub fn warp_mask_of(crop: &CropTransform, is_face: impl Fn(i64, i64) -> bool) ->
 /// blend of a vertical one (the same integer): each crop row blends its two window
 /// rows once (`(32 - fy) top + fy bottom` of 0/1 values, zero for a row outside the
 /// window), then each pixel two of those values (tested equal to the tap-by-tap sum).
-pub fn warp_mask_in(
+pub(crate) fn warp_mask_in(
     crop: &CropTransform,
     window: arkit_core::raster::PixelWindow,
     mask: &[bool],
@@ -613,7 +614,10 @@ fn face_span(row: &[bool]) -> Option<std::ops::Range<usize>> {
 /// For crop pixel tap `t`, the image pixel (row-major index) the official correspondence
 /// is taken from: the face pixel among the four taps with the largest weight, the
 /// first on a tie; `None` when no tap is a face pixel.
-pub fn nearest_face_tap(t: WarpTap, is_face: impl Fn(i64, i64) -> bool) -> Option<(i64, i64)> {
+pub(crate) fn nearest_face_tap(
+    t: WarpTap,
+    is_face: impl Fn(i64, i64) -> bool,
+) -> Option<(i64, i64)> {
     let (x, y) = (t.x as i64, t.y as i64);
     let corners = [(x, y), (x + 1, y), (x, y + 1), (x + 1, y + 1)];
     let mut best: Option<((i64, i64), u32)> = None;

@@ -77,7 +77,7 @@ impl RuleSet {
     /// Where crop pixel `(i, j)` samples the crop's continuous coordinates: at its
     /// centre `(i + 0.5, j + 0.5)` (ours, the crate's pixel-centre rule) or at the
     /// integer point `(i, j)` (OpenCV's, the official loader's).
-    pub fn sample_offset(self) -> f64 {
+    pub(crate) fn sample_offset(self) -> f64 {
         match self {
             RuleSet::Exact => 0.5,
             RuleSet::Official => 0.0,
@@ -85,7 +85,7 @@ impl RuleSet {
     }
 
     /// The name stored in the targets' `crop_sampling` column: `"centre"` or `"corner"`.
-    pub fn sampling_name(self) -> &'static str {
+    pub(crate) fn sampling_name(self) -> &'static str {
         match self {
             RuleSet::Exact => "centre",
             RuleSet::Official => "corner",
@@ -93,7 +93,7 @@ impl RuleSet {
     }
 
     /// The rule set of a `crop_sampling` column value; `None` for another name.
-    pub fn from_sampling_name(name: &str) -> Option<Self> {
+    pub(crate) fn from_sampling_name(name: &str) -> Option<Self> {
         RuleSet::ALL.into_iter().find(|r| r.sampling_name() == name)
     }
 

@@ -69,13 +69,13 @@ pub const HEAD_ORIGIN_SHIFT_M: [f64; 3] = [0.0, 0.01, -0.021];
 
 /// Largest file of the database read as text (`.obj`, `.cal`, `_pose.txt`): 64 MiB,
 /// checked on the length before reading (a BIWI head mesh is about 1 MB).
-pub const MAX_TEXT_FILE_BYTES: u64 = 64 << 20;
+pub(crate) const MAX_TEXT_FILE_BYTES: u64 = 64 << 20;
 
 /// How the topology of a BIWI dataset is named in its manifest (`topology`).
-pub const TOPOLOGY_PREFIX: &str = "BIWI head mesh";
+pub(crate) const TOPOLOGY_PREFIX: &str = "BIWI head mesh";
 
 /// Most vertices of a head mesh: 1,000,000 (BIWI's have 6,918).
-pub const MAX_MESH_VERTICES: usize = 1_000_000;
+pub(crate) const MAX_MESH_VERTICES: usize = 1_000_000;
 
 /// The camera of a sequence, from `rgb.cal`.
 #[derive(Clone, Debug, PartialEq)]
@@ -375,7 +375,7 @@ impl HeadMesh {
     }
 
     /// The vertices in the release's head frame (module docs): `F p / 1000 - c`.
-    pub fn release_vertices(&self) -> Vec<Point3<f32>> {
+    pub(crate) fn release_vertices(&self) -> Vec<Point3<f32>> {
         let f = flip();
         let c = Vector3::from(HEAD_ORIGIN_SHIFT_M);
         self.vertices

@@ -3,7 +3,7 @@
 //! Stages: [`discover`] the input layout; [`plan_rows`] from the list CSVs (list order,
 //! train before test); cut the rows into shards of `rows_per_shard`; for each shard
 //! this process owns (`--shard I/N`: shards `k` with `k % N == I`), validate every
-//! sample in parallel ([`validate_sample`]) and write `errors/part-K.parquet` then
+//! sample in parallel (`validate_sample_with`) and write `errors/part-K.parquet` then
 //! `samples/part-K.parquet`, each to a temporary name renamed into place, then the
 //! shard's record `samples/part-K.json` (its [`ShardEntry`]). Rows keep list order
 //! within and across shards, so the output is byte-identical whatever the number of
@@ -82,7 +82,7 @@ impl DiscoveredInput {
     }
 
     /// The folders that hold annotations and images (relative), for the orphan scan.
-    pub fn data_dirs(&self) -> Vec<PathBuf> {
+    pub(crate) fn data_dirs(&self) -> Vec<PathBuf> {
         let splits: BTreeSet<&str> = self.lists.iter().map(|(s, _)| s.as_str()).collect();
         let mut dirs = Vec::new();
         for s in splits {
@@ -372,15 +372,6 @@ pub fn check_jpeg_framing(bytes: &[u8]) -> std::result::Result<usize, String> {
     }
 }
 
-/// Validates one sample and builds its row, or says what is wrong with which file.
-pub fn validate_sample(
-    root: &Path,
-    row: &PlannedRow,
-    ctx: &ValidationContext,
-) -> std::result::Result<SampleRecord, Box<ErrorRecord>> {
-    validate_sample_with(root, row, ctx, &ConvertChecks::default()).map_err(|s| s.record)
-}
-
 /// Which per-sample checks run, and the window of the systematic rule
 /// ([`crate::ingest::systematic`]).
 #[derive(Clone, Debug, PartialEq, Eq)]
@@ -403,7 +394,7 @@ impl Default for ConvertChecks {
 
 /// The checks `--skip-check` can turn off: those whose failure does not make the sample
 /// wrong (the pose and image are still checked against each other without them).
-pub const SKIPPABLE_CHECKS: [Check; 1] = [Check::Points2d];
+pub(crate) const SKIPPABLE_CHECKS: [Check; 1] = [Check::Points2d];
 
 /// A skipped sample: its error row, and the check (if a named one) that skipped it.
 #[derive(Debug)]
@@ -430,7 +421,8 @@ fn by(check: Check) -> impl FnOnce(Box<ErrorRecord>) -> Skip {
     }
 }
 
-/// [`validate_sample`] with `checks`; a skip says which check made it.
+/// Validates one sample and builds its row with `checks`, or says what is wrong with
+/// which file; a skip says which check made it.
 fn validate_sample_with(
     root: &Path,
     row: &PlannedRow,
@@ -603,9 +595,9 @@ use arkit_core::limits::{MIN_FACE_SPAN_PX, MIN_IMAGE_SIDE};
 /// (median over the vertices) of `verts` at `R_t` projected into the image, or this
 /// fraction of the image's larger side, whichever is larger; further, the image is not
 /// the one the annotation was made for (another size, another sample).
-pub const POINTS2D_TOLERANCE_PX: f64 = 8.0;
+pub(crate) const POINTS2D_TOLERANCE_PX: f64 = 8.0;
 /// See [`POINTS2D_TOLERANCE_PX`].
-pub const POINTS2D_TOLERANCE_FRACTION: f64 = 0.02;
+pub(crate) const POINTS2D_TOLERANCE_FRACTION: f64 = 0.02;
 
 /// Progress callback: called with the number of samples just finished.
 pub type Progress<'a> = &'a (dyn Fn(usize) + Sync);
@@ -614,7 +606,7 @@ pub type Progress<'a> = &'a (dyn Fn(usize) + Sync);
 /// bytes. The shard count (`--shard I/N`) is not part of it: parts of one conversion
 /// share it.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-pub struct ConversionFingerprint {
+pub(crate) struct ConversionFingerprint {
     /// The input root, absolute.
     pub input_root: String,
     /// The layout found.

@@ -127,7 +127,7 @@ impl InterfaceOrientation {
 
 /// One frame's JSON, parsed and checked. Matrices are in column form (`p' = M p`).
 #[derive(Clone, Debug, PartialEq)]
-pub struct CaptureFrame {
+pub(crate) struct CaptureFrame {
     /// `ARFaceAnchor.transform`: face frame to world.
     pub face_anchor_transform: Matrix4<f64>,
     /// `ARCamera.transform`: sensor camera frame to world.
@@ -315,7 +315,7 @@ impl CaptureFrame {
     }
 
     /// The camera of the written image in the world, column form: `C' = C O`.
-    pub fn written_camera_transform(&self) -> Matrix4<f64> {
+    pub(crate) fn written_camera_transform(&self) -> Matrix4<f64> {
         let mut o = Matrix4::identity();
         o.fixed_view_mut::<3, 3>(0, 0)
             .copy_from(&self.orientation.rotation());
@@ -336,7 +336,7 @@ impl CaptureFrame {
 
     /// The written image's side: `size` if given, else the side that keeps the
     /// capture's focal length in pixels (`round(2 max(fx, fy) / f_ndc)`).
-    pub fn written_side(&self, size: Option<u32>) -> u32 {
+    pub(crate) fn written_side(&self, size: Option<u32>) -> u32 {
         size.unwrap_or_else(|| {
             let f = self.intrinsics[(0, 0)].max(self.intrinsics[(1, 1)]);
             (2.0 * f / Camera::RELEASE_FOCAL_NDC).round() as u32
@@ -524,7 +524,7 @@ fn unreadable_entries(input: &Path) -> Vec<FrameProblem> {
 
 /// A frame made ready to write.
 #[derive(Clone, Debug)]
-pub struct ImportedFrame {
+pub(crate) struct ImportedFrame {
     /// The written image.
     pub image: RgbImage,
     /// Its annotation.

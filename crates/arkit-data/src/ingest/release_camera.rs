@@ -12,7 +12,7 @@ use rayon::prelude::*;
 /// intrinsics for the image they were calibrated on, false when the image was resized
 /// by a factor of 2 or more, or the intrinsics belong to another resolution. The error
 /// says what was found.
-pub fn principal_point_check(
+pub(crate) fn principal_point_check(
     k: &Matrix3<f64>,
     width: u32,
     height: u32,

@@ -32,7 +32,7 @@ pub struct SplitAssignment {
 
 impl SplitAssignment {
     /// The split of a sample.
-    pub fn split_of(&self, key: &SampleKey) -> &str {
+    pub(crate) fn split_of(&self, key: &SampleKey) -> &str {
         self.subject_split
             .get(&key.subject_id)
             .map(|s| s.as_str())

@@ -30,18 +30,18 @@ use std::path::{Path, PathBuf};
 /// The paper's pose ranges (degrees) and distances (metres).
 pub mod ranges {
     /// Yaw range of ARKitFace, degrees.
-    pub const YAW_DEG: (f64, f64) = (-78.0, 77.0);
+    pub(crate) const YAW_DEG: (f64, f64) = (-78.0, 77.0);
     /// Pitch range, degrees.
-    pub const PITCH_DEG: (f64, f64) = (-64.0, 51.0);
+    pub(crate) const PITCH_DEG: (f64, f64) = (-64.0, 51.0);
     /// Roll range, degrees.
-    pub const ROLL_DEG: (f64, f64) = (-90.0, 63.0);
+    pub(crate) const ROLL_DEG: (f64, f64) = (-90.0, 63.0);
     /// Camera distance range, metres.
-    pub const DISTANCE_M: (f64, f64) = (0.3, 0.9);
+    pub(crate) const DISTANCE_M: (f64, f64) = (0.3, 0.9);
 }
 
 /// The facial actions the generator names its folders after, with the expression
 /// (mouth open, smile, brows up, squint) each one shows.
-pub const FACIAL_ACTIONS: [(&str, [f64; EXPRESSION_DIMS]); 6] = [
+pub(crate) const FACIAL_ACTIONS: [(&str, [f64; EXPRESSION_DIMS]); 6] = [
     ("01_Neutral", [0.0, 0.0, 0.0, 0.0]),
     ("02_Smile", [0.1, 1.0, 0.0, 0.3]),
     ("03_MouthOpen", [1.0, 0.0, 0.2, 0.0]),

@@ -62,7 +62,7 @@ impl Check {
     }
 
     /// What to do when this check skips most samples.
-    pub fn advice(self) -> &'static str {
+    pub(crate) fn advice(self) -> &'static str {
         match self {
             Check::Points2d => {
                 "if your release stores points2d in another convention, pass --skip-check points2d (the pose and image are still checked against each other by the 68 landmarks)"
@@ -95,7 +95,7 @@ impl Check {
 /// Counts the skips of the first [`SYSTEMATIC_WINDOW`] (or `window`) samples by check,
 /// in list order, and gives the verdict of the rule (module docs).
 #[derive(Clone, Debug)]
-pub struct SkipTally {
+pub(crate) struct SkipTally {
     window: usize,
     seen: usize,
     counts: BTreeMap<Check, (usize, String)>,
@@ -131,7 +131,7 @@ impl SkipTally {
 
     /// The rule's verdict once the window is full: the check that skipped more than
     /// half of it, with the message to stop with.
-    pub fn verdict(&self, what: &str) -> Option<(Check, String)> {
+    pub(crate) fn verdict(&self, what: &str) -> Option<(Check, String)> {
         if self.window == 0 || self.seen < self.window {
             return None;
         }

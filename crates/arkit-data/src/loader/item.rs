@@ -123,7 +123,7 @@ impl LoaderOptions {
 }
 
 /// How often a training box jitter is drawn again when the official box fails.
-pub const JITTER_DRAWS: usize = 10;
+pub(crate) const JITTER_DRAWS: usize = 10;
 
 /// ImageNet channel means (RGB), the official `Normalize`'s (and the network's input).
 pub const IMAGENET_MEAN: [f32; 3] = [0.485, 0.456, 0.406];
@@ -299,7 +299,7 @@ impl PixelSource {
 
 /// The release's UV layout: `tris_2500x3_202110.npy` and the 1,279 rows of
 /// `uv_coords_std_202109.npy`.
-pub type ReleaseUvLayout = (Vec<[u32; 3]>, Vec<[f32; 2]>);
+pub(crate) type ReleaseUvLayout = (Vec<[u32; 3]>, Vec<[f32; 2]>);
 
 /// Texels of an [`OfficialUvLayout`] next to each other that one UV triangle covers:
 /// texels `start..start + len`, whose weights are `first..first + len` of the layout's
@@ -318,7 +318,7 @@ struct TexelRun {
 /// The official UV layout rasterized once for one map size: per texel the UV triangle
 /// and its screen-space weights, by the official rasterizer's rules at `uv * (S - 1)`.
 #[derive(Clone, Debug)]
-pub struct OfficialUvLayout {
+pub(crate) struct OfficialUvLayout {
     size: u32,
     /// The texels a triangle covers, in texel order, as runs of one triangle's texels.
     covered: Vec<TexelRun>,
@@ -429,7 +429,7 @@ impl OfficialUvLayout {
     /// is the contour vertex the official loader scales by 1.1 for row `V + k`), then a
     /// fan `[l_i, centre, l_i+1]` around each hole centroid (the last three rows), whose
     /// first column is the hole's loop in the official order.
-    pub fn release_order(
+    pub(crate) fn release_order(
         tris: &[[u32; 3]],
         vertex_count: usize,
         rows: usize,
@@ -468,27 +468,20 @@ impl OfficialUvLayout {
         Ok((ring_of, loops))
     }
 
-    /// The official UV map of `verts` (metres), channels first, in [-1, 1]: the
-    /// positions mapped by `4.5 v + 0.5`, the ring at 1.1 times its contour vertex in that
-    /// space, the hole centroids their loops' means, interpolated with the layout's
-    /// weights, clipped to [0, 1] and mapped by `2 x - 1` (uncovered texels -1).
-    pub fn uv_map(&self, verts: &[Point3<f32>]) -> Vec<f32> {
-        let mut out = vec![0f32; 3 * (self.size * self.size) as usize];
-        self.uv_map_into(verts, &mut out);
-        out
-    }
-
-    /// The side, in texels, of the maps [`OfficialUvLayout::uv_map`] draws.
+    /// The side, in texels, of the maps [`OfficialUvLayout::uv_map_into`] draws.
     pub fn size(&self) -> u32 {
         self.size
     }
 
-    /// [`OfficialUvLayout::uv_map`] into `out`: every value written (`-1` where
-    /// uncovered), in one pass.
+    /// The official UV map of `verts` (metres), channels first, in [-1, 1], into `out`:
+    /// the positions mapped by `4.5 v + 0.5`, the ring at 1.1 times its contour vertex
+    /// in that space, the hole centroids their loops' means, interpolated with the
+    /// layout's weights, clipped to [0, 1] and mapped by `2 x - 1`; every value written
+    /// (`-1` where uncovered), in one pass.
     ///
     /// # Panics
     /// When `out` is not `3 x size x size` values.
-    pub fn uv_map_into(&self, verts: &[Point3<f32>], out: &mut [f32]) {
+    pub(crate) fn uv_map_into(&self, verts: &[Point3<f32>], out: &mut [f32]) {
         let colors = self.colours(verts);
         let planes = self.planes_uncovered_filled(out);
         #[cfg(target_arch = "x86_64")]

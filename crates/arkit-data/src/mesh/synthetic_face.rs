@@ -27,7 +27,7 @@ use std::collections::HashMap;
 use std::sync::OnceLock;
 
 /// Number of vertices, as in ARKit's face mesh.
-pub const VERTEX_COUNT: usize = 1220;
+pub(crate) const VERTEX_COUNT: usize = 1220;
 
 /// An axis-aligned ellipse in the parameter plane.
 #[derive(Clone, Copy, Debug)]
@@ -550,9 +550,9 @@ fn embed(p: [f64; 2]) -> Point3<f32> {
 }
 
 /// Number of identity coefficients of [`FaceShapeModel`].
-pub const IDENTITY_DIMS: usize = 6;
+pub(crate) const IDENTITY_DIMS: usize = 6;
 /// Number of expression coefficients of [`FaceShapeModel`].
-pub const EXPRESSION_DIMS: usize = 4;
+pub(crate) const EXPRESSION_DIMS: usize = 4;
 
 /// Smooth identity and expression deformations of a neutral face, defined on the
 /// canonical position so that they apply to any ARKit-like face (built-in or real).

@@ -22,7 +22,7 @@ use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 
 /// Number of landmarks (iBUG 68-point scheme).
-pub const LANDMARK_COUNT: usize = 68;
+pub(crate) const LANDMARK_COUNT: usize = 68;
 /// Index of the nose-tip landmark.
 pub const NOSE_TIP_LANDMARK: usize = 30;
 
@@ -48,7 +48,7 @@ pub struct FaceTopology {
 }
 
 /// A boundary loop: vertex indices in order, following the triangles' orientation.
-pub type BoundaryLoop = Vec<u32>;
+pub(crate) type BoundaryLoop = Vec<u32>;
 
 /// What a boundary loop is, as found from the landmarks on or near it.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -416,7 +416,7 @@ impl FaceTopology {
 
     /// The boundary edges chained into closed loops, in no particular order. Errors
     /// where the boundary pinches (a vertex starts two boundary edges) or breaks off.
-    pub fn unclassified_boundary_loops(&self) -> Result<Vec<BoundaryLoop>> {
+    pub(crate) fn unclassified_boundary_loops(&self) -> Result<Vec<BoundaryLoop>> {
         let edges = self.boundary_edges()?;
         let mut next: HashMap<u32, u32> = HashMap::new();
         for &(a, b) in &edges {

@@ -41,14 +41,14 @@ impl ImageHeader {
 
     /// Bytes decoding needs: the decoder's output plus the 8-bit RGB copy (none when
     /// the file is 8-bit RGB).
-    pub fn decoded_bytes(&self) -> u64 {
+    pub(crate) fn decoded_bytes(&self) -> u64 {
         let own = self.color.bytes_per_pixel() as u64;
         let copy = if self.color == ColorType::Rgb8 { 0 } else { 3 };
         self.pixels().saturating_mul(own + copy)
     }
 
     /// The colour type in words (`8-bit RGB`, `16-bit grey`, ...).
-    pub fn color_name(&self) -> &'static str {
+    pub(crate) fn color_name(&self) -> &'static str {
         match self.color {
             ColorType::L8 => "8-bit grey",
             ColorType::La8 => "8-bit grey with alpha",
@@ -77,7 +77,7 @@ fn limits() -> image::Limits {
 
 /// Reads an image file whole, refusing one larger than [`MAX_IMAGE_FILE_BYTES`] before
 /// reading it (and capping the read, for files whose length lies, such as pipes).
-pub fn read_image_file(path: &Path) -> Result<Vec<u8>> {
+pub(crate) fn read_image_file(path: &Path) -> Result<Vec<u8>> {
     let file = std::fs::File::open(path).map_err(|e| Error::io(path, e))?;
     let len = file.metadata().map_err(|e| Error::io(path, e))?.len();
     let too_large = |n: u64| {
@@ -122,8 +122,9 @@ fn decoder<'a>(bytes: &'a [u8], path: &Path) -> Result<(ImageHeader, impl ImageD
     Ok((header, d))
 }
 
+#[cfg(test)]
 /// The header of an image in memory (PNG or JPEG), no pixel decoded.
-pub fn read_header(bytes: &[u8], path: &Path) -> Result<ImageHeader> {
+pub(crate) fn read_header(bytes: &[u8], path: &Path) -> Result<ImageHeader> {
     decoder(bytes, path).map(|(h, _)| h)
 }
 
@@ -150,7 +151,7 @@ fn check_budget(h: &ImageHeader, path: &Path) -> Result<()> {
 /// Decodes a PNG or JPEG in memory into 8-bit RGB (module docs), after `check` has
 /// accepted its header (for example: the size the caller expects) and the header has
 /// passed `check_budget`. `path` names the image in errors.
-pub fn decode_rgb8_checked(
+pub(crate) fn decode_rgb8_checked(
     bytes: &[u8],
     path: &Path,
     check: impl FnOnce(&ImageHeader) -> Result<()>,
@@ -163,8 +164,9 @@ pub fn decode_rgb8_checked(
     Ok(image.into_rgb8())
 }
 
+#[cfg(test)]
 /// [`decode_rgb8_checked`] without a check of the caller's.
-pub fn decode_rgb8(bytes: &[u8], path: &Path) -> Result<RgbImage> {
+pub(crate) fn decode_rgb8(bytes: &[u8], path: &Path) -> Result<RgbImage> {
     decode_rgb8_checked(bytes, path, |_| Ok(()))
 }
 

@@ -38,7 +38,7 @@ impl MeshStyle {
 
 /// Draws the mesh `verts` (canonical frame, metres) posed by `pose` and projected with
 /// the release camera of the image's size.
-pub fn draw_mesh(
+pub(crate) fn draw_mesh(
     image: &mut RgbImage,
     topology: &FaceTopology,
     verts: &[Point3<f64>],

@@ -80,7 +80,7 @@ impl DemoSquare {
     }
 
     /// A point of the square, in photo pixels (the inverse of the box map).
-    pub fn point_to_photo(&self, u: f64, v: f64) -> (f64, f64) {
+    pub(crate) fn point_to_photo(&self, u: f64, v: f64) -> (f64, f64) {
         let s = self.scale();
         (u / s - self.pad_left as f64, v / s - self.pad_top as f64)
     }
@@ -138,7 +138,7 @@ fn linear_taps(src: u32, dst: u32) -> Vec<(usize, usize, i32, i32)> {
 /// each 2 x 2 block, rounded (OpenCV takes its area path there).
 ///
 /// Panics on an empty image or size.
-pub fn resize_linear(image: &RgbImage, width: u32, height: u32) -> RgbImage {
+pub(crate) fn resize_linear(image: &RgbImage, width: u32, height: u32) -> RgbImage {
     let (w, h) = image.dimensions();
     assert!(
         w > 0 && h > 0 && width > 0 && height > 0,

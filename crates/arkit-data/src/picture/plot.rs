@@ -424,9 +424,9 @@ pub struct Series {
 }
 
 /// Size of a line chart in SVG units.
-pub const LINE_WIDTH: f64 = 760.0;
+pub(crate) const LINE_WIDTH: f64 = 760.0;
 /// See [`LINE_WIDTH`].
-pub const LINE_HEIGHT: f64 = 340.0;
+pub(crate) const LINE_HEIGHT: f64 = 340.0;
 /// The line chart's plot area: left, right, top and bottom edges in SVG units.
 pub const LINE_PLOT: [f64; 4] = [78.0, LINE_WIDTH - 150.0, 44.0, LINE_HEIGHT - 56.0];
 
@@ -569,7 +569,7 @@ pub fn log_line_svg(title: &str, x_label: &str, y_label: &str, series: &[Series]
 /// sheet's size. With `href` (the sheet's file name, relative) it shows the picture under
 /// the captions (a file to open on its own); without, it holds only the captions, to lay
 /// over the picture (the report does).
-pub fn sheet_labels_svg(
+pub(crate) fn sheet_labels_svg(
     title: &str,
     href: Option<&str>,
     sheet: (u32, u32),

@@ -71,7 +71,7 @@ impl PhotoCamera {
 
     /// A point of the demo's square in this camera's image: itself for the demo's
     /// camera, the photo pixel under it for the photo's.
-    pub fn image_point(&self, square: &DemoSquare, u: f64, v: f64) -> Point2<f64> {
+    pub(crate) fn image_point(&self, square: &DemoSquare, u: f64, v: f64) -> Point2<f64> {
         match self {
             PhotoCamera::Demo => Point2::new(u, v),
             PhotoCamera::FocalPx(_) => {
@@ -82,7 +82,7 @@ impl PhotoCamera {
     }
 
     /// A camera's image point back in the photo's pixels.
-    pub fn to_photo(&self, square: &DemoSquare, p: Point2<f64>) -> (f64, f64) {
+    pub(crate) fn to_photo(self, square: &DemoSquare, p: Point2<f64>) -> (f64, f64) {
         match self {
             PhotoCamera::Demo => square.point_to_photo(p.x, p.y),
             PhotoCamera::FocalPx(_) => (p.x, p.y),

@@ -55,11 +55,11 @@ pub struct RenderOptions {
 
 impl RenderOptions {
     /// Crop sides accepted (`--size`).
-    pub const SIZE: std::ops::RangeInclusive<u32> = 16..=1024;
+    pub(crate) const SIZE: std::ops::RangeInclusive<u32> = 16..=1024;
     /// UV map sides accepted (`--uv-size`).
-    pub const UV_SIZE: std::ops::RangeInclusive<u32> = 16..=512;
+    pub(crate) const UV_SIZE: std::ops::RangeInclusive<u32> = 16..=512;
     /// Points per sample accepted (`--points`; also at most `size * size`).
-    pub const POINTS: std::ops::RangeInclusive<usize> = 1..=65_536;
+    pub(crate) const POINTS: std::ops::RangeInclusive<usize> = 1..=65_536;
 
     /// Checks every option, naming the command-line option in the error.
     pub fn validate(&self) -> Result<()> {

@@ -144,7 +144,7 @@ impl FaceRenderer {
     /// [`FaceRenderer::render`]'s, bit for bit (tested). `buffer` is reused between
     /// calls and borrowed by the result. In [`RuleSet::Official`], whose targets go
     /// through the whole image and a warp ([`FaceRenderer::render`]), an error.
-    pub fn render_visibility<'a>(
+    pub(crate) fn render_visibility<'a>(
         &'a self,
         verts: &[Point3<f32>],
         pose: &Pose,
@@ -162,7 +162,6 @@ impl FaceRenderer {
         let screen = self.rasterize(verts, pose, width, height, Some(crop), buffer, false)?;
         let mask = self.face_pixels(buffer);
         Ok(CropVisibility {
-            crop: *crop,
             mask,
             screen,
             triangles: &self.triangles,
@@ -324,7 +323,7 @@ impl FaceRenderer {
     /// raster, pixel `(x, y)` at `window.index(x, y)`: in official mode its triangles
     /// and depths only, the weights computed where needed by
     /// [`WindowMask::official_weights`] (most of the raster's writes saved).
-    pub fn render_window_mask(
+    pub(crate) fn render_window_mask(
         &self,
         verts: &[Point3<f32>],
         pose: &Pose,
@@ -468,9 +467,7 @@ fn check_viewport(width: u32, height: u32, what: &str) -> Result<()> {
 /// A face's visibility in a crop ([`FaceRenderer::render_visibility`]): the mask of
 /// [`FaceRenderer::render`]'s targets, and its correspondences at the pixels asked for.
 #[derive(Debug)]
-pub struct CropVisibility<'a> {
-    /// The crop.
-    pub crop: CropTransform,
+pub(crate) struct CropVisibility<'a> {
     /// Face mask, row-major `size * size` ([`FaceTargets::mask`]).
     pub mask: Vec<bool>,
     /// The vertices (and hole centroids) as drawn, in crop pixels.
@@ -488,7 +485,7 @@ impl CropVisibility<'_> {
     /// [`FaceTargets::corr_weights`] (same bits). `None` where the pixel is not face
     /// (or outside the crop).
     #[inline]
-    pub fn correspondence_at(&self, pixel: u32) -> Option<([u16; 3], [f32; 3])> {
+    pub(crate) fn correspondence_at(&self, pixel: u32) -> Option<([u16; 3], [f32; 3])> {
         if !*self.mask.get(pixel as usize)? {
             return None;
         }
@@ -506,7 +503,7 @@ impl CropVisibility<'_> {
 /// ([`FaceRenderer::render_window_mask`]): row-major over `window`; every pixel outside
 /// the window is not face.
 #[derive(Clone, Debug, PartialEq)]
-pub struct WindowMask {
+pub(crate) struct WindowMask {
     /// The image pixels held.
     pub window: PixelWindow,
     /// Per window pixel, whether it shows the face.
@@ -529,14 +526,16 @@ impl WindowMask {
 
     /// Whether image pixel `(x, y)` shows the face (never outside the window, nor
     /// outside the image).
+    #[cfg(test)]
     #[inline]
-    pub fn is_face(&self, x: i64, y: i64) -> bool {
+    pub(crate) fn is_face(&self, x: i64, y: i64) -> bool {
         self.window.index(x, y).is_some_and(|i| self.mask[i])
     }
 
     /// The mask over the whole `width x height` image (row-major), as
     /// [`FaceRenderer::render_full_mask`] returns it.
-    pub fn to_full(&self, width: u32, height: u32) -> Vec<bool> {
+    #[cfg(test)]
+    pub(crate) fn to_full(&self, width: u32, height: u32) -> Vec<bool> {
         let w = width as i64;
         (0..width as usize * height as usize)
             .map(|i| self.is_face(i as i64 % w, i as i64 / w))
@@ -547,7 +546,7 @@ impl WindowMask {
     /// image), as row-major offsets in the rectangle: numpy's
     /// `np.nonzero(mask[rows, cols].ravel())`. Only the rectangle's part inside the
     /// window is visited.
-    pub fn face_offsets(&self, rows: Range<i64>, cols: Range<i64>) -> Vec<i64> {
+    pub(crate) fn face_offsets(&self, rows: Range<i64>, cols: Range<i64>) -> Vec<i64> {
         let w = &self.window;
         let clip = |r: &Range<i64>, start: u32, len: u32| {
             r.start.max(start as i64)..r.end.min(start as i64 + len as i64)
@@ -704,7 +703,7 @@ pub struct UvMapper {
 }
 
 /// How far the ring outside the contour is pushed (the release's `* 1.1`).
-pub const RING_SCALE: f32 = 1.1;
+pub(crate) const RING_SCALE: f32 = 1.1;
 
 impl UvMapper {
     /// Derives the extension from the topology: the hole centroids at the mean UV of
@@ -994,7 +993,12 @@ impl UvTexels {
     ///
     /// # Panics
     /// When `extended` is not one position per UV vertex or `out` not `3 x size x size`.
-    pub fn clamped_planes_into(&self, extended: &[Point3<f32>], scale: f32, out: &mut [f32]) {
+    pub(crate) fn clamped_planes_into(
+        &self,
+        extended: &[Point3<f32>],
+        scale: f32,
+        out: &mut [f32],
+    ) {
         thread_local! {
             /// The last table's identity and a position map for it: NaN wherever that
             /// table covers nothing (no texel of it is ever written there).
@@ -1482,7 +1486,6 @@ mod tests {
                 .render_visibility(&verts, &pose, 800, 800, &crop, &mut visible)
                 .unwrap();
             assert_eq!(v.mask, t.mask, "yaw {yaw}");
-            assert_eq!(v.crop, t.crop);
             for (k, &pixel) in t.mask_pixels().iter().enumerate() {
                 let (ids, weights) = v.correspondence_at(pixel).expect("a mask pixel");
                 assert_eq!(ids, t.corr_vertices[k], "yaw {yaw} pixel {pixel}");

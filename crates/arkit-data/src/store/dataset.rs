@@ -30,7 +30,7 @@ use std::path::{Path, PathBuf};
 use crate::store::manifest::MANIFEST_FILE;
 
 /// The environment variable that overrides the input root recorded in a manifest.
-pub const INPUT_ROOT_ENV: &str = "ARKIT_INPUT_ROOT";
+pub(crate) const INPUT_ROOT_ENV: &str = "ARKIT_INPUT_ROOT";
 
 /// A converted dataset (the folder `convert` wrote).
 #[derive(Clone, Debug)]
@@ -87,7 +87,7 @@ impl Dataset {
     }
 
     /// The folder images that are not embedded are read from.
-    pub fn image_root(&self) -> &Path {
+    pub(crate) fn image_root(&self) -> &Path {
         &self.image_root
     }
 

@@ -32,7 +32,8 @@ impl FaceTargets {
 
     /// The coordinate map at the mask pixels: the canonical position under each pixel,
     /// `sum_k w_k V_k`.
-    pub fn coordinate_map(&self, verts: &[Point3<f32>]) -> Vec<Point3<f32>> {
+    #[cfg(test)]
+    pub(crate) fn coordinate_map(&self, verts: &[Point3<f32>]) -> Vec<Point3<f32>> {
         (0..self.corr_vertices.len())
             .map(|k| self.coordinate_at(verts, k))
             .collect()
@@ -40,7 +41,8 @@ impl FaceTargets {
 
     /// The coordinate map at the `k`-th mask pixel alone (what
     /// [`FaceTargets::coordinate_map`] holds there), for callers that need a few points.
-    pub fn coordinate_at(&self, verts: &[Point3<f32>], k: usize) -> Point3<f32> {
+    #[cfg(test)]
+    pub(crate) fn coordinate_at(&self, verts: &[Point3<f32>], k: usize) -> Point3<f32> {
         canonical_position(verts, self.corr_vertices[k], self.corr_weights[k])
     }
 }

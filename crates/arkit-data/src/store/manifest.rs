@@ -59,7 +59,7 @@ pub struct ShardEntry {
 }
 
 /// How many bytes at a file's end [`tail_sha256`] hashes.
-pub const TAIL_BYTES: u64 = 64 * 1024;
+pub(crate) const TAIL_BYTES: u64 = 64 * 1024;
 
 /// `dataset.json` (or one part of it for `--shard I/N`).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -168,7 +168,7 @@ pub fn check_shard_file(path: &Path, bytes: u64, tail: &str) -> Result<()> {
 
 /// SHA-256 of a topology's vertex count, triangles and landmark indices, hex: what
 /// decides whether a dataset's meshes and a command's topology agree.
-pub fn topology_digest(topology: &FaceTopology) -> String {
+pub(crate) fn topology_digest(topology: &FaceTopology) -> String {
     let mut h = Sha256::new();
     h.update((topology.vertex_count as u64).to_le_bytes());
     for t in &topology.triangles {

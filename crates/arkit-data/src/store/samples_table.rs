@@ -92,13 +92,13 @@ pub const SAMPLES_FORMAT: u32 = 2;
 
 /// The key-value metadata key of our own record (`{"table": "samples",
 /// "samples_format": 2}`).
-pub const ARKIT_METADATA_KEY: &str = "arkit_tool";
+pub(crate) const ARKIT_METADATA_KEY: &str = "arkit_tool";
 
 /// The key-value metadata key Hugging Face `datasets` reads its features from.
-pub const HUGGINGFACE_METADATA_KEY: &str = "huggingface";
+pub(crate) const HUGGINGFACE_METADATA_KEY: &str = "huggingface";
 
 /// Number of landmarks in `landmarks_2d` (the iBUG 68-point scheme).
-pub const LANDMARKS: usize = crate::mesh::topology::LANDMARK_COUNT;
+pub(crate) const LANDMARKS: usize = crate::mesh::topology::LANDMARK_COUNT;
 
 /// The columns of the `samples` table, in order.
 pub const SAMPLES_COLUMNS: [ColumnSpec; 20] = [
@@ -418,7 +418,7 @@ pub fn write_samples(path: &Path, rows: &[SampleRecord], vertices: usize) -> Res
 }
 
 /// The `errors` rows as a DataFrame with exactly [`ERRORS_COLUMNS`].
-pub fn errors_frame(rows: &[ErrorRecord]) -> Result<DataFrame> {
+pub(crate) fn errors_frame(rows: &[ErrorRecord]) -> Result<DataFrame> {
     let columns = vec![
         strings("subject_id", rows.iter().map(|r| r.key.subject_id.as_str())),
         strings(
@@ -434,7 +434,7 @@ pub fn errors_frame(rows: &[ErrorRecord]) -> Result<DataFrame> {
 }
 
 /// A column's name and its two-dimensional shape.
-pub type ColumnShape = (String, [usize; 2]);
+pub(crate) type ColumnShape = (String, [usize; 2]);
 
 /// The shapes a samples file's `huggingface` metadata gives its `Array2D` columns, in
 /// order of their names (`None` when the file has no such record: format 1). A record that is

@@ -40,7 +40,7 @@ impl SplitLookup {
 
     /// [`SplitLookup::keeps`] from a sample's key and listed split only (as
     /// [`crate::store::samples_table::read_sample_keys`] gives them, without the meshes).
-    pub fn keeps_key(&self, key: &SampleKey, listed: &str, want: Option<&str>) -> bool {
+    pub(crate) fn keeps_key(&self, key: &SampleKey, listed: &str, want: Option<&str>) -> bool {
         want.is_none_or(|w| self.of_key(key, listed) == w)
     }
 }

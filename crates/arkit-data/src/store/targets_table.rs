@@ -110,7 +110,12 @@ impl TargetsRecord {
     }
 
     /// Records the sample's image size and, when rendered, its full-image mask.
-    pub fn with_image(mut self, width: u32, height: u32, full_mask: Option<&[bool]>) -> Self {
+    pub(crate) fn with_image(
+        mut self,
+        width: u32,
+        height: u32,
+        full_mask: Option<&[bool]>,
+    ) -> Self {
         self.image_width = width;
         self.image_height = height;
         self.full_mask_rle = full_mask.map(rle_encode).unwrap_or_default();
@@ -151,20 +156,10 @@ impl TargetsRecord {
             .map(|c| [0, 1, 2].map(|k| f16::from_bits(c[k]).to_f32()))
             .collect()
     }
-
-    /// Bytes of the packed payload (what dominates the file size before compression).
-    pub fn payload_bytes(&self) -> usize {
-        self.mask_rle.len() * 4
-            + self.corr_vertices.len() * 6
-            + self.corr_weights_q.len() * 4
-            + self.points.len() * 4
-            + self.uv_map.len() * 2
-            + self.full_mask_rle.len() * 4
-    }
 }
 
 /// The rows as a DataFrame (columns as `schemas/targets.json`).
-pub fn targets_frame(rows: &[TargetsRecord]) -> Result<DataFrame> {
+pub(crate) fn targets_frame(rows: &[TargetsRecord]) -> Result<DataFrame> {
     let s = |name: &str, f: &dyn Fn(&TargetsRecord) -> String| {
         Column::new(name.into(), rows.iter().map(f).collect::<Vec<String>>())
     };

@@ -5,7 +5,7 @@ use super::proto::{self, Attr, Dim, Message};
 
 /// A graph under construction.
 #[derive(Debug, Default)]
-pub struct Graph {
+pub(crate) struct Graph {
     nodes: Vec<Message>,
     initializers: Vec<Message>,
     inputs: Vec<Message>,
@@ -44,7 +44,7 @@ impl Graph {
     }
 
     /// A float constant (an initializer) named after `hint`.
-    pub fn constant_f32(&mut self, hint: &str, dims: &[usize], values: &[f32]) -> String {
+    pub(crate) fn constant_f32(&mut self, hint: &str, dims: &[usize], values: &[f32]) -> String {
         debug_assert_eq!(dims.iter().product::<usize>(), values.len());
         let name = self.fresh(hint);
         self.constant_values += values.len();
@@ -54,7 +54,7 @@ impl Graph {
     }
 
     /// An int64 constant (an initializer) named after `hint`.
-    pub fn constant_i64(&mut self, hint: &str, dims: &[usize], values: &[i64]) -> String {
+    pub(crate) fn constant_i64(&mut self, hint: &str, dims: &[usize], values: &[i64]) -> String {
         debug_assert_eq!(dims.iter().product::<usize>(), values.len());
         let name = self.fresh(hint);
         self.constant_values += values.len();

@@ -22,13 +22,13 @@ const LEN: u32 = 2;
 const FIXED32: u32 = 5;
 
 /// `TensorProto.DataType.FLOAT`.
-pub const FLOAT: i32 = 1;
+pub(crate) const FLOAT: i32 = 1;
 /// `TensorProto.DataType.INT64`.
-pub const INT64: i32 = 7;
+pub(crate) const INT64: i32 = 7;
 
 /// An encoded message's bytes, built field by field.
 #[derive(Debug, Default, Clone)]
-pub struct Message(Vec<u8>);
+pub(crate) struct Message(Vec<u8>);
 
 impl Message {
     /// An empty message.
@@ -37,7 +37,7 @@ impl Message {
     }
 
     /// The encoded bytes.
-    pub fn into_bytes(self) -> Vec<u8> {
+    pub(crate) fn into_bytes(self) -> Vec<u8> {
         self.0
     }
 
@@ -88,7 +88,7 @@ impl Message {
 
 /// The dimension of a value's shape: a number or a symbolic name (`dim_param`).
 #[derive(Debug, Clone, PartialEq)]
-pub enum Dim {
+pub(crate) enum Dim {
     /// A fixed size.
     Fixed(usize),
     /// A size named by a string, chosen at run time (the batch).
@@ -99,7 +99,7 @@ pub enum Dim {
 /// `elem_type` and the given shape: `TypeProto` (tensor_type = 1) ->
 /// `TypeProto.Tensor` (elem_type = 1, shape = 2) -> `TensorShapeProto` (dim = 1) ->
 /// `Dimension` (dim_value = 1, dim_param = 2).
-pub fn value_info(name: &str, elem_type: i32, dims: &[Dim], doc: &str) -> Message {
+pub(crate) fn value_info(name: &str, elem_type: i32, dims: &[Dim], doc: &str) -> Message {
     let mut shape = Message::new();
     for d in dims {
         let mut dim = Message::new();
@@ -122,13 +122,13 @@ pub fn value_info(name: &str, elem_type: i32, dims: &[Dim], doc: &str) -> Messag
 }
 
 /// `TensorProto` (dims = 1, data_type = 2, name = 8, raw_data = 9) of `f32` values.
-pub fn tensor_f32(name: &str, dims: &[usize], values: &[f32]) -> Message {
+pub(crate) fn tensor_f32(name: &str, dims: &[usize], values: &[f32]) -> Message {
     let raw: Vec<u8> = values.iter().flat_map(|v| v.to_le_bytes()).collect();
     tensor_raw(name, dims, FLOAT, &raw)
 }
 
 /// `TensorProto` of `i64` values (see [`tensor_f32`]).
-pub fn tensor_i64(name: &str, dims: &[usize], values: &[i64]) -> Message {
+pub(crate) fn tensor_i64(name: &str, dims: &[usize], values: &[i64]) -> Message {
     let raw: Vec<u8> = values.iter().flat_map(|v| v.to_le_bytes()).collect();
     tensor_raw(name, dims, INT64, &raw)
 }
@@ -144,7 +144,7 @@ fn tensor_raw(name: &str, dims: &[usize], data_type: i32, raw: &[u8]) -> Message
 
 /// An attribute's value.
 #[derive(Debug, Clone)]
-pub enum Attr {
+pub(crate) enum Attr {
     /// `AttributeType.FLOAT` (1), field `f` = 2.
     Float(f32),
     /// `AttributeType.INT` (2), field `i` = 3.

@@ -131,7 +131,7 @@ impl Default for Augmentation {
 
 impl Example {
     /// The view `render` stored: the crop as is and the stored points.
-    pub fn stored_item(&self) -> LoaderItem {
+    pub(crate) fn stored_item(&self) -> LoaderItem {
         self.item_of(
             normalise(&self.rgb),
             self.mask.clone(),

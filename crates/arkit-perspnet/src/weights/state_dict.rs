@@ -25,7 +25,7 @@ use candle_core::{DType, Device, Tensor};
 use candle_nn::VarMap;
 
 /// The batch-norm step counter PyTorch keeps beside the running statistics.
-pub const NUM_BATCHES_TRACKED: &str = "num_batches_tracked";
+pub(crate) const NUM_BATCHES_TRACKED: &str = "num_batches_tracked";
 
 /// Prefixes of the per-point `Conv1d` layers (stored as linear weights here).
 const POINT_LAYERS: [&str; 4] = [
@@ -107,7 +107,7 @@ pub fn export_state_dict(
 
 /// What a `state_dict` has that the network does not expect, and the reverse.
 #[derive(Debug, Clone, Default, PartialEq, Eq)]
-pub struct Mismatch {
+pub(crate) struct Mismatch {
     /// Expected names the file does not have.
     pub missing: Vec<String>,
     /// Names in the file the network does not have.
@@ -166,7 +166,10 @@ fn is_integer(d: DType) -> bool {
 }
 
 /// Compares a file's `(name, shape, dtype)` list with the expected entries.
-pub fn match_entries(expected: &[StateEntry], found: &[(String, Vec<usize>, DType)]) -> Mismatch {
+pub(crate) fn match_entries(
+    expected: &[StateEntry],
+    found: &[(String, Vec<usize>, DType)],
+) -> Mismatch {
     let want: BTreeMap<&str, &StateEntry> = expected.iter().map(|e| (e.name.as_str(), e)).collect();
     let have: BTreeMap<&str, (&Vec<usize>, DType)> = found
         .iter()
@@ -201,7 +204,7 @@ pub fn match_entries(expected: &[StateEntry], found: &[(String, Vec<usize>, DTyp
 /// which `DataParallel` adds, removed). Opening reads the names, types and shapes only;
 /// [`WeightFile::load_into`] matches them with the network before it reads any data,
 /// then reads the tensors one at a time.
-pub struct WeightFile {
+pub(crate) struct WeightFile {
     names: Vec<(String, Vec<usize>, DType)>,
     rename: HashMap<String, String>,
     source: RefCell<Source>,
@@ -214,7 +217,7 @@ enum Source {
 
 /// Reading a weights file failed: the file could not be read, or did not match.
 #[derive(Debug)]
-pub enum WeightError {
+pub(crate) enum WeightError {
     /// The file is not a PyTorch zip or a safetensors file, or could not be read.
     Read(String),
     /// Names or shapes differ from the network's.
@@ -345,7 +348,7 @@ impl WeightFile {
     /// Sets every variable of `varmap` from this file after checking that the names
     /// and shapes are exactly the official `state_dict`'s for that network; returns
     /// the batch norms' `num_batches_tracked` (the largest, 0 without any).
-    pub fn load_into(&self, varmap: &VarMap) -> Result<i64, WeightError> {
+    pub(crate) fn load_into(&self, varmap: &VarMap) -> Result<i64, WeightError> {
         let expected = state_dict_entries(varmap);
         let m = match_entries(&expected, &self.names);
         if !m.is_empty() {

@@ -42,7 +42,7 @@ pub(super) const INDEX_MAGIC: &[u8; 8] = b"ARKCIDX4";
 /// Bytes of a dataset fingerprint (SHA-256, lower-case hex) in headers and records.
 pub(super) const FINGERPRINT_BYTES: usize = 64;
 /// Widest key field a store has (a key longer than this is refused by `crops`).
-pub const MAX_KEY_BYTES: usize = 1024;
+pub(crate) const MAX_KEY_BYTES: usize = 1024;
 /// Where a record's fields start: CRC, status, row, shard, key length, fingerprint, key.
 pub(super) const AT_STATUS: usize = 4;
 pub(super) const AT_ROW: usize = 8;
@@ -59,7 +59,7 @@ pub(super) fn record_prefix(key_bytes: usize) -> usize {
 
 /// The key field's width for a dataset whose longest key has `longest` bytes: a
 /// multiple of 8, at least 8.
-pub fn key_field_bytes(longest: usize) -> usize {
+pub(crate) fn key_field_bytes(longest: usize) -> usize {
     longest.max(1).div_ceil(8) * 8
 }
 

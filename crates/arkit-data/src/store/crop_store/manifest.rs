@@ -90,7 +90,7 @@ impl CropStoreManifest {
 }
 
 /// Writes `crops.json` (atomically; last, after every shard file).
-pub fn write_manifest(dir: &Path, manifest: &CropStoreManifest) -> Result<()> {
+pub(crate) fn write_manifest(dir: &Path, manifest: &CropStoreManifest) -> Result<()> {
     let text = serde_json::to_string_pretty(manifest).expect("manifest serialises");
     arkit_core::atomic_file::write_bytes(&dir.join(MANIFEST_FILE), text.as_bytes())
 }

@@ -43,7 +43,7 @@ impl StoredCrop {
     /// the centre when it is the evaluation crop, else resampled from the window. A
     /// crop that reaches pixels of the window not decoded (read as its centre, or as a
     /// region the crop reaches past) is an error.
-    pub fn crop_pixels(&self, crop: &CropTransform) -> Result<Vec<u8>> {
+    pub(crate) fn crop_pixels(&self, crop: &CropTransform) -> Result<Vec<u8>> {
         if *crop == self.eval_crop {
             return Ok(self.centre());
         }
@@ -146,7 +146,7 @@ impl StoredRecord {
     /// as [`StoredCrop::crop_pixels`]), decoding only what it needs: the centre for the
     /// evaluation crop, else the parts of the window the crop reaches
     /// ([`WindowPart::Region`]).
-    pub fn crop_pixels(&self, crop: &CropTransform) -> Result<Vec<u8>> {
+    pub(crate) fn crop_pixels(&self, crop: &CropTransform) -> Result<Vec<u8>> {
         let first = window_first(self.eval_crop.size);
         if let StoredWindow::Pixels(window) = &self.window {
             // Pixels as stored are resampled where they were read.
@@ -180,7 +180,7 @@ impl StoredRecord {
 /// One record's bytes: row `row` of samples shard `shard`, sample `key`; a stored crop
 /// (its window stored by the manifest's codec), or `None` for a sample without pixels
 /// (status 0). A key wider than the manifest's key field is an error.
-pub fn encode_record(
+pub(crate) fn encode_record(
     manifest: &CropStoreManifest,
     shard: usize,
     row: usize,

@@ -12,7 +12,7 @@ use std::path::Path;
 /// Writes `dir/part-K.bin` (atomically) from its records, in row order: the header,
 /// the records, their index (`records + 1` offsets from the file's start, the last
 /// the index's own) and the footer (its magic and the index's CRC).
-pub fn write_shard_file(
+pub(crate) fn write_shard_file(
     dir: &Path,
     manifest: &CropStoreManifest,
     index: usize,
