@@ -17,8 +17,9 @@
 use crate::report::{self, Figure, Page, StageTiming};
 use arkit_core::conventions::Camera;
 use arkit_core::error::{Error, Result};
+use arkit_core::predictions_csv::PredictionRecord;
 use arkit_data::augment::dataset::{AugmentOptions, AxisChoice, ProfilingRule};
-use arkit_data::eval::dataset::EvalOptions;
+use arkit_data::eval::dataset::{EvalOptions, Evaluation, ReportFiles};
 use arkit_data::eval::metrics::Summary;
 use arkit_data::ingest::convert::{self, ConvertOptions, ValidationContext};
 use arkit_data::ingest::split::{self, HoldOut};
@@ -27,9 +28,10 @@ use arkit_data::mesh::topology::FaceTopology;
 use arkit_data::pose::pnp::RansacParams;
 use arkit_data::render::dataset::RenderOptions;
 use arkit_data::render::face::FaceRenderer;
+use arkit_data::store::manifest::Manifest;
 use arkit_data::store::predictions_table::write_predictions;
-use arkit_perspnet::PerspNetConfig;
 use arkit_perspnet::{Augmentation, TrainOptions};
+use arkit_perspnet::{Checkpoint, PerspNetConfig, StepLoss};
 use image::RgbImage;
 use serde::Serialize;
 use std::path::{Path, PathBuf};
@@ -202,8 +204,36 @@ impl<'a> Clock<'a> {
     }
 }
 
+/// The folders of a demo run (module docs).
+struct Folders {
+    output: PathBuf,
+    release: PathBuf,
+    dataset: PathBuf,
+    augmented: PathBuf,
+    model: PathBuf,
+    report: PathBuf,
+}
+
+/// What `predict` made: the trained model's, the shipped model's (none for another
+/// topology) and the mean pose's predictions of the test split.
+struct Predictions {
+    rows: Vec<PredictionRecord>,
+    shipped_rows: Option<Vec<PredictionRecord>>,
+    baseline_rows: Vec<PredictionRecord>,
+    shipped_checkpoint: Checkpoint,
+}
+
+/// What `eval` made of the [`Predictions`].
+struct Evaluations {
+    model: Evaluation,
+    baseline: Evaluation,
+    shipped: Option<Summary>,
+    report: ReportFiles,
+}
+
 /// Runs the whole pipeline into `output` (which must be absent or empty) with the
-/// built-in face or the given topology.
+/// built-in face or the given topology: one function per group of stages below, each
+/// timed by the [`Clock`].
 pub fn run_demo(
     output: &Path,
     plan: &DemoPlan,
@@ -225,17 +255,68 @@ pub fn run_demo(
             ),
         ));
     }
-    let (release, dataset) = (output.join("release"), output.join("dataset"));
-    let (augmented, model_dir) = (output.join("augmented"), output.join("model"));
-    let report_dir = output.join("report");
-    std::fs::create_dir_all(&report_dir).map_err(|e| Error::io(&report_dir, e))?;
+    let f = Folders {
+        output: output.to_path_buf(),
+        release: output.join("release"),
+        dataset: output.join("dataset"),
+        augmented: output.join("augmented"),
+        model: output.join("model"),
+        report: output.join("report"),
+    };
+    std::fs::create_dir_all(&f.report).map_err(|e| Error::io(&f.report, e))?;
     let mut clock = Clock {
         progress,
         stages: Vec::new(),
         started: Instant::now(),
     };
-    let tick = |n: usize| progress.advance(n as u64);
+    let manifest = make_dataset(&f, plan, topology, &mut clock)?;
+    let previews = render_and_augment(&f, plan, topology, &mut clock)?;
+    let (checkpoint, log) = train_model(&f, plan, topology, &mut clock)?;
+    let predictions = predict_test_split(&f, plan, topology, &mut clock)?;
+    let evaluations = evaluate_predictions(&f, topology, &predictions, &mut clock)?;
+    let page_path = write_report_page(
+        &f,
+        plan,
+        &manifest,
+        previews,
+        &log,
+        &checkpoint,
+        &predictions,
+        &evaluations,
+        &mut clock,
+    )?;
+    progress.advance(1);
+    let summary = DemoSummary {
+        plan: plan.clone(),
+        stages: clock.stages,
+        model: evaluations.model.summary,
+        trained_steps: checkpoint.steps,
+        shipped: evaluations.shipped,
+        shipped_steps: predictions.shipped_checkpoint.steps,
+        baseline: evaluations.baseline.summary,
+        loss: [checkpoint.first_loss, checkpoint.last_loss],
+        report: page_path,
+    };
+    arkit_core::atomic_file::write_bytes(
+        &output.join("demo.json"),
+        serde_json::to_string_pretty(&summary)
+            .expect("json")
+            .as_bytes(),
+    )?;
+    Ok(summary)
+}
 
+/// `synth`, `convert` and `split`: the synthetic release, its Parquet and the
+/// subject-disjoint split; returns the dataset's manifest.
+fn make_dataset(
+    f: &Folders,
+    plan: &DemoPlan,
+    topology: &FaceTopology,
+    clock: &mut Clock<'_>,
+) -> Result<Manifest> {
+    let progress = clock.progress;
+    let tick = |n: usize| progress.advance(n as u64);
+    let (release, dataset) = (&f.release, &f.dataset);
     clock.start("synth");
     let source = FaceSource::new(topology.clone())?;
     let synth_options = SynthOptions {
@@ -247,7 +328,7 @@ pub fn run_demo(
         ..SynthOptions::default()
     };
     synth_options.check()?;
-    let made = synth::generate(&source, &synth_options, &release, &|| tick(1))?;
+    let made = synth::generate(&source, &synth_options, release, &|| tick(1))?;
     clock.done(
         "synth",
         format!(
@@ -288,7 +369,7 @@ pub fn run_demo(
 
     clock.start("split");
     let counts = split::split_dataset(
-        &dataset,
+        dataset,
         Some(HoldOut::Subjects(plan.test_subjects)),
         0,
         plan.seed,
@@ -312,10 +393,23 @@ pub fn run_demo(
         ),
     );
 
+    Ok(manifest)
+}
+
+/// `render` and `augment`; returns the augmentation's preview pairs.
+fn render_and_augment(
+    f: &Folders,
+    plan: &DemoPlan,
+    topology: &FaceTopology,
+    clock: &mut Clock<'_>,
+) -> Result<Vec<(RgbImage, RgbImage)>> {
+    let progress = clock.progress;
+    let tick = |n: usize| progress.advance(n as u64);
+    let (dataset, augmented) = (&f.dataset, &f.augmented);
     clock.start("render");
     let renderer = FaceRenderer::new(topology.clone(), Camera::release_projection())?;
     let rendered = arkit_data::render::dataset::render_dataset(
-        &dataset,
+        dataset,
         &renderer,
         &RenderOptions {
             size: plan.crop,
@@ -343,7 +437,7 @@ pub fn run_demo(
 
     clock.start("augment");
     let (aug, previews) = arkit_data::augment::dataset::augment_dataset(
-        &dataset,
+        dataset,
         topology,
         &AugmentOptions {
             output: augmented.clone(),
@@ -368,13 +462,26 @@ pub fn run_demo(
         ),
     );
 
+    Ok(previews)
+}
+
+/// `train`: the tiny network on the train split; its checkpoint and loss log.
+fn train_model(
+    f: &Folders,
+    plan: &DemoPlan,
+    topology: &FaceTopology,
+    clock: &mut Clock<'_>,
+) -> Result<(Checkpoint, Vec<StepLoss>)> {
+    let progress = clock.progress;
+    let tick = |n: usize| progress.advance(n as u64);
+    let (dataset, model_dir) = (&f.dataset, &f.model);
     clock.start("train");
     let config = PerspNetConfig {
         input_size: plan.crop as usize,
         points: plan.points,
         ..PerspNetConfig::tiny()
     };
-    let examples = arkit_perspnet::read_examples(&dataset, &dataset, &config, Some("train"))?;
+    let examples = arkit_perspnet::read_examples(dataset, dataset, &config, Some("train"))?;
     let (checkpoint, log) = arkit_perspnet::train(
         &examples,
         topology,
@@ -406,11 +513,25 @@ pub fn run_demo(
         ),
     );
 
+    Ok((checkpoint, log))
+}
+
+/// `predict`: the test split through the model trained here, the shipped model and
+/// the mean pose, each written beside the report.
+fn predict_test_split(
+    f: &Folders,
+    plan: &DemoPlan,
+    topology: &FaceTopology,
+    clock: &mut Clock<'_>,
+) -> Result<Predictions> {
+    let progress = clock.progress;
+    let tick = |n: usize| progress.advance(n as u64);
+    let (output, dataset, model_dir) = (&f.output, &f.dataset, &f.model);
     clock.start("predict");
     // The test split through a network and PnP, as `predict --model` does.
     let predict_test = |model| {
         arkit_perspnet::model_predictions(
-            &dataset,
+            dataset,
             model,
             Some("test"),
             arkit_data::crop::RuleSet::Exact,
@@ -420,7 +541,7 @@ pub fn run_demo(
             &tick,
         )
     };
-    let model = arkit_perspnet::load(&model_dir, topology)?;
+    let model = arkit_perspnet::load(model_dir, topology)?;
     let (rows, predicted) = predict_test(&model)?;
     write_predictions(&output.join("predictions.parquet"), &rows)?;
     let shipped_checkpoint = arkit_perspnet::shipped_checkpoint()?;
@@ -434,7 +555,7 @@ pub fn run_demo(
         None
     };
     let (baseline_rows, mean) =
-        arkit_data::pose::predict::mean_pose_predictions(&dataset, Some("train"), Some("test"))?;
+        arkit_data::pose::predict::mean_pose_predictions(dataset, Some("train"), Some("test"))?;
     write_predictions(&output.join("baseline.parquet"), &baseline_rows)?;
     clock.done(
         "predict",
@@ -444,6 +565,24 @@ pub fn run_demo(
         ),
     );
 
+    Ok(Predictions {
+        rows,
+        shipped_rows,
+        baseline_rows,
+        shipped_checkpoint,
+    })
+}
+
+/// `eval`: each prediction set scored, and the trained model's report pictures.
+fn evaluate_predictions(
+    f: &Folders,
+    topology: &FaceTopology,
+    p: &Predictions,
+    clock: &mut Clock<'_>,
+) -> Result<Evaluations> {
+    let progress = clock.progress;
+    let tick = |n: usize| progress.advance(n as u64);
+    let (dataset, report_dir) = (&f.dataset, &f.report);
     clock.start("eval");
     let options = EvalOptions {
         split: Some("test".into()),
@@ -451,12 +590,14 @@ pub fn run_demo(
         keep_worst: 8,
         ..EvalOptions::default()
     };
-    let ev = arkit_data::eval::dataset::evaluate(&dataset, &rows, &options)?;
-    let base = arkit_data::eval::dataset::evaluate(&dataset, &baseline_rows, &options)?;
-    let shipped = shipped_rows
-        .map(|r| arkit_data::eval::dataset::evaluate(&dataset, &r, &options).map(|e| e.summary))
+    let ev = arkit_data::eval::dataset::evaluate(dataset, &p.rows, &options)?;
+    let base = arkit_data::eval::dataset::evaluate(dataset, &p.baseline_rows, &options)?;
+    let shipped = p
+        .shipped_rows
+        .as_ref()
+        .map(|r| arkit_data::eval::dataset::evaluate(dataset, r, &options).map(|e| e.summary))
         .transpose()?;
-    let eval_report = arkit_data::eval::dataset::write_report(&report_dir, &ev, topology)?;
+    let eval_report = arkit_data::eval::dataset::write_report(report_dir, &ev, topology)?;
     tick(1);
     clock.done(
         "eval",
@@ -473,12 +614,34 @@ pub fn run_demo(
         ),
     );
 
+    Ok(Evaluations {
+        model: ev,
+        baseline: base,
+        shipped,
+        report: eval_report,
+    })
+}
+
+/// The report page: the figures of every stage and the results table.
+#[allow(clippy::too_many_arguments)]
+fn write_report_page(
+    f: &Folders,
+    plan: &DemoPlan,
+    manifest: &Manifest,
+    previews: Vec<(RgbImage, RgbImage)>,
+    log: &[StepLoss],
+    checkpoint: &Checkpoint,
+    p: &Predictions,
+    e: &Evaluations,
+    clock: &mut Clock<'_>,
+) -> Result<PathBuf> {
+    let (dataset, report_dir) = (&f.dataset, &f.report);
     clock.start("report");
     let mut figures = Vec::new();
     let samples =
-        arkit_data::store::dataset::Dataset::open(&dataset)?.read_samples(&manifest.shards[0])?;
+        arkit_data::store::dataset::Dataset::open(dataset)?.read_samples(&manifest.shards[0])?;
     figures.push(report::write_chart(
-        &report_dir,
+        report_dir,
         "poses.svg",
         report::pose_svg(&samples),
         "Poses of the synthetic dataset",
@@ -486,9 +649,9 @@ pub fn run_demo(
          first shard's samples, as `arkit-tool inspect --plot` draws them.",
     )?);
     figures.push(report::write_figure(
-        &report_dir,
+        report_dir,
         "targets.png",
-        &targets_sheet(&dataset, manifest.shards[0].index, &samples)?,
+        &targets_sheet(dataset, manifest.shards[0].index, &samples)?,
         "What render stores for each sample",
         "Per row, one sample: the network's input crop; the face mask (green; eye and mouth \
          openings are not face); each face pixel coloured by the canonical 3D point it shows \
@@ -498,7 +661,7 @@ pub fn run_demo(
     if !previews.is_empty() {
         let cells: Vec<RgbImage> = previews.into_iter().flat_map(|(o, n)| [o, n]).collect();
         figures.push(report::write_figure(
-            &report_dir,
+            report_dir,
             "augmented.png",
             &arkit_data::picture::encode::contact_sheet(&cells, 4, 240),
             "Face profiling",
@@ -508,9 +671,9 @@ pub fn run_demo(
         )?);
     }
     figures.push(report::write_chart(
-        &report_dir,
+        report_dir,
         "loss.svg",
-        report::loss_svg(&log),
+        report::loss_svg(log),
         "Training loss",
         "The weighted loss terms per step (log scale): correspondence smooth L1, shape L1, \
          KL to the barycentric rows, segmentation cross-entropy, and their total.",
@@ -526,7 +689,7 @@ pub fn run_demo(
         svg: Some(std::fs::read_to_string(&errors_svg).map_err(|e| Error::io(&errors_svg, e))?),
         overlay: None,
     });
-    if eval_report.worst_labels.is_some() {
+    if e.report.worst_labels.is_some() {
         figures.push(Figure {
             file: "worst.png".into(),
             title: "The worst predictions".into(),
@@ -534,7 +697,7 @@ pub fn run_demo(
                       green, predicted pose in red; each labelled with its key and error."
                 .into(),
             svg: None,
-            overlay: eval_report.worst_labels.clone(),
+            overlay: e.report.worst_labels.clone(),
         });
     }
     let title = "arkit-tool demo";
@@ -552,18 +715,18 @@ pub fn run_demo(
     );
     let shipped_name = format!(
         "tiny PerspNet, shipped ({} steps)",
-        shipped_checkpoint.steps
+        p.shipped_checkpoint.steps
     );
     let trained_name = format!("tiny PerspNet, trained here ({} steps)", checkpoint.steps);
     let mut results: Vec<(&str, &Summary)> = Vec::new();
-    if let Some(s) = &shipped {
+    if let Some(s) = &e.shipped {
         results.push((&shipped_name, s));
     }
-    results.push((&trained_name, &ev.summary));
-    results.push(("mean pose", &base.summary));
+    results.push((&trained_name, &e.model.summary));
+    results.push(("mean pose", &e.baseline.summary));
     clock.done("report", "this page and its pictures".into());
     let page_path = report::write_page(
-        &report_dir,
+        report_dir,
         &Page {
             title,
             intro: &intro,
@@ -572,25 +735,7 @@ pub fn run_demo(
             figures: &figures,
         },
     )?;
-    tick(1);
-    let summary = DemoSummary {
-        plan: plan.clone(),
-        stages: clock.stages,
-        model: ev.summary,
-        trained_steps: checkpoint.steps,
-        shipped,
-        shipped_steps: shipped_checkpoint.steps,
-        baseline: base.summary,
-        loss: [checkpoint.first_loss, checkpoint.last_loss],
-        report: page_path,
-    };
-    arkit_core::atomic_file::write_bytes(
-        &output.join("demo.json"),
-        serde_json::to_string_pretty(&summary)
-            .expect("json")
-            .as_bytes(),
-    )?;
-    Ok(summary)
+    Ok(page_path)
 }
 
 /// Eval summaries as one aligned table: a header of the paper's columns (as

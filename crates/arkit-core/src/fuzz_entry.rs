@@ -62,7 +62,7 @@ pub fn npz(data: &[u8]) -> bool {
     true
 }
 
-/// `_info.npz` bytes: [`npy::parse_npz`], then [`release::InfoAnnotation::from_npz`],
+/// `_info.npz` bytes: [`npy::parse_npz`], then `release::InfoAnnotation::from_npz`,
 /// and [`Pose::from_release_rt`] of any 4x4 finite `R_t` present. An annotation that
 /// validates has a usable pose (validation and use agree).
 pub fn info_npz(data: &[u8]) -> bool {
@@ -87,7 +87,7 @@ pub fn info_npz(data: &[u8]) -> bool {
     }
 }
 
-/// List CSV text through [`release::parse_list`]; accepted keys are plain, non-empty
+/// List CSV text through `release::parse_list`; accepted keys are plain, non-empty
 /// names, and a list of accepted keys written by [`release::list_csv_text`] (when no key
 /// needs quoting) reads back the same.
 pub fn list_csv(data: &[u8]) -> bool {
@@ -174,7 +174,7 @@ pub fn targets_blobs(data: &[u8]) -> bool {
 
 /// A `torch.save` archive (input starting with `PK`) through
 /// [`torch_pickle::TorchZip::new`], every tensor then read; or else the bytes as a
-/// bare `data.pkl` through [`torch_pickle::parse_state_dict_pickle`]. An accepted
+/// bare `data.pkl` through `torch_pickle::parse_state_dict_pickle`. An accepted
 /// tensor lies in its storage, and its data read is exactly `numel` elements.
 pub fn torch_pickle(data: &[u8]) -> bool {
     if data.starts_with(b"PK") {

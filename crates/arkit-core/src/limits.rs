@@ -38,7 +38,7 @@ pub const MAX_ARRAY_BYTES: u64 = 256 << 20;
 /// Each member is also bounded by [`MAX_ARRAY_BYTES`]; this bounds the sum, so that many
 /// deflated members cannot add up to gigabytes. An `_info.npz` of the release holds
 /// about 60 KB of arrays.
-pub(crate) const MAX_NPZ_ARRAY_BYTES: u64 = 256 << 20;
+pub const MAX_NPZ_ARRAY_BYTES: u64 = 256 << 20;
 
 /// Most members (arrays) in one `.npz` archive: 64.
 ///
@@ -65,7 +65,7 @@ pub const MAX_NPY_TRAILING_BYTES: u64 = 4096;
 
 /// Largest `.npy` file read, in bytes: [`MAX_ARRAY_BYTES`] plus the largest header and
 /// the trailing allowance. Checked on the file's length before reading.
-pub(crate) const MAX_NPY_FILE_BYTES: u64 =
+pub const MAX_NPY_FILE_BYTES: u64 =
     MAX_ARRAY_BYTES + 12 + MAX_NPY_HEADER_BYTES as u64 + MAX_NPY_TRAILING_BYTES;
 
 /// Largest side of a crop in a `targets` file (`crop_size`), in pixels: 4096.
@@ -138,25 +138,25 @@ pub const MAX_CAPTURE_JSON_BYTES: u64 = 16 << 20;
 /// Largest `data.pkl` of a `torch.save` archive read, in bytes: 16 MiB, checked on the
 /// zip directory's size and again while reading. A state_dict's pickle takes about 150
 /// bytes per tensor (30 KB for `paper`).
-pub(crate) const MAX_PICKLE_BYTES: u64 = 16 << 20;
+pub const MAX_PICKLE_BYTES: u64 = 16 << 20;
 
 /// Deepest nesting of containers (tuples, lists, dicts) and of MARKs in a pickle: 32.
 /// A state_dict nests 4 deep (the dict, a tensor's arguments, its size tuple; the
 /// `_metadata` dicts). Refusing deeper pickles bounds every walk over the objects.
-pub(crate) const MAX_PICKLE_DEPTH: usize = 32;
+pub const MAX_PICKLE_DEPTH: usize = 32;
 
 /// Most memo entries of a pickle: 2^20. A state_dict writes about 8 per tensor.
-pub(crate) const MAX_PICKLE_MEMO: usize = 1 << 20;
+pub const MAX_PICKLE_MEMO: usize = 1 << 20;
 
 /// Most objects (strings, tuples, dicts, tensors, ...) a pickle may build: 2^20, about
 /// 12 per tensor in a state_dict.
-pub(crate) const MAX_PICKLE_OBJECTS: usize = 1 << 20;
+pub const MAX_PICKLE_OBJECTS: usize = 1 << 20;
 
 /// Most bytes of objects a pickle may build (strings, container slots, the stack and
 /// the memo, each counted as it is made): 64 MiB, 400 times what `paper` needs.
 /// Objects fetched from the memo are shared, never copied, so this bounds what a pickle
 /// that refers to one entry many times costs.
-pub(crate) const MAX_PICKLE_ALLOC_BYTES: u64 = 64 << 20;
+pub const MAX_PICKLE_ALLOC_BYTES: u64 = 64 << 20;
 
 /// Most tensors (and storages) in one state_dict: 65 536.
 pub const MAX_TORCH_TENSORS: usize = 65_536;
@@ -164,12 +164,12 @@ pub const MAX_TORCH_TENSORS: usize = 65_536;
 /// Largest storage of one tensor in a `torch.save` archive, in bytes: 256 MiB (the same
 /// bound as one array, [`MAX_ARRAY_BYTES`]). Checked from the pickle's declared size,
 /// against the member's size in the zip directory, and while reading.
-pub(crate) const MAX_TORCH_STORAGE_BYTES: u64 = MAX_ARRAY_BYTES;
+pub const MAX_TORCH_STORAGE_BYTES: u64 = MAX_ARRAY_BYTES;
 
 /// Largest total of the storages of one `torch.save` archive, in bytes: 4 GiB. The
 /// tensors are read one at a time, after their names and shapes have been matched with
 /// the network's, so memory follows the network's size, not this bound.
-pub(crate) const MAX_TORCH_DATA_BYTES: u64 = 4 << 30;
+pub const MAX_TORCH_DATA_BYTES: u64 = 4 << 30;
 
 /// Largest JSON header of a safetensors file, in bytes: 16 MiB, checked on the length
 /// field before the header is read (the safetensors library's own bound is 100 MB).

@@ -19,10 +19,10 @@
 //! [`limits::MAX_NPY_TRAILING_BYTES`] bytes after the data are ignored, as numpy ignores
 //! them; more are refused, so that a file with gigabytes after a valid array is not read
 //! through. `.npz` archives: at most [`limits::MAX_NPZ_MEMBERS`] members and
-//! [`limits::MAX_NPZ_ARRAY_BYTES`] of data in all; the zip directory's size claims are
+//! `limits::MAX_NPZ_ARRAY_BYTES` of data in all; the zip directory's size claims are
 //! never trusted (members are read through capped streams), and a deflated member is
 //! refused from its header before it is inflated. Files are checked against
-//! [`limits::MAX_NPY_FILE_BYTES`] / [`limits::MAX_NPZ_FILE_BYTES`] before reading.
+//! `limits::MAX_NPY_FILE_BYTES` / [`limits::MAX_NPZ_FILE_BYTES`] before reading.
 //! Tested below with crafted bytes for each limit, in `tests/bounded_memory.rs` (peak
 //! allocation while reading hostile files), and by the `npy` and `npz` fuzz targets.
 //!
@@ -667,7 +667,7 @@ fn check_file_len(path: &Path, max: u64, what: &str) -> Result<std::fs::File> {
     Ok(file)
 }
 
-/// Reads a `.npy` file: its length is checked against [`limits::MAX_NPY_FILE_BYTES`],
+/// Reads a `.npy` file: its length is checked against `limits::MAX_NPY_FILE_BYTES`,
 /// then it is read as a stream (header, declared data, bounded tail), never whole.
 pub fn read_npy(path: &Path) -> Result<NpyArray> {
     let file = check_file_len(path, limits::MAX_NPY_FILE_BYTES, "a .npy file")?;
@@ -827,7 +827,7 @@ impl Npz {
 ///
 /// At most [`limits::MAX_NPZ_MEMBERS`] members; each is read as a stream (see
 /// [`parse_npy`]) whose data is bounded by [`limits::MAX_ARRAY_BYTES`] and, summed over
-/// the archive, by [`limits::MAX_NPZ_ARRAY_BYTES`]. The sizes the zip directory claims
+/// the archive, by `limits::MAX_NPZ_ARRAY_BYTES`. The sizes the zip directory claims
 /// are never used to allocate: a member claiming 100 GB that holds 14 KB is read as
 /// numpy reads it, and a deflate bomb is refused from its header, before inflating.
 pub fn parse_npz(bytes: &[u8], source: &Path) -> Result<Npz> {

@@ -25,7 +25,7 @@
 //! 3. **Interpolation**: screen-space barycentrics from the edge functions, then
 //!    perspective-correct barycentrics `b_i = l_i w_i^-1 / sum_j l_j w_j^-1` and the
 //!    depth key `sum_i l_i w_i^-1` (1/w, larger is nearer), one division per pixel.
-//! 4. **Output**: a [`Fragment`] goes to the caller's closure ([`rasterize_triangle`]),
+//! 4. **Output**: a [`Fragment`] goes to the caller's closure (`rasterize_triangle`),
 //!    or through a depth test into a [`VisibilityBuffer`] of flat per-pixel arrays
 //!    (triangle id, barycentrics, depth key) that callers turn into masks, colours,
 //!    correspondences or coordinate maps.
@@ -1322,7 +1322,7 @@ impl PixelWindow {
 
     /// The pixels [`rasterize_mesh_official`] can write for `vertices` in a `width x
     /// height` image: the integer points from the ceiling of the smallest to the floor
-    /// of the largest coordinate of the vertices it draws ([`official_vertex_ok`]),
+    /// of the largest coordinate of the vertices it draws (`official_vertex_ok`),
     /// clamped to the image. Each triangle's clamped box is its box clamped to the
     /// image, so rasterizing into this window writes exactly what the whole image gets.
     /// Empty (zero-sized) when no pixel can be written.

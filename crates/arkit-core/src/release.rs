@@ -407,7 +407,7 @@ fn split_csv_line(line: &str) -> Vec<String> {
 
 /// The text of a list CSV for `keys` (header `subject_id,facial_action,img_id`). A field
 /// with a comma, a double quote or a line break is quoted as RFC 4180 says (inner
-/// quotes doubled), so [`parse_list`] (and pandas) read back the same ids.
+/// quotes doubled), so `parse_list` (and pandas) read back the same ids.
 pub fn list_csv_text(keys: &[SampleKey]) -> String {
     fn field(v: &str) -> std::borrow::Cow<'_, str> {
         if v.contains([',', '"', '\n', '\r']) {

@@ -918,7 +918,7 @@ fn read_member<R: Read + Seek>(
 
 impl<R: Read + Seek> TorchZip<R> {
     /// Opens a `torch.save` archive: finds its `data.pkl`, reads it with
-    /// [`parse_state_dict_pickle`], checks the byte order and that every storage's
+    /// `parse_state_dict_pickle`, checks the byte order and that every storage's
     /// member exists with exactly the bytes its tensors need. No tensor data is read.
     pub fn new(reader: R, source: &Path) -> Result<Self> {
         let mut zip = zip::ZipArchive::new(reader).map_err(|e| {
@@ -1023,7 +1023,7 @@ impl<R: Read + Seek> TorchZip<R> {
 
     /// The data of tensor `i` ([`TorchTensor`] of [`Self::tensors`]), contiguous
     /// (row-major) little-endian bytes, `numel * dtype.size()` of them. Reads its
-    /// storage's member (at most [`limits::MAX_TORCH_STORAGE_BYTES`]).
+    /// storage's member (at most `limits::MAX_TORCH_STORAGE_BYTES`).
     pub fn read(&mut self, i: usize) -> Result<Vec<u8>> {
         let t = self.tensors[i].clone();
         let size = t.dtype.size();

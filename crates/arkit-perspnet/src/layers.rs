@@ -346,12 +346,12 @@ pub fn dropout2d(x: &Tensor, p: f64, rng: Option<&mut arkit_core::rng::Rng>) -> 
     x.broadcast_mul(&keep)
 }
 
-/// LeakyReLU with negative slope `slope` (one fused op, see [`activate`]).
+/// LeakyReLU with negative slope `slope` (one fused op, see `activate`).
 pub fn leaky_relu(x: &Tensor, slope: f64) -> Result<Tensor> {
     activate(x, Act::Leaky(slope))
 }
 
-/// ReLU as one fused op (see [`activate`]).
+/// ReLU as one fused op (see `activate`).
 pub fn relu(x: &Tensor) -> Result<Tensor> {
     activate(x, Act::Relu)
 }

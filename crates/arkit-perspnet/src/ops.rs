@@ -12,7 +12,7 @@ use crate::conv::{self, ConvShape};
 use candle_core::{CpuStorage, Layout, Result, Shape, Tensor};
 use rayon::prelude::*;
 
-/// Activation following a [`crate::layers::ConvBn`].
+/// Activation following a `crate::layers::ConvBn`.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub enum Act {
     /// No activation.

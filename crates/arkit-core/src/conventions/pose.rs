@@ -169,7 +169,7 @@ impl Pose {
     }
 
     /// Reads a row-vector `R_t` (row-major, 16 numbers) that need not put the face in
-    /// front of the camera: the checks of [`Pose::check_rigid_rt`] only. The
+    /// front of the camera: the checks of `Pose::check_rigid_rt` only. The
     /// conversions to other tools' conventions accept such poses.
     pub fn from_rigid_rt(rt: &[f64; 16]) -> Result<Self> {
         Pose::check_rigid_rt(rt)?;
@@ -182,7 +182,7 @@ impl Pose {
     }
 
     /// Checks that `rt` is a pose the release's projection can use: the checks of
-    /// [`Pose::check_rigid_rt`] and `tz < 0` (the face in front of the camera).
+    /// `Pose::check_rigid_rt` and `tz < 0` (the face in front of the camera).
     pub fn check_release_rt(rt: &[f64; 16]) -> Result<()> {
         Pose::check_rigid_rt(rt)?;
         if rt[14] >= 0.0 {

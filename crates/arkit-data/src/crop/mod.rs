@@ -41,7 +41,7 @@ pub struct CropTransform {
     /// Side of the crop in pixels.
     pub size: u32,
     /// Whose rules the crop follows: where a crop pixel samples the box
-    /// ([`RuleSet::sample_offset`]) and how the image is resampled.
+    /// (`RuleSet::sample_offset`) and how the image is resampled.
     pub rules: RuleSet,
 }
 

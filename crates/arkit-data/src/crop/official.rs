@@ -23,7 +23,7 @@
 //!    of 2^-10 (exact), and a pixel is `(sum w p + 2^14) >> 15` in units of 2^-15. For a
 //!    0/1 mask that makes a crop pixel face when the face taps' weights sum to at least
 //!    one half. (OpenCV 4.11 and later compute the coordinates in float; they differ
-//!    from this only on a few boundary pixels.) [`warp_mask_of`] takes that rule
+//!    from this only on a few boundary pixels.) `warp_mask_of` takes that rule
 //!    directly on a mask given as a predicate (a mask held over a window of the image),
 //!    tested against [`warp_mask`]'s resampling of the 0/1 image.
 //!

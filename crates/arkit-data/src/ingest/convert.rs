@@ -10,7 +10,7 @@
 //! threads. Memory is bounded by one shard.
 //!
 //! Output is what it says. `conversion.json` in the output folder records the
-//! conversion's fingerprint ([`ConversionFingerprint`]: the input root, the list files'
+//! conversion's fingerprint (`ConversionFingerprint`: the input root, the list files'
 //! contents, the layout, the topology and projection, the shard size, whether images
 //! are embedded); a later `convert` into the same folder with another fingerprint is
 //! refused (or, with `--overwrite`, replaces the old output). A shard is kept on a

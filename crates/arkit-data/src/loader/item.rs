@@ -17,11 +17,11 @@
 //!   ([`crate::crop::official::official_box`]: `int()` of the landmarks' box edges), the
 //!   `cv2` affine map and `cv2.warpAffine` resampling ([`crate::crop::official`]), its rasterizer over the whole
 //!   image (screen-space weights; held only over the window the face can cover,
-//!   [`FaceRenderer::render_window_mask`], the rest being no face), its point choice (face pixels of the full-resolution
+//!   `FaceRenderer::render_window_mask`, the rest being no face), its point choice (face pixels of the full-resolution
 //!   mask sliced `mask[top:bottom+1, left:right+1]` with Python's slice rules, drawn
 //!   without repetition or repeated cyclically, mapped to crop pixels by the affine map
 //!   and `floor`), its UV map (the UV triangles drawn at `uv * (S - 1)`, the ring at 1.1
-//!   times the contour in the `4.5 v + 0.5` space, [`OfficialUvLayout`]).
+//!   times the contour in the `4.5 v + 0.5` space, `OfficialUvLayout`).
 //! - [`RuleSet::Exact`]: ours, as `render` stores them: the square box at pixel centres,
 //!   our bilinear crop, our rasterizer at crop resolution (perspective-correct weights),
 //!   points drawn from the crop mask, our UV map (texel centres, `--uv-size` = `S`).
@@ -36,7 +36,7 @@
 //! slice of a negative index is empty and `np.pad` raises; its `__getitem__` then trains
 //! on a random other sample), [`FaceLoader::item`] returns an error saying so in
 //! evaluation mode; in training mode the box jitter is drawn again (up to
-//! [`JITTER_DRAWS`] times, then the box without jitter) so a usable box is never replaced
+//! `JITTER_DRAWS` times, then the box without jitter) so a usable box is never replaced
 //! by another sample.
 //!
 //! Tested in `tests/loader.rs` (every field against the library's render path and
@@ -659,7 +659,7 @@ impl OfficialUvLayout {
 /// `lib/eyemouth_index.py`), which it draws after the mesh, with attribute 0, into the
 /// full-resolution mask (`arkit_dataset.py:146-151`). `loops` are the two eyes' and the
 /// mouth's boundary loops in that order and in the official direction (the release's
-/// hole fans list them so, [`OfficialUvLayout::release_order`]); `uv` the topology's UV
+/// hole fans list them so, `OfficialUvLayout::release_order`); `uv` the topology's UV
 /// coordinates. Each loop starts at its vertex of smallest `u` (an eye or mouth corner)
 /// and is closed by a strip between its two ends: `[0, 1, n-1]`, then alternately `[a,
 /// a+1, b]` and `[a, b, b-1]`. The official list departs from that pattern in the vertex

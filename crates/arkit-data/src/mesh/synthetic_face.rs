@@ -2,7 +2,7 @@
 //!
 //! **This is not Apple's mesh.** It is our own construction, made so that every command
 //! and test runs without the real download: a smooth, face-like triangle mesh with
-//! exactly [`VERTEX_COUNT`] = 1,220 vertices (as ARKit's), an outer contour, two eye
+//! exactly `VERTEX_COUNT` = 1,220 vertices (as ARKit's), an outer contour, two eye
 //! holes and a mouth hole (4 boundary loops, as ARKit's), UV coordinates in the
 //! release's orientation (u right, v down) and 68 landmark vertices in the iBUG roles,
 //! placed where ARKit's landmarks are in the canonical frame (metres, y up, +z out of the

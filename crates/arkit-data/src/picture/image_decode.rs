@@ -1,11 +1,11 @@
 //! Every image the tool reads, decoded in one place and bounded before decoding.
 //!
 //! A PNG or JPEG declares its size in its header, and a few hundred compressed bytes
-//! can declare gigabytes of pixels. [`decode_rgb8`] reads the header first (no pixel
+//! can declare gigabytes of pixels. `decode_rgb8` reads the header first (no pixel
 //! data), checks the size and colour type against [`MAX_DECODED_IMAGE_PIXELS`] and
 //! [`MAX_DECODED_IMAGE_BYTES`] (and any check of the caller's, such as "the image has
 //! the size its calibration was made for"), and only then decodes, with the decoder's
-//! own allocation limit set as well. Files are read by [`read_image_file`], whose read
+//! own allocation limit set as well. Files are read by `read_image_file`, whose read
 //! is capped at [`MAX_IMAGE_FILE_BYTES`] whatever the file's length says.
 //!
 //! Colour: every reader works on 8-bit RGB. 16-bit images are converted by scaling
@@ -170,7 +170,7 @@ pub(crate) fn decode_rgb8(bytes: &[u8], path: &Path) -> Result<RgbImage> {
     decode_rgb8_checked(bytes, path, |_| Ok(()))
 }
 
-/// [`read_image_file`] then [`decode_rgb8_checked`].
+/// `read_image_file` then `decode_rgb8_checked`.
 pub fn read_rgb8_checked(
     path: &Path,
     check: impl FnOnce(&ImageHeader) -> Result<()>,

@@ -8,7 +8,7 @@
 //! crop pixels `0` and `size - 1` by `cv2.getAffineTransform` and `cv2.warpAffine`.
 //!
 //! [`DemoSquare`] is the padding and scale (photo pixels to square pixels and back),
-//! [`resize_linear`] OpenCV's bilinear resize of 8-bit images (its fixed-point weights
+//! `resize_linear` OpenCV's bilinear resize of 8-bit images (its fixed-point weights
 //! and rounding), and [`demo_crop`] the crop of a box. The crop is resampled by
 //! [`CropTransform::crop_image`], the same `cv2.warpAffine` the official loader uses.
 

@@ -56,7 +56,7 @@ impl PhotoCamera {
         }
     }
 
-    /// The intrinsics PnP uses, in the pixels [`PhotoCamera::image_point`] gives.
+    /// The intrinsics PnP uses, in the pixels `PhotoCamera::image_point` gives.
     pub fn intrinsics(&self, square: &DemoSquare) -> Intrinsics {
         match *self {
             PhotoCamera::Demo => intrinsics(square.side, square.side),

@@ -29,7 +29,7 @@ use std::collections::HashMap;
 use std::path::Path;
 
 /// The image point of crop pixel index `pixel` (row-major in a `crop.size` square): its
-/// centre or its corner, as the crop's [`crate::crop::CropSampling`] says.
+/// centre or its corner, as the crop's [`RuleSet`](crate::crop::RuleSet) says.
 pub fn crop_pixel_to_image(crop: &CropTransform, pixel: u32) -> Point2<f64> {
     let (u, v) = crop.pixel_to_image(pixel % crop.size, pixel / crop.size);
     Point2::new(u, v)

@@ -15,7 +15,7 @@
 //! 3. **Targets** ([`FaceTargets`]): the mask (visible mesh triangles), and per mask pixel
 //!    the visible triangle's three vertex ids and perspective-correct barycentric
 //!    weights: the ground-truth row of the correspondence matrix M. The coordinate map
-//!    is not stored: it is `sum_k w_k V_k` ([`FaceTargets::coordinate_map`]).
+//!    is not stored: it is `sum_k w_k V_k` (`FaceTargets::coordinate_map`).
 //! 4. **UV position map** ([`UvMapper`]): the canonical face drawn in UV space: each
 //!    texel holds the 3D position interpolated over the UV triangles, including the
 //!    ring outside the contour and the three hole centroids (1,279 UV vertices for
@@ -24,7 +24,7 @@
 //!    cyclically when the face has fewer than `M` pixels, as the official training does.
 //!
 //! The face mask over the whole image ([`FaceRenderer::render_full_mask`]) also comes
-//! held over a window ([`FaceRenderer::render_window_mask`], [`WindowMask`]): in
+//! held over a window (`FaceRenderer::render_window_mask`, `WindowMask`): in
 //! official mode only the pixels the face's vertices can cover are rasterized, with the
 //! whole image's values there (tested against the whole-image raster on a face cut by
 //! the image's edges and one in the middle).
@@ -711,7 +711,7 @@ impl UvMapper {
     /// vertices pushed out into a ring joined to the contour by triangles. The ring's
     /// UVs are the topology's own extension rows when it has them (the release's file:
     /// each ring row is matched to the contour vertex nearest to it in UV), otherwise
-    /// the contour UVs scaled by [`RING_SCALE`] about their mean.
+    /// the contour UVs scaled by `RING_SCALE` about their mean.
     pub fn derive(topology: &FaceTopology) -> Result<Self> {
         let loops = topology.boundary_loops()?;
         let fill = topology.hole_fill()?;
@@ -778,7 +778,7 @@ impl UvMapper {
     }
 
     /// The extended positions of a face: the mesh, the ring (contour vertices scaled by
-    /// [`RING_SCALE`] about the canonical origin, as the release), the hole centroids.
+    /// `RING_SCALE` about the canonical origin, as the release), the hole centroids.
     pub fn extended_positions(&self, verts: &[Point3<f32>]) -> Vec<Point3<f32>> {
         let mut out = verts.to_vec();
         out.extend(

@@ -128,7 +128,7 @@ impl Dataset {
     /// The decoded image of `sample`, or an error naming the file, the reason and where
     /// the images are looked for. The image must have the size the table records,
     /// checked from its header before it is decoded
-    /// ([`crate::picture::image_decode::decode_rgb8_checked`], which also bounds its size).
+    /// (`crate::picture::image_decode::decode_rgb8_checked`, which also bounds its size).
     pub fn image(&self, sample: &SampleRecord) -> Result<RgbImage> {
         let (path, read);
         let bytes: &[u8] = match &sample.jpeg {

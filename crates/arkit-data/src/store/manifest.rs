@@ -1,7 +1,7 @@
 //! `manifest`: a converted dataset's `dataset.json`: what `convert` made and from what
 //! ([`Manifest`]), its shards with their sizes and hashes ([`ShardEntry`]), and the checks
 //! every reader runs before it trusts a shard ([`check_shard_file`]: size and the hash of
-//! its last [`TAIL_BYTES`]) or a topology ([`check_topology`]); the fingerprint of its
+//! its last `TAIL_BYTES`) or a topology ([`check_topology`]); the fingerprint of its
 //! samples that rendered targets and crop stores are tied to ([`dataset_fingerprint`]).
 //!
 //! A leaf below `convert` (which writes it) and `dataset` (which reads it). Tested
@@ -48,7 +48,7 @@ pub struct ShardEntry {
     /// Size of the samples file in bytes (checked by every reader).
     #[serde(default)]
     pub bytes: u64,
-    /// SHA-256 of the samples file's last [`TAIL_BYTES`] (the Parquet footer; checked by
+    /// SHA-256 of the samples file's last `TAIL_BYTES` (the Parquet footer; checked by
     /// every reader).
     #[serde(default)]
     pub tail_sha256: String,
@@ -74,10 +74,10 @@ pub struct Manifest {
     /// manifests written before it was recorded).
     #[serde(default)]
     pub input_root: String,
-    /// The conversion's fingerprint ([`crate::ingest::convert::ConversionFingerprint::digest`]).
+    /// The conversion's fingerprint (`crate::ingest::convert::ConversionFingerprint::digest`).
     #[serde(default)]
     pub fingerprint: String,
-    /// [`topology_digest`] of the topology it was converted with (empty in manifests
+    /// `topology_digest` of the topology it was converted with (empty in manifests
     /// written before it was recorded).
     #[serde(default)]
     pub topology_sha256: String,
@@ -125,7 +125,7 @@ pub fn sha256_file(path: &Path) -> Result<String> {
     Ok(hex(&hasher.finalize()))
 }
 
-/// SHA-256 of a file's last [`TAIL_BYTES`] bytes (all of a smaller file), hex.
+/// SHA-256 of a file's last `TAIL_BYTES` bytes (all of a smaller file), hex.
 pub fn tail_sha256(path: &Path) -> Result<String> {
     use std::io::{Read, Seek, SeekFrom};
     let mut file = std::fs::File::open(path).map_err(|e| Error::io(path, e))?;
@@ -140,7 +140,7 @@ pub fn tail_sha256(path: &Path) -> Result<String> {
 }
 
 /// Checks a shard file against its manifest entry the cheap way: its size, and the
-/// SHA-256 of its last [`TAIL_BYTES`]. Entries written before sizes were recorded
+/// SHA-256 of its last `TAIL_BYTES`. Entries written before sizes were recorded
 /// (`bytes == 0`) are not checked.
 pub fn check_shard_file(path: &Path, bytes: u64, tail: &str) -> Result<()> {
     if bytes == 0 {
@@ -186,7 +186,7 @@ pub(crate) fn topology_digest(topology: &FaceTopology) -> String {
 /// Checks that `topology` (what a command was given: `--resources`, or the built-in
 /// face) is the one a dataset was converted with, so no stage renders or trains a
 /// dataset of the real ARKit mesh with the built-in stand-in (or the reverse): both have
-/// 1,220 vertices, so nothing else would notice. Compared by [`topology_digest`] (the
+/// 1,220 vertices, so nothing else would notice. Compared by `topology_digest` (the
 /// triangles and landmarks, wherever the folder now is); manifests written before the
 /// digest was recorded are compared by whether each is the built-in face.
 pub fn check_topology(manifest: &Manifest, topology: &FaceTopology) -> Result<()> {

@@ -85,7 +85,7 @@ pub struct ColumnSpec {
 }
 
 /// The samples table's format, recorded in the file's key-value metadata (key
-/// [`ARKIT_METADATA_KEY`]) and in the conversion's fingerprint: 2 = fixed-shape columns
+/// `ARKIT_METADATA_KEY`) and in the conversion's fingerprint: 2 = fixed-shape columns
 /// as fixed-size lists with a `huggingface` features record; 1 (files without the key)
 /// = variable-length lists. Readers read both.
 pub const SAMPLES_FORMAT: u32 = 2;
@@ -388,7 +388,7 @@ fn huggingface_feature(dtype: &str, vertices: usize) -> Option<String> {
 
 /// The key-value metadata of a samples file with `vertices` vertices per mesh: the
 /// `huggingface` features record (`{"info": {"features": {...}}}`, the columns in order,
-/// as `datasets` writes it) and our own ([`ARKIT_METADATA_KEY`]).
+/// as `datasets` writes it) and our own (`ARKIT_METADATA_KEY`).
 pub fn huggingface_metadata(vertices: usize) -> Vec<(String, String)> {
     let features: Vec<String> = SAMPLES_COLUMNS
         .iter()

@@ -182,7 +182,7 @@ pub enum WindowPart {
     /// parts apart (`pred-zstd`) the ring's are not decoded.
     Centre,
     /// The `W x W` window with at least the pixels of this rectangle of it decoded
-    /// (what a training crop reaches, [`crate::crop::CropTransform::window_reach`]):
+    /// (what a training crop reaches, `crate::crop::CropTransform::window_reach`):
     /// with a codec that stores the window's parts apart (`pred-zstd`) the parts of the
     /// ring it does not meet are not decoded, and their pixels are zero.
     Region(PixelRect),

@@ -29,7 +29,7 @@ pub struct CropStoreManifest {
     pub margin: u32,
     /// Vertices per mesh.
     pub vertex_count: usize,
-    /// Width of each record's key field ([`super::key_field_bytes`] of the longest key).
+    /// Width of each record's key field (`super::key_field_bytes` of the longest key).
     pub key_bytes: usize,
     /// [`crate::store::manifest::dataset_fingerprint`] of the dataset stored.
     pub dataset_fingerprint: String,

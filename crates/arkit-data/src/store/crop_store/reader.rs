@@ -288,7 +288,7 @@ impl CropStore {
     /// that had no readable image when the store was made is an error naming it and the
     /// recorded reason; that the window's and the mesh's lengths fill the record and are
     /// within their bounds). Its mesh is decoded here, into a buffer of its exact size,
-    /// its window when asked for ([`StoredRecord::crop_pixels`],
+    /// its window when asked for (`StoredRecord::crop_pixels`,
     /// [`StoredRecord::decode`]).
     pub fn read(&self, shard: usize, row: usize, key: &str) -> Result<StoredRecord> {
         let part = self
