@@ -168,9 +168,9 @@ wait_jobs() {
 resubmit() { # STAGE TASK ARGS...
   local stage=$1 i=$2
   shift 2
-  sbatch --parsable --cpus-per-task=1 --mem=1G --time=00:20:00 --array="$i" \
+  (cd "$work" && sbatch --parsable --cpus-per-task=1 --mem=1G --time=00:20:00 --array="$i" \
     --job-name="arkit-$stage-again" --export=ALL,ARKIT_TOOL="$bin",SHARD_COUNT="$n" \
-    "$here/deploy/shard-task.sh" "$stage" "$@"
+    "$here/deploy/shard-task.sh" "$stage" "$@")
 }
 if [ "$faults" = 1 ]; then
   # 3b. Faults. (1) Convert task 1 cancelled before it ran (as a pre-empted or failed
