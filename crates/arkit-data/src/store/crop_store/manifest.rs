@@ -79,7 +79,7 @@ impl CropStoreManifest {
     }
 
     /// The header of the `part-K.bin` of samples shard `index`, with `records` records.
-    pub(super) fn part_header(
+    pub(crate) fn part_header(
         &self,
         index: usize,
         records: usize,
