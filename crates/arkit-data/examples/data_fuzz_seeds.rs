@@ -16,6 +16,9 @@ use std::path::Path;
 
 type Res<T> = Result<T, Box<dyn std::error::Error>>;
 
+/// A named edit of a JSON file, for a variant seed.
+type Edit<'a> = (&'a str, Box<dyn Fn(&mut Value)>);
+
 /// Writes `bytes` as seed `name` of `target`.
 fn seed(corpus: &Path, target: &str, name: &str, bytes: &[u8]) -> Res<()> {
     let dir = corpus.join(target);
@@ -184,7 +187,7 @@ fn main() -> Res<()> {
         "truncated.json",
         &whole[..whole.len() / 2],
     )?;
-    let hostile: [(&str, Box<dyn Fn(&mut Value)>); 5] = [
+    let hostile: [Edit; 5] = [
         (
             "samples_file_absolute",
             Box::new(|v| v["shards"][0]["samples_file"] = "/etc/passwd".into()),

@@ -11,6 +11,9 @@ use std::path::Path;
 
 type Res<T> = Result<T, Box<dyn std::error::Error>>;
 
+/// A named edit of a JSON file, for a variant seed.
+type Edit<'a> = (&'a str, Box<dyn Fn(&mut Value)>);
+
 fn seed(corpus: &Path, target: &str, name: &str, bytes: &[u8]) -> Res<()> {
     let dir = corpus.join(target);
     std::fs::create_dir_all(&dir)?;
@@ -54,7 +57,7 @@ fn main() -> Res<()> {
         "truncated.json",
         &valid[..valid.len() / 2],
     )?;
-    let variants: [(&str, Box<dyn Fn(&mut Value)>); 4] = [
+    let variants: [Edit; 4] = [
         (
             "file_unlisted",
             Box::new(|v| {
@@ -103,7 +106,7 @@ fn main() -> Res<()> {
         &info[..info.len() / 2],
     )?;
     let v: Value = serde_json::from_slice(&info)?;
-    let variants: [(&str, Box<dyn Fn(&mut Value)>); 4] = [
+    let variants: [Edit; 4] = [
         (
             "input_size_huge",
             Box::new(|v| v["config"]["input_size"] = json!(1u64 << 40)),
