@@ -158,14 +158,9 @@ fn shard_processes_side_by_side_equal_a_single_run() {
     assert_eq!(a["converted"], 40);
 }
 
-/// The Slurm recipe under a real Slurm: `deploy/slurm/local-cluster.sh` starts a
-/// one-node cluster (munged, slurmctld, slurmd on this host), submits
-/// `deploy/slurm/submit.sh` (a convert array of 3 tasks, the merge, a render array of
-/// 3 tasks) with sbatch, waits, and compares every Parquet file and `inspect --json`
-/// with a single-machine run byte for byte. Skipped without Slurm, root or the
-/// release's resources (CI installs Debian's slurm-wlm and munge).
-#[test]
-fn slurm_job_arrays_equal_a_single_run() {
+/// Runs `deploy/slurm/local-cluster.sh` with the environment `env`; its stdout, or
+/// `None` (SKIPPED printed) without Slurm, root or the release's resources.
+fn local_cluster(env: &[(&str, &str)]) -> Option<String> {
     let have = |tool: &str| {
         Command::new("sh")
             .args(["-c", &format!("command -v {tool}")])
@@ -177,7 +172,7 @@ fn slurm_job_arrays_equal_a_single_run() {
         .all(|t| have(t))
     {
         eprintln!("SKIPPED: Slurm is not installed (apt-get install slurm-wlm munge)");
-        return;
+        return None;
     }
     let root = Command::new("id")
         .arg("-u")
@@ -185,7 +180,7 @@ fn slurm_job_arrays_equal_a_single_run() {
         .is_ok_and(|o| o.stdout.trim_ascii() == b"0");
     if !root {
         eprintln!("SKIPPED: starting slurmd needs root");
-        return;
+        return None;
     }
     let resources = std::env::var_os("ARKIT_RESOURCES")
         .map(std::path::PathBuf::from)
@@ -194,8 +189,11 @@ fn slurm_job_arrays_equal_a_single_run() {
         });
     if !resources.is_dir() {
         eprintln!("SKIPPED: no release resources at {}", resources.display());
-        return;
+        return None;
     }
+    // One cluster at a time on this host (the tests of this file run in parallel).
+    static ONE_CLUSTER: std::sync::Mutex<()> = std::sync::Mutex::new(());
+    let _one = ONE_CLUSTER.lock().unwrap_or_else(|e| e.into_inner());
     let dir = tempfile::tempdir().unwrap();
     let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("deploy/slurm/local-cluster.sh");
     let out = Command::new("bash")
@@ -203,18 +201,55 @@ fn slurm_job_arrays_equal_a_single_run() {
         .arg(dir.path())
         .env("ARKIT_TOOL", BIN)
         .env("ARKIT_RESOURCES", &resources)
+        .envs(env.iter().copied())
         .output()
         .expect("run deploy/slurm/local-cluster.sh");
-    let stdout = String::from_utf8_lossy(&out.stdout);
+    let stdout = String::from_utf8_lossy(&out.stdout).into_owned();
     assert!(
         out.status.success(),
         "local Slurm run failed:\n{stdout}\n{}",
         String::from_utf8_lossy(&out.stderr)
     );
-    assert!(stdout.contains("slurm: 7 job tasks done"), "{stdout}");
     assert!(
         stdout.contains("slurm: samples:") && stdout.contains("slurm: targets:"),
         "{stdout}"
     );
     assert!(stdout.lines().any(|l| l == "slurm: ok"), "{stdout}");
+    Some(stdout)
+}
+
+/// The Slurm recipe under a real Slurm: `deploy/slurm/local-cluster.sh` starts a
+/// one-node cluster (munged, slurmctld, slurmd on this host), submits
+/// `deploy/slurm/submit.sh` (a convert array of 3 tasks, the merge, a render array of
+/// 3 tasks) with sbatch, waits, and compares every Parquet file and `inspect --json`
+/// with a single-machine run byte for byte. Skipped without Slurm, root or the
+/// release's resources (CI installs Debian's slurm-wlm and munge).
+#[test]
+fn slurm_job_arrays_equal_a_single_run() {
+    if let Some(stdout) = local_cluster(&[]) {
+        assert!(stdout.contains("slurm: 7 job tasks done"), "{stdout}");
+    }
+}
+
+/// The same recipe under faults (`SLURM_FAULTS=1`): convert task 1 cancelled (merge
+/// refuses, naming part 1; resubmitted alone), render task 1 killed with SIGKILL once
+/// it has written its first shard (its other shards missing, `train` refuses;
+/// resubmitted alone), render task 2 re-queued; then every Parquet file and `inspect
+/// --json` equal a single-machine run's, byte for byte. Skipped as above.
+#[test]
+fn slurm_recipe_survives_a_cancelled_a_killed_and_a_requeued_task() {
+    let Some(stdout) = local_cluster(&[("SLURM_FAULTS", "1")]) else {
+        return;
+    };
+    for line in [
+        "slurm: fault 1: convert task",
+        "merge refused:",
+        "DependencyNeverSatisfied",
+        "slurm: fault 2: render task",
+        "train refused:",
+        "slurm: fault 3: render task",
+    ] {
+        assert!(stdout.contains(line), "no '{line}' in:\n{stdout}");
+    }
+    assert!(stdout.contains("part 1 of 3 is missing"), "{stdout}");
 }

@@ -15,6 +15,10 @@
 #   4. converts and renders the same release on this machine in one process each, and
 #      checks that every Parquet file and the manifest's samples agree byte for byte;
 #   5. stops the daemons (also on failure) and prints `slurm: ok` on success.
+# With SLURM_FAULTS=1, step 3 submits the recipe held and runs it through faults: a
+# convert task cancelled (merge must refuse, naming the missing part; the task is
+# resubmitted alone), a render task killed with SIGKILL mid-way (resubmitted alone), a
+# render task re-queued; step 4 then checks the result as above.
 # ARKIT_TOOL names the binary (default target/release/arkit-tool of this checkout);
 # ARKIT_RESOURCES the release's resource folder (default ../shared/arkitface-resources
 # beside the checkout: the recipe converts with the real topology); ARRAY_SIZE the
@@ -59,6 +63,10 @@ pids+=("$(cat "$state/munge/munged.pid")")
 host=$(hostname -s)
 cpus=$(nproc)
 mem_mb=$(( $(awk '/MemTotal/ {print $2}' /proc/meminfo) / 1024 - 512 ))
+# With faults: a re-queued job waits cred_expire seconds (120 by default) before it
+# starts again; 10 here.
+cred_expire=
+[ "${SLURM_FAULTS:-0}" = 1 ] && cred_expire=,cred_expire=10
 cat >"$state/slurm.conf" <<EOF
 # One node, written by deploy/slurm/local-cluster.sh.
 ClusterName=arkit-local
@@ -67,7 +75,7 @@ SlurmctldPort=${SLURMCTLD_PORT:-16817}
 SlurmdPort=${SLURMD_PORT:-16818}
 AuthType=auth/munge
 CredType=cred/munge
-AuthInfo=socket=$socket
+AuthInfo=socket=$socket$cred_expire
 SlurmUser=root
 SlurmdUser=root
 StateSaveLocation=$state/ctld
@@ -111,16 +119,133 @@ release="$work/release"
 # Small shards, so that each of the N tasks has several to do.
 convert_options="--rows-per-shard 6"
 render_options="--size 48 --points 64 --uv-size 16"
+# With faults, shards of two rows and larger targets, so that a render task has eight
+# shards to write and is caught between two of them.
+if [ "${SLURM_FAULTS:-0}" = 1 ]; then
+  convert_options="--rows-per-shard 2"
+  render_options="--size 96 --points 256 --uv-size 32"
+fi
 
-# 3. The recipe, submitted as a user would (smaller tasks for one small node).
+# 3. The recipe, submitted as a user would (smaller tasks for one small node); with
+# SLURM_FAULTS=1, held, then run through the faults of step 3b.
 out="$work/slurm-out"
-submitted=$(cd "$work" && CPUS=1 MEM=1G TIME=00:20:00 ARKIT_TOOL="$bin" \
+faults=${SLURM_FAULTS:-0}
+hold=()
+[ "$faults" = 1 ] && hold=(SBATCH_HOLD=1)
+task_bin=$bin
+if [ "$faults" = 1 ]; then
+  # Render task 1's first run stops itself (SIGSTOP) before it starts, so that step 3b
+  # can run it in slices of 10 ms and kill it between two shards, whatever the speed.
+  task_bin="$work/tool-pausing-render-1"
+  cat >"$task_bin" <<TOOL
+#!/usr/bin/env bash
+if [ "\${SLURM_ARRAY_TASK_ID:-}" = 1 ] && [ "\$1" = render ] && mkdir "$work/paused-once" 2>/dev/null; then
+  kill -STOP \$\$
+fi
+exec "$bin" "\$@"
+TOOL
+  chmod +x "$task_bin"
+fi
+submitted=$(cd "$work" && env ${hold[@]+"${hold[@]}"} CPUS=1 MEM=1G TIME=00:20:00 ARKIT_TOOL="$task_bin" \
   CONVERT_OPTIONS="$convert_options" RENDER_OPTIONS="$render_options" \
   "$here/deploy/slurm/submit.sh" "$release" "$out" "$resources" "$n")
 echo "$submitted"
 ids=$(echo "$submitted" | sed -n 's/^submitted: convert array \([0-9]*\) -> merge \([0-9]*\) -> render array \([0-9]*\)$/\1 \2 \3/p')
 [ -n "$ids" ] || { echo "slurm: could not read the job ids from submit.sh's output" >&2; exit 1; }
+read -r convert merge render <<<"$ids"
 deadline=$(( $(date +%s) + ${SLURM_WAIT_SECONDS:-600} ))
+fail() { echo "slurm: $*" >&2; squeue >&2 || true; tail -n 30 "$work"/slurm-*.out >&2 2>/dev/null || true; exit 1; }
+# Waits until no job of the ids given (comma-separated) is queued or running.
+wait_jobs() {
+  while squeue -h -j "$1" -o '%i' 2>/dev/null | grep -q .; do
+    [ "$(date +%s)" -le "$deadline" ] || fail "jobs $1 still queued after ${SLURM_WAIT_SECONDS:-600} s"
+    sleep 1
+  done
+}
+# What is resubmitted for one failed task: the same script, an array of that one task,
+# with SHARD_COUNT=N (as submit.sh exports it) so that it still does part I of N.
+# shellcheck disable=SC2086 # the options are words
+resubmit() { # STAGE TASK ARGS...
+  local stage=$1 i=$2
+  shift 2
+  (cd "$work" && sbatch --parsable --cpus-per-task=1 --mem=1G --time=00:20:00 --array="$i" \
+    --job-name="arkit-$stage-again" --export=ALL,ARKIT_TOOL="$bin",SHARD_COUNT="$n" \
+    "$here/deploy/shard-task.sh" "$stage" "$@")
+}
+if [ "$faults" = 1 ]; then
+  # 3b. Faults. (1) Convert task 1 cancelled before it ran (as a pre-empted or failed
+  # task): the others finish; merge refuses, naming the missing part; the merge job
+  # waits on a dependency that can no longer be met; task 1 resubmitted alone, the
+  # merge job pointed at it.
+  t=$(date +%s)
+  scancel "${convert}_1"
+  scontrol release "$convert"
+  scontrol release "$merge"
+  wait_jobs "$convert"
+  if "$bin" merge --dataset "$out" >/dev/null 2>"$work/merge-refused.txt"; then
+    fail "merge accepted a conversion whose part 1 of $n was cancelled"
+  fi
+  grep -q "part 1 of $n is missing" "$work/merge-refused.txt" \
+    || fail "merge's refusal does not name part 1: $(cat "$work/merge-refused.txt")"
+  echo "slurm: fault 1: convert task ${convert}_1 cancelled; merge refused: $(tail -n 1 "$work/merge-refused.txt")"
+  for _ in $(seq 1 30); do # the scheduler's next pass marks it
+    reason=$(squeue -h -j "$merge" -o '%T %r')
+    case "$reason" in *DependencyNeverSatisfied*) break ;; esac
+    sleep 1
+  done
+  echo "slurm: fault 1: the merge job waits: $reason"
+  # shellcheck disable=SC2086
+  again=$(resubmit convert 1 "$release" "$out" --resources "$resources" $convert_options)
+  scontrol update JobId="$merge" Dependency="afterok:$again"
+  wait_jobs "$again,$merge"
+  [ -f "$out/dataset.json" ] || fail "no dataset.json after the resubmitted task and the merge"
+  echo "slurm: fault 1: task 1 resubmitted as $again, merged ($(( $(date +%s) - t )) s)"
+  # (2) Render task 1 killed (SIGKILL) mid-way, once it has written its first shard
+  # (shard 1) of several; (3) render task 2 re-queued (scontrol requeue) once running.
+  t=$(date +%s)
+  scontrol release "$render"
+  # Task 1 stopped itself: run it 10 ms at a time until it has written a shard, then
+  # kill it (SIGKILL, through Slurm) with shards still to write.
+  until pid=$(pgrep -f "tool-pausing-render-1 render") && [[ "$(ps -o stat= -p "$pid")" == T* ]]; do
+    [ "$(date +%s)" -le "$deadline" ] || fail "render task 1 never started"
+    sleep 0.05
+  done
+  task1() { for k in $(seq 1 "$n" $((shards - 1))); do [ -e "$out/targets/part-$(printf %05d "$k").parquet" ] && echo "$k"; done; }
+  shards=$(grep -c '"samples_file"' "$out/dataset.json")
+  slices=0
+  while [ -z "$(task1)" ]; do
+    kill -CONT "$pid"; sleep 0.01; kill -STOP "$pid"
+    slices=$((slices + 1))
+  done
+  scancel --full --signal=KILL "${render}_1"
+  # Task 2 starts when task 1's CPU is free; once it has written its first shard
+  # (running, or already done: either can be re-queued), it is re-queued.
+  while [ ! -e "$out/targets/part-00002.parquet" ]; do
+    [ "$(date +%s)" -le "$deadline" ] || fail "render task 2 never started"
+    sleep 0.05
+  done
+  scontrol requeue "${render}_2"
+  # (A re-queued job waits cred_expire seconds, 10 here, before it starts again.)
+  wait_jobs "$render"
+  # Task 1's shards: 1, 1 + N, ... of the dataset's.
+  missing=$(for k in $(seq 1 "$n" $((shards - 1))); do [ -e "$out/targets/part-$(printf %05d "$k").parquet" ] || echo "$k"; done | tr '\n' ' ')
+  [ -n "$missing" ] || fail "render task 1 was killed but every shard of it is there (it finished first)"
+  echo "slurm: fault 2: render task ${render}_1 killed mid-way (after $slices slices of 10 ms); its shards written: $(task1 | tr '\n' ' ')missing: $missing"
+  if "$bin" train --dataset "$out" --resources "$resources" --split all --steps 1 --batch 1 \
+      --output "$work/model" >/dev/null 2>"$work/train-refused.txt"; then
+    fail "train accepted targets with render task 1's shards missing"
+  fi
+  grep -q "targets" "$work/train-refused.txt" \
+    || fail "train's refusal does not name the targets: $(cat "$work/train-refused.txt")"
+  echo "slurm: fault 2: train refused: $(tail -n 1 "$work/train-refused.txt")"
+  # shellcheck disable=SC2086
+  again=$(resubmit render 1 "$out" --resources "$resources" $render_options)
+  wait_jobs "$again"
+  echo "slurm: fault 2: render task 1 resubmitted as $again ($(( $(date +%s) - t )) s)"
+  runs=$(grep -c "Allocate JobId=${render}_2(" "$state/log/slurmctld.log" || true)
+  [ "$runs" -ge 2 ] || fail "render task 2 was re-queued but ran $runs time(s)"
+  echo "slurm: fault 3: render task ${render}_2 re-queued and run again ($runs runs)"
+fi
 while squeue -h -o '%i' | grep -q .; do
   if [ "$(date +%s)" -gt "$deadline" ]; then
     echo "slurm: jobs still queued after ${SLURM_WAIT_SECONDS:-600} s:" >&2
@@ -130,6 +255,8 @@ while squeue -h -o '%i' | grep -q .; do
   sleep 2
 done
 # Without accounting, a job's end state is in slurmctld's log ("done status 0" per task).
+# (With faults, the tasks made to fail are expected there; the comparison below judges.)
+if [ "$faults" != 1 ]; then
 failed=$(grep -E '_job_complete: JobId=[0-9_]+ WEXITSTATUS [1-9]|_job_complete: JobId=.* WTERMSIG' "$state/log/slurmctld.log" || true)
 cancelled=$(grep -E 'DependencyNeverSatisfied|cancelled' "$state/log/slurmctld.log" || true)
 if [ -n "$failed$cancelled" ]; then
@@ -141,6 +268,7 @@ fi
 done_tasks=$(grep -cE '_job_complete: JobId=[0-9_]+.* done' "$state/log/slurmctld.log" || true)
 echo "slurm: $done_tasks job tasks done ($n convert, 1 merge, $n render expected)"
 [ "$done_tasks" -eq $((2 * n + 1)) ] || { echo "slurm: expected $((2 * n + 1)) finished tasks" >&2; exit 1; }
+fi
 
 # 4. The same on one machine, and the comparison.
 single="$work/single"

@@ -151,6 +151,8 @@
 pub mod augment;
 pub mod crop;
 pub mod eval;
+#[doc(hidden)]
+pub mod fuzz_entry;
 pub mod ingest;
 pub mod loader;
 pub mod mesh;

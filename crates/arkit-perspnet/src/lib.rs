@@ -33,6 +33,8 @@ mod blas;
 mod config;
 mod conv;
 mod direct;
+#[doc(hidden)]
+pub mod fuzz_entry;
 mod inference;
 pub mod layers;
 mod loss;

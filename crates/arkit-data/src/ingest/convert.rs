@@ -706,6 +706,18 @@ fn shard_fingerprint(conversion: &str, root: &Path, rows: &[PlannedRow]) -> Stri
 /// The name of the conversion record in an output folder.
 pub const CONVERSION_FILE: &str = "conversion.json";
 
+/// The conversion record at `path` (`conversion.json`), or `None` when there is none.
+/// Errors name the file: unreadable, or not a record.
+pub fn read_conversion_record(path: &Path) -> Result<Option<ConversionFingerprint>> {
+    match std::fs::read_to_string(path) {
+        Ok(text) => serde_json::from_str(&text)
+            .map(Some)
+            .map_err(|e| Error::format(path, format!("not a conversion record: {e}"))),
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(None),
+        Err(e) => Err(Error::io(path, e)),
+    }
+}
+
 /// The record of a finished shard, beside its samples file.
 fn shard_record_name(index: usize) -> String {
     format!("samples/part-{index:05}.json")
@@ -719,14 +731,7 @@ fn claim_output(output: &Path, fingerprint: &ConversionFingerprint, overwrite: b
     // the check and the record only).
     let _guard = arkit_core::atomic_file::FolderLock::wait(output, "conversion")?;
     let record = output.join(CONVERSION_FILE);
-    let existing: Option<ConversionFingerprint> = match std::fs::read_to_string(&record) {
-        Ok(text) => Some(
-            serde_json::from_str(&text)
-                .map_err(|e| Error::format(&record, format!("not a conversion record: {e}")))?,
-        ),
-        Err(e) if e.kind() == std::io::ErrorKind::NotFound => None,
-        Err(e) => return Err(Error::io(&record, e)),
-    };
+    let existing = read_conversion_record(&record)?;
     let has_output = ["samples", "errors", "manifest"]
         .iter()
         .any(|d| std::fs::read_dir(output.join(d)).is_ok_and(|mut r| r.next().is_some()))
@@ -1081,18 +1086,13 @@ fn part_of_name(name: &str) -> Option<(usize, usize)> {
 /// both shards).
 pub fn merge(dataset: &Path) -> Result<Merged> {
     let record = dataset.join(CONVERSION_FILE);
-    let conversion: ConversionFingerprint = match std::fs::read_to_string(&record) {
-        Ok(text) => serde_json::from_str(&text)
-            .map_err(|e| Error::format(&record, format!("not a conversion record: {e}")))?,
-        Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
-            return Err(Error::format(
-                dataset,
-                format!(
-                    "no {CONVERSION_FILE}: not a folder that `arkit-tool convert --shard I/N` wrote"
-                ),
-            ));
-        }
-        Err(e) => return Err(Error::io(&record, e)),
+    let Some(conversion) = read_conversion_record(&record)? else {
+        return Err(Error::format(
+            dataset,
+            format!(
+                "no {CONVERSION_FILE}: not a folder that `arkit-tool convert --shard I/N` wrote"
+            ),
+        ));
     };
     let digest = conversion.digest();
     let dir = dataset.join("manifest");
@@ -1133,15 +1133,31 @@ pub fn merge(dataset: &Path) -> Result<Merged> {
             ));
         }
     };
+    // Every missing part named at once, so that a cluster's failed tasks are all seen.
+    let missing: Vec<usize> = (0..n)
+        .filter(|&i| !dataset.join(manifest_name(i, n)).exists())
+        .collect();
+    if !missing.is_empty() {
+        let list = |f: &dyn Fn(usize) -> String| {
+            missing.iter().map(|&i| f(i)).collect::<Vec<_>>().join(", ")
+        };
+        let (parts, verb) = match missing.len() {
+            1 => ("part", "is"),
+            _ => ("parts", "are"),
+        };
+        return Err(Error::format(
+            &dir,
+            format!(
+                "{parts} {} of {n} {verb} missing ({} of {n} finished): run {}",
+                list(&|i| i.to_string()),
+                n - missing.len(),
+                list(&|i| format!("`convert --shard {i}/{n}`"))
+            ),
+        ));
+    }
     let mut parts: Vec<(Manifest, PathBuf)> = Vec::new();
     for i in 0..n {
         let path = dataset.join(manifest_name(i, n));
-        if !path.exists() {
-            return Err(Error::format(
-                &dir,
-                format!("part {i} of {n} is missing: run `convert --shard {i}/{n}`"),
-            ));
-        }
         let p = read_manifest(&path)?;
         if p.part != [i, n] {
             return Err(Error::format(

@@ -222,10 +222,60 @@ pub fn check_topology(manifest: &Manifest, topology: &FaceTopology) -> Result<()
     ))
 }
 
-/// Reads a manifest.
+/// The most shards a dataset has (a shard index, and the shards a conversion's rows
+/// make, are checked against it before anything is allocated from them).
+pub const MAX_SHARDS: usize = 1 << 20;
+
+impl Manifest {
+    /// Checks what readers take from it before they allocate or open files by it (the
+    /// manifest of `path`): its part `[I, N]` with `I < N`; at least one row per shard
+    /// and at most [`MAX_SHARDS`] shards for its listed rows; each shard's index below
+    /// [`MAX_SHARDS`] and listed once; its files relative paths inside the dataset's
+    /// folder (no `..`, no root). Errors name the file and the field.
+    pub fn check(&self, path: &Path) -> Result<()> {
+        let bad = |why: String| Err(Error::format(path, format!("not a manifest: {why}")));
+        let [i, n] = self.part;
+        if i >= n {
+            return bad(format!("part [{i}, {n}] is not part I < N of N"));
+        }
+        if self.rows_per_shard == 0 || self.listed.div_ceil(self.rows_per_shard) > MAX_SHARDS {
+            return bad(format!(
+                "{} listed rows in shards of {} make more than {MAX_SHARDS} shards (or none per shard)",
+                self.listed, self.rows_per_shard
+            ));
+        }
+        let mut seen = std::collections::HashSet::new();
+        for s in &self.shards {
+            if s.index >= MAX_SHARDS || !seen.insert(s.index) {
+                return bad(format!(
+                    "shard index {} listed twice or not below {MAX_SHARDS}",
+                    s.index
+                ));
+            }
+            for f in [&s.samples_file, &s.errors_file] {
+                let inside = !f.is_empty()
+                    && Path::new(f)
+                        .components()
+                        .all(|c| matches!(c, std::path::Component::Normal(_)));
+                if !inside {
+                    return bad(format!(
+                        "shard {}: '{f}' is not a file inside the dataset's folder",
+                        s.index
+                    ));
+                }
+            }
+        }
+        Ok(())
+    }
+}
+
+/// Reads a manifest, checked ([`Manifest::check`]).
 pub fn read_manifest(path: &Path) -> Result<Manifest> {
     let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
-    serde_json::from_str(&text).map_err(|e| Error::format(path, format!("not a manifest: {e}")))
+    let m: Manifest = serde_json::from_str(&text)
+        .map_err(|e| Error::format(path, format!("not a manifest: {e}")))?;
+    m.check(path)?;
+    Ok(m)
 }
 
 /// SHA-256 (hex) of what a dataset's targets and crop stores depend on in its manifest:

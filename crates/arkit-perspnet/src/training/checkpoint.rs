@@ -170,7 +170,8 @@ pub(crate) fn write_checkpoint(
 pub const CHECKPOINT_RECORD: &str = "checkpoint.json";
 
 /// The files of a checkpoint folder that [`CHECKPOINT_RECORD`] covers.
-const CHECKPOINT_FILES: [&str; 4] = ["model.safetensors", ADAM_FILE, "loss.csv", "perspnet.json"];
+pub(crate) const CHECKPOINT_FILES: [&str; 4] =
+    ["model.safetensors", ADAM_FILE, "loss.csv", "perspnet.json"];
 
 /// One file of a checkpoint, as its record holds it.
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
@@ -284,6 +285,27 @@ pub fn verify_checkpoint(dir: &Path) -> Result<()> {
     Ok(())
 }
 
+/// Reads a checkpoint's `perspnet.json` at `path`: parsed, its network config checked
+/// ([`PerspNetConfig::validate`]: sizes a network can be built with) before anything is
+/// built from it. Errors name the file.
+pub(crate) fn read_checkpoint_info(path: &Path) -> Result<Checkpoint> {
+    let meta = std::fs::metadata(path).map_err(|e| Error::io(path, e))?;
+    if meta.len() > 1 << 20 {
+        return Err(Error::format(
+            path,
+            format!("{} bytes: not a checkpoint's perspnet.json", meta.len()),
+        ));
+    }
+    let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
+    let checkpoint: Checkpoint =
+        serde_json::from_str(&text).map_err(|e| Error::format(path, e.to_string()))?;
+    checkpoint
+        .config
+        .validate()
+        .map_err(|e| Error::format(path, format!("its network config: {e}")))?;
+    Ok(checkpoint)
+}
+
 /// A trained network loaded from a checkpoint folder.
 pub struct TrainedModel {
     /// How it was made.
@@ -296,10 +318,7 @@ pub struct TrainedModel {
 
 /// Loads a checkpoint folder written by [`crate::train`].
 pub fn load(dir: &Path, topology: &FaceTopology) -> Result<TrainedModel> {
-    let p = dir.join("perspnet.json");
-    let text = std::fs::read_to_string(&p).map_err(|e| Error::io(&p, e))?;
-    let checkpoint: Checkpoint =
-        serde_json::from_str(&text).map_err(|e| Error::format(&p, e.to_string()))?;
+    let checkpoint = read_checkpoint_info(&dir.join("perspnet.json"))?;
     if checkpoint.topology != topology.source {
         return Err(Error::invalid(
             "--resources",

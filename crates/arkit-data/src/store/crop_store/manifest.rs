@@ -67,7 +67,7 @@ pub struct MissingCrop {
 
 impl CropStoreManifest {
     /// The header of the `part-K.bin` of samples shard `index`, with `records` records.
-    pub(super) fn part_header(
+    pub(crate) fn part_header(
         &self,
         index: usize,
         records: usize,

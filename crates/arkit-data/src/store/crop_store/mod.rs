@@ -50,6 +50,7 @@ pub use self::{
 pub(crate) use self::{
     format::{MANIFEST_FILE, MAX_KEY_BYTES, key_field_bytes},
     manifest::write_manifest,
+    reader::{check_for_loader, reseal_part},
     records::encode_record,
     writer::write_shard_file,
 };

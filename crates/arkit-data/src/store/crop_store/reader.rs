@@ -151,6 +151,91 @@ fn read_index(
     Ok(offsets)
 }
 
+/// Recomputes, in the bytes `part` of a part file of `records` records, the CRC of each
+/// record its index delimits (where the offsets lie in the file and increase) and the
+/// index's CRC in the footer; nothing else is changed, and a file too short for its
+/// index and footer is left as it is. For the fuzz entries (`crate::fuzz_entry`), which
+/// use it to reach the checks and decoders behind the CRCs with mutated records (a
+/// hostile file can carry valid CRCs).
+pub(crate) fn reseal_part(part: &mut [u8], records: usize) {
+    let len = part.len() as u64;
+    let index_bytes = 8 * (records as u64 + 1);
+    if len < HEADER_BYTES + index_bytes + FOOTER_BYTES {
+        return;
+    }
+    let index_at = (len - FOOTER_BYTES - index_bytes) as usize;
+    let offsets: Vec<u64> = part[index_at..index_at + index_bytes as usize]
+        .chunks_exact(8)
+        .map(|c| u64::from_le_bytes(c.try_into().expect("8 bytes")))
+        .collect();
+    for w in offsets.windows(2) {
+        let (a, b) = (w[0], w[1]);
+        if a.checked_add(4).is_some_and(|a4| a4 <= b) && b <= index_at as u64 {
+            let r = &mut part[a as usize..b as usize];
+            let crc = crc32fast::hash(&r[4..]);
+            r[..4].copy_from_slice(&crc.to_le_bytes());
+        }
+    }
+    let crc = crc32fast::hash(&part[index_at..index_at + index_bytes as usize]);
+    let at = (len - FOOTER_BYTES) as usize + 8;
+    part[at..at + 4].copy_from_slice(&crc.to_le_bytes());
+}
+
+/// Checks the store manifest `m` (read from `mpath`) against what the loader asks for
+/// (rule set `rules`, crop side `img_size`, meshes of `vertex_count` vertices), its key
+/// field's width against [`MAX_KEY_BYTES`] and its dataset fingerprint's form (64
+/// lower-case hex digits, as every part header holds it): what [`CropStore::open`]
+/// checks of the manifest alone, before its dataset and files.
+pub(crate) fn check_for_loader(
+    m: &CropStoreManifest,
+    mpath: &Path,
+    rules: RuleSet,
+    img_size: u32,
+    vertex_count: usize,
+) -> Result<()> {
+    let expect = |what: &str, found: String, want: String| -> Result<()> {
+        if found == want {
+            Ok(())
+        } else {
+            Err(Error::format(
+                mpath,
+                format!(
+                    "{what} is {found}, the loader needs {want}: make a store for it with `arkit-tool crops`"
+                ),
+            ))
+        }
+    };
+    expect("compat", m.rules.to_string(), rules.to_string())?;
+    expect("img_size", m.img_size.to_string(), img_size.to_string())?;
+    expect("margin", m.margin.to_string(), margin(img_size).to_string())?;
+    expect(
+        "vertex_count",
+        m.vertex_count.to_string(),
+        vertex_count.to_string(),
+    )?;
+    if m.key_bytes == 0 || m.key_bytes > MAX_KEY_BYTES || !m.key_bytes.is_multiple_of(8) {
+        return Err(Error::format(
+            mpath,
+            format!(
+                "key_bytes is {}, not a multiple of 8 in 8..={MAX_KEY_BYTES}",
+                m.key_bytes
+            ),
+        ));
+    }
+    let fp = &m.dataset_fingerprint;
+    if fp.len() != 64
+        || !fp
+            .bytes()
+            .all(|b| b.is_ascii_digit() || (b'a'..=b'f').contains(&b))
+    {
+        return Err(Error::format(
+            mpath,
+            format!("dataset_fingerprint '{fp}' is not 64 lower-case hex digits"),
+        ));
+    }
+    Ok(())
+}
+
 impl CropStore {
     /// Opens the store in `dir` for `dataset`, crops of rule set `rules` and side
     /// `img_size`, meshes of `vertex_count` vertices; every check of [`CropStore`]'s
@@ -164,46 +249,7 @@ impl CropStore {
     ) -> Result<Self> {
         let manifest = read_manifest(dir)?;
         let mpath = dir.join(MANIFEST_FILE);
-        let expect = |what: &str, found: String, want: String| -> Result<()> {
-            if found == want {
-                Ok(())
-            } else {
-                Err(Error::format(
-                    &mpath,
-                    format!(
-                        "{what} is {found}, the loader needs {want}: make a store for it with `arkit-tool crops`"
-                    ),
-                ))
-            }
-        };
-        expect("compat", manifest.rules.to_string(), rules.to_string())?;
-        expect(
-            "img_size",
-            manifest.img_size.to_string(),
-            img_size.to_string(),
-        )?;
-        expect(
-            "margin",
-            manifest.margin.to_string(),
-            margin(img_size).to_string(),
-        )?;
-        expect(
-            "vertex_count",
-            manifest.vertex_count.to_string(),
-            vertex_count.to_string(),
-        )?;
-        if manifest.key_bytes == 0
-            || manifest.key_bytes > MAX_KEY_BYTES
-            || !manifest.key_bytes.is_multiple_of(8)
-        {
-            return Err(Error::format(
-                &mpath,
-                format!(
-                    "key_bytes is {}, not a multiple of 8 in 8..={MAX_KEY_BYTES}",
-                    manifest.key_bytes
-                ),
-            ));
-        }
+        check_for_loader(&manifest, &mpath, rules, img_size, vertex_count)?;
         let fingerprint = crate::store::manifest::dataset_fingerprint(dataset.manifest());
         if manifest.dataset_fingerprint != fingerprint {
             return Err(Error::format(
@@ -246,21 +292,25 @@ impl CropStore {
         })
     }
 
-    /// The store of one part file, samples shard 0's at `path` (of `records` records,
-    /// in the folder `dir`), opened with `manifest`: the part's checks, not the
-    /// manifest's against a dataset.
-    #[cfg(test)]
-    pub(super) fn of_part(
+    /// The store of one part file, samples shard `shard`'s at `path` (of `records`
+    /// records, in the folder `dir`), opened with `manifest`: the part's checks (header
+    /// and index), not the manifest's against a dataset. For the tests and the fuzz
+    /// entries (`crate::fuzz_entry`); `shard` is the caller's, as a dataset's shard
+    /// index is (bounded by [`crate::store::manifest::MAX_SHARDS`]).
+    pub(crate) fn of_part(
         dir: &Path,
         manifest: &CropStoreManifest,
         path: &Path,
+        shard: usize,
         records: usize,
     ) -> Result<Self> {
-        let part = PartFile::open(path.to_path_buf(), manifest, 0, records)?;
+        let part = PartFile::open(path.to_path_buf(), manifest, shard, records)?;
+        let mut files: Vec<Option<PartFile>> = (0..shard).map(|_| None).collect();
+        files.push(Some(part));
         Ok(CropStore {
             dir: dir.to_path_buf(),
             manifest: manifest.clone(),
-            files: vec![Some(part)],
+            files,
         })
     }
 

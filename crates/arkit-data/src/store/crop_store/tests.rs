@@ -64,7 +64,7 @@ fn crop() -> StoredCrop {
 fn store_of(dir: &Path, m: &CropStoreManifest, records: Vec<Vec<u8>>) -> CropStore {
     let n = records.len();
     write_shard_file(dir, m, 0, &mut records.into_iter().map(Ok), n).unwrap();
-    CropStore::of_part(dir, m, &dir.join("part-0.bin"), n).unwrap()
+    CropStore::of_part(dir, m, &dir.join("part-0.bin"), 0, n).unwrap()
 }
 
 /// The records of samples `s/a/<row>`, row 5 with `crop`'s pixels, the others without.
@@ -120,14 +120,14 @@ fn a_record_round_trips_in_each_codec_and_its_crc_catches_a_flipped_byte() {
         let n = all.len();
         all[n - FOOTER_BYTES as usize - 3] ^= 1;
         std::fs::write(&path, &all).unwrap();
-        let e = CropStore::of_part(dir.path(), &m, &path, 6).unwrap_err();
+        let e = CropStore::of_part(dir.path(), &m, &path, 0, 6).unwrap_err();
         assert!(e.to_string().contains("index's CRC"), "{e}");
     }
 }
 
 /// `store` with its part file opened again from `path`.
 fn store_of_file(store: &CropStore, path: &Path) -> CropStore {
-    CropStore::of_part(store.dir(), store.manifest(), path, 6).unwrap()
+    CropStore::of_part(store.dir(), store.manifest(), path, 0, 6).unwrap()
 }
 
 #[test]

@@ -10,7 +10,7 @@
 //! [`WindowCodec`] variant, gives its name in `crops.json` and on the command line and
 //! its code in the part files' headers (both checked unique), and routes
 //! [`encode_window`], [`decode_window`] and the reader to it; the tests that run every
-//! codec ([`WindowCodec::ALL`]) then run it too. `xor` below, a codec of the tests only,
+//! codec ([`WindowCodec::ALL`]) then run it too. `xor` below, a codec of the tests (and the fuzz builds) only,
 //! was added so. (The command line's `--codec` names its codecs by hand, with their
 //! help: a codec is offered to users there on purpose.)
 
@@ -52,7 +52,7 @@ macro_rules! window_codecs {
             }
 
             /// Its code in a part file's header.
-            pub(in super::super) fn code(self) -> u32 {
+            pub(crate) fn code(self) -> u32 {
                 match self { $( $(#[cfg($cfg)])? WindowCodec::$variant => $code, )* }
             }
 
@@ -95,7 +95,7 @@ window_codecs! {
     /// after the byte counts of the first four (four bytes each, little endian), so that
     /// evaluation decodes the centre alone and a training crop the parts it reaches.
     PredZstd = 2, "pred-zstd", pred_zstd::PredZstd;
-    #[cfg(test)] #[doc = "A codec of the tests only."] Xor = 255, "xor", xor::Xor;
+    #[cfg(any(test, fuzzing))] #[doc = "A codec of the tests (and of the fuzz targets, built with `--cfg fuzzing`) only."] Xor = 255, "xor", xor::Xor;
 }
 
 impl serde::Serialize for WindowCodec {

@@ -1,4 +1,5 @@
-//! `xor`: a codec of the tests only (registered under `cfg(test)`), which shows what
+//! `xor`: a codec of the tests only (registered under `cfg(test)`, and `cfg(fuzzing)`
+//! for cargo-fuzz's builds, which fuzz every codec), which shows what
 //! adding a codec takes: this file and one line of the table in `codec/mod.rs`. Its
 //! bytes are the window's, each XOR 0x5a, behind a one-byte tag.
 
