@@ -1102,6 +1102,9 @@ pub fn merge(dataset: &Path) -> Result<Merged> {
         }
         Err(e) => return Err(Error::io(&record, e)),
     };
+    // One merge at a time; a killed merge's temporary goes.
+    let _lock = arkit_core::atomic_file::FolderLock::acquire(dataset, "merge", "merge")?;
+    arkit_core::atomic_file::remove_stale_temporaries(dataset, false)?;
     let digest = conversion.digest();
     let dir = dataset.join("manifest");
     let mut named: Vec<(usize, usize)> = Vec::new();

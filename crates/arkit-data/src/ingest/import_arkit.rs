@@ -716,6 +716,8 @@ pub fn import_capture(
         ));
     }
     let frames = find_frames(&options.input, &subject)?;
+    let _lock = atomic_file::FolderLock::acquire(&options.output, "import-arkit", "import-arkit")?;
+    atomic_file::remove_stale_temporaries(&options.output, true)?;
     let existing: Vec<&str> = LAYOUT_DIRS
         .iter()
         .copied()
