@@ -52,9 +52,10 @@ where
         let _ = file.try_lock();
         let mut writer = std::io::BufWriter::new(file);
         fill(&mut writer)?;
+        // Errors name the file being written, not its temporary.
         let file = writer
             .into_inner()
-            .map_err(|e| Error::io(&tmp, e.into_error()))?;
+            .map_err(|e| Error::io(path, e.into_error()))?;
         publish(&file, &tmp, path)
     })();
     if result.is_err() {
@@ -69,7 +70,7 @@ where
 /// byte is on the disk. Writers whose library writes the temporary itself (the
 /// safetensors files) open it and call this.
 pub fn publish(file: &fs::File, tmp: &Path, path: &Path) -> Result<()> {
-    file.sync_all().map_err(|e| Error::io(tmp, e))?;
+    file.sync_all().map_err(|e| Error::io(path, e))?;
     pause_before_rename(tmp, path);
     fs::rename(tmp, path).map_err(|e| Error::io(path, e))
 }
