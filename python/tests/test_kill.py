@@ -58,7 +58,7 @@ def base(tmp_path_factory):
     return base
 
 
-@pytest.mark.parametrize("part", ["samples/part-", "manifest/", "dataset.json"])
+@pytest.mark.parametrize("part", ["conversion.json", "samples/part-", "dataset.json"])
 def test_a_conversion_killed_before_a_rename_is_refused_then_rerun_whole(base, tmp_path, part):
     reference = base / "converted"
     out = tmp_path / "pq"
