@@ -17,7 +17,7 @@ use std::path::Path;
 /// A known scene: the face's pose in the camera of the written (turned) image, the
 /// camera in the world, the capture's intrinsics and resolution, the orientation.
 #[derive(Clone, Debug)]
-struct Scene {
+pub(crate) struct Scene {
     pose: Pose,
     camera_world: Matrix4<f64>,
     k: Matrix3<f64>,
@@ -40,7 +40,7 @@ fn mesh() -> Vec<Point3<f64>> {
         .collect()
 }
 
-fn scene(orientation: InterfaceOrientation, yaw: f64, pitch: f64, roll: f64) -> Scene {
+pub(crate) fn scene(orientation: InterfaceOrientation, yaw: f64, pitch: f64, roll: f64) -> Scene {
     let camera_world = Pose::from_euler(
         EulerAngles::new(37.0, -12.0, 4.0),
         Vector3::new(0.4, 1.3, -0.7),
@@ -134,7 +134,7 @@ fn frame_json(s: &Scene) -> Value {
 }
 
 /// Writes `NAME.json` and `NAME.png` of a scene into `dir`.
-fn write_frame(dir: &Path, name: &str, s: &Scene) {
+pub(crate) fn write_frame(dir: &Path, name: &str, s: &Scene) {
     std::fs::create_dir_all(dir).unwrap();
     std::fs::write(
         dir.join(format!("{name}.json")),

@@ -26,10 +26,10 @@ use std::time::Instant;
 const CROP_SIZE: &str = "64";
 
 /// A small deterministic generator (splitmix64) for the kill points.
-struct Points(u64);
+pub(crate) struct Points(pub(crate) u64);
 
 impl Points {
-    fn next_unit(&mut self) -> f64 {
+    pub(crate) fn next_unit(&mut self) -> f64 {
         self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
         let mut z = self.0;
         z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
@@ -38,7 +38,7 @@ impl Points {
     }
 }
 
-fn env_number(name: &str, default: u64) -> u64 {
+pub(crate) fn env_number(name: &str, default: u64) -> u64 {
     match std::env::var(name) {
         Ok(v) => v
             .parse()
@@ -47,7 +47,7 @@ fn env_number(name: &str, default: u64) -> u64 {
     }
 }
 
-fn run_ok(command: &mut Command) -> Output {
+pub(crate) fn run_ok(command: &mut Command) -> Output {
     let out = command.output().expect("run arkit-tool");
     assert!(
         out.status.success(),
@@ -57,13 +57,13 @@ fn run_ok(command: &mut Command) -> Output {
     out
 }
 
-fn text(bytes: &[u8]) -> String {
+pub(crate) fn text(bytes: &[u8]) -> String {
     String::from_utf8_lossy(bytes).into_owned()
 }
 
 /// Every regular file under `dir` (relative path -> bytes), lock files left out (they
 /// are empty and only ever held by a live writer).
-fn tree(dir: &Path) -> BTreeMap<String, Vec<u8>> {
+pub(crate) fn tree(dir: &Path) -> BTreeMap<String, Vec<u8>> {
     let mut out = BTreeMap::new();
     let mut stack = vec![dir.to_path_buf()];
     while let Some(d) = stack.pop() {
@@ -88,19 +88,16 @@ fn tree(dir: &Path) -> BTreeMap<String, Vec<u8>> {
     out
 }
 
-/// The temporaries under `dir`.
-fn temporaries(dir: &Path) -> Vec<String> {
+/// The temporaries under `dir` (files, and files in temporary folders).
+pub(crate) fn temporaries(dir: &Path) -> Vec<String> {
     tree(dir)
         .into_keys()
-        .filter(|k| {
-            let name = k.rsplit('/').next().unwrap_or(k);
-            arkit_core::atomic_file::is_temporary_name(name)
-        })
+        .filter(|k| k.split('/').any(arkit_core::atomic_file::is_temporary_name))
         .collect()
 }
 
 /// Where two trees differ (first few), empty when equal.
-fn differences(
+pub(crate) fn differences(
     expected: &BTreeMap<String, Vec<u8>>,
     got: &BTreeMap<String, Vec<u8>>,
 ) -> Vec<String> {

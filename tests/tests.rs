@@ -14,6 +14,7 @@ mod direct_commands;
 mod hostile;
 mod import_arkit;
 mod kill;
+mod kill_all;
 mod official_crop;
 mod options;
 #[cfg(feature = "model")]

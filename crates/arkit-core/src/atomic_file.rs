@@ -27,7 +27,7 @@ use std::io::Write;
 use std::path::{Path, PathBuf};
 
 /// The temporary name used while `path` is being written.
-pub(crate) fn temporary_name(path: &Path) -> PathBuf {
+pub fn temporary_name(path: &Path) -> PathBuf {
     let name = path
         .file_name()
         .map(|n| n.to_string_lossy().into_owned())
@@ -52,16 +52,88 @@ where
         let _ = file.try_lock();
         let mut writer = std::io::BufWriter::new(file);
         fill(&mut writer)?;
+        // Errors name the file being written, not its temporary.
         let file = writer
             .into_inner()
-            .map_err(|e| Error::io(&tmp, e.into_error()))?;
-        file.sync_all().map_err(|e| Error::io(&tmp, e))?;
-        fs::rename(&tmp, path).map_err(|e| Error::io(path, e))
+            .map_err(|e| Error::io(path, e.into_error()))?;
+        publish(&file, &tmp, path)
     })();
     if result.is_err() {
         let _ = fs::remove_file(&tmp);
     }
     result
+}
+
+/// Publishes the complete temporary `tmp` (open as `file`) under its final name `path`:
+/// flushes its bytes to the disk, then renames it over `path`. The one place every
+/// writer renames, so a file is never visible under its final name before its last
+/// byte is on the disk. Writers whose library writes the temporary itself (the
+/// safetensors files) open it and call this.
+pub fn publish(file: &fs::File, tmp: &Path, path: &Path) -> Result<()> {
+    file.sync_all().map_err(|e| Error::io(path, e))?;
+    pause_before_rename(tmp, path);
+    fs::rename(tmp, path).map_err(|e| Error::io(path, e))
+}
+
+/// Replaces the folder `path` with the complete folder `tmp` (its files each written
+/// with [`write_atomically`], so already on the disk), for outputs that must change
+/// together (a release's train and test lists): the old folder is renamed aside, `tmp`
+/// renamed into place, the old one removed. A reader sees the old folder, the new one,
+/// or (in the instant between the two renames, or after a kill there) none, never some
+/// files of each. A kill leaves `tmp` or the old folder aside under a temporary name
+/// (`.NAME.tmp-PID`, `.NAME.old.tmp-PID`), which [`remove_stale_temporaries`] removes.
+pub fn publish_dir(tmp: &Path, path: &Path) -> Result<()> {
+    pause_before_rename(tmp, path);
+    let name = path
+        .file_name()
+        .map(|n| n.to_string_lossy().into_owned())
+        .unwrap_or_default();
+    let aside = path.with_file_name(format!(".{name}.old.tmp-{}", std::process::id()));
+    let had_old = match fs::rename(path, &aside) {
+        Ok(()) => true,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => false,
+        Err(e) => return Err(Error::io(path, e)),
+    };
+    fs::rename(tmp, path).map_err(|e| Error::io(path, e))?;
+    if had_old {
+        fs::remove_dir_all(&aside).map_err(|e| Error::io(&aside, e))?;
+    }
+    Ok(())
+}
+
+/// Publishes a temporary that a library wrote and closed: [`publish`] on it reopened.
+pub fn publish_written(tmp: &Path, path: &Path) -> Result<()> {
+    let file = fs::File::open(tmp).map_err(|e| Error::io(tmp, e))?;
+    publish(&file, tmp, path)
+}
+
+/// The environment variable of the test hook in [`publish`]: when set to a non-empty
+/// text, a writer whose final path contains it stops for good once that file's
+/// temporary is complete and flushed, just before the rename, after printing
+/// `ARKIT_PAUSE_BEFORE_RENAME: paused before renaming TMP to PATH` on stderr. For the
+/// kill harness (tests/kill_all.rs), which kills the process there; not for users.
+pub const PAUSE_BEFORE_RENAME: &str = "ARKIT_PAUSE_BEFORE_RENAME";
+
+/// The test hook of [`PAUSE_BEFORE_RENAME`] (the variable is read once per process).
+fn pause_before_rename(tmp: &Path, path: &Path) {
+    static PAUSE: std::sync::OnceLock<Option<String>> = std::sync::OnceLock::new();
+    let pause = PAUSE.get_or_init(|| {
+        std::env::var(PAUSE_BEFORE_RENAME)
+            .ok()
+            .filter(|s| !s.is_empty())
+    });
+    if let Some(part) = pause
+        && path.to_string_lossy().contains(part.as_str())
+    {
+        eprintln!(
+            "{PAUSE_BEFORE_RENAME}: paused before renaming {} to {}",
+            tmp.display(),
+            path.display()
+        );
+        loop {
+            std::thread::sleep(std::time::Duration::from_secs(3600));
+        }
+    }
 }
 
 /// Writes `bytes` to `path` atomically.
@@ -77,8 +149,8 @@ pub fn is_temporary_name(name: &str) -> bool {
             .is_some_and(|(_, pid)| !pid.is_empty() && pid.bytes().all(|b| b.is_ascii_digit()))
 }
 
-/// Removes the temporaries that killed writers left in `dir` and, when `recursive`, in
-/// its sub-folders. A temporary is left alone when a live writer holds it locked, or
+/// Removes the temporaries (files, and the folders of [`publish_dir`]) that killed
+/// writers left in `dir` and, when `recursive`, in its sub-folders. A temporary is left alone when a live writer holds it locked, or
 /// when the process its name ends with (`.tmp-PID`) is still running: a writer creates
 /// its temporary an instant before it locks it, and another process cleaning the same
 /// folder in that instant must not take the file from under it. Returns the files
@@ -96,14 +168,19 @@ pub fn remove_stale_temporaries(dir: &Path, recursive: bool) -> Result<Vec<PathB
             let entry = entry.map_err(|e| Error::io(&d, e))?;
             let path = entry.path();
             let kind = entry.file_type().map_err(|e| Error::io(&path, e))?;
+            let name = entry.file_name();
+            let name = name.to_string_lossy();
             if kind.is_dir() {
-                if recursive {
+                // A folder being filled for `publish_dir` (or set aside by it) has no
+                // lock: the process its name ends with tells.
+                if is_temporary_name(&name) && !writer_is_running(&name) {
+                    fs::remove_dir_all(&path).map_err(|e| Error::io(&path, e))?;
+                    removed.push(path);
+                } else if recursive {
                     stack.push(path);
                 }
                 continue;
             }
-            let name = entry.file_name();
-            let name = name.to_string_lossy();
             if !kind.is_file() || !is_temporary_name(&name) || writer_is_running(&name) {
                 continue;
             }
@@ -147,6 +224,22 @@ fn open_lock_file(dir: &Path, name: &str) -> Result<(fs::File, PathBuf)> {
     Ok((file, path))
 }
 
+/// This process as a lock file names it: `pid PID on HOST: COMMAND LINE`.
+fn holder_description() -> String {
+    let host = fs::read_to_string("/proc/sys/kernel/hostname")
+        .ok()
+        .or_else(|| std::env::var("HOSTNAME").ok())
+        .map(|h| h.trim().to_string())
+        .filter(|h| !h.is_empty())
+        .unwrap_or_else(|| "an unknown host".to_string());
+    let command: Vec<String> = std::env::args().collect();
+    format!(
+        "pid {} on {host}: {}",
+        std::process::id(),
+        command.join(" ")
+    )
+}
+
 /// An exclusive claim on an output folder (or on one part of it), held until dropped.
 #[derive(Debug)]
 pub struct FolderLock {
@@ -161,14 +254,23 @@ impl FolderLock {
     pub fn acquire(dir: &Path, name: &str, what: &str) -> Result<Self> {
         let (file, path) = open_lock_file(dir, name)?;
         match file.try_lock() {
-            Ok(()) => Ok(Self { _file: file, path }),
-            Err(fs::TryLockError::WouldBlock) => Err(Error::format(
-                dir,
-                format!(
-                    "another {what} is writing this folder (it holds {}); wait for it to finish or choose another output folder",
-                    path.display()
-                ),
-            )),
+            Ok(()) => Ok(Self::held(file, path)),
+            Err(fs::TryLockError::WouldBlock) => {
+                let holder = fs::read_to_string(&path).unwrap_or_default();
+                let holder = holder.trim();
+                let holder = if holder.is_empty() {
+                    "a process that is just starting".to_string()
+                } else {
+                    holder.to_string()
+                };
+                Err(Error::format(
+                    dir,
+                    format!(
+                        "another {what} is writing this folder: {} is held by {holder}; wait for it to finish or choose another output folder",
+                        path.display()
+                    ),
+                ))
+            }
             Err(fs::TryLockError::Error(e)) => Err(Error::io(&path, e)),
         }
     }
@@ -178,7 +280,17 @@ impl FolderLock {
     pub fn wait(dir: &Path, name: &str) -> Result<Self> {
         let (file, path) = open_lock_file(dir, name)?;
         file.lock().map_err(|e| Error::io(&path, e))?;
-        Ok(Self { _file: file, path })
+        Ok(Self::held(file, path))
+    }
+
+    /// The lock, held: its file now names the holder (`pid PID on HOST: COMMAND`), for
+    /// the refusal a second writer gets. The name is a courtesy: a file system that
+    /// cannot write it still locks.
+    fn held(mut file: fs::File, path: PathBuf) -> Self {
+        let _ = file
+            .set_len(0)
+            .and_then(|()| file.write_all(format!("{}\n", holder_description()).as_bytes()));
+        Self { _file: file, path }
     }
 
     /// The lock file.
@@ -219,9 +331,13 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         let first = FolderLock::acquire(dir.path(), "convert", "convert").unwrap();
         let err = FolderLock::acquire(dir.path(), "convert", "convert").unwrap_err();
+        let message = err.to_string();
+        assert!(message.contains("another convert is writing"), "{message}");
+        // The refusal names the lock file and its holder (this process).
         assert!(
-            err.to_string().contains("another convert is writing"),
-            "{err}"
+            message.contains(&first.path().display().to_string())
+                && message.contains(&format!("held by pid {} on ", std::process::id())),
+            "{message}"
         );
         // Another name is another lock.
         let _other = FolderLock::acquire(dir.path(), "render", "render").unwrap();

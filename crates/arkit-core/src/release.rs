@@ -428,6 +428,25 @@ pub fn list_csv_text(keys: &[SampleKey]) -> String {
     s
 }
 
+/// Writes the list CSVs of a release rooted at `root` together: `lists` (split name,
+/// keys) become `root/ARKitFace_list/list/ARKitFace_{split}.csv`, replacing the whole
+/// `ARKitFace_list/` folder at once (`atomic_file::publish_dir`), so a reader never sees
+/// one list of this run beside one of another (or a train list without its test list).
+pub fn write_lists(root: &Path, lists: &[(&str, &[SampleKey])]) -> Result<()> {
+    let dir = root.join("ARKitFace_list");
+    let tmp = crate::atomic_file::temporary_name(&dir);
+    if tmp.exists() {
+        std::fs::remove_dir_all(&tmp).map_err(|e| Error::io(&tmp, e))?;
+    }
+    for (split, keys) in lists {
+        write_list(
+            &tmp.join("list").join(format!("ARKitFace_{split}.csv")),
+            keys,
+        )?;
+    }
+    crate::atomic_file::publish_dir(&tmp, &dir)
+}
+
 /// Writes a list CSV atomically.
 pub fn write_list(path: &Path, keys: &[SampleKey]) -> Result<()> {
     crate::atomic_file::write_bytes(path, list_csv_text(keys).as_bytes())

@@ -471,17 +471,24 @@ pub fn augment_dataset(
     summary.written.sort_by(|a, b| a.key.cmp(&b.key));
     summary.skipped.sort();
     summary.unreadable.sort();
-    // The list CSVs: every written sample, by its source's split.
-    for split in [Split::Train, Split::Test] {
-        let keys: Vec<SampleKey> = summary
-            .written
-            .iter()
-            .filter(|w| w.split == split.name())
-            .map(|w| w.key.clone())
-            .collect();
-        if !keys.is_empty() {
-            release::write_list(&layout.list_path(split), &keys)?;
-        }
+    // The list CSVs: every written sample, by its source's split; all at once.
+    let lists: Vec<(&str, Vec<SampleKey>)> = [Split::Train, Split::Test]
+        .into_iter()
+        .map(|split| {
+            let keys = summary
+                .written
+                .iter()
+                .filter(|w| w.split == split.name())
+                .map(|w| w.key.clone())
+                .collect();
+            (split.name(), keys)
+        })
+        .filter(|(_, keys): &(&str, Vec<SampleKey>)| !keys.is_empty())
+        .collect();
+    if !lists.is_empty() {
+        let lists: Vec<(&str, &[SampleKey])> =
+            lists.iter().map(|(s, k)| (*s, k.as_slice())).collect();
+        release::write_lists(&layout.root, &lists)?;
     }
     if summary.written.is_empty() {
         return Err(Error::invalid(

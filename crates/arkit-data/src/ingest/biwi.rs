@@ -661,6 +661,13 @@ pub fn stage_with(
         .collect();
     let layout = ReleaseLayout::new(staging);
     let camera = Camera::release(side, side);
+    // A frame that cannot be written (a full disk, say) stops the staging, naming the
+    // file: skipping it would leave a smaller release that looks complete.
+    let fatal: std::sync::Mutex<Option<Error>> = std::sync::Mutex::new(None);
+    let stop_if_fatal = || match fatal.lock().expect("fatal lock").take() {
+        Some(e) => Err(e),
+        None => Ok(()),
+    };
     let stage_frames =
         |frames: &[Frame]| -> Vec<std::result::Result<SampleKey, (bool, StageProblem)>> {
             frames
@@ -700,7 +707,11 @@ pub fn stage_with(
                             &camera,
                             Matrix4::identity(),
                         );
-                        let write = |e: Error| problem(&f.image, format!("could not write: {e}"));
+                        let write = |e: Error| {
+                            let p = problem(&f.image, format!("could not write: {e}"));
+                            fatal.lock().expect("fatal lock").get_or_insert(e);
+                            p
+                        };
                         let jpeg =
                             crate::picture::encode::jpeg_bytes(&written, 95).map_err(write)?;
                         atomic_file::write_bytes(&layout.image_path(Split::Test, &key), &jpeg)
@@ -722,6 +733,7 @@ pub fn stage_with(
     let mut tally = crate::ingest::systematic::SkipTally::new(window);
     let first = tally.remaining().min(frames.len());
     let mut results = stage_frames(&frames[..first]);
+    stop_if_fatal()?;
     for r in &results {
         tally.record(match r {
             Err((true, p)) => Some((
@@ -735,6 +747,7 @@ pub fn stage_with(
         return Err(Error::format(input, message));
     }
     results.extend(stage_frames(&frames[first..]));
+    stop_if_fatal()?;
     let mut keys = Vec::new();
     for r in results {
         match r {

@@ -606,7 +606,7 @@ pub type Progress<'a> = &'a (dyn Fn(usize) + Sync);
 /// bytes. The shard count (`--shard I/N`) is not part of it: parts of one conversion
 /// share it.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-pub(crate) struct ConversionFingerprint {
+pub struct ConversionFingerprint {
     /// The input root, absolute.
     pub input_root: String,
     /// The layout found.
@@ -1094,6 +1094,9 @@ pub fn merge(dataset: &Path) -> Result<Merged> {
             ),
         ));
     };
+    // One merge at a time; a killed merge's temporary goes.
+    let _lock = arkit_core::atomic_file::FolderLock::acquire(dataset, "merge", "merge")?;
+    arkit_core::atomic_file::remove_stale_temporaries(dataset, false)?;
     let digest = conversion.digest();
     let dir = dataset.join("manifest");
     let mut named: Vec<(usize, usize)> = Vec::new();

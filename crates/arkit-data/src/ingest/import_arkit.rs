@@ -716,6 +716,8 @@ pub fn import_capture(
         ));
     }
     let frames = find_frames(&options.input, &subject)?;
+    let _lock = atomic_file::FolderLock::acquire(&options.output, "import-arkit", "import-arkit")?;
+    atomic_file::remove_stale_temporaries(&options.output, true)?;
     let existing: Vec<&str> = LAYOUT_DIRS
         .iter()
         .copied()
@@ -750,6 +752,14 @@ pub fn import_capture(
             }
         })
         .collect();
+    // A frame that cannot be written (a full disk, say) stops the import, naming the
+    // file: it is not the frame's fault, and skipping it would leave a smaller release
+    // that looks complete.
+    let fatal: std::sync::Mutex<Option<Error>> = std::sync::Mutex::new(None);
+    let stop_if_fatal = || match fatal.lock().expect("fatal lock").take() {
+        Some(e) => Err(e),
+        None => Ok(()),
+    };
     let import =
         |range: std::ops::Range<usize>| -> Vec<std::result::Result<SampleKey, FrameProblem>> {
             frames[range.clone()]
@@ -769,10 +779,14 @@ pub fn import_capture(
                             });
                         }
                         let done = import_frame(&options.input, f, options.size)?;
-                        let write_fail = |e: Error| FrameProblem {
-                            check: None,
-                            file: relative_string(&f.json),
-                            reason: format!("could not write the output: {e}"),
+                        let write_fail = |e: Error| {
+                            let problem = FrameProblem {
+                                check: None,
+                                file: relative_string(&f.json),
+                                reason: format!("could not write the output: {e}"),
+                            };
+                            fatal.lock().expect("fatal lock").get_or_insert(e);
+                            problem
                         };
                         let jpeg =
                             crate::picture::encode::jpeg_bytes(&done.image, options.jpeg_quality)
@@ -796,6 +810,7 @@ pub fn import_capture(
     let mut tally = crate::ingest::systematic::SkipTally::new(options.systematic_window);
     let first = tally.remaining().min(frames.len());
     let mut results = import(0..first);
+    stop_if_fatal()?;
     for r in &results {
         tally.record(
             r.as_ref()
@@ -815,6 +830,7 @@ pub fn import_capture(
         return Err(Error::format(&options.input, message));
     }
     results.extend(import(first..frames.len()));
+    stop_if_fatal()?;
     let mut keys = Vec::new();
     let mut skipped = unreadable_entries(&options.input);
     for r in results {

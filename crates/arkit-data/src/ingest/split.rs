@@ -202,6 +202,8 @@ pub fn split_dataset(
     out: &std::path::Path,
 ) -> Result<BTreeMap<String, SplitCount>> {
     let data = crate::store::dataset::Dataset::open(dataset)?;
+    let _lock = arkit_core::atomic_file::FolderLock::acquire(dataset, "split", "split")?;
+    arkit_core::atomic_file::remove_stale_temporaries(out, true)?;
     let mut keys: Vec<(SampleKey, String)> = Vec::new();
     for s in data.shards() {
         keys.extend(data.read_sample_keys(s)?);
@@ -237,14 +239,13 @@ pub fn split_dataset(
     for ((k, _), s) in keys.iter().zip(&assigned) {
         by_split.entry(s.clone()).or_default().push(k.clone());
     }
-    for (s, ks) in &by_split {
-        arkit_core::release::write_list(
-            &out.join("ARKitFace_list")
-                .join("list")
-                .join(format!("ARKitFace_{s}.csv")),
-            ks,
-        )?;
-    }
+    // Every list at once: the official code never reads one split's list of this run
+    // beside another's of an older one.
+    let lists: Vec<(&str, &[SampleKey])> = by_split
+        .iter()
+        .map(|(s, ks)| (s.as_str(), ks.as_slice()))
+        .collect();
+    arkit_core::release::write_lists(out, &lists)?;
     let col = |name: &str, f: &dyn Fn(usize) -> String| {
         Column::new(name.into(), (0..keys.len()).map(f).collect::<Vec<String>>())
     };

@@ -647,6 +647,8 @@ pub fn generate(
     progress: &(dyn Fn() + Sync),
 ) -> Result<SynthSummary> {
     options.check()?;
+    let _lock = atomic_file::FolderLock::acquire(output, "synth", "synth")?;
+    atomic_file::remove_stale_temporaries(output, true)?;
     let layout = ReleaseLayout::new(output);
     let samples = plan(options);
     samples.par_iter().try_for_each(|s| -> Result<()> {
@@ -664,15 +666,26 @@ pub fn generate(
         Ok(())
     })?;
     let mut counts = [0usize; 2];
-    for split in [Split::Train, Split::Test] {
-        let keys: Vec<SampleKey> = samples
-            .iter()
-            .filter(|s| s.split == split)
-            .map(|s| s.key.clone())
-            .collect();
-        counts[split as usize] = keys.len();
-        release::write_list(&layout.list_path(split), &keys)?;
-    }
+    let lists: Vec<Vec<SampleKey>> = [Split::Train, Split::Test]
+        .into_iter()
+        .map(|split| {
+            let keys: Vec<SampleKey> = samples
+                .iter()
+                .filter(|s| s.split == split)
+                .map(|s| s.key.clone())
+                .collect();
+            counts[split as usize] = keys.len();
+            keys
+        })
+        .collect();
+    // Both lists at once: a release with a train list and no test list is never seen.
+    release::write_lists(
+        &layout.root,
+        &[
+            (Split::Train.name(), &lists[0]),
+            (Split::Test.name(), &lists[1]),
+        ],
+    )?;
     Ok(SynthSummary {
         output: output.to_path_buf(),
         subjects: options.subjects,

@@ -115,20 +115,22 @@ fn no_augmentation() -> Augmentation {
     Augmentation::NONE
 }
 
-/// Writes `path` through `save` under a temporary name in the same folder, then renames.
+/// Writes `path` through `save` under a temporary name in the same folder, then
+/// publishes it (flushed to the disk, then renamed: `atomic_file::publish`).
 pub(crate) fn save_renamed(
     path: &Path,
     save: &dyn Fn(&Path) -> candle_core::Result<()>,
 ) -> Result<()> {
-    let name = path
-        .file_name()
-        .map_or_else(String::new, |n| n.to_string_lossy().into_owned());
-    let tmp = path.with_file_name(format!(".{name}.tmp-{}", std::process::id()));
+    let tmp = arkit_core::atomic_file::temporary_name(path);
     if let Err(e) = save(&tmp) {
         let _ = std::fs::remove_file(&tmp);
         return Err(Error::format(path, e.to_string()));
     }
-    std::fs::rename(&tmp, path).map_err(|e| Error::io(path, e))
+    let published = arkit_core::atomic_file::publish_written(&tmp, path);
+    if published.is_err() {
+        let _ = std::fs::remove_file(&tmp);
+    }
+    published
 }
 
 /// The optimiser's state in a checkpoint folder ([`Adam::save`]).

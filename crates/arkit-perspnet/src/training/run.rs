@@ -155,6 +155,9 @@ pub fn train<S: ExampleShards + ?Sized>(
 ) -> Result<(Checkpoint, Vec<StepLoss>)> {
     let cfg = &options.config;
     options.validate()?;
+    // One run per model folder; a killed run's temporaries go.
+    let _lock = arkit_core::atomic_file::FolderLock::acquire(&options.output, "train", "train")?;
+    arkit_core::atomic_file::remove_stale_temporaries(&options.output, false)?;
     if examples.total() == 0 {
         return Err(Error::invalid("train", "no training examples"));
     }

@@ -103,6 +103,8 @@ pub fn export_weights(model_dir: &Path, output: &Path) -> Result<usize> {
     let map: HashMap<String, Tensor> = entries.into_iter().collect();
     if let Some(dir) = output.parent().filter(|d| !d.as_os_str().is_empty()) {
         std::fs::create_dir_all(dir).map_err(|e| Error::io(dir, e))?;
+        // A killed export's temporary goes.
+        arkit_core::atomic_file::remove_stale_temporaries(dir, false)?;
     }
     save_renamed(output, &|p| candle_core::safetensors::save(&map, p))?;
     Ok(n)

@@ -1,0 +1,114 @@
+"""The Python readers of a torn folder.
+
+`convert` and `crops` are stopped just before they rename a complete temporary into
+place (`ARKIT_PAUSE_BEFORE_RENAME`, the kill harness's hook) and killed there. While the
+folder is torn, `open_dataset` and `ARKitFaceDataset` must refuse with an error naming
+a file of it, or read the last complete state; never a half-written file. The rerun
+must give the uninterrupted run's files. (tests/kill.rs and tests/kill_all.rs do the
+same for the command-line readers.)
+"""
+
+import os
+import pathlib
+import shutil
+import subprocess
+
+import numpy as np
+import pytest
+
+from conftest import BIN, make_dataset
+
+arkit_tool = pytest.importorskip("arkit_tool")
+
+
+def killed_before_rename(args, part):
+    """Runs `args` until it has a complete temporary of a file whose path contains
+    `part`, then kills it (SIGKILL). Returns the writer's report."""
+    env = dict(os.environ, ARKIT_PAUSE_BEFORE_RENAME=part)
+    p = subprocess.Popen([str(a) for a in args], env=env, stdout=subprocess.DEVNULL,
+                         stderr=subprocess.PIPE, text=True)
+    try:
+        line = ""
+        for line in p.stderr:
+            if "paused before renaming" in line:
+                break
+    finally:
+        p.kill()
+        p.wait()
+    assert "paused before renaming" in line, f"{args} never paused at {part}: {line}"
+    return line
+
+
+def files(folder: pathlib.Path):
+    return {
+        str(p.relative_to(folder)): p.read_bytes()
+        for p in sorted(folder.rglob("*"))
+        if p.is_file() and not p.name.endswith(".lock")
+    }
+
+
+def temporaries(folder: pathlib.Path):
+    return [p.name for p in folder.rglob(".*.tmp-*")]
+
+
+@pytest.fixture(scope="module")
+def base(tmp_path_factory):
+    base = tmp_path_factory.mktemp("kill")
+    make_dataset(base, resources=False, size="200x200")
+    return base
+
+
+@pytest.mark.parametrize("part", ["conversion.json", "samples/part-", "dataset.json"])
+def test_a_conversion_killed_before_a_rename_is_refused_then_rerun_whole(base, tmp_path, part):
+    reference = base / "converted"
+    out = tmp_path / "pq"
+    convert = [BIN, "convert", "--input", base / "release", "--output", out,
+               "--rows-per-shard", 5]
+    killed_before_rename(convert, part)
+    with pytest.raises(Exception) as opened:
+        arkit_tool.open_dataset(out)
+    assert str(out) in str(opened.value), str(opened.value)
+    with pytest.raises(Exception) as loaded:
+        arkit_tool.ARKitFaceDataset(out, split=None, mode="eval", n_pts=16)
+    assert str(out) in str(loaded.value), str(loaded.value)
+    subprocess.run([str(a) for a in convert], check=True, stdout=subprocess.DEVNULL)
+    want, got = files(reference), files(out)
+    # conversion.json names the output folder; everything else is byte for byte.
+    want.pop("conversion.json", None)
+    got.pop("conversion.json", None)
+    assert got == want
+    assert temporaries(out) == []
+    assert len(arkit_tool.open_dataset(out)) == len(arkit_tool.open_dataset(reference))
+
+
+def test_a_crop_store_killed_before_its_record_is_refused_or_not_used(base, tmp_path):
+    data = tmp_path / "pq"
+    shutil.copytree(base / "converted", data)
+    crops = [BIN, "crops", "--dataset", data, "--size", 64]
+    killed_before_rename(crops, "crops.json")
+    store = data / "crops" / "exact-64"
+    assert store.is_dir() and not (store / "crops.json").exists()
+    # Named explicitly, the torn store is refused, naming its record.
+    with pytest.raises(Exception) as refused:
+        arkit_tool.ARKitFaceDataset(data, split=None, mode="eval", n_pts=16, img_size=64,
+                                    crop_store=store)
+    assert "crops.json" in str(refused.value) and str(store) in str(refused.value), \
+        str(refused.value)
+    # "auto" reads the last complete state: the release's own files, as without a store.
+    try:
+        auto = arkit_tool.ARKitFaceDataset(data, split=None, mode="eval", n_pts=16, img_size=64)
+    except Exception as e:  # a clear refusal is the other allowed outcome
+        assert str(store) in str(e), str(e)
+    else:
+        plain = arkit_tool.ARKitFaceDataset(data, split=None, mode="eval", n_pts=16, img_size=64,
+                                            crop_store=None)
+        for i in range(len(plain)):
+            np.testing.assert_array_equal(auto[i]["img"], plain[i]["img"])
+    subprocess.run([str(a) for a in crops], check=True, stdout=subprocess.DEVNULL)
+    assert temporaries(data) == []
+    whole = arkit_tool.ARKitFaceDataset(data, split=None, mode="eval", n_pts=16, img_size=64,
+                                        crop_store=store)
+    plain = arkit_tool.ARKitFaceDataset(data, split=None, mode="eval", n_pts=16, img_size=64,
+                                        crop_store=None)
+    # Evaluation crops from a store are bit for bit the release's (docs/python.md).
+    np.testing.assert_array_equal(whole[0]["img"], plain[0]["img"])
