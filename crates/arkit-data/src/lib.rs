@@ -152,16 +152,13 @@ pub mod augment;
 pub mod crop;
 pub mod eval;
 pub mod ingest;
+mod lanes;
 pub mod loader;
 pub mod mesh;
 pub mod picture;
 pub mod pose;
 pub mod render;
-#[cfg(target_arch = "x86_64")]
-mod rgb_lanes;
 pub mod store;
-#[cfg(target_arch = "x86_64")]
-mod streamed_plane;
 
 // The names a pipeline is written with: open a dataset, render, load, solve, score.
 pub use crate::{
