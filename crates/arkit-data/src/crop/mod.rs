@@ -666,7 +666,7 @@ mod tests {
                 .collect();
             let (mut fast, mut slow) = (vec![0f32; 64 * 3 + 1], vec![0f32; 64 * 3 + 1]);
             cols.blend_columns(&blend, &mut fast);
-            cols.blend_columns_scalar(&blend, &mut slow);
+            lanes::crop::blend_columns_scalar(&cols.starts, &cols.weights, &blend, &mut slow);
             let bits = |v: &[f32]| v[..64 * 3].iter().map(|x| x.to_bits()).collect::<Vec<_>>();
             assert_eq!(bits(&fast), bits(&slow), "{origin} {scale} {width}");
         }

@@ -93,17 +93,17 @@ mod tests {
         let mut r = arkit_core::rng::Rng::new(5);
         let mut backing = vec![0f32; 1100];
         for len in (0..=40).chain([63, 64, 65, 1000, 1061]) {
-            let entries: Vec<(usize, f32)> = (0..len)
-                .filter(|_| r.below(5) == 0)
-                .map(|at| {
+            let mut entries: Vec<(usize, f32)> = Vec::new();
+            for at in 0..len {
+                if r.below(5) == 0 {
                     let w = if r.below(9) == 0 {
                         -0.0
                     } else {
                         r.uniform(-1.0, 1.0) as f32
                     };
-                    (at, w)
-                })
-                .collect();
+                    entries.push((at, w));
+                }
+            }
             let mut want = vec![f32::NAN; len];
             write_plain(&mut want, &entries);
             for level in super::super::available() {

@@ -1019,6 +1019,7 @@ fn next_layout_id() -> u64 {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::lanes::texels::clamp_planes_from;
 
     #[test]
     fn face_offsets_of_a_row_sixteen_at_a_time_are_the_pixel_by_pixel_ones() {
@@ -1307,7 +1308,7 @@ mod tests {
         // maps of every length up to 40 texels and a whole one: the definition's
         // bits, and nothing outside the planes written.
         {
-            use crate::lanes::texels::{clamp_planes_at, clamp_planes_from};
+            use crate::lanes::texels::clamp_planes_at;
             let t = uv.texels(64);
             let whole = t.position_map_scalar(&ext);
             let bits = |m: &[f32]| -> Vec<u32> { m.iter().map(|v| v.to_bits()).collect() };
