@@ -558,3 +558,50 @@ fn rows_render_cannot_use_are_skipped_with_the_reason() {
         rows.len() - 1
     );
 }
+
+/// Every file of a folder, by path relative to it, with its bytes.
+fn tree(root: &Path) -> std::collections::BTreeMap<PathBuf, Vec<u8>> {
+    let mut files = std::collections::BTreeMap::new();
+    let mut todo = vec![root.to_path_buf()];
+    while let Some(dir) = todo.pop() {
+        for entry in std::fs::read_dir(&dir).unwrap() {
+            let path = entry.unwrap().path();
+            if path.is_dir() {
+                todo.push(path);
+            } else {
+                let bytes = std::fs::read(&path).unwrap();
+                files.insert(path.strip_prefix(root).unwrap().to_path_buf(), bytes);
+            }
+        }
+    }
+    files
+}
+
+#[test]
+fn every_simd_level_writes_the_same_bytes_and_an_unknown_one_warns() {
+    // `render` takes the rasterizer's, the crop's and the UV map's lanes: the same
+    // files at every `ARKIT_SIMD` cap (levels above the CPU's run at the CPU's), and an
+    // unknown value is a warning naming the variable and its values, then `auto`.
+    let root = tempfile::tempdir().unwrap();
+    let pq = dataset(root.path(), "pq", 2, 5);
+    let render = |simd: &str| {
+        let out = root.path().join(format!("render-{simd}"));
+        let run = tool()
+            .env("ARKIT_SIMD", simd)
+            .args(["render", "--dataset", s(&pq), "--output", s(&out)])
+            .args(["--size", "64", "--uv-size", "32", "--points", "64"])
+            .output()
+            .unwrap();
+        assert!(run.status.success(), "{simd}: {}", stderr(&run));
+        (tree(&out), stderr(&run))
+    };
+    let (auto, quiet) = render("auto");
+    assert!(!quiet.contains("ARKIT_SIMD"), "{quiet}");
+    assert!(!auto.is_empty());
+    for level in ["scalar", "avx2", "avx512", "sse9"] {
+        let (files, err) = render(level);
+        assert!(files == auto, "ARKIT_SIMD={level}: other bytes than auto's");
+        let warning = "warning: ARKIT_SIMD=\"sse9\": expected one of scalar, avx2, avx512 or auto; using auto";
+        assert_eq!(err.contains(warning), level == "sse9", "{level}: {err}");
+    }
+}

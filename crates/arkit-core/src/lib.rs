@@ -23,6 +23,7 @@ pub mod conventions;
 pub mod error;
 #[doc(hidden)]
 pub mod fuzz_entry;
+pub mod lanes;
 pub mod limits;
 pub mod npy;
 pub mod predictions_csv;

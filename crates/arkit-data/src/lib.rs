@@ -154,16 +154,13 @@ pub mod eval;
 #[doc(hidden)]
 pub mod fuzz_entry;
 pub mod ingest;
+mod lanes;
 pub mod loader;
 pub mod mesh;
 pub mod picture;
 pub mod pose;
 pub mod render;
-#[cfg(target_arch = "x86_64")]
-mod rgb_lanes;
 pub mod store;
-#[cfg(target_arch = "x86_64")]
-mod streamed_plane;
 
 // The names a pipeline is written with: open a dataset, render, load, solve, score.
 pub use crate::{

@@ -24,6 +24,10 @@ mod rules;
 
 pub use rules::RuleSet;
 
+use crate::lanes::{
+    self,
+    crop::{PairWeights, blend_rows, round_row_to_u8},
+};
 use image::RgbImage;
 
 /// The affine map from image pixels to a square crop (see module docs, stage 1).
@@ -210,150 +214,6 @@ impl CropTransform {
     }
 }
 
-/// `floor(v + 0.5)` clamped to 255, for a non-negative `v`: the value rounded half
-/// up, as truncating `(v + 0.5).min(255.0) as u8` does. Float arithmetic only, so a
-/// loop over a row vectorises with plain SSE2: adding 2^23 leaves the integer nearest
-/// `y` (ties to even) in the low mantissa bits, and one is taken off when that rounded
-/// up. The saturating `as u8` (or `as i32`) cast compiled to scalar code with a branch
-/// per value, a third of the crop's instructions.
-#[inline]
-fn round_to_u8(v: f32) -> u8 {
-    const MAGIC: f32 = 8_388_608.0; // 2^23
-    let y = (v + 0.5).min(255.0);
-    let t = y + MAGIC;
-    let t = if t - MAGIC > y { t - 1.0 } else { t };
-    t.to_bits() as u8
-}
-
-/// The vertical pass of [`CropTransform::crop_image`]: `out[i] = a[i] * wa + b[i] *
-/// wb` over the shortest of the three. On x86-64, sixteen bytes of each row at a time:
-/// in AVX2 where the CPU has it ([`blend_rows_avx2`], detected at run time), else in
-/// SSE2 (part of the x86-64 baseline; [`blend_rows_sse2`]), where the compiler's own
-/// vectorisation loaded four bytes at a time. The same products and sums in every
-/// path (no fused multiply-add), so the same bits (tested).
-#[inline]
-fn blend_rows(a: &[u8], b: &[u8], wa: f32, wb: f32, out: &mut [f32]) {
-    let n = a.len().min(b.len()).min(out.len());
-    let (a, b, out) = (&a[..n], &b[..n], &mut out[..n]);
-    #[cfg(not(target_arch = "x86_64"))]
-    let done = 0;
-    #[cfg(target_arch = "x86_64")]
-    let done = if std::arch::is_x86_feature_detected!("avx2") {
-        // SAFETY: the CPU has AVX2 (detected just above).
-        unsafe { blend_rows_avx2(a, b, wa, wb, out) }
-    } else {
-        blend_rows_sse2(a, b, wa, wb, out)
-    };
-    blend_rows_scalar(&a[done..], &b[done..], wa, wb, &mut out[done..]);
-}
-
-/// [`blend_rows`] one value at a time (the vector paths' tail).
-fn blend_rows_scalar(a: &[u8], b: &[u8], wa: f32, wb: f32, out: &mut [f32]) {
-    for ((o, &a), &b) in out.iter_mut().zip(a).zip(b) {
-        *o = a as f32 * wa + b as f32 * wb;
-    }
-}
-
-/// [`blend_rows`] in SSE2 over the whole sixteen-byte chunks of `a`, `b` and `out`
-/// (of equal lengths); returns how many values it wrote. One load and six unpacks
-/// widen sixteen bytes, then four four-float products and sums: 38 instructions per
-/// sixteen bytes of each row.
-#[cfg(target_arch = "x86_64")]
-#[inline]
-fn blend_rows_sse2(a: &[u8], b: &[u8], wa: f32, wb: f32, out: &mut [f32]) -> usize {
-    use std::arch::x86_64::*;
-    let chunks = a.chunks_exact(16).zip(b.chunks_exact(16));
-    for ((a, b), o) in chunks.zip(out.chunks_exact_mut(16)) {
-        // SAFETY: SSE2 is part of the x86-64 baseline; each load reads the 16 bytes
-        // of a 16-byte chunk and each store writes 4 of the 16 floats of `o`.
-        unsafe {
-            let zero = _mm_setzero_si128();
-            let widen = |p: &[u8]| {
-                let v = _mm_loadu_si128(p.as_ptr().cast());
-                let (lo, hi) = (_mm_unpacklo_epi8(v, zero), _mm_unpackhi_epi8(v, zero));
-                [
-                    _mm_unpacklo_epi16(lo, zero),
-                    _mm_unpackhi_epi16(lo, zero),
-                    _mm_unpacklo_epi16(hi, zero),
-                    _mm_unpackhi_epi16(hi, zero),
-                ]
-                .map(|i| _mm_cvtepi32_ps(i))
-            };
-            let (pa, pb) = (widen(a), widen(b));
-            let (va, vb) = (_mm_set1_ps(wa), _mm_set1_ps(wb));
-            for k in 0..4 {
-                let v = _mm_add_ps(_mm_mul_ps(pa[k], va), _mm_mul_ps(pb[k], vb));
-                _mm_storeu_ps(o.as_mut_ptr().add(4 * k), v);
-            }
-        }
-    }
-    a.len() - a.len() % 16
-}
-
-/// [`blend_rows_sse2`] in AVX2: eight bytes widen to eight floats in two instructions
-/// (`vpmovzxbd`, `vcvtdq2ps`), so sixteen bytes of each row take 16 instructions
-/// instead of 38. The same products and sums, in the same order.
-///
-/// # Safety
-/// The CPU must have AVX2.
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2")]
-unsafe fn blend_rows_avx2(a: &[u8], b: &[u8], wa: f32, wb: f32, out: &mut [f32]) -> usize {
-    use std::arch::x86_64::*;
-    let (va, vb) = (_mm256_set1_ps(wa), _mm256_set1_ps(wb));
-    let chunks = a.chunks_exact(16).zip(b.chunks_exact(16));
-    for ((a, b), o) in chunks.zip(out.chunks_exact_mut(16)) {
-        for h in 0..2 {
-            // SAFETY: each load reads 8 of the 16 bytes of a chunk, the store writes 8
-            // of the 16 floats of `o`; the CPU has AVX2 (the caller's promise).
-            unsafe {
-                let widen = |p: &[u8]| {
-                    let v = _mm_loadl_epi64(p.as_ptr().add(8 * h).cast());
-                    _mm256_cvtepi32_ps(_mm256_cvtepu8_epi32(v))
-                };
-                let v = _mm256_add_ps(_mm256_mul_ps(widen(a), va), _mm256_mul_ps(widen(b), vb));
-                _mm256_storeu_ps(o.as_mut_ptr().add(8 * h), v);
-            }
-        }
-    }
-    a.len() - a.len() % 16
-}
-
-/// [`round_to_u8`] over a row: `dst[i]` from `src[i]`, for the shorter of the two. On
-/// x86-64, sixteen values at a time in SSE2 (part of the x86-64 baseline): truncating
-/// `fl(v + 0.5)` (`cvttps2dq`) is its floor, the same number `round_to_u8` finds, and
-/// the saturating packs clamp to 255. 18 instructions per four values in
-/// `round_to_u8`'s vectorised loop, 17 per sixteen here; the same bytes (tested).
-#[inline]
-fn round_row_to_u8(src: &[f32], dst: &mut [u8]) {
-    let n = src.len().min(dst.len());
-    let (src, dst) = (&src[..n], &mut dst[..n]);
-    // Values before `done` are written by the vector loop.
-    #[cfg(not(target_arch = "x86_64"))]
-    let done = 0;
-    #[cfg(target_arch = "x86_64")]
-    let done = {
-        use std::arch::x86_64::*;
-        for (s, d) in src.chunks_exact(16).zip(dst.chunks_exact_mut(16)) {
-            // SAFETY: SSE2 is part of the x86-64 baseline; the loads read 16 floats of
-            // `s` and the store writes 16 bytes of `d`, both exactly 16 long.
-            unsafe {
-                let half = _mm_set1_ps(0.5);
-                let q = |k: usize| {
-                    _mm_cvttps_epi32(_mm_add_ps(_mm_loadu_ps(s.as_ptr().add(4 * k)), half))
-                };
-                let lo = _mm_packs_epi32(q(0), q(1));
-                let hi = _mm_packs_epi32(q(2), q(3));
-                _mm_storeu_si128(d.as_mut_ptr().cast(), _mm_packus_epi16(lo, hi));
-            }
-        }
-        n - n % 16
-    };
-    for (d, &v) in dst[done..].iter_mut().zip(&src[done..]) {
-        *d = round_to_u8(v);
-    }
-}
-
 /// The two bilinear taps of one crop row (columns have [`ColumnTaps`]): byte offsets of
 /// the source rows in the image and their weights; a tap outside the image has weight 0
 /// and offset 0, so reading it is always in bounds and adds nothing.
@@ -419,14 +279,6 @@ struct ColumnTaps {
     weights: Vec<PairWeights>,
 }
 
-/// The two weights of a column's pixel pair, each repeated for a four-float operation.
-#[derive(Clone, Copy, Debug)]
-#[repr(C, align(16))]
-struct PairWeights {
-    a: [f32; 4],
-    b: [f32; 4],
-}
-
 impl ColumnTaps {
     /// For crop columns `i` in `first..first + n` whose centres look at `origin + (i +
     /// 0.5) / scale` along an image row of `width` (at least 1) pixels.
@@ -469,47 +321,19 @@ impl ColumnTaps {
         (self.first.max(0), self.last.min(width as i64 - 1))
     }
 
-    /// Fills `row` (three floats per column and one spare) from the blended span.
+    /// Fills `row` (three floats per column and one spare) from the blended span
+    /// ([`lanes::crop::blend_columns`]).
     #[inline]
     fn blend_columns(&self, blend: &[f32], row: &mut [f32]) {
         assert!(blend.len() >= self.span_floats() && row.len() > 3 * self.starts.len());
-        #[cfg(not(target_arch = "x86_64"))]
-        self.blend_columns_scalar(blend, row);
-        #[cfg(target_arch = "x86_64")]
-        {
-            use std::arch::x86_64::*;
-            let (blend, out) = (blend.as_ptr(), row.as_mut_ptr());
-            for (i, (&s, w)) in self.starts.iter().zip(&self.weights).enumerate() {
-                // SAFETY: SSE2 is part of the x86-64 baseline. A start is at most
-                // `3 * (last - 1 - first)`, so the reads end by `span_floats()` floats,
-                // within `blend` (asserted); the store writes floats `3i..3i + 4` of
-                // `row`, which has `3n + 1` (asserted); `w` is 16-byte aligned.
-                unsafe {
-                    let p = blend.add(s);
-                    let v = _mm_add_ps(
-                        _mm_mul_ps(_mm_loadu_ps(p), _mm_load_ps(w.a.as_ptr())),
-                        _mm_mul_ps(_mm_loadu_ps(p.add(3)), _mm_load_ps(w.b.as_ptr())),
-                    );
-                    _mm_storeu_ps(out.add(3 * i), v);
-                }
-            }
-        }
-    }
-
-    /// [`ColumnTaps::blend_columns`] one float at a time.
-    #[cfg_attr(target_arch = "x86_64", allow(dead_code))]
-    fn blend_columns_scalar(&self, blend: &[f32], row: &mut [f32]) {
-        for ((d, &s), w) in row.chunks_exact_mut(3).zip(&self.starts).zip(&self.weights) {
-            for (k, d) in d.iter_mut().enumerate() {
-                *d = blend[s + k] * w.a[0] + blend[s + 3 + k] * w.b[0];
-            }
-        }
+        lanes::crop::blend_columns(&self.starts, &self.weights, blend, row);
     }
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::lanes::crop::round_to_u8;
     use image::Rgb;
 
     #[test]
@@ -699,42 +523,6 @@ mod tests {
     }
 
     #[test]
-    fn blend_rows_equals_the_scalar_blend() {
-        // The sixteen-byte vector steps (on x86-64: the path this CPU takes, and each
-        // of SSE2 and AVX2 alone where it has them) and the tail against the plain sum.
-        let a: Vec<u8> = (0..203u32).map(|i| (i * 37 % 256) as u8).collect();
-        let b: Vec<u8> = (0..203u32).map(|i| (i * 101 % 256) as u8).collect();
-        type Blend = fn(&[u8], &[u8], f32, f32, &mut [f32]);
-        let mut paths: Vec<(&str, Blend)> = vec![("dispatch", blend_rows)];
-        #[cfg(target_arch = "x86_64")]
-        {
-            paths.push(("sse2", |a, b, wa, wb, out| {
-                let done = blend_rows_sse2(a, b, wa, wb, out);
-                blend_rows_scalar(&a[done..], &b[done..], wa, wb, &mut out[done..]);
-            }));
-            if std::arch::is_x86_feature_detected!("avx2") {
-                paths.push(("avx2", |a, b, wa, wb, out| {
-                    // SAFETY: the CPU has AVX2 (checked above).
-                    let done = unsafe { blend_rows_avx2(a, b, wa, wb, out) };
-                    blend_rows_scalar(&a[done..], &b[done..], wa, wb, &mut out[done..]);
-                }));
-            } else {
-                eprintln!("skipping the AVX2 blend: this CPU has no AVX2");
-            }
-        }
-        for (name, blend) in paths {
-            for (wa, wb) in [(0.3f32, 0.7f32), (1.0, 0.0), (0.123_456_79, 0.876_543_2)] {
-                let mut out = vec![0f32; 203];
-                blend(&a, &b, wa, wb, &mut out);
-                for i in 0..203 {
-                    let want = a[i] as f32 * wa + b[i] as f32 * wb;
-                    assert_eq!(out[i].to_bits(), want.to_bits(), "{name} {i}");
-                }
-            }
-        }
-    }
-
-    #[test]
     fn crop_image_equals_per_pixel_bilinear_across_the_border() {
         // Straightforward per-pixel bilinear sampling with black outside, against the
         // table-driven crop, for a box hanging over the image's top-left corner.
@@ -823,7 +611,7 @@ mod tests {
                 .collect();
             let (mut fast, mut slow) = (vec![0f32; 64 * 3 + 1], vec![0f32; 64 * 3 + 1]);
             cols.blend_columns(&blend, &mut fast);
-            cols.blend_columns_scalar(&blend, &mut slow);
+            lanes::crop::blend_columns_scalar(&cols.starts, &cols.weights, &blend, &mut slow);
             let bits = |v: &[f32]| v[..64 * 3].iter().map(|x| x.to_bits()).collect::<Vec<_>>();
             assert_eq!(bits(&fast), bits(&slow), "{origin} {scale} {width}");
         }

@@ -34,6 +34,7 @@
 //! image pixel nearest to where the crop pixel looks.
 
 use super::{CropTransform, RuleSet};
+use crate::lanes::{self, Level};
 
 /// The official crop box and its affine map (module docs, steps 1-2) around the
 /// projected landmarks `(u, v)`, or `None` when the box is empty (the official loader
@@ -171,11 +172,11 @@ pub fn affine_transform(src: [[f32; 2]; 3], dst: [[f32; 2]; 3]) -> Option<[f64; 
 }
 
 /// Fractional bits of OpenCV's source positions (`INTER_BITS`).
-const INTER_BITS: u32 = 5;
+pub(crate) const INTER_BITS: u32 = 5;
 /// Fractional bits of the inverse map's per-row and per-column terms (`AB_BITS`).
 const AB_BITS: u32 = 10;
 /// Fractional bits of the bilinear weights (`INTER_REMAP_COEF_BITS`).
-const COEF_BITS: u32 = 15;
+pub(crate) const COEF_BITS: u32 = 15;
 
 /// Half of the weights' sum: the warped 0/1 mask rounds to 1 from this face weight up.
 pub(crate) const HALF_WEIGHT: u32 = 1 << (COEF_BITS - 1);
@@ -235,7 +236,7 @@ fn warp_taps_window(crop: &CropTransform, first: i64, count: usize) -> Vec<WarpT
 
 /// One axis's tap of a crop column or row: the first image column or row it reads and
 /// the fraction past it, in 1/32 pixel.
-type AxisTap = (i32, u32);
+pub(crate) type AxisTap = (i32, u32);
 
 /// The taps of crop pixels `first..first + count` along each axis: `(column, fraction)`
 /// of every crop column, then `(row, fraction)` of every crop row. The crop's map is
@@ -321,12 +322,12 @@ pub(crate) fn warp_affine_window(
     let inside = |x: i32, len: i64| x >= 0 && (x as i64) + 1 < len;
     let mut out = vec![0u8; count * count * channels];
     let mut vertical = vec![0u16; stride];
-    // Eight RGB pixels at a time in AVX2 where the CPU has it (`blend_columns_avx2`):
-    // `pairs[j]` holds blended values `j` and `j + 3` side by side.
-    #[cfg(target_arch = "x86_64")]
-    let lanes = channels == 3 && std::arch::is_x86_feature_detected!("avx2");
-    #[cfg(target_arch = "x86_64")]
-    let mut pairs = vec![0u32; if lanes { stride } else { 0 }];
+    // Eight RGB pixels at a time in AVX2 where the SIMD level has it
+    // ([`lanes::warp::blend_rgb_columns_at`]): `pairs[j]` holds blended values `j` and
+    // `j + 3` side by side.
+    let level = lanes::level();
+    let wide = channels == 3 && level >= Level::Avx2;
+    let mut pairs = vec![0u32; if wide { stride } else { 0 }];
     for (o_row, &(y, fy)) in out.chunks_exact_mut(count * channels).zip(&rows) {
         let whole_rows = inside(y, h);
         #[allow(unused_mut)]
@@ -338,8 +339,7 @@ pub(crate) fn warp_affine_window(
             for ((v, &t), &b) in vertical.iter_mut().zip(top).zip(bottom) {
                 *v = up * t as u16 + down * b as u16;
             }
-            #[cfg(target_arch = "x86_64")]
-            if lanes {
+            if wide {
                 let (near, far) = (&vertical[..stride - 3], &vertical[3..]);
                 for ((p, &a), &b) in pairs.iter_mut().zip(near).zip(far) {
                     *p = a as u32 | (b as u32) << 16;
@@ -353,15 +353,14 @@ pub(crate) fn warp_affine_window(
                         .take_while(|&&(x, _)| inside(x, w))
                         .count();
                     done = first..first + run / 8 * 8;
-                    // SAFETY: AVX2 was detected; every column of `done` has its taps in
-                    // the image, so each pair it reads is in `pairs`.
-                    unsafe {
-                        blend_columns_avx2(
-                            &mut o_row[3 * done.start..3 * done.end],
-                            &pairs,
-                            &columns[done.clone()],
-                        )
-                    };
+                    // Every column of `done` has its taps in the image, so each pair
+                    // it reads is in `pairs`.
+                    lanes::warp::blend_rgb_columns_at(
+                        level,
+                        &mut o_row[3 * done.start..3 * done.end],
+                        &pairs,
+                        &columns[done.clone()],
+                    );
                 }
             }
         }
@@ -405,7 +404,7 @@ pub(crate) fn warp_affine_window(
 
 /// OpenCV's rounding of a pixel's tap sum (in units of 2^-15) to a byte.
 #[inline(always)]
-fn round_sum(sum: u32) -> u8 {
+pub(crate) fn round_sum(sum: u32) -> u8 {
     ((sum + (1 << (COEF_BITS - 1))) >> COEF_BITS).min(255) as u8
 }
 
@@ -420,46 +419,6 @@ fn blend_columns(o: &mut [u8], left: &[u16], fx: u32, channels: usize) {
     for (k, o) in o.iter_mut().enumerate() {
         let sum = (32 - fx) * left[k] as u32 + fx * left[channels + k] as u32;
         *o = round_sum(sum * scale);
-    }
-}
-
-/// [`blend_columns`] for eight RGB crop pixels at a time (`out` three bytes a column
-/// of `columns`, a multiple of eight), in AVX2: each lane gathers its column's pair of
-/// vertically blended values (`pairs[3 x + k]`, the left tap's and the right tap's) and
-/// multiplies and adds them with `(32 - fx, fx)` in one step, then rounds as
-/// [`round_sum`] does (`(s 32 + 2^14) >> 15` is `(s + 512) >> 10`). The same integers.
-///
-/// # Safety
-///
-/// The CPU has AVX2, and `3 x + 2 < pairs.len()` for every column's `x`.
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2")]
-unsafe fn blend_columns_avx2(out: &mut [u8], pairs: &[u32], columns: &[AxisTap]) {
-    use std::arch::x86_64::*;
-    let round = _mm256_set1_epi32(512);
-    for (o, cols) in out.chunks_exact_mut(24).zip(columns.chunks_exact(8)) {
-        let xs: [i32; 8] = std::array::from_fn(|k| 3 * cols[k].0);
-        let weights: [i32; 8] = std::array::from_fn(|k| {
-            let fx = cols[k].1 as i32;
-            (32 - fx) | fx << 16
-        });
-        // SAFETY: unaligned loads of eight i32.
-        let (xs, weights) = unsafe {
-            (
-                _mm256_loadu_si256(xs.as_ptr().cast()),
-                _mm256_loadu_si256(weights.as_ptr().cast()),
-            )
-        };
-        let channel = |k: i32| {
-            let at = _mm256_add_epi32(xs, _mm256_set1_epi32(k));
-            // SAFETY: every index is below `pairs.len()` (the caller's).
-            let pair = unsafe { _mm256_i32gather_epi32::<4>(pairs.as_ptr().cast(), at) };
-            let sum = _mm256_madd_epi16(pair, weights);
-            _mm256_srli_epi32::<10>(_mm256_add_epi32(sum, round))
-        };
-        let o: &mut [u8; 24] = o.try_into().expect("chunks of 24");
-        // SAFETY: AVX2 is enabled here; each value is at most 255.
-        unsafe { crate::rgb_lanes::store_rgb8(o, [channel(0), channel(1), channel(2)]) };
     }
 }
 

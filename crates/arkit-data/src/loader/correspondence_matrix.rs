@@ -11,8 +11,11 @@
 //! first. The plain path (zeros, then the weights) is the definition; the streaming
 //! one is tested equal to it.
 
+use crate::lanes;
+
 /// Matrices of at least this many values are written with streaming stores (where
-/// the CPU has AVX): below it the destination may be read back from the cache soon.
+/// the CPU has AVX, [`lanes::matrix`]): below it the destination may be read back
+/// from the cache soon.
 const STREAM_FROM: usize = 1 << 16;
 
 /// Writes the `n x vertex_count` correspondence matrix of `n` points into `out`
@@ -35,13 +38,11 @@ pub fn write_correspondence_matrix(
         "a {} x {vertex_count} matrix",
         vertices.len()
     );
-    #[cfg(target_arch = "x86_64")]
-    if out.len() >= STREAM_FROM && std::arch::is_x86_feature_detected!("avx") {
-        // SAFETY: AVX was detected on this CPU.
-        unsafe { write_streaming(out, &entries) };
-        return;
+    if out.len() >= STREAM_FROM {
+        lanes::matrix::write_streamed(out, &entries);
+    } else {
+        lanes::matrix::write_plain(out, &entries);
     }
-    write_plain(out, &entries);
 }
 
 /// Turns `out`, which holds the matrix of `previous` (zeros but at `previous`'s
@@ -136,63 +137,10 @@ fn matrix_entries(
     entries
 }
 
-/// The definition: zeros, then the weights.
-fn write_plain(out: &mut [f32], entries: &[(usize, f32)]) {
-    out.fill(0.0);
-    for &(at, w) in entries {
-        out[at] = w;
-    }
-}
-
-/// [`write_plain`]'s values written in order, eight at a time with streaming stores
-/// over the 32-byte aligned body (each group of eight made in registers: zeros, or the
-/// weights that fall in it), plainly before and after it.
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx")]
-unsafe fn write_streaming(out: &mut [f32], entries: &[(usize, f32)]) {
-    use std::arch::x86_64::*;
-    let len = out.len();
-    let head = out.as_ptr().align_offset(32).min(len);
-    let body_end = head + (len - head) / 8 * 8;
-    let mut next = 0;
-    // The plain values of `range`: zeros and the entries in it.
-    let plain = |out: &mut [f32], range: std::ops::Range<usize>, next: &mut usize| {
-        out[range.clone()].fill(0.0);
-        while *next < entries.len() && entries[*next].0 < range.end {
-            out[entries[*next].0] = entries[*next].1;
-            *next += 1;
-        }
-    };
-    plain(out, 0..head, &mut next);
-    let zeros = _mm256_setzero_ps();
-    let base = out.as_mut_ptr();
-    let mut at = head;
-    while at < body_end {
-        let group = if next < entries.len() && entries[next].0 < at + 8 {
-            let mut g = [0f32; 8];
-            while next < entries.len() && entries[next].0 < at + 8 {
-                g[entries[next].0 - at] = entries[next].1;
-                next += 1;
-            }
-            // SAFETY: `g` is eight floats.
-            unsafe { _mm256_loadu_ps(g.as_ptr()) }
-        } else {
-            zeros
-        };
-        // SAFETY: `at..at + 8` is inside `out` (below `body_end <= len`) and `at` is
-        // 32-byte aligned (`head` is, and `at` steps by eight floats).
-        unsafe { _mm256_stream_ps(base.add(at), group) };
-        at += 8;
-    }
-    // Streaming stores are weakly ordered: fenced before anything else reads `out`.
-    _mm_sfence();
-    plain(out, body_end..len, &mut next);
-    debug_assert_eq!(next, entries.len());
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::lanes::matrix::write_plain;
 
     fn plain(n: usize, v: usize, ids: &[[u32; 3]], w: &[[f32; 3]]) -> Vec<f32> {
         let mut m = vec![f32::NAN; n * v];

@@ -47,7 +47,8 @@ use crate::crop::official::{
     LandmarkExtent, affine_transform, box_crop, official_box, warp_mask_in,
 };
 use crate::crop::{CropTransform, RuleSet};
-use crate::loader::colour_jitter::UNIT;
+use crate::lanes;
+use crate::lanes::jitter::UNIT;
 use crate::loader::colour_jitter::jitter_colour;
 use crate::mesh::topology::FaceTopology;
 use crate::render::face::{FaceRenderer, UvMapper, UvTexels, WindowMask, sample_points};
@@ -305,14 +306,14 @@ pub(crate) type ReleaseUvLayout = (Vec<[u32; 3]>, Vec<[f32; 2]>);
 /// texels `start..start + len`, whose weights are `first..first + len` of the layout's
 /// weight planes.
 #[derive(Clone, Copy, Debug)]
-struct TexelRun {
+pub(crate) struct TexelRun {
     /// Row-major index in the map of the run's first texel.
-    start: u32,
-    len: u32,
+    pub(crate) start: u32,
+    pub(crate) len: u32,
     /// Where the run's weights begin in the weight planes.
-    first: u32,
+    pub(crate) first: u32,
     /// The triangle's corners (extended vertex indices).
-    corners: [u32; 3],
+    pub(crate) corners: [u32; 3],
 }
 
 /// The official UV layout rasterized once for one map size: per texel the UV triangle
@@ -484,18 +485,7 @@ impl OfficialUvLayout {
     pub(crate) fn uv_map_into(&self, verts: &[Point3<f32>], out: &mut [f32]) {
         let colors = self.colours(verts);
         let planes = self.planes_uncovered_filled(out);
-        #[cfg(target_arch = "x86_64")]
-        if std::arch::is_x86_feature_detected!("avx512f")
-            && std::arch::is_x86_feature_detected!("avx512vl")
-        {
-            // SAFETY: AVX-512 F and VL were detected on this CPU.
-            unsafe { self.covered_avx512(&colors, planes) };
-        } else {
-            // SAFETY: SSE2 is part of the x86-64 baseline: every x86-64 CPU has it.
-            unsafe { self.covered_sse(&colors, planes) };
-        }
-        #[cfg(not(target_arch = "x86_64"))]
-        self.covered_scalar(&colors, planes);
+        lanes::uv::covered(&self.covered, &self.weights, &colors, planes);
     }
 
     /// `out`'s three planes (`3 x size x size` values, channels first), with `-1` written
@@ -536,122 +526,6 @@ impl OfficialUvLayout {
         }
         debug_assert_eq!(colors.len(), self.extended);
         colors
-    }
-
-    /// The covered texels' values, one at a time: the definition. A texel is its
-    /// corners' colours weighted (`w0 a + w1 b + w2 c`, left to right), clamped to
-    /// [0, 1] and mapped by `2 x - 1`, in float32.
-    #[cfg(any(test, not(target_arch = "x86_64")))]
-    fn covered_scalar(&self, colors: &[[f32; 3]], mut planes: [&mut [f32]; 3]) {
-        for run in &self.covered {
-            let [a, b, c] = run.corners.map(|v| colors[v as usize]);
-            for k in 0..run.len as usize {
-                let (i, j) = (run.start as usize + k, run.first as usize + k);
-                let wt = [self.weights[0][j], self.weights[1][j], self.weights[2][j]];
-                for (ch, plane) in planes.iter_mut().enumerate() {
-                    let value = wt[0] * a[ch] + wt[1] * b[ch] + wt[2] * c[ch];
-                    plane[i] = value.clamp(0.0, 1.0) * 2.0 - 1.0;
-                }
-            }
-        }
-    }
-
-    /// [`OfficialUvLayout::covered_scalar`] with a texel's three channels in the lanes
-    /// of one SSE register (the fourth lane unused): the same float32 operations in the
-    /// same order lane by lane (no fused multiply-add), and the clamp's `max(0, x)` then
-    /// `min(1, x)` with `x` as the second operand, which keeps a NaN and a `-0.0` as
-    /// `f32::clamp` does; so the same bits (tested). (The texels' runs are short, 2.8
-    /// texels on average in a 192x192 map, so lanes across texels would mostly idle.)
-    #[cfg(target_arch = "x86_64")]
-    #[target_feature(enable = "sse2")]
-    fn covered_sse(&self, colors: &[[f32; 3]], planes: [&mut [f32]; 3]) {
-        use std::arch::x86_64::*;
-        let [u, v, w] = planes;
-        let [w0s, w1s, w2s] = &self.weights;
-        let lane = |c: [f32; 3]| _mm_setr_ps(c[0], c[1], c[2], 0.0);
-        let (zero, one, two) = (_mm_setzero_ps(), _mm_set1_ps(1.0), _mm_set1_ps(2.0));
-        for run in &self.covered {
-            let [a, b, c] = run.corners.map(|i| lane(colors[i as usize]));
-            let (start, first, len) = (run.start as usize, run.first as usize, run.len as usize);
-            let texels = (u[start..start + len].iter_mut())
-                .zip(&mut v[start..start + len])
-                .zip(&mut w[start..start + len]);
-            let weights = (w0s[first..first + len].iter())
-                .zip(&w1s[first..first + len])
-                .zip(&w2s[first..first + len]);
-            for (((u, v), w), ((&w0, &w1), &w2)) in texels.zip(weights) {
-                let value = _mm_add_ps(
-                    _mm_add_ps(
-                        _mm_mul_ps(_mm_set1_ps(w0), a),
-                        _mm_mul_ps(_mm_set1_ps(w1), b),
-                    ),
-                    _mm_mul_ps(_mm_set1_ps(w2), c),
-                );
-                let clamped = _mm_min_ps(one, _mm_max_ps(zero, value));
-                let mapped = _mm_sub_ps(_mm_mul_ps(clamped, two), one);
-                *u = _mm_cvtss_f32(mapped);
-                *v = _mm_cvtss_f32(_mm_shuffle_ps::<0b01>(mapped, mapped));
-                *w = _mm_cvtss_f32(_mm_shuffle_ps::<0b10>(mapped, mapped));
-            }
-        }
-    }
-
-    /// [`OfficialUvLayout::covered_scalar`] with up to eight texels of a run in the lanes
-    /// of one register, one register per channel: the weights loaded and the values
-    /// stored under a mask of the run's texels, so a run's setup is paid once rather
-    /// than per texel. The same float32 operations in the same order lane by lane (no
-    /// fused multiply-add), and the clamp as [`OfficialUvLayout::covered_sse`] has it;
-    /// so the same bits (tested).
-    #[cfg(target_arch = "x86_64")]
-    #[target_feature(enable = "avx512f,avx512vl")]
-    fn covered_avx512(&self, colors: &[[f32; 3]], planes: [&mut [f32]; 3]) {
-        use std::arch::x86_64::*;
-        let [u, v, w] = planes;
-        let [w0s, w1s, w2s] = &self.weights;
-        let (zero, one, two) = (
-            _mm256_setzero_ps(),
-            _mm256_set1_ps(1.0),
-            _mm256_set1_ps(2.0),
-        );
-        let (n, m) = (
-            u.len().min(v.len()).min(w.len()),
-            w0s.len().min(w1s.len()).min(w2s.len()),
-        );
-        for run in &self.covered {
-            let [a, b, c] = run.corners.map(|i| colors[i as usize]);
-            let (start, first, len) = (run.start as usize, run.first as usize, run.len as usize);
-            assert!(start + len <= n && first + len <= m, "a run inside the map");
-            let mut k = 0;
-            while k < len {
-                let lanes: __mmask8 = if len - k >= 8 {
-                    0xff
-                } else {
-                    (1u8 << (len - k)) - 1
-                };
-                // SAFETY: the masked lanes are texels `start + k ..` and weights
-                // `first + k ..` of this run, inside `u`, `v`, `w` and the weight
-                // planes (asserted above); masked-off lanes are neither read nor written.
-                unsafe {
-                    let at = first + k;
-                    let w0 = _mm256_maskz_loadu_ps(lanes, w0s.as_ptr().add(at));
-                    let w1 = _mm256_maskz_loadu_ps(lanes, w1s.as_ptr().add(at));
-                    let w2 = _mm256_maskz_loadu_ps(lanes, w2s.as_ptr().add(at));
-                    for (ch, plane) in [&mut *u, &mut *v, &mut *w].into_iter().enumerate() {
-                        let value = _mm256_add_ps(
-                            _mm256_add_ps(
-                                _mm256_mul_ps(w0, _mm256_set1_ps(a[ch])),
-                                _mm256_mul_ps(w1, _mm256_set1_ps(b[ch])),
-                            ),
-                            _mm256_mul_ps(w2, _mm256_set1_ps(c[ch])),
-                        );
-                        let clamped = _mm256_min_ps(one, _mm256_max_ps(zero, value));
-                        let mapped = _mm256_sub_ps(_mm256_mul_ps(clamped, two), one);
-                        _mm256_mask_storeu_ps(plane.as_mut_ptr().add(start + k), lanes, mapped);
-                    }
-                }
-                k += 8;
-            }
-        }
     }
 }
 
@@ -745,125 +619,9 @@ fn normalise_into(rgb: &[u8], out: &mut [f32]) {
     let n = rgb.len() / 3;
     let (r, rest) = out.split_at_mut(n);
     let (g, b) = rest.split_at_mut(n);
-    #[allow(unused_mut)]
-    let mut done = 0;
-    // Sixteen pixels at a time where the CPU has AVX-512 VBMI: the same table, held in
-    // registers; else eight at a time where it has AVX2, the table read by gathers.
-    #[cfg(target_arch = "x86_64")]
-    if crate::rgb_lanes::has_avx512_vbmi() {
-        done = n / 16 * 16;
-        // SAFETY: AVX-512 F, BW and VBMI were detected; whole groups of sixteen
-        // pixels of each.
-        unsafe {
-            normalise_avx512(
-                &rgb[..3 * done],
-                [&mut r[..done], &mut g[..done], &mut b[..done]],
-                &table,
-            )
-        };
-    } else if std::arch::is_x86_feature_detected!("avx2") {
-        done = n / 8 * 8;
-        // SAFETY: AVX2 was detected; whole groups of eight pixels of each.
-        unsafe {
-            normalise_avx2(
-                &rgb[..3 * done],
-                [&mut r[..done], &mut g[..done], &mut b[..done]],
-                &table,
-            )
-        };
-    }
-    let rest = rgb[3 * done..].chunks_exact(3);
-    for (((p, r), g), b) in rest
-        .zip(&mut r[done..])
-        .zip(&mut g[done..])
-        .zip(&mut b[done..])
-    {
-        *r = table[0][p[0] as usize];
-        *g = table[1][p[1] as usize];
-        *b = table[2][p[2] as usize];
-    }
-}
-
-/// The table lookups of [`normalise_into`] for groups of eight pixels (`rgb` 24 bytes a
-/// group, each plane eight values a group), in AVX2: each channel's eight bytes as
-/// indices of one gather from its table.
-///
-/// # Safety
-///
-/// The CPU has AVX2.
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2")]
-unsafe fn normalise_avx2(rgb: &[u8], planes: [&mut [f32]; 3], table: &[[f32; 256]; 3]) {
-    use std::arch::x86_64::*;
-    let [r, g, b] = planes;
-    let groups = rgb.chunks_exact(24).zip(r.chunks_exact_mut(8));
-    for ((px, r), (g, b)) in groups.zip(g.chunks_exact_mut(8).zip(b.chunks_exact_mut(8))) {
-        let px: &[u8; 24] = px.try_into().expect("chunks of 24");
-        // SAFETY: AVX2 is enabled here.
-        let bytes = unsafe { crate::rgb_lanes::load_rgb8(px) };
-        for ((plane, index), table) in [r, g, b].into_iter().zip(bytes).zip(table) {
-            // SAFETY: every index is a byte, below the table's 256 entries; the store
-            // writes the plane's eight values.
-            unsafe {
-                let v = _mm256_i32gather_ps::<4>(table.as_ptr(), index);
-                _mm256_storeu_ps(plane.as_mut_ptr(), v);
-            }
-        }
-    }
-}
-
-/// The table lookups of [`normalise_into`] for groups of sixteen pixels (`rgb` 48
-/// bytes a group, each plane sixteen values a group), in AVX-512, a plane at a time:
-/// the channel's 256 values held in sixteen registers, its sixteen bytes picked out of
-/// the group's 48 by one byte permute, each looked up among 32 values by a
-/// two-register permute (the index's low five bits) in the eight pairs of registers,
-/// and the right pair's value chosen by the index's three high bits. No gathers.
-///
-/// # Safety
-///
-/// The CPU has AVX-512 F, BW and VBMI.
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx512f,avx512bw,avx512vbmi")]
-unsafe fn normalise_avx512(rgb: &[u8], planes: [&mut [f32]; 3], table: &[[f32; 256]; 3]) {
-    use std::arch::x86_64::*;
-    let group_bytes: __mmask64 = (1 << 48) - 1;
-    for (c, (plane, table)) in planes.into_iter().zip(table).enumerate() {
-        // SAFETY: sixteen unaligned 64-byte loads within the 256-value table.
-        let t: [__m512; 16] =
-            std::array::from_fn(|j| unsafe { _mm512_loadu_ps(table.as_ptr().add(16 * j)) });
-        // Byte `3 k + c` of the group into byte `k`, for the sixteen pixels.
-        let pick: [u8; 64] = std::array::from_fn(|k| if k < 16 { (3 * k + c) as u8 } else { 0 });
-        // SAFETY: an unaligned load of the 64 bytes of `pick`.
-        let pick = unsafe { _mm512_loadu_si512(pick.as_ptr().cast()) };
-        let bit = |b: i32| _mm512_set1_epi32(b);
-        let mut out = crate::streamed_plane::StreamedPlane::new(plane);
-        for px in rgb.chunks_exact(48) {
-            // SAFETY: a masked load of the group's 48 bytes (the 16 past them masked
-            // off, neither read nor faulting).
-            unsafe {
-                let bytes = _mm512_maskz_loadu_epi8(group_bytes, px.as_ptr().cast());
-                let idx = _mm512_cvtepu8_epi32(_mm512_castsi512_si128(_mm512_permutexvar_epi8(
-                    pick, bytes,
-                )));
-                let pair = |j: usize| _mm512_permutex2var_ps(t[2 * j], idx, t[2 * j + 1]);
-                let by = |b: i32, low: __m512, high: __m512| {
-                    _mm512_mask_blend_ps(_mm512_test_epi32_mask(idx, bit(b)), low, high)
-                };
-                let q = [
-                    by(32, pair(0), pair(1)),
-                    by(32, pair(2), pair(3)),
-                    by(32, pair(4), pair(5)),
-                    by(32, pair(6), pair(7)),
-                ];
-                out.push(_mm512_castps_si512(by(
-                    128,
-                    by(64, q[0], q[1]),
-                    by(64, q[2], q[3]),
-                )));
-            }
-        }
-        out.finish();
-    }
+    // Sixteen pixels at a time where the SIMD level has AVX-512 VBMI: the same table,
+    // held in registers; else eight at a time from AVX2 up, the table read by gathers.
+    lanes::normalise::lookup_planes(rgb, [r, g, b], &table);
 }
 
 /// A mask's bytes (0 or 1) widened to `int64` into `out`, as a batch's `mask` holds
@@ -875,34 +633,7 @@ unsafe fn normalise_avx512(rgb: &[u8], planes: [&mut [f32]; 3], table: &[[f32; 2
 /// When `out` is not one value per byte of `mask`.
 pub fn widen_mask_into(mask: &[u8], out: &mut [i64]) {
     assert_eq!(mask.len(), out.len(), "one value per mask byte");
-    #[allow(unused_mut)]
-    let mut done = 0;
-    #[cfg(target_arch = "x86_64")]
-    if std::arch::is_x86_feature_detected!("avx512f") {
-        done = mask.len() / 8 * 8;
-        // SAFETY: AVX-512 F was detected; whole groups of eight.
-        unsafe { widen_mask_avx512(&mask[..done], &mut out[..done]) };
-    }
-    for (o, &m) in out[done..].iter_mut().zip(&mask[done..]) {
-        *o = m as i64;
-    }
-}
-
-/// [`widen_mask_into`] for groups of eight bytes, in AVX-512.
-///
-/// # Safety
-/// The CPU has AVX-512 F.
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx512f")]
-unsafe fn widen_mask_avx512(mask: &[u8], out: &mut [i64]) {
-    use std::arch::x86_64::*;
-    let mut plane = crate::streamed_plane::StreamedPlane::new(out);
-    for group in mask.chunks_exact(8) {
-        // SAFETY: an unaligned load of the group's eight bytes.
-        let bytes = unsafe { _mm_loadl_epi64(group.as_ptr().cast()) };
-        plane.push(_mm512_cvtepu8_epi64(bytes));
-    }
-    plane.finish();
+    lanes::normalise::widen_mask(mask, out);
 }
 
 /// A converted dataset served sample by sample (see the module docs). Holds a small
@@ -1670,28 +1401,19 @@ mod tests {
                 let bits = |m: &[f32]| m.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
                 assert_eq!(bits(&got), bits(&want), "size {size}, case {case}");
                 let mut scalar = vec![7f32; 3 * n];
-                layout.covered_scalar(&colors, layout.planes_uncovered_filled(&mut scalar));
+                let planes = layout.planes_uncovered_filled(&mut scalar);
+                lanes::uv::covered_scalar(&layout.covered, &layout.weights, &colors, planes);
                 assert_eq!(bits(&scalar), bits(&want), "size {size}, case {case}");
-                // Each lane width on its own, whichever `uv_map_into` picked.
-                #[cfg(target_arch = "x86_64")]
-                {
-                    let mut sse = vec![7f32; 3 * n];
-                    // SAFETY: SSE2 is part of the x86-64 baseline.
-                    unsafe {
-                        layout.covered_sse(&colors, layout.planes_uncovered_filled(&mut sse))
-                    };
-                    assert_eq!(bits(&sse), bits(&want), "sse, size {size}, case {case}");
-                    if std::arch::is_x86_feature_detected!("avx512f")
-                        && std::arch::is_x86_feature_detected!("avx512vl")
-                    {
-                        let mut wide = vec![7f32; 3 * n];
-                        let planes = layout.planes_uncovered_filled(&mut wide);
-                        // SAFETY: AVX-512 F and VL were detected.
-                        unsafe { layout.covered_avx512(&colors, planes) };
-                        assert_eq!(bits(&wide), bits(&want), "avx512, size {size}, case {case}");
-                    } else {
-                        eprintln!("no AVX-512 F/VL on this CPU: its UV-map lanes not checked");
-                    }
+                // Each level the CPU has on its own, whichever `uv_map_into` picked.
+                for level in lanes::available() {
+                    let mut wide = vec![7f32; 3 * n];
+                    let planes = layout.planes_uncovered_filled(&mut wide);
+                    lanes::uv::covered_at(level, &layout.covered, &layout.weights, &colors, planes);
+                    assert_eq!(
+                        bits(&wide),
+                        bits(&want),
+                        "{level}, size {size}, case {case}"
+                    );
                 }
                 assert!(got.iter().any(|x| x.is_nan()) && got.contains(&1.0));
             }
@@ -1778,57 +1500,30 @@ mod tests {
                 assert_eq!(out[k * 259 + i].to_bits(), direct.to_bits(), "pixel {i}");
             }
         }
-        // Each lane path on its own, whichever `normalise` took: every byte value in
+        // Each level the CPU has, whichever `normalise` took: every byte value in
         // every channel (5 and 11 are odd, so each channel runs through all 256 in 256
-        // pixels), twice.
-        #[cfg(target_arch = "x86_64")]
-        {
-            let every: Vec<u8> = (0..512usize)
-                .flat_map(|j| [j as u8, (j * 5 + 1) as u8, (j * 11 + 7) as u8])
-                .collect();
-            let table: [[f32; 256]; 3] = std::array::from_fn(|k| {
-                std::array::from_fn(|v| (UNIT[v] - IMAGENET_MEAN[k]) / IMAGENET_STD[k])
-            });
-            let check = |out: &[f32], path: &str| {
+        // pixels), twice, against the direct formula.
+        let every: Vec<u8> = (0..512usize)
+            .flat_map(|j| [j as u8, (j * 5 + 1) as u8, (j * 11 + 7) as u8])
+            .collect();
+        let table: [[f32; 256]; 3] = std::array::from_fn(|k| {
+            std::array::from_fn(|v| (UNIT[v] - IMAGENET_MEAN[k]) / IMAGENET_STD[k])
+        });
+        for level in crate::lanes::available() {
+            for vbmi in [false, true] {
+                let mut planes = [0, 1, 2].map(|_| vec![f32::NAN; 512]);
+                let [r, g, b] = &mut planes;
+                crate::lanes::normalise::lookup_planes_at(level, vbmi, &every, [r, g, b], &table);
                 for (i, p) in every.chunks_exact(3).enumerate() {
                     for k in 0..3 {
                         let direct = (p[k] as f32 / 255.0 - IMAGENET_MEAN[k]) / IMAGENET_STD[k];
                         assert_eq!(
-                            out[k * 512 + i].to_bits(),
+                            planes[k][i].to_bits(),
                             direct.to_bits(),
-                            "{path}, pixel {i}"
+                            "{level} {vbmi}, pixel {i}"
                         );
                     }
                 }
-            };
-            // Planes at every alignment (the AVX-512 path streams whole 64-byte lines
-            // and writes the floats before the first and after the last plainly).
-            type Lanes = unsafe fn(&[u8], [&mut [f32]; 3], &[[f32; 256]; 3]);
-            let run = |f: Lanes, path: &str| {
-                for off in 0..16 {
-                    let mut planes = [0, 1, 2].map(|_| vec![f32::NAN; 512 + 32]);
-                    let [r, g, b] = &mut planes;
-                    let [r, g, b] = [r, g, b].map(|p| &mut p[off..off + 512]);
-                    // SAFETY: the caller checked the CPU; 512 pixels are whole groups.
-                    unsafe { f(&every, [r, g, b], &table) };
-                    let out: Vec<f32> = planes
-                        .iter()
-                        .flat_map(|p| p[off..off + 512].to_vec())
-                        .collect();
-                    check(&out, &format!("{path}, offset {off}"));
-                    // Nothing written outside the planes.
-                    for p in &planes {
-                        assert!(p[..off].iter().chain(&p[off + 512..]).all(|v| v.is_nan()));
-                    }
-                }
-            };
-            if std::arch::is_x86_feature_detected!("avx2") {
-                run(normalise_avx2, "avx2");
-            }
-            if crate::rgb_lanes::has_avx512_vbmi() {
-                run(normalise_avx512, "avx512");
-            } else {
-                eprintln!("no AVX-512 VBMI on this CPU: its normalisation lanes not checked");
             }
         }
         let out = normalise(&[255, 0, 128, 0, 255, 64]);

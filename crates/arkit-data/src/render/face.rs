@@ -36,6 +36,7 @@ use arkit_core::raster::{PixelWindow, ScreenVertex, VisibilityBuffer};
 use arkit_core::rng::Rng;
 
 use crate::crop::{CropTransform, RuleSet};
+use crate::lanes;
 use crate::store::face_targets::{FaceTargets, for_each_set_run};
 use nalgebra::Point3;
 use std::ops::Range;
@@ -902,27 +903,27 @@ impl UvMapper {
 /// its texels (about a dozen at 192x192), not once per texel.
 #[derive(Clone, Debug)]
 pub struct UvTexels {
-    size: u32,
-    extended_vertices: usize,
+    pub(crate) size: u32,
+    pub(crate) extended_vertices: usize,
     /// Per group, the UV triangle's extended vertex ids.
-    triangles: Vec<[u32; 3]>,
+    pub(crate) triangles: Vec<[u32; 3]>,
     /// Per group, the end of its texels in `index` and `weights` (the next group's
     /// start).
-    ends: Vec<u32>,
+    pub(crate) ends: Vec<u32>,
     /// Row-major index of each covered texel.
-    index: Vec<u32>,
+    pub(crate) index: Vec<u32>,
     /// This table's identity, shared by its clones (which cover the same texels): a
     /// position map kept for it has NaN on every texel it leaves uncovered
     /// ([`UvTexels::clamped_planes_into`]).
-    layout: u64,
+    pub(crate) layout: u64,
     /// Each covered texel's three weights (and a zero), for one aligned load.
-    weights: Vec<TexelWeights>,
+    pub(crate) weights: Vec<TexelWeights>,
 }
 
 /// A texel's three barycentric weights and a zero, 16-byte aligned.
 #[derive(Clone, Copy, Debug)]
 #[repr(C, align(16))]
-struct TexelWeights([f32; 4]);
+pub(crate) struct TexelWeights(pub(crate) [f32; 4]);
 
 impl UvTexels {
     /// The map side, in texels.
@@ -962,23 +963,7 @@ impl UvTexels {
             self.extended_vertices,
             "one position per UV vertex"
         );
-        #[cfg(target_arch = "x86_64")]
-        {
-            let padded = padded_positions(extended);
-            if std::arch::is_x86_feature_detected!("avx512f")
-                && std::arch::is_x86_feature_detected!("avx512vl")
-            {
-                // SAFETY: the CPU has AVX-512 F and VL (detected just above).
-                unsafe { self.fill_avx512(&padded, out) }
-            } else if std::arch::is_x86_feature_detected!("avx") {
-                // SAFETY: the CPU has AVX (detected just above).
-                unsafe { self.fill_avx(&padded, out) }
-            } else {
-                self.fill_sse2(&padded, out)
-            }
-        }
-        #[cfg(not(target_arch = "x86_64"))]
-        self.fill_scalar(extended, out);
+        self.fill_covered_at(lanes::level(), extended, out);
     }
 
     /// The position map scaled for a network's input, channels first: each coordinate
@@ -1016,188 +1001,8 @@ impl UvTexels {
                 *layout = self.layout;
             }
             self.fill_covered(extended, map);
-            #[cfg(target_arch = "x86_64")]
-            if std::arch::is_x86_feature_detected!("avx512f") {
-                let done = n / 16 * 16;
-                let (u, u_rest) = u.split_at_mut(done);
-                let (v, v_rest) = v.split_at_mut(done);
-                let (w, w_rest) = w.split_at_mut(done);
-                // SAFETY: the CPU has AVX-512 F (detected just above); whole groups of
-                // sixteen texels.
-                unsafe { clamp_planes_avx512(&map[..done], scale, [u, v, w]) };
-                let rest = [u_rest, v_rest, w_rest];
-                clamp_planes_from(&map[done..], 0, scale, rest);
-                return;
-            }
-            #[cfg(target_arch = "x86_64")]
-            if std::arch::is_x86_feature_detected!("avx") {
-                // SAFETY: the CPU has AVX (detected just above).
-                unsafe { clamp_planes_avx(map, scale, [u, v, w]) };
-                return;
-            }
-            clamp_planes_from(map, 0, scale, [u, v, w]);
+            lanes::texels::clamp_planes(map, scale, [u, v, w]);
         });
-    }
-
-    /// Checks the buffers of [`UvTexels::fill_sse2`] and [`UvTexels::fill_avx`]: one
-    /// padded position per extended vertex, one output per texel of the map. With the
-    /// table's own invariants (every vertex id below `extended_vertices`, every texel
-    /// index below `size * size`: [`UvMapper::texels`] makes them so) this keeps their
-    /// unchecked reads and writes in bounds.
-    #[cfg(target_arch = "x86_64")]
-    fn check_fill(&self, padded: &[[f32; 4]], out: &[[f32; 3]]) {
-        assert_eq!(padded.len(), self.extended_vertices);
-        assert_eq!(out.len(), self.size as usize * self.size as usize);
-    }
-
-    /// The covered texels of `out` from the padded positions, one texel per SSE2
-    /// operation (the x86-64 baseline).
-    #[cfg(target_arch = "x86_64")]
-    fn fill_sse2(&self, padded: &[[f32; 4]], out: &mut [[f32; 3]]) {
-        use std::arch::x86_64::*;
-        self.check_fill(padded, out);
-        let (pos, dst) = (padded.as_ptr(), out.as_mut_ptr().cast::<f32>());
-        let mut start = 0;
-        for (v, &end) in self.triangles.iter().zip(&self.ends) {
-            let range = start..end as usize;
-            start = end as usize;
-            let texels = self.index[range.clone()].iter().zip(&self.weights[range]);
-            // SAFETY: SSE2 is part of the x86-64 baseline; the reads and writes are in
-            // bounds (`check_fill`); `w` is 16-byte aligned.
-            unsafe {
-                let p = v.map(|v| _mm_loadu_ps(pos.add(v as usize).cast()));
-                for (&i, w) in texels {
-                    let q = texel_sum(p, _mm_load_ps(w.0.as_ptr()));
-                    store_texel(dst.add(i as usize * 3), q);
-                }
-            }
-        }
-    }
-
-    /// [`UvTexels::fill_sse2`] two texels per eight-float AVX operation (the
-    /// triangle's positions in both halves), a group's odd texel in four floats:
-    /// the same products and sums lane by lane, so the same bits (tested).
-    ///
-    /// # Safety
-    /// The CPU must have AVX.
-    #[cfg(target_arch = "x86_64")]
-    #[target_feature(enable = "avx")]
-    unsafe fn fill_avx(&self, padded: &[[f32; 4]], out: &mut [[f32; 3]]) {
-        use std::arch::x86_64::*;
-        self.check_fill(padded, out);
-        let (pos, dst) = (padded.as_ptr(), out.as_mut_ptr().cast::<f32>());
-        let (index, weights) = (self.index.as_ptr(), self.weights.as_ptr());
-        let mut start = 0;
-        for (v, &end) in self.triangles.iter().zip(&self.ends) {
-            let (mut j, end) = (start, end as usize);
-            start = end;
-            // SAFETY: the reads and writes are in bounds (`check_fill`; `j` and `j + 1`
-            // stay below the group's end, at most `index.len() == weights.len()`);
-            // the CPU has AVX (the caller's promise).
-            unsafe {
-                let p = v.map(|v| _mm256_broadcast_ps(&*pos.add(v as usize).cast::<__m128>()));
-                while j + 2 <= end {
-                    let w = _mm256_loadu_ps(weights.add(j).cast());
-                    let lane = |k: usize, w: __m256| _mm256_mul_ps(p[k], w);
-                    let q = _mm256_add_ps(
-                        _mm256_add_ps(
-                            lane(0, _mm256_shuffle_ps::<0x00>(w, w)),
-                            lane(1, _mm256_shuffle_ps::<0x55>(w, w)),
-                        ),
-                        lane(2, _mm256_shuffle_ps::<0xAA>(w, w)),
-                    );
-                    store_texel(
-                        dst.add(*index.add(j) as usize * 3),
-                        _mm256_castps256_ps128(q),
-                    );
-                    store_texel(
-                        dst.add(*index.add(j + 1) as usize * 3),
-                        _mm256_extractf128_ps::<1>(q),
-                    );
-                    j += 2;
-                }
-                if j < end {
-                    let p = p.map(|p| _mm256_castps256_ps128(p));
-                    let q = texel_sum(p, _mm_load_ps((*weights.add(j)).0.as_ptr()));
-                    store_texel(dst.add(*index.add(j) as usize * 3), q);
-                }
-            }
-        }
-    }
-
-    /// [`UvTexels::fill_avx`] four texels per sixteen-float AVX-512 operation (the
-    /// triangle's positions in each 128-bit part), each texel's three floats stored by
-    /// one masked store (where [`store_texel`] takes two stores and a shuffle); a
-    /// group's last one to three texels in four floats. The same products and sums
-    /// lane by lane, so the same bits (tested).
-    ///
-    /// # Safety
-    /// The CPU must have AVX-512 F and VL.
-    #[cfg(target_arch = "x86_64")]
-    #[target_feature(enable = "avx512f,avx512vl")]
-    unsafe fn fill_avx512(&self, padded: &[[f32; 4]], out: &mut [[f32; 3]]) {
-        use std::arch::x86_64::*;
-        self.check_fill(padded, out);
-        let (pos, dst) = (padded.as_ptr(), out.as_mut_ptr().cast::<f32>());
-        let (index, weights) = (self.index.as_ptr(), self.weights.as_ptr());
-        let mut start = 0;
-        for (v, &end) in self.triangles.iter().zip(&self.ends) {
-            let (mut j, end) = (start, end as usize);
-            start = end;
-            // SAFETY: the reads and writes are in bounds (`check_fill`; `j..j + 4`
-            // stay below the group's end, at most `index.len() == weights.len()`);
-            // the CPU has AVX-512 F and VL (the caller's promise).
-            unsafe {
-                let p = v.map(|v| _mm512_broadcast_f32x4(_mm_loadu_ps(pos.add(v as usize).cast())));
-                while j + 4 <= end {
-                    let w = _mm512_loadu_ps(weights.add(j).cast());
-                    let lane = |k: usize, w: __m512| _mm512_mul_ps(p[k], w);
-                    let q = _mm512_add_ps(
-                        _mm512_add_ps(
-                            lane(0, _mm512_shuffle_ps::<0x00>(w, w)),
-                            lane(1, _mm512_shuffle_ps::<0x55>(w, w)),
-                        ),
-                        lane(2, _mm512_shuffle_ps::<0xAA>(w, w)),
-                    );
-                    let at = |k: usize| dst.add(*index.add(j + k) as usize * 3);
-                    _mm_mask_storeu_ps(at(0), 0b111, _mm512_castps512_ps128(q));
-                    _mm_mask_storeu_ps(at(1), 0b111, _mm512_extractf32x4_ps::<1>(q));
-                    _mm_mask_storeu_ps(at(2), 0b111, _mm512_extractf32x4_ps::<2>(q));
-                    _mm_mask_storeu_ps(at(3), 0b111, _mm512_extractf32x4_ps::<3>(q));
-                    j += 4;
-                }
-                let p = p.map(|p| _mm512_castps512_ps128(p));
-                while j < end {
-                    let q = texel_sum(p, _mm_load_ps((*weights.add(j)).0.as_ptr()));
-                    _mm_mask_storeu_ps(dst.add(*index.add(j) as usize * 3), 0b111, q);
-                    j += 1;
-                }
-            }
-        }
-    }
-
-    /// [`UvTexels::position_map`] one coordinate at a time.
-    #[cfg_attr(target_arch = "x86_64", allow(dead_code))]
-    fn position_map_scalar(&self, extended: &[Point3<f32>]) -> Vec<[f32; 3]> {
-        let mut out = vec![[f32::NAN; 3]; self.size as usize * self.size as usize];
-        self.fill_scalar(extended, &mut out);
-        out
-    }
-
-    /// [`UvTexels::fill_covered`] one coordinate at a time.
-    #[cfg_attr(target_arch = "x86_64", allow(dead_code))]
-    fn fill_scalar(&self, extended: &[Point3<f32>], out: &mut [[f32; 3]]) {
-        let mut start = 0;
-        for (v, &end) in self.triangles.iter().zip(&self.ends) {
-            let range = start..end as usize;
-            start = end as usize;
-            for (&i, b) in self.index[range.clone()].iter().zip(&self.weights[range]) {
-                let p = extended[v[0] as usize].coords * b.0[0]
-                    + extended[v[1] as usize].coords * b.0[1]
-                    + extended[v[2] as usize].coords * b.0[2];
-                out[i as usize] = [p.x, p.y, p.z];
-            }
-        }
     }
 }
 
@@ -1207,180 +1012,10 @@ fn next_layout_id() -> u64 {
     NEXT.fetch_add(1, std::sync::atomic::Ordering::Relaxed)
 }
 
-/// A position map (row-major `[x, y, z]`) into three planes: each coordinate times
-/// `scale`, clamped to [-1, 1] (`f32::clamp`: NaN stays NaN), and the whole texel -1
-/// where x is NaN (an uncovered texel). Texels from `start` on (the others are left
-/// as they are). The definition [`clamp_planes_avx`] is tested against.
-fn clamp_planes_from(map: &[[f32; 3]], start: usize, scale: f32, planes: [&mut [f32]; 3]) {
-    let [u, v, w] = planes;
-    for (i, p) in map.iter().enumerate().skip(start) {
-        let value = |c: f32| {
-            if p[0].is_nan() {
-                -1.0
-            } else {
-                (c * scale).clamp(-1.0, 1.0)
-            }
-        };
-        (u[i], v[i], w[i]) = (value(p[0]), value(p[1]), value(p[2]));
-    }
-}
-
-/// [`clamp_planes_from`] eight texels at a time in AVX lanes: the 24 floats split
-/// into x, y and z by shuffles within each 128-bit half, the same multiply, `max` and
-/// `min` in the order that keeps a NaN (`max_ps` and `min_ps` return their second
-/// operand on NaN), and a blend to -1 where x is NaN; the last texels one at a time.
-///
-/// # Safety
-/// The CPU must have AVX.
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx")]
-unsafe fn clamp_planes_avx(map: &[[f32; 3]], scale: f32, planes: [&mut [f32]; 3]) {
-    use std::arch::x86_64::*;
-    let n = map.len();
-    assert!(planes.iter().all(|p| p.len() == n));
-    let [u, v, w] = planes;
-    let src = map.as_ptr().cast::<f32>();
-    let (k, lo, hi) = (
-        _mm256_set1_ps(scale),
-        _mm256_set1_ps(-1.0),
-        _mm256_set1_ps(1.0),
-    );
-    let mut i = 0;
-    while i + 8 <= n {
-        // SAFETY: texels i..i + 8 are within `map` and each plane (checked above); the
-        // CPU has AVX (the caller's promise).
-        unsafe {
-            let p = src.add(3 * i);
-            let half = |a: usize, b: usize| {
-                let low = _mm256_castps128_ps256(_mm_loadu_ps(p.add(a)));
-                _mm256_insertf128_ps::<1>(low, _mm_loadu_ps(p.add(b)))
-            };
-            // Per half: [x0 y0 z0 x1], [y1 z1 x2 y2], [z2 x3 y3 z3].
-            let (a, b, c) = (half(0, 12), half(4, 16), half(8, 20));
-            let xy = _mm256_shuffle_ps::<0b10_01_11_10>(b, c); // x2 y2 x3 y3
-            let yz = _mm256_shuffle_ps::<0b01_00_10_01>(a, b); // y0 z0 y1 z1
-            let x = _mm256_shuffle_ps::<0b10_00_11_00>(a, xy);
-            let y = _mm256_shuffle_ps::<0b11_01_10_00>(yz, xy);
-            let z = _mm256_shuffle_ps::<0b11_00_11_01>(yz, c);
-            let nan_x = _mm256_cmp_ps::<_CMP_UNORD_Q>(x, x);
-            let value = |c: __m256| {
-                let r = _mm256_min_ps(hi, _mm256_max_ps(lo, _mm256_mul_ps(c, k)));
-                _mm256_blendv_ps(r, lo, nan_x)
-            };
-            _mm256_storeu_ps(u.as_mut_ptr().add(i), value(x));
-            _mm256_storeu_ps(v.as_mut_ptr().add(i), value(y));
-            _mm256_storeu_ps(w.as_mut_ptr().add(i), value(z));
-        }
-        i += 8;
-    }
-    clamp_planes_from(map, i, scale, [u, v, w]);
-}
-
-/// [`clamp_planes_avx`] sixteen texels at a time in AVX-512 lanes (`map.len()` a
-/// multiple of 16): the 48 floats split into x, y and z by two two-register permutes
-/// each, the same multiply, `max`, `min` (NaN kept) and -1 where x is NaN, and each
-/// plane written with streaming stores (whole 64-byte lines, not read first). The
-/// same bits (tested against [`clamp_planes_from`] at every plane alignment).
-///
-/// # Safety
-/// The CPU must have AVX-512 F.
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx512f")]
-unsafe fn clamp_planes_avx512(map: &[[f32; 3]], scale: f32, planes: [&mut [f32]; 3]) {
-    use std::arch::x86_64::*;
-    assert!(map.len().is_multiple_of(16) && planes.iter().all(|p| p.len() == map.len()));
-    let (k, lo, hi) = (
-        _mm512_set1_ps(scale),
-        _mm512_set1_ps(-1.0),
-        _mm512_set1_ps(1.0),
-    );
-    // Coordinate `c` of texel `t` is float `3 t + c` of the 48: in the first two
-    // registers (32 floats) for `3 t + c < 32`, else in the third.
-    let first: [__m512i; 3] = std::array::from_fn(|c| {
-        let i: [i32; 16] = std::array::from_fn(|t| ((3 * t + c) % 32) as i32);
-        // SAFETY: an unaligned load of sixteen i32.
-        unsafe { _mm512_loadu_si512(i.as_ptr().cast()) }
-    });
-    let third: [__m512i; 3] = std::array::from_fn(|c| {
-        let i: [i32; 16] = std::array::from_fn(|t| {
-            let f = 3 * t + c;
-            // Lanes 0-15 keep the first permute's value; 16-31 take the third register's.
-            if f < 32 {
-                t as i32
-            } else {
-                (16 + f - 32) as i32
-            }
-        });
-        // SAFETY: an unaligned load of sixteen i32.
-        unsafe { _mm512_loadu_si512(i.as_ptr().cast()) }
-    });
-    let [u, v, w] = planes;
-    let mut out = [u, v, w].map(|p| crate::streamed_plane::StreamedPlane::new(p));
-    let src = map.as_ptr().cast::<f32>();
-    for g in 0..map.len() / 16 {
-        // SAFETY: floats `48 g .. 48 g + 48` of the map's `3 * len`.
-        let [a, b, c] = [0, 1, 2].map(|r| unsafe { _mm512_loadu_ps(src.add(48 * g + 16 * r)) });
-        let coord = |i: usize| {
-            let ab = _mm512_permutex2var_ps(a, first[i], b);
-            _mm512_permutex2var_ps(ab, third[i], c)
-        };
-        let (x, y, z) = (coord(0), coord(1), coord(2));
-        let nan_x = _mm512_cmp_ps_mask::<_CMP_UNORD_Q>(x, x);
-        let value = |c: __m512| {
-            let r = _mm512_min_ps(hi, _mm512_max_ps(lo, _mm512_mul_ps(c, k)));
-            _mm512_castps_si512(_mm512_mask_blend_ps(nan_x, r, lo))
-        };
-        for (plane, c) in out.iter_mut().zip([x, y, z]) {
-            plane.push(value(c));
-        }
-    }
-    for plane in out {
-        plane.finish();
-    }
-}
-
-/// Positions padded to four floats, for one four-float load each.
-#[cfg(target_arch = "x86_64")]
-fn padded_positions(extended: &[Point3<f32>]) -> Vec<[f32; 4]> {
-    extended.iter().map(|p| [p.x, p.y, p.z, 0.0]).collect()
-}
-
-/// One texel's position from its triangle's three positions and its weights (lanes
-/// 0-2 of `w`): `(p0 * w0 + p1 * w1) + p2 * w2` in four lanes, the fourth junk.
-#[cfg(target_arch = "x86_64")]
-#[inline(always)]
-fn texel_sum(
-    p: [std::arch::x86_64::__m128; 3],
-    w: std::arch::x86_64::__m128,
-) -> std::arch::x86_64::__m128 {
-    use std::arch::x86_64::*;
-    // SAFETY: SSE2 is part of the x86-64 baseline; no memory is touched.
-    unsafe {
-        let t0 = _mm_mul_ps(p[0], _mm_shuffle_ps::<0x00>(w, w));
-        let t1 = _mm_mul_ps(p[1], _mm_shuffle_ps::<0x55>(w, w));
-        let t2 = _mm_mul_ps(p[2], _mm_shuffle_ps::<0xAA>(w, w));
-        _mm_add_ps(_mm_add_ps(t0, t1), t2)
-    }
-}
-
-/// Stores lanes 0-2 of `q` at `d`.
-///
-/// # Safety
-/// `d` must be valid for writing three floats.
-#[cfg(target_arch = "x86_64")]
-#[inline(always)]
-unsafe fn store_texel(d: *mut f32, q: std::arch::x86_64::__m128) {
-    use std::arch::x86_64::*;
-    // SAFETY: the caller's promise; SSE2 is part of the x86-64 baseline.
-    unsafe {
-        _mm_storel_epi64(d.cast(), _mm_castps_si128(q));
-        _mm_store_ss(d.add(2), _mm_movehl_ps(q, q));
-    }
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::lanes::texels::clamp_planes_from;
 
     #[test]
     fn face_offsets_of_a_row_sixteen_at_a_time_are_the_pixel_by_pixel_ones() {
@@ -1580,31 +1215,11 @@ mod tests {
             let bits =
                 |m: &[[f32; 3]]| -> Vec<u32> { m.iter().flatten().map(|v| v.to_bits()).collect() };
             assert_eq!(bits(&fast), bits(&slow), "size {size}");
-            // Each vector path alone (`position_map` takes AVX where the CPU has it).
-            #[cfg(target_arch = "x86_64")]
-            {
-                let padded = padded_positions(&ext);
-                let mut sse2 = vec![[f32::NAN; 3]; slow.len()];
-                t.fill_sse2(&padded, &mut sse2);
-                assert_eq!(bits(&sse2), bits(&slow), "SSE2, size {size}");
-                if std::arch::is_x86_feature_detected!("avx") {
-                    let mut avx = vec![[f32::NAN; 3]; slow.len()];
-                    // SAFETY: the CPU has AVX (checked above).
-                    unsafe { t.fill_avx(&padded, &mut avx) };
-                    assert_eq!(bits(&avx), bits(&slow), "AVX, size {size}");
-                } else {
-                    eprintln!("skipping the AVX UV map: this CPU has no AVX");
-                }
-                if std::arch::is_x86_feature_detected!("avx512f")
-                    && std::arch::is_x86_feature_detected!("avx512vl")
-                {
-                    let mut wide = vec![[f32::NAN; 3]; slow.len()];
-                    // SAFETY: the CPU has AVX-512 F and VL (checked above).
-                    unsafe { t.fill_avx512(&padded, &mut wide) };
-                    assert_eq!(bits(&wide), bits(&slow), "AVX-512, size {size}");
-                } else {
-                    eprintln!("skipping the AVX-512 UV map: this CPU has no AVX-512");
-                }
+            // Each level the CPU has on its own, whichever `position_map` took.
+            for level in crate::lanes::available() {
+                let mut lanes = vec![[f32::NAN; 3]; slow.len()];
+                t.fill_covered_at(level, &ext, &mut lanes);
+                assert_eq!(bits(&lanes), bits(&slow), "{level}, size {size}");
             }
             let covered = fast.iter().filter(|p| !p[0].is_nan()).count();
             assert_eq!(covered, t.covered());
@@ -1682,39 +1297,36 @@ mod tests {
             assert!(want.iter().any(|v| v.is_nan()), "size {size}");
             assert!(want.iter().any(|&v| v != 0.0 && v.abs() < 1.0));
         }
-        // Each lane path on its own, whichever `clamped_planes_into` took, the AVX-512
-        // one (streaming stores) into planes at every 4-byte offset of a 64-byte line:
-        // the definition's bits, and nothing outside the planes written.
-        #[cfg(target_arch = "x86_64")]
+        // Each level on its own, whichever `clamped_planes_into` took, the AVX-512 one
+        // (streaming stores) into planes at every 4-byte offset of a 64-byte line, on
+        // maps of every length up to 40 texels and a whole one: the definition's
+        // bits, and nothing outside the planes written.
         {
+            use crate::lanes::texels::clamp_planes_at;
             let t = uv.texels(64);
-            let map = t.position_map_scalar(&ext);
-            let n = map.len();
-            let mut want = [0, 1, 2].map(|_| vec![7.0f32; n]);
-            let [u, v, w] = &mut want;
-            clamp_planes_from(&map, 0, 9.0, [u, v, w]);
+            let whole = t.position_map_scalar(&ext);
             let bits = |m: &[f32]| -> Vec<u32> { m.iter().map(|v| v.to_bits()).collect() };
-            type Lanes = unsafe fn(&[[f32; 3]], f32, [&mut [f32]; 3]);
-            let mut paths: Vec<(&str, Lanes)> = Vec::new();
-            if std::arch::is_x86_feature_detected!("avx") {
-                paths.push(("avx", clamp_planes_avx));
-            }
-            if std::arch::is_x86_feature_detected!("avx512f") {
-                paths.push(("avx512", clamp_planes_avx512));
-            } else {
-                eprintln!("no AVX-512 F on this CPU: its UV planes' lanes not checked");
-            }
-            for (name, lanes) in paths {
-                for off in 0..16 {
-                    let mut got = [0, 1, 2].map(|_| vec![7.0f32; n + 32]);
-                    let [u, v, w] = &mut got;
-                    let [u, v, w] = [u, v, w].map(|p| &mut p[off..off + n]);
-                    // SAFETY: the CPU has the path's features (checked above); 4,096
-                    // texels are whole groups of sixteen.
-                    unsafe { lanes(&map, 9.0, [u, v, w]) };
-                    for (g, want) in got.iter().zip(&want) {
-                        assert_eq!(bits(&g[off..off + n]), bits(want), "{name}, offset {off}");
-                        assert!(g[..off].iter().chain(&g[off + n..]).all(|&v| v == 7.0));
+            for n in (0..=40).chain([whole.len()]) {
+                // A window of the map with covered and uncovered texels.
+                let at = (whole.len() / 2 - n / 2).min(whole.len() - n);
+                let map = &whole[at..at + n];
+                let mut want = [0, 1, 2].map(|_| vec![7.0f32; n]);
+                let [u, v, w] = &mut want;
+                clamp_planes_from(map, 0, 9.0, [u, v, w]);
+                for level in crate::lanes::available() {
+                    for off in 0..16 {
+                        let mut got = [0, 1, 2].map(|_| vec![7.0f32; n + 32]);
+                        let [u, v, w] = &mut got;
+                        let [u, v, w] = [u, v, w].map(|p| &mut p[off..off + n]);
+                        clamp_planes_at(level, map, 9.0, [u, v, w]);
+                        for (g, want) in got.iter().zip(&want) {
+                            assert_eq!(
+                                bits(&g[off..off + n]),
+                                bits(want),
+                                "{level}, {n} at +{off}"
+                            );
+                            assert!(g[..off].iter().chain(&g[off + n..]).all(|&v| v == 7.0));
+                        }
                     }
                 }
             }

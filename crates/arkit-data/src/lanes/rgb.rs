@@ -1,8 +1,7 @@
-//! `rgb_lanes`: eight interleaved RGB pixels in and out of AVX2 lanes, one `i32` lane
-//! per pixel and one register per channel, by byte shuffles (the colour jitter's and
-//! the official crop warp's lanes). Tested through their users, against their scalar
-//! paths (every RGB triple; every warped byte). Also the one check of whether the CPU
-//! has the AVX-512 byte permutes its users' table lookups take.
+//! `rgb`: eight interleaved RGB pixels in and out of AVX2 lanes, one `i32` lane per
+//! pixel and one register per channel, by byte shuffles (the colour jitter's and the
+//! official crop warp's lanes). Tested through their users, against their scalar paths
+//! (every RGB triple; every warped byte).
 
 /// Eight interleaved RGB pixels (24 bytes) as three lanes of `i32`, one per channel.
 #[target_feature(enable = "avx2")]
@@ -87,12 +86,4 @@ pub(crate) unsafe fn store_rgb8(px: &mut [u8; 24], [r, g, b]: [std::arch::x86_64
             _mm256_extracti128_si256::<1>(both),
         );
     }
-}
-
-/// Whether the CPU has AVX-512 F, BW and VBMI: the byte permutes of the colour jitter's
-/// brightness and contrast tables and of the normalisation's table lookups.
-pub(crate) fn has_avx512_vbmi() -> bool {
-    std::arch::is_x86_feature_detected!("avx512f")
-        && std::arch::is_x86_feature_detected!("avx512bw")
-        && std::arch::is_x86_feature_detected!("avx512vbmi")
 }
