@@ -7,8 +7,39 @@
 //! level the CPU has (in the renderer's tests).
 
 use super::{Level, level};
-use crate::render::face::UvTexels;
 use nalgebra::Point3;
+
+// The table's type lives here, beside the kernels that read its fields; its public
+// path is `render::face::UvTexels`, where its other methods are.
+/// The rasterized UV layout at one map size ([`UvMapper::texels`](crate::render::face::UvMapper::texels)): per covered texel,
+/// its UV triangle's three extended vertices and their weights. A position map is then
+/// a weighted sum of three positions per texel, with no rasterization: at 192x192 the
+/// map of a mesh took 1.0 ms when the layout was rasterized for each mesh. The texels
+/// are grouped by triangle, so that a triangle's three positions are read once for
+/// its texels (about a dozen at 192x192), not once per texel.
+#[derive(Clone, Debug)]
+pub struct UvTexels {
+    pub(crate) size: u32,
+    pub(crate) extended_vertices: usize,
+    /// Per group, the UV triangle's extended vertex ids.
+    pub(crate) triangles: Vec<[u32; 3]>,
+    /// Per group, the end of its texels in `index` and `weights` (the next group's
+    /// start).
+    pub(crate) ends: Vec<u32>,
+    /// Row-major index of each covered texel.
+    pub(crate) index: Vec<u32>,
+    /// This table's identity, shared by its clones (which cover the same texels): a
+    /// position map kept for it has NaN on every texel it leaves uncovered
+    /// ([`UvTexels::clamped_planes_into`]).
+    pub(crate) layout: u64,
+    /// Each covered texel's three weights (and a zero), for one aligned load.
+    pub(crate) weights: Vec<TexelWeights>,
+}
+
+/// A texel's three barycentric weights and a zero, 16-byte aligned.
+#[derive(Clone, Copy, Debug)]
+#[repr(C, align(16))]
+pub(crate) struct TexelWeights(pub(crate) [f32; 4]);
 
 /// [`clamp_planes_from`] of a whole map, at the workspace's SIMD level
 /// ([`clamp_planes_at`]).
@@ -91,7 +122,7 @@ impl UvTexels {
     /// Checks the buffers of [`UvTexels::fill_sse2`] and [`UvTexels::fill_avx`]: one
     /// padded position per extended vertex, one output per texel of the map. With the
     /// table's own invariants (every vertex id below `extended_vertices`, every texel
-    /// index below `size * size`: [`UvMapper::texels`] makes them so) this keeps their
+    /// index below `size * size`: [`UvMapper::texels`](crate::render::face::UvMapper::texels) makes them so) this keeps their
     /// unchecked reads and writes in bounds.
     #[cfg(target_arch = "x86_64")]
     fn check_fill(&self, padded: &[[f32; 4]], out: &[[f32; 3]]) {

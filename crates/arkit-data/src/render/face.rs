@@ -37,6 +37,8 @@ use arkit_core::rng::Rng;
 
 use crate::crop::{CropTransform, RuleSet};
 use crate::lanes;
+use crate::lanes::texels::TexelWeights;
+pub use crate::lanes::texels::UvTexels;
 use crate::store::face_targets::{FaceTargets, for_each_set_run};
 use nalgebra::Point3;
 use std::ops::Range;
@@ -894,36 +896,6 @@ impl UvMapper {
         out
     }
 }
-
-/// The rasterized UV layout at one map size ([`UvMapper::texels`]): per covered texel,
-/// its UV triangle's three extended vertices and their weights. A position map is then
-/// a weighted sum of three positions per texel, with no rasterization: at 192x192 the
-/// map of a mesh took 1.0 ms when the layout was rasterized for each mesh. The texels
-/// are grouped by triangle, so that a triangle's three positions are read once for
-/// its texels (about a dozen at 192x192), not once per texel.
-#[derive(Clone, Debug)]
-pub struct UvTexels {
-    pub(crate) size: u32,
-    pub(crate) extended_vertices: usize,
-    /// Per group, the UV triangle's extended vertex ids.
-    pub(crate) triangles: Vec<[u32; 3]>,
-    /// Per group, the end of its texels in `index` and `weights` (the next group's
-    /// start).
-    pub(crate) ends: Vec<u32>,
-    /// Row-major index of each covered texel.
-    pub(crate) index: Vec<u32>,
-    /// This table's identity, shared by its clones (which cover the same texels): a
-    /// position map kept for it has NaN on every texel it leaves uncovered
-    /// ([`UvTexels::clamped_planes_into`]).
-    pub(crate) layout: u64,
-    /// Each covered texel's three weights (and a zero), for one aligned load.
-    pub(crate) weights: Vec<TexelWeights>,
-}
-
-/// A texel's three barycentric weights and a zero, 16-byte aligned.
-#[derive(Clone, Copy, Debug)]
-#[repr(C, align(16))]
-pub(crate) struct TexelWeights(pub(crate) [f32; 4]);
 
 impl UvTexels {
     /// The map side, in texels.
