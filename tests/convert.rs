@@ -358,7 +358,7 @@ fn merge_reads_only_the_parts_the_conversion_names() {
     m.shards.push(m.shards[0].clone());
     write(&m);
     let e = convert::merge(parts.path()).unwrap_err().to_string();
-    assert!(e.contains("lists shard 1 twice"), "{e}");
+    assert!(e.contains("shard index 1 listed twice"), "{e}");
     m.shards = kept[1..].to_vec();
     write(&m);
     let e = convert::merge(parts.path()).unwrap_err().to_string();

@@ -559,7 +559,8 @@ fn rows_render_cannot_use_are_skipped_with_the_reason() {
     );
 }
 
-/// Every file of a folder, by path relative to it, with its bytes.
+/// Every file of a folder, by path relative to it, with its bytes; not the writers'
+/// lock files, which name their holder (a process id).
 fn tree(root: &Path) -> std::collections::BTreeMap<PathBuf, Vec<u8>> {
     let mut files = std::collections::BTreeMap::new();
     let mut todo = vec![root.to_path_buf()];
@@ -568,6 +569,8 @@ fn tree(root: &Path) -> std::collections::BTreeMap<PathBuf, Vec<u8>> {
             let path = entry.unwrap().path();
             if path.is_dir() {
                 todo.push(path);
+            } else if path.extension().is_some_and(|e| e == "lock") {
+                continue;
             } else {
                 let bytes = std::fs::read(&path).unwrap();
                 files.insert(path.strip_prefix(root).unwrap().to_path_buf(), bytes);
