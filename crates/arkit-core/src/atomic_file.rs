@@ -342,7 +342,20 @@ mod tests {
         // Another name is another lock.
         let _other = FolderLock::acquire(dir.path(), "render", "render").unwrap();
         drop(first);
-        let second = FolderLock::acquire(dir.path(), "convert", "convert").unwrap();
+        // Free again. A child process that another test forks at this moment holds a
+        // copy of the lock's descriptor until its exec closes it (close-on-exec), so the
+        // lock may stay taken for that instant: retried for up to 5 s.
+        let deadline = std::time::Instant::now() + std::time::Duration::from_secs(5);
+        let second = loop {
+            match FolderLock::acquire(dir.path(), "convert", "convert") {
+                Ok(lock) => break lock,
+                Err(e) if std::time::Instant::now() < deadline => {
+                    assert!(e.to_string().contains("another convert is writing"), "{e}");
+                    std::thread::sleep(std::time::Duration::from_millis(10));
+                }
+                Err(e) => panic!("the lock stayed taken after its holder let go: {e}"),
+            }
+        };
         // `wait` blocks until the holder lets go.
         let (tx, rx) = std::sync::mpsc::channel();
         let d = dir.path().to_path_buf();
