@@ -242,7 +242,12 @@ if [ "$faults" = 1 ]; then
   again=$(resubmit render 1 "$out" --resources "$resources" $render_options)
   wait_jobs "$again"
   echo "slurm: fault 2: render task 1 resubmitted as $again ($(( $(date +%s) - t )) s)"
-  runs=$(grep -c "Allocate JobId=${render}_2(" "$state/log/slurmctld.log" || true)
+  # The re-queued task may leave squeue for a moment between its runs (and waits
+  # cred_expire seconds before the second), so its second start is awaited in the log.
+  runs_of_task2() { grep -c "Allocate JobId=${render}_2(" "$state/log/slurmctld.log" || true; }
+  while [ "$(runs_of_task2)" -lt 2 ] && [ "$(date +%s)" -le "$deadline" ]; do sleep 1; done
+  wait_jobs "$render"
+  runs=$(runs_of_task2)
   [ "$runs" -ge 2 ] || fail "render task 2 was re-queued but ran $runs time(s)"
   echo "slurm: fault 3: render task ${render}_2 re-queued and run again ($runs runs)"
 fi

@@ -278,6 +278,17 @@ pub fn mean_pose_predictions(
             }
         }
     }
+    if fitted.is_empty() {
+        let fit = fit.unwrap_or("all");
+        return Err(Error::invalid(
+            dataset.display().to_string(),
+            format!(
+                "no samples in the {fit:?} split to fit the mean pose on (a BIWI conversion \
+                 holds test samples only; run `arkit-tool split` on a dataset with several \
+                 subjects, or fit the baseline on another dataset)"
+            ),
+        ));
+    }
     let mean = mean_pose(&fitted)?;
     let rt = mean.to_release_rt();
     let e = mean.euler();
