@@ -971,6 +971,104 @@ fn a_second_writer_of_the_same_outputs_is_refused_naming_the_lock_and_its_holder
     }
 }
 
+/// `convert --overwrite` of another conversion into a folder whose conversion is still
+/// being written (a part paused before it renames its first shard) is refused, naming
+/// the writers' lock and the running part, and removes nothing; once that part is gone
+/// the overwrite runs. A `split` of the folder is refused the same way while an
+/// overwrite would remove it (each writer holds the lock shared).
+#[test]
+fn convert_overwrite_is_refused_while_another_writer_of_the_folder_runs() {
+    let root = tempfile::tempdir().unwrap();
+    let fx = Fixture::make(root.path());
+    let dir = root.path().join("overwrite");
+    std::fs::create_dir_all(&dir).unwrap();
+    let out = Case::ShardConvert.output(&dir);
+    let mut first = Case::ShardConvert
+        .command(&fx, &dir)
+        .env(
+            arkit_core::atomic_file::PAUSE_BEFORE_RENAME,
+            "samples/part-",
+        )
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let mut lines = BufReader::new(first.stderr.take().unwrap())
+        .lines()
+        .map_while(|l| l.ok());
+    let line = lines
+        .find(|l| l.contains("paused before renaming"))
+        .expect("the part never paused");
+    let drain = std::thread::spawn(move || for _ in lines {});
+    let tmp = line
+        .split("renaming ")
+        .nth(1)
+        .and_then(|s| s.split(" to ").next())
+        .unwrap()
+        .to_string();
+    // The folder's files, less the lock files (which name their last holder).
+    let files = || {
+        let mut t = tree(&out);
+        t.retain(|k, _| !k.ends_with(".lock"));
+        t
+    };
+    let before = files();
+    // Another conversion (other shard sizes) over it, with --overwrite.
+    let overwrite = || {
+        let mut c = tool();
+        c.args(["convert", "--input"])
+            .arg(&fx.release)
+            .arg("--output")
+            .arg(&out)
+            .args(["--rows-per-shard", "5", "--overwrite"]);
+        c
+    };
+    let second = overwrite().output().unwrap();
+    let err = text(&second.stderr);
+    let refused = !second.status.success()
+        && err.contains(".convert.lock")
+        && err.contains(&format!("held by pid {} on ", first.id()));
+    let after = files();
+    let tmp_kept = Path::new(&tmp).exists();
+    first.kill().unwrap();
+    first.wait().unwrap();
+    drain.join().unwrap();
+    assert!(
+        refused,
+        "convert --overwrite beside a running part was not refused naming the lock and pid {}: {err}",
+        first.id()
+    );
+    assert!(
+        tmp_kept && before == after,
+        "the refused overwrite changed the running part's folder"
+    );
+    // The part gone, the overwrite runs, and its folder is a whole conversion.
+    run_ok(overwrite().stdout(Stdio::null()));
+    let o = tool()
+        .args(["inspect", "--json", "--dataset"])
+        .arg(&out)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", text(&o.stderr));
+    // While an overwrite holds the lock, split (a writer of the folder) is refused.
+    let held = arkit_core::atomic_file::FolderLock::acquire(&out, "convert", "test").unwrap();
+    let split = tool()
+        .args(["split", "--dataset"])
+        .arg(&out)
+        .args(["--test-subjects", "1", "--seed", "3"])
+        .output()
+        .unwrap();
+    drop(held);
+    let err = text(&split.stderr);
+    assert!(
+        !split.status.success()
+            && err.contains("another convert --overwrite is writing")
+            && err.contains(".convert.lock"),
+        "split beside an overwrite: {err}"
+    );
+    assert!(!out.join("splits").exists(), "the refused split wrote");
+}
+
 /// A tmpfs mounted for a test (root only), unmounted when dropped.
 struct SmallDisk {
     dir: PathBuf,

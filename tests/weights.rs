@@ -428,7 +428,37 @@ fn half_model_loads_within_float16_rounding() {
     assert!(changed > 0, "nothing was rounded: the file was not float16");
     drop((da, db));
 
-    // A weights file without one of the network's tensors names it and the file.
+    // Both writers end with a record of their files: weights swapped in afterwards
+    // (the float32 ones beside the float16 folder's config and record) are refused by
+    // every reader of the folder, naming the weights.
+    std::fs::copy(
+        model.join("model.safetensors"),
+        half.join("model.safetensors"),
+    )
+    .unwrap();
+    let e = arkit_perspnet::load(&half, topo).err().unwrap().to_string();
+    assert!(
+        e.contains("model.safetensors: ")
+            && e.contains("but checkpoint.json records")
+            && e.contains("the model folder is torn"),
+        "{e}"
+    );
+    let out = tool()
+        .args(["half-model", half.to_str().unwrap(), "--output"])
+        .arg(dir.path().join("half2"))
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    let e = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        e.contains("model.safetensors: ") && e.contains("checkpoint.json records"),
+        "{e}"
+    );
+    assert!(!dir.path().join("half2").exists());
+
+    // A weights file without one of the network's tensors names it and the file (the
+    // folder edited by hand, without a record).
+    std::fs::remove_file(model.join(arkit_perspnet::CHECKPOINT_RECORD)).unwrap();
     let mut tensors =
         candle_core::safetensors::load(model.join("model.safetensors"), &Device::Cpu).unwrap();
     tensors.remove("cnn.seg.bias");
@@ -623,6 +653,9 @@ fn safetensors_headers_are_checked_before_any_data_is_read() {
     let good = dir.path().join("good.safetensors");
     save(&export_state_dict(&vm, 0).unwrap(), &good);
     import_tiny(&good, &model, &vm, 0);
+    // Without the folder's record (which would refuse any other weights by their
+    // size), so that the weights' own header checks are what is tried.
+    std::fs::remove_file(model.join(arkit_perspnet::CHECKPOINT_RECORD)).unwrap();
     std::fs::copy(&huge, model.join("model.safetensors")).unwrap();
     let out = dir.path().join("out.safetensors");
     refused_cheaply(

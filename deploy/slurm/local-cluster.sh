@@ -244,7 +244,11 @@ if [ "$faults" = 1 ]; then
   echo "slurm: fault 2: render task 1 resubmitted as $again ($(( $(date +%s) - t )) s)"
   # The re-queued task may leave squeue for a moment between its runs (and waits
   # cred_expire seconds before the second), so its second start is awaited in the log.
-  runs_of_task2() { grep -c "Allocate JobId=${render}_2(" "$state/log/slurmctld.log" || true; }
+  # A start is logged by the main scheduler ("sched: Allocate JobId=...") or by the
+  # backfill scheduler ("sched/backfill: _start_job: Started JobId=..."): both count.
+  runs_of_task2() {
+    grep -cE "(Allocate|Started) JobId=${render}_2\(" "$state/log/slurmctld.log" || true
+  }
   while [ "$(runs_of_task2)" -lt 2 ] && [ "$(date +%s)" -le "$deadline" ]; do sleep 1; done
   wait_jobs "$render"
   runs=$(runs_of_task2)

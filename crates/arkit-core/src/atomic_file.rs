@@ -255,24 +255,49 @@ impl FolderLock {
         let (file, path) = open_lock_file(dir, name)?;
         match file.try_lock() {
             Ok(()) => Ok(Self::held(file, path)),
-            Err(fs::TryLockError::WouldBlock) => {
-                let holder = fs::read_to_string(&path).unwrap_or_default();
-                let holder = holder.trim();
-                let holder = if holder.is_empty() {
-                    "a process that is just starting".to_string()
-                } else {
-                    holder.to_string()
-                };
-                Err(Error::format(
-                    dir,
-                    format!(
-                        "another {what} is writing this folder: {} is held by {holder}; wait for it to finish or choose another output folder",
-                        path.display()
-                    ),
-                ))
-            }
+            Err(fs::TryLockError::WouldBlock) => Err(Self::refusal(dir, &path, what)),
             Err(fs::TryLockError::Error(e)) => Err(Error::io(&path, e)),
         }
+    }
+
+    /// Takes the lock file `dir/.NAME.lock` shared: any number of processes hold it
+    /// together (the parts of one conversion), and an exclusive [`FolderLock::acquire`]
+    /// of it is refused while one does. Refuses at once while an exclusive holder has
+    /// it; `what` names that holder in the error.
+    pub fn acquire_shared(dir: &Path, name: &str, what: &str) -> Result<Self> {
+        let (file, path) = open_lock_file(dir, name)?;
+        match file.try_lock_shared() {
+            Ok(()) => Ok(Self::held(file, path)),
+            Err(fs::TryLockError::WouldBlock) => Err(Self::refusal(dir, &path, what)),
+            Err(fs::TryLockError::Error(e)) => Err(Error::io(&path, e)),
+        }
+    }
+
+    /// This exclusive lock turned into a shared one (the file stays locked throughout
+    /// for everyone who takes it exclusively; a shared taker may get in at the turn).
+    pub fn into_shared(self) -> Result<Self> {
+        self._file
+            .lock_shared()
+            .map_err(|e| Error::io(&self.path, e))?;
+        Ok(self)
+    }
+
+    /// The error for a lock another process holds: the lock file and its holder.
+    fn refusal(dir: &Path, path: &Path, what: &str) -> Error {
+        let holder = fs::read_to_string(path).unwrap_or_default();
+        let holder = holder.trim();
+        let holder = if holder.is_empty() {
+            "a process that is just starting".to_string()
+        } else {
+            holder.to_string()
+        };
+        Error::format(
+            dir,
+            format!(
+                "another {what} is writing this folder: {} is held by {holder}; wait for it to finish or choose another output folder",
+                path.display()
+            ),
+        )
     }
 
     /// Takes the lock file `dir/.NAME.lock`, waiting while another process holds it: for

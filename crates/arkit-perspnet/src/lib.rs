@@ -72,7 +72,7 @@ pub use onnx::{
 pub use photo::{PhotoFace, face_seed, predict_photo};
 pub use training::checkpoint::{
     ADAM_FILE, CHECKPOINT_RECORD, Checkpoint, SHIPPED_MODEL_DIR, StepLoss, TrainedModel, load,
-    shipped_checkpoint, shipped_model, verify_checkpoint,
+    shipped_checkpoint, shipped_model, verify_checkpoint, verify_model,
 };
 pub use training::data::{
     Augmentation, Batch, Example, ExampleShards, NOCS_SCALE, ShardedExamples, batch, example,

@@ -1144,7 +1144,32 @@ mod pipeline {
             snapshot(torn.path()) == before,
             "the refused checkpoint was changed"
         );
+        // Prediction and export refuse the torn folder too (epoch 8's weights beside
+        // epoch 4's config), naming the weights; the whole folders load.
+        let load_err = |dir: &std::path::Path| match arkit_perspnet::load(dir, &topology) {
+            Err(e) => e.to_string(),
+            Ok(_) => panic!("{} was loaded", dir.display()),
+        };
+        let e = load_err(torn.path());
+        assert!(
+            e.contains("model.safetensors: its SHA-256 is")
+                && e.contains("checkpoint.json records")
+                && e.contains("the model folder is torn"),
+            "{e}"
+        );
+        let w = torn.path().join("exported.safetensors");
+        let e = arkit_perspnet::export_weights(torn.path(), &w)
+            .err()
+            .expect("the torn folder was exported")
+            .to_string();
+        assert!(e.contains("model.safetensors: its SHA-256 is"), "{e}");
+        assert!(!w.exists());
+        arkit_perspnet::load(cut.path(), &topology).unwrap();
+        arkit_perspnet::load(model_dir.path(), &topology).unwrap();
         std::fs::remove_file(torn.path().join(arkit_perspnet::CHECKPOINT_RECORD)).unwrap();
+        // Without a record (a folder from before records were kept) the folder is read
+        // as it is: nothing tells its files apart any more.
+        arkit_perspnet::load(torn.path(), &topology).unwrap();
         let e = refused(torn.path(), "a checkpoint without its record");
         assert!(e.contains("checkpoint.json: cannot be read"), "{e}");
         // A whole checkpoint less its `perspnet.json`: refused, naming that file, and

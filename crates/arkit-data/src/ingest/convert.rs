@@ -36,6 +36,7 @@ use crate::store::manifest::{
 };
 use crate::store::parquet;
 use crate::store::samples_table::{self, ErrorRecord, SampleRecord};
+use arkit_core::atomic_file::FolderLock;
 use arkit_core::conventions::{Camera, Pose};
 use arkit_core::error::{Error, Result};
 use arkit_core::release::{self, ListRow, SampleKey};
@@ -725,8 +726,31 @@ fn shard_record_name(index: usize) -> String {
 
 /// Reads the conversion record of `output`, takes the folder for this conversion and
 /// removes stale temporaries. Refuses a folder that holds another conversion (or
-/// samples without a record) unless `overwrite`, which removes that output first.
-fn claim_output(output: &Path, fingerprint: &ConversionFingerprint, overwrite: bool) -> Result<()> {
+/// samples without a record) unless `overwrite`, which removes that output first, and
+/// only when no other writer of the folder is running ([`WRITERS_LOCK`]). Returns that
+/// lock, held shared for the rest of the run.
+/// The lock file (`.convert.lock`) that every writer of a converted folder (each part
+/// of `convert`, `merge`, `split`, `render`) holds shared for its whole run, and that
+/// `convert --overwrite` takes exclusively before it removes another conversion: so an
+/// overwrite is refused while any of them still writes there, and they are refused
+/// while an overwrite removes.
+pub(crate) const WRITERS_LOCK: &str = "convert";
+
+/// Takes [`WRITERS_LOCK`] shared in `dataset` for a writer of it, `None` when there is
+/// no such folder (the writer then refuses it with its own error). Refused while a
+/// `convert --overwrite` removes the folder's conversion.
+pub(crate) fn hold_against_overwrite(dataset: &Path) -> Result<Option<FolderLock>> {
+    if !dataset.is_dir() {
+        return Ok(None);
+    }
+    FolderLock::acquire_shared(dataset, WRITERS_LOCK, "convert --overwrite").map(Some)
+}
+
+fn claim_output(
+    output: &Path,
+    fingerprint: &ConversionFingerprint,
+    overwrite: bool,
+) -> Result<FolderLock> {
     // Parts of one conversion starting together take this in turn (it is held for
     // the check and the record only).
     let _guard = arkit_core::atomic_file::FolderLock::wait(output, "conversion")?;
@@ -772,6 +796,8 @@ fn claim_output(output: &Path, fingerprint: &ConversionFingerprint, overwrite: b
                 ),
             ));
         }
+        // Nothing is removed while another writer of the folder still runs.
+        let writers = FolderLock::acquire(output, WRITERS_LOCK, "convert, merge, split or render")?;
         for d in ["samples", "errors", "manifest", "splits", "targets"] {
             let p = output.join(d);
             if p.exists() {
@@ -782,14 +808,25 @@ fn claim_output(output: &Path, fingerprint: &ConversionFingerprint, overwrite: b
         if p.exists() {
             std::fs::remove_file(&p).map_err(|e| Error::io(&p, e))?;
         }
+        write_conversion_record(&record, fingerprint)?;
+        arkit_core::atomic_file::remove_stale_temporaries(output, true)?;
+        return writers.into_shared();
     }
+    // Taken under the guard, before the record: an overwrite (which needs the guard)
+    // cannot slip in between.
+    let writers = FolderLock::acquire_shared(output, WRITERS_LOCK, "convert --overwrite")?;
     if existing.as_ref() != Some(fingerprint) {
-        let text = serde_json::to_string_pretty(fingerprint)
-            .map_err(|e| Error::invalid("conversion record", e.to_string()))?;
-        arkit_core::atomic_file::write_bytes(&record, format!("{text}\n").as_bytes())?;
+        write_conversion_record(&record, fingerprint)?;
     }
     arkit_core::atomic_file::remove_stale_temporaries(output, true)?;
-    Ok(())
+    Ok(writers)
+}
+
+/// Writes the conversion record `record` (`conversion.json`) atomically.
+fn write_conversion_record(record: &Path, fingerprint: &ConversionFingerprint) -> Result<()> {
+    let text = serde_json::to_string_pretty(fingerprint)
+        .map_err(|e| Error::invalid("conversion record", e.to_string()))?;
+    arkit_core::atomic_file::write_bytes(record, format!("{text}\n").as_bytes())
 }
 
 /// A finished shard from an earlier run, if it was made from exactly these rows of this
@@ -896,7 +933,7 @@ pub fn convert_planned_with(
     skipped.dedup();
     fingerprint.skipped_checks = skipped;
     let conversion = fingerprint.digest();
-    claim_output(out, &fingerprint, options.overwrite)?;
+    let _writers = claim_output(out, &fingerprint, options.overwrite)?;
     let _part_lock = arkit_core::atomic_file::FolderLock::acquire(
         out,
         &format!(
@@ -1096,6 +1133,7 @@ pub fn merge(dataset: &Path) -> Result<Merged> {
     };
     // One merge at a time; a killed merge's temporary goes.
     let _lock = arkit_core::atomic_file::FolderLock::acquire(dataset, "merge", "merge")?;
+    let _writers = hold_against_overwrite(dataset)?;
     arkit_core::atomic_file::remove_stale_temporaries(dataset, false)?;
     let digest = conversion.digest();
     let dir = dataset.join("manifest");

@@ -203,6 +203,7 @@ pub fn split_dataset(
 ) -> Result<BTreeMap<String, SplitCount>> {
     let data = crate::store::dataset::Dataset::open(dataset)?;
     let _lock = arkit_core::atomic_file::FolderLock::acquire(dataset, "split", "split")?;
+    let _writers = crate::ingest::convert::hold_against_overwrite(dataset)?;
     arkit_core::atomic_file::remove_stale_temporaries(out, true)?;
     let mut keys: Vec<(SampleKey, String)> = Vec::new();
     for s in data.shards() {

@@ -197,6 +197,7 @@ pub fn render_dataset(
     options: &RenderOptions,
     progress: &(dyn Fn(usize) + Sync),
 ) -> Result<RenderSummary> {
+    let _writers = crate::ingest::convert::hold_against_overwrite(dataset)?;
     render(dataset, renderer, options, false, progress)
 }
 
@@ -217,6 +218,7 @@ pub fn render_dataset_replacing(
             "not with --shard (other parts may be writing there): remove the targets folder before starting the parts instead",
         ));
     }
+    let _writers = crate::ingest::convert::hold_against_overwrite(dataset)?;
     render(dataset, renderer, options, true, progress)
 }
 

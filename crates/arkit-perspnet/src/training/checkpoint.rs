@@ -117,19 +117,31 @@ fn no_augmentation() -> Augmentation {
 
 /// Writes `path` through `save` under a temporary name in the same folder, then
 /// publishes it (flushed to the disk, then renamed: `atomic_file::publish`).
+///
+/// The safetensors library that `save` calls writes a temporary of its own beside the
+/// file it is given (`.tmpXXXXXX`) and renames it: so it is given a file inside a
+/// folder of ours named as a temporary (`.NAME.tmp-PID/`), and a run killed at any
+/// point leaves only what `atomic_file::remove_stale_temporaries` removes.
 pub(crate) fn save_renamed(
     path: &Path,
     save: &dyn Fn(&Path) -> candle_core::Result<()>,
 ) -> Result<()> {
-    let tmp = arkit_core::atomic_file::temporary_name(path);
-    if let Err(e) = save(&tmp) {
-        let _ = std::fs::remove_file(&tmp);
-        return Err(Error::format(path, e.to_string()));
+    let scratch = arkit_core::atomic_file::temporary_name(path);
+    // One left by this process id's earlier run (a folder, or a file of the old
+    // naming) goes first.
+    match std::fs::symlink_metadata(&scratch) {
+        Ok(m) if m.is_dir() => std::fs::remove_dir_all(&scratch),
+        Ok(_) => std::fs::remove_file(&scratch),
+        Err(_) => Ok(()),
     }
-    let published = arkit_core::atomic_file::publish_written(&tmp, path);
-    if published.is_err() {
-        let _ = std::fs::remove_file(&tmp);
-    }
+    .map_err(|e| Error::io(&scratch, e))?;
+    std::fs::create_dir_all(&scratch).map_err(|e| Error::io(&scratch, e))?;
+    let tmp = scratch.join(path.file_name().unwrap_or_default());
+    let published = match save(&tmp) {
+        Err(e) => Err(Error::format(path, e.to_string())),
+        Ok(()) => arkit_core::atomic_file::publish_written(&tmp, path),
+    };
+    let _ = std::fs::remove_dir_all(&scratch);
     published
 }
 
@@ -209,8 +221,18 @@ fn file_digest(path: &Path) -> Result<(u64, String)> {
 }
 
 fn write_checkpoint_record(dir: &Path) -> Result<()> {
+    write_record(dir, &CHECKPOINT_FILES)
+}
+
+/// The files a model folder needs for prediction and export: the weights and the
+/// config they were made with.
+pub(crate) const MODEL_FILES: [&str; 2] = ["model.safetensors", "perspnet.json"];
+
+/// Writes `dir`'s record ([`CHECKPOINT_RECORD`]) of the files `names`, after them: the
+/// writers of model folders (`train`, `import-weights`, `half-model`) end with it.
+pub(crate) fn write_record(dir: &Path, names: &[&str]) -> Result<()> {
     let mut files = Vec::new();
-    for name in CHECKPOINT_FILES {
+    for &name in names {
         let (bytes, sha256) = file_digest(&dir.join(name))?;
         files.push(RecordedFile {
             name: name.to_string(),
@@ -235,6 +257,25 @@ pub(crate) fn holds_checkpoint(dir: &Path) -> bool {
 /// Nothing in the folder is changed.
 pub fn verify_checkpoint(dir: &Path) -> Result<()> {
     let torn = "the checkpoint is torn (a run was stopped while writing it) and is left as it is: train into another --output, or run again without --resume to start over";
+    verify_record(dir, &CHECKPOINT_FILES, torn)
+}
+
+/// Checks, before a model folder is read for prediction or export, that its weights
+/// and `perspnet.json` are the ones its record ([`CHECKPOINT_RECORD`]) describes: a
+/// folder a run was stopped in while writing (the weights of one epoch beside the
+/// config of the one before) is refused, naming the file that differs. A folder with
+/// no record (written before records were kept, or by hand) is read as it is.
+pub fn verify_model(dir: &Path) -> Result<()> {
+    if !dir.join(CHECKPOINT_RECORD).exists() {
+        return Ok(());
+    }
+    let torn = "the model folder is torn (a run was stopped while writing it): rerun the command that wrote it (`train` without --resume or into another --output, `import-weights`, `half-model`), or use another model folder";
+    verify_record(dir, &MODEL_FILES, torn)
+}
+
+/// Checks that each of `required` is listed in `dir`'s record and is the file the
+/// record describes (size, then SHA-256); `torn` is the way out the error gives.
+fn verify_record(dir: &Path, required: &[&str], torn: &str) -> Result<()> {
     let rec = dir.join(CHECKPOINT_RECORD);
     let meta = std::fs::metadata(&rec).map_err(|e| {
         Error::format(
@@ -251,12 +292,14 @@ pub fn verify_checkpoint(dir: &Path) -> Result<()> {
     let text = std::fs::read_to_string(&rec).map_err(|e| Error::io(&rec, e))?;
     let record: CheckpointRecord = serde_json::from_str(&text)
         .map_err(|e| Error::format(&rec, format!("not a checkpoint record: {e}")))?;
-    for name in CHECKPOINT_FILES {
+    for &name in required {
         let Some(want) = record.files.iter().find(|f| f.name == name) else {
             return Err(Error::format(&rec, format!("does not list {name}")));
         };
         let p = dir.join(name);
+        // The size first: a file of another size is told without reading it.
         let (bytes, sha256) = match std::fs::metadata(&p) {
+            Ok(m) if m.len() != want.bytes => (m.len(), String::new()),
             Ok(_) => file_digest(&p)?,
             Err(e) => {
                 return Err(Error::format(
@@ -319,7 +362,10 @@ pub struct TrainedModel {
 }
 
 /// Loads a checkpoint folder written by [`crate::train`].
+/// The folder's weights and config are first checked against its record
+/// ([`verify_model`]).
 pub fn load(dir: &Path, topology: &FaceTopology) -> Result<TrainedModel> {
+    verify_model(dir)?;
     let checkpoint = read_checkpoint_info(&dir.join("perspnet.json"))?;
     if checkpoint.topology != topology.source {
         return Err(Error::invalid(
@@ -392,4 +438,47 @@ fn model_from_parts<R: std::io::Read + std::io::Seek>(
         net,
         varmap,
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::save_renamed;
+
+    /// What the writing library leaves beside the file it is given (its own temporary,
+    /// `.tmpXXXXXX`, as safetensors makes) stays inside the writer's temporary folder,
+    /// which goes whether the write succeeds or fails: the folder then holds the file
+    /// alone, or nothing.
+    #[test]
+    fn a_librarys_own_temporaries_stay_in_the_writers_folder() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("model.safetensors");
+        let save = |fail: bool| {
+            move |p: &std::path::Path| -> candle_core::Result<()> {
+                let parent = p.parent().unwrap();
+                std::fs::write(parent.join(".tmpAbC123"), b"library scratch")?;
+                if fail {
+                    return Err(candle_core::Error::Msg("disk full".into()));
+                }
+                std::fs::write(p, b"weights")?;
+                Ok(())
+            }
+        };
+        let names = || {
+            let mut v: Vec<String> = std::fs::read_dir(dir.path())
+                .unwrap()
+                .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+                .collect();
+            v.sort();
+            v
+        };
+        let e = save_renamed(&path, &save(true)).unwrap_err().to_string();
+        assert!(
+            e.contains("model.safetensors") && e.contains("disk full"),
+            "{e}"
+        );
+        assert!(names().is_empty(), "{:?}", names());
+        save_renamed(&path, &save(false)).unwrap();
+        assert_eq!(names(), ["model.safetensors"]);
+        assert_eq!(std::fs::read(&path).unwrap(), b"weights");
+    }
 }

@@ -3,7 +3,9 @@
 use super::{load_weights, open_weights};
 use crate::candle_err;
 use crate::network::Network;
-use crate::training::checkpoint::{Checkpoint, save_renamed};
+use crate::training::checkpoint::{
+    Checkpoint, MODEL_FILES, save_renamed, verify_model, write_record,
+};
 use arkit_core::error::{Error, Result};
 use candle_core::{DType, Device, Tensor};
 use candle_nn::{VarBuilder, VarMap};
@@ -16,6 +18,7 @@ use std::path::Path;
 /// original by at most its float16 rounding, a relative 2^-11). Returns the bytes of
 /// the weights file written.
 pub fn write_half_model(model_dir: &Path, output: &Path) -> Result<u64> {
+    verify_model(model_dir)?;
     let p = model_dir.join("perspnet.json");
     let json = std::fs::read_to_string(&p).map_err(|e| Error::io(&p, e))?;
     let checkpoint =
@@ -42,11 +45,15 @@ pub fn write_half_model(model_dir: &Path, output: &Path) -> Result<u64> {
     let out = output.join("model.safetensors");
     save_renamed(&out, &|p| candle_core::safetensors::save(&half, p))?;
     let csv = model_dir.join("loss.csv");
+    let mut written = MODEL_FILES.to_vec();
     if csv.exists() {
         let text = std::fs::read(&csv).map_err(|e| Error::io(&csv, e))?;
         arkit_core::atomic_file::write_bytes(&output.join("loss.csv"), &text)?;
+        written.push("loss.csv");
     }
     arkit_core::atomic_file::write_bytes(&output.join("perspnet.json"), json.as_bytes())?;
+    // Last, the record of the files written (see [`crate::verify_model`]).
+    write_record(output, &written)?;
     std::fs::metadata(&out)
         .map(|m| m.len())
         .map_err(|e| Error::io(&out, e))

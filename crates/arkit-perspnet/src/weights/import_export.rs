@@ -3,7 +3,9 @@
 use super::{load_weights, open_weights};
 use crate::candle_err;
 use crate::network::vertex_uv;
-use crate::training::checkpoint::{Checkpoint, save_renamed};
+use crate::training::checkpoint::{
+    Checkpoint, MODEL_FILES, save_renamed, verify_model, write_record,
+};
 use crate::training::data::Augmentation;
 use crate::{Architecture, PerspNet, PerspNetConfig};
 use arkit_core::error::{Error, Result};
@@ -68,6 +70,9 @@ pub fn import_weights(
     save_renamed(&output.join("model.safetensors"), &|p| varmap.save(p))?;
     let json = serde_json::to_string_pretty(&checkpoint).expect("checkpoint json");
     arkit_core::atomic_file::write_bytes(&output.join("perspnet.json"), json.as_bytes())?;
+    // Last, the record of the two files: it replaces a record an earlier run left in
+    // `output`, which would otherwise describe other weights.
+    write_record(output, &MODEL_FILES)?;
     Ok(checkpoint)
 }
 
@@ -77,6 +82,7 @@ pub fn import_weights(
 /// `load_state_dict(safetensors.torch.load_file(path), strict=True)`. Returns the
 /// number of entries written.
 pub fn export_weights(model_dir: &Path, output: &Path) -> Result<usize> {
+    verify_model(model_dir)?;
     let p = model_dir.join("perspnet.json");
     let text = std::fs::read_to_string(&p).map_err(|e| Error::io(&p, e))?;
     let checkpoint: Checkpoint =
