@@ -1159,8 +1159,7 @@ mod pipeline {
         );
         let w = torn.path().join("exported.safetensors");
         let e = arkit_perspnet::export_weights(torn.path(), &w)
-            .err()
-            .expect("the torn folder was exported")
+            .expect_err("the torn folder was exported")
             .to_string();
         assert!(e.contains("model.safetensors: its SHA-256 is"), "{e}");
         assert!(!w.exists());
