@@ -112,3 +112,47 @@ def test_a_crop_store_killed_before_its_record_is_refused_or_not_used(base, tmp_
                                         crop_store=None)
     # Evaluation crops from a store are bit for bit the release's (docs/python.md).
     np.testing.assert_array_equal(whole[0]["img"], plain[0]["img"])
+
+
+def test_a_loader_beside_crops_rewriting_its_store_keeps_serving_the_store_it_opened(base, tmp_path):
+    """`ARKitFaceDataset` reading a crop store while `crops` rewrites it (another codec:
+    every part file replaced, every record at another offset): the loader, opened
+    before, serves the store it opened, item for item, during the rewrite and after it
+    (it holds its part files open; the writer renames new ones into place); a loader
+    opened afterwards reads the new store. Never a record read at the other store's
+    offsets."""
+    data = tmp_path / "pq"
+    shutil.copytree(base / "converted", data)
+    store = data / "crops" / "exact-64"
+    subprocess.run([str(BIN), "crops", "--dataset", str(data), "--size", "64"], check=True,
+                   stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+
+    def open_loader():
+        return arkit_tool.ARKitFaceDataset(data, split=None, mode="eval", n_pts=16, img_size=64,
+                                           crop_store=store)
+
+    def parts():
+        return {p.name: p.stat().st_ino for p in store.glob("part-*")}
+
+    ds = open_loader()
+    before = [ds[i]["img"].copy() for i in range(len(ds))]
+    old_parts = parts()
+    writer = subprocess.Popen([str(BIN), "crops", "--dataset", str(data), "--size", "64",
+                               "--codec", "raw"], stdout=subprocess.DEVNULL,
+                              stderr=subprocess.PIPE, text=True)
+    reads = 0
+    while writer.poll() is None or reads < len(before):
+        i = reads % len(before)
+        np.testing.assert_array_equal(ds[i]["img"], before[i], err_msg=f"item {i} read {reads}")
+        reads += 1
+    assert writer.returncode == 0, writer.stderr.read()
+    new_parts = parts()
+    assert set(new_parts) == set(old_parts) and all(
+        new_parts[k] != old_parts[k] for k in new_parts), "crops did not replace the parts"
+    for i, img in enumerate(before):
+        np.testing.assert_array_equal(ds[i]["img"], img)
+    assert '"raw"' in (store / "crops.json").read_text()
+    fresh = open_loader()
+    for i, img in enumerate(before):
+        # The codecs are lossless: the new store's crops are the same pixels.
+        np.testing.assert_array_equal(fresh[i]["img"], img)
