@@ -1368,3 +1368,142 @@ fn a_reader_beside_a_writer_reads_each_file_old_or_new_never_a_mix() {
         );
     }
 }
+
+/// A source file that fails while a command is reading it: a FIFO in one image's place,
+/// so the command blocks on that file in the middle of its run, and then reads a few
+/// bytes that are not an image. `convert`, `crops` and `augment` report that sample,
+/// naming its file, and write every other one; nothing is substituted for it.
+#[test]
+fn a_source_failing_mid_run_is_reported_naming_it_and_the_rest_is_written() {
+    use std::io::Write;
+    use std::os::unix::fs::OpenOptionsExt;
+    let root = tempfile::tempdir().unwrap();
+    let release = root.path().join("release");
+    run_ok(tool().arg("synth").arg("--output").arg(&release).args([
+        "--subjects",
+        "3",
+        "--images-per-subject",
+        "4",
+        "--size",
+        "160x160",
+        "--seed",
+        "5",
+    ]));
+    let dataset = root.path().join("dataset");
+    run_ok(&mut {
+        let mut c = tool();
+        convert_args(&mut c, &release, &dataset);
+        c
+    });
+    let mut images: Vec<PathBuf> = tree(&release)
+        .keys()
+        .filter(|k| k.ends_with(".jpg"))
+        .map(|k| release.join(k))
+        .collect();
+    images.sort();
+    let victim = images[5].clone();
+    let good = std::fs::read(&victim).unwrap();
+    let total = images.len();
+    let mut rows = Vec::new();
+    for name in ["convert", "crops", "augment"] {
+        let mut c = tool();
+        match name {
+            "convert" => convert_args(&mut c, &release, &root.path().join("converted")),
+            "crops" => {
+                c.args(["crops", "--dataset"])
+                    .arg(&dataset)
+                    .args(["--size", "64"]);
+            }
+            _ => {
+                c.args(["augment", "--input"])
+                    .arg(&dataset)
+                    .arg("--output")
+                    .arg(root.path().join("augmented"))
+                    .args(["--flip", "--seed", "2"]);
+            }
+        }
+        std::fs::remove_file(&victim).unwrap();
+        let made = Command::new("mkfifo").arg(&victim).status().unwrap();
+        assert!(made.success(), "mkfifo {}", victim.display());
+        let mut child = c
+            .stdout(Stdio::piped())
+            .stderr(Stdio::piped())
+            .spawn()
+            .unwrap();
+        // While the command has the file open, it gets these bytes and then the end
+        // (each write connects while a reader has the FIFO open, so they are counted,
+        // not the command's opens).
+        let mut opened_mid_run = 0;
+        let status = loop {
+            if let Some(status) = child.try_wait().unwrap() {
+                break status;
+            }
+            match std::fs::OpenOptions::new()
+                .write(true)
+                .custom_flags(libc_o_nonblock())
+                .open(&victim)
+            {
+                Ok(mut w) => {
+                    opened_mid_run += 1;
+                    let _ = w.write_all(b"not a JPEG");
+                }
+                Err(_) => std::thread::sleep(Duration::from_millis(5)),
+            }
+        };
+        let out = child.wait_with_output().unwrap();
+        std::fs::remove_file(&victim).unwrap();
+        std::fs::write(&victim, &good).unwrap();
+        let said = format!("{}{}", text(&out.stdout), text(&out.stderr));
+        assert!(
+            opened_mid_run > 0,
+            "{name} never read {} while running: {said}",
+            victim.display()
+        );
+        let rel = victim.strip_prefix(&release).unwrap().display().to_string();
+        let reported = match name {
+            // The reason is in the errors table, the count on the terminal.
+            "convert" => {
+                let errors = tree(&root.path().join("converted").join("errors"));
+                said.contains("skipped 1 ")
+                    && errors
+                        .values()
+                        .any(|v| v.windows(rel.len()).any(|w| w == rel.as_bytes()))
+            }
+            _ => said.contains(&victim.display().to_string()),
+        };
+        assert!(
+            reported,
+            "{name} did not report {}: {said}",
+            victim.display()
+        );
+        let written = match name {
+            "convert" => said.contains(&format!("converted {} samples", total - 1)),
+            "crops" => said.contains(&format!("stored {} of {total} samples", total - 1)),
+            _ => said.contains("skipped 1 sample(s)"),
+        };
+        assert!(written, "{name} did not write the other samples: {said}");
+        // crops says so in its exit status; convert and augment succeed with the
+        // sample reported.
+        assert_eq!(
+            status.success(),
+            name != "crops",
+            "{name}: {status}: {said}"
+        );
+        rows.push((
+            name,
+            opened_mid_run,
+            said.lines().last().unwrap_or("").to_string(),
+        ));
+    }
+    println!("\na source failing mid-run (a FIFO in an image's place)");
+    println!("| command | FIFO writes while the command ran | last line |");
+    println!("|---|---|---|");
+    for (name, n, line) in rows {
+        println!("| {name} | {n} | {line} |");
+    }
+}
+
+/// `O_NONBLOCK`: opening a FIFO for writing fails at once while no reader has it open.
+fn libc_o_nonblock() -> i32 {
+    0o4000
+}
