@@ -195,6 +195,13 @@ impl<'a> Clock<'a> {
         self.started = Instant::now();
     }
 
+    /// The progress callback the stages hand to the library: it advances the bar, and
+    /// holds the bar, not the clock (which the stage goes on timing).
+    fn ticker(&self) -> impl Fn(usize) + Sync + 'a {
+        let progress = self.progress;
+        move |n: usize| progress.advance(n as u64)
+    }
+
     fn done(&mut self, name: &str, detail: String) {
         self.stages.push(StageTiming {
             stage: name.to_string(),
@@ -314,8 +321,7 @@ fn make_dataset(
     topology: &FaceTopology,
     clock: &mut Clock<'_>,
 ) -> Result<Manifest> {
-    let progress = clock.progress;
-    let tick = |n: usize| progress.advance(n as u64);
+    let tick = clock.ticker();
     let (release, dataset) = (&f.release, &f.dataset);
     clock.start("synth");
     let source = FaceSource::new(topology.clone())?;
@@ -403,8 +409,7 @@ fn render_and_augment(
     topology: &FaceTopology,
     clock: &mut Clock<'_>,
 ) -> Result<Vec<(RgbImage, RgbImage)>> {
-    let progress = clock.progress;
-    let tick = |n: usize| progress.advance(n as u64);
+    let tick = clock.ticker();
     let (dataset, augmented) = (&f.dataset, &f.augmented);
     clock.start("render");
     let renderer = FaceRenderer::new(topology.clone(), Camera::release_projection())?;
@@ -472,8 +477,7 @@ fn train_model(
     topology: &FaceTopology,
     clock: &mut Clock<'_>,
 ) -> Result<(Checkpoint, Vec<StepLoss>)> {
-    let progress = clock.progress;
-    let tick = |n: usize| progress.advance(n as u64);
+    let tick = clock.ticker();
     let (dataset, model_dir) = (&f.dataset, &f.model);
     clock.start("train");
     let config = PerspNetConfig {
@@ -524,8 +528,7 @@ fn predict_test_split(
     topology: &FaceTopology,
     clock: &mut Clock<'_>,
 ) -> Result<Predictions> {
-    let progress = clock.progress;
-    let tick = |n: usize| progress.advance(n as u64);
+    let tick = clock.ticker();
     let (output, dataset, model_dir) = (&f.output, &f.dataset, &f.model);
     clock.start("predict");
     // The test split through a network and PnP, as `predict --model` does.
@@ -580,8 +583,7 @@ fn evaluate_predictions(
     p: &Predictions,
     clock: &mut Clock<'_>,
 ) -> Result<Evaluations> {
-    let progress = clock.progress;
-    let tick = |n: usize| progress.advance(n as u64);
+    let tick = clock.ticker();
     let (dataset, report_dir) = (&f.dataset, &f.report);
     clock.start("eval");
     let options = EvalOptions {
