@@ -67,12 +67,30 @@ mem_mb=$(( $(awk '/MemTotal/ {print $2}' /proc/meminfo) / 1024 - 512 ))
 # starts again; 10 here.
 cred_expire=
 [ "${SLURM_FAULTS:-0}" = 1 ] && cred_expire=,cred_expire=10
+# The first free pair of ports from 16817 on (unless SLURMCTLD_PORT and SLURMD_PORT
+# are given), so that two of these clusters on one machine (two test runs side by
+# side) do not fight over one port.
+listening() { # PORT
+  if command -v ss >/dev/null 2>&1; then
+    ss -ltnH 2>/dev/null | awk '{print $4}' | grep -q ":$1\$"
+  else
+    (echo >"/dev/tcp/127.0.0.1/$1") 2>/dev/null
+  fi
+}
+ctld_port=${SLURMCTLD_PORT:-}
+slurmd_port=${SLURMD_PORT:-}
+if [ -z "$ctld_port" ] || [ -z "$slurmd_port" ]; then
+  p=16817
+  while listening "$p" || listening $((p + 1)); do p=$((p + 2)); done
+  ctld_port=${ctld_port:-$p}
+  slurmd_port=${slurmd_port:-$((p + 1))}
+fi
 cat >"$state/slurm.conf" <<EOF
 # One node, written by deploy/slurm/local-cluster.sh.
 ClusterName=arkit-local
 SlurmctldHost=$host
-SlurmctldPort=${SLURMCTLD_PORT:-16817}
-SlurmdPort=${SLURMD_PORT:-16818}
+SlurmctldPort=$ctld_port
+SlurmdPort=$slurmd_port
 AuthType=auth/munge
 CredType=cred/munge
 AuthInfo=socket=$socket$cred_expire
