@@ -1170,10 +1170,40 @@ pub fn merge(dataset: &Path) -> Result<Merged> {
     arkit_core::atomic_file::remove_stale_temporaries(dataset, false)?;
     let digest = conversion.digest();
     let dir = dataset.join("manifest");
+    let (named, ignored) = named_parts(&dir)?;
+    let n = part_count(&dir, &named)?;
+    check_parts_present(dataset, &dir, n)?;
+    let parts = read_parts(dataset, n, &digest)?;
+    check_parts_agree(&parts)?;
+    let first = parts[0].0.clone();
+    let shards = collect_shards(&parts, n)?;
+    check_unique_keys(dataset, &shards)?;
+    let merged = Manifest {
+        part: [0, 1],
+        converted: shards.iter().map(|s| s.rows).sum(),
+        skipped: shards.iter().map(|s| s.error_rows).sum(),
+        listing_problems: parts.iter().map(|(p, _)| p.listing_problems).sum(),
+        shards,
+        ..first
+    };
+    write_manifest(&dataset.join(MANIFEST_FILE), &merged)?;
+    Ok(Merged {
+        manifest: merged,
+        ignored,
+    })
+}
+
+/// The `(I, N)` of each part manifest named in a `manifest/` folder, and the other files
+/// there.
+type PartNames = (Vec<(usize, usize)>, Vec<PathBuf>);
+
+/// The `(I, N)` of each part manifest named in `dir` and, sorted, the other files there
+/// (temporaries aside).
+fn named_parts(dir: &Path) -> Result<PartNames> {
     let mut named: Vec<(usize, usize)> = Vec::new();
     let mut ignored = Vec::new();
-    for entry in std::fs::read_dir(&dir).map_err(|e| Error::io(&dir, e))? {
-        let entry = entry.map_err(|e| Error::io(&dir, e))?;
+    for entry in std::fs::read_dir(dir).map_err(|e| Error::io(dir, e))? {
+        let entry = entry.map_err(|e| Error::io(dir, e))?;
         let name = entry.file_name().to_string_lossy().into_owned();
         if arkit_core::atomic_file::is_temporary_name(&name) {
             continue;
@@ -1184,30 +1214,36 @@ pub fn merge(dataset: &Path) -> Result<Merged> {
         }
     }
     ignored.sort();
+    Ok((named, ignored))
+}
+
+/// The `N` that all the `named` parts share; an error when there is none or more than
+/// one.
+fn part_count(dir: &Path, named: &[(usize, usize)]) -> Result<usize> {
     let counts: BTreeSet<usize> = named.iter().map(|p| p.1).collect();
-    let n = match counts.len() {
-        0 => {
-            return Err(Error::format(
-                &dir,
-                "no part manifests (part-IIII-of-NNNN.json) to merge: run `convert --shard I/N` first",
-            ));
-        }
-        1 => *counts.first().expect("one"),
-        _ => {
-            return Err(Error::format(
-                &dir,
-                format!(
-                    "holds the parts of conversions split {} ways: remove the part manifests of the split you do not want, or convert into a new folder",
-                    counts
-                        .iter()
-                        .map(|c| c.to_string())
-                        .collect::<Vec<_>>()
-                        .join(" and ")
-                ),
-            ));
-        }
-    };
-    // Every missing part named at once, so that a cluster's failed tasks are all seen.
+    match counts.len() {
+        0 => Err(Error::format(
+            dir,
+            "no part manifests (part-IIII-of-NNNN.json) to merge: run `convert --shard I/N` first",
+        )),
+        1 => Ok(*counts.first().expect("one")),
+        _ => Err(Error::format(
+            dir,
+            format!(
+                "holds the parts of conversions split {} ways: remove the part manifests of the split you do not want, or convert into a new folder",
+                counts
+                    .iter()
+                    .map(|c| c.to_string())
+                    .collect::<Vec<_>>()
+                    .join(" and ")
+            ),
+        )),
+    }
+}
+
+/// Refuses a merge with any of the `n` part manifests missing, naming every missing part
+/// at once (so that a cluster's failed tasks are all seen).
+fn check_parts_present(dataset: &Path, dir: &Path, n: usize) -> Result<()> {
     let missing: Vec<usize> = (0..n)
         .filter(|&i| !dataset.join(manifest_name(i, n)).exists())
         .collect();
@@ -1220,7 +1256,7 @@ pub fn merge(dataset: &Path) -> Result<Merged> {
             _ => ("parts", "are"),
         };
         return Err(Error::format(
-            &dir,
+            dir,
             format!(
                 "{parts} {} of {n} {verb} missing ({} of {n} finished): run {}",
                 list(&|i| i.to_string()),
@@ -1229,6 +1265,12 @@ pub fn merge(dataset: &Path) -> Result<Merged> {
             ),
         ));
     }
+    Ok(())
+}
+
+/// Reads the `n` part manifests with their paths; each must say it is the part its name
+/// says and carry the conversion's fingerprint `digest`.
+fn read_parts(dataset: &Path, n: usize, digest: &str) -> Result<Vec<(Manifest, PathBuf)>> {
     let mut parts: Vec<(Manifest, PathBuf)> = Vec::new();
     for i in 0..n {
         let path = dataset.join(manifest_name(i, n));
@@ -1252,8 +1294,14 @@ pub fn merge(dataset: &Path) -> Result<Merged> {
         }
         parts.push((p, path));
     }
-    let (first, first_path) = parts[0].clone();
-    for (p, path) in &parts {
+    Ok(parts)
+}
+
+/// Refuses parts that disagree with the first on the listed rows, the shard size, the
+/// input, the topology or the embedded images.
+fn check_parts_agree(parts: &[(Manifest, PathBuf)]) -> Result<()> {
+    let (first, first_path) = &parts[0];
+    for (p, path) in parts {
         let differs = [
             ("listed rows", p.listed != first.listed),
             ("shard size", p.rows_per_shard != first.rows_per_shard),
@@ -1277,7 +1325,13 @@ pub fn merge(dataset: &Path) -> Result<Merged> {
             ));
         }
     }
-    // Every shard of the conversion's rows once, in the part that owns it.
+    Ok(())
+}
+
+/// The shards of all `n` parts, sorted: every shard of the conversion's rows once, in the
+/// part that owns it.
+fn collect_shards(parts: &[(Manifest, PathBuf)], n: usize) -> Result<Vec<ShardEntry>> {
+    let first = &parts[0].0;
     let expected = first.listed.div_ceil(first.rows_per_shard.max(1));
     let mut owner: Vec<Option<usize>> = vec![None; expected];
     let mut shards: Vec<ShardEntry> = Vec::new();
@@ -1314,20 +1368,7 @@ pub fn merge(dataset: &Path) -> Result<Merged> {
         ));
     }
     shards.sort_by_key(|s| s.index);
-    check_unique_keys(dataset, &shards)?;
-    let merged = Manifest {
-        part: [0, 1],
-        converted: shards.iter().map(|s| s.rows).sum(),
-        skipped: shards.iter().map(|s| s.error_rows).sum(),
-        listing_problems: parts.iter().map(|(p, _)| p.listing_problems).sum(),
-        shards,
-        ..first
-    };
-    write_manifest(&dataset.join(MANIFEST_FILE), &merged)?;
-    Ok(Merged {
-        manifest: merged,
-        ignored,
-    })
+    Ok(shards)
 }
 
 /// Checks each shard's samples file against its entry (size, footer checksum, rows)
