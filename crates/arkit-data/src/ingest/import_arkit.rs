@@ -538,80 +538,15 @@ fn import_frame(
     frame: &FoundFrame,
     size: Option<u32>,
 ) -> std::result::Result<ImportedFrame, FrameProblem> {
-    let json_path = input.join(&frame.json);
-    let fail = |file: &Path, reason: String| FrameProblem {
-        file: relative_string(file),
-        reason,
-        check: None,
-    };
+    let fail = frame_problem;
     let tagged = |check: Check| {
         move |p: FrameProblem| FrameProblem {
             check: Some(check),
             ..p
         }
     };
-    let len = std::fs::metadata(&json_path)
-        .map_err(|e| fail(&frame.json, e.to_string()))?
-        .len();
-    if len > MAX_CAPTURE_JSON_BYTES {
-        return Err(fail(
-            &frame.json,
-            format!("{len} bytes, more than the {MAX_CAPTURE_JSON_BYTES} a frame JSON may have"),
-        ));
-    }
-    let text = std::fs::read_to_string(&json_path).map_err(|e| fail(&frame.json, e.to_string()))?;
-    let cf = CaptureFrame::parse(&text).map_err(|r| {
-        // The checks of the JSON that a convention breaks (row-major matrices,
-        // intrinsics of another resolution), by the key the reason starts with.
-        let check = if r.contains("is not a rigid transform") {
-            Some(Check::Transforms)
-        } else if r.starts_with("'camera_intrinsics'") {
-            Some(Check::Intrinsics)
-        } else {
-            None
-        };
-        FrameProblem {
-            check,
-            ..fail(&frame.json, r)
-        }
-    })?;
-    // The image: named by the JSON, or the JSON's stem with a PNG or JPEG extension.
-    let dir = frame.json.parent().unwrap_or(Path::new(""));
-    let image_rel = match &cf.image {
-        Some(name) => dir.join(name),
-        None => {
-            let stem = &frame.key.img_id;
-            let found: Vec<PathBuf> = ["png", "jpg", "jpeg", "PNG", "JPG", "JPEG"]
-                .iter()
-                .map(|x| dir.join(format!("{stem}.{x}")))
-                .filter(|p| input.join(p).is_file())
-                .collect();
-            match found.len() {
-                1 => found[0].clone(),
-                0 => {
-                    return Err(fail(
-                        &frame.json,
-                        format!(
-                            "no image for this frame: expected {stem}.png or {stem}.jpg next to it, or an 'image' key"
-                        ),
-                    ));
-                }
-                _ => {
-                    return Err(fail(
-                        &frame.json,
-                        format!(
-                            "several images could be this frame's ({}); name one with the 'image' key",
-                            found
-                                .iter()
-                                .map(|p| relative_string(p))
-                                .collect::<Vec<_>>()
-                                .join(", ")
-                        ),
-                    ));
-                }
-            }
-        }
-    };
+    let cf = read_frame_json(input, frame)?;
+    let image_rel = frame_image(input, frame, &cf)?;
     let image_path = input.join(&image_rel);
     // The size from the image's header, against the frame's resolution, before any
     // pixel is decoded (and the decode bounded: crate::picture::image_decode).
@@ -683,6 +618,96 @@ fn import_frame(
     let a = cf.face_anchor_transform.transpose();
     info.face_anchor_transform = Some(std::array::from_fn(|i| a[(i / 4, i % 4)]));
     Ok(ImportedFrame { image, info })
+}
+
+/// A problem with `file` (relative to the capture folder), of no systematic check.
+fn frame_problem(file: &Path, reason: String) -> FrameProblem {
+    FrameProblem {
+        file: relative_string(file),
+        reason,
+        check: None,
+    }
+}
+
+/// The frame's JSON, size-checked and parsed; a reason that breaks a convention (row-major
+/// matrices, intrinsics of another resolution) is tagged with its check.
+fn read_frame_json(
+    input: &Path,
+    frame: &FoundFrame,
+) -> std::result::Result<CaptureFrame, FrameProblem> {
+    let fail = frame_problem;
+    let json_path = input.join(&frame.json);
+    let len = std::fs::metadata(&json_path)
+        .map_err(|e| fail(&frame.json, e.to_string()))?
+        .len();
+    if len > MAX_CAPTURE_JSON_BYTES {
+        return Err(fail(
+            &frame.json,
+            format!("{len} bytes, more than the {MAX_CAPTURE_JSON_BYTES} a frame JSON may have"),
+        ));
+    }
+    let text = std::fs::read_to_string(&json_path).map_err(|e| fail(&frame.json, e.to_string()))?;
+    CaptureFrame::parse(&text).map_err(|r| {
+        // The checks of the JSON that a convention breaks (row-major matrices,
+        // intrinsics of another resolution), by the key the reason starts with.
+        let check = if r.contains("is not a rigid transform") {
+            Some(Check::Transforms)
+        } else if r.starts_with("'camera_intrinsics'") {
+            Some(Check::Intrinsics)
+        } else {
+            None
+        };
+        FrameProblem {
+            check,
+            ..fail(&frame.json, r)
+        }
+    })
+}
+
+/// The frame's image, relative to the capture folder: named by the JSON, or the JSON's
+/// stem with a PNG or JPEG extension (exactly one of them).
+fn frame_image(
+    input: &Path,
+    frame: &FoundFrame,
+    cf: &CaptureFrame,
+) -> std::result::Result<PathBuf, FrameProblem> {
+    let fail = frame_problem;
+    let dir = frame.json.parent().unwrap_or(Path::new(""));
+    Ok(match &cf.image {
+        Some(name) => dir.join(name),
+        None => {
+            let stem = &frame.key.img_id;
+            let found: Vec<PathBuf> = ["png", "jpg", "jpeg", "PNG", "JPG", "JPEG"]
+                .iter()
+                .map(|x| dir.join(format!("{stem}.{x}")))
+                .filter(|p| input.join(p).is_file())
+                .collect();
+            match found.len() {
+                1 => found[0].clone(),
+                0 => {
+                    return Err(fail(
+                        &frame.json,
+                        format!(
+                            "no image for this frame: expected {stem}.png or {stem}.jpg next to it, or an 'image' key"
+                        ),
+                    ));
+                }
+                _ => {
+                    return Err(fail(
+                        &frame.json,
+                        format!(
+                            "several images could be this frame's ({}); name one with the 'image' key",
+                            found
+                                .iter()
+                                .map(|p| relative_string(p))
+                                .collect::<Vec<_>>()
+                                .join(", ")
+                        ),
+                    ));
+                }
+            }
+        }
+    })
 }
 
 const LAYOUT_DIRS: [&str; 5] = [
