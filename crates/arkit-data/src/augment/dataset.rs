@@ -354,8 +354,15 @@ pub fn augment_dataset(
     } else {
         None
     };
-    let summary = Mutex::new(AugmentSummary::default());
-    let previews: Mutex<Vec<(usize, RgbImage, RgbImage)>> = Mutex::new(Vec::new());
+    let run = AugmentRun {
+        data: &data,
+        topology,
+        options,
+        layout,
+        mirror_map,
+        summary: Mutex::new(AugmentSummary::default()),
+        previews: Mutex::new(Vec::new()),
+    };
     let mut row_offset = 0u64;
     for shard in data.shards() {
         let rows = data.read_samples(shard)?;
@@ -363,115 +370,174 @@ pub fn augment_dataset(
         row_offset += rows.len() as u64;
         rows.par_iter()
             .enumerate()
-            .try_for_each(|(i, r)| -> Result<()> {
-                let row = base + i as u64;
-                let split = split_of(&r.split);
-                // A sample whose image cannot be read is reported and skipped, never
-                // replaced by a placeholder.
-                let face = match face_of(r, &data) {
-                    Ok(f) => f,
-                    Err(e) => {
-                        let mut s = summary.lock().expect("summary lock");
-                        s.sources += 1;
-                        s.unreadable.push((r.key.clone(), e.to_string()));
-                        drop(s);
-                        progress(1);
-                        return Ok(());
-                    }
-                };
-                let mut written = Vec::new();
-                let mut skipped = Vec::new();
-                let mut not_chosen = 0;
-                if options.with_originals {
-                    write_original(&layout, split, r, &face, &data)?;
-                    written.push(AugmentedRecord {
-                        source: r.key.clone(),
-                        key: r.key.clone(),
-                        split: split.name().to_string(),
-                        operation: "original".into(),
-                        change_deg: 0.0,
-                    });
-                }
-                for k in 0..options.per_sample {
-                    let mut rng = Rng::for_stream(options.seed, row << 8 | k as u64);
-                    let choice = options
-                        .rule
-                        .choose(&face.pose.euler(), options.axis, &mut rng);
-                    let (axis, change) = match choice {
-                        Ok(Some(c)) => c,
-                        Ok(None) => {
-                            not_chosen += 1;
-                            continue;
-                        }
-                        Err(why) => {
-                            skipped.push((r.key.clone(), why.to_string()));
-                            continue;
-                        }
-                    };
-                    match crate::augment::sample::profile(topology, &face, axis, change) {
-                        Ok(out) => {
-                            let key = SampleKey {
-                                img_id: format!("{}_aug{k}", r.key.img_id),
-                                ..r.key.clone()
-                            };
-                            write_sample(&layout, split, &key, &out, options.jpeg_quality)?;
-                            let mut p = previews.lock().expect("preview lock");
-                            if p.len() < options.preview_pairs
-                                || p.iter().any(|q| q.0 > row as usize)
-                            {
-                                p.push((
-                                    row as usize,
-                                    drawn(&face, topology)?,
-                                    drawn(&out, topology)?,
-                                ));
-                                p.sort_by_key(|q| q.0);
-                                p.truncate(options.preview_pairs);
-                            }
-                            written.push(AugmentedRecord {
-                                source: r.key.clone(),
-                                key,
-                                split: split.name().to_string(),
-                                operation: format!("{axis:?}").to_lowercase(),
-                                change_deg: change,
-                            });
-                        }
-                        Err(why) => skipped.push((r.key.clone(), why.to_string())),
-                    }
-                }
-                if let Some(map) = &mirror_map {
-                    match crate::augment::sample::mirror(&face, map) {
-                        Ok(out) => {
-                            let key = SampleKey {
-                                img_id: format!("{}_flip", r.key.img_id),
-                                ..r.key.clone()
-                            };
-                            write_sample(&layout, split, &key, &out, options.jpeg_quality)?;
-                            written.push(AugmentedRecord {
-                                source: r.key.clone(),
-                                key,
-                                split: split.name().to_string(),
-                                operation: "flip".into(),
-                                change_deg: 0.0,
-                            });
-                        }
-                        Err(why) => skipped.push((r.key.clone(), why.to_string())),
-                    }
-                }
-                let mut s = summary.lock().expect("summary lock");
-                s.sources += 1;
-                s.written.extend(written);
-                s.skipped.extend(skipped);
-                s.not_chosen += not_chosen;
-                drop(s);
-                progress(1);
-                Ok(())
-            })?;
+            .try_for_each(|(i, r)| augment_row(&run, base + i as u64, r, progress))?;
     }
+    let AugmentRun {
+        layout,
+        summary,
+        previews,
+        ..
+    } = run;
     let mut summary = summary.into_inner().expect("summary lock");
     summary.written.sort_by(|a, b| a.key.cmp(&b.key));
     summary.skipped.sort();
     summary.unreadable.sort();
-    // The list CSVs: every written sample, by its source's split; all at once.
+    write_augment_lists(&layout, &summary)?;
+    if summary.written.is_empty() {
+        return Err(nothing_written(&summary));
+    }
+    let previews = previews
+        .into_inner()
+        .expect("preview lock")
+        .into_iter()
+        .map(|(_, a, b)| (a, b))
+        .collect();
+    Ok((summary, previews))
+}
+
+/// What every sample of an augmentation shares, and what the samples gather.
+struct AugmentRun<'a> {
+    /// The dataset read.
+    data: &'a Dataset,
+    /// Its topology.
+    topology: &'a FaceTopology,
+    /// The options.
+    options: &'a AugmentOptions,
+    /// The output's release layout.
+    layout: ReleaseLayout,
+    /// With `flip`: the topology's mirror map.
+    mirror_map: Option<Vec<u32>>,
+    /// The summary so far.
+    summary: Mutex<AugmentSummary>,
+    /// The preview pairs so far, by dataset row (at most `preview_pairs`, the first rows).
+    previews: Mutex<Vec<(usize, RgbImage, RgbImage)>>,
+}
+
+/// Augments one sample (dataset row `row`): its original (with `with_originals`), its
+/// `per_sample` profiled views and its mirror (with `flip`); what was written, skipped
+/// or not chosen goes into the summary. A sample whose image cannot be read is reported
+/// and skipped, never replaced by a placeholder.
+fn augment_row(
+    run: &AugmentRun<'_>,
+    row: u64,
+    r: &SampleRecord,
+    progress: &(dyn Fn(usize) + Sync),
+) -> Result<()> {
+    let options = run.options;
+    let split = split_of(&r.split);
+    let face = match face_of(r, run.data) {
+        Ok(f) => f,
+        Err(e) => {
+            let mut s = run.summary.lock().expect("summary lock");
+            s.sources += 1;
+            s.unreadable.push((r.key.clone(), e.to_string()));
+            drop(s);
+            progress(1);
+            return Ok(());
+        }
+    };
+    let mut written = Vec::new();
+    let mut skipped = Vec::new();
+    if options.with_originals {
+        write_original(&run.layout, split, r, &face, run.data)?;
+        written.push(AugmentedRecord {
+            source: r.key.clone(),
+            key: r.key.clone(),
+            split: split.name().to_string(),
+            operation: "original".into(),
+            change_deg: 0.0,
+        });
+    }
+    let not_chosen = profile_views(run, row, r, split, &face, &mut written, &mut skipped)?;
+    if let Some(map) = &run.mirror_map {
+        match crate::augment::sample::mirror(&face, map) {
+            Ok(out) => {
+                let key = SampleKey {
+                    img_id: format!("{}_flip", r.key.img_id),
+                    ..r.key.clone()
+                };
+                write_sample(&run.layout, split, &key, &out, options.jpeg_quality)?;
+                written.push(AugmentedRecord {
+                    source: r.key.clone(),
+                    key,
+                    split: split.name().to_string(),
+                    operation: "flip".into(),
+                    change_deg: 0.0,
+                });
+            }
+            Err(why) => skipped.push((r.key.clone(), why.to_string())),
+        }
+    }
+    let mut s = run.summary.lock().expect("summary lock");
+    s.sources += 1;
+    s.written.extend(written);
+    s.skipped.extend(skipped);
+    s.not_chosen += not_chosen;
+    drop(s);
+    progress(1);
+    Ok(())
+}
+
+/// Writes the `per_sample` profiled views of `face` (row `row`) that the rule chooses,
+/// each from its own random stream, keeping preview pairs of the first rows; returns how
+/// many draws the rule did not choose.
+fn profile_views(
+    run: &AugmentRun<'_>,
+    row: u64,
+    r: &SampleRecord,
+    split: Split,
+    face: &FaceImage,
+    written: &mut Vec<AugmentedRecord>,
+    skipped: &mut Vec<(SampleKey, String)>,
+) -> Result<usize> {
+    let (options, topology) = (run.options, run.topology);
+    let mut not_chosen = 0;
+    for k in 0..options.per_sample {
+        let mut rng = Rng::for_stream(options.seed, row << 8 | k as u64);
+        let choice = options
+            .rule
+            .choose(&face.pose.euler(), options.axis, &mut rng);
+        let (axis, change) = match choice {
+            Ok(Some(c)) => c,
+            Ok(None) => {
+                not_chosen += 1;
+                continue;
+            }
+            Err(why) => {
+                skipped.push((r.key.clone(), why.to_string()));
+                continue;
+            }
+        };
+        match crate::augment::sample::profile(topology, face, axis, change) {
+            Ok(out) => {
+                let key = SampleKey {
+                    img_id: format!("{}_aug{k}", r.key.img_id),
+                    ..r.key.clone()
+                };
+                write_sample(&run.layout, split, &key, &out, options.jpeg_quality)?;
+                let mut p = run.previews.lock().expect("preview lock");
+                if p.len() < options.preview_pairs || p.iter().any(|q| q.0 > row as usize) {
+                    p.push((row as usize, drawn(face, topology)?, drawn(&out, topology)?));
+                    p.sort_by_key(|q| q.0);
+                    p.truncate(options.preview_pairs);
+                }
+                written.push(AugmentedRecord {
+                    source: r.key.clone(),
+                    key,
+                    split: split.name().to_string(),
+                    operation: format!("{axis:?}").to_lowercase(),
+                    change_deg: change,
+                });
+            }
+            Err(why) => skipped.push((r.key.clone(), why.to_string())),
+        }
+    }
+    Ok(not_chosen)
+}
+
+/// The list CSVs: every written sample, by its source's split; all at once (none when
+/// nothing was written).
+fn write_augment_lists(layout: &ReleaseLayout, summary: &AugmentSummary) -> Result<()> {
     let lists: Vec<(&str, Vec<SampleKey>)> = [Split::Train, Split::Test]
         .into_iter()
         .map(|split| {
@@ -490,30 +556,27 @@ pub fn augment_dataset(
             lists.iter().map(|(s, k)| (*s, k.as_slice())).collect();
         release::write_lists(&layout.root, &lists)?;
     }
-    if summary.written.is_empty() {
-        return Err(Error::invalid(
-            "augment",
-            format!(
-                "nothing was written ({} sources, {} unreadable, {} skipped, {} not chosen by the rule){}",
-                summary.sources,
-                summary.unreadable.len(),
-                summary.skipped.len(),
-                summary.not_chosen,
-                summary
-                    .unreadable
-                    .first()
-                    .map(|(_, why)| format!("; first unreadable: {why}"))
-                    .unwrap_or_default()
-            ),
-        ));
-    }
-    let previews = previews
-        .into_inner()
-        .expect("preview lock")
-        .into_iter()
-        .map(|(_, a, b)| (a, b))
-        .collect();
-    Ok((summary, previews))
+    Ok(())
+}
+
+/// The error of a run that wrote nothing: its counts and the first unreadable image's
+/// reason.
+fn nothing_written(summary: &AugmentSummary) -> Error {
+    Error::invalid(
+        "augment",
+        format!(
+            "nothing was written ({} sources, {} unreadable, {} skipped, {} not chosen by the rule){}",
+            summary.sources,
+            summary.unreadable.len(),
+            summary.skipped.len(),
+            summary.not_chosen,
+            summary
+                .unreadable
+                .first()
+                .map(|(_, why)| format!("; first unreadable: {why}"))
+                .unwrap_or_default()
+        ),
+    )
 }
 
 #[cfg(test)]

@@ -151,28 +151,8 @@ pub fn evaluate(
     let data = Dataset::open(dataset)?;
     let splits = SplitLookup::read(dataset)?;
     let mut problems = MatchProblems::default();
-    let mut by_key: HashMap<&SampleKey, &PredictionRecord> = HashMap::new();
-    for p in predictions {
-        if by_key.contains_key(&p.key) {
-            problems.duplicates.push(p.key.clone());
-        } else {
-            by_key.insert(&p.key, p);
-        }
-    }
-    let with_masks: HashSet<&SampleKey> = predictions
-        .iter()
-        .filter(|p| p.mask_rle.is_some())
-        .map(|p| &p.key)
-        .collect();
-    let masks = if with_masks.is_empty() {
-        HashMap::new()
-    } else {
-        target_masks(
-            options.targets.as_deref().unwrap_or(dataset),
-            &data,
-            &with_masks,
-        )?
-    };
+    let by_key = index_predictions(predictions, &mut problems);
+    let masks = prediction_masks(dataset, &data, predictions, options)?;
     // A dataset of another head mesh than ARKit's (`convert --format biwi`).
     let other_mesh = data
         .manifest()
@@ -196,75 +176,10 @@ pub fn evaluate(
                 continue;
             }
             let pred = by_key.get(&r.key).copied();
-            let checked = match pred {
-                None => Err(PoseFailure::Missing),
-                Some(p) => crate::eval::metrics::check_prediction(p.rt.as_ref()),
-            };
-            if let Ok(rt) = &checked
-                && let Err(e) = arkit_core::conventions::Pose::check_release_rt(rt)
-            {
-                let why = match e {
-                    Error::Invalid { message, .. } => message,
-                    other => other.reason(),
-                };
-                problems.non_rotations.push((r.key.clone(), why));
-            }
-            if pred.is_none() {
-                problems.missing += 1;
-            }
-            let mut pred_verts = pred.and_then(|p| p.verts.as_deref());
-            if other_mesh
-                && let Some(v) = pred_verts
-                && v.len() != r.verts.len()
-            {
-                // A network's 1,220-vertex face against another head mesh (BIWI's): no
-                // vertex correspondence, so no 3D reconstruction error; counted.
-                problems.unscored_verts += 1;
-                pred_verts = None;
-            }
-            if let Some(v) = pred_verts
-                && v.len() != r.verts.len()
-            {
-                return Err(Error::invalid(
-                    "predictions",
-                    format!(
-                        "{}: verts has {} values, the sample has {}",
-                        r.key,
-                        v.len(),
-                        r.verts.len()
-                    ),
-                ));
-            }
-            let mut errors = crate::eval::metrics::sample_errors_in(
-                &r.rt,
-                checked,
-                &r.verts,
-                pred_verts,
-                options.euler,
-                options.angles,
-            );
-            if let Some(rle) = pred.and_then(|p| p.mask_rle.as_ref()) {
-                match masks.get(&r.key) {
-                    None => problems
-                        .unscored_masks
-                        .push((r.key.clone(), "no target mask (run render)".into())),
-                    Some(target) => match arkit_core::target_codec::rle_decode(rle, target.len()) {
-                        Ok(m) => errors.mask = Some(crate::eval::metrics::mask_scores(&m, target)),
-                        Err(e) => problems.unscored_masks.push((r.key.clone(), e.to_string())),
-                    },
-                }
-            }
+            let errors = score_sample(&r, pred, other_mesh, &masks, options, &mut problems)?;
             let rot = errors.rotation_deg;
             if options.keep_worst > 0 {
-                let keep =
-                    worst.len() < options.keep_worst || worst.last().is_some_and(|w| w.2 < rot);
-                if keep {
-                    let mut r2 = r.clone();
-                    r2.verts.shrink_to_fit();
-                    worst.push((r2, pred.cloned(), rot));
-                    worst.sort_by(|a, b| b.2.total_cmp(&a.2));
-                    worst.truncate(options.keep_worst);
-                }
+                keep_worst(&mut worst, options.keep_worst, &r, pred, rot);
             }
             scored.push(ScoredSample {
                 key: r.key.clone(),
@@ -310,6 +225,137 @@ pub fn evaluate(
         worst,
         dataset: data,
     })
+}
+
+/// The predictions by sample key: the first of each key (a later one with the same key
+/// is listed in `problems.duplicates`).
+fn index_predictions<'a>(
+    predictions: &'a [PredictionRecord],
+    problems: &mut MatchProblems,
+) -> HashMap<&'a SampleKey, &'a PredictionRecord> {
+    let mut by_key: HashMap<&SampleKey, &PredictionRecord> = HashMap::new();
+    for p in predictions {
+        if by_key.contains_key(&p.key) {
+            problems.duplicates.push(p.key.clone());
+        } else {
+            by_key.insert(&p.key, p);
+        }
+    }
+    by_key
+}
+
+/// The rendered masks of the samples whose prediction has a mask, from `options.targets`
+/// (or the dataset's own targets); none read when no prediction has one.
+fn prediction_masks(
+    dataset: &Path,
+    data: &Dataset,
+    predictions: &[PredictionRecord],
+    options: &EvalOptions,
+) -> Result<HashMap<SampleKey, Vec<bool>>> {
+    let with_masks: HashSet<&SampleKey> = predictions
+        .iter()
+        .filter(|p| p.mask_rle.is_some())
+        .map(|p| &p.key)
+        .collect();
+    if with_masks.is_empty() {
+        Ok(HashMap::new())
+    } else {
+        target_masks(
+            options.targets.as_deref().unwrap_or(dataset),
+            data,
+            &with_masks,
+        )
+    }
+}
+
+/// The errors of sample `r` against its prediction `pred` (none: missing), noting in
+/// `problems` a missing prediction, a prediction that is not a rotation, vertices that
+/// cannot be scored against another head mesh and a mask that cannot be scored. Vertices
+/// of the wrong size against the ARKit mesh are an error.
+fn score_sample(
+    r: &SampleRecord,
+    pred: Option<&PredictionRecord>,
+    other_mesh: bool,
+    masks: &HashMap<SampleKey, Vec<bool>>,
+    options: &EvalOptions,
+    problems: &mut MatchProblems,
+) -> Result<SampleErrors> {
+    let checked = match pred {
+        None => Err(PoseFailure::Missing),
+        Some(p) => crate::eval::metrics::check_prediction(p.rt.as_ref()),
+    };
+    if let Ok(rt) = &checked
+        && let Err(e) = arkit_core::conventions::Pose::check_release_rt(rt)
+    {
+        let why = match e {
+            Error::Invalid { message, .. } => message,
+            other => other.reason(),
+        };
+        problems.non_rotations.push((r.key.clone(), why));
+    }
+    if pred.is_none() {
+        problems.missing += 1;
+    }
+    let mut pred_verts = pred.and_then(|p| p.verts.as_deref());
+    if other_mesh
+        && let Some(v) = pred_verts
+        && v.len() != r.verts.len()
+    {
+        // A network's 1,220-vertex face against another head mesh (BIWI's): no
+        // vertex correspondence, so no 3D reconstruction error; counted.
+        problems.unscored_verts += 1;
+        pred_verts = None;
+    }
+    if let Some(v) = pred_verts
+        && v.len() != r.verts.len()
+    {
+        return Err(Error::invalid(
+            "predictions",
+            format!(
+                "{}: verts has {} values, the sample has {}",
+                r.key,
+                v.len(),
+                r.verts.len()
+            ),
+        ));
+    }
+    let mut errors = crate::eval::metrics::sample_errors_in(
+        &r.rt,
+        checked,
+        &r.verts,
+        pred_verts,
+        options.euler,
+        options.angles,
+    );
+    if let Some(rle) = pred.and_then(|p| p.mask_rle.as_ref()) {
+        match masks.get(&r.key) {
+            None => problems
+                .unscored_masks
+                .push((r.key.clone(), "no target mask (run render)".into())),
+            Some(target) => match arkit_core::target_codec::rle_decode(rle, target.len()) {
+                Ok(m) => errors.mask = Some(crate::eval::metrics::mask_scores(&m, target)),
+                Err(e) => problems.unscored_masks.push((r.key.clone(), e.to_string())),
+            },
+        }
+    }
+    Ok(errors)
+}
+
+/// Keeps sample `r` (rotation error `rot`) among the `keep` worst, worst first.
+fn keep_worst(
+    worst: &mut Vec<(SampleRecord, Option<PredictionRecord>, f64)>,
+    keep: usize,
+    r: &SampleRecord,
+    pred: Option<&PredictionRecord>,
+    rot: f64,
+) {
+    if worst.len() < keep || worst.last().is_some_and(|w| w.2 < rot) {
+        let mut r2 = r.clone();
+        r2.verts.shrink_to_fit();
+        worst.push((r2, pred.cloned(), rot));
+        worst.sort_by(|a, b| b.2.total_cmp(&a.2));
+        worst.truncate(keep);
+    }
 }
 
 /// The per-sample table as a DataFrame (columns as `schemas/eval_samples.json`).

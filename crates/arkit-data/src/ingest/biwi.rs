@@ -506,9 +506,89 @@ pub fn stage_with(
     if !input.is_dir() {
         return Err(Error::format(input, "BIWI folder does not exist"));
     }
+    let (seqs, mut problems) = sequence_folders(input)?;
+    let mut found = read_sequences(input, &seqs, &mut problems)?;
+    let topology = common_topology(input, &mut found, &mut problems)?;
+    let n = topology.vertex_count;
+    let Found {
+        frames_found,
+        without_pose,
+        frames,
+        sequences,
+    } = found;
+    let verts: std::collections::BTreeMap<&String, Vec<Point3<f32>>> = sequences
+        .iter()
+        .map(|(s, (_, m))| (s, m.release_vertices()))
+        .collect();
+    let target = StageTarget {
+        input,
+        layout: ReleaseLayout::new(staging),
+        camera: Camera::release(side, side),
+        side,
+        fatal: std::sync::Mutex::new(None),
+    };
+    let stop_if_fatal = || match target.fatal.lock().expect("fatal lock").take() {
+        Some(e) => Err(e),
+        None => Ok(()),
+    };
+    let stage_frames =
+        |frames: &[Frame]| -> Vec<std::result::Result<SampleKey, (bool, StageProblem)>> {
+            frames
+                .par_iter()
+                .map(|f| {
+                    let r = stage_frame(&target, f, &sequences[&f.sequence].0, &verts[&f.sequence]);
+                    progress();
+                    r
+                })
+                .collect()
+        };
+    // The first frames (the systematic rule's window) first, then the rule, then the rest.
+    let mut tally = crate::ingest::systematic::SkipTally::new(window);
+    let first = tally.remaining().min(frames.len());
+    let mut results = stage_frames(&frames[..first]);
+    stop_if_fatal()?;
+    for r in &results {
+        tally.record(match r {
+            Err((true, p)) => Some((
+                crate::ingest::systematic::Check::FrameSize,
+                format!("{}: {}", p.file, p.reason),
+            )),
+            _ => None,
+        });
+    }
+    if let Some((_, message)) = tally.verdict("posed frames") {
+        return Err(Error::format(input, message));
+    }
+    results.extend(stage_frames(&frames[first..]));
+    stop_if_fatal()?;
+    let mut keys = Vec::new();
+    for r in results {
+        match r {
+            Ok(k) => keys.push(k),
+            Err((_, p)) => problems.push(p),
+        }
+    }
+    release::write_list(&target.layout.list_path(Split::Test), &keys)?;
+    Ok((
+        StageSummary {
+            input: input.to_path_buf(),
+            staging: staging.to_path_buf(),
+            sequences: seqs.len(),
+            frames_found,
+            staged: keys.len(),
+            without_pose,
+            problems,
+            vertex_count: n,
+        },
+        topology,
+    ))
+}
+
+/// The sequence folders of `input` (the entries named by digits that are folders), sorted,
+/// and a problem for each one that cannot be read (a broken or looping symbolic link, no
+/// permission); an error when there is no readable one.
+fn sequence_folders(input: &Path) -> Result<(Vec<PathBuf>, Vec<StageProblem>)> {
     let mut problems = Vec::new();
-    // Sequence folders: the entries named by digits that are folders. One that cannot
-    // be read (a broken or looping symbolic link, no permission) is reported.
     let mut seqs: Vec<PathBuf> = Vec::new();
     for e in std::fs::read_dir(input).map_err(|e| Error::io(input, e))? {
         let p = e.map_err(|e| Error::io(input, e))?.path();
@@ -552,61 +632,41 @@ pub fn stage_with(
             },
         ));
     }
-    let mut without_pose = Vec::new();
-    let mut frames_found = 0;
-    let mut frames: Vec<Frame> = Vec::new();
-    // Per sequence: calibration and mesh (a sequence that lacks either is reported).
-    let mut sequences: std::collections::BTreeMap<String, (Calibration, HeadMesh)> =
-        Default::default();
-    for seq in &seqs {
+    Ok((seqs, problems))
+}
+
+/// The frames found in the sequence folders and the sequences that can be used.
+struct Found {
+    /// Frames (images) found.
+    frames_found: usize,
+    /// Images without a pose file.
+    without_pose: Vec<String>,
+    /// The posed frames of the sequences that can be used.
+    frames: Vec<Frame>,
+    /// Per usable sequence: its calibration and head mesh.
+    sequences: std::collections::BTreeMap<String, (Calibration, HeadMesh)>,
+}
+
+/// Lists each sequence's frames and reads its calibration and mesh; a sequence that lacks
+/// either is reported in `problems` (with its posed frames' count) and left out.
+fn read_sequences(
+    input: &Path,
+    seqs: &[PathBuf],
+    problems: &mut Vec<StageProblem>,
+) -> Result<Found> {
+    let mut found = Found {
+        frames_found: 0,
+        without_pose: Vec::new(),
+        frames: Vec::new(),
+        sequences: Default::default(),
+    };
+    for seq in seqs {
         let name = seq.file_name().unwrap().to_string_lossy().into_owned();
-        let mut files: Vec<PathBuf> = std::fs::read_dir(seq)
-            .map_err(|e| Error::io(seq, e))?
-            .filter_map(|e| e.ok().map(|e| e.path()))
-            .collect();
-        files.sort();
-        let mut seq_frames = Vec::new();
-        for f in &files {
-            let fname = f.file_name().unwrap().to_string_lossy().into_owned();
-            let Some(number) = fname
-                .strip_prefix("frame_")
-                .and_then(|n| n.strip_suffix("_rgb.png"))
-            else {
-                continue;
-            };
-            frames_found += 1;
-            let pose = seq.join(format!("frame_{number}_pose.txt"));
-            if !pose.is_file() {
-                without_pose.push(rel(input, f));
-                continue;
-            }
-            seq_frames.push(Frame {
-                sequence: name.clone(),
-                number: number.to_string(),
-                image: f.clone(),
-                pose,
-            });
-        }
-        let cal_path = seq.join("rgb.cal");
-        let mesh_path = input.join(format!("{name}.obj"));
-        let loaded = Calibration::read(&cal_path)
-            .and_then(|cal| {
-                if cal.distortion.iter().any(|&d| d != 0.0) {
-                    return Err(Error::format(
-                        &cal_path,
-                        format!(
-                            "distortion coefficients {:?} are not zero; this conversion models a pinhole camera",
-                            cal.distortion
-                        ),
-                    ));
-                }
-                Ok(cal)
-            })
-            .and_then(|cal| Ok((cal, HeadMesh::read(&mesh_path)?)));
-        match loaded {
+        let seq_frames = sequence_frames(input, seq, &name, &mut found)?;
+        match load_sequence(input, seq, &name) {
             Ok(x) => {
-                sequences.insert(name.clone(), x);
-                frames.extend(seq_frames);
+                found.sequences.insert(name.clone(), x);
+                found.frames.extend(seq_frames);
             }
             Err(e) => {
                 let file = e
@@ -624,6 +684,71 @@ pub fn stage_with(
             }
         }
     }
+    Ok(found)
+}
+
+/// The posed frames (`frame_N_rgb.png` with a `frame_N_pose.txt`) of the sequence folder
+/// `seq`, in file-name order; counts every frame in `found` and lists the unposed ones.
+fn sequence_frames(input: &Path, seq: &Path, name: &str, found: &mut Found) -> Result<Vec<Frame>> {
+    let mut files: Vec<PathBuf> = std::fs::read_dir(seq)
+        .map_err(|e| Error::io(seq, e))?
+        .filter_map(|e| e.ok().map(|e| e.path()))
+        .collect();
+    files.sort();
+    let mut seq_frames = Vec::new();
+    for f in &files {
+        let fname = f.file_name().unwrap().to_string_lossy().into_owned();
+        let Some(number) = fname
+            .strip_prefix("frame_")
+            .and_then(|n| n.strip_suffix("_rgb.png"))
+        else {
+            continue;
+        };
+        found.frames_found += 1;
+        let pose = seq.join(format!("frame_{number}_pose.txt"));
+        if !pose.is_file() {
+            found.without_pose.push(rel(input, f));
+            continue;
+        }
+        seq_frames.push(Frame {
+            sequence: name.to_string(),
+            number: number.to_string(),
+            image: f.clone(),
+            pose,
+        });
+    }
+    Ok(seq_frames)
+}
+
+/// The sequence's calibration (`rgb.cal`, which must have no distortion) and its head
+/// mesh (`NN.obj` beside the sequence folders).
+fn load_sequence(input: &Path, seq: &Path, name: &str) -> Result<(Calibration, HeadMesh)> {
+    let cal_path = seq.join("rgb.cal");
+    let mesh_path = input.join(format!("{name}.obj"));
+    Calibration::read(&cal_path)
+        .and_then(|cal| {
+            if cal.distortion.iter().any(|&d| d != 0.0) {
+                return Err(Error::format(
+                    &cal_path,
+                    format!(
+                        "distortion coefficients {:?} are not zero; this conversion models a pinhole camera",
+                        cal.distortion
+                    ),
+                ));
+            }
+            Ok(cal)
+        })
+        .and_then(|cal| Ok((cal, HeadMesh::read(&mesh_path)?)))
+}
+
+/// The topology of the first usable sequence's head mesh; the sequences whose mesh has
+/// another vertex count are reported in `problems` and dropped with their frames.
+fn common_topology(
+    input: &Path,
+    found: &mut Found,
+    problems: &mut Vec<StageProblem>,
+) -> Result<FaceTopology> {
+    let sequences = &mut found.sequences;
     let Some((_, (_, first_mesh))) = sequences.iter().next() else {
         return Err(Error::format(
             input,
@@ -654,119 +779,78 @@ pub fn stage_with(
         });
         sequences.remove(s);
     }
-    frames.retain(|f| sequences.contains_key(&f.sequence));
-    let verts: std::collections::BTreeMap<&String, Vec<Point3<f32>>> = sequences
-        .iter()
-        .map(|(s, (_, m))| (s, m.release_vertices()))
-        .collect();
-    let layout = ReleaseLayout::new(staging);
-    let camera = Camera::release(side, side);
-    // A frame that cannot be written (a full disk, say) stops the staging, naming the
-    // file: skipping it would leave a smaller release that looks complete.
-    let fatal: std::sync::Mutex<Option<Error>> = std::sync::Mutex::new(None);
-    let stop_if_fatal = || match fatal.lock().expect("fatal lock").take() {
-        Some(e) => Err(e),
-        None => Ok(()),
-    };
-    let stage_frames =
-        |frames: &[Frame]| -> Vec<std::result::Result<SampleKey, (bool, StageProblem)>> {
-            frames
-                .par_iter()
-                .map(|f| {
-                    let mut size_refused = false;
-                    let r = (|| {
-                        let (cal, _) = &sequences[&f.sequence];
-                        let key = SampleKey {
-                            subject_id: f.sequence.clone(),
-                            facial_action: "biwi".into(),
-                            img_id: f.number.clone(),
-                        };
-                        let problem = |p: &Path, reason: String| StageProblem {
-                            file: rel(input, p),
-                            reason,
-                        };
-                        let text = read_text(&f.pose).map_err(|e| problem(&f.pose, e.reason()))?;
-                        let fp = FramePose::parse(&text, &f.pose)
-                            .map_err(|e| problem(&f.pose, e.reason()))?;
-                        let pose = release_pose(&fp, cal);
-                        pose.check()
-                            .map_err(|e| problem(&f.pose, format!("the pose: {}", e.reason())))?;
-                        // The frame's size from its header, against the calibration's, before
-                        // any pixel is decoded (the decode itself is bounded too).
-                        let img = crate::picture::image_decode::read_rgb8_checked(&f.image, |h| {
-                            cal.check_frame_size(h.width, h.height).map_err(|m| {
-                                size_refused = true;
-                                Error::format(&f.image, m)
-                            })
-                        })
-                        .map_err(|e| problem(&f.image, e.reason()))?;
-                        let written = resample_to_release(&img, &cal.k, &Matrix3::identity(), side);
-                        let info = InfoAnnotation::complete(
-                            verts[&f.sequence].clone(),
-                            &pose,
-                            &camera,
-                            Matrix4::identity(),
-                        );
-                        let write = |e: Error| {
-                            let p = problem(&f.image, format!("could not write: {e}"));
-                            fatal.lock().expect("fatal lock").get_or_insert(e);
-                            p
-                        };
-                        let jpeg =
-                            crate::picture::encode::jpeg_bytes(&written, 95).map_err(write)?;
-                        atomic_file::write_bytes(&layout.image_path(Split::Test, &key), &jpeg)
-                            .map_err(write)?;
-                        release::write_info(
-                            &layout.info_path(Split::Test, &key),
-                            &info,
-                            NpzCompression::Deflated,
-                        )
-                        .map_err(write)?;
-                        Ok(key)
-                    })();
-                    progress();
-                    r.map_err(|p| (size_refused, p))
-                })
-                .collect()
+    found.frames.retain(|f| sequences.contains_key(&f.sequence));
+    Ok(topology)
+}
+
+/// Where and how the frames of a staging are written.
+struct StageTarget<'a> {
+    /// The `hpdb` folder (problems name files relative to it).
+    input: &'a Path,
+    /// The staging folder's release layout.
+    layout: ReleaseLayout,
+    /// The release camera at `side x side`.
+    camera: Camera,
+    /// The written images' side.
+    side: u32,
+    /// The first write error: it stops the staging.
+    fatal: std::sync::Mutex<Option<Error>>,
+}
+
+/// Reads, checks, resamples and writes one frame (image and info) of a sequence with
+/// calibration `cal` and release-frame head vertices `verts`. The error is the problem
+/// and whether the frame-size check refused it; a write error is also kept in
+/// `target.fatal` (a frame that cannot be written, a full disk say, stops the staging,
+/// naming the file: skipping it would leave a smaller release that looks complete).
+fn stage_frame(
+    target: &StageTarget<'_>,
+    f: &Frame,
+    cal: &Calibration,
+    verts: &[Point3<f32>],
+) -> std::result::Result<SampleKey, (bool, StageProblem)> {
+    let mut size_refused = false;
+    let r = (|| {
+        let key = SampleKey {
+            subject_id: f.sequence.clone(),
+            facial_action: "biwi".into(),
+            img_id: f.number.clone(),
         };
-    // The first frames (the systematic rule's window) first, then the rule, then the rest.
-    let mut tally = crate::ingest::systematic::SkipTally::new(window);
-    let first = tally.remaining().min(frames.len());
-    let mut results = stage_frames(&frames[..first]);
-    stop_if_fatal()?;
-    for r in &results {
-        tally.record(match r {
-            Err((true, p)) => Some((
-                crate::ingest::systematic::Check::FrameSize,
-                format!("{}: {}", p.file, p.reason),
-            )),
-            _ => None,
-        });
-    }
-    if let Some((_, message)) = tally.verdict("posed frames") {
-        return Err(Error::format(input, message));
-    }
-    results.extend(stage_frames(&frames[first..]));
-    stop_if_fatal()?;
-    let mut keys = Vec::new();
-    for r in results {
-        match r {
-            Ok(k) => keys.push(k),
-            Err((_, p)) => problems.push(p),
-        }
-    }
-    release::write_list(&layout.list_path(Split::Test), &keys)?;
-    Ok((
-        StageSummary {
-            input: input.to_path_buf(),
-            staging: staging.to_path_buf(),
-            sequences: seqs.len(),
-            frames_found,
-            staged: keys.len(),
-            without_pose,
-            problems,
-            vertex_count: n,
-        },
-        topology,
-    ))
+        let problem = |p: &Path, reason: String| StageProblem {
+            file: rel(target.input, p),
+            reason,
+        };
+        let text = read_text(&f.pose).map_err(|e| problem(&f.pose, e.reason()))?;
+        let fp = FramePose::parse(&text, &f.pose).map_err(|e| problem(&f.pose, e.reason()))?;
+        let pose = release_pose(&fp, cal);
+        pose.check()
+            .map_err(|e| problem(&f.pose, format!("the pose: {}", e.reason())))?;
+        // The frame's size from its header, against the calibration's, before
+        // any pixel is decoded (the decode itself is bounded too).
+        let img = crate::picture::image_decode::read_rgb8_checked(&f.image, |h| {
+            cal.check_frame_size(h.width, h.height).map_err(|m| {
+                size_refused = true;
+                Error::format(&f.image, m)
+            })
+        })
+        .map_err(|e| problem(&f.image, e.reason()))?;
+        let written = resample_to_release(&img, &cal.k, &Matrix3::identity(), target.side);
+        let info =
+            InfoAnnotation::complete(verts.to_vec(), &pose, &target.camera, Matrix4::identity());
+        let write = |e: Error| {
+            let p = problem(&f.image, format!("could not write: {e}"));
+            target.fatal.lock().expect("fatal lock").get_or_insert(e);
+            p
+        };
+        let layout = &target.layout;
+        let jpeg = crate::picture::encode::jpeg_bytes(&written, 95).map_err(write)?;
+        atomic_file::write_bytes(&layout.image_path(Split::Test, &key), &jpeg).map_err(write)?;
+        release::write_info(
+            &layout.info_path(Split::Test, &key),
+            &info,
+            NpzCompression::Deflated,
+        )
+        .map_err(write)?;
+        Ok(key)
+    })();
+    r.map_err(|p| (size_refused, p))
 }

@@ -903,28 +903,7 @@ pub fn convert_planned_with(
     plan: (Vec<PlannedRow>, Vec<ErrorRecord>),
     progress: Progress,
 ) -> Result<Manifest> {
-    if let Some(c) = checks.skip.iter().find(|c| !SKIPPABLE_CHECKS.contains(c)) {
-        return Err(Error::invalid(
-            "--skip-check",
-            format!(
-                "the '{}' check cannot be turned off (a sample that fails it would be wrong); only {} can",
-                c.name(),
-                SKIPPABLE_CHECKS.map(|c| c.name()).join(", ")
-            ),
-        ));
-    }
-    if options.rows_per_shard == 0 {
-        return Err(Error::invalid("--rows-per-shard", "must be at least 1"));
-    }
-    if options.shard_count == 0 || options.shard_index >= options.shard_count {
-        return Err(Error::invalid(
-            "--shard",
-            format!(
-                "{}/{} is not I/N with I < N",
-                options.shard_index, options.shard_count
-            ),
-        ));
-    }
+    check_convert_options(options, checks)?;
     let (rows, mut listing) = plan;
     let out = &options.output;
     let mut fingerprint = ConversionFingerprint::new(input, options, ctx)?;
@@ -975,71 +954,21 @@ pub fn convert_planned_with(
                 shards.push(entry);
                 continue;
             }
-            let samples_rel = format!("samples/part-{index:05}.parquet");
-            let errors_rel = format!("errors/part-{index:05}.parquet");
-            let (samples_path, errors_path) = (out.join(&samples_rel), out.join(&errors_rel));
-            let record_path = out.join(shard_record_name(index));
+            let files = ShardFiles::new(out, index);
             // A record that no longer matches goes first: an interruption from here on
             // leaves a shard that the next run redoes.
-            if record_path.exists() {
-                std::fs::remove_file(&record_path).map_err(|e| Error::io(&record_path, e))?;
+            if files.record_path.exists() {
+                std::fs::remove_file(&files.record_path)
+                    .map_err(|e| Error::io(&files.record_path, e))?;
             }
-            let validate = |rows: &[PlannedRow]| -> Vec<std::result::Result<SampleRecord, Skip>> {
-                rows.par_iter()
-                    .map(|row| {
-                        let r = validate_sample_with(&input.root, row, ctx, checks);
-                        progress(1);
-                        r
-                    })
-                    .collect()
-            };
-            // The first samples of the run (up to the systematic rule's window) are
-            // validated first, and the rule applied, before the rest of the shard.
-            let first = tally.remaining().min(chunk.len());
-            let mut results = validate(&chunk[..first]);
-            for r in &results {
-                tally.record(r.as_ref().err().and_then(|s| {
-                    s.check
-                        .map(|c| (c, format!("{}: {}", s.record.file, s.record.reason)))
-                }));
-            }
-            if let Some((_, message)) = tally.verdict("samples") {
-                return Err(Error::invalid("convert", message));
-            }
-            results.extend(validate(&chunk[first..]));
-            let (mut good, mut bad) = (Vec::new(), Vec::new());
-            for r in results {
-                match r {
-                    Ok(s) => good.push(s),
-                    Err(e) => bad.push(*e.record),
-                }
-            }
+            let (good, bad) =
+                validate_shard(chunk, &input.root, ctx, checks, &mut tally, progress)?;
             if let Some(h) = pending.take() {
                 shards.push(join(h)?);
             }
-            pending = Some(scope.spawn(move || {
-                parquet::write_parquet(&errors_path, &mut samples_table::errors_frame(&bad)?)?;
-                samples_table::write_samples(&samples_path, &good, vertices)?;
-                let entry = ShardEntry {
-                    index,
-                    samples_file: samples_rel,
-                    rows: good.len(),
-                    sha256: sha256_file(&samples_path)?,
-                    errors_file: errors_rel,
-                    error_rows: bad.len(),
-                    errors_sha256: sha256_file(&errors_path)?,
-                    bytes: std::fs::metadata(&samples_path)
-                        .map_err(|e| Error::io(&samples_path, e))?
-                        .len(),
-                    tail_sha256: tail_sha256(&samples_path)?,
-                    fingerprint: shard_fp,
-                };
-                // The record last: a shard is finished only once it exists.
-                let text = serde_json::to_string_pretty(&entry)
-                    .map_err(|e| Error::invalid("shard record", e.to_string()))?;
-                arkit_core::atomic_file::write_bytes(&record_path, format!("{text}\n").as_bytes())?;
-                Ok(entry)
-            }));
+            pending = Some(
+                scope.spawn(move || write_shard(files, index, &good, &bad, vertices, shard_fp)),
+            );
         }
         if let Some(h) = pending.take() {
             shards.push(join(h)?);
@@ -1077,6 +1006,148 @@ pub fn convert_planned_with(
         &manifest,
     )?;
     Ok(manifest)
+}
+
+/// Refuses checks that cannot be turned off, an empty shard size and a part `I/N` with
+/// `I >= N`.
+fn check_convert_options(options: &ConvertOptions, checks: &ConvertChecks) -> Result<()> {
+    if let Some(c) = checks.skip.iter().find(|c| !SKIPPABLE_CHECKS.contains(c)) {
+        return Err(Error::invalid(
+            "--skip-check",
+            format!(
+                "the '{}' check cannot be turned off (a sample that fails it would be wrong); only {} can",
+                c.name(),
+                SKIPPABLE_CHECKS.map(|c| c.name()).join(", ")
+            ),
+        ));
+    }
+    if options.rows_per_shard == 0 {
+        return Err(Error::invalid("--rows-per-shard", "must be at least 1"));
+    }
+    if options.shard_count == 0 || options.shard_index >= options.shard_count {
+        return Err(Error::invalid(
+            "--shard",
+            format!(
+                "{}/{} is not I/N with I < N",
+                options.shard_index, options.shard_count
+            ),
+        ));
+    }
+    Ok(())
+}
+
+/// The files of shard `index` of a conversion into `out`: samples, errors (relative to
+/// `out` and in it) and the shard's record.
+struct ShardFiles {
+    /// `samples/part-KKKKK.parquet`.
+    samples_rel: String,
+    /// `errors/part-KKKKK.parquet`.
+    errors_rel: String,
+    /// The samples file.
+    samples_path: PathBuf,
+    /// The errors file.
+    errors_path: PathBuf,
+    /// The shard's record, written last.
+    record_path: PathBuf,
+}
+
+impl ShardFiles {
+    /// Shard `index`'s files in `out`.
+    fn new(out: &Path, index: usize) -> Self {
+        let samples_rel = format!("samples/part-{index:05}.parquet");
+        let errors_rel = format!("errors/part-{index:05}.parquet");
+        let (samples_path, errors_path) = (out.join(&samples_rel), out.join(&errors_rel));
+        let record_path = out.join(shard_record_name(index));
+        ShardFiles {
+            samples_rel,
+            errors_rel,
+            samples_path,
+            errors_path,
+            record_path,
+        }
+    }
+}
+
+/// Validates a shard's rows (in parallel), split into the good samples and the errors
+/// rows. The first samples of the run (up to the systematic rule's window, counted in
+/// `tally`) are validated first, and the rule applied, before the rest of the shard.
+fn validate_shard(
+    chunk: &[PlannedRow],
+    root: &Path,
+    ctx: &ValidationContext,
+    checks: &ConvertChecks,
+    tally: &mut SkipTally,
+    progress: Progress,
+) -> Result<(Vec<SampleRecord>, Vec<ErrorRecord>)> {
+    let validate = |rows: &[PlannedRow]| -> Vec<std::result::Result<SampleRecord, Skip>> {
+        rows.par_iter()
+            .map(|row| {
+                let r = validate_sample_with(root, row, ctx, checks);
+                progress(1);
+                r
+            })
+            .collect()
+    };
+    let first = tally.remaining().min(chunk.len());
+    let mut results = validate(&chunk[..first]);
+    for r in &results {
+        tally.record(r.as_ref().err().and_then(|s| {
+            s.check
+                .map(|c| (c, format!("{}: {}", s.record.file, s.record.reason)))
+        }));
+    }
+    if let Some((_, message)) = tally.verdict("samples") {
+        return Err(Error::invalid("convert", message));
+    }
+    results.extend(validate(&chunk[first..]));
+    let (mut good, mut bad) = (Vec::new(), Vec::new());
+    for r in results {
+        match r {
+            Ok(s) => good.push(s),
+            Err(e) => bad.push(*e.record),
+        }
+    }
+    Ok((good, bad))
+}
+
+/// Writes shard `index`: its errors file, its samples file, then its record (a shard is
+/// finished only once the record exists); returns the record.
+fn write_shard(
+    files: ShardFiles,
+    index: usize,
+    good: &[SampleRecord],
+    bad: &[ErrorRecord],
+    vertices: usize,
+    fingerprint: String,
+) -> Result<ShardEntry> {
+    let ShardFiles {
+        samples_rel,
+        errors_rel,
+        samples_path,
+        errors_path,
+        record_path,
+    } = files;
+    parquet::write_parquet(&errors_path, &mut samples_table::errors_frame(bad)?)?;
+    samples_table::write_samples(&samples_path, good, vertices)?;
+    let entry = ShardEntry {
+        index,
+        samples_file: samples_rel,
+        rows: good.len(),
+        sha256: sha256_file(&samples_path)?,
+        errors_file: errors_rel,
+        error_rows: bad.len(),
+        errors_sha256: sha256_file(&errors_path)?,
+        bytes: std::fs::metadata(&samples_path)
+            .map_err(|e| Error::io(&samples_path, e))?
+            .len(),
+        tail_sha256: tail_sha256(&samples_path)?,
+        fingerprint,
+    };
+    // The record last: a shard is finished only once it exists.
+    let text = serde_json::to_string_pretty(&entry)
+        .map_err(|e| Error::invalid("shard record", e.to_string()))?;
+    arkit_core::atomic_file::write_bytes(&record_path, format!("{text}\n").as_bytes())?;
+    Ok(entry)
 }
 
 fn write_manifest(path: &Path, m: &Manifest) -> Result<()> {
@@ -1137,10 +1208,40 @@ pub fn merge(dataset: &Path) -> Result<Merged> {
     arkit_core::atomic_file::remove_stale_temporaries(dataset, false)?;
     let digest = conversion.digest();
     let dir = dataset.join("manifest");
+    let (named, ignored) = named_parts(&dir)?;
+    let n = part_count(&dir, &named)?;
+    check_parts_present(dataset, &dir, n)?;
+    let parts = read_parts(dataset, n, &digest)?;
+    check_parts_agree(&parts)?;
+    let first = parts[0].0.clone();
+    let shards = collect_shards(&parts, n)?;
+    check_unique_keys(dataset, &shards)?;
+    let merged = Manifest {
+        part: [0, 1],
+        converted: shards.iter().map(|s| s.rows).sum(),
+        skipped: shards.iter().map(|s| s.error_rows).sum(),
+        listing_problems: parts.iter().map(|(p, _)| p.listing_problems).sum(),
+        shards,
+        ..first
+    };
+    write_manifest(&dataset.join(MANIFEST_FILE), &merged)?;
+    Ok(Merged {
+        manifest: merged,
+        ignored,
+    })
+}
+
+/// The `(I, N)` of each part manifest named in a `manifest/` folder, and the other files
+/// there.
+type PartNames = (Vec<(usize, usize)>, Vec<PathBuf>);
+
+/// The `(I, N)` of each part manifest named in `dir` and, sorted, the other files there
+/// (temporaries aside).
+fn named_parts(dir: &Path) -> Result<PartNames> {
     let mut named: Vec<(usize, usize)> = Vec::new();
     let mut ignored = Vec::new();
-    for entry in std::fs::read_dir(&dir).map_err(|e| Error::io(&dir, e))? {
-        let entry = entry.map_err(|e| Error::io(&dir, e))?;
+    for entry in std::fs::read_dir(dir).map_err(|e| Error::io(dir, e))? {
+        let entry = entry.map_err(|e| Error::io(dir, e))?;
         let name = entry.file_name().to_string_lossy().into_owned();
         if arkit_core::atomic_file::is_temporary_name(&name) {
             continue;
@@ -1151,30 +1252,36 @@ pub fn merge(dataset: &Path) -> Result<Merged> {
         }
     }
     ignored.sort();
+    Ok((named, ignored))
+}
+
+/// The `N` that all the `named` parts share; an error when there is none or more than
+/// one.
+fn part_count(dir: &Path, named: &[(usize, usize)]) -> Result<usize> {
     let counts: BTreeSet<usize> = named.iter().map(|p| p.1).collect();
-    let n = match counts.len() {
-        0 => {
-            return Err(Error::format(
-                &dir,
-                "no part manifests (part-IIII-of-NNNN.json) to merge: run `convert --shard I/N` first",
-            ));
-        }
-        1 => *counts.first().expect("one"),
-        _ => {
-            return Err(Error::format(
-                &dir,
-                format!(
-                    "holds the parts of conversions split {} ways: remove the part manifests of the split you do not want, or convert into a new folder",
-                    counts
-                        .iter()
-                        .map(|c| c.to_string())
-                        .collect::<Vec<_>>()
-                        .join(" and ")
-                ),
-            ));
-        }
-    };
-    // Every missing part named at once, so that a cluster's failed tasks are all seen.
+    match counts.len() {
+        0 => Err(Error::format(
+            dir,
+            "no part manifests (part-IIII-of-NNNN.json) to merge: run `convert --shard I/N` first",
+        )),
+        1 => Ok(*counts.first().expect("one")),
+        _ => Err(Error::format(
+            dir,
+            format!(
+                "holds the parts of conversions split {} ways: remove the part manifests of the split you do not want, or convert into a new folder",
+                counts
+                    .iter()
+                    .map(|c| c.to_string())
+                    .collect::<Vec<_>>()
+                    .join(" and ")
+            ),
+        )),
+    }
+}
+
+/// Refuses a merge with any of the `n` part manifests missing, naming every missing part
+/// at once (so that a cluster's failed tasks are all seen).
+fn check_parts_present(dataset: &Path, dir: &Path, n: usize) -> Result<()> {
     let missing: Vec<usize> = (0..n)
         .filter(|&i| !dataset.join(manifest_name(i, n)).exists())
         .collect();
@@ -1187,7 +1294,7 @@ pub fn merge(dataset: &Path) -> Result<Merged> {
             _ => ("parts", "are"),
         };
         return Err(Error::format(
-            &dir,
+            dir,
             format!(
                 "{parts} {} of {n} {verb} missing ({} of {n} finished): run {}",
                 list(&|i| i.to_string()),
@@ -1196,6 +1303,12 @@ pub fn merge(dataset: &Path) -> Result<Merged> {
             ),
         ));
     }
+    Ok(())
+}
+
+/// Reads the `n` part manifests with their paths; each must say it is the part its name
+/// says and carry the conversion's fingerprint `digest`.
+fn read_parts(dataset: &Path, n: usize, digest: &str) -> Result<Vec<(Manifest, PathBuf)>> {
     let mut parts: Vec<(Manifest, PathBuf)> = Vec::new();
     for i in 0..n {
         let path = dataset.join(manifest_name(i, n));
@@ -1219,8 +1332,14 @@ pub fn merge(dataset: &Path) -> Result<Merged> {
         }
         parts.push((p, path));
     }
-    let (first, first_path) = parts[0].clone();
-    for (p, path) in &parts {
+    Ok(parts)
+}
+
+/// Refuses parts that disagree with the first on the listed rows, the shard size, the
+/// input, the topology or the embedded images.
+fn check_parts_agree(parts: &[(Manifest, PathBuf)]) -> Result<()> {
+    let (first, first_path) = &parts[0];
+    for (p, path) in parts {
         let differs = [
             ("listed rows", p.listed != first.listed),
             ("shard size", p.rows_per_shard != first.rows_per_shard),
@@ -1244,7 +1363,13 @@ pub fn merge(dataset: &Path) -> Result<Merged> {
             ));
         }
     }
-    // Every shard of the conversion's rows once, in the part that owns it.
+    Ok(())
+}
+
+/// The shards of all `n` parts, sorted: every shard of the conversion's rows once, in the
+/// part that owns it.
+fn collect_shards(parts: &[(Manifest, PathBuf)], n: usize) -> Result<Vec<ShardEntry>> {
+    let first = &parts[0].0;
     let expected = first.listed.div_ceil(first.rows_per_shard.max(1));
     let mut owner: Vec<Option<usize>> = vec![None; expected];
     let mut shards: Vec<ShardEntry> = Vec::new();
@@ -1281,20 +1406,7 @@ pub fn merge(dataset: &Path) -> Result<Merged> {
         ));
     }
     shards.sort_by_key(|s| s.index);
-    check_unique_keys(dataset, &shards)?;
-    let merged = Manifest {
-        part: [0, 1],
-        converted: shards.iter().map(|s| s.rows).sum(),
-        skipped: shards.iter().map(|s| s.error_rows).sum(),
-        listing_problems: parts.iter().map(|(p, _)| p.listing_problems).sum(),
-        shards,
-        ..first
-    };
-    write_manifest(&dataset.join(MANIFEST_FILE), &merged)?;
-    Ok(Merged {
-        manifest: merged,
-        ignored,
-    })
+    Ok(shards)
 }
 
 /// Checks each shard's samples file against its entry (size, footer checksum, rows)

@@ -538,80 +538,15 @@ fn import_frame(
     frame: &FoundFrame,
     size: Option<u32>,
 ) -> std::result::Result<ImportedFrame, FrameProblem> {
-    let json_path = input.join(&frame.json);
-    let fail = |file: &Path, reason: String| FrameProblem {
-        file: relative_string(file),
-        reason,
-        check: None,
-    };
+    let fail = frame_problem;
     let tagged = |check: Check| {
         move |p: FrameProblem| FrameProblem {
             check: Some(check),
             ..p
         }
     };
-    let len = std::fs::metadata(&json_path)
-        .map_err(|e| fail(&frame.json, e.to_string()))?
-        .len();
-    if len > MAX_CAPTURE_JSON_BYTES {
-        return Err(fail(
-            &frame.json,
-            format!("{len} bytes, more than the {MAX_CAPTURE_JSON_BYTES} a frame JSON may have"),
-        ));
-    }
-    let text = std::fs::read_to_string(&json_path).map_err(|e| fail(&frame.json, e.to_string()))?;
-    let cf = CaptureFrame::parse(&text).map_err(|r| {
-        // The checks of the JSON that a convention breaks (row-major matrices,
-        // intrinsics of another resolution), by the key the reason starts with.
-        let check = if r.contains("is not a rigid transform") {
-            Some(Check::Transforms)
-        } else if r.starts_with("'camera_intrinsics'") {
-            Some(Check::Intrinsics)
-        } else {
-            None
-        };
-        FrameProblem {
-            check,
-            ..fail(&frame.json, r)
-        }
-    })?;
-    // The image: named by the JSON, or the JSON's stem with a PNG or JPEG extension.
-    let dir = frame.json.parent().unwrap_or(Path::new(""));
-    let image_rel = match &cf.image {
-        Some(name) => dir.join(name),
-        None => {
-            let stem = &frame.key.img_id;
-            let found: Vec<PathBuf> = ["png", "jpg", "jpeg", "PNG", "JPG", "JPEG"]
-                .iter()
-                .map(|x| dir.join(format!("{stem}.{x}")))
-                .filter(|p| input.join(p).is_file())
-                .collect();
-            match found.len() {
-                1 => found[0].clone(),
-                0 => {
-                    return Err(fail(
-                        &frame.json,
-                        format!(
-                            "no image for this frame: expected {stem}.png or {stem}.jpg next to it, or an 'image' key"
-                        ),
-                    ));
-                }
-                _ => {
-                    return Err(fail(
-                        &frame.json,
-                        format!(
-                            "several images could be this frame's ({}); name one with the 'image' key",
-                            found
-                                .iter()
-                                .map(|p| relative_string(p))
-                                .collect::<Vec<_>>()
-                                .join(", ")
-                        ),
-                    ));
-                }
-            }
-        }
-    };
+    let cf = read_frame_json(input, frame)?;
+    let image_rel = frame_image(input, frame, &cf)?;
     let image_path = input.join(&image_rel);
     // The size from the image's header, against the frame's resolution, before any
     // pixel is decoded (and the decode bounded: crate::picture::image_decode).
@@ -685,6 +620,96 @@ fn import_frame(
     Ok(ImportedFrame { image, info })
 }
 
+/// A problem with `file` (relative to the capture folder), of no systematic check.
+fn frame_problem(file: &Path, reason: String) -> FrameProblem {
+    FrameProblem {
+        file: relative_string(file),
+        reason,
+        check: None,
+    }
+}
+
+/// The frame's JSON, size-checked and parsed; a reason that breaks a convention (row-major
+/// matrices, intrinsics of another resolution) is tagged with its check.
+fn read_frame_json(
+    input: &Path,
+    frame: &FoundFrame,
+) -> std::result::Result<CaptureFrame, FrameProblem> {
+    let fail = frame_problem;
+    let json_path = input.join(&frame.json);
+    let len = std::fs::metadata(&json_path)
+        .map_err(|e| fail(&frame.json, e.to_string()))?
+        .len();
+    if len > MAX_CAPTURE_JSON_BYTES {
+        return Err(fail(
+            &frame.json,
+            format!("{len} bytes, more than the {MAX_CAPTURE_JSON_BYTES} a frame JSON may have"),
+        ));
+    }
+    let text = std::fs::read_to_string(&json_path).map_err(|e| fail(&frame.json, e.to_string()))?;
+    CaptureFrame::parse(&text).map_err(|r| {
+        // The checks of the JSON that a convention breaks (row-major matrices,
+        // intrinsics of another resolution), by the key the reason starts with.
+        let check = if r.contains("is not a rigid transform") {
+            Some(Check::Transforms)
+        } else if r.starts_with("'camera_intrinsics'") {
+            Some(Check::Intrinsics)
+        } else {
+            None
+        };
+        FrameProblem {
+            check,
+            ..fail(&frame.json, r)
+        }
+    })
+}
+
+/// The frame's image, relative to the capture folder: named by the JSON, or the JSON's
+/// stem with a PNG or JPEG extension (exactly one of them).
+fn frame_image(
+    input: &Path,
+    frame: &FoundFrame,
+    cf: &CaptureFrame,
+) -> std::result::Result<PathBuf, FrameProblem> {
+    let fail = frame_problem;
+    let dir = frame.json.parent().unwrap_or(Path::new(""));
+    Ok(match &cf.image {
+        Some(name) => dir.join(name),
+        None => {
+            let stem = &frame.key.img_id;
+            let found: Vec<PathBuf> = ["png", "jpg", "jpeg", "PNG", "JPG", "JPEG"]
+                .iter()
+                .map(|x| dir.join(format!("{stem}.{x}")))
+                .filter(|p| input.join(p).is_file())
+                .collect();
+            match found.len() {
+                1 => found[0].clone(),
+                0 => {
+                    return Err(fail(
+                        &frame.json,
+                        format!(
+                            "no image for this frame: expected {stem}.png or {stem}.jpg next to it, or an 'image' key"
+                        ),
+                    ));
+                }
+                _ => {
+                    return Err(fail(
+                        &frame.json,
+                        format!(
+                            "several images could be this frame's ({}); name one with the 'image' key",
+                            found
+                                .iter()
+                                .map(|p| relative_string(p))
+                                .collect::<Vec<_>>()
+                                .join(", ")
+                        ),
+                    ));
+                }
+            }
+        }
+    })
+}
+
 const LAYOUT_DIRS: [&str; 5] = [
     "ARKitFace_image_train",
     "ARKitFace_image_test",
@@ -698,60 +723,13 @@ pub fn import_capture(
     options: &ImportOptions,
     progress: &(dyn Fn() + Sync),
 ) -> Result<ImportSummary> {
-    if !(1..=100).contains(&options.jpeg_quality) {
-        return Err(Error::invalid("--jpeg-quality", "must be in 1..=100"));
-    }
-    let subject = match &options.subject {
-        Some(s) => s.clone(),
-        None => std::fs::canonicalize(&options.input)
-            .map_err(|e| Error::io(&options.input, e))?
-            .file_name()
-            .map(|n| n.to_string_lossy().into_owned())
-            .unwrap_or_default(),
-    };
-    if !plain_name(&subject) {
-        return Err(Error::invalid(
-            "--subject",
-            format!("'{subject}' is not a plain name (no slashes)"),
-        ));
-    }
+    let subject = import_subject(options)?;
     let frames = find_frames(&options.input, &subject)?;
     let _lock = atomic_file::FolderLock::acquire(&options.output, "import-arkit", "import-arkit")?;
     atomic_file::remove_stale_temporaries(&options.output, true)?;
-    let existing: Vec<&str> = LAYOUT_DIRS
-        .iter()
-        .copied()
-        .filter(|d| options.output.join(d).exists())
-        .collect();
-    if !existing.is_empty() {
-        if !options.overwrite {
-            return Err(Error::format(
-                &options.output,
-                format!(
-                    "already holds a release layout ({}); pass --overwrite to replace it",
-                    existing.join(", ")
-                ),
-            ));
-        }
-        for d in existing {
-            let p = options.output.join(d);
-            std::fs::remove_dir_all(&p).map_err(|e| Error::io(&p, e))?;
-        }
-    }
+    clear_release_layout(options)?;
     let layout = ReleaseLayout::new(&options.output);
-    // Two frames with one key (a `capture/` sub-folder beside frames in the root): the
-    // first is imported, the other reported, never written over it.
-    let mut seen = std::collections::HashMap::new();
-    let first_of: Vec<Option<PathBuf>> = frames
-        .iter()
-        .map(|f| match seen.get(&f.key) {
-            Some(first) => Some(PathBuf::clone(first)),
-            None => {
-                seen.insert(f.key.clone(), f.json.clone());
-                None
-            }
-        })
-        .collect();
+    let first_of = first_of_keys(&frames);
     // A frame that cannot be written (a full disk, say) stops the import, naming the
     // file: it is not the frame's fault, and skipping it would leave a smaller release
     // that looks complete.
@@ -766,41 +744,7 @@ pub fn import_capture(
                 .par_iter()
                 .zip(&first_of[range])
                 .map(|(f, first)| {
-                    let r = (|| {
-                        if let Some(first) = first {
-                            return Err(FrameProblem {
-                                check: None,
-                                file: relative_string(&f.json),
-                                reason: format!(
-                                    "the same sample key ({}) as {}, imported first",
-                                    f.key,
-                                    relative_string(first)
-                                ),
-                            });
-                        }
-                        let done = import_frame(&options.input, f, options.size)?;
-                        let write_fail = |e: Error| {
-                            let problem = FrameProblem {
-                                check: None,
-                                file: relative_string(&f.json),
-                                reason: format!("could not write the output: {e}"),
-                            };
-                            fatal.lock().expect("fatal lock").get_or_insert(e);
-                            problem
-                        };
-                        let jpeg =
-                            crate::picture::encode::jpeg_bytes(&done.image, options.jpeg_quality)
-                                .map_err(write_fail)?;
-                        atomic_file::write_bytes(&layout.image_path(options.split, &f.key), &jpeg)
-                            .map_err(write_fail)?;
-                        release::write_info(
-                            &layout.info_path(options.split, &f.key),
-                            &done.info,
-                            NpzCompression::Deflated,
-                        )
-                        .map_err(write_fail)?;
-                        Ok(f.key.clone())
-                    })();
+                    let r = import_one(options, &layout, f, first.as_deref(), &fatal);
                     progress();
                     r
                 })
@@ -849,4 +793,113 @@ pub fn import_capture(
         imported: keys.len(),
         skipped,
     })
+}
+
+/// Checks the JPEG quality; the subject id (`--subject`, or the capture folder's name),
+/// which must be a plain name.
+fn import_subject(options: &ImportOptions) -> Result<String> {
+    if !(1..=100).contains(&options.jpeg_quality) {
+        return Err(Error::invalid("--jpeg-quality", "must be in 1..=100"));
+    }
+    let subject = match &options.subject {
+        Some(s) => s.clone(),
+        None => std::fs::canonicalize(&options.input)
+            .map_err(|e| Error::io(&options.input, e))?
+            .file_name()
+            .map(|n| n.to_string_lossy().into_owned())
+            .unwrap_or_default(),
+    };
+    if !plain_name(&subject) {
+        return Err(Error::invalid(
+            "--subject",
+            format!("'{subject}' is not a plain name (no slashes)"),
+        ));
+    }
+    Ok(subject)
+}
+
+/// Refuses an output that already holds a release layout, or with `--overwrite` removes
+/// its layout folders.
+fn clear_release_layout(options: &ImportOptions) -> Result<()> {
+    let existing: Vec<&str> = LAYOUT_DIRS
+        .iter()
+        .copied()
+        .filter(|d| options.output.join(d).exists())
+        .collect();
+    if !existing.is_empty() {
+        if !options.overwrite {
+            return Err(Error::format(
+                &options.output,
+                format!(
+                    "already holds a release layout ({}); pass --overwrite to replace it",
+                    existing.join(", ")
+                ),
+            ));
+        }
+        for d in existing {
+            let p = options.output.join(d);
+            std::fs::remove_dir_all(&p).map_err(|e| Error::io(&p, e))?;
+        }
+    }
+    Ok(())
+}
+
+/// Per frame, the JSON of the earlier frame with the same key, if any (a `capture/`
+/// sub-folder beside frames in the root): the first is imported, the other reported,
+/// never written over it.
+fn first_of_keys(frames: &[FoundFrame]) -> Vec<Option<PathBuf>> {
+    let mut seen = std::collections::HashMap::new();
+    frames
+        .iter()
+        .map(|f| match seen.get(&f.key) {
+            Some(first) => Some(PathBuf::clone(first)),
+            None => {
+                seen.insert(f.key.clone(), f.json.clone());
+                None
+            }
+        })
+        .collect()
+}
+
+/// Imports frame `f` (refused when `first`, an earlier frame, has its key) and writes its
+/// image and info; a write error is also kept in `fatal`, which stops the import.
+fn import_one(
+    options: &ImportOptions,
+    layout: &ReleaseLayout,
+    f: &FoundFrame,
+    first: Option<&Path>,
+    fatal: &std::sync::Mutex<Option<Error>>,
+) -> std::result::Result<SampleKey, FrameProblem> {
+    if let Some(first) = first {
+        return Err(FrameProblem {
+            check: None,
+            file: relative_string(&f.json),
+            reason: format!(
+                "the same sample key ({}) as {}, imported first",
+                f.key,
+                relative_string(first)
+            ),
+        });
+    }
+    let done = import_frame(&options.input, f, options.size)?;
+    let write_fail = |e: Error| {
+        let problem = FrameProblem {
+            check: None,
+            file: relative_string(&f.json),
+            reason: format!("could not write the output: {e}"),
+        };
+        fatal.lock().expect("fatal lock").get_or_insert(e);
+        problem
+    };
+    let jpeg = crate::picture::encode::jpeg_bytes(&done.image, options.jpeg_quality)
+        .map_err(write_fail)?;
+    atomic_file::write_bytes(&layout.image_path(options.split, &f.key), &jpeg)
+        .map_err(write_fail)?;
+    release::write_info(
+        &layout.info_path(options.split, &f.key),
+        &done.info,
+        NpzCompression::Deflated,
+    )
+    .map_err(write_fail)?;
+    Ok(f.key.clone())
 }

@@ -239,13 +239,7 @@ fn render(
     // The layout's rasterization, once: a mesh's map is then three weighted positions
     // per texel.
     let uv_texels = uv.texels(options.uv_size);
-    // Shards are kept on a rerun only if they were made with the same options, the
-    // same topology and from the same samples.
-    let settings = serde_json::json!({
-        "size": options.size, "uv_size": options.uv_size, "points": options.points, "seed": options.seed,
-        "mode": renderer.rules, "topology": renderer.topology().source, "full_mask": options.full_mask,
-        "dataset": dataset_fingerprint(&manifest),
-    });
+    let settings = render_settings(renderer, options, &manifest);
     let targets_dir = options.output.join("targets");
     // Parts of one render take the settings check in turn; a second render of the same
     // part is refused while the first runs; killed runs' temporaries go.
@@ -256,39 +250,7 @@ fn render(
         "render of this part",
     )?;
     arkit_core::atomic_file::remove_stale_temporaries(&targets_dir, true)?;
-    let settings_path = targets_dir.join("render.json");
-    let old: Option<serde_json::Value> = match std::fs::read_to_string(&settings_path) {
-        Ok(text) => Some(
-            // Unreadable as JSON counts as different settings.
-            serde_json::from_str(&text).unwrap_or(serde_json::Value::Null),
-        ),
-        Err(e) if e.kind() == std::io::ErrorKind::NotFound => None,
-        Err(e) => return Err(Error::io(&settings_path, e)),
-    };
-    if old.as_ref() != Some(&settings) {
-        if has_shard_files(&options.output)? {
-            if !replace {
-                let why = match &old {
-                    Some(old) => differences(old, &settings),
-                    None => "no render.json says how they were made".into(),
-                };
-                return Err(Error::format(
-                    &settings_path,
-                    format!(
-                        "the targets in {} were made otherwise ({why}); remove that folder, choose another --output, or pass --overwrite to replace them",
-                        options.output.join("targets").display()
-                    ),
-                ));
-            }
-            for f in shard_files(&options.output)? {
-                std::fs::remove_file(&f).map_err(|e| Error::io(&f, e))?;
-            }
-        }
-        // No shard there: whatever wrote render.json rendered nothing that could be kept.
-        std::fs::create_dir_all(options.output.join("targets"))
-            .map_err(|e| Error::io(&options.output, e))?;
-        arkit_core::atomic_file::write_bytes(&settings_path, format!("{settings:#}\n").as_bytes())?;
-    }
+    claim_targets(options, &settings, replace)?;
     drop(settings_lock);
     std::fs::create_dir_all(options.output.join("targets").join("errors"))
         .map_err(|e| Error::io(&options.output, e))?;
@@ -307,11 +269,7 @@ fn render(
             }
             let out = targets_table::shard_path(&options.output, shard.index);
             let errors_path = targets_table::errors_path(&options.output, shard.index);
-            if out.exists()
-                && errors_path.exists()
-                && parquet::parquet_row_count(&out)? + parquet::parquet_row_count(&errors_path)?
-                    == shard.rows
-            {
+            if shard_finished(&out, &errors_path, shard.rows)? {
                 let n = parquet::parquet_row_count(&errors_path)?;
                 if n > 0 && skipped.examples.len() < SkipTally::EXAMPLES {
                     skipped.add(&samples_table::read_errors(&errors_path)?);
@@ -321,116 +279,10 @@ fn render(
                 progress(shard.rows);
             } else {
                 let rows = samples_table::read_samples(&data.samples_path(shard)?)?;
-                // UV maps depend only on the mesh: one per distinct mesh.
-                let mut uv_maps: HashMap<Vec<u32>, usize> = HashMap::new();
-                let mut unique: Vec<&[f32]> = Vec::new();
-                let vertex_count = renderer.topology().vertex_count;
-                // A row that cannot be rendered gets no map (and an errors row below).
-                let index: Vec<Option<usize>> = rows
-                    .iter()
-                    .map(|r| {
-                        check_row(r, vertex_count).ok()?;
-                        Some(*uv_maps.entry(mesh_key(&r.verts)).or_insert_with(|| {
-                            unique.push(&r.verts);
-                            unique.len() - 1
-                        }))
-                    })
-                    .collect();
-                distinct += unique.len();
-                let maps: Vec<Vec<[f32; 3]>> = unique
-                    .par_iter()
-                    .map(|v| {
-                        let pts: Vec<Point3<f32>> =
-                            v.chunks(3).map(|c| Point3::new(c[0], c[1], c[2])).collect();
-                        uv_texels.position_map(&uv.extended_positions(&pts))
-                    })
-                    .collect();
-                let results: Vec<Result<TargetsRecord>> = rows
-                    .par_iter()
-                    .enumerate()
-                    .map_init(
-                        || {
-                            let crop = VisibilityBuffer::new(options.size, options.size);
-                            (crop, VisibilityBuffer::new(1, 1))
-                        },
-                        |(buffer, full), (i, r)| -> Result<TargetsRecord> {
-                            progress(1);
-                            check_row(r, vertex_count)?;
-                            let map = index[i].ok_or_else(|| {
-                                Error::invalid("verts", "no UV map (the row failed its checks)")
-                            })?;
-                            let verts: Vec<Point3<f32>> = r
-                                .verts
-                                .chunks(3)
-                                .map(|c| Point3::new(c[0], c[1], c[2]))
-                                .collect();
-                            let pose = Pose::from_release_rt(&r.rt)?;
-                            let crop = match renderer.rules {
-                                RuleSet::Exact => {
-                                    CropTransform::around_landmarks(&r.landmarks_2d, options.size)
-                                }
-                                RuleSet::Official => renderer.official_crop(
-                                    &verts,
-                                    &pose,
-                                    r.image_width,
-                                    r.image_height,
-                                    options.size,
-                                )?,
-                            };
-                            let t = renderer.render(
-                                &verts,
-                                &pose,
-                                r.image_width,
-                                r.image_height,
-                                &crop,
-                                buffer,
-                            )?;
-                            let seed = options.seed
-                                ^ (offset + i as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15);
-                            let points = sample_points(t.corr_vertices.len(), options.points, seed);
-                            let full_mask =
-                                if options.full_mask && renderer.rules == RuleSet::Official {
-                                    // The official pipeline rendered the whole image already.
-                                    Some(renderer.face_pixels(buffer))
-                                } else if options.full_mask {
-                                    Some(renderer.render_full_mask(
-                                        &verts,
-                                        &pose,
-                                        r.image_width,
-                                        r.image_height,
-                                        full,
-                                    )?)
-                                } else {
-                                    None
-                                };
-                            Ok(TargetsRecord::new(
-                                r.key.clone(),
-                                &t,
-                                points,
-                                options.uv_size,
-                                &maps[map],
-                            )
-                            .with_image(
-                                r.image_width,
-                                r.image_height,
-                                full_mask.as_deref(),
-                            ))
-                        },
-                    )
-                    .collect();
-                let mut records = Vec::with_capacity(rows.len());
-                let mut bad = Vec::new();
-                for (r, result) in rows.iter().zip(results) {
-                    match result {
-                        Ok(t) => records.push(t),
-                        Err(e) => bad.push(ErrorRecord {
-                            key: r.key.clone(),
-                            split: r.split.clone(),
-                            file: shard.samples_file.clone(),
-                            reason: e.to_string(),
-                        }),
-                    }
-                }
+                let (results, meshes) =
+                    render_rows(&rows, renderer, options, &uv, &uv_texels, offset, progress);
+                distinct += meshes;
+                let (records, bad) = sort_results(&rows, results, &shard.samples_file);
                 if let Some(h) = pending.take() {
                     join_writer(h)?;
                 }
@@ -465,6 +317,198 @@ fn render(
         skipped: skipped.count,
         skipped_examples: skipped.examples,
     })
+}
+
+/// What `render.json` records: the options, the topology and the dataset's fingerprint
+/// (shards are kept on a rerun only if they were made with the same options, the same
+/// topology and from the same samples).
+fn render_settings(
+    renderer: &FaceRenderer,
+    options: &RenderOptions,
+    manifest: &crate::store::manifest::Manifest,
+) -> serde_json::Value {
+    serde_json::json!({
+        "size": options.size, "uv_size": options.uv_size, "points": options.points, "seed": options.seed,
+        "mode": renderer.rules, "topology": renderer.topology().source, "full_mask": options.full_mask,
+        "dataset": dataset_fingerprint(manifest),
+    })
+}
+
+/// Compares `settings` with the `targets/render.json` there: when they differ, shards
+/// made otherwise are refused (or deleted when `replace`) and `render.json` is written.
+/// Runs under the settings lock.
+fn claim_targets(
+    options: &RenderOptions,
+    settings: &serde_json::Value,
+    replace: bool,
+) -> Result<()> {
+    let targets_dir = options.output.join("targets");
+    let settings_path = targets_dir.join("render.json");
+    let old: Option<serde_json::Value> = match std::fs::read_to_string(&settings_path) {
+        Ok(text) => Some(
+            // Unreadable as JSON counts as different settings.
+            serde_json::from_str(&text).unwrap_or(serde_json::Value::Null),
+        ),
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => None,
+        Err(e) => return Err(Error::io(&settings_path, e)),
+    };
+    if old.as_ref() != Some(settings) {
+        if has_shard_files(&options.output)? {
+            if !replace {
+                let why = match &old {
+                    Some(old) => differences(old, settings),
+                    None => "no render.json says how they were made".into(),
+                };
+                return Err(Error::format(
+                    &settings_path,
+                    format!(
+                        "the targets in {} were made otherwise ({why}); remove that folder, choose another --output, or pass --overwrite to replace them",
+                        options.output.join("targets").display()
+                    ),
+                ));
+            }
+            for f in shard_files(&options.output)? {
+                std::fs::remove_file(&f).map_err(|e| Error::io(&f, e))?;
+            }
+        }
+        // No shard there: whatever wrote render.json rendered nothing that could be kept.
+        std::fs::create_dir_all(options.output.join("targets"))
+            .map_err(|e| Error::io(&options.output, e))?;
+        arkit_core::atomic_file::write_bytes(&settings_path, format!("{settings:#}\n").as_bytes())?;
+    }
+    Ok(())
+}
+
+/// Whether a shard's targets and errors files are both there and account for all of its
+/// `rows` samples (an earlier run finished it).
+fn shard_finished(out: &Path, errors_path: &Path, rows: usize) -> Result<bool> {
+    Ok(out.exists()
+        && errors_path.exists()
+        && parquet::parquet_row_count(out)? + parquet::parquet_row_count(errors_path)? == rows)
+}
+
+/// Renders the targets of a shard's `rows` (the first at `offset` in the dataset), in
+/// parallel; returns each row's result and the number of distinct meshes (one UV map
+/// each).
+fn render_rows(
+    rows: &[samples_table::SampleRecord],
+    renderer: &FaceRenderer,
+    options: &RenderOptions,
+    uv: &UvMapper,
+    uv_texels: &crate::render::face::UvTexels,
+    offset: u64,
+    progress: &(dyn Fn(usize) + Sync),
+) -> (Vec<Result<TargetsRecord>>, usize) {
+    // UV maps depend only on the mesh: one per distinct mesh.
+    let mut uv_maps: HashMap<Vec<u32>, usize> = HashMap::new();
+    let mut unique: Vec<&[f32]> = Vec::new();
+    let vertex_count = renderer.topology().vertex_count;
+    // A row that cannot be rendered gets no map (and an errors row below).
+    let index: Vec<Option<usize>> = rows
+        .iter()
+        .map(|r| {
+            check_row(r, vertex_count).ok()?;
+            Some(*uv_maps.entry(mesh_key(&r.verts)).or_insert_with(|| {
+                unique.push(&r.verts);
+                unique.len() - 1
+            }))
+        })
+        .collect();
+    let distinct = unique.len();
+    let maps: Vec<Vec<[f32; 3]>> = unique
+        .par_iter()
+        .map(|v| {
+            let pts: Vec<Point3<f32>> =
+                v.chunks(3).map(|c| Point3::new(c[0], c[1], c[2])).collect();
+            uv_texels.position_map(&uv.extended_positions(&pts))
+        })
+        .collect();
+    let results = rows
+        .par_iter()
+        .enumerate()
+        .map_init(
+            || {
+                let crop = VisibilityBuffer::new(options.size, options.size);
+                (crop, VisibilityBuffer::new(1, 1))
+            },
+            |(buffer, full), (i, r)| -> Result<TargetsRecord> {
+                progress(1);
+                check_row(r, vertex_count)?;
+                let map = index[i].ok_or_else(|| {
+                    Error::invalid("verts", "no UV map (the row failed its checks)")
+                })?;
+                let seed = options.seed ^ (offset + i as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15);
+                render_row(renderer, options, r, &maps[map], seed, buffer, full)
+            },
+        )
+        .collect();
+    (results, distinct)
+}
+
+/// One row's targets: its crop, the rendered correspondences, `options.points` points
+/// drawn from `seed`, its UV map `map` and (with `options.full_mask`) the whole image's
+/// face mask; `buffer` and `full` are the thread's crop and full-image buffers.
+fn render_row(
+    renderer: &FaceRenderer,
+    options: &RenderOptions,
+    r: &samples_table::SampleRecord,
+    map: &[[f32; 3]],
+    seed: u64,
+    buffer: &mut VisibilityBuffer,
+    full: &mut VisibilityBuffer,
+) -> Result<TargetsRecord> {
+    let verts: Vec<Point3<f32>> = r
+        .verts
+        .chunks(3)
+        .map(|c| Point3::new(c[0], c[1], c[2]))
+        .collect();
+    let pose = Pose::from_release_rt(&r.rt)?;
+    let crop = match renderer.rules {
+        RuleSet::Exact => CropTransform::around_landmarks(&r.landmarks_2d, options.size),
+        RuleSet::Official => {
+            renderer.official_crop(&verts, &pose, r.image_width, r.image_height, options.size)?
+        }
+    };
+    let t = renderer.render(&verts, &pose, r.image_width, r.image_height, &crop, buffer)?;
+    let points = sample_points(t.corr_vertices.len(), options.points, seed);
+    let full_mask = if options.full_mask && renderer.rules == RuleSet::Official {
+        // The official pipeline rendered the whole image already.
+        Some(renderer.face_pixels(buffer))
+    } else if options.full_mask {
+        Some(renderer.render_full_mask(&verts, &pose, r.image_width, r.image_height, full)?)
+    } else {
+        None
+    };
+    Ok(
+        TargetsRecord::new(r.key.clone(), &t, points, options.uv_size, map).with_image(
+            r.image_width,
+            r.image_height,
+            full_mask.as_deref(),
+        ),
+    )
+}
+
+/// Splits a shard's results into the targets records and the errors rows (which name the
+/// shard's `samples_file`), in row order.
+fn sort_results(
+    rows: &[samples_table::SampleRecord],
+    results: Vec<Result<TargetsRecord>>,
+    samples_file: &str,
+) -> (Vec<TargetsRecord>, Vec<ErrorRecord>) {
+    let mut records = Vec::with_capacity(rows.len());
+    let mut bad = Vec::new();
+    for (r, result) in rows.iter().zip(results) {
+        match result {
+            Ok(t) => records.push(t),
+            Err(e) => bad.push(ErrorRecord {
+                key: r.key.clone(),
+                split: r.split.clone(),
+                file: samples_file.to_string(),
+                reason: e.to_string(),
+            }),
+        }
+    }
+    (records, bad)
 }
 
 /// Waits for the thread writing a targets file; its panic (a bug, not an input) becomes

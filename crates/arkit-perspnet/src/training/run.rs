@@ -167,37 +167,11 @@ pub fn train<S: ExampleShards + ?Sized>(
     let net = Network::new(cfg, &vertex_uv(topology, &device)?, vb)
         .map_err(|e| candle_err("network", e))?;
     reseed(&varmap, options.seed, cfg.init_std).map_err(|e| candle_err("initial weights", e))?;
-    let epoch_steps = options.epochs * steps_per_epoch(examples, options.batch);
-    let total_steps = match options.max_steps {
-        Some(n) if n > epoch_steps => {
-            return Err(Error::invalid(
-                "train",
-                format!("{n} steps need more than {} epochs", options.epochs),
-            ));
-        }
-        Some(n) => n,
-        None => epoch_steps,
-    };
-    let mut checkpoint = Checkpoint {
-        config: cfg.clone(),
-        topology: topology.source.clone(),
-        epochs: options.epochs,
-        batch: options.batch,
-        learning_rate: options.learning_rate,
-        lr_hold: options.lr_hold,
-        augmentation: options.augmentation,
-        lowered_start: options.lowered_start,
-        max_steps: options.max_steps,
-        seed: options.seed,
-        loss_weights: None,
-        epochs_done: 0,
-        examples: examples.total(),
-        example_shards: examples.shards(),
-        steps: 0,
-        first_loss: f32::NAN,
-        last_loss: f32::NAN,
-        imported_from: None,
-    };
+    let total_steps = step_budget(
+        options.epochs * steps_per_epoch(examples, options.batch),
+        options,
+    )?;
+    let mut checkpoint = fresh_checkpoint(topology, options, examples.total(), examples.shards());
     let mut log = Vec::new();
     let mut start_epoch = 0;
     let mut opt = Adam::new(named_trainable_vars(&varmap), options.learning_rate)
@@ -285,52 +259,8 @@ pub fn train<S: ExampleShards + ?Sized>(
                         options.learning_rate,
                         options.lr_hold,
                     );
-                    let step = (|| -> candle_core::Result<StepLoss> {
-                        let net = match &net {
-                            Network::PerspNet(net) => net,
-                            Network::Direct(direct) => {
-                                let out = direct.forward(&b.image, true)?;
-                                let target = b.direct.as_ref().expect("direct targets");
-                                let (total, rot, trans) = crate::direct::direct_loss(&out, target)?;
-                                opt.backward_step(&total)?;
-                                let v = |t: &Tensor| t.to_scalar::<f32>();
-                                return Ok(StepLoss {
-                                    step: log.len(),
-                                    epoch,
-                                    total: v(&total)?,
-                                    corr: v(&rot)?,
-                                    shape: v(&trans)?,
-                                    kl: 0.0,
-                                    entropy: 0.0,
-                                    seg: 0.0,
-                                });
-                            }
-                        };
-                        let out = net.forward(&b.image, &b.choose, true)?;
-                        let terms = loss.compute(
-                            &out,
-                            &LossTargets {
-                                nocs: &b.nocs,
-                                model: &b.model,
-                                seg_mask: &b.mask,
-                                corr: &b.corr,
-                                uv_map: None,
-                            },
-                        )?;
-                        opt.backward_step(&terms.total)?;
-                        let v = terms.values()?;
-                        Ok(StepLoss {
-                            step: log.len(),
-                            epoch,
-                            total: v[0],
-                            corr: v[1],
-                            shape: v[2],
-                            kl: v[3],
-                            entropy: v[4],
-                            seg: v[5],
-                        })
-                    })()
-                    .map_err(|e| candle_err("training step", e))?;
+                    let step = training_step(&net, &mut opt, &mut loss, &b, log.len(), epoch)
+                        .map_err(|e| candle_err("training step", e))?;
                     if !step.total.is_finite() {
                         return Err(Error::invalid(
                             "train",
@@ -354,6 +284,105 @@ pub fn train<S: ExampleShards + ?Sized>(
         write_checkpoint(&options.output, &checkpoint, &varmap, &opt, &log)?;
     }
     Ok((checkpoint, log))
+}
+
+/// The run's optimiser steps: `options.max_steps`, which must fit in the `epoch_steps`
+/// of `options.epochs` passes, or all of those.
+fn step_budget(epoch_steps: usize, options: &TrainOptions) -> Result<usize> {
+    match options.max_steps {
+        Some(n) if n > epoch_steps => Err(Error::invalid(
+            "train",
+            format!("{n} steps need more than {} epochs", options.epochs),
+        )),
+        Some(n) => Ok(n),
+        None => Ok(epoch_steps),
+    }
+}
+
+/// The checkpoint record of a run starting now (no epoch done, no loss yet) on `examples`
+/// examples in `example_shards` shards.
+fn fresh_checkpoint(
+    topology: &FaceTopology,
+    options: &TrainOptions,
+    examples: usize,
+    example_shards: usize,
+) -> Checkpoint {
+    Checkpoint {
+        config: options.config.clone(),
+        topology: topology.source.clone(),
+        epochs: options.epochs,
+        batch: options.batch,
+        learning_rate: options.learning_rate,
+        lr_hold: options.lr_hold,
+        augmentation: options.augmentation,
+        lowered_start: options.lowered_start,
+        max_steps: options.max_steps,
+        seed: options.seed,
+        loss_weights: None,
+        epochs_done: 0,
+        examples,
+        example_shards,
+        steps: 0,
+        first_loss: f32::NAN,
+        last_loss: f32::NAN,
+        imported_from: None,
+    }
+}
+
+/// One optimiser step (number `step`, in `epoch`) on batch `b`: the forward pass, the
+/// loss (PerspNet's terms, or the direct regressor's rotation and translation), the
+/// backward pass and Adam's update; returns the step's losses.
+fn training_step(
+    net: &Network,
+    opt: &mut Adam,
+    loss: &mut PerspNetLoss,
+    b: &super::data::Batch,
+    step: usize,
+    epoch: usize,
+) -> candle_core::Result<StepLoss> {
+    let net = match net {
+        Network::PerspNet(net) => net,
+        Network::Direct(direct) => {
+            let out = direct.forward(&b.image, true)?;
+            let target = b.direct.as_ref().expect("direct targets");
+            let (total, rot, trans) = crate::direct::direct_loss(&out, target)?;
+            opt.backward_step(&total)?;
+            let v = |t: &Tensor| t.to_scalar::<f32>();
+            return Ok(StepLoss {
+                step,
+                epoch,
+                total: v(&total)?,
+                corr: v(&rot)?,
+                shape: v(&trans)?,
+                kl: 0.0,
+                entropy: 0.0,
+                seg: 0.0,
+            });
+        }
+    };
+    let out = net.forward(&b.image, &b.choose, true)?;
+    let terms = loss.compute(
+        &out,
+        &LossTargets {
+            nocs: &b.nocs,
+            model: &b.model,
+            seg_mask: &b.mask,
+            corr: &b.corr,
+            uv_map: None,
+        },
+    )?;
+    opt.backward_step(&terms.total)?;
+    let v = terms.values()?;
+    Ok(StepLoss {
+        step,
+        epoch,
+        total: v[0],
+        corr: v[1],
+        shape: v[2],
+        kl: v[3],
+        entropy: v[4],
+        seg: v[5],
+    })
 }
 
 /// What a resumed run picks up besides the weights.
