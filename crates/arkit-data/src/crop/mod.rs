@@ -19,10 +19,16 @@
 //! vector path against the scalar one bit for bit; in [`official`], the box and warp
 //! against OpenCV's formulas (and `tests/official_crop.rs` against OpenCV's output).
 
-pub mod official;
+pub(crate) mod official;
 mod rules;
 
-pub use rules::RuleSet;
+pub use self::{
+    official::{
+        LandmarkExtent, affine_transform, box_crop, official_box, official_crop, warp_affine,
+        warp_mask,
+    },
+    rules::RuleSet,
+};
 
 use crate::lanes::{
     self,

@@ -37,8 +37,8 @@ use crate::store::manifest::{
 use crate::store::parquet;
 use crate::store::samples_table::{self, ErrorRecord, SampleRecord};
 use arkit_core::conventions::{Camera, Pose};
-use arkit_core::error::{Error, Result};
 use arkit_core::release::{self, ListRow, SampleKey};
+use arkit_core::{Error, Result};
 use nalgebra::{Matrix4, Point3};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
@@ -462,12 +462,12 @@ fn validate_sample_with(
     // proves the JPEG whole.
     let (width, height) = crate::picture::image_decode::decode_rgb8_checked(&bytes, &image_path, |h| {
         let (width, height) = (h.width, h.height);
-        if width > arkit_core::raster::MAX_VIEWPORT || height > arkit_core::raster::MAX_VIEWPORT {
+        if width > arkit_core::MAX_VIEWPORT || height > arkit_core::MAX_VIEWPORT {
             return Err(Error::format(
                 &image_path,
                 format!(
                     "the image is {width}x{height}: larger than the {} pixels a side the renderer takes",
-                    arkit_core::raster::MAX_VIEWPORT
+                    arkit_core::MAX_VIEWPORT
                 ),
             ));
         }

@@ -8,9 +8,9 @@
 //! swap brings the image count closer to `N / subjects` of all images. No subject is
 //! ever in two splits.
 
-use arkit_core::error::{Error, Result};
-use arkit_core::release::SampleKey;
-use arkit_core::rng::Rng;
+use arkit_core::Rng;
+use arkit_core::SampleKey;
+use arkit_core::{Error, Result};
 use polars::prelude::*;
 use std::collections::BTreeMap;
 

@@ -32,14 +32,14 @@
 
 use crate::crop::{CropTransform, RuleSet};
 use crate::store::face_targets::FaceTargets;
-use arkit_core::error::{Error, Result};
+use arkit_core::SampleKey;
 use arkit_core::limits;
-use arkit_core::release::SampleKey;
+use arkit_core::{Error, Result};
 use half::f16;
 use polars::prelude::*;
 use std::path::Path;
 
-use arkit_core::target_codec::{
+use arkit_core::{
     decode_uv_map, encode_uv_map, mask_len, pack_u16_le, pack_u32_le, rle_decode, rle_encode,
     unpack_u32_le,
 };
@@ -280,7 +280,7 @@ pub fn read_targets(path: &Path) -> Result<Vec<TargetsRecord>> {
     let mut out = Vec::with_capacity(df.height());
     for i in 0..df.height() {
         let (corr_vertices, corr_weights_q) =
-            arkit_core::target_codec::decode_correspondences(&cv[i], &cw[i]).map_err(at(i))?;
+            arkit_core::decode_correspondences(&cv[i], &cw[i]).map_err(at(i))?;
         out.push(TargetsRecord {
             key: SampleKey {
                 subject_id: subj[i].clone(),

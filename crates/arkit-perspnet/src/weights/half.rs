@@ -4,7 +4,7 @@ use super::{load_weights, open_weights};
 use crate::candle_err;
 use crate::network::Network;
 use crate::training::checkpoint::{Checkpoint, save_renamed};
-use arkit_core::error::{Error, Result};
+use arkit_core::{Error, Result};
 use candle_core::{DType, Device, Tensor};
 use candle_nn::{VarBuilder, VarMap};
 use std::collections::HashMap;
