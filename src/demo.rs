@@ -232,7 +232,7 @@ struct Evaluations {
 
 /// Runs the whole pipeline into `output` (which must be absent or empty) with the
 /// built-in face or the given topology: one function per group of stages below, each
-/// timed by the [`Clock`].
+/// timed by the `Clock`.
 pub fn run_demo(
     output: &Path,
     plan: &DemoPlan,

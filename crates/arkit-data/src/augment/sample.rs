@@ -18,7 +18,7 @@
 //!    from its source to its destination positions (the rings and contour move with the
 //!    new pose, the anchors do not): the *band* layer.
 //! 4. **Face layer**: the mesh triangles and the triangles filling the eyes and the
-//!    mouth are rasterized at the new pose with the depth test ([`arkit_core::raster`]); each
+//!    mouth are rasterized at the new pose with the depth test ([`arkit_core::VisibilityBuffer`]); each
 //!    covered pixel's perspective-correct barycentrics give the canonical surface point,
 //!    which is projected with the *old* pose to find where to read the source image.
 //!    This texture lookup is exact (no per-triangle affine approximation).

@@ -494,7 +494,7 @@ pub fn stage(
 }
 
 /// [`stage`] with the systematic rule's window (0: never stop; see
-/// [`crate::ingest::systematic`]): when the frame-size check refuses more than half of the
+/// [`crate::ingest::SYSTEMATIC_WINDOW`]): when the frame-size check refuses more than half of the
 /// first `window` posed frames, staging stops with the reason and what to do.
 pub fn stage_with(
     input: &Path,

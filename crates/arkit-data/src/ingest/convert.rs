@@ -373,7 +373,7 @@ pub fn check_jpeg_framing(bytes: &[u8]) -> std::result::Result<usize, String> {
 }
 
 /// Which per-sample checks run, and the window of the systematic rule
-/// ([`crate::ingest::systematic`]).
+/// ([`crate::ingest::SYSTEMATIC_WINDOW`]).
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub struct ConvertChecks {
     /// Checks turned off (only [`Check::Points2d`] can be).
@@ -615,7 +615,7 @@ pub struct ConversionFingerprint {
     pub lists: Vec<(String, String)>,
     /// Where the topology came from.
     pub topology: String,
-    /// [`topology_digest`] of the topology.
+    /// `store::manifest::topology_digest` of the topology.
     pub topology_sha256: String,
     /// The projection matrix, row-major.
     pub projection: Vec<f64>,
@@ -855,7 +855,7 @@ fn convert_planned(
 }
 
 /// `convert_planned` with `checks` (checks turned off, the systematic rule's
-/// window). A run that the systematic rule stops ([`crate::ingest::systematic`]) returns its
+/// window). A run that the systematic rule stops ([`crate::ingest::SYSTEMATIC_WINDOW`]) returns its
 /// message as the error; the shards finished before it stay (a rerun with the check
 /// turned off is another conversion and replaces them with `--overwrite`).
 pub fn convert_planned_with(

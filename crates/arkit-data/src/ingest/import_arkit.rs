@@ -361,7 +361,7 @@ pub struct FrameProblem {
     /// What is wrong.
     pub reason: String,
     /// The check a convention can break that refused the frame, if one did (for the
-    /// systematic rule, [`crate::ingest::systematic`]).
+    /// systematic rule, [`crate::ingest::SYSTEMATIC_WINDOW`]).
     #[serde(skip)]
     pub check: Option<Check>,
 }

@@ -2,7 +2,7 @@
 //!
 //! Takes the release's files, BIWI's (through [`biwi`]), a user's captures (made
 //! release-shaped by [`import_capture`]) or a synthetic release ([`synth`]). Gives a
-//! converted dataset: validated, sharded Parquet ([`convert`], [`merge`]),
+//! converted dataset: validated, sharded Parquet ([`convert()`], [`merge`]),
 //! subject-disjoint splits from a seed ([`split_dataset`]), another camera's images
 //! resampled into the release's ([`resample_to_release`]). Guarantees: a bad sample is
 //! reported in the `errors` table and skipped, never substituted; a run stops when one

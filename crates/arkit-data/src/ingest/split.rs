@@ -1,6 +1,6 @@
 //! `split`: subject-disjoint train/test(/val) splits, reproducible from a seed.
 //!
-//! Subjects are shuffled with the seed ([`arkit_core::rng`]), then assigned so that the test
+//! Subjects are shuffled with the seed ([`arkit_core::Rng`]), then assigned so that the test
 //! (and validation) split's share of *images* is as close as subjects allow to the
 //! requested share: for `--test-fraction F` subjects are added while that brings the
 //! image count closer to `F` of all images; for `--test-subjects N` the first `N`

@@ -9,7 +9,7 @@
 //!    `conventions::camera`).
 //! 2. **Visibility** ([`FaceRenderer::render`]): the mesh plus the fans that close the
 //!    eyes and mouth, projected with the release camera, mapped into the crop and
-//!    rasterized ([`arkit_core::raster`]) with the depth test. The fans take part in the
+//!    rasterized ([`arkit_core::VisibilityBuffer`]) with the depth test. The fans take part in the
 //!    depth test (a cheek seen through an eye opening at large yaw stays hidden) but are
 //!    not face pixels.
 //! 3. **Targets** ([`FaceTargets`]): the mask (visible mesh triangles), and per mask pixel
@@ -52,7 +52,7 @@ pub struct FaceRenderer {
     /// Whose rasterization rules [`FaceRenderer::render`] follows:
     /// [`RuleSet::Exact`] (pixel centres, the top-left fill rule, perspective-correct
     /// weights) or [`RuleSet::Official`] (the official loader's pipeline,
-    /// [`crate::crop::official`]: its crop box and `cv2` affine map (corner sampling),
+    /// [`crate::crop::official_crop`]: its crop box and `cv2` affine map (corner sampling),
     /// its rasterizer over the whole image
     /// ([`arkit_core::rasterize_mesh_official`]: integer sample points, its
     /// inside test, screen-space weights, earlier triangle on ties), its mask warped
@@ -201,7 +201,7 @@ impl FaceRenderer {
     }
 
     /// [`FaceRenderer::render`] in [`RuleSet::Official`]: the official loader's
-    /// pipeline ([`crate::crop::official`]): rasterize over the whole image with its
+    /// pipeline ([`crate::crop::official_crop`]): rasterize over the whole image with its
     /// rules, warp the mask into the crop as `cv2.warpAffine` does, and take each crop
     /// mask pixel's correspondence from the heaviest face pixel among its bilinear taps.
     fn render_official(

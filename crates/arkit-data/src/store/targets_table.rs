@@ -22,7 +22,8 @@
 //!   keeps about 3 significant digits: a relative error of at most 2^-11, 0.031 mm for
 //!   |x| < 0.125 m.
 //!
-//! The byte codecs live in [`arkit_core::target_codec`] (re-exported here) so they can
+//! The byte codecs live in `arkit_core` ([`arkit_core::rle_encode`] and the others,
+//! re-exported here) so they can
 //! be fuzzed without polars. Reading never trusts a size from the file: `crop_size`,
 //! `uv_size`, `image_width` and `image_height` are checked against [`arkit_core::limits`]
 //! (a null is an error naming the column and row) before anything is sized from them;
