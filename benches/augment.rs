@@ -4,7 +4,7 @@
 //! as `augment` writes). The target: JPEG encoding is the largest share.
 //! Also mirroring and roll for comparison. Run: `cargo bench --bench augment`.
 
-use arkit_data::augment::sample::{Axis, FaceImage};
+use arkit_data::augment::{Axis, FaceImage};
 use arkit_data::ingest::synth::{self, FaceSource, SynthOptions};
 use std::time::Instant;
 
@@ -42,20 +42,20 @@ fn main() {
             let change = if e.yaw_deg >= 0.0 { 15.0 } else { -15.0 };
             let cam = arkit_core::conventions::Camera::release(800, 800);
             let t0 = Instant::now();
-            let mesh = arkit_data::augment::sample::profile_mesh(topo, &f.verts, &f.pose, &cam);
+            let mesh = arkit_data::augment::profile_mesh(topo, &f.verts, &f.pose, &cam);
             let t1 = Instant::now();
-            let out = arkit_data::augment::sample::profile(topo, f, Axis::Yaw, change);
+            let out = arkit_data::augment::profile(topo, f, Axis::Yaw, change);
             let t2 = Instant::now();
             let (Ok(_), Ok(out)) = (mesh, out) else {
                 skipped += 1;
                 continue;
             };
-            let bytes = arkit_data::picture::encode::jpeg_bytes(&out.image, 95).unwrap();
+            let bytes = arkit_data::picture::jpeg_bytes(&out.image, 95).unwrap();
             let t3 = Instant::now();
             std::hint::black_box(bytes);
-            let m = arkit_data::augment::sample::mirror(f, &map).unwrap();
+            let m = arkit_data::augment::mirror(f, &map).unwrap();
             let t4 = Instant::now();
-            let r = arkit_data::augment::sample::roll(f, 10.0);
+            let r = arkit_data::augment::roll(f, 10.0);
             let t5 = Instant::now();
             std::hint::black_box((m, r.ok()));
             let tri_s = (t1 - t0).as_secs_f64();

@@ -20,7 +20,7 @@
 mod timing;
 
 use arkit_data::crop::RuleSet;
-use arkit_data::loader::item::{FaceLoader, LoaderMode, LoaderOptions};
+use arkit_data::loader::{FaceLoader, LoaderMode, LoaderOptions};
 use arkit_data::store::crop_store::{self, WindowCodec, WindowPart};
 use image::ImageEncoder;
 use std::path::PathBuf;
@@ -46,8 +46,7 @@ fn main() {
         std::env::var("ARKIT_RESOURCES").unwrap_or_else(|_| "../shared/arkitface-resources".into()),
     );
     let (topology, source) = if resources.join("triangles.npy").exists() {
-        let t = arkit_data::mesh::topology::FaceTopology::from_resources(&resources)
-            .expect("resources");
+        let t = arkit_data::mesh::FaceTopology::from_resources(&resources).expect("resources");
         (
             t.clone(),
             arkit_data::ingest::synth::FaceSource::new(t).expect("face"),
@@ -55,7 +54,7 @@ fn main() {
     } else {
         eprintln!("no resources at {}: the built-in face", resources.display());
         (
-            arkit_data::mesh::synthetic_face::builtin().topology.clone(),
+            arkit_data::mesh::builtin().topology.clone(),
             arkit_data::ingest::synth::FaceSource::builtin(),
         )
     };
@@ -70,12 +69,12 @@ fn main() {
         ..Default::default()
     };
     arkit_data::ingest::synth::generate(&source, &options, &release, &|| {}).unwrap();
-    let ctx = arkit_data::ingest::convert::ValidationContext {
+    let ctx = arkit_data::ingest::ValidationContext {
         projection: arkit_core::conventions::Camera::release_projection(),
         topology: topology.clone(),
         embed_images: false,
     };
-    let copts = arkit_data::ingest::convert::ConvertOptions {
+    let copts = arkit_data::ingest::ConvertOptions {
         input: release.clone(),
         output: data.clone(),
         resources: None,
@@ -85,7 +84,7 @@ fn main() {
         shard_count: 1,
         overwrite: false,
     };
-    arkit_data::ingest::convert::convert(&copts, &ctx, &|_| {}).unwrap();
+    arkit_data::ingest::convert(&copts, &ctx, &|_| {}).unwrap();
     let loader = FaceLoader::open(
         &data,
         topology,
@@ -331,7 +330,7 @@ fn main() {
     );
     let real = resources.join("template_verts.npy");
     if real.exists() {
-        let v = arkit_core::npy::read_npy(&real).unwrap().to_f32_vec();
+        let v = arkit_core::read_npy(&real).unwrap().to_f32_vec();
         let face = [v
             .chunks_exact(3)
             .map(|c| nalgebra::Point3::new(c[0], c[1], c[2]))
@@ -388,8 +387,7 @@ fn main() {
     for codec in STORE_CODECS {
         let out = tmp.path().join(format!("store-{}", codec.name()));
         let summary =
-            arkit_data::loader::crops_dataset::write_crop_store_with(&loader, &out, codec, &|_| {})
-                .unwrap();
+            arkit_data::loader::write_crop_store_with(&loader, &out, codec, &|_| {}).unwrap();
         println!(
             "ratio: store {} / JPEG = {:.3} ({:.1} KiB a sample, the release's JPEG {:.1} KiB)",
             codec.name(),

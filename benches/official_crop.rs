@@ -5,12 +5,12 @@
 //! Run: `cargo bench --bench official_crop`. Its exactness against OpenCV itself is
 //! `tests/official_crop.rs`.
 
+use arkit_core::Rng;
+use arkit_core::VisibilityBuffer;
 use arkit_core::conventions::{Camera, EulerAngles, Pose};
-use arkit_core::raster::VisibilityBuffer;
-use arkit_core::rng::Rng;
-use arkit_data::crop::official::{box_crop, warp_mask};
 use arkit_data::crop::{CropTransform, RuleSet};
-use arkit_data::render::face::FaceRenderer;
+use arkit_data::crop::{box_crop, warp_mask};
+use arkit_data::render::FaceRenderer;
 use image::RgbImage;
 use nalgebra::Vector3;
 
@@ -58,7 +58,7 @@ fn main() {
     );
     // The whole visibility job per sample, ours at crop resolution against the
     // official pipeline's full-resolution render, warp and tap choice.
-    let topo = arkit_data::mesh::synthetic_face::builtin().topology.clone();
+    let topo = arkit_data::mesh::builtin().topology.clone();
     let verts = topo.template.clone().expect("template");
     let mut renderer = FaceRenderer::new(topo.clone(), Camera::release_projection()).unwrap();
     let pose = Pose::from_euler(

@@ -1,4 +1,4 @@
-//! `cargo bench --bench pnp`: our PnP (P3P + MSAC + Levenberg-Marquardt, `arkit_data::pose::pnp`)
+//! `cargo bench --bench pnp`: our PnP (P3P + MSAC + Levenberg-Marquardt, `arkit_data::pose::solve_pnp_ransac`)
 //! in the ARKitFace setting, against OpenCV's figures measured on this kind of machine
 //! (`../shared/measurements.md`) and against the attainable accuracy.
 //!
@@ -9,8 +9,8 @@
 //! Single thread; each time is the minimum of repeated identical runs, then the median
 //! over poses.
 
-use arkit_core::rng::Rng;
-use arkit_data::pose::pnp::{
+use arkit_core::Rng;
+use arkit_data::pose::{
     Intrinsics, PnpError, PnpSolution, RansacParams, refine_pose, reproject, solve_pnp,
     solve_pnp_ransac,
 };
@@ -32,14 +32,14 @@ impl Surface {
                 std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
                     .join("../shared/arkitface-resources")
             });
-        let topology = match arkit_data::mesh::topology::FaceTopology::from_resources(&dir) {
+        let topology = match arkit_data::mesh::FaceTopology::from_resources(&dir) {
             Ok(t) => {
                 println!("face: the real ARKit face from {}", dir.display());
                 t
             }
             Err(e) => {
                 println!("face: the built-in face ({e})");
-                arkit_data::mesh::synthetic_face::builtin().topology.clone()
+                arkit_data::mesh::builtin().topology.clone()
             }
         };
         let verts: Vec<Vector3<f64>> = topology
@@ -186,7 +186,7 @@ fn scene(surface: &Surface, outlier_ratio: f64, rng: &mut Rng) -> Scene {
 /// true [R|t] in OpenCV form) so OpenCV can be run on exactly the same data
 /// (`benches/pnp_opencv.py`).
 fn dump(surface: &Surface, outlier_ratio: f64, dir: &std::path::Path) {
-    use arkit_core::npy::{NpyArray, write_npy};
+    use arkit_core::{NpyArray, write_npy};
     let mut rng = Rng::new(12345);
     let (mut o, mut i, mut t) = (Vec::new(), Vec::new(), Vec::new());
     for _ in 0..300 {

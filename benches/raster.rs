@@ -7,7 +7,7 @@
 //! Run: `cargo bench --bench raster`.
 
 use arkit_core::conventions::{Camera, EulerAngles, Pose};
-use arkit_core::raster::{
+use arkit_core::{
     PixelWindow, VisibilityBuffer, rasterize_mesh_official_in, rasterize_official_visibility_in,
 };
 use nalgebra::{Point3, Vector3};
@@ -20,7 +20,7 @@ use timing::median_ms;
 const OFFICIAL_MASK_MS: f64 = 3.0;
 
 fn main() {
-    let topo = &arkit_data::mesh::synthetic_face::builtin().topology;
+    let topo = &arkit_data::mesh::builtin().topology;
     let fill = topo.hole_fill().expect("hole fill");
     let template = topo.template.as_ref().expect("template");
     let mut verts: Vec<Point3<f32>> = template.clone();

@@ -9,10 +9,10 @@
 //! likely the branch predictor learning its loops' trip counts), which the line
 //! "visibility, one pose repeated" shows.
 
+use arkit_core::VisibilityBuffer;
 use arkit_core::conventions::{Camera, EulerAngles, Pose};
-use arkit_core::raster::VisibilityBuffer;
 use arkit_data::crop::CropTransform;
-use arkit_data::render::face::{FaceRenderer, UvMapper, sample_points};
+use arkit_data::render::{FaceRenderer, UvMapper, sample_points};
 use image::{Rgb, RgbImage};
 use nalgebra::Vector3;
 
@@ -27,7 +27,7 @@ fn main() {
     // KiB output (correspondence weights, UV map) is a fresh mapping, zero-filled by the
     // kernel page by page.
     arkit_tool::allocator::keep_freed_memory();
-    let topo = arkit_data::mesh::synthetic_face::builtin().topology.clone();
+    let topo = arkit_data::mesh::builtin().topology.clone();
     let verts = topo.template.clone().unwrap();
     let renderer = FaceRenderer::new(topo.clone(), Camera::release_projection()).unwrap();
     let uv = UvMapper::derive(&topo).unwrap();

@@ -15,21 +15,20 @@
 //! - `report/index.html` and its pictures; `demo.json`: timings and eval summaries.
 
 use crate::report::{self, Figure, Page, StageTiming};
+use arkit_core::PredictionRecord;
 use arkit_core::conventions::Camera;
-use arkit_core::error::{Error, Result};
-use arkit_core::predictions_csv::PredictionRecord;
-use arkit_data::augment::dataset::{AugmentOptions, AxisChoice, ProfilingRule};
-use arkit_data::eval::dataset::{EvalOptions, Evaluation, ReportFiles};
-use arkit_data::eval::metrics::Summary;
-use arkit_data::ingest::convert::{self, ConvertOptions, ValidationContext};
-use arkit_data::ingest::split::{self, HoldOut};
+use arkit_core::{Error, Result};
+use arkit_data::augment::{AugmentOptions, AxisChoice, ProfilingRule};
+use arkit_data::eval::Summary;
+use arkit_data::eval::{EvalOptions, Evaluation, ReportFiles};
 use arkit_data::ingest::synth::{self, FaceSource, SynthOptions};
-use arkit_data::mesh::topology::FaceTopology;
-use arkit_data::pose::pnp::RansacParams;
-use arkit_data::render::dataset::RenderOptions;
-use arkit_data::render::face::FaceRenderer;
-use arkit_data::store::manifest::Manifest;
-use arkit_data::store::predictions_table::write_predictions;
+use arkit_data::ingest::{self, ConvertOptions, HoldOut, ValidationContext};
+use arkit_data::mesh::FaceTopology;
+use arkit_data::pose::RansacParams;
+use arkit_data::render::FaceRenderer;
+use arkit_data::render::RenderOptions;
+use arkit_data::store::Manifest;
+use arkit_data::store::write_predictions;
 use arkit_perspnet::{Augmentation, TrainOptions};
 use arkit_perspnet::{Checkpoint, PerspNetConfig, StepLoss};
 use image::RgbImage;
@@ -240,7 +239,7 @@ struct Evaluations {
 
 /// Runs the whole pipeline into `output` (which must be absent or empty) with the
 /// built-in face or the given topology: one function per group of stages below, each
-/// timed by the [`Clock`].
+/// timed by the `Clock`.
 pub fn run_demo(
     output: &Path,
     plan: &DemoPlan,
@@ -362,7 +361,7 @@ fn make_dataset(
         topology: topology.clone(),
         embed_images: false,
     };
-    let manifest = convert::convert(&convert_options, &ctx, &tick)?;
+    let manifest = ingest::convert(&convert_options, &ctx, &tick)?;
     clock.done(
         "convert",
         format!(
@@ -374,7 +373,7 @@ fn make_dataset(
     );
 
     clock.start("split");
-    let counts = split::split_dataset(
+    let counts = ingest::split_dataset(
         dataset,
         Some(HoldOut::Subjects(plan.test_subjects)),
         0,
@@ -383,7 +382,7 @@ fn make_dataset(
     )?;
     tick(1);
     let count = |s: &str| {
-        counts.get(s).copied().unwrap_or(split::SplitCount {
+        counts.get(s).copied().unwrap_or(ingest::SplitCount {
             subjects: 0,
             images: 0,
         })
@@ -413,7 +412,7 @@ fn render_and_augment(
     let (dataset, augmented) = (&f.dataset, &f.augmented);
     clock.start("render");
     let renderer = FaceRenderer::new(topology.clone(), Camera::release_projection())?;
-    let rendered = arkit_data::render::dataset::render_dataset(
+    let rendered = arkit_data::render::render_dataset(
         dataset,
         &renderer,
         &RenderOptions {
@@ -441,7 +440,7 @@ fn render_and_augment(
     );
 
     clock.start("augment");
-    let (aug, previews) = arkit_data::augment::dataset::augment_dataset(
+    let (aug, previews) = arkit_data::augment::augment_dataset(
         dataset,
         topology,
         &AugmentOptions {
@@ -558,7 +557,7 @@ fn predict_test_split(
         None
     };
     let (baseline_rows, mean) =
-        arkit_data::pose::predict::mean_pose_predictions(dataset, Some("train"), Some("test"))?;
+        arkit_data::pose::mean_pose_predictions(dataset, Some("train"), Some("test"))?;
     write_predictions(&output.join("baseline.parquet"), &baseline_rows)?;
     clock.done(
         "predict",
@@ -592,14 +591,14 @@ fn evaluate_predictions(
         keep_worst: 8,
         ..EvalOptions::default()
     };
-    let ev = arkit_data::eval::dataset::evaluate(dataset, &p.rows, &options)?;
-    let base = arkit_data::eval::dataset::evaluate(dataset, &p.baseline_rows, &options)?;
+    let ev = arkit_data::eval::evaluate(dataset, &p.rows, &options)?;
+    let base = arkit_data::eval::evaluate(dataset, &p.baseline_rows, &options)?;
     let shipped = p
         .shipped_rows
         .as_ref()
-        .map(|r| arkit_data::eval::dataset::evaluate(dataset, r, &options).map(|e| e.summary))
+        .map(|r| arkit_data::eval::evaluate(dataset, r, &options).map(|e| e.summary))
         .transpose()?;
-    let eval_report = arkit_data::eval::dataset::write_report(report_dir, &ev, topology)?;
+    let eval_report = arkit_data::eval::write_report(report_dir, &ev, topology)?;
     tick(1);
     clock.done(
         "eval",
@@ -640,8 +639,7 @@ fn write_report_page(
     let (dataset, report_dir) = (&f.dataset, &f.report);
     clock.start("report");
     let mut figures = Vec::new();
-    let samples =
-        arkit_data::store::dataset::Dataset::open(dataset)?.read_samples(&manifest.shards[0])?;
+    let samples = arkit_data::store::Dataset::open(dataset)?.read_samples(&manifest.shards[0])?;
     figures.push(report::write_chart(
         report_dir,
         "poses.svg",
@@ -665,7 +663,7 @@ fn write_report_page(
         figures.push(report::write_figure(
             report_dir,
             "augmented.png",
-            &arkit_data::picture::encode::contact_sheet(&cells, 4, 240),
+            &arkit_data::picture::contact_sheet(&cells, 4, 240),
             "Face profiling",
             "Pairs of original and augmented images: the face turned out of plane through its \
              mesh (yaw or pitch) or rotated about the camera axis (roll), as `augment` writes \
@@ -776,10 +774,10 @@ pub fn results_table(rows: &[(&str, &Summary)]) -> String {
 fn targets_sheet(
     dataset: &Path,
     shard: usize,
-    samples: &[arkit_data::store::samples_table::SampleRecord],
+    samples: &[arkit_data::store::SampleRecord],
 ) -> Result<RgbImage> {
-    let data = arkit_data::store::dataset::Dataset::open(dataset)?;
-    let targets = arkit_data::store::targets_table::read_targets(
+    let data = arkit_data::store::Dataset::open(dataset)?;
+    let targets = arkit_data::store::read_targets(
         &dataset
             .join("targets")
             .join(format!("part-{shard:05}.parquet")),
@@ -800,5 +798,5 @@ fn targets_sheet(
             up(&p.uv_map),
         ]);
     }
-    Ok(arkit_data::picture::encode::contact_sheet(&cells, 4, cell))
+    Ok(arkit_data::picture::contact_sheet(&cells, 4, cell))
 }

@@ -13,7 +13,7 @@
 //! Tested in `tests/kill.rs` (each command killed at seeded points, `inspect` naming
 //! the torn output) and `tests/convert.rs`.
 
-use arkit_data::store::manifest::{MANIFEST_FILE, Manifest, check_shard_file, read_manifest};
+use arkit_data::store::{MANIFEST_FILE, Manifest, check_shard_file, read_manifest};
 use serde::Serialize;
 use std::path::{Path, PathBuf};
 
@@ -120,7 +120,7 @@ pub fn folder_state(dir: &Path) -> FolderState {
     let targets = manifest.as_ref().map(|m| targets_state(dir, m));
     let fingerprint = manifest
         .as_ref()
-        .map(arkit_data::store::manifest::dataset_fingerprint);
+        .map(arkit_data::store::dataset_fingerprint);
     let shards = manifest.as_ref().map(|m| m.shards.len());
     FolderState {
         samples,
@@ -226,9 +226,7 @@ fn samples_state(dir: &Path) -> (OutputState, Option<Manifest>) {
                 .collect()
         })
         .unwrap_or_default();
-    let conversion = dir
-        .join(arkit_data::ingest::convert::CONVERSION_FILE)
-        .exists();
+    let conversion = dir.join(arkit_data::ingest::CONVERSION_FILE).exists();
     if let Some(&(_, n)) = parts.first() {
         let missing: Vec<String> = (0..n)
             .filter(|i| !parts.contains(&(*i, n)))
@@ -314,8 +312,8 @@ fn render_arguments(settings: &serde_json::Value) -> String {
 }
 
 fn targets_state(dir: &Path, m: &Manifest) -> OutputState {
-    use arkit_data::store::parquet::parquet_row_count;
-    use arkit_data::store::targets_table::{errors_path, shard_path};
+    use arkit_data::store::parquet_row_count;
+    use arkit_data::store::{errors_path, shard_path};
     let targets = dir.join("targets");
     let total = m.shards.len();
     let settings_path = targets.join("render.json");
@@ -357,7 +355,7 @@ fn targets_state(dir: &Path, m: &Manifest) -> OutputState {
             ),
         );
     };
-    let fingerprint = arkit_data::store::manifest::dataset_fingerprint(m);
+    let fingerprint = arkit_data::store::dataset_fingerprint(m);
     if settings.get("dataset").and_then(|d| d.as_str()) != Some(fingerprint.as_str()) {
         return state(
             "targets",

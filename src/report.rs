@@ -11,13 +11,13 @@
 //! error happened, so a headless browser can check the page without a driver
 //! (`tests/report_browser.rs`).
 
-use arkit_core::error::{Error, Result};
-use arkit_data::eval::metrics::Summary;
-use arkit_data::picture::plot::{Bars, Histogram, bars_svg};
+use arkit_core::{Error, Result};
+use arkit_data::eval::Summary;
+use arkit_data::picture::{Bars, Histogram, bars_svg};
 #[cfg(feature = "model")]
-use arkit_data::picture::plot::{Series, log_line_svg};
-use arkit_data::store::samples_table::SampleRecord;
-use arkit_data::store::targets_table::TargetsRecord;
+use arkit_data::picture::{Series, log_line_svg};
+use arkit_data::store::SampleRecord;
+use arkit_data::store::TargetsRecord;
 use image::{Rgb, RgbImage};
 use std::path::{Path, PathBuf};
 
@@ -82,7 +82,7 @@ pub fn target_panels(
     }
     let mut corr = RgbImage::new(s, s);
     let weights = targets.weights();
-    let pixels = arkit_data::store::face_targets::mask_pixel_indices(&mask);
+    let pixels = arkit_data::store::mask_pixel_indices(&mask);
     for ((&px, ids), w) in pixels.iter().zip(&targets.corr_vertices).zip(&weights) {
         let mut q = [0f32; 3];
         for k in 0..3 {
@@ -366,10 +366,7 @@ pub fn write_figure(
     title: &str,
     caption: &str,
 ) -> Result<Figure> {
-    arkit_core::atomic_file::write_bytes(
-        &dir.join(file),
-        &arkit_data::eval::dataset::png_bytes(img)?,
-    )?;
+    arkit_core::atomic_file::write_bytes(&dir.join(file), &arkit_data::eval::png_bytes(img)?)?;
     Ok(Figure {
         file: file.to_string(),
         title: title.to_string(),

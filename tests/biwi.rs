@@ -206,7 +206,7 @@ fn cli_convert_biwi_then_eval_scores_add_on_the_subjects_mesh() {
         .unwrap();
     assert!(!out.status.success());
     assert!(String::from_utf8_lossy(&out.stderr).contains("--shard"));
-    let samples = arkit_data::ingest::convert::read_dataset_samples(&pq).unwrap();
+    let samples = arkit_data::ingest::read_dataset_samples(&pq).unwrap();
     assert_eq!(samples.len(), 6);
     assert!(samples.iter().all(|s| s.verts.len() == 6918 * 3));
 
@@ -276,12 +276,12 @@ fn cli_convert_biwi_then_eval_scores_add_on_the_subjects_mesh() {
     // about the head's origin; ADD must be the mean over the 6,918 head vertices of
     // |(R_d - I) v|. One frame is excluded.
     let turn = Rotation3::from_axis_angle(&Vector3::y_axis(), 5f64.to_radians());
-    let rows: Vec<arkit_core::predictions_csv::PredictionRecord> = samples
+    let rows: Vec<arkit_core::PredictionRecord> = samples
         .iter()
         .map(|s| {
             let gt = Pose::from_release_rt(&s.rt).unwrap();
             let p = Pose::new(gt.rotation() * turn, gt.translation_m());
-            arkit_core::predictions_csv::PredictionRecord {
+            arkit_core::PredictionRecord {
                 key: s.key.clone(),
                 rt: Some(p.to_release_rt()),
                 verts: None,
@@ -290,7 +290,7 @@ fn cli_convert_biwi_then_eval_scores_add_on_the_subjects_mesh() {
         })
         .collect();
     let preds = dir.path().join("turned.parquet");
-    arkit_data::store::predictions_table::write_predictions(&preds, &rows).unwrap();
+    arkit_data::store::write_predictions(&preds, &rows).unwrap();
     let exclude = dir.path().join("exclude.csv");
     std::fs::write(
         &exclude,

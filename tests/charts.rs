@@ -2,7 +2,7 @@
 //! its titles, axis labels, tick values and bars are the ones derived by hand from
 //! the data.
 
-use arkit_data::picture::plot::{Bars, Histogram, LINE_PLOT, PANEL_HEIGHT, PANEL_WIDTH, Series};
+use arkit_data::picture::{Bars, Histogram, LINE_PLOT, PANEL_HEIGHT, PANEL_WIDTH, Series};
 use quick_xml::events::Event;
 use std::collections::HashMap;
 use std::process::Command;
@@ -140,7 +140,7 @@ fn binned_means_chart_a_gap_for_an_empty_bin_and_decimal_ticks() {
         3.0,
         3,
     );
-    let e = parse(&arkit_data::picture::plot::bars_svg("Errors", &[b], 1));
+    let e = parse(&arkit_data::picture::bars_svg("Errors", &[b], 1));
     assert_eq!(texts(&e, "axis-label y"), ["mean rotation error (deg)"]);
     // Peak 3.0: ticks 0..3 in steps of 1 (3 / 5 = 0.6 rounds up to 1).
     assert_eq!(texts(&e, "tick y"), ["0", "1", "2", "3"]);
@@ -160,7 +160,7 @@ fn binned_means_chart_a_gap_for_an_empty_bin_and_decimal_ticks() {
 fn the_loss_chart_puts_values_on_the_decade_scale_with_a_legend() {
     // 1, 10, 100 over steps 0..2: decades 1..100 span y 284..44, steps x 78..610, so
     // 10 at step 1 is at (344, 164) by hand.
-    let svg = arkit_data::picture::plot::log_line_svg(
+    let svg = arkit_data::picture::log_line_svg(
         "Training loss",
         "training step",
         "weighted loss (log scale)",

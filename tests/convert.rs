@@ -2,13 +2,11 @@
 
 use crate::support::{convert_context as context, convert_options as options};
 use arkit_core::conventions::{Camera, Pose};
-use arkit_core::npy::{self, NpyArray, NpzCompression};
 use arkit_core::release::{self, ReleaseLayout, SampleKey, Split};
-use arkit_data::ingest::convert::{self, ConvertOptions};
-use arkit_data::ingest::split::{self, HoldOut};
+use arkit_core::{NpyArray, NpzCompression};
 use arkit_data::ingest::synth::{self, FaceSource, SynthOptions};
-use arkit_data::store::parquet;
-use arkit_data::store::samples_table::{self, ERRORS_COLUMNS, SAMPLES_COLUMNS};
+use arkit_data::ingest::{self, ConvertOptions, HoldOut};
+use arkit_data::store::{self, ERRORS_COLUMNS, SAMPLES_COLUMNS};
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
@@ -25,12 +23,12 @@ fn make_release(dir: &Path, subjects: usize, images: usize) -> SynthOptions {
     options
 }
 
-fn run(opts: &ConvertOptions, threads: usize) -> arkit_data::store::manifest::Manifest {
+fn run(opts: &ConvertOptions, threads: usize) -> arkit_data::store::Manifest {
     let pool = rayon::ThreadPoolBuilder::new()
         .num_threads(threads)
         .build()
         .unwrap();
-    pool.install(|| convert::convert(opts, &context(), &|_| {}).unwrap())
+    pool.install(|| ingest::convert(opts, &context(), &|_| {}).unwrap())
 }
 
 fn files(root: &Path, sub: &str) -> BTreeMap<String, Vec<u8>> {
@@ -47,9 +45,9 @@ fn files(root: &Path, sub: &str) -> BTreeMap<String, Vec<u8>> {
 }
 
 /// A renderer for the built-in synthetic face with the release camera.
-fn builtin_renderer() -> arkit_data::render::face::FaceRenderer {
-    arkit_data::render::face::FaceRenderer::new(
-        arkit_data::mesh::synthetic_face::builtin().topology.clone(),
+fn builtin_renderer() -> arkit_data::render::FaceRenderer {
+    arkit_data::render::FaceRenderer::new(
+        arkit_data::mesh::builtin().topology.clone(),
         Camera::release_projection(),
     )
     .unwrap()
@@ -82,7 +80,7 @@ fn converts_synthetic_data_exactly_and_deterministically() {
     );
     assert_eq!(m1.shards, m2.shards);
     // Values equal the npz values exactly.
-    let rows = convert::read_dataset_samples(a.path()).unwrap();
+    let rows = ingest::read_dataset_samples(a.path()).unwrap();
     let layout = ReleaseLayout::new(input.path());
     let listed: Vec<SampleKey> = keys_of(input.path(), Split::Train)
         .into_iter()
@@ -129,7 +127,7 @@ fn converts_synthetic_data_exactly_and_deterministically() {
 fn write_npz(path: &Path, members: Vec<(&str, NpyArray)>) {
     let refs: Vec<(&str, &NpyArray)> = members.iter().map(|(k, a)| (*k, a)).collect();
     let mut f = std::fs::File::create(path).unwrap();
-    npy::write_npz(&mut f, &refs, NpzCompression::Stored).unwrap();
+    arkit_core::write_npz(&mut f, &refs, NpzCompression::Stored).unwrap();
 }
 
 #[test]
@@ -205,7 +203,7 @@ fn every_kind_of_broken_sample_is_reported_and_the_rest_converts() {
     assert_eq!(m.listing_problems, 1);
     let mut errors = Vec::new();
     for s in &m.shards {
-        errors.extend(samples_table::read_errors(&out.path().join(&s.errors_file)).unwrap());
+        errors.extend(store::read_errors(&out.path().join(&s.errors_file)).unwrap());
     }
     let reason = |k: &SampleKey| {
         errors
@@ -231,11 +229,11 @@ fn every_kind_of_broken_sample_is_reported_and_the_rest_converts() {
     // Each error names the file at fault, relative to the input root.
     let e6 = errors.iter().find(|e| e.key == train[6]).unwrap();
     assert!(e6.file.starts_with("ARKitFace_image_train/image/") && e6.file.ends_with("_ar.jpg"));
-    let listing = samples_table::read_errors(&out.path().join("errors/listing.parquet")).unwrap();
+    let listing = store::read_errors(&out.path().join("errors/listing.parquet")).unwrap();
     assert_eq!(listing.len(), 1);
     assert!(listing[0].file.ends_with("9999999999999_info.npz"));
     // Every other sample converted.
-    let rows = convert::read_dataset_samples(out.path()).unwrap();
+    let rows = ingest::read_dataset_samples(out.path()).unwrap();
     assert_eq!(rows.len(), listed - 9);
     assert!(rows.iter().any(|r| r.key == train[9]));
 }
@@ -262,7 +260,7 @@ fn resume_keeps_finished_shards_and_gives_the_same_bytes() {
     // A finished shard from other input is refused, not silently mixed.
     let other = tempfile::tempdir().unwrap();
     make_release(other.path(), 3, 5);
-    let e = convert::convert(&options(other.path(), out.path(), 3), &context(), &|_| {})
+    let e = ingest::convert(&options(other.path(), out.path(), 3), &context(), &|_| {})
         .unwrap_err()
         .to_string();
     assert!(e.contains("other input"), "{e}");
@@ -282,7 +280,7 @@ fn shard_parts_merge_to_the_single_run() {
         run(&o, 1);
     }
     // Not all parts present yet? All three are; merge.
-    let merged = convert::merge(parts.path()).unwrap();
+    let merged = ingest::merge(parts.path()).unwrap();
     assert!(merged.ignored.is_empty());
     let merged = merged.manifest;
     assert_eq!(merged.shards, whole.shards);
@@ -291,12 +289,12 @@ fn shard_parts_merge_to_the_single_run() {
         (whole.converted, whole.skipped)
     );
     assert_eq!(
-        convert::read_dataset_samples(parts.path()).unwrap(),
-        convert::read_dataset_samples(single.path()).unwrap()
+        ingest::read_dataset_samples(parts.path()).unwrap(),
+        ingest::read_dataset_samples(single.path()).unwrap()
     );
     // A missing part is named.
-    std::fs::remove_file(parts.path().join(convert::manifest_name(1, 3))).unwrap();
-    let e = convert::merge(parts.path()).unwrap_err().to_string();
+    std::fs::remove_file(parts.path().join(ingest::manifest_name(1, 3))).unwrap();
+    let e = ingest::merge(parts.path()).unwrap_err().to_string();
     assert!(e.contains("part 1 of 3 is missing"), "{e}");
 }
 
@@ -327,7 +325,7 @@ fn merge_reads_only_the_parts_the_conversion_names() {
     )
     .unwrap();
     std::fs::copy(p("part-0001-of-0002.json"), p("part-1-of-2.json")).unwrap();
-    let merged = convert::merge(parts.path()).unwrap();
+    let merged = ingest::merge(parts.path()).unwrap();
     assert_eq!(
         merged.ignored,
         vec![p("part-0000-of-0002 (copy).json"), p("part-1-of-2.json")]
@@ -338,42 +336,42 @@ fn merge_reads_only_the_parts_the_conversion_names() {
     // A copy under another part's canonical name (of another split count): refused,
     // never a guess.
     std::fs::copy(p("part-0000-of-0002.json"), p("part-0002-of-0003.json")).unwrap();
-    let e = convert::merge(parts.path()).unwrap_err().to_string();
+    let e = ingest::merge(parts.path()).unwrap_err().to_string();
     assert!(e.contains("split 2 and 3 ways"), "{e}");
     std::fs::remove_file(p("part-0002-of-0003.json")).unwrap();
     // Part 0's manifest copied over part 1's: it says it is part 0.
     let part1 = std::fs::read(p("part-0001-of-0002.json")).unwrap();
     std::fs::copy(p("part-0000-of-0002.json"), p("part-0001-of-0002.json")).unwrap();
-    let e = convert::merge(parts.path()).unwrap_err().to_string();
+    let e = ingest::merge(parts.path()).unwrap_err().to_string();
     assert!(
         e.contains("part-0001-of-0002.json") && e.contains("says it is part 0 of 2"),
         "{e}"
     );
     // A part that lists a shard twice, or drops one.
-    let mut m: arkit_data::store::manifest::Manifest = serde_json::from_slice(&part1).unwrap();
-    let write = |m: &arkit_data::store::manifest::Manifest| {
+    let mut m: arkit_data::store::Manifest = serde_json::from_slice(&part1).unwrap();
+    let write = |m: &arkit_data::store::Manifest| {
         std::fs::write(p("part-0001-of-0002.json"), serde_json::to_vec(m).unwrap()).unwrap()
     };
     let kept = m.shards.clone();
     m.shards.push(m.shards[0].clone());
     write(&m);
-    let e = convert::merge(parts.path()).unwrap_err().to_string();
+    let e = ingest::merge(parts.path()).unwrap_err().to_string();
     assert!(e.contains("shard index 1 listed twice"), "{e}");
     m.shards = kept[1..].to_vec();
     write(&m);
-    let e = convert::merge(parts.path()).unwrap_err().to_string();
+    let e = ingest::merge(parts.path()).unwrap_err().to_string();
     assert!(e.contains("does not list shard 1"), "{e}");
     // A part of another conversion (its fingerprint is not conversion.json's).
     m.shards = kept;
     m.fingerprint = "0".repeat(64);
     write(&m);
-    let e = convert::merge(parts.path()).unwrap_err().to_string();
+    let e = ingest::merge(parts.path()).unwrap_err().to_string();
     assert!(
         e.contains("another conversion than the one conversion.json records"),
         "{e}"
     );
     std::fs::write(p("part-0001-of-0002.json"), &part1).unwrap();
-    assert_eq!(convert::merge(parts.path()).unwrap().manifest.converted, 12);
+    assert_eq!(ingest::merge(parts.path()).unwrap().manifest.converted, 12);
 }
 
 #[test]
@@ -384,19 +382,19 @@ fn merge_refuses_a_sample_key_in_two_shards() {
     // Shard 3 (part 1) rewritten with shard 0's rows, and its part manifest updated to
     // match the new file: every file agrees with its record, yet two shards hold the
     // same samples.
-    let part = parts.path().join(convert::manifest_name(1, 2));
-    let mut m = arkit_data::store::manifest::read_manifest(&part).unwrap();
+    let part = parts.path().join(ingest::manifest_name(1, 2));
+    let mut m = arkit_data::store::read_manifest(&part).unwrap();
     let shard0 = parts.path().join("samples/part-00000.parquet");
-    let rows = samples_table::read_samples(&shard0).unwrap();
+    let rows = store::read_samples(&shard0).unwrap();
     let entry = m.shards.iter_mut().find(|s| s.index == 3).unwrap();
     let path = parts.path().join(&entry.samples_file);
-    samples_table::write_samples(&path, &rows, context().topology.vertex_count).unwrap();
+    store::write_samples(&path, &rows, context().topology.vertex_count).unwrap();
     entry.rows = rows.len();
     entry.bytes = std::fs::metadata(&path).unwrap().len();
-    entry.sha256 = arkit_data::store::manifest::sha256_file(&path).unwrap();
-    entry.tail_sha256 = arkit_data::store::manifest::tail_sha256(&path).unwrap();
+    entry.sha256 = arkit_data::store::sha256_file(&path).unwrap();
+    entry.tail_sha256 = arkit_data::store::tail_sha256(&path).unwrap();
     std::fs::write(&part, serde_json::to_vec(&m).unwrap()).unwrap();
-    let e = convert::merge(parts.path()).unwrap_err().to_string();
+    let e = ingest::merge(parts.path()).unwrap_err().to_string();
     assert!(
         e.contains("part-00003.parquet")
             && e.contains(&format!(
@@ -427,12 +425,12 @@ fn flat_layout_is_discovered() {
         flat.path().join("list.csv"),
     )
     .unwrap();
-    let d = convert::discover(flat.path()).unwrap();
-    assert_eq!(d.kind, arkit_data::store::manifest::LayoutKind::Flat);
+    let d = ingest::discover(flat.path()).unwrap();
+    assert_eq!(d.kind, arkit_data::store::LayoutKind::Flat);
     let out = tempfile::tempdir().unwrap();
     let m = run(&options(flat.path(), out.path(), 10), 1);
     assert_eq!((m.converted, m.skipped), (m.listed, 0));
-    let e = convert::discover(out.path()).unwrap_err().to_string();
+    let e = ingest::discover(out.path()).unwrap_err().to_string();
     assert!(e.contains("not an ARKitFace release"), "{e}");
 }
 
@@ -471,7 +469,7 @@ fn written_tables_match_the_schema_files() {
         (&m.shards[0].samples_file, &SAMPLES_COLUMNS[..]),
         (&m.shards[0].errors_file, &ERRORS_COLUMNS[..]),
     ] {
-        let df = parquet::read_parquet(&out.path().join(path)).unwrap();
+        let df = store::read_parquet(&out.path().join(path)).unwrap();
         let got: Vec<(String, String)> = df
             .schema()
             .iter()
@@ -482,10 +480,7 @@ fn written_tables_match_the_schema_files() {
             .map(|c| {
                 (
                     c.name.to_string(),
-                    format!(
-                        "{:?}",
-                        samples_table::polars_dtype_with(c.dtype, 1220).unwrap()
-                    ),
+                    format!("{:?}", store::polars_dtype_with(c.dtype, 1220).unwrap()),
                 )
             })
             .collect();
@@ -502,7 +497,7 @@ fn samples_have_fixed_shapes_recorded_for_datasets_and_old_files_still_read() {
     let m = run(&options(input.path(), out.path(), 10), 1);
     let file = out.path().join(&m.shards[0].samples_file);
     // Fixed-size lists of fixed-size lists, with the right widths.
-    let df = parquet::read_parquet(&file).unwrap();
+    let df = store::read_parquet(&file).unwrap();
     let shape = |name: &str| match df.column(name).unwrap().dtype() {
         DataType::Array(row, outer) => match row.as_ref() {
             DataType::Array(leaf, inner) => (leaf.as_ref().clone(), *outer, *inner),
@@ -515,7 +510,7 @@ fn samples_have_fixed_shapes_recorded_for_datasets_and_old_files_still_read() {
     assert_eq!(shape("landmarks_2d"), (DataType::Float32, 68, 2));
     // The `huggingface` record: Array2D features with these shapes, Value features for
     // every other column, all columns in order.
-    let kv = parquet::parquet_key_value_metadata(&file).unwrap();
+    let kv = store::parquet_key_value_metadata(&file).unwrap();
     let hf = kv.iter().find(|(k, _)| k == "huggingface").unwrap();
     let v: serde_json::Value = serde_json::from_str(hf.1.as_deref().unwrap()).unwrap();
     let features = v["info"]["features"].as_object().unwrap();
@@ -538,7 +533,7 @@ fn samples_have_fixed_shapes_recorded_for_datasets_and_old_files_still_read() {
         features["landmarks_2d"]["shape"],
         serde_json::json!([68, 2])
     );
-    let shapes = samples_table::huggingface_shapes(&file).unwrap().unwrap();
+    let shapes = store::huggingface_shapes(&file).unwrap().unwrap();
     assert_eq!(
         shapes,
         vec![
@@ -550,34 +545,34 @@ fn samples_have_fixed_shapes_recorded_for_datasets_and_old_files_still_read() {
     // Arrow readers (pyarrow, so `datasets`) take schema metadata from `ARROW:schema`:
     // it carries both records too, and without them it is exactly what polars writes.
     let arrow = kv.iter().find(|(k, _)| k == "ARROW:schema").unwrap();
-    let with_meta = parquet::arrow_schema_value(&df, &samples_table::huggingface_metadata(1220));
+    let with_meta = store::arrow_schema_value(&df, &store::huggingface_metadata(1220));
     assert_eq!(arrow.1.as_deref(), Some(with_meta.as_str()));
     let plain = out.path().join("plain.parquet");
-    parquet::write_parquet(&plain, &mut df.clone()).unwrap();
-    let polars_own = parquet::parquet_key_value_metadata(&plain).unwrap();
+    store::write_parquet(&plain, &mut df.clone()).unwrap();
+    let polars_own = store::parquet_key_value_metadata(&plain).unwrap();
     assert_eq!(
         polars_own,
         vec![(
             "ARROW:schema".to_string(),
-            Some(parquet::arrow_schema_value(&df, &[]))
+            Some(store::arrow_schema_value(&df, &[]))
         )]
     );
     let ours = kv.iter().find(|(k, _)| k == "arkit_tool").unwrap();
     let ours: serde_json::Value = serde_json::from_str(ours.1.as_deref().unwrap()).unwrap();
-    assert_eq!(ours["samples_format"], samples_table::SAMPLES_FORMAT);
+    assert_eq!(ours["samples_format"], store::SAMPLES_FORMAT);
     // What was written reads back, with the topology's N or without it; another N is
     // refused, naming the file and the column.
-    let rows = samples_table::read_samples(&file).unwrap();
+    let rows = store::read_samples(&file).unwrap();
     assert!(rows.len() >= 2 && rows.len() == m.converted);
     assert!(
         rows.iter()
             .all(|r| r.verts.len() == 3660 && r.landmarks_2d.len() == 136)
     );
     assert_eq!(
-        samples_table::read_samples_expecting(&file, Some(1220)).unwrap(),
+        store::read_samples_expecting(&file, Some(1220)).unwrap(),
         rows
     );
-    let e = samples_table::read_samples_expecting(&file, Some(1219))
+    let e = store::read_samples_expecting(&file, Some(1219))
         .unwrap_err()
         .to_string();
     assert!(
@@ -586,17 +581,13 @@ fn samples_have_fixed_shapes_recorded_for_datasets_and_old_files_still_read() {
     );
     // A file written before (variable-length lists, no metadata) reads as the same rows.
     let old = out.path().join("old.parquet");
-    parquet::write_parquet(
-        &old,
-        &mut samples_table::samples_frame_format1(&rows).unwrap(),
-    )
-    .unwrap();
+    store::write_parquet(&old, &mut store::samples_frame_format1(&rows).unwrap()).unwrap();
     assert_eq!(
-        parquet::read_parquet(&old).unwrap()["verts"].dtype(),
+        store::read_parquet(&old).unwrap()["verts"].dtype(),
         &DataType::List(Box::new(DataType::Float32))
     );
-    assert!(samples_table::huggingface_shapes(&old).unwrap().is_none());
-    assert_eq!(samples_table::read_samples(&old).unwrap(), rows);
+    assert!(store::huggingface_shapes(&old).unwrap().is_none());
+    assert_eq!(store::read_samples(&old).unwrap(), rows);
     // ... and its widths are checked as well: a row of another N than the others, an R_t
     // of 15 numbers, each name the file and the column.
     for (k, column) in [(0, "verts"), (1, "R_t")] {
@@ -604,7 +595,7 @@ fn samples_have_fixed_shapes_recorded_for_datasets_and_old_files_still_read() {
         if k == 0 {
             broken[1].verts.truncate(3 * 1219);
         }
-        let mut df = samples_table::samples_frame_format1(&broken).unwrap();
+        let mut df = store::samples_frame_format1(&broken).unwrap();
         if k == 1 {
             let short: Vec<polars::prelude::Series> = broken
                 .iter()
@@ -613,8 +604,8 @@ fn samples_have_fixed_shapes_recorded_for_datasets_and_old_files_still_read() {
             df.replace("R_t", polars::prelude::Column::new("R_t".into(), short))
                 .unwrap();
         }
-        parquet::write_parquet(&old, &mut df).unwrap();
-        let e = samples_table::read_samples(&old).unwrap_err().to_string();
+        store::write_parquet(&old, &mut df).unwrap();
+        let e = store::read_samples(&old).unwrap_err().to_string();
         assert!(
             e.contains(&old.display().to_string()) && e.contains(&format!("column '{column}'")),
             "{e}"
@@ -622,21 +613,21 @@ fn samples_have_fixed_shapes_recorded_for_datasets_and_old_files_still_read() {
     }
     // An empty shard still has the shapes.
     let empty = out.path().join("empty.parquet");
-    samples_table::write_samples(&empty, &[], 1220).unwrap();
+    store::write_samples(&empty, &[], 1220).unwrap();
     assert_eq!(
-        parquet::read_parquet(&empty).unwrap()["verts"].dtype(),
-        &samples_table::polars_dtype_with("float32[N,3]", 1220).unwrap()
+        store::read_parquet(&empty).unwrap()["verts"].dtype(),
+        &store::polars_dtype_with("float32[N,3]", 1220).unwrap()
     );
-    assert!(samples_table::read_samples(&empty).unwrap().is_empty());
+    assert!(store::read_samples(&empty).unwrap().is_empty());
     // A file whose metadata and column disagree is refused.
     let lying = out.path().join("lying.parquet");
-    parquet::write_parquet_with_metadata(
+    store::write_parquet_with_metadata(
         &lying,
-        &mut samples_table::samples_frame(&rows, 1220).unwrap(),
-        samples_table::huggingface_metadata(1000),
+        &mut store::samples_frame(&rows, 1220).unwrap(),
+        store::huggingface_metadata(1000),
     )
     .unwrap();
-    let e = samples_table::read_samples(&lying).unwrap_err().to_string();
+    let e = store::read_samples(&lying).unwrap_err().to_string();
     assert!(e.contains("lying.parquet") && e.contains("'verts'"), "{e}");
 }
 
@@ -646,13 +637,13 @@ fn split_is_subject_disjoint_and_reproducible() {
     make_release(input.path(), 6, 2);
     let out = tempfile::tempdir().unwrap();
     run(&options(input.path(), out.path(), 100), 2);
-    let rows = convert::read_dataset_samples(out.path()).unwrap();
+    let rows = ingest::read_dataset_samples(out.path()).unwrap();
     let mut per: BTreeMap<String, usize> = BTreeMap::new();
     for r in &rows {
         *per.entry(r.key.subject_id.clone()).or_default() += 1;
     }
-    let a = split::assign(&per, HoldOut::Subjects(2), 1, 5).unwrap();
-    assert_eq!(a, split::assign(&per, HoldOut::Subjects(2), 1, 5).unwrap());
+    let a = ingest::assign(&per, HoldOut::Subjects(2), 1, 5).unwrap();
+    assert_eq!(a, ingest::assign(&per, HoldOut::Subjects(2), 1, 5).unwrap());
     let c = a.counts(&per);
     assert_eq!((c["train"].0, c["test"].0, c["val"].0), (3, 2, 1));
 }
@@ -660,8 +651,8 @@ fn split_is_subject_disjoint_and_reproducible() {
 #[test]
 fn rendered_targets_read_back_dense_equal_the_rasterizer() {
     use arkit_data::crop::CropTransform;
-    use arkit_data::render::dataset::RenderOptions;
-    use arkit_data::store::targets_table;
+    use arkit_data::render::RenderOptions;
+    use arkit_data::store;
     let input = tempfile::tempdir().unwrap();
     make_release(input.path(), 2, 3);
     let out = tempfile::tempdir().unwrap();
@@ -676,15 +667,13 @@ fn rendered_targets_read_back_dense_equal_the_rasterizer() {
         full_mask: true,
         output: out.path().to_path_buf(),
     };
-    let summary =
-        arkit_data::render::dataset::render_dataset(out.path(), &renderer, &ro, &|_| {}).unwrap();
+    let summary = arkit_data::render::render_dataset(out.path(), &renderer, &ro, &|_| {}).unwrap();
     assert_eq!(summary.samples, 6);
-    let samples = convert::read_dataset_samples(out.path()).unwrap();
+    let samples = ingest::read_dataset_samples(out.path()).unwrap();
     let mut targets = Vec::new();
     for k in 0..2 {
         targets.extend(
-            targets_table::read_targets(&out.path().join(format!("targets/part-{k:05}.parquet")))
-                .unwrap(),
+            store::read_targets(&out.path().join(format!("targets/part-{k:05}.parquet"))).unwrap(),
         );
     }
     assert_eq!(targets.len(), 6);
@@ -705,7 +694,7 @@ fn rendered_targets_read_back_dense_equal_the_rasterizer() {
             (name, c["type"].as_str().unwrap().to_lowercase())
         })
         .collect();
-    let df = parquet::read_parquet(&out.path().join("targets/part-00000.parquet")).unwrap();
+    let df = store::read_parquet(&out.path().join("targets/part-00000.parquet")).unwrap();
     let got: Vec<(String, String)> = df
         .schema()
         .iter()
@@ -723,11 +712,10 @@ fn rendered_targets_read_back_dense_equal_the_rasterizer() {
         .drop("crop_sampling")
         .unwrap();
     let old_path = out.path().join("old-targets.parquet");
-    parquet::write_parquet(&old_path, &mut old).unwrap();
-    let first =
-        targets_table::read_targets(&out.path().join("targets/part-00000.parquet")).unwrap();
-    assert_eq!(targets_table::read_targets(&old_path).unwrap(), first);
-    let mut vb = arkit_core::raster::VisibilityBuffer::new(96, 96);
+    store::write_parquet(&old_path, &mut old).unwrap();
+    let first = store::read_targets(&out.path().join("targets/part-00000.parquet")).unwrap();
+    assert_eq!(store::read_targets(&old_path).unwrap(), first);
+    let mut vb = arkit_core::VisibilityBuffer::new(96, 96);
     for (s, t) in samples.iter().zip(&targets) {
         assert_eq!(s.key, t.key);
         let verts: Vec<nalgebra::Point3<f32>> = s
@@ -740,7 +728,7 @@ fn rendered_targets_read_back_dense_equal_the_rasterizer() {
         let direct = renderer
             .render(&verts, &pose, s.image_width, s.image_height, &crop, &mut vb)
             .unwrap();
-        let d = targets_table::dense(t, &verts).unwrap();
+        let d = store::dense(t, &verts).unwrap();
         // The mask and the correspondence rows match the rasterizer's, within the
         // stated quantisation error.
         assert_eq!(
@@ -756,7 +744,7 @@ fn rendered_targets_read_back_dense_equal_the_rasterizer() {
             for k in 0..3 {
                 let stored = d.corr_matrix[row * 1220 + ids[k] as usize];
                 assert!(
-                    (stored - w[k]).abs() <= 2.0 * targets_table::WEIGHT_QUANTUM,
+                    (stored - w[k]).abs() <= 2.0 * store::WEIGHT_QUANTUM,
                     "{stored} vs {}",
                     w[k]
                 );
@@ -773,7 +761,7 @@ fn rendered_targets_read_back_dense_equal_the_rasterizer() {
         // The full-image mask is the rasterizer's over the whole image, and it agrees
         // with the crop mask: the crop's face pixels look at face pixels of the image,
         // and the areas scale with the crop (both within the pixels along the outline).
-        let mut full_vb = arkit_core::raster::VisibilityBuffer::new(1, 1);
+        let mut full_vb = arkit_core::VisibilityBuffer::new(1, 1);
         let full = t.full_mask().unwrap().expect("rendered with full_mask");
         assert_eq!(
             full,
@@ -807,7 +795,7 @@ fn rendered_targets_read_back_dense_equal_the_rasterizer() {
             "{full_area} vs {scaled}"
         );
         // UV map: float16 of the direct map.
-        let uv = arkit_data::render::face::UvMapper::derive(renderer.topology())
+        let uv = arkit_data::render::UvMapper::derive(renderer.topology())
             .unwrap()
             .position_map(&verts, 64);
         for (a, b) in d.uv_map.chunks(3).zip(&uv) {
@@ -822,16 +810,14 @@ fn rendered_targets_read_back_dense_equal_the_rasterizer() {
         }
     }
     // A rerun keeps the shards.
-    let again =
-        arkit_data::render::dataset::render_dataset(out.path(), &renderer, &ro, &|_| {}).unwrap();
+    let again = arkit_data::render::render_dataset(out.path(), &renderer, &ro, &|_| {}).unwrap();
     assert_eq!(again.bytes, summary.bytes);
 }
 
 #[test]
 fn render_reports_and_skips_a_sample_it_cannot_render() {
-    use arkit_data::render::dataset::RenderOptions;
-    use arkit_data::store::samples_table;
-    use arkit_data::store::targets_table;
+    use arkit_data::render::RenderOptions;
+    use arkit_data::store;
     let input = tempfile::tempdir().unwrap();
     make_release(input.path(), 2, 3);
     let out = tempfile::tempdir().unwrap();
@@ -839,16 +825,15 @@ fn render_reports_and_skips_a_sample_it_cannot_render() {
     // Break one converted sample after the fact: a rotation scaled by 2 (convert would
     // have refused it), in the first shard.
     let shard0 = out.path().join(&manifest.shards[0].samples_file);
-    let mut rows = samples_table::read_samples(&shard0).unwrap();
+    let mut rows = store::read_samples(&shard0).unwrap();
     let broken = rows[1].key.clone();
     for i in [0, 1, 2, 4, 5, 6, 8, 9, 10] {
         rows[1].rt[i] *= 2.0;
     }
-    samples_table::write_samples(&shard0, &rows, 1220).unwrap();
+    store::write_samples(&shard0, &rows, 1220).unwrap();
     // Readers refuse a shard that differs from the manifest; this test wants the broken
     // row read, as if convert had written it, so the manifest forgets the shard's size.
-    let mut m =
-        arkit_data::store::manifest::read_manifest(&out.path().join("dataset.json")).unwrap();
+    let mut m = arkit_data::store::read_manifest(&out.path().join("dataset.json")).unwrap();
     m.shards[0].bytes = 0;
     std::fs::write(
         out.path().join("dataset.json"),
@@ -865,8 +850,7 @@ fn render_reports_and_skips_a_sample_it_cannot_render() {
         full_mask: false,
         output: out.path().to_path_buf(),
     };
-    let summary =
-        arkit_data::render::dataset::render_dataset(out.path(), &renderer, &ro, &|_| {}).unwrap();
+    let summary = arkit_data::render::render_dataset(out.path(), &renderer, &ro, &|_| {}).unwrap();
     // The run finished: the other five samples have targets, the broken one a reason.
     assert_eq!((summary.samples, summary.skipped), (6, 1));
     assert!(
@@ -874,15 +858,15 @@ fn render_reports_and_skips_a_sample_it_cannot_render() {
         "{:?}",
         summary.skipped_examples
     );
-    let t0 = targets_table::read_targets_by_key(&targets_table::shard_path(out.path(), 0)).unwrap();
+    let t0 = store::read_targets_by_key(&store::shard_path(out.path(), 0)).unwrap();
     assert_eq!(t0.len(), rows.len() - 1);
     assert!(!t0.contains_key(&broken));
-    let errors = samples_table::read_errors(&targets_table::errors_path(out.path(), 0)).unwrap();
+    let errors = store::read_errors(&store::errors_path(out.path(), 0)).unwrap();
     assert_eq!(errors.len(), 1);
     assert_eq!(errors[0].key, broken);
     assert_eq!(errors[0].file, manifest.shards[0].samples_file);
     assert!(errors[0].reason.contains("R_t"), "{}", errors[0].reason);
-    let skipped = targets_table::read_skipped_keys(out.path(), 0).unwrap();
+    let skipped = store::read_skipped_keys(out.path(), 0).unwrap();
     assert_eq!(
         skipped.into_iter().collect::<Vec<_>>(),
         vec![broken.clone()]
@@ -911,7 +895,7 @@ fn render_reports_and_skips_a_sample_it_cannot_render() {
         output: model_dir.path().to_path_buf(),
         resume: false,
     };
-    let topology = arkit_data::mesh::synthetic_face::builtin().topology.clone();
+    let topology = arkit_data::mesh::builtin().topology.clone();
     arkit_perspnet::train(&examples, &topology, &topts, &|_| {}).unwrap();
     let model = arkit_perspnet::load(model_dir.path(), &topology).unwrap();
     let (preds, ps) = arkit_perspnet::model_predictions(
@@ -921,7 +905,7 @@ fn render_reports_and_skips_a_sample_it_cannot_render() {
         arkit_data::crop::RuleSet::Exact,
         Some(out.path()),
         1,
-        &arkit_data::pose::pnp::RansacParams::default(),
+        &arkit_data::pose::RansacParams::default(),
         &|_| {},
     )
     .unwrap();
@@ -929,24 +913,22 @@ fn render_reports_and_skips_a_sample_it_cannot_render() {
     assert_eq!(preds.len(), 5);
     assert!(preds.iter().all(|p| p.key != broken));
     // The second shard's errors file is there and empty.
-    let e1 = samples_table::read_errors(&targets_table::errors_path(out.path(), 1)).unwrap();
+    let e1 = store::read_errors(&store::errors_path(out.path(), 1)).unwrap();
     assert!(e1.is_empty());
     // A rerun counts the shard as finished (targets + errors = its rows) and keeps it.
-    let before = std::fs::read(targets_table::shard_path(out.path(), 0)).unwrap();
-    let again =
-        arkit_data::render::dataset::render_dataset(out.path(), &renderer, &ro, &|_| {}).unwrap();
+    let before = std::fs::read(store::shard_path(out.path(), 0)).unwrap();
+    let again = arkit_data::render::render_dataset(out.path(), &renderer, &ro, &|_| {}).unwrap();
     assert_eq!((again.skipped, again.bytes), (1, summary.bytes));
     assert_eq!(
-        std::fs::read(targets_table::shard_path(out.path(), 0)).unwrap(),
+        std::fs::read(store::shard_path(out.path(), 0)).unwrap(),
         before
     );
     // Without its errors file the shard is not finished: rendered again, same bytes.
-    std::fs::remove_file(targets_table::errors_path(out.path(), 0)).unwrap();
-    let third =
-        arkit_data::render::dataset::render_dataset(out.path(), &renderer, &ro, &|_| {}).unwrap();
+    std::fs::remove_file(store::errors_path(out.path(), 0)).unwrap();
+    let third = arkit_data::render::render_dataset(out.path(), &renderer, &ro, &|_| {}).unwrap();
     assert_eq!(third.skipped, 1);
     assert_eq!(
-        std::fs::read(targets_table::shard_path(out.path(), 0)).unwrap(),
+        std::fs::read(store::shard_path(out.path(), 0)).unwrap(),
         before
     );
 }
@@ -954,12 +936,12 @@ fn render_reports_and_skips_a_sample_it_cannot_render() {
 #[test]
 #[cfg(feature = "model")]
 fn training_streams_shard_by_shard() {
-    use arkit_data::render::dataset::RenderOptions;
+    use arkit_data::render::RenderOptions;
     use arkit_perspnet::PerspNetConfig;
     use arkit_perspnet::{ExampleShards, ShardedExamples, TrainOptions};
     let input = tempfile::tempdir().unwrap();
     make_release(input.path(), 2, 3);
-    let topology = arkit_data::mesh::synthetic_face::builtin().topology.clone();
+    let topology = arkit_data::mesh::builtin().topology.clone();
     let cfg = PerspNetConfig {
         points: 32,
         ..PerspNetConfig::tiny()
@@ -977,8 +959,7 @@ fn training_streams_shard_by_shard() {
             full_mask: false,
             output: out.path().to_path_buf(),
         };
-        arkit_data::render::dataset::render_dataset(out.path(), &builtin_renderer(), &ro, &|_| {})
-            .unwrap();
+        arkit_data::render::render_dataset(out.path(), &builtin_renderer(), &ro, &|_| {}).unwrap();
         out
     };
     let (two, one) = (dataset(4), dataset(100));

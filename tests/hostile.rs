@@ -20,12 +20,12 @@
 use crate::support::{convert_context as context, convert_options as options};
 use arkit_core::atomic_file::FolderLock;
 use arkit_core::conventions::Camera;
-use arkit_core::npy::{NpyArray, NpzCompression};
 use arkit_core::release::{self, ReleaseLayout, SampleKey, Split};
-use arkit_data::ingest::convert::{self, ConvertOptions};
+use arkit_core::{NpyArray, NpzCompression};
 use arkit_data::ingest::synth::{self, FaceSource, SynthOptions};
-use arkit_data::store::dataset::Dataset;
-use arkit_data::store::samples_table;
+use arkit_data::ingest::{self, ConvertOptions};
+use arkit_data::store;
+use arkit_data::store::Dataset;
 use std::path::Path;
 use std::process::Command;
 
@@ -41,8 +41,8 @@ fn make_release(dir: &Path, subjects: usize, images: usize, seed: u64) {
     synth::generate(&FaceSource::builtin(), &options, dir, &|| {}).unwrap();
 }
 
-fn convert(o: &ConvertOptions) -> arkit_core::error::Result<arkit_data::store::manifest::Manifest> {
-    convert::convert(o, &context(), &|_| {})
+fn convert(o: &ConvertOptions) -> arkit_core::Result<arkit_data::store::Manifest> {
+    ingest::convert(o, &context(), &|_| {})
 }
 
 fn keys(root: &Path, split: Split) -> Vec<SampleKey> {
@@ -69,7 +69,7 @@ fn another_conversion_in_the_folder_is_refused_and_overwrite_replaces_it() {
     );
     // Nothing of the first conversion was touched.
     assert_eq!(
-        arkit_data::store::manifest::read_manifest(&out.path().join("dataset.json")).unwrap(),
+        arkit_data::store::read_manifest(&out.path().join("dataset.json")).unwrap(),
         first
     );
     // Other options into the same folder: refused too (a sharded part with another
@@ -85,8 +85,8 @@ fn another_conversion_in_the_folder_is_refused_and_overwrite_replaces_it() {
     let fresh = tempfile::tempdir().unwrap();
     convert(&options(b.path(), fresh.path(), 4)).unwrap();
     assert_eq!(
-        convert::read_dataset_samples(out.path()).unwrap(),
-        convert::read_dataset_samples(fresh.path()).unwrap()
+        ingest::read_dataset_samples(out.path()).unwrap(),
+        ingest::read_dataset_samples(fresh.path()).unwrap()
     );
 }
 
@@ -111,12 +111,12 @@ fn an_input_file_changed_in_place_is_converted_again_and_temporaries_are_cleaned
     make_release(input.path(), 2, 4, 4);
     let out = tempfile::tempdir().unwrap();
     let first = convert(&options(input.path(), out.path(), 3)).unwrap();
-    let before = convert::read_dataset_samples(out.path()).unwrap();
+    let before = ingest::read_dataset_samples(out.path()).unwrap();
     // Sample 4 (shard 1) gets sample 0's annotation, in place; a killed run's temporary
     // is left in samples/.
     let root = input.path();
     let layout = ReleaseLayout::new(root);
-    let split = |r: &samples_table::SampleRecord| {
+    let split = |r: &store::SampleRecord| {
         if r.split == "test" {
             Split::Test
         } else {
@@ -135,8 +135,8 @@ fn an_input_file_changed_in_place_is_converted_again_and_temporaries_are_cleaned
     std::fs::write(&stale, b"half a shard").unwrap();
     let second = convert(&options(root, out.path(), 3)).unwrap();
     assert!(!stale.exists(), "a killed run's temporary survived");
-    let after = convert::read_dataset_samples(out.path()).unwrap();
-    let row = |rows: &[samples_table::SampleRecord], k: &SampleKey| {
+    let after = ingest::read_dataset_samples(out.path()).unwrap();
+    let row = |rows: &[store::SampleRecord], k: &SampleKey| {
         rows.iter().find(|r| &r.key == k).unwrap().clone()
     };
     assert_ne!(row(&before, &train[1]).rt, row(&after, &train[1]).rt);
@@ -157,13 +157,13 @@ fn parts_of_different_conversions_do_not_merge() {
         (o.shard_index, o.shard_count) = (i, 2);
         convert(&o).unwrap();
     }
-    convert::merge(out.path()).unwrap();
+    ingest::merge(out.path()).unwrap();
     // A part manifest from a conversion with another topology.
-    let part = out.path().join(convert::manifest_name(1, 2));
-    let mut m = arkit_data::store::manifest::read_manifest(&part).unwrap();
+    let part = out.path().join(ingest::manifest_name(1, 2));
+    let mut m = arkit_data::store::read_manifest(&part).unwrap();
     m.topology_sha256 = "0".repeat(64);
     std::fs::write(&part, serde_json::to_string_pretty(&m).unwrap()).unwrap();
-    let e = convert::merge(out.path()).unwrap_err().to_string();
+    let e = ingest::merge(out.path()).unwrap_err().to_string();
     assert!(e.contains("topology differs"), "{e}");
 }
 
@@ -174,7 +174,7 @@ fn a_shard_rewritten_after_convert_is_refused() {
     let out = tempfile::tempdir().unwrap();
     let m = convert(&options(input.path(), out.path(), 3)).unwrap();
     assert_eq!(
-        convert::verify_dataset(out.path()).unwrap(),
+        ingest::verify_dataset(out.path()).unwrap(),
         2 * m.shards.len()
     );
     // Shard 0 replaced by shard 1's file: a valid Parquet file, the wrong one.
@@ -183,14 +183,14 @@ fn a_shard_rewritten_after_convert_is_refused() {
         out.path().join(&m.shards[0].samples_file),
     )
     .unwrap();
-    let e = convert::read_dataset_samples(out.path())
+    let e = ingest::read_dataset_samples(out.path())
         .unwrap_err()
         .to_string();
     assert!(
         e.contains("part-00000.parquet") && e.contains("changed after convert"),
         "{e}"
     );
-    let e = convert::verify_dataset(out.path()).unwrap_err().to_string();
+    let e = ingest::verify_dataset(out.path()).unwrap_err().to_string();
     assert!(e.contains("SHA-256"), "{e}");
 }
 
@@ -214,12 +214,10 @@ fn a_missing_image_is_reported_and_skipped_never_grey() {
     assert_eq!(data.image(&rows[0]).unwrap().dimensions(), (128, 128));
     // augment: the other samples are augmented, the missing one reported.
     let aug_out = tempfile::tempdir().unwrap();
-    let aopts = arkit_data::augment::dataset::AugmentOptions {
+    let aopts = arkit_data::augment::AugmentOptions {
         output: aug_out.path().to_path_buf(),
-        axis: arkit_data::augment::dataset::AxisChoice::Fixed(
-            arkit_data::augment::sample::Axis::Roll,
-        ),
-        rule: arkit_data::augment::dataset::ProfilingRule::default(),
+        axis: arkit_data::augment::AxisChoice::Fixed(arkit_data::augment::Axis::Roll),
+        rule: arkit_data::augment::ProfilingRule::default(),
         per_sample: 1,
         flip: false,
         with_originals: true,
@@ -227,9 +225,9 @@ fn a_missing_image_is_reported_and_skipped_never_grey() {
         jpeg_quality: 90,
         preview_pairs: 0,
     };
-    let (summary, _) = arkit_data::augment::dataset::augment_dataset(
+    let (summary, _) = arkit_data::augment::augment_dataset(
         out.path(),
-        &arkit_data::mesh::synthetic_face::builtin().topology,
+        &arkit_data::mesh::builtin().topology,
         &aopts,
         &|_| {},
     )
@@ -294,7 +292,7 @@ fn write_info(root: &Path, key: &SampleKey, arrays: Vec<(&'static str, NpyArray)
     let path = ReleaseLayout::new(root).info_path(Split::Train, key);
     let refs: Vec<(&str, &NpyArray)> = arrays.iter().map(|(k, a)| (*k, a)).collect();
     let mut f = std::fs::File::create(path).unwrap();
-    arkit_core::npy::write_npz(&mut f, &refs, NpzCompression::Stored).unwrap();
+    arkit_core::write_npz(&mut f, &refs, NpzCompression::Stored).unwrap();
 }
 
 #[test]
@@ -324,7 +322,7 @@ fn degenerate_samples_are_skipped_with_the_reason() {
     let tiny = image::RgbImage::from_pixel(1, 1, image::Rgb([9, 9, 9]));
     std::fs::write(
         image(&train[1]),
-        arkit_data::picture::encode::jpeg_bytes(&tiny, 90).unwrap(),
+        arkit_data::picture::jpeg_bytes(&tiny, 90).unwrap(),
     )
     .unwrap();
     // 2: the image resized (the annotation's own points2d say where the face was).
@@ -332,7 +330,7 @@ fn degenerate_samples_are_skipped_with_the_reason() {
     let bigger = image::imageops::resize(&img, 160, 160, image::imageops::FilterType::Triangle);
     std::fs::write(
         image(&train[2]),
-        arkit_data::picture::encode::jpeg_bytes(&bigger, 90).unwrap(),
+        arkit_data::picture::jpeg_bytes(&bigger, 90).unwrap(),
     )
     .unwrap();
     // 3: bytes after the JPEG's end marker: a good sample.
@@ -344,7 +342,7 @@ fn degenerate_samples_are_skipped_with_the_reason() {
     let m = convert(&options(root, out.path(), 16)).unwrap();
     let mut errors = Vec::new();
     for s in &m.shards {
-        errors.extend(samples_table::read_errors(&out.path().join(&s.errors_file)).unwrap());
+        errors.extend(store::read_errors(&out.path().join(&s.errors_file)).unwrap());
     }
     let reason = |k: &SampleKey| {
         errors
@@ -365,26 +363,26 @@ fn degenerate_samples_are_skipped_with_the_reason() {
         reason(&train[2])
     );
     assert_eq!(errors.len(), 3, "{errors:?}");
-    let rows = convert::read_dataset_samples(out.path()).unwrap();
+    let rows = ingest::read_dataset_samples(out.path()).unwrap();
     assert!(rows.iter().any(|r| r.key == train[3]));
 }
 
 #[test]
 fn jpeg_framing_walks_the_segments() {
     let img = image::RgbImage::from_fn(40, 30, |x, y| image::Rgb([x as u8 * 5, y as u8 * 7, 90]));
-    let jpg = arkit_data::picture::encode::jpeg_bytes(&img, 85).unwrap();
-    assert_eq!(convert::check_jpeg_framing(&jpg), Ok(jpg.len()));
+    let jpg = arkit_data::picture::jpeg_bytes(&img, 85).unwrap();
+    assert_eq!(ingest::check_jpeg_framing(&jpg), Ok(jpg.len()));
     let mut padded = jpg.clone();
     padded.extend_from_slice(&[0xFF, 0xD9, 1, 2, 3]);
-    assert_eq!(convert::check_jpeg_framing(&padded), Ok(jpg.len()));
+    assert_eq!(ingest::check_jpeg_framing(&padded), Ok(jpg.len()));
     for cut in [jpg.len() - 2, jpg.len() / 2, 30, 5] {
-        let e = convert::check_jpeg_framing(&jpg[..cut]).unwrap_err();
+        let e = ingest::check_jpeg_framing(&jpg[..cut]).unwrap_err();
         assert!(
             e.contains("truncated") || e.contains("corrupt"),
             "{cut}: {e}"
         );
     }
-    assert!(convert::check_jpeg_framing(b"\x89PNG\r\n\x1a\n").is_err());
+    assert!(ingest::check_jpeg_framing(b"\x89PNG\r\n\x1a\n").is_err());
 }
 
 #[test]
@@ -428,10 +426,10 @@ fn library_options_are_checked_without_the_cli() {
     }
     // augment and the oracle check theirs before reading anything.
     let missing = Path::new("/nonexistent/dataset");
-    let aopts = arkit_data::augment::dataset::AugmentOptions {
+    let aopts = arkit_data::augment::AugmentOptions {
         output: std::path::PathBuf::from("/nonexistent/out"),
-        axis: arkit_data::augment::dataset::AxisChoice::Auto,
-        rule: arkit_data::augment::dataset::ProfilingRule::default(),
+        axis: arkit_data::augment::AxisChoice::Auto,
+        rule: arkit_data::augment::ProfilingRule::default(),
         per_sample: 1,
         flip: false,
         with_originals: false,
@@ -439,15 +437,15 @@ fn library_options_are_checked_without_the_cli() {
         jpeg_quality: 0,
         preview_pairs: 0,
     };
-    let topo = &arkit_data::mesh::synthetic_face::builtin().topology;
-    let e = arkit_data::augment::dataset::augment_dataset(missing, topo, &aopts, &|_| {})
+    let topo = &arkit_data::mesh::builtin().topology;
+    let e = arkit_data::augment::augment_dataset(missing, topo, &aopts, &|_| {})
         .unwrap_err()
         .to_string();
     assert!(e.contains("--jpeg-quality"), "{e}");
     let mut bad_rule = aopts.clone();
     bad_rule.jpeg_quality = 90;
     bad_rule.rule.max_angle = 1000.0;
-    let e = arkit_data::augment::dataset::augment_dataset(missing, topo, &bad_rule, &|_| {})
+    let e = arkit_data::augment::augment_dataset(missing, topo, &bad_rule, &|_| {})
         .unwrap_err()
         .to_string();
     assert!(e.contains("max-angle"), "{e}");
@@ -455,14 +453,14 @@ fn library_options_are_checked_without_the_cli() {
     bad_rule.rule.max_angle = 20.0;
     assert!(bad_rule.rule.max_change > 20.0);
     bad_rule.validate().unwrap();
-    let o = arkit_data::pose::predict::OracleOptions {
+    let o = arkit_data::pose::OracleOptions {
         noise_px: 0.0,
         outliers: 1.0,
         seed: 0,
         split: None,
-        ransac: arkit_data::pose::pnp::RansacParams::default(),
+        ransac: arkit_data::pose::RansacParams::default(),
     };
-    let e = arkit_data::pose::predict::oracle_predictions(missing, missing, &o, &|_| {})
+    let e = arkit_data::pose::oracle_predictions(missing, missing, &o, &|_| {})
         .unwrap_err()
         .to_string();
     assert!(e.contains("--outliers"), "{e}");
@@ -470,14 +468,14 @@ fn library_options_are_checked_without_the_cli() {
 
 #[test]
 fn a_second_render_of_the_same_part_is_refused_and_its_temporaries_are_cleaned() {
-    use arkit_data::render::dataset::RenderOptions;
-    use arkit_data::render::face::FaceRenderer;
+    use arkit_data::render::FaceRenderer;
+    use arkit_data::render::RenderOptions;
     let input = tempfile::tempdir().unwrap();
     make_release(input.path(), 2, 2, 10);
     let out = tempfile::tempdir().unwrap();
     convert(&options(input.path(), out.path(), 4)).unwrap();
     let renderer = FaceRenderer::new(
-        arkit_data::mesh::synthetic_face::builtin().topology.clone(),
+        arkit_data::mesh::builtin().topology.clone(),
         Camera::release_projection(),
     )
     .unwrap();
@@ -492,16 +490,16 @@ fn a_second_render_of_the_same_part_is_refused_and_its_temporaries_are_cleaned()
     };
     let targets = out.path().join("targets");
     let held = FolderLock::acquire(&targets, "render-part-0-of-1", "render").unwrap();
-    let e = arkit_data::render::dataset::render_dataset(out.path(), &renderer, &ro, &|_| {})
+    let e = arkit_data::render::render_dataset(out.path(), &renderer, &ro, &|_| {})
         .unwrap_err()
         .to_string();
     assert!(e.contains("another render of this part"), "{e}");
     drop(held);
     let stale = targets.join(".part-00000.parquet.tmp-777");
     std::fs::write(&stale, b"half").unwrap();
-    arkit_data::render::dataset::render_dataset(out.path(), &renderer, &ro, &|_| {}).unwrap();
+    arkit_data::render::render_dataset(out.path(), &renderer, &ro, &|_| {}).unwrap();
     assert!(!stale.exists());
-    assert!(arkit_data::store::targets_table::shard_path(out.path(), 0).exists());
+    assert!(arkit_data::store::shard_path(out.path(), 0).exists());
 }
 
 #[test]
@@ -582,7 +580,7 @@ fn a_check_that_skips_most_samples_stops_convert_with_the_reason_and_the_way_out
     // Half is not "most": 4 of 8 skipped for one check does not stop.
     let fresh = tempfile::tempdir().unwrap();
     make_release(fresh.path(), 3, 4, 21);
-    let rows = convert::plan_rows(&convert::discover(fresh.path()).unwrap())
+    let rows = ingest::plan_rows(&ingest::discover(fresh.path()).unwrap())
         .unwrap()
         .0;
     for r in rows.iter().take(8).skip(4) {
@@ -593,13 +591,13 @@ fn a_check_that_skips_most_samples_stops_convert_with_the_reason_and_the_way_out
         }
         release::write_info(&path, &info, NpzCompression::Deflated).unwrap();
     }
-    let checks = convert::ConvertChecks {
+    let checks = ingest::ConvertChecks {
         skip: Vec::new(),
         window: 8,
     };
-    let input2 = convert::discover(fresh.path()).unwrap();
-    let plan = convert::plan_rows(&input2).unwrap();
-    let m = convert::convert_planned_with(
+    let input2 = ingest::discover(fresh.path()).unwrap();
+    let plan = ingest::plan_rows(&input2).unwrap();
+    let m = ingest::convert_planned_with(
         &options(fresh.path(), &fresh.path().join("pq"), 16),
         &context(),
         &checks,

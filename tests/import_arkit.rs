@@ -4,11 +4,12 @@
 //! every kind of bad frame is reported with its file and reason and skipped.
 
 use crate::support::tool;
+use arkit_core::VisibilityBuffer;
 use arkit_core::conventions::{Camera, EulerAngles, Pose};
-use arkit_core::raster::VisibilityBuffer;
 use arkit_core::release::{self, ReleaseLayout, Split};
-use arkit_data::ingest::convert::{self, ConvertOptions, ValidationContext};
-use arkit_data::ingest::import_arkit::{self, ImportOptions, InterfaceOrientation};
+use arkit_data::ingest::{
+    self, ConvertOptions, ImportOptions, InterfaceOrientation, ValidationContext,
+};
 use image::{Rgb, RgbImage};
 use nalgebra::{Matrix3, Matrix4, Point3, Rotation3, Vector3};
 use serde_json::{Value, json};
@@ -25,8 +26,8 @@ pub(crate) struct Scene {
     orientation: InterfaceOrientation,
 }
 
-fn builtin() -> &'static arkit_data::mesh::synthetic_face::SyntheticFace {
-    arkit_data::mesh::synthetic_face::builtin()
+fn builtin() -> &'static arkit_data::mesh::SyntheticFace {
+    arkit_data::mesh::builtin()
 }
 
 fn mesh() -> Vec<Point3<f64>> {
@@ -155,7 +156,7 @@ fn options(input: &Path, output: &Path) -> ImportOptions {
         size: None,
         jpeg_quality: 95,
         overwrite: false,
-        systematic_window: arkit_data::ingest::systematic::SYSTEMATIC_WINDOW,
+        systematic_window: arkit_data::ingest::SYSTEMATIC_WINDOW,
     }
 }
 
@@ -195,7 +196,7 @@ fn pose_in_is_r_t_out_and_the_mesh_lands_on_the_face() {
     for (i, s) in scenes.iter().enumerate() {
         write_frame(&input, &format!("frame_{i:03}"), s);
     }
-    let summary = import_arkit::import_capture(&options(&input, &output), &|| {}).unwrap();
+    let summary = ingest::import_capture(&options(&input, &output), &|| {}).unwrap();
     assert_eq!(summary.imported, 4, "{:?}", summary.skipped);
     let layout = ReleaseLayout::new(&output);
     let keys = release::read_list(&layout.list_path(Split::Test)).unwrap();
@@ -287,7 +288,7 @@ fn pose_in_is_r_t_out_and_the_mesh_lands_on_the_face() {
         shard_count: 1,
         overwrite: false,
     };
-    let m = convert::convert(&opts, &ctx, &|_| {}).unwrap();
+    let m = ingest::convert(&opts, &ctx, &|_| {}).unwrap();
     assert_eq!((m.converted, m.skipped, m.listing_problems), (4, 0, 0));
 }
 
@@ -302,7 +303,7 @@ fn portrait_turns_the_captured_image_clockwise() {
         }
     }
     let k = Matrix3::new(300.0, 0.0, 199.5, 0.0, 300.0, 149.5, 0.0, 0.0, 1.0);
-    let out = arkit_data::ingest::release_camera::resample_to_release(
+    let out = arkit_data::ingest::resample_to_release(
         &captured,
         &k,
         &InterfaceOrientation::Portrait.rotation(),
@@ -321,7 +322,7 @@ fn portrait_turns_the_captured_image_clockwise() {
     assert!(mx > 340.0 && mx < 360.0, "{mx}");
     assert!((my - 200.0).abs() < 3.0, "{my}");
     // landscapeRight keeps it at the top.
-    let out = arkit_data::ingest::release_camera::resample_to_release(
+    let out = arkit_data::ingest::resample_to_release(
         &captured,
         &k,
         &InterfaceOrientation::LandscapeRight.rotation(),
@@ -395,7 +396,7 @@ fn bad_frames_are_reported_with_file_and_reason_and_skipped() {
     let dir = tempfile::tempdir().unwrap();
     let (input, output) = (dir.path().join("cap"), dir.path().join("rel"));
     bad_capture(&input);
-    let summary = import_arkit::import_capture(&options(&input, &output), &|| {}).unwrap();
+    let summary = ingest::import_capture(&options(&input, &output), &|| {}).unwrap();
     assert_eq!(summary.frames_found, 8);
     assert_eq!(summary.imported, 1, "{:#?}", summary.skipped);
     let why = |file: &str| -> String {
@@ -430,7 +431,7 @@ fn bad_frames_are_reported_with_file_and_reason_and_skipped() {
         !ReleaseLayout::new(&output)
             .info_path(
                 Split::Test,
-                &arkit_core::release::SampleKey {
+                &arkit_core::SampleKey {
                     subject_id: "me".into(),
                     facial_action: "capture".into(),
                     img_id: "short".into(),
@@ -439,7 +440,7 @@ fn bad_frames_are_reported_with_file_and_reason_and_skipped() {
             .exists()
     );
     // A second import into the same folder is refused without --overwrite.
-    let err = import_arkit::import_capture(&options(&input, &output), &|| {})
+    let err = ingest::import_capture(&options(&input, &output), &|| {})
         .unwrap_err()
         .to_string();
     assert!(err.contains("--overwrite"), "{err}");
@@ -546,7 +547,7 @@ fn intrinsics_of_another_resolution_and_unreadable_folders_are_reported() {
     std::fs::write(input.join("other_k.json"), v.to_string()).unwrap();
     // A sub-folder (facial action) that is a symbolic link to itself.
     std::os::unix::fs::symlink("loop", input.join("loop")).unwrap();
-    let summary = import_arkit::import_capture(&options(&input, &out), &|| {}).unwrap();
+    let summary = ingest::import_capture(&options(&input, &out), &|| {}).unwrap();
     assert_eq!(summary.imported, 1, "{:#?}", summary.skipped);
     let why = |f: &str| {
         summary
@@ -586,7 +587,7 @@ fn a_png_bomb_is_refused_from_its_header() {
         crate::support::png_bomb::png_bomb(16000),
     )
     .unwrap();
-    let summary = import_arkit::import_capture(&options(&input, &out), &|| {}).unwrap();
+    let summary = ingest::import_capture(&options(&input, &out), &|| {}).unwrap();
     assert_eq!(summary.imported, 1, "{:#?}", summary.skipped);
     let p = &summary.skipped[0];
     assert_eq!(p.file, "bomb.png");
@@ -615,9 +616,7 @@ fn row_major_matrices_in_most_frames_stop_the_import_and_leave_nothing() {
     }
     let mut o = options(&input, &out);
     o.systematic_window = 5;
-    let e = import_arkit::import_capture(&o, &|| {})
-        .unwrap_err()
-        .to_string();
+    let e = ingest::import_capture(&o, &|| {}).unwrap_err().to_string();
     assert!(
         e.contains("'transforms' check skipped 4 of the first 5 frames")
             && e.contains("f0.json")
@@ -633,7 +632,7 @@ fn row_major_matrices_in_most_frames_stop_the_import_and_leave_nothing() {
     );
     // Not stopping (--allow-systematic-skips): each frame skipped with its reason.
     o.systematic_window = 0;
-    let summary = import_arkit::import_capture(&o, &|| {}).unwrap();
+    let summary = ingest::import_capture(&o, &|| {}).unwrap();
     assert_eq!((summary.imported, summary.skipped.len()), (2, 4));
     // 3 of the first 6 (half) does not stop.
     let out2 = dir.path().join("rel2");
@@ -643,6 +642,6 @@ fn row_major_matrices_in_most_frames_stop_the_import_and_leave_nothing() {
     std::fs::write(&f, v.to_string()).unwrap();
     let mut o = options(&input, &out2);
     o.systematic_window = 6;
-    let summary = import_arkit::import_capture(&o, &|| {}).unwrap();
+    let summary = ingest::import_capture(&o, &|| {}).unwrap();
     assert_eq!((summary.imported, summary.skipped.len()), (3, 3));
 }

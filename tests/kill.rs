@@ -402,7 +402,7 @@ fn check_readers(stage: Stage, dir: &Path, finished: bool, scratch: &Path) -> Ve
         Stage::Crops => {
             // The loader the Python package uses, given the store.
             use arkit_data::crop::RuleSet;
-            use arkit_data::loader::item::{FaceLoader, LoaderMode, LoaderOptions};
+            use arkit_data::loader::{FaceLoader, LoaderMode, LoaderOptions};
             let options = LoaderOptions {
                 split: None,
                 mode: LoaderMode::Eval,
@@ -411,7 +411,7 @@ fn check_readers(stage: Stage, dir: &Path, finished: bool, scratch: &Path) -> Ve
                 n_pts: 16,
                 seed: 0,
             };
-            let topology = arkit_data::mesh::synthetic_face::builtin().topology.clone();
+            let topology = arkit_data::mesh::builtin().topology.clone();
             let mut loader = FaceLoader::open(dir, topology, None, options).unwrap();
             let store =
                 FaceLoader::default_crop_store(dir, RuleSet::Exact, CROP_SIZE.parse().unwrap());

@@ -93,7 +93,7 @@ impl Fixture {
                 &capture,
                 &format!("f{i}"),
                 &crate::import_arkit::scene(
-                    arkit_data::ingest::import_arkit::InterfaceOrientation::LandscapeRight,
+                    arkit_data::ingest::InterfaceOrientation::LandscapeRight,
                     yaw,
                     4.0,
                     0.0,

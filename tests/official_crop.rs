@@ -6,8 +6,8 @@
 //! code's era; CI installs 4.6.0.66 in a virtual environment). Skips with a message
 //! without it.
 
-use arkit_core::rng::Rng;
-use arkit_data::crop::official::{box_crop, warp_affine, warp_mask};
+use arkit_core::Rng;
+use arkit_data::crop::{box_crop, warp_affine, warp_mask};
 use std::path::Path;
 use std::process::Command;
 

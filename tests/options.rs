@@ -6,11 +6,9 @@
 
 use crate::support::tool;
 use arkit_core::conventions::Camera;
-use arkit_data::render::dataset::RenderOptions;
-use arkit_data::render::face::FaceRenderer;
-use arkit_data::store::parquet;
-use arkit_data::store::samples_table;
-use arkit_data::store::targets_table;
+use arkit_data::render::FaceRenderer;
+use arkit_data::render::RenderOptions;
+use arkit_data::store;
 use std::path::{Path, PathBuf};
 use std::process::Output;
 
@@ -325,18 +323,14 @@ fn checks_between_options_come_before_any_output() {
             full_mask: false,
         };
         let renderer = FaceRenderer::new(
-            arkit_data::mesh::synthetic_face::builtin().topology.clone(),
+            arkit_data::mesh::builtin().topology.clone(),
             Camera::release_projection(),
         )
         .unwrap();
-        let e = arkit_data::render::dataset::render_dataset(
-            Path::new("/nonexistent"),
-            &renderer,
-            &ro,
-            &|_| {},
-        )
-        .unwrap_err()
-        .to_string();
+        let e =
+            arkit_data::render::render_dataset(Path::new("/nonexistent"), &renderer, &ro, &|_| {})
+                .unwrap_err()
+                .to_string();
         assert!(e.contains(&format!("invalid {option}")), "{e}");
         assert!(!out.exists());
     }
@@ -395,7 +389,7 @@ fn render_keeps_targets_only_from_the_same_dataset_and_options() {
     let out = dir.path().join("t");
     let r = render(&a, &out, &[]);
     assert!(r.status.success(), "{}", stderr(&r));
-    let shard = targets_table::shard_path(&out, 0);
+    let shard = store::shard_path(&out, 0);
     let made_from_a = std::fs::read(&shard).unwrap();
     // Another dataset into the same folder: refused, the old targets left alone.
     let r = render(&b, &out, &[]);
@@ -419,7 +413,7 @@ fn render_keeps_targets_only_from_the_same_dataset_and_options() {
     assert!(r.status.success(), "{}", stderr(&r));
     let fresh = dir.path().join("fresh");
     assert!(render(&b, &fresh, &[]).status.success());
-    let made_from_b = std::fs::read(targets_table::shard_path(&fresh, 0)).unwrap();
+    let made_from_b = std::fs::read(store::shard_path(&fresh, 0)).unwrap();
     assert_ne!(made_from_a, made_from_b);
     assert_eq!(std::fs::read(&shard).unwrap(), made_from_b);
     assert_eq!(
@@ -460,7 +454,7 @@ fn a_run_that_wrote_no_shard_does_not_block_a_corrected_rerun() {
     std::fs::write(out.join("targets/render.json"), r#"{"size": 20000}"#).unwrap();
     let r = render(&a, &out, &[]);
     assert!(r.status.success(), "{}", stderr(&r));
-    assert!(targets_table::shard_path(&out, 0).exists());
+    assert!(store::shard_path(&out, 0).exists());
     let settings: serde_json::Value =
         serde_json::from_slice(&std::fs::read(out.join("targets/render.json")).unwrap()).unwrap();
     assert_eq!(settings["size"], 16);
@@ -498,9 +492,9 @@ fn render_refuses_the_builtin_face_for_a_dataset_converted_with_resources() {
 fn rows_render_cannot_use_are_skipped_with_the_reason() {
     let dir = tempfile::tempdir().unwrap();
     let a = dataset(dir.path(), "a", 3, 5);
-    let m = arkit_data::store::manifest::read_manifest(&a.join("dataset.json")).unwrap();
+    let m = arkit_data::store::read_manifest(&a.join("dataset.json")).unwrap();
     let file = a.join(&m.shards[0].samples_file);
-    let rows = samples_table::read_samples(&file).unwrap();
+    let rows = store::read_samples(&file).unwrap();
     assert!(rows.len() >= 4);
     // Readers refuse a shard that differs from the manifest; these rows are meant to be
     // read, as if convert had written them, so the manifest forgets the shard's size.
@@ -516,16 +510,12 @@ fn rows_render_cannot_use_are_skipped_with_the_reason() {
     // reader refuses it, naming the file and the column (it used to panic on chunks(3)).
     let mut bad = rows.clone();
     bad[0].verts.truncate(10);
-    assert!(samples_table::samples_frame(&bad, 1220).is_err());
+    assert!(store::samples_frame(&bad, 1220).is_err());
     let mut odd = rows.clone();
     odd[1].landmarks_2d.pop();
     for (rows, column) in [(&bad, "verts"), (&odd, "landmarks_2d")] {
-        parquet::write_parquet(
-            &file,
-            &mut samples_table::samples_frame_format1(rows).unwrap(),
-        )
-        .unwrap();
-        let e = samples_table::read_samples(&file).unwrap_err().to_string();
+        store::write_parquet(&file, &mut store::samples_frame_format1(rows).unwrap()).unwrap();
+        let e = store::read_samples(&file).unwrap_err().to_string();
         assert!(
             e.contains(&file.display().to_string()) && e.contains(&format!("column '{column}'")),
             "{e}"
@@ -533,9 +523,9 @@ fn rows_render_cannot_use_are_skipped_with_the_reason() {
     }
     let mut rows = rows;
     rows[2].image_width = 20000; // beyond the rasterizer's buffer
-    samples_table::write_samples(&file, &rows, 1220).unwrap();
+    store::write_samples(&file, &rows, 1220).unwrap();
     let renderer = FaceRenderer::new(
-        arkit_data::mesh::synthetic_face::builtin().topology.clone(),
+        arkit_data::mesh::builtin().topology.clone(),
         Camera::release_projection(),
     )
     .unwrap();
@@ -549,12 +539,12 @@ fn rows_render_cannot_use_are_skipped_with_the_reason() {
         shard: (0, 1),
         full_mask: true,
     };
-    let summary = arkit_data::render::dataset::render_dataset(&a, &renderer, &ro, &|_| {}).unwrap();
+    let summary = arkit_data::render::render_dataset(&a, &renderer, &ro, &|_| {}).unwrap();
     assert_eq!(summary.skipped, 1, "{:?}", summary.skipped_examples);
     let reasons = summary.skipped_examples.join("\n");
     assert!(reasons.contains("invalid image size"), "{reasons}");
     assert_eq!(
-        parquet::parquet_row_count(&targets_table::shard_path(&out, 0)).unwrap(),
+        store::parquet_row_count(&store::shard_path(&out, 0)).unwrap(),
         rows.len() - 1
     );
 }

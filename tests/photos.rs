@@ -5,10 +5,10 @@
 //! a photo with no face, and against bad input.
 
 use crate::support::tool;
-use arkit_data::crop::official::{LandmarkExtent, official_box};
 use arkit_data::crop::{CropTransform, RuleSet};
-use arkit_data::picture::photo::{DEMO_SIDE, DemoSquare, demo_crop};
-use arkit_data::store::dataset::Dataset;
+use arkit_data::crop::{LandmarkExtent, official_box};
+use arkit_data::picture::{DEMO_SIDE, DemoSquare, demo_crop};
+use arkit_data::store::Dataset;
 use serde_json::Value;
 use std::path::{Path, PathBuf};
 
@@ -127,7 +127,7 @@ fn a_photo_gives_the_dataset_samples_crop_and_pose() {
         "--output",
         &s(&pred),
     ]);
-    let rows = arkit_data::store::predictions_table::read_predictions(&pred).unwrap();
+    let rows = arkit_data::store::read_predictions(&pred).unwrap();
     assert_eq!(rows.len(), 1);
     let expected = rows[0].rt.expect("a pose");
     let crops = dir.path().join("crops");

@@ -70,7 +70,7 @@ fn demo_runs_every_stage_and_its_report_opens_in_a_browser() {
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("demo");
     let plan = DemoPlan::smoke(3);
-    let topology = arkit_data::mesh::synthetic_face::builtin().topology.clone();
+    let topology = arkit_data::mesh::builtin().topology.clone();
     let progress = Count {
         units: AtomicU64::new(0),
         stages: Default::default(),

@@ -22,7 +22,7 @@ fn shipped_model_beats_the_mean_pose_3x_on_the_demos_held_out_subjects() {
     let c = arkit_perspnet::shipped_checkpoint().unwrap();
     assert_eq!(c.config.input_size, plan.crop as usize);
     assert_eq!(c.config.points, plan.points);
-    let topology = arkit_data::mesh::synthetic_face::builtin().topology.clone();
+    let topology = arkit_data::mesh::builtin().topology.clone();
     assert_eq!(c.topology, topology.source);
 
     let dir = tempfile::tempdir().unwrap();

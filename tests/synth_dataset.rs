@@ -166,9 +166,7 @@ fn annotations_agree_with_each_other_and_the_image() {
             // The image is not blank where the face is: the nose tip pixel differs from
             // the image corner's colour.
             let rgb = image.to_rgb8();
-            let tip = &projected[arkit_data::mesh::synthetic_face::builtin()
-                .topology
-                .landmarks[30] as usize];
+            let tip = &projected[arkit_data::mesh::builtin().topology.landmarks[30] as usize];
             assert_ne!(
                 rgb.get_pixel(tip.u as u32, tip.v as u32),
                 rgb.get_pixel(0, 0)
@@ -221,8 +219,7 @@ fn synth_draws_the_real_template_when_resources_exist() {
         return;
     }
     let source =
-        FaceSource::new(arkit_data::mesh::topology::FaceTopology::from_resources(&dir).unwrap())
-            .unwrap();
+        FaceSource::new(arkit_data::mesh::FaceTopology::from_resources(&dir).unwrap()).unwrap();
     let options = SynthOptions {
         subjects: 1,
         images_per_subject: 2,

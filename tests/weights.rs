@@ -42,7 +42,7 @@ fn import_tiny(file: &Path, model: &Path, vm: &VarMap, steps: u64) {
 fn random_varmap(cfg: &PerspNetConfig, seed: u64) -> VarMap {
     let vm = VarMap::new();
     let vb = VarBuilder::from_varmap(&vm, DType::F32, &Device::Cpu);
-    let topo = &arkit_data::mesh::synthetic_face::builtin().topology;
+    let topo = &arkit_data::mesh::builtin().topology;
     PerspNet::new(
         cfg,
         &arkit_perspnet::vertex_uv(topo, &Device::Cpu).unwrap(),
@@ -138,7 +138,7 @@ fn export_import_export_is_bit_exact() {
     );
     same_files(&first, &second);
     // The imported folder predicts like any other: it loads as a trained model.
-    let topo = &arkit_data::mesh::synthetic_face::builtin().topology;
+    let topo = &arkit_data::mesh::builtin().topology;
     arkit_perspnet::load(&model, topo).unwrap();
 }
 
@@ -296,7 +296,7 @@ fn predict_dump_holds_inputs_and_outputs() {
         "--dump",
         &p("dump.npz"),
     ]);
-    let npz = arkit_core::npy::read_npz(&dir.path().join("dump.npz")).unwrap();
+    let npz = arkit_core::read_npz(&dir.path().join("dump.npz")).unwrap();
     let samples: std::collections::BTreeSet<String> = npz
         .keys()
         .filter_map(|k| k.strip_suffix("/image").map(str::to_string))
@@ -304,7 +304,7 @@ fn predict_dump_holds_inputs_and_outputs() {
     assert_eq!(samples.len(), 4);
     assert_eq!(npz.require("vertex_uv").unwrap().shape(), &[1220, 2]);
     let (s, m, v) = (cfg.input_size, cfg.points, cfg.vertices);
-    let topo = &arkit_data::mesh::synthetic_face::builtin().topology;
+    let topo = &arkit_data::mesh::builtin().topology;
     let model = arkit_perspnet::load(&dir.path().join("model"), topo).unwrap();
     for key in &samples {
         let get = |n: &str| npz.require(&format!("{key}/{n}")).unwrap();
@@ -328,7 +328,7 @@ fn predict_dump_holds_inputs_and_outputs() {
             }
         }
         let choose: Vec<u32> = match get("choose").data() {
-            arkit_core::npy::ArrayData::I64(c) => c.iter().map(|&c| c as u32).collect(),
+            arkit_core::ArrayData::I64(c) => c.iter().map(|&c| c as u32).collect(),
             other => panic!("choose is {other:?}"),
         };
         assert!(choose.iter().all(|&c| (c as usize) < s * s));
@@ -399,7 +399,7 @@ fn half_model_loads_within_float16_rounding() {
         std::fs::read(model.join("perspnet.json")).unwrap(),
         std::fs::read(half.join("perspnet.json")).unwrap()
     );
-    let topo = &arkit_data::mesh::synthetic_face::builtin().topology;
+    let topo = &arkit_data::mesh::builtin().topology;
     let (a, b) = (
         arkit_perspnet::load(&model, topo).unwrap(),
         arkit_perspnet::load(&half, topo).unwrap(),
@@ -734,7 +734,7 @@ fn paper_weights_without_resources_say_what_predict_needs() {
     let vm = random_varmap(&cfg, 11);
     let file = dir.path().join("paper.safetensors");
     save(&export_state_dict(&vm, 0).unwrap(), &file);
-    let builtin = &arkit_data::mesh::synthetic_face::builtin().topology;
+    let builtin = &arkit_data::mesh::builtin().topology;
 
     // Without --resources: imported, with a warning on stderr and in the JSON.
     let model = dir.path().join("model");
@@ -768,7 +768,7 @@ fn paper_weights_without_resources_say_what_predict_needs() {
         return;
     };
     // ... and refuses it with the release's topology, as the warning says.
-    let real = arkit_data::mesh::topology::FaceTopology::from_resources(&r).unwrap();
+    let real = arkit_data::mesh::FaceTopology::from_resources(&r).unwrap();
     let e = arkit_perspnet::load(&model, &real)
         .err()
         .expect("refused with --resources")

@@ -1,8 +1,8 @@
 //! `arkit-tool augment`.
 
-use arkit_core::error::Result;
-use arkit_data::augment::dataset::{AugmentOptions, AxisChoice, ProfilingRule};
-use arkit_data::augment::sample::Axis;
+use arkit_core::Result;
+use arkit_data::augment::Axis;
+use arkit_data::augment::{AugmentOptions, AxisChoice, ProfilingRule};
 use clap::Args;
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -113,21 +113,19 @@ pub fn run(a: AugmentArgs) -> Result<ExitCode> {
     // Every check between options, before anything is read.
     options.validate()?;
     let topology = super::load_topology(a.resources.as_deref())?;
-    let manifest = arkit_data::store::dataset::Dataset::open(&a.input)?
+    let manifest = arkit_data::store::Dataset::open(&a.input)?
         .manifest()
         .clone();
     let bar = super::progress_bar(manifest.converted as u64, "augment", "samples");
     let pool = super::thread_pool(a.jobs)?;
     let (summary, previews) = pool.install(|| {
-        arkit_data::augment::dataset::augment_dataset(&a.input, &topology, &options, &|n| {
-            bar.inc(n as u64)
-        })
+        arkit_data::augment::augment_dataset(&a.input, &topology, &options, &|n| bar.inc(n as u64))
     })?;
     bar.finish_and_clear();
     if let Some(path) = &a.preview {
         let cells: Vec<image::RgbImage> = previews.into_iter().flat_map(|(o, n)| [o, n]).collect();
-        let sheet = arkit_data::picture::encode::contact_sheet(&cells, 4, 320);
-        arkit_core::atomic_file::write_bytes(path, &arkit_data::eval::dataset::png_bytes(&sheet)?)?;
+        let sheet = arkit_data::picture::contact_sheet(&cells, 4, 320);
+        arkit_core::atomic_file::write_bytes(path, &arkit_data::eval::png_bytes(&sheet)?)?;
     }
     if a.json {
         println!("{}", serde_json::to_string_pretty(&summary).expect("json"));

@@ -1,8 +1,8 @@
 //! `arkit-tool convert` and `arkit-tool merge`.
 
+use arkit_core::Result;
 use arkit_core::conventions::Camera;
-use arkit_core::error::Result;
-use arkit_data::ingest::convert::{self, ConvertOptions, ValidationContext};
+use arkit_data::ingest::{self, ConvertOptions, ValidationContext};
 use clap::{Args, ValueEnum};
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
@@ -102,7 +102,7 @@ pub struct ConvertArgs {
     #[arg(long)]
     allow_systematic_skips: bool,
     /// The systematic rule's window (tests).
-    #[arg(long, hide = true, default_value_t = arkit_data::ingest::systematic::SYSTEMATIC_WINDOW)]
+    #[arg(long, hide = true, default_value_t = arkit_data::ingest::SYSTEMATIC_WINDOW)]
     systematic_window: usize,
     /// Print the manifest as JSON.
     #[arg(long)]
@@ -148,13 +148,13 @@ pub fn run(a: ConvertArgs) -> Result<ExitCode> {
 /// `convert --format biwi`: stage the frames in the release layout, then convert.
 fn run_biwi(a: ConvertArgs) -> Result<ExitCode> {
     if a.resources.is_some() {
-        return Err(arkit_core::error::Error::invalid(
+        return Err(arkit_core::Error::invalid(
             "--resources",
             "not used with --format biwi (the BIWI head mesh is the topology)",
         ));
     }
     if a.shard.is_some() {
-        return Err(arkit_core::error::Error::invalid(
+        return Err(arkit_core::Error::invalid(
             "--shard",
             "not used with --format biwi (BIWI's 15,678 frames convert on one machine)",
         ));
@@ -206,7 +206,7 @@ fn run_biwi(a: ConvertArgs) -> Result<ExitCode> {
 
 fn convert_with(
     a: ConvertArgs,
-    topology: arkit_data::mesh::topology::FaceTopology,
+    topology: arkit_data::mesh::FaceTopology,
     projection: nalgebra::Matrix4<f64>,
     biwi: Option<&arkit_data::ingest::biwi::StageSummary>,
 ) -> Result<ExitCode> {
@@ -226,24 +226,24 @@ fn convert_with(
         topology,
         embed_images: a.embed_images,
     };
-    let checks = convert::ConvertChecks {
+    let checks = ingest::ConvertChecks {
         skip: a
             .skip_check
             .iter()
             .map(|c| match c {
-                SkipCheck::Points2d => arkit_data::ingest::systematic::Check::Points2d,
+                SkipCheck::Points2d => arkit_data::ingest::Check::Points2d,
             })
             .collect(),
         window: a.window(),
     };
-    let input = convert::discover(&a.input)?;
-    let plan = convert::plan_rows(&input)?;
+    let input = ingest::discover(&a.input)?;
+    let plan = ingest::plan_rows(&input)?;
     let rows = &plan.0;
     eprintln!(
         "found the {} layout in {}: {} listed samples in {}",
         match input.kind {
-            arkit_data::store::manifest::LayoutKind::Download => "download",
-            arkit_data::store::manifest::LayoutKind::Flat => "flat",
+            arkit_data::store::LayoutKind::Download => "download",
+            arkit_data::store::LayoutKind::Flat => "flat",
         },
         a.input.display(),
         rows.len(),
@@ -257,7 +257,7 @@ fn convert_with(
     let bar = super::progress_bar(rows.len() as u64, "convert", "samples");
     let pool = super::thread_pool(a.jobs)?;
     let manifest = pool.install(|| {
-        convert::convert_planned_with(&options, &ctx, &checks, &input, plan, &|n| {
+        ingest::convert_planned_with(&options, &ctx, &checks, &input, plan, &|n| {
             bar.inc(n as u64)
         })
     })?;
@@ -274,7 +274,7 @@ fn convert_with(
     }
     let manifest_file = a
         .output
-        .join(convert::manifest_name(shard_index, shard_count));
+        .join(ingest::manifest_name(shard_index, shard_count));
     eprintln!(
         "converted {} samples, skipped {} (reasons in {}), {} listing problems; manifest {}",
         manifest.converted,
@@ -308,7 +308,7 @@ pub struct MergeArgs {
 }
 
 pub fn run_merge(a: MergeArgs) -> Result<ExitCode> {
-    let merged = convert::merge(&a.dataset)?;
+    let merged = ingest::merge(&a.dataset)?;
     for path in &merged.ignored {
         eprintln!(
             "ignored {}: not a part manifest's name (part-IIII-of-NNNN.json), not read",
@@ -321,9 +321,7 @@ pub fn run_merge(a: MergeArgs) -> Result<ExitCode> {
         m.shards.len(),
         m.converted,
         m.skipped,
-        a.dataset
-            .join(arkit_data::store::manifest::MANIFEST_FILE)
-            .display()
+        a.dataset.join(arkit_data::store::MANIFEST_FILE).display()
     );
     Ok(ExitCode::SUCCESS)
 }

@@ -1,8 +1,8 @@
 //! `arkit-tool crops`.
 
-use arkit_core::error::Result;
-use arkit_data::loader::crops_dataset;
-use arkit_data::loader::item::{FaceLoader, LoaderMode, LoaderOptions};
+use arkit_core::Result;
+use arkit_data::loader;
+use arkit_data::loader::{FaceLoader, LoaderMode, LoaderOptions};
 use arkit_data::store::crop_store::WindowCodec;
 use clap::Args;
 use std::path::PathBuf;
@@ -107,7 +107,7 @@ pub fn run(a: CropsArgs) -> Result<ExitCode> {
         CodecArg::Raw => WindowCodec::Raw,
     };
     let summary = pool.install(|| {
-        crops_dataset::write_crop_store_with(&loader, &output, codec, &|n| bar.inc(n as u64))
+        loader::write_crop_store_with(&loader, &output, codec, &|n| bar.inc(n as u64))
     })?;
     bar.finish_and_clear();
     if a.json {

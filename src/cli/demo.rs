@@ -1,6 +1,6 @@
 //! `arkit-tool demo`.
 
-use arkit_core::error::Result;
+use arkit_core::Result;
 use arkit_tool::demo::{self, DemoPlan, DemoProgress, STAGES};
 use clap::Args;
 use std::path::PathBuf;

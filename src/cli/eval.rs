@@ -1,11 +1,11 @@
 //! `arkit-tool eval`.
 
-use arkit_core::error::Error;
-use arkit_data::eval::dataset::EvalOptions;
-use arkit_data::eval::metrics::EulerDifference;
-use arkit_data::store::predictions_table::read_predictions;
+use arkit_core::Error;
+use arkit_data::eval::EulerDifference;
+use arkit_data::eval::EvalOptions;
+use arkit_data::store::read_predictions;
 
-use arkit_core::error::Result;
+use arkit_core::Result;
 use clap::Args;
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -103,15 +103,15 @@ pub fn run(a: EvalArgs) -> Result<ExitCode> {
                 .collect(),
         },
     };
-    let ev = arkit_data::eval::dataset::evaluate(&a.dataset, &predictions, &options)?;
+    let ev = arkit_data::eval::evaluate(&a.dataset, &predictions, &options)?;
     if let Some(path) = &a.per_sample {
-        let mut df = arkit_data::eval::dataset::per_sample_frame(&ev.samples)?;
-        arkit_data::store::parquet::write_parquet(path, &mut df)?;
+        let mut df = arkit_data::eval::per_sample_frame(&ev.samples)?;
+        arkit_data::store::write_parquet(path, &mut df)?;
     }
     let mut written = Vec::new();
     if let Some(dir) = &a.report {
         let topology = super::load_topology(a.resources.as_deref())?;
-        written = arkit_data::eval::dataset::write_report(dir, &ev, &topology)?.files;
+        written = arkit_data::eval::write_report(dir, &ev, &topology)?.files;
     }
     let p = &ev.problems;
     if a.json {

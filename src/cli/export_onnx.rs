@@ -1,6 +1,6 @@
 //! `arkit-tool export-onnx`: a trained PerspNet as ONNX graphs.
 
-use arkit_core::error::{Error, Result};
+use arkit_core::{Error, Result};
 use clap::Args;
 use std::path::PathBuf;
 use std::process::ExitCode;

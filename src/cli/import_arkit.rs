@@ -1,10 +1,10 @@
 //! `arkit-tool import-arkit`.
 
-use arkit_core::error::Error;
-use arkit_core::release::{ReleaseLayout, Split};
-use arkit_data::ingest::import_arkit::{self, ImportOptions};
+use arkit_core::Error;
+use arkit_core::{ReleaseLayout, Split};
+use arkit_data::ingest::{self, ImportOptions};
 
-use arkit_core::error::Result;
+use arkit_core::Result;
 use clap::{Args, ValueEnum};
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -87,7 +87,7 @@ pub struct ImportArkitArgs {
     #[arg(long)]
     allow_systematic_skips: bool,
     /// The systematic rule's window (tests).
-    #[arg(long, hide = true, default_value_t = arkit_data::ingest::systematic::SYSTEMATIC_WINDOW)]
+    #[arg(long, hide = true, default_value_t = arkit_data::ingest::SYSTEMATIC_WINDOW)]
     systematic_window: usize,
     /// Print a JSON summary instead of text.
     #[arg(long)]
@@ -114,10 +114,10 @@ pub fn run(a: ImportArkitArgs) -> Result<ExitCode> {
         },
     };
     let subject_guess = a.subject.clone().unwrap_or_default();
-    let total = import_arkit::find_frames(&a.input, &subject_guess)?.len();
+    let total = ingest::find_frames(&a.input, &subject_guess)?.len();
     let bar = super::progress_bar(total as u64, "import-arkit", "frames");
     let pool = super::thread_pool(a.jobs)?;
-    let summary = pool.install(|| import_arkit::import_capture(&options, &|| bar.inc(1)))?;
+    let summary = pool.install(|| ingest::import_capture(&options, &|| bar.inc(1)))?;
     bar.finish_and_clear();
     if let Some(path) = &a.preview {
         write_preview(&a, split, path)?;
@@ -161,14 +161,14 @@ fn write_preview(a: &ImportArkitArgs, split: Split, path: &std::path::Path) -> R
     let mut images = Vec::new();
     for row in keys.iter().take(6) {
         let img_path = layout.image_path(split, &row.key);
-        let image = arkit_data::picture::image_decode::read_rgb8_checked(&img_path, |_| Ok(()))?;
+        let image = arkit_data::picture::read_rgb8_checked(&img_path, |_| Ok(()))?;
         let info = arkit_core::release::read_info(&layout.info_path(split, &row.key))?;
         let mut drawn = image.clone();
         arkit_data::ingest::synth::draw_overlay(&mut drawn, &topology, &info)?;
         images.push(image);
         images.push(drawn);
     }
-    let sheet = arkit_data::picture::encode::contact_sheet(&images, 4, 320);
+    let sheet = arkit_data::picture::contact_sheet(&images, 4, 320);
     let mut bytes = std::io::Cursor::new(Vec::new());
     sheet
         .write_to(&mut bytes, image::ImageFormat::Png)

@@ -1,6 +1,6 @@
 //! `arkit-tool info`.
 
-use arkit_core::error::Result;
+use arkit_core::Result;
 use arkit_core::release::read_info;
 use clap::Args;
 use serde_json::json;

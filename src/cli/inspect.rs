@@ -1,7 +1,7 @@
 //! `arkit-tool inspect`.
 
-use arkit_core::error::Result;
-use arkit_data::store::parquet::{f64_values, read_parquet_columns, str_values};
+use arkit_core::Result;
+use arkit_data::store::{f64_values, read_parquet_columns, str_values};
 use clap::Args;
 use std::collections::BTreeSet;
 use std::path::PathBuf;
@@ -42,7 +42,7 @@ pub fn run(a: InspectArgs) -> Result<ExitCode> {
             .extension()
             .is_some_and(|e| e.eq_ignore_ascii_case("svg"))
     {
-        return Err(arkit_core::error::Error::invalid(
+        return Err(arkit_core::Error::invalid(
             "--plot",
             format!(
                 "{}: the chart is written as SVG; name the file .svg (for a PNG, convert it: rsvg-convert -o poses.png poses.svg)",
@@ -64,14 +64,14 @@ pub fn run(a: InspectArgs) -> Result<ExitCode> {
                 println!("  {line}");
             }
         }
-        return Err(arkit_core::error::Error::format(
+        return Err(arkit_core::Error::format(
             &a.dataset,
             state.samples.message.clone(),
         ));
     }
-    let data = arkit_data::store::dataset::Dataset::open(&a.dataset)?;
+    let data = arkit_data::store::Dataset::open(&a.dataset)?;
     if a.verify {
-        let n = arkit_data::ingest::convert::verify_dataset(&a.dataset)?;
+        let n = arkit_data::ingest::verify_dataset(&a.dataset)?;
         eprintln!("verified {n} files against the SHA-256 in dataset.json");
     }
     let m = data.manifest().clone();

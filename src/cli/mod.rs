@@ -24,7 +24,7 @@ mod train;
 #[cfg(feature = "model")]
 mod weights;
 
-use arkit_core::error::Result;
+use arkit_core::Result;
 use clap::{Parser, Subcommand};
 use std::process::ExitCode;
 
@@ -231,10 +231,10 @@ impl From<RulesArg> for arkit_data::crop::RuleSet {
 /// Reads the topology named by `--resources` (or the built-in face without it).
 pub fn load_topology(
     resources: Option<&std::path::Path>,
-) -> Result<arkit_data::mesh::topology::FaceTopology> {
+) -> Result<arkit_data::mesh::FaceTopology> {
     match resources {
-        Some(dir) => arkit_data::mesh::topology::FaceTopology::from_resources(dir),
-        None => Ok(arkit_data::mesh::synthetic_face::builtin().topology.clone()),
+        Some(dir) => arkit_data::mesh::FaceTopology::from_resources(dir),
+        None => Ok(arkit_data::mesh::builtin().topology.clone()),
     }
 }
 
@@ -254,12 +254,12 @@ pub fn thread_pool(jobs: Option<usize>) -> Result<rayon::ThreadPool> {
     rayon::ThreadPoolBuilder::new()
         .num_threads(jobs.unwrap_or(0))
         .build()
-        .map_err(|e| arkit_core::error::Error::invalid("--jobs", e.to_string()))
+        .map_err(|e| arkit_core::Error::invalid("--jobs", e.to_string()))
 }
 
 /// Prints, on stderr, how many samples a command could not read and why (the first
 /// ten, each naming its file), so a moved release or a damaged image is never silent.
-pub fn report_unreadable(unreadable: &[(arkit_core::release::SampleKey, String)], command: &str) {
+pub fn report_unreadable(unreadable: &[(arkit_core::SampleKey, String)], command: &str) {
     if unreadable.is_empty() {
         return;
     }

@@ -1,11 +1,11 @@
 //! `arkit-tool predict`.
 
-use arkit_core::error::Result;
+use arkit_core::Result;
 #[cfg(feature = "model")]
 use arkit_data::crop::RuleSet;
-use arkit_data::pose::pnp::RansacParams;
-use arkit_data::pose::predict::{self, OracleOptions};
-use arkit_data::store::predictions_table::write_predictions;
+use arkit_data::pose::RansacParams;
+use arkit_data::pose::{self, OracleOptions};
+use arkit_data::store::write_predictions;
 use clap::{ArgGroup, Args};
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -197,14 +197,14 @@ pub fn run(a: PredictArgs) -> Result<ExitCode> {
         (a.dump_crops.is_some(), "--dump-crops"),
     ];
     if let Some((_, flag)) = image_only.iter().find(|(given, _)| *given) {
-        return Err(arkit_core::error::Error::invalid(
+        return Err(arkit_core::Error::invalid(
             *flag,
             "is for photos: it needs --image",
         ));
     }
     let dataset = a.dataset.clone().expect("clap: --dataset or --image");
     let Some(output) = a.output.clone() else {
-        return Err(arkit_core::error::Error::invalid(
+        return Err(arkit_core::Error::invalid(
             "--output",
             "predict --dataset writes a predictions file: give --output FILE.parquet",
         ));
@@ -215,18 +215,18 @@ pub fn run(a: PredictArgs) -> Result<ExitCode> {
         args: a,
     };
     if !(0.0..1.0).contains(&a.outliers) || a.noise_px < 0.0 || !a.noise_px.is_finite() {
-        return Err(arkit_core::error::Error::invalid(
+        return Err(arkit_core::Error::invalid(
             "--noise-px/--outliers",
             "noise must be >= 0 and the outlier share in [0, 1)",
         ));
     }
     if a.dump.is_some() && a.model.is_none() {
-        return Err(arkit_core::error::Error::invalid(
+        return Err(arkit_core::Error::invalid(
             "--dump",
             "dumps a network's inputs and outputs: it needs --model",
         ));
     }
-    let manifest = arkit_data::store::dataset::Dataset::open(&a.dataset)?
+    let manifest = arkit_data::store::Dataset::open(&a.dataset)?
         .manifest()
         .clone();
     let split = (a.split != "all").then_some(a.split.as_str());
@@ -235,7 +235,7 @@ pub fn run(a: PredictArgs) -> Result<ExitCode> {
     }
     #[cfg(not(feature = "model"))]
     if a.model.is_some() {
-        return Err(arkit_core::error::Error::invalid(
+        return Err(arkit_core::Error::invalid(
             "--model",
             "this arkit-tool was built without the `model` feature (candle); rebuild with default features to run a trained network",
         ));
@@ -255,7 +255,7 @@ pub fn run(a: PredictArgs) -> Result<ExitCode> {
     let pool = super::thread_pool(a.jobs)?;
     let targets = a.targets.clone().unwrap_or_else(|| a.dataset.clone());
     let (rows, summary) = pool.install(|| {
-        predict::oracle_predictions(&a.dataset, &targets, &options, &|n| bar.inc(n as u64))
+        pose::oracle_predictions(&a.dataset, &targets, &options, &|n| bar.inc(n as u64))
     })?;
     bar.finish_and_clear();
     write_predictions(&a.output, &rows)?;
@@ -276,7 +276,7 @@ pub fn run(a: PredictArgs) -> Result<ExitCode> {
 
 /// `predict --mean-pose`.
 fn mean_pose(a: &DatasetArgs, split: Option<&str>) -> Result<ExitCode> {
-    let (rows, summary) = predict::mean_pose_predictions(&a.dataset, Some("train"), split)?;
+    let (rows, summary) = pose::mean_pose_predictions(&a.dataset, Some("train"), split)?;
     write_predictions(&a.output, &rows)?;
     if a.json {
         println!("{}", serde_json::to_string_pretty(&summary).expect("json"));
@@ -304,7 +304,7 @@ fn model(
     a: &DatasetArgs,
     dir: &std::path::Path,
     split: Option<&str>,
-    manifest: &arkit_data::store::manifest::Manifest,
+    manifest: &arkit_data::store::Manifest,
     ransac: &RansacParams,
 ) -> Result<ExitCode> {
     let topology = super::load_topology(a.resources.as_deref())?;
@@ -379,7 +379,7 @@ impl std::ops::Deref for DatasetArgs {
 #[cfg(feature = "model")]
 fn run_image(a: &PredictArgs, ransac: RansacParams) -> Result<ExitCode> {
     let Some(model) = a.model.as_deref() else {
-        return Err(arkit_core::error::Error::invalid(
+        return Err(arkit_core::Error::invalid(
             "--image",
             "poses faces with a trained PerspNet: give --model DIR (models/tiny-synthetic is shipped)",
         ));
@@ -394,7 +394,7 @@ fn run_image(a: &PredictArgs, ransac: RansacParams) -> Result<ExitCode> {
         (matches!(a.mask, MaskSource::Truth), "--mask truth"),
     ] {
         if given {
-            return Err(arkit_core::error::Error::invalid(
+            return Err(arkit_core::Error::invalid(
                 flag,
                 "is for --dataset; with --image use --dump-crops, --draw or --vertices",
             ));
@@ -424,7 +424,7 @@ fn run_image(a: &PredictArgs, ransac: RansacParams) -> Result<ExitCode> {
 
 #[cfg(not(feature = "model"))]
 fn run_image(_: &PredictArgs, _: RansacParams) -> Result<ExitCode> {
-    Err(arkit_core::error::Error::invalid(
+    Err(arkit_core::Error::invalid(
         "--image",
         "this arkit-tool was built without the `model` feature (candle); rebuild with default features",
     ))

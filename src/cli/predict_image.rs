@@ -2,12 +2,12 @@
 //! `demo.py` finds them (docs/photos.md).
 
 use arkit_core::conventions::{AngleConvention, AngleUnit};
-use arkit_core::error::{Error, Result};
-use arkit_data::picture::detect::{DetectOptions, detect_faces};
-use arkit_data::picture::image_decode::read_rgb8_checked;
-use arkit_data::picture::photo::{DEMO_SIDE, DemoSquare};
-use arkit_data::pose::photo::PhotoCamera;
-use arkit_data::pose::pnp::RansacParams;
+use arkit_core::{Error, Result};
+use arkit_data::picture::read_rgb8_checked;
+use arkit_data::picture::{DEMO_SIDE, DemoSquare};
+use arkit_data::picture::{DetectOptions, detect_faces};
+use arkit_data::pose::PhotoCamera;
+use arkit_data::pose::RansacParams;
 use serde_json::{Value, json};
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
@@ -207,7 +207,7 @@ type PhotoBoxes = (Vec<[f64; 4]>, Vec<Option<f64>>, &'static str);
 struct Run<'a> {
     r: &'a ImageRequest<'a>,
     model: arkit_perspnet::TrainedModel,
-    topology: arkit_data::mesh::topology::FaceTopology,
+    topology: arkit_data::mesh::FaceTopology,
     detect: DetectOptions,
     given: Vec<[f64; 4]>,
     table: Option<HashMap<String, Vec<[f64; 4]>>>,
@@ -415,7 +415,7 @@ impl Run<'_> {
         // the command; one in a --boxes file skips its photo only.
         if let Some(e) = boxes
             .iter()
-            .find_map(|b| arkit_data::pose::photo::check_box(*b, w, h).err())
+            .find_map(|b| arkit_data::pose::check_box(*b, w, h).err())
         {
             if source == "--box" {
                 return Err(e);
@@ -468,12 +468,7 @@ impl Run<'_> {
             posed += face.pose.is_some() as usize;
             self.pose_fields(face, &camera, &square, &mut entry, &mut row, drawn.as_mut())?;
             if let Some(img) = drawn.as_mut() {
-                arkit_data::picture::overlay::draw_box(
-                    img,
-                    face.bbox,
-                    2,
-                    image::Rgb([255, 200, 0]),
-                );
+                arkit_data::picture::draw_box(img, face.bbox, 2, image::Rgb([255, 200, 0]));
             }
             rows.push(row);
             entries.push(entry);
@@ -484,7 +479,7 @@ impl Run<'_> {
             } else {
                 target.join(format!("{stem}.jpg"))
             };
-            let bytes = arkit_data::picture::encode::jpeg_bytes(&img, 90)?;
+            let bytes = arkit_data::picture::jpeg_bytes(&img, 90)?;
             arkit_core::atomic_file::write_bytes(&file, &bytes)?;
         }
         let k = camera.intrinsics(&square);
@@ -560,11 +555,11 @@ impl Run<'_> {
                 .iter()
                 .map(|p| camera.project_to_photo(square, &(r_cv * p + t_cv)))
                 .collect();
-            arkit_data::picture::overlay::draw_projected_mesh(
+            arkit_data::picture::draw_projected_mesh(
                 img,
                 &self.topology,
                 &projected,
-                &arkit_data::picture::overlay::MeshStyle::ANNOTATION,
+                &arkit_data::picture::MeshStyle::ANNOTATION,
             )?;
         }
         row.push("ok".to_string());

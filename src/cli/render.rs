@@ -1,9 +1,9 @@
 //! `arkit-tool render`.
 
+use arkit_core::Result;
 use arkit_core::conventions::Camera;
-use arkit_core::error::Result;
-use arkit_data::render::dataset::RenderOptions;
-use arkit_data::render::face::FaceRenderer;
+use arkit_data::render::FaceRenderer;
+use arkit_data::render::RenderOptions;
 use clap::Args;
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -92,11 +92,11 @@ pub fn run(a: RenderArgs) -> Result<ExitCode> {
     };
     // The checks between options (--points at most --size squared), before any reading.
     options.validate()?;
-    let manifest = arkit_data::store::dataset::Dataset::open(&a.dataset)?
+    let manifest = arkit_data::store::Dataset::open(&a.dataset)?
         .manifest()
         .clone();
     let topology = super::load_topology(a.resources.as_deref())?;
-    arkit_data::store::manifest::check_topology(&manifest, &topology)?;
+    arkit_data::store::check_topology(&manifest, &topology)?;
     let mut renderer = FaceRenderer::new(topology, Camera::release_projection())?;
     renderer.rules = a.compat.into();
     let (part, parts) = options.shard;
@@ -109,9 +109,9 @@ pub fn run(a: RenderArgs) -> Result<ExitCode> {
     let bar = super::progress_bar(mine as u64, "render", "samples");
     let pool = super::thread_pool(a.jobs)?;
     let render = if a.overwrite {
-        arkit_data::render::dataset::render_dataset_replacing
+        arkit_data::render::render_dataset_replacing
     } else {
-        arkit_data::render::dataset::render_dataset
+        arkit_data::render::render_dataset
     };
     let summary =
         pool.install(|| render(&a.dataset, &renderer, &options, &|n| bar.inc(n as u64)))?;

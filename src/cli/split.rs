@@ -1,7 +1,7 @@
 //! `arkit-tool split`.
 
-use arkit_core::error::Result;
-use arkit_data::ingest::split::{self, HoldOut};
+use arkit_core::Result;
+use arkit_data::ingest::{self, HoldOut};
 use clap::{ArgGroup, Args};
 use std::collections::BTreeMap;
 use std::path::PathBuf;
@@ -53,7 +53,7 @@ pub fn run(a: SplitArgs) -> Result<ExitCode> {
         _ => unreachable!("clap requires one"),
     };
     let out = a.output.clone().unwrap_or_else(|| a.dataset.join("splits"));
-    let counts = split::split_dataset(&a.dataset, how, a.val_subjects, a.seed, &out)?;
+    let counts = ingest::split_dataset(&a.dataset, how, a.val_subjects, a.seed, &out)?;
     let total: usize = counts.values().map(|c| c.images).sum();
     if a.json {
         let v: BTreeMap<&String, serde_json::Value> = counts

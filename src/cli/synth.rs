@@ -1,9 +1,9 @@
 //! `arkit-tool synth`.
 
-use arkit_core::error::Error;
+use arkit_core::Error;
 use arkit_data::ingest::synth::{self, FaceSource, SynthOptions};
 
-use arkit_core::error::Result;
+use arkit_core::Result;
 use clap::Args;
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -84,9 +84,7 @@ pub fn run(a: SynthArgs) -> Result<ExitCode> {
     };
     options.check()?;
     let source = match &a.resources {
-        Some(dir) => FaceSource::new(arkit_data::mesh::topology::FaceTopology::from_resources(
-            dir,
-        )?)?,
+        Some(dir) => FaceSource::new(arkit_data::mesh::FaceTopology::from_resources(dir)?)?,
         None => FaceSource::builtin(),
     };
     if let Some(path) = &a.group_photo {
@@ -108,7 +106,7 @@ pub fn run(a: SynthArgs) -> Result<ExitCode> {
             images.push(sample.image);
             images.push(drawn);
         }
-        let sheet = arkit_data::picture::encode::contact_sheet(&images, 4, 320);
+        let sheet = arkit_data::picture::contact_sheet(&images, 4, 320);
         let mut bytes = std::io::Cursor::new(Vec::new());
         sheet
             .write_to(&mut bytes, image::ImageFormat::Png)
@@ -178,7 +176,7 @@ fn group_photo(
     let (boxes_path, truth_path) = (beside("boxes.json"), beside("truth.json"));
     arkit_core::atomic_file::write_bytes(
         path,
-        &arkit_data::picture::encode::jpeg_bytes(&photo.image, options.jpeg_quality)?,
+        &arkit_data::picture::jpeg_bytes(&photo.image, options.jpeg_quality)?,
     )?;
     arkit_core::atomic_file::write_bytes(
         &boxes_path,

@@ -1,7 +1,7 @@
 //! `arkit-tool topology`.
 
-use arkit_core::error::Result;
-use arkit_data::mesh::topology::nearest_mirror_partners;
+use arkit_core::Result;
+use arkit_data::mesh::nearest_mirror_partners;
 use clap::Args;
 use serde_json::json;
 use std::path::PathBuf;

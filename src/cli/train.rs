@@ -1,10 +1,10 @@
 //! `arkit-tool train`.
 
-use arkit_core::error::Error;
+use arkit_core::Error;
 use arkit_perspnet::{Architecture, LossVariant, PerspNetConfig};
 use arkit_perspnet::{ExampleShards, ShardedExamples, TrainOptions};
 
-use arkit_core::error::Result;
+use arkit_core::Result;
 use clap::Args;
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -194,10 +194,10 @@ pub fn run(a: TrainArgs) -> Result<ExitCode> {
         ));
     }
     let topology = super::load_topology(a.resources.as_deref())?;
-    let manifest = arkit_data::store::dataset::Dataset::open(&a.dataset)?
+    let manifest = arkit_data::store::Dataset::open(&a.dataset)?
         .manifest()
         .clone();
-    arkit_data::store::manifest::check_topology(&manifest, &topology)?;
+    arkit_data::store::check_topology(&manifest, &topology)?;
     let targets = a.targets.clone().unwrap_or_else(|| a.dataset.clone());
     let split = (a.split != "all").then_some(a.split.as_str());
     let source = ShardedExamples::open(&a.dataset, &targets, &config, split)?;

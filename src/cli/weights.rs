@@ -1,6 +1,6 @@
 //! `import-weights` and `export-weights`: the network's weights to and from PyTorch.
 
-use arkit_core::error::Result;
+use arkit_core::Result;
 use clap::Args;
 use std::path::PathBuf;
 use std::process::ExitCode;

@@ -3,8 +3,8 @@
 
 #![allow(dead_code)]
 
+use arkit_core::VisibilityBuffer;
 use arkit_core::conventions::{Camera, EulerAngles, Pose};
-use arkit_core::raster::VisibilityBuffer;
 use arkit_data::ingest::biwi::HEAD_ORIGIN_SHIFT_M;
 use image::{Rgb, RgbImage};
 use nalgebra::{Matrix3, Point3, Rotation3, Vector3};
@@ -27,7 +27,7 @@ pub fn calibration() -> (Rotation3<f64>, Vector3<f64>) {
 /// The head in the release's frame: the built-in face's 1,220 vertices repeated to the
 /// 6,918 of a BIWI mesh (so the official landmark numbers exist).
 pub fn release_head() -> Vec<Point3<f64>> {
-    let t = arkit_data::mesh::synthetic_face::builtin()
+    let t = arkit_data::mesh::builtin()
         .topology
         .template
         .clone()
@@ -102,9 +102,7 @@ pub fn silhouette(camera: &Camera, pose: &Pose, verts: &[Point3<f64>]) -> Vec<bo
     let mut vis = VisibilityBuffer::new(camera.width, camera.height);
     vis.rasterize_mesh(
         &camera.project_to_screen(pose, &v32),
-        &arkit_data::mesh::synthetic_face::builtin()
-            .topology
-            .triangles,
+        &arkit_data::mesh::builtin().topology.triangles,
     )
     .unwrap();
     vis.triangle.iter().map(|&t| t != u32::MAX).collect()
@@ -132,7 +130,7 @@ pub fn write_hpdb(root: &Path) {
         .iter()
         .map(|p| format!("v {} {} {}\n", p.x, p.y, p.z))
         .chain(
-            arkit_data::mesh::synthetic_face::builtin()
+            arkit_data::mesh::builtin()
                 .topology
                 .triangles
                 .iter()

@@ -7,7 +7,7 @@ pub mod biwi_writer;
 pub mod png_bomb;
 
 use arkit_core::conventions::Camera;
-use arkit_data::ingest::convert::{ConvertOptions, ValidationContext};
+use arkit_data::ingest::{ConvertOptions, ValidationContext};
 use std::path::Path;
 use std::process::Command;
 
@@ -20,7 +20,7 @@ pub fn tool() -> Command {
 pub fn convert_context() -> ValidationContext {
     ValidationContext {
         projection: Camera::release_projection(),
-        topology: arkit_data::mesh::synthetic_face::builtin().topology.clone(),
+        topology: arkit_data::mesh::builtin().topology.clone(),
         embed_images: false,
     }
 }

@@ -2,21 +2,20 @@
 //! crate's own writers: `cargo run --release -p arkit-core --example fuzz_seeds -- fuzz/corpus`.
 //! Deterministic: running it again writes the same bytes.
 
-use arkit_core::npy::{self, ArrayData, NpyArray, NpzCompression};
-use arkit_core::release::InfoAnnotation;
-use arkit_core::target_codec;
+use arkit_core::InfoAnnotation;
+use arkit_core::{ArrayData, NpyArray, NpzCompression};
 use nalgebra::Point3;
 use std::path::Path;
 
 fn npy_bytes(a: &NpyArray) -> Vec<u8> {
     let mut b = Vec::new();
-    npy::write_npy(&mut b, a).expect("write");
+    arkit_core::write_npy(&mut b, a).expect("write");
     b
 }
 
 fn npz_bytes(members: &[(&str, &NpyArray)], c: NpzCompression) -> Vec<u8> {
     let mut cur = std::io::Cursor::new(Vec::new());
-    npy::write_npz(&mut cur, members, c).expect("write");
+    arkit_core::write_npz(&mut cur, members, c).expect("write");
     cur.into_inner()
 }
 
@@ -206,7 +205,7 @@ fn main() {
         b
     };
     let mask: Vec<bool> = (0..64).map(|i| (i / 3) % 2 == 1).collect();
-    let runs = target_codec::pack_u32_le(&target_codec::rle_encode(&mask));
+    let runs = arkit_core::pack_u32_le(&arkit_core::rle_encode(&mask));
     put(
         dir,
         "targets_blobs",
@@ -214,10 +213,10 @@ fn main() {
         &blobs(64, 0, runs.len() as u16, &runs),
     );
     let bits: Vec<u16> = (0..48u32).map(|i| (15360 + i * 7) as u16).collect();
-    let uv = target_codec::encode_uv_map(&bits, 4);
+    let uv = arkit_core::encode_uv_map(&bits, 4);
     put(dir, "targets_blobs", "uv4.bin", &blobs(0, 4, 0, &uv));
     let (v, w) =
-        target_codec::encode_correspondences(&[[1, 2, 3], [4, 5, 1219]], &[[65535, 0], [3, 4]]);
+        arkit_core::encode_correspondences(&[[1, 2, 3], [4, 5, 1219]], &[[65535, 0], [3, 4]]);
     let mut both = v.clone();
     both.extend(&w);
     put(

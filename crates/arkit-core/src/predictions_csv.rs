@@ -26,7 +26,7 @@ pub struct PredictionRecord {
     /// Predicted canonical vertices, 1220 x 3 row-major, metres.
     pub verts: Option<Vec<f32>>,
     /// Predicted crop mask as run lengths (the `targets` mask encoding, see
-    /// [`crate::target_codec`]); Parquet only, always `None` from CSV.
+    /// [`crate::rle_encode`]); Parquet only, always `None` from CSV.
     pub mask_rle: Option<Vec<u32>>,
 }
 

@@ -7,7 +7,7 @@
 //! The files are crafted in memory (or as sparse files, which take no disk space).
 
 use arkit_core::limits;
-use arkit_core::npy::{self, NpyArray, NpzCompression};
+use arkit_core::{NpyArray, NpzCompression};
 use std::alloc::{GlobalAlloc, Layout, System};
 use std::io::Write;
 use std::path::Path;
@@ -138,7 +138,7 @@ fn zip_claiming(name: &str, data: &[u8], claimed: u64) -> Vec<u8> {
 fn verts_npy() -> (NpyArray, Vec<u8>) {
     let a = NpyArray::from_f32(vec![1220, 3], (0..3660).map(|i| i as f32).collect()).unwrap();
     let mut b = Vec::new();
-    npy::write_npy(&mut b, &a).unwrap();
+    arkit_core::write_npy(&mut b, &a).unwrap();
     (a, b)
 }
 
@@ -179,7 +179,7 @@ fn case1_a_member_claiming_100_gb_is_read_as_it_is() {
     let _turn = one_at_a_time();
     let (a, bytes) = verts_npy();
     let z = zip_claiming("verts.npy", &bytes, 100_000_000_000);
-    let (res, peak) = peak_during(|| npy::parse_npz(&z, Path::new("claim.npz")));
+    let (res, peak) = peak_during(|| arkit_core::parse_npz(&z, Path::new("claim.npz")));
     // numpy reads the actual data; so do we, without reserving the claimed size.
     assert_eq!(res.unwrap().get("verts"), Some(&a));
     assert!(peak < 4 * MIB, "peak {peak} bytes");
@@ -193,7 +193,7 @@ fn case2_a_deflate_bomb_is_refused_from_its_header_before_inflating() {
     member.resize(member.len() + 8 * MIB, 0);
     let z = zip_members(&[("verts.npy".into(), member)], true);
     assert!(z.len() < MIB / 4, "the bomb is small: {} bytes", z.len());
-    let (res, peak) = peak_during(|| npy::parse_npz(&z, Path::new("bomb.npz")));
+    let (res, peak) = peak_during(|| arkit_core::parse_npz(&z, Path::new("bomb.npz")));
     let e = res.unwrap_err().to_string();
     assert!(
         e.starts_with("bomb.npz:verts.npy: header says 1073741824 <f4 = 4294967296 bytes")
@@ -209,7 +209,7 @@ fn case2_a_deflate_bomb_is_refused_from_its_header_before_inflating() {
     let mut member = header_only("(4194304,)");
     member.resize(member.len() + MIB, 0);
     let z = zip_members(&[("verts.npy".into(), member)], true);
-    let (res, peak) = peak_during(|| npy::parse_npz(&z, Path::new("short.npz")));
+    let (res, peak) = peak_during(|| arkit_core::parse_npz(&z, Path::new("short.npz")));
     let e = res.unwrap_err().to_string();
     assert!(
         e.contains("truncated") && e.contains("file holds 1048576"),
@@ -227,7 +227,7 @@ fn case2_members_add_up_to_the_archive_limit() {
     first.resize(first.len() + 200 * MIB, 0);
     let second = header_of("|u1", &format!("({},)", 100 * MIB));
     let z = zip_members(&[("a.npy".into(), first), ("b.npy".into(), second)], true);
-    let (res, peak) = peak_during(|| npy::parse_npz(&z, Path::new("two.npz")));
+    let (res, peak) = peak_during(|| arkit_core::parse_npz(&z, Path::new("two.npz")));
     let e = res.unwrap_err().to_string();
     assert!(
         e.starts_with("two.npz:b.npy:") && e.contains("for the rest of the archive"),
@@ -242,10 +242,10 @@ fn case3_trailing_bytes_are_bounded() {
     let (a, bytes) = verts_npy();
     let mut ok = bytes.clone();
     ok.resize(bytes.len() + limits::MAX_NPY_TRAILING_BYTES as usize, 7);
-    assert_eq!(npy::parse_npy(&ok, Path::new("t.npy")).unwrap(), a);
+    assert_eq!(arkit_core::parse_npy(&ok, Path::new("t.npy")).unwrap(), a);
     let mut bad = ok.clone();
     bad.push(7);
-    let e = npy::parse_npy(&bad, Path::new("t.npy"))
+    let e = arkit_core::parse_npy(&bad, Path::new("t.npy"))
         .unwrap_err()
         .to_string();
     assert!(
@@ -257,7 +257,7 @@ fn case3_trailing_bytes_are_bounded() {
     let mut member = bytes.clone();
     member.resize(bytes.len() + 64 * MIB, 0);
     let z = zip_members(&[("verts.npy".into(), member)], true);
-    let (res, peak) = peak_during(|| npy::parse_npz(&z, Path::new("tail.npz")));
+    let (res, peak) = peak_during(|| arkit_core::parse_npz(&z, Path::new("tail.npz")));
     let e = res.unwrap_err().to_string();
     assert!(
         e.starts_with("tail.npz:verts.npy:") && e.contains("after the array"),
@@ -270,7 +270,7 @@ fn case3_trailing_bytes_are_bounded() {
     std::fs::write(&p, &bytes).unwrap();
     let f = std::fs::OpenOptions::new().write(true).open(&p).unwrap();
     f.set_len(4 << 30).unwrap();
-    let (res, peak) = peak_during(|| npy::read_npy(&p));
+    let (res, peak) = peak_during(|| arkit_core::read_npy(&p));
     let e = res.unwrap_err().to_string();
     assert!(
         e.contains("tail.npy: file is 4294967296 bytes, more than"),
@@ -279,7 +279,7 @@ fn case3_trailing_bytes_are_bounded() {
     assert!(peak < MIB, "peak {peak} bytes");
     // Within the file limit, the stream stops after the allowance.
     f.set_len(bytes.len() as u64 + 10 * MIB as u64).unwrap();
-    let (res, peak) = peak_during(|| npy::read_npy(&p));
+    let (res, peak) = peak_during(|| arkit_core::read_npy(&p));
     assert!(
         res.unwrap_err()
             .to_string()
@@ -295,7 +295,7 @@ fn case4_npz_files_are_capped_before_reading() {
     let p = dir.path().join("huge_info.npz");
     let f = std::fs::File::create(&p).unwrap();
     f.set_len(limits::MAX_NPZ_FILE_BYTES + 1).unwrap();
-    let (res, peak) = peak_during(|| npy::read_npz(&p));
+    let (res, peak) = peak_during(|| arkit_core::read_npz(&p));
     let e = res.unwrap_err().to_string();
     assert!(
         e.contains("huge_info.npz: file is") && e.contains("allowed for an .npz file"),
@@ -305,9 +305,9 @@ fn case4_npz_files_are_capped_before_reading() {
     // A real-sized file reads.
     let (a, _) = verts_npy();
     let mut cur = std::io::Cursor::new(Vec::new());
-    npy::write_npz(&mut cur, &[("verts", &a)], NpzCompression::Stored).unwrap();
+    arkit_core::write_npz(&mut cur, &[("verts", &a)], NpzCompression::Stored).unwrap();
     std::fs::write(&p, cur.get_ref()).unwrap();
-    assert_eq!(npy::read_npz(&p).unwrap().get("verts"), Some(&a));
+    assert_eq!(arkit_core::read_npz(&p).unwrap().get("verts"), Some(&a));
 }
 
 #[test]
@@ -315,7 +315,7 @@ fn case5_header_length_is_capped() {
     let _turn = one_at_a_time();
     let mut b = b"\x93NUMPY\x02\x00".to_vec();
     b.extend(0xFFFF_FFF0u32.to_le_bytes());
-    let (res, peak) = peak_during(|| npy::parse_npy(&b, Path::new("h.npy")));
+    let (res, peak) = peak_during(|| arkit_core::parse_npy(&b, Path::new("h.npy")));
     let e = res.unwrap_err().to_string();
     assert!(
         e.starts_with("h.npy: header length 4294967280 is more than"),
@@ -329,12 +329,15 @@ fn case5_header_length_is_capped() {
     let mut b = b"\x93NUMPY\x02\x00".to_vec();
     b.extend((h.len() as u32).to_le_bytes());
     b.extend(h.as_bytes());
-    assert_eq!(npy::parse_npy(&b, Path::new("h.npy")).unwrap().len(), 0);
+    assert_eq!(
+        arkit_core::parse_npy(&b, Path::new("h.npy")).unwrap().len(),
+        0
+    );
     let mut over = b"\x93NUMPY\x02\x00".to_vec();
     over.extend((h.len() as u32 + 1).to_le_bytes());
     over.extend(h.as_bytes());
     over.push(b'\n');
-    assert!(npy::parse_npy(&over, Path::new("h.npy")).is_err());
+    assert!(arkit_core::parse_npy(&over, Path::new("h.npy")).is_err());
 }
 
 #[test]
@@ -343,14 +346,14 @@ fn case6_member_count_is_capped() {
     let small = {
         let a = NpyArray::from_f64(vec![1], vec![1.0]).unwrap();
         let mut b = Vec::new();
-        npy::write_npy(&mut b, &a).unwrap();
+        arkit_core::write_npy(&mut b, &a).unwrap();
         b
     };
     let members: Vec<(String, Vec<u8>)> = (0..=limits::MAX_NPZ_MEMBERS)
         .map(|i| (format!("m{i}.npy"), small.clone()))
         .collect();
     let z = zip_members(&members, false);
-    let e = npy::parse_npz(&z, Path::new("many.npz"))
+    let e = arkit_core::parse_npz(&z, Path::new("many.npz"))
         .unwrap_err()
         .to_string();
     assert_eq!(
@@ -363,7 +366,7 @@ fn case6_member_count_is_capped() {
     );
     let z = zip_members(&members[..limits::MAX_NPZ_MEMBERS], false);
     assert_eq!(
-        npy::parse_npz(&z, Path::new("ok.npz"))
+        arkit_core::parse_npz(&z, Path::new("ok.npz"))
             .unwrap()
             .keys()
             .count(),

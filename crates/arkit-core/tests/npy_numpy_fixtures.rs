@@ -1,7 +1,7 @@
 //! The NumPy reader on files numpy itself wrote (fixtures/numpy, made by the script
 //! beside them), and our writer against numpy's bytes.
 
-use arkit_core::npy::{self, ArrayData, DType, NpyArray};
+use arkit_core::{ArrayData, DType, NpyArray};
 use std::path::PathBuf;
 
 fn fixture(name: &str) -> PathBuf {
@@ -12,31 +12,31 @@ fn fixture(name: &str) -> PathBuf {
 
 #[test]
 fn float_and_integer_arrays() {
-    let a = npy::read_npy(&fixture("f32_c_2x3.npy")).unwrap();
+    let a = arkit_core::read_npy(&fixture("f32_c_2x3.npy")).unwrap();
     assert_eq!(a.shape(), &[2, 3]);
     assert_eq!(
         a.data(),
         &ArrayData::F32((0..6).map(|i| i as f32 * 0.5 - 1.0).collect())
     );
-    let a = npy::read_npy(&fixture("f64_1d.npy")).unwrap();
+    let a = arkit_core::read_npy(&fixture("f64_1d.npy")).unwrap();
     assert_eq!(
         a.data(),
         &ArrayData::F64((0..5).map(|i| i as f64 / 3.0).collect())
     );
-    let a = npy::read_npy(&fixture("i64_1d.npy")).unwrap();
+    let a = arkit_core::read_npy(&fixture("i64_1d.npy")).unwrap();
     assert_eq!(
         a.to_i64_vec().unwrap(),
         (-3..4).map(|i| i * 1_000_000_007).collect::<Vec<i64>>()
     );
-    let a = npy::read_npy(&fixture("i32_2x2.npy")).unwrap();
+    let a = arkit_core::read_npy(&fixture("i32_2x2.npy")).unwrap();
     assert_eq!(a.data(), &ArrayData::I32(vec![i32::MIN, -1, 0, i32::MAX]));
-    let a = npy::read_npy(&fixture("u8_1d.npy")).unwrap();
+    let a = arkit_core::read_npy(&fixture("u8_1d.npy")).unwrap();
     assert_eq!(a.data(), &ArrayData::U8(vec![0, 51, 102, 153, 204, 255]));
-    let a = npy::read_npy(&fixture("bool_1d.npy")).unwrap();
+    let a = arkit_core::read_npy(&fixture("bool_1d.npy")).unwrap();
     assert_eq!(a.data(), &ArrayData::Bool(vec![true, false, true, true]));
-    let a = npy::read_npy(&fixture("f64_big_endian.npy")).unwrap();
+    let a = arkit_core::read_npy(&fixture("f64_big_endian.npy")).unwrap();
     assert_eq!(a.data(), &ArrayData::F64(vec![0.25, 1.25, 2.25, 3.25]));
-    let a = npy::read_npy(&fixture("f64_scalar.npy")).unwrap();
+    let a = arkit_core::read_npy(&fixture("f64_scalar.npy")).unwrap();
     assert!(a.shape().is_empty());
     assert_eq!(a.to_f64_vec(), vec![2.5]);
 }
@@ -44,11 +44,11 @@ fn float_and_integer_arrays() {
 #[test]
 fn fortran_order_arrays_come_back_in_c_order() {
     // Like the release's triangles.npy: uint16, Fortran order.
-    let a = npy::read_npy(&fixture("u16_fortran_4x3.npy")).unwrap();
+    let a = arkit_core::read_npy(&fixture("u16_fortran_4x3.npy")).unwrap();
     assert_eq!(a.dtype(), DType::U16);
     assert_eq!(a.shape(), &[4, 3]);
     assert_eq!(a.data(), &ArrayData::U16((0..12).collect()));
-    let a = npy::read_npy(&fixture("f32_fortran_2x3x2.npy")).unwrap();
+    let a = arkit_core::read_npy(&fixture("f32_fortran_2x3x2.npy")).unwrap();
     assert_eq!(a.shape(), &[2, 3, 2]);
     assert_eq!(
         a.data(),
@@ -58,7 +58,7 @@ fn fortran_order_arrays_come_back_in_c_order() {
 
 #[test]
 fn unsupported_dtype_is_named() {
-    let e = npy::read_npy(&fixture("unicode_unsupported.npy"))
+    let e = arkit_core::read_npy(&fixture("unicode_unsupported.npy"))
         .unwrap_err()
         .to_string();
     assert!(
@@ -70,7 +70,7 @@ fn unsupported_dtype_is_named() {
 #[test]
 fn savez_and_savez_compressed_archives() {
     for name in ["savez_stored.npz", "savez_compressed.npz"] {
-        let z = npy::read_npz(&fixture(name)).unwrap();
+        let z = arkit_core::read_npz(&fixture(name)).unwrap();
         assert_eq!(z.keys().collect::<Vec<_>>(), vec!["verts", "R_t", "kpt"]);
         let verts = z.require_finite_f64("verts", &[5, 3]).unwrap();
         assert_eq!(
@@ -118,7 +118,7 @@ fn our_npy_bytes_equal_numpys() {
     ];
     for (name, array) in cases {
         let mut ours = Vec::new();
-        npy::write_npy(&mut ours, &array).unwrap();
+        arkit_core::write_npy(&mut ours, &array).unwrap();
         assert_eq!(ours, std::fs::read(fixture(name)).unwrap(), "{name}");
     }
 }

@@ -7,10 +7,10 @@
 //! `crops-<codec>/` (a crop store of side 16 per codec).
 
 use arkit_data::fuzz_entry::container;
+use arkit_data::store::Dataset;
 use arkit_data::store::crop_store::{
     CropStore, WindowCodec, WindowPart, encode_mesh, encode_window, read_manifest,
 };
-use arkit_data::store::dataset::Dataset;
 use serde_json::Value;
 use std::path::Path;
 

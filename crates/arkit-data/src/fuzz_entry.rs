@@ -99,7 +99,7 @@ pub mod container {
 /// A crop store part file with its manifest, read as the loader reads it: the input is
 /// a [`container`] of `crops.json`, the keys of the shard's rows (one a line, as the
 /// dataset gives them), a flags byte and the shard index (`u32` LE) and `part-K.bin`.
-/// Flag bit 0: recompute the records' and the index's CRCs first ([`reseal_part`]),
+/// Flag bit 0: recompute the records' and the index's CRCs first (`crop_store::reseal_part`),
 /// to reach the checks and decoders behind them (a hostile file can carry valid CRCs).
 /// The manifest is read ([`read_manifest`]) and checked as [`CropStore::open`] checks
 /// it for a loader of its own rules, side (at most [`MAX_FUZZ_SIZE`]) and vertex count
@@ -266,7 +266,7 @@ pub fn mesh(data: &[u8]) -> bool {
 }
 
 /// `crops.json` through [`read_manifest`] and the loader's checks of it
-/// ([`check_for_loader`], for its own rules, side and vertex count). Accepted when both
+/// (`crop_store::check_for_loader`, for its own rules, side and vertex count). Accepted when both
 /// pass; then the manifest written again reads back equal, and each shard's part
 /// header follows from it.
 pub fn crops_json(data: &[u8]) -> bool {

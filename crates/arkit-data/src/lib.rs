@@ -8,7 +8,8 @@
 //!
 //! - [`mesh`]: the face topology and the built-in synthetic face.
 //! - [`crop`]: the square crop around a face and the image resampled into it (ours, and
-//!   the official loader's box and `cv2.warpAffine` in [`crop::official`]).
+//!   the official loader's box and `cv2.warpAffine`: [`crop::official_crop`],
+//!   [`crop::warp_affine`]).
 //! - [`picture`]: images read (bounded before decoding) and pictures drawn for people.
 //! - [`store`]: a converted dataset on disk: manifest, shards, the tables, the crop store.
 //! - [`ingest`]: the release, BIWI, a user's captures and synthetic data into a dataset;
@@ -19,9 +20,13 @@
 //! - [`eval`]: the paper's metrics, a predictions file scored, the report.
 //! - [`loader`]: the Python package's items, both rule sets, and the crop store written.
 //!
-//! Every item has its home in one stage, and is used by that path. The names a pipeline
-//! is usually written with are also at the crate root (the one block of `pub use`
-//! below), so that `use arkit_data::{Dataset, FaceRenderer};` is enough to start.
+//! Each stage is a room with one door: its files are private, and its `mod.rs` names
+//! what it offers in one `pub use` block (`arkit_data::ingest::ConvertOptions`, not
+//! `arkit_data::ingest::convert::ConvertOptions`); the few public sub-modules left
+//! (`ingest::biwi`, `ingest::synth`, `store::crop_store`) say why in a comment. The
+//! names a pipeline is usually written with are also at the crate root (the one block of
+//! `pub use` below), so that `use arkit_data::{Dataset, FaceRenderer};` is enough to
+//! start.
 //!
 //! # Examples
 //!
@@ -30,14 +35,14 @@
 //!
 //! ```
 //! use arkit_core::conventions::{Camera, Pose};
-//! use arkit_core::raster::VisibilityBuffer;
-//! use arkit_data::ingest::convert::{self, ConvertOptions, ValidationContext};
+//! use arkit_core::VisibilityBuffer;
+//! use arkit_data::ingest::{self, ConvertOptions, ValidationContext};
 //! use arkit_data::ingest::synth::{self, FaceSource, SynthOptions};
-//! use arkit_data::mesh::synthetic_face;
+//! use arkit_data::mesh;
 //! use arkit_data::{CropTransform, Dataset, FaceRenderer};
 //! use nalgebra::Point3;
 //!
-//! # fn main() -> arkit_core::error::Result<()> {
+//! # fn main() -> arkit_core::Result<()> {
 //! let tmp = tempfile::tempdir().unwrap();
 //! let (release, data) = (tmp.path().join("release"), tmp.path().join("pq"));
 //! let options = SynthOptions {
@@ -48,7 +53,7 @@
 //!     ..SynthOptions::default()
 //! };
 //! synth::generate(&FaceSource::builtin(), &options, &release, &|| {})?;
-//! let topology = synthetic_face::builtin().topology.clone();
+//! let topology = mesh::builtin().topology.clone();
 //! let context = ValidationContext {
 //!     projection: Camera::release_projection(),
 //!     topology: topology.clone(),
@@ -64,7 +69,7 @@
 //!     shard_count: 1,
 //!     overwrite: false,
 //! };
-//! convert::convert(&convert_options, &context, &|_| {})?;
+//! ingest::convert(&convert_options, &context, &|_| {})?;
 //!
 //! let dataset = Dataset::open(&data)?;
 //! let samples = dataset.read_all_samples()?;
@@ -94,7 +99,7 @@
 //! outlier that RANSAC leaves out:
 //!
 //! ```
-//! use arkit_data::pose::pnp::{Intrinsics, RansacParams, reproject, solve_pnp_ransac};
+//! use arkit_data::pose::{Intrinsics, RansacParams, reproject, solve_pnp_ransac};
 //! use nalgebra::{Isometry3, Point3, Translation3, UnitQuaternion};
 //!
 //! let k = Intrinsics { fx: 600.0, fy: 600.0, cx: 400.0, cy: 400.0 };
@@ -120,7 +125,7 @@
 //! ADD of 10 mm, and no rotation error:
 //!
 //! ```
-//! use arkit_data::eval::metrics::{EulerDifference, check_prediction, sample_errors, summarize};
+//! use arkit_data::eval::{EulerDifference, check_prediction, sample_errors, summarize};
 //!
 //! // `R_t` as the release stores it: row-vector form, translation in row 3, tz < 0.
 //! let mut truth = [0.0f64; 16];
@@ -165,10 +170,10 @@ pub mod store;
 // The names a pipeline is written with: open a dataset, render, load, solve, score.
 pub use crate::{
     crop::{CropTransform, RuleSet},
-    eval::metrics::Summary as EvalSummary,
-    loader::item::{FaceLoader, LoaderItem, LoaderOptions},
-    mesh::topology::FaceTopology,
-    pose::pnp::{Intrinsics, PnpSolution, RansacParams},
-    render::face::FaceRenderer,
-    store::{dataset::Dataset, face_targets::FaceTargets},
+    eval::Summary as EvalSummary,
+    loader::{FaceLoader, LoaderItem, LoaderOptions},
+    mesh::FaceTopology,
+    pose::{Intrinsics, PnpSolution, RansacParams},
+    render::FaceRenderer,
+    store::{Dataset, FaceTargets},
 };

@@ -1,13 +1,13 @@
 //! `augment`: geometric consistency of the new images with the new annotations, and the
 //! whole path synth -> convert -> augment -> convert.
 
+use arkit_core::VisibilityBuffer;
 use arkit_core::conventions::{Camera, EulerAngles, Pose};
-use arkit_core::raster::VisibilityBuffer;
-use arkit_data::augment::dataset::{AugmentOptions, AxisChoice, ProfilingRule};
-use arkit_data::augment::sample::{Axis, FaceImage};
-use arkit_data::ingest::convert::{self, ConvertOptions, ValidationContext};
+use arkit_data::augment::{AugmentOptions, AxisChoice, ProfilingRule};
+use arkit_data::augment::{Axis, FaceImage};
 use arkit_data::ingest::synth::{self, FaceSource, SynthOptions};
-use arkit_data::mesh::topology::FaceTopology;
+use arkit_data::ingest::{self, ConvertOptions, ValidationContext};
+use arkit_data::mesh::FaceTopology;
 use image::{Rgb, RgbImage};
 use nalgebra::{Point3, Vector3};
 
@@ -43,7 +43,7 @@ fn iou(a: &[bool], b: &[bool]) -> f64 {
 /// image must put the white exactly where the new annotation says the face is.
 #[test]
 fn augmented_images_agree_with_their_new_annotations() {
-    let face = arkit_data::mesh::synthetic_face::builtin();
+    let face = arkit_data::mesh::builtin();
     let topo = &face.topology;
     let verts = topo.template.clone().unwrap();
     let (w, h) = (320, 320);
@@ -72,7 +72,7 @@ fn augmented_images_agree_with_their_new_annotations() {
             verts: verts.clone(),
             pose,
         };
-        let out = arkit_data::augment::sample::profile(topo, &input, axis, change).unwrap();
+        let out = arkit_data::augment::profile(topo, &input, axis, change).unwrap();
         let want = face_mask(topo, &out.verts, &out.pose, w, h);
         let got: Vec<bool> = out.image.pixels().map(|p| p[0] > 127).collect();
         let score = iou(&got, &want);
@@ -124,8 +124,8 @@ fn far_background_is_kept_and_the_face_turns() {
         Axis::Roll
     };
     let change = 10.0f64.copysign(e.yaw_deg);
-    let topo = &arkit_data::mesh::synthetic_face::builtin().topology;
-    let Ok(out) = arkit_data::augment::sample::profile(topo, &input, axis, change) else {
+    let topo = &arkit_data::mesh::builtin().topology;
+    let Ok(out) = arkit_data::augment::profile(topo, &input, axis, change) else {
         return;
     };
     // The corners of the image are outside the anchor box unless the face is huge.
@@ -156,7 +156,7 @@ fn synth_convert_augment_convert_round_trip() {
     let pq = tempfile::tempdir().unwrap();
     let ctx = ValidationContext {
         projection: Camera::release_projection(),
-        topology: arkit_data::mesh::synthetic_face::builtin().topology.clone(),
+        topology: arkit_data::mesh::builtin().topology.clone(),
         embed_images: false,
     };
     let copts = |input: &std::path::Path, output: &std::path::Path| ConvertOptions {
@@ -169,7 +169,7 @@ fn synth_convert_augment_convert_round_trip() {
         shard_count: 1,
         overwrite: false,
     };
-    convert::convert(&copts(release.path(), pq.path()), &ctx, &|_| {}).unwrap();
+    ingest::convert(&copts(release.path(), pq.path()), &ctx, &|_| {}).unwrap();
     let out = tempfile::tempdir().unwrap();
     let aopts = AugmentOptions {
         output: out.path().to_path_buf(),
@@ -182,9 +182,9 @@ fn synth_convert_augment_convert_round_trip() {
         jpeg_quality: 95,
         preview_pairs: 2,
     };
-    let topo = &arkit_data::mesh::synthetic_face::builtin().topology;
+    let topo = &arkit_data::mesh::builtin().topology;
     let (summary, previews) =
-        arkit_data::augment::dataset::augment_dataset(pq.path(), topo, &aopts, &|_| {}).unwrap();
+        arkit_data::augment::augment_dataset(pq.path(), topo, &aopts, &|_| {}).unwrap();
     assert_eq!(summary.sources, 9);
     let written = summary.written.len();
     assert_eq!(
@@ -197,14 +197,14 @@ fn synth_convert_augment_convert_round_trip() {
     // The output is a release: convert reads every sample back, and the annotations it
     // validates carry the requested angles.
     let pq2 = tempfile::tempdir().unwrap();
-    let m = convert::convert(&copts(out.path(), pq2.path()), &ctx, &|_| {}).unwrap();
+    let m = ingest::convert(&copts(out.path(), pq2.path()), &ctx, &|_| {}).unwrap();
     assert_eq!(
         m.converted, written,
         "skipped on reconversion: {}",
         m.skipped
     );
-    let rows = convert::read_dataset_samples(pq2.path()).unwrap();
-    let original = convert::read_dataset_samples(pq.path()).unwrap();
+    let rows = ingest::read_dataset_samples(pq2.path()).unwrap();
+    let original = ingest::read_dataset_samples(pq.path()).unwrap();
     for w in &summary.written {
         let new = rows.iter().find(|r| r.key == w.key).unwrap();
         let old = original.iter().find(|r| r.key == w.source).unwrap();
@@ -221,13 +221,13 @@ fn synth_convert_augment_convert_round_trip() {
         output: again.path().to_path_buf(),
         ..aopts
     };
-    arkit_data::augment::dataset::augment_dataset(pq.path(), topo, &aopts2, &|_| {}).unwrap();
+    arkit_data::augment::augment_dataset(pq.path(), topo, &aopts2, &|_| {}).unwrap();
     for w in &summary.written {
-        let rel = arkit_core::release::ReleaseLayout::image_relative(
+        let rel = arkit_core::ReleaseLayout::image_relative(
             if w.split == "test" {
-                arkit_core::release::Split::Test
+                arkit_core::Split::Test
             } else {
-                arkit_core::release::Split::Train
+                arkit_core::Split::Train
             },
             &w.key,
         );

@@ -5,10 +5,10 @@
 //! writer per store, and no temporaries of killed runs left after a rerun.
 
 use arkit_data::crop::RuleSet;
-use arkit_data::loader::crops_dataset::{write_crop_store, write_crop_store_with};
-use arkit_data::loader::item::{FaceLoader, LoaderMode, LoaderOptions};
+use arkit_data::loader::{FaceLoader, LoaderMode, LoaderOptions};
+use arkit_data::loader::{write_crop_store, write_crop_store_with};
+use arkit_data::store::Dataset;
 use arkit_data::store::crop_store::{self, CropStore, WindowCodec};
-use arkit_data::store::dataset::Dataset;
 use std::path::Path;
 
 const S: u32 = 96;
@@ -22,7 +22,7 @@ fn loader(dir: &Path, mode: LoaderMode, compat: RuleSet) -> FaceLoader {
         n_pts: 128,
         seed: 9,
     };
-    let topology = arkit_data::mesh::synthetic_face::builtin().topology.clone();
+    let topology = arkit_data::mesh::builtin().topology.clone();
     FaceLoader::open(dir, topology, None, options).unwrap()
 }
 

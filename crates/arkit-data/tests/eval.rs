@@ -1,18 +1,18 @@
 //! `predict --oracle` and `eval` end to end on synthetic data: synth -> convert ->
 //! render -> oracle PnP -> metrics.
 
+use arkit_core::PredictionRecord;
+use arkit_core::SampleKey;
 use arkit_core::conventions::Camera;
-use arkit_core::predictions_csv::PredictionRecord;
-use arkit_core::release::SampleKey;
 use arkit_data::crop::RuleSet;
-use arkit_data::eval::dataset::EvalOptions;
-use arkit_data::eval::metrics::{EulerDifference, PoseFailure};
-use arkit_data::ingest::convert::{self, ConvertOptions, ValidationContext};
+use arkit_data::eval::EvalOptions;
+use arkit_data::eval::{EulerDifference, PoseFailure};
 use arkit_data::ingest::synth::{self, FaceSource, SynthOptions};
-use arkit_data::pose::pnp::RansacParams;
-use arkit_data::pose::predict::{self, OracleOptions};
-use arkit_data::render::dataset::RenderOptions;
-use arkit_data::render::face::FaceRenderer;
+use arkit_data::ingest::{self, ConvertOptions, ValidationContext};
+use arkit_data::pose::RansacParams;
+use arkit_data::pose::{self, OracleOptions};
+use arkit_data::render::FaceRenderer;
+use arkit_data::render::RenderOptions;
 use std::path::Path;
 
 /// A converted and rendered synthetic dataset of 12 samples at 400x400.
@@ -32,7 +32,7 @@ fn rendered_in(dir: &Path, mode: RuleSet) {
         ..SynthOptions::default()
     };
     synth::generate(&FaceSource::builtin(), &options, release.path(), &|| {}).unwrap();
-    let topology = arkit_data::mesh::synthetic_face::builtin().topology.clone();
+    let topology = arkit_data::mesh::builtin().topology.clone();
     let ctx = ValidationContext {
         projection: Camera::release_projection(),
         topology: topology.clone(),
@@ -48,7 +48,7 @@ fn rendered_in(dir: &Path, mode: RuleSet) {
         shard_count: 1,
         overwrite: false,
     };
-    convert::convert(&copts, &ctx, &|_| {}).unwrap();
+    ingest::convert(&copts, &ctx, &|_| {}).unwrap();
     let mut renderer = FaceRenderer::new(topology, Camera::release_projection()).unwrap();
     renderer.rules = mode;
     let ro = RenderOptions {
@@ -60,7 +60,7 @@ fn rendered_in(dir: &Path, mode: RuleSet) {
         full_mask: false,
         output: dir.to_path_buf(),
     };
-    arkit_data::render::dataset::render_dataset(dir, &renderer, &ro, &|_| {}).unwrap();
+    arkit_data::render::render_dataset(dir, &renderer, &ro, &|_| {}).unwrap();
 }
 
 fn oracle(dir: &Path, noise_px: f64, outliers: f64) -> Vec<PredictionRecord> {
@@ -71,7 +71,7 @@ fn oracle(dir: &Path, noise_px: f64, outliers: f64) -> Vec<PredictionRecord> {
         split: None,
         ransac: RansacParams::default(),
     };
-    let (rows, summary) = predict::oracle_predictions(dir, dir, &o, &|_| {}).unwrap();
+    let (rows, summary) = pose::oracle_predictions(dir, dir, &o, &|_| {}).unwrap();
     assert_eq!(summary.samples, 12);
     assert_eq!(summary.without_targets, 0);
     rows
@@ -92,7 +92,7 @@ fn official_targets_carry_their_crop_and_the_oracle_reads_them_at_pixel_corners(
     let mut rows = 0;
     for k in 0..3 {
         let path = dir.path().join(format!("targets/part-{k:05}.parquet"));
-        for t in arkit_data::store::targets_table::read_targets(&path).unwrap() {
+        for t in arkit_data::store::read_targets(&path).unwrap() {
             // The official box: integer corners, pixel i at the integer point i.
             assert_eq!(t.crop.rules, RuleSet::Official);
             assert_eq!((t.crop.x0.fract(), t.crop.y0.fract()), (0.0, 0.0));
@@ -104,8 +104,7 @@ fn official_targets_carry_their_crop_and_the_oracle_reads_them_at_pixel_corners(
     // Each stored correspondence is the official buffer's at an image pixel within a
     // pixel of where its crop pixel looks: the oracle, reading the crop pixels at their
     // corners, recovers the pose to a fraction of a degree.
-    let ev = arkit_data::eval::dataset::evaluate(dir.path(), &oracle(dir.path(), 0.0, 0.0), &all())
-        .unwrap();
+    let ev = arkit_data::eval::evaluate(dir.path(), &oracle(dir.path(), 0.0, 0.0), &all()).unwrap();
     let s = &ev.summary;
     assert_eq!(s.pose_failures, 0);
     // (Measured 0.04 degrees and 0.43 mm; reading the pixels at their centres instead
@@ -118,8 +117,7 @@ fn official_targets_carry_their_crop_and_the_oracle_reads_them_at_pixel_corners(
 fn oracle_without_noise_scores_zero_and_with_noise_stays_small() {
     let dir = tempfile::tempdir().unwrap();
     rendered(dir.path());
-    let ev = arkit_data::eval::dataset::evaluate(dir.path(), &oracle(dir.path(), 0.0, 0.0), &all())
-        .unwrap();
+    let ev = arkit_data::eval::evaluate(dir.path(), &oracle(dir.path(), 0.0, 0.0), &all()).unwrap();
     let s = &ev.summary;
     assert_eq!((s.samples, s.pose_failures), (12, 0));
     for (name, v) in [
@@ -133,7 +131,7 @@ fn oracle_without_noise_scores_zero_and_with_noise_stays_small() {
     assert_eq!(s.success_5deg5cm_pct, 100.0);
     // 1 px noise and 30% outliers: still well inside 5 degrees and 5 cm.
     let noisy = oracle(dir.path(), 1.0, 0.3);
-    let ev = arkit_data::eval::dataset::evaluate(dir.path(), &noisy, &all()).unwrap();
+    let ev = arkit_data::eval::evaluate(dir.path(), &noisy, &all()).unwrap();
     assert_eq!(ev.summary.pose_failures, 0);
     assert!(
         ev.summary.rotation_median_deg < 1.0,
@@ -143,8 +141,8 @@ fn oracle_without_noise_scores_zero_and_with_noise_stays_small() {
     assert_eq!(ev.summary.success_5deg5cm_pct, 100.0);
     // The report folder is written.
     let report = tempfile::tempdir().unwrap();
-    let topology = &arkit_data::mesh::synthetic_face::builtin().topology;
-    let files = arkit_data::eval::dataset::write_report(report.path(), &ev, topology).unwrap();
+    let topology = &arkit_data::mesh::builtin().topology;
+    let files = arkit_data::eval::write_report(report.path(), &ev, topology).unwrap();
     let names: Vec<String> = files
         .files
         .iter()
@@ -169,7 +167,7 @@ fn oracle_without_noise_scores_zero_and_with_noise_stays_small() {
 fn ground_truth_scores_zero_and_bad_rows_are_reported() {
     let dir = tempfile::tempdir().unwrap();
     rendered(dir.path());
-    let samples = convert::read_dataset_samples(dir.path()).unwrap();
+    let samples = ingest::read_dataset_samples(dir.path()).unwrap();
     let mut preds: Vec<PredictionRecord> = samples
         .iter()
         .map(|s| PredictionRecord {
@@ -179,7 +177,7 @@ fn ground_truth_scores_zero_and_bad_rows_are_reported() {
             mask_rle: None,
         })
         .collect();
-    let ev = arkit_data::eval::dataset::evaluate(dir.path(), &preds, &all()).unwrap();
+    let ev = arkit_data::eval::evaluate(dir.path(), &preds, &all()).unwrap();
     let s = &ev.summary;
     for v in [
         s.mae_r_deg,
@@ -204,7 +202,7 @@ fn ground_truth_scores_zero_and_bad_rows_are_reported() {
         mask_rle: None,
     });
     preds[1].rt.as_mut().unwrap()[14] = 1.0;
-    let ev = arkit_data::eval::dataset::evaluate(dir.path(), &preds, &all()).unwrap();
+    let ev = arkit_data::eval::evaluate(dir.path(), &preds, &all()).unwrap();
     assert_eq!(ev.problems.missing, 1);
     assert_eq!(ev.problems.duplicates.len(), 1);
     assert_eq!(ev.problems.unknown.len(), 1);
@@ -226,14 +224,14 @@ fn ground_truth_scores_zero_and_bad_rows_are_reported() {
         euler: EulerDifference::Wrapped,
         ..all()
     };
-    let w = arkit_data::eval::dataset::evaluate(dir.path(), &preds, &wrapped).unwrap();
+    let w = arkit_data::eval::evaluate(dir.path(), &preds, &wrapped).unwrap();
     assert!(w.summary.mae_r_deg <= ev.summary.mae_r_deg + 1e-12);
     // Another tool's angles: TRG's frame flips the signs of yaw and roll, so its errors
     // are the release's; 6DRepNet's decomposition gives other per-axis numbers; nothing
     // else depends on the angles.
     let in_angles = |angles| {
         let o = EvalOptions { angles, ..all() };
-        arkit_data::eval::dataset::evaluate(dir.path(), &preds, &o)
+        arkit_data::eval::evaluate(dir.path(), &preds, &o)
             .unwrap()
             .summary
     };
@@ -260,7 +258,7 @@ fn ground_truth_scores_zero_and_bad_rows_are_reported() {
         split: Some("nope".into()),
         ..all()
     };
-    let e = arkit_data::eval::dataset::evaluate(dir.path(), &preds, &bad)
+    let e = arkit_data::eval::evaluate(dir.path(), &preds, &bad)
         .unwrap_err()
         .to_string();
     assert!(e.contains("train") && e.contains("test"), "{e}");

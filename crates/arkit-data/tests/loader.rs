@@ -7,12 +7,12 @@
 use arkit_core::conventions::Camera;
 use arkit_core::conventions::Pose;
 use arkit_data::crop::RuleSet;
-use arkit_data::crop::{CropTransform, official};
-use arkit_data::loader::item::{FaceLoader, ItemPlanes, LoaderMode, LoaderOptions};
-use arkit_data::render::dataset::RenderOptions;
-use arkit_data::render::face::FaceRenderer;
+use arkit_data::crop::{self, CropTransform};
+use arkit_data::loader::{FaceLoader, ItemPlanes, LoaderMode, LoaderOptions};
+use arkit_data::render::FaceRenderer;
+use arkit_data::render::RenderOptions;
 
-use arkit_data::store::targets_table;
+use arkit_data::store;
 use nalgebra::Point3;
 use std::collections::HashMap;
 use std::path::Path;
@@ -34,7 +34,7 @@ fn loader(dir: &Path, mode: LoaderMode, compat: RuleSet, n_pts: usize) -> FaceLo
         n_pts,
         seed: 4,
     };
-    let topology = arkit_data::mesh::synthetic_face::builtin().topology.clone();
+    let topology = arkit_data::mesh::builtin().topology.clone();
     FaceLoader::open(dir, topology, None, options).unwrap()
 }
 
@@ -42,7 +42,7 @@ fn loader(dir: &Path, mode: LoaderMode, compat: RuleSet, n_pts: usize) -> FaceLo
 fn exact_items_agree_with_the_targets_render_stores() {
     let (release, dir) = (tempfile::tempdir().unwrap(), tempfile::tempdir().unwrap());
     converted(release.path(), dir.path());
-    let topology = arkit_data::mesh::synthetic_face::builtin().topology.clone();
+    let topology = arkit_data::mesh::builtin().topology.clone();
     let renderer = FaceRenderer::new(topology, Camera::release_projection()).unwrap();
     let ro = RenderOptions {
         size: S,
@@ -53,13 +53,13 @@ fn exact_items_agree_with_the_targets_render_stores() {
         full_mask: false,
         output: dir.path().to_path_buf(),
     };
-    arkit_data::render::dataset::render_dataset(dir.path(), &renderer, &ro, &|_| {}).unwrap();
-    let data = arkit_data::store::dataset::Dataset::open(dir.path()).unwrap();
+    arkit_data::render::render_dataset(dir.path(), &renderer, &ro, &|_| {}).unwrap();
+    let data = arkit_data::store::Dataset::open(dir.path()).unwrap();
     let samples = data.read_all_samples().unwrap();
     let mut targets = HashMap::new();
     for shard in data.shards() {
-        let path = targets_table::shard_path(dir.path(), shard.index);
-        for t in targets_table::read_targets(&path).unwrap() {
+        let path = store::shard_path(dir.path(), shard.index);
+        for t in store::read_targets(&path).unwrap() {
             targets.insert(t.key.clone(), t);
         }
     }
@@ -75,7 +75,7 @@ fn exact_items_agree_with_the_targets_render_stores() {
         assert_eq!(item.mask, mask, "{}", sample.key);
         // Each point: a mask pixel, with render's vertex ids and weights (stored to
         // 1/65535) and a canonical position 4.5 sum w V.
-        let pixels = arkit_data::store::face_targets::mask_pixel_indices(&t.mask().unwrap());
+        let pixels = arkit_data::store::mask_pixel_indices(&t.mask().unwrap());
         let row_of: HashMap<u32, usize> = pixels.iter().enumerate().map(|(r, &p)| (p, r)).collect();
         let weights = t.weights();
         assert_eq!(item.choose.len(), 300);
@@ -110,7 +110,7 @@ fn exact_items_agree_with_the_targets_render_stores() {
         // The image: the table's crop of the decoded image, normalised.
         let crop = CropTransform::around_landmarks(&sample.landmarks_2d, S);
         let rgb = crop.crop_image(&data.image(sample).unwrap());
-        assert_eq!(item.img, arkit_data::loader::item::normalise(rgb.as_raw()));
+        assert_eq!(item.img, arkit_data::loader::normalise(rgb.as_raw()));
         // tform_inv takes a crop pixel to the image point it samples.
         let [a, b, c, d, e, f] = item.tform_inv;
         for (col, row) in [(0u32, 0u32), (191, 5), (77, 150)] {
@@ -125,16 +125,16 @@ fn exact_items_agree_with_the_targets_render_stores() {
 fn official_items_follow_the_official_rules() {
     let (release, dir) = (tempfile::tempdir().unwrap(), tempfile::tempdir().unwrap());
     converted(release.path(), dir.path());
-    let data = arkit_data::store::dataset::Dataset::open(dir.path()).unwrap();
+    let data = arkit_data::store::Dataset::open(dir.path()).unwrap();
     let samples = data.read_all_samples().unwrap();
-    let topology = arkit_data::mesh::synthetic_face::builtin().topology.clone();
+    let topology = arkit_data::mesh::builtin().topology.clone();
     let mut renderer = FaceRenderer::new(topology.clone(), Camera::release_projection()).unwrap();
     renderer.rules = RuleSet::Official;
     // The holes closed as the official mask closes them: eyes first, then the mouth.
-    let loops = arkit_data::render::face::UvMapper::derive(&topology)
+    let loops = arkit_data::render::UvMapper::derive(&topology)
         .unwrap()
         .centroid_loops;
-    let organs = arkit_data::loader::item::official_organ_triangles(
+    let organs = arkit_data::loader::official_organ_triangles(
         [&loops[1], &loops[2], &loops[0]],
         &topology.uv,
     );
@@ -158,11 +158,11 @@ fn official_items_follow_the_official_rules() {
             assert!((right as f64 - right_of).abs() < 1e-9 && bottom > top);
             assert_eq!(item.crop, crop);
             // The mask: the official full-resolution mask warped as cv2 does.
-            let mut buffer = arkit_core::raster::VisibilityBuffer::new(1, 1);
+            let mut buffer = arkit_core::VisibilityBuffer::new(1, 1);
             let full = renderer
                 .render_full_mask(&verts, &pose, w, h, &mut buffer)
                 .unwrap();
-            let warped = official::warp_mask(&full, w, h, &crop);
+            let warped = crop::warp_mask(&full, w, h, &crop);
             assert_eq!(
                 item.mask,
                 warped.iter().map(|&m| m as u8).collect::<Vec<_>>()
@@ -190,7 +190,7 @@ fn official_items_follow_the_official_rules() {
             // cv2.getAffineTransform of the box corners onto the crop's.
             let (l, t, r, b) = (left as f32, top as f32, right as f32, bottom as f32);
             let last = (S - 1) as f32;
-            let m = official::affine_transform(
+            let m = crop::affine_transform(
                 [[l, t], [l, b], [r, t]],
                 [[0.0, 0.0], [0.0, last], [last, 0.0]],
             )
@@ -222,8 +222,8 @@ fn official_items_follow_the_official_rules() {
             }
             // The image: cv2.warpAffine of the decoded image, normalised.
             let img = data.image(sample).unwrap();
-            let rgb = official::warp_affine(img.as_raw(), w, h, 3, &crop);
-            assert_eq!(item.img, arkit_data::loader::item::normalise(&rgb));
+            let rgb = crop::warp_affine(img.as_raw(), w, h, 3, &crop);
+            assert_eq!(item.img, arkit_data::loader::normalise(&rgb));
             // tform_inv: cv2.getAffineTransform of the crop corners onto the box.
             let s1 = (S - 1) as f64;
             let hand = [

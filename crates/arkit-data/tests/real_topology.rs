@@ -3,11 +3,8 @@
 //! absent (a fresh clone alone).
 
 use arkit_core::conventions::{Camera, EulerAngles, Pose};
-use arkit_core::npy;
-use arkit_data::mesh::topology::FaceTopology;
-use arkit_data::mesh::topology::{
-    LANDMARK_MIRROR, LoopRole, NOSE_TIP_LANDMARK, nearest_mirror_partners,
-};
+use arkit_data::mesh::FaceTopology;
+use arkit_data::mesh::{LANDMARK_MIRROR, LoopRole, NOSE_TIP_LANDMARK, nearest_mirror_partners};
 use nalgebra::{Point3, Vector3};
 use std::collections::HashSet;
 use std::path::PathBuf;
@@ -31,7 +28,7 @@ fn reads_the_real_topology() {
     assert_eq!(topo.landmarks.len(), 68);
     assert_eq!(topo.landmarks[NOSE_TIP_LANDMARK], 8);
     // triangles.npy is Fortran-order uint16: the first row must be read as a row.
-    let raw = npy::read_npy(&dir.join("triangles.npy")).unwrap();
+    let raw = arkit_core::read_npy(&dir.join("triangles.npy")).unwrap();
     assert_eq!(raw.shape(), &[2304, 3]);
     let t = topo.template.as_ref().unwrap();
     // Counter-clockwise seen from +z: most triangles face the front.
@@ -82,7 +79,7 @@ fn hole_fill_equals_the_release_tris_2388() {
     let Some(dir) = resources() else { return };
     let topo = FaceTopology::from_resources(&dir).unwrap();
     let fill = topo.hole_fill().unwrap();
-    let release = npy::read_npy(&dir.join("tris_2388x3.npy"))
+    let release = arkit_core::read_npy(&dir.join("tris_2388x3.npy"))
         .unwrap()
         .to_i64_vec()
         .unwrap();
@@ -206,9 +203,9 @@ fn real_topology_survives_an_obj_round_trip() {
 
 #[test]
 fn real_mask_area_agrees_with_the_projected_contour() {
-    use arkit_core::raster::VisibilityBuffer;
+    use arkit_core::VisibilityBuffer;
     use arkit_data::crop::CropTransform;
-    use arkit_data::render::face::FaceRenderer;
+    use arkit_data::render::FaceRenderer;
     let Some(dir) = resources() else { return };
     let topo = FaceTopology::from_resources(&dir).unwrap();
     let verts = topo.template.clone().unwrap();
@@ -264,8 +261,8 @@ fn real_mask_area_agrees_with_the_projected_contour() {
 
 #[test]
 fn uv_map_matches_one_drawn_from_the_release_files() {
-    use arkit_core::raster::{ScreenVertex, VisibilityBuffer};
-    use arkit_data::render::face::UvMapper;
+    use arkit_core::{ScreenVertex, VisibilityBuffer};
+    use arkit_data::render::UvMapper;
     let Some(dir) = resources() else { return };
     let topo = FaceTopology::from_resources(&dir).unwrap();
     assert_eq!(topo.uv_extension.len(), 59);
@@ -286,7 +283,7 @@ fn uv_map_matches_one_drawn_from_the_release_files() {
     }
     // The release's own map: its 1,279 UVs and tris_2500x3, positions from our
     // extension (mesh, contour x 1.1, hole centroids) matched by UV.
-    let tris = npy::read_npy(&dir.join("tris_2500x3_202110.npy"))
+    let tris = arkit_core::read_npy(&dir.join("tris_2500x3_202110.npy"))
         .unwrap()
         .to_i64_vec()
         .unwrap();
@@ -359,7 +356,7 @@ fn uv_map_matches_one_drawn_from_the_release_files() {
 /// Returns (mean, max, unreadable) per layout; unreadable vertices (whose bilinear
 /// footprint touches a texel no triangle covers) are left out of the mean and max.
 fn uv_read_errors(topo: &FaceTopology, verts: &[Point3<f32>], size: u32) -> [(f64, f64, usize); 2] {
-    use arkit_data::render::face::UvMapper;
+    use arkit_data::render::UvMapper;
     let s = size as f32;
     let official_layout = {
         // Texel i holds u = i / (S - 1): draw with UVs moved so that our texel centre
@@ -392,7 +389,7 @@ fn uv_read_errors(topo: &FaceTopology, verts: &[Point3<f32>], size: u32) -> [(f6
 
 #[test]
 fn the_official_half_texel_uv_offset_costs_more_than_our_one_convention() {
-    let builtin = arkit_data::mesh::synthetic_face::builtin().topology.clone();
+    let builtin = arkit_data::mesh::builtin().topology.clone();
     let bverts: Vec<Point3<f32>> = builtin.template.clone().expect("built-in template");
     let mut cases = vec![("built-in", builtin, bverts)];
     if let Some(dir) = resources() {

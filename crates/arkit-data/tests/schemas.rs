@@ -1,6 +1,6 @@
 //! What we write matches the machine-readable schemas in `schemas/`.
 
-use arkit_core::npy::DType;
+use arkit_core::DType;
 use arkit_data::ingest::synth::{self, FaceSource, SynthOptions};
 
 fn schema(name: &str) -> serde_json::Value {
@@ -83,12 +83,12 @@ fn eval_per_sample_table_matches_its_schema() {
     let s = schema("eval_samples.json");
     assert_eq!(
         column_names(&s),
-        arkit_data::eval::dataset::PER_SAMPLE_COLUMNS
+        arkit_data::eval::PER_SAMPLE_COLUMNS
             .iter()
             .map(|c| c.to_string())
             .collect::<Vec<_>>()
     );
-    let df = arkit_data::eval::dataset::per_sample_frame(&[]).unwrap();
+    let df = arkit_data::eval::per_sample_frame(&[]).unwrap();
     let written: Vec<String> = df
         .get_column_names()
         .iter()
@@ -99,9 +99,9 @@ fn eval_per_sample_table_matches_its_schema() {
 
 #[test]
 fn predictions_written_match_their_schema() {
-    use arkit_core::predictions_csv::PredictionRecord;
-    use arkit_core::release::SampleKey;
-    use arkit_data::store::predictions_table::predictions_frame;
+    use arkit_core::PredictionRecord;
+    use arkit_core::SampleKey;
+    use arkit_data::store::predictions_frame;
     let s = schema("predictions.json");
     let row = PredictionRecord {
         key: SampleKey {
@@ -119,7 +119,7 @@ fn predictions_written_match_their_schema() {
         let dtype = df.column(name).unwrap().dtype().clone();
         let want = match c["type"].as_str().unwrap() {
             "binary" => polars::prelude::DataType::Binary,
-            t => arkit_data::store::samples_table::polars_dtype(t).unwrap(),
+            t => arkit_data::store::polars_dtype(t).unwrap(),
         };
         assert_eq!(dtype, want, "{name}");
     }

@@ -411,7 +411,7 @@ mod tests {
     }
 
     fn values(len: usize, seed: u64) -> Vec<f32> {
-        let mut rng = arkit_core::rng::Rng::new(seed);
+        let mut rng = arkit_core::Rng::new(seed);
         (0..len)
             .map(|_| rng.next_f64() as f32 * 2.0 - 1.0)
             .collect()

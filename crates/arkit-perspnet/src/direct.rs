@@ -45,7 +45,7 @@ use super::layers::{linear, relu};
 use super::model::ResNetTrunk;
 use arkit_core::conventions::Pose;
 use arkit_data::crop::CropTransform;
-use arkit_data::pose::pnp::Intrinsics;
+use arkit_data::pose::Intrinsics;
 
 /// The depth unit of `oz`: the box's width at the face's depth, in units of this
 /// many metres.

@@ -11,12 +11,12 @@ use crate::training::checkpoint::TrainedModel;
 use crate::training::data::network_input;
 use crate::{DirectNet, PerspNetConfig};
 use arkit_core::conventions::Pose;
-use arkit_core::error::{Error, Result};
+use arkit_core::{Error, Result};
 use arkit_data::crop::CropTransform;
-use arkit_data::mesh::topology::FaceTopology;
-use arkit_data::store::dataset::Dataset;
-use arkit_data::store::splits::SplitLookup;
-use arkit_data::store::targets_table::{self, TargetsRecord};
+use arkit_data::mesh::FaceTopology;
+use arkit_data::store::Dataset;
+use arkit_data::store::SplitLookup;
+use arkit_data::store::{self, TargetsRecord};
 use candle_core::{Device, Tensor};
 use serde::Serialize;
 use std::collections::HashMap;
@@ -96,7 +96,7 @@ pub fn predict_crop_raw(
         if candidates.is_empty() {
             candidates = (0..mask.len() as u32).collect();
         }
-        let picks = arkit_data::render::face::sample_points(candidates.len(), cfg.points, seed);
+        let picks = arkit_data::render::sample_points(candidates.len(), cfg.points, seed);
         let pixels: Vec<u32> = picks.iter().map(|&k| candidates[k as usize]).collect();
         let choose = Tensor::from_slice(&pixels, (1, cfg.points), &device)?;
         let out = net.forward(&img, &choose, false)?;
@@ -149,7 +149,7 @@ pub fn direct_pose(
         net.forward(&img, false)?.flatten_all()?.to_vec1::<f32>()
     })()
     .map_err(|e| candle_err("network forward", e))?;
-    let k = arkit_data::pose::predict::intrinsics(width, height);
+    let k = arkit_data::pose::intrinsics(width, height);
     Ok(crate::direct::pose_from_output(&out, crop, &k))
 }
 
@@ -160,9 +160,9 @@ pub fn pose_of(
     crop: &CropTransform,
     width: u32,
     height: u32,
-    ransac: &arkit_data::pose::pnp::RansacParams,
+    ransac: &arkit_data::pose::RansacParams,
 ) -> Option<Pose> {
-    use arkit_data::pose::predict::crop_pixel_to_image;
+    use arkit_data::pose::crop_pixel_to_image;
     let mut seen = std::collections::HashSet::new();
     let (mut object, mut image) = (Vec::new(), Vec::new());
     for (px, p) in prediction.pixels.iter().zip(&prediction.points) {
@@ -171,8 +171,8 @@ pub fn pose_of(
             image.push(crop_pixel_to_image(crop, *px));
         }
     }
-    let k = arkit_data::pose::predict::intrinsics(width, height);
-    arkit_data::pose::predict::pose_from_correspondences(&object, &image, &k, ransac)
+    let k = arkit_data::pose::intrinsics(width, height);
+    arkit_data::pose::pose_from_correspondences(&object, &image, &k, ransac)
         .ok()
         .map(|(p, _)| p)
 }
@@ -189,7 +189,7 @@ pub struct ModelPredictSummary {
     pub without_true_mask: usize,
     /// Samples left out because their image could not be read (key, reason naming the
     /// file): no prediction is written for them, so `eval` counts them missing.
-    pub unreadable: Vec<(arkit_core::release::SampleKey, String)>,
+    pub unreadable: Vec<(arkit_core::SampleKey, String)>,
 }
 
 /// Runs a trained network over the samples of `split` (`None`: all): the crop box of
@@ -208,12 +208,9 @@ pub fn model_predictions(
     crop_rule: arkit_data::crop::RuleSet,
     true_masks: Option<&Path>,
     seed: u64,
-    ransac: &arkit_data::pose::pnp::RansacParams,
+    ransac: &arkit_data::pose::RansacParams,
     progress: &dyn Fn(usize),
-) -> Result<(
-    Vec<arkit_core::predictions_csv::PredictionRecord>,
-    ModelPredictSummary,
-)> {
+) -> Result<(Vec<arkit_core::PredictionRecord>, ModelPredictSummary)> {
     model_predictions_dump(
         dataset, model, split, crop_rule, true_masks, seed, ransac, progress, None,
     )
@@ -229,13 +226,10 @@ pub fn model_predictions_dump(
     crop_rule: arkit_data::crop::RuleSet,
     true_masks: Option<&Path>,
     seed: u64,
-    ransac: &arkit_data::pose::pnp::RansacParams,
+    ransac: &arkit_data::pose::RansacParams,
     progress: &dyn Fn(usize),
-    mut dump: Option<&mut Vec<(arkit_core::release::SampleKey, RawOutputs)>>,
-) -> Result<(
-    Vec<arkit_core::predictions_csv::PredictionRecord>,
-    ModelPredictSummary,
-)> {
+    mut dump: Option<&mut Vec<(arkit_core::SampleKey, RawOutputs)>>,
+) -> Result<(Vec<arkit_core::PredictionRecord>, ModelPredictSummary)> {
     if let Network::Direct(_) = &model.net {
         if true_masks.is_some() {
             return Err(Error::invalid(
@@ -253,14 +247,12 @@ pub fn model_predictions_dump(
     let mut out = Vec::new();
     let mut summary = ModelPredictSummary::default();
     for shard in data.shards() {
-        let truth: HashMap<arkit_core::release::SampleKey, TargetsRecord> = match true_masks {
-            Some(dir) => {
-                targets_table::read_targets_by_key(&targets_table::shard_path(dir, shard.index))?
-            }
+        let truth: HashMap<arkit_core::SampleKey, TargetsRecord> = match true_masks {
+            Some(dir) => store::read_targets_by_key(&store::shard_path(dir, shard.index))?,
             None => HashMap::new(),
         };
         let skipped = match true_masks {
-            Some(dir) => targets_table::read_skipped_keys(dir, shard.index)?,
+            Some(dir) => store::read_skipped_keys(dir, shard.index)?,
             None => Default::default(),
         };
         for (i, r) in data.read_samples(shard)?.into_iter().enumerate() {
@@ -313,7 +305,7 @@ pub fn model_predictions_dump(
                 let pose = direct_pose(net, &input, &crop, r.image_width, r.image_height)?;
                 summary.samples += 1;
                 summary.failures += pose.is_none() as usize;
-                out.push(arkit_core::predictions_csv::PredictionRecord {
+                out.push(arkit_core::PredictionRecord {
                     key: r.key.clone(),
                     rt: pose.map(|p| p.to_release_rt()),
                     verts: None,
@@ -335,11 +327,11 @@ pub fn model_predictions_dump(
             let pose = pose_of(&p, &crop, r.image_width, r.image_height, ransac);
             summary.samples += 1;
             summary.failures += pose.is_none() as usize;
-            out.push(arkit_core::predictions_csv::PredictionRecord {
+            out.push(arkit_core::PredictionRecord {
                 key: r.key.clone(),
                 rt: pose.map(|p| p.to_release_rt()),
                 verts: Some(p.verts),
-                mask_rle: Some(arkit_core::target_codec::rle_encode(&p.mask)),
+                mask_rle: Some(arkit_core::rle_encode(&p.mask)),
             });
             progress(1);
         }
@@ -358,9 +350,9 @@ pub fn write_dump(
     path: &Path,
     cfg: &PerspNetConfig,
     topology: &FaceTopology,
-    dump: &[(arkit_core::release::SampleKey, RawOutputs)],
+    dump: &[(arkit_core::SampleKey, RawOutputs)],
 ) -> Result<()> {
-    use arkit_core::npy::{NpyArray, NpzCompression, write_npz};
+    use arkit_core::{NpyArray, NpzCompression, write_npz};
     let (s, m, v) = (cfg.input_size, cfg.points, cfg.vertices);
     let uv: Vec<f32> = topology.uv[..v].iter().flat_map(|t| [t[0], t[1]]).collect();
     let mut arrays: Vec<(String, NpyArray)> =

@@ -28,7 +28,7 @@ use candle_nn::{BatchNorm, Init, Linear, VarBuilder};
 use rayon::prelude::*;
 
 // The loader's ImageNet channel means and standard deviations: one definition.
-use arkit_data::loader::item::{IMAGENET_MEAN, IMAGENET_STD};
+use arkit_data::loader::{IMAGENET_MEAN, IMAGENET_STD};
 
 /// Normalises a `B x 3 x H x W` RGB batch with values in `[0, 1]` by the
 /// ImageNet mean and standard deviation.
@@ -330,7 +330,7 @@ pub fn max_pool_3x3_s2_p1_views(x: &Tensor) -> Result<Tensor> {
 /// `B x C x H x W` tensor with probability `p` and rescales the rest by
 /// `1 / (1 - p)`, the channels drawn from `rng` (ours, seeded: candle's CPU generator
 /// cannot be). Identity without a generator (evaluation) or when `p == 0`.
-pub fn dropout2d(x: &Tensor, p: f64, rng: Option<&mut arkit_core::rng::Rng>) -> Result<Tensor> {
+pub fn dropout2d(x: &Tensor, p: f64, rng: Option<&mut arkit_core::Rng>) -> Result<Tensor> {
     let Some(rng) = rng else {
         return Ok(x.clone());
     };

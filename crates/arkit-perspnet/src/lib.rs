@@ -86,6 +86,6 @@ pub use weights::state_dict::{export_state_dict, state_dict_entries};
 pub use weights::{export_weights, import_weights, load_weights, open_weights, write_half_model};
 
 /// A candle error as ours, naming what failed.
-fn candle_err(what: &str, e: candle_core::Error) -> arkit_core::error::Error {
-    arkit_core::error::Error::invalid(what, e.to_string())
+fn candle_err(what: &str, e: candle_core::Error) -> arkit_core::Error {
+    arkit_core::Error::invalid(what, e.to_string())
 }

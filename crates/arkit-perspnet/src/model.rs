@@ -230,7 +230,7 @@ pub struct PerspNet {
     category_global: [PointLinear; 2],
     assignment: [PointLinear; 3],
     sampler: PointSampler,
-    dropout_rng: std::sync::Arc<std::sync::Mutex<arkit_core::rng::Rng>>,
+    dropout_rng: std::sync::Arc<std::sync::Mutex<arkit_core::Rng>>,
 }
 
 impl PerspNet {
@@ -301,7 +301,7 @@ impl PerspNet {
             PointSampler::from_uv(&uv, cfg.input_size, cfg.input_size, vb.device())?
         };
         Ok(Self {
-            dropout_rng: std::sync::Arc::new(std::sync::Mutex::new(arkit_core::rng::Rng::new(0))),
+            dropout_rng: std::sync::Arc::new(std::sync::Mutex::new(arkit_core::Rng::new(0))),
             cfg: cfg.clone(),
             trunk,
             fc,
@@ -341,7 +341,7 @@ impl PerspNet {
     /// Restarts the dropout generator from `seed` (training calls it every step, so a
     /// run, and a resumed run, follow from its seed).
     pub(crate) fn seed_dropout(&self, seed: u64) {
-        *self.dropout_rng.lock().expect("dropout generator") = arkit_core::rng::Rng::new(seed);
+        *self.dropout_rng.lock().expect("dropout generator") = arkit_core::Rng::new(seed);
     }
 
     /// Runs the encoder and both decoders (the official `Resnet18_8s.forward`).

@@ -3,8 +3,8 @@
 
 use crate::candle_err;
 use crate::{Architecture, DirectNet, PerspNet, PerspNetConfig};
-use arkit_core::error::{Error, Result};
-use arkit_data::mesh::topology::FaceTopology;
+use arkit_core::{Error, Result};
+use arkit_data::mesh::FaceTopology;
 use candle_core::{Device, Tensor};
 use candle_nn::VarBuilder;
 

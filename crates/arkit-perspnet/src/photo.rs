@@ -6,12 +6,12 @@
 
 use crate::inference::{NetworkPrediction, predict_crop};
 use crate::training::checkpoint::TrainedModel;
-use arkit_core::error::Result;
+use arkit_core::Result;
 use arkit_data::crop::CropTransform;
-use arkit_data::loader::item::normalise;
-use arkit_data::picture::photo::{DEMO_SIDE, DemoSquare, demo_crop};
-use arkit_data::pose::photo::{FacePose, PhotoCamera, check_box, face_pose};
-use arkit_data::pose::pnp::RansacParams;
+use arkit_data::loader::normalise;
+use arkit_data::picture::{DEMO_SIDE, DemoSquare, demo_crop};
+use arkit_data::pose::RansacParams;
+use arkit_data::pose::{FacePose, PhotoCamera, check_box, face_pose};
 use image::RgbImage;
 
 /// One face of a photo, every stage kept so that each can be checked.

@@ -4,15 +4,15 @@
 //! predicted and evaluated (the commands on such a model: the root's
 //! `tests/direct_commands.rs`).
 
+use arkit_core::Rng;
 use arkit_core::conventions::{Camera, EulerAngles, Pose};
-use arkit_core::rng::Rng;
 use arkit_data::crop::CropTransform;
-use arkit_data::eval::dataset::EvalOptions;
-use arkit_data::ingest::convert::{self, ConvertOptions, ValidationContext};
+use arkit_data::eval::EvalOptions;
 use arkit_data::ingest::synth::{self, FaceSource, SynthOptions};
-use arkit_data::pose::pnp::RansacParams;
-use arkit_data::render::dataset::RenderOptions;
-use arkit_data::render::face::FaceRenderer;
+use arkit_data::ingest::{self, ConvertOptions, ValidationContext};
+use arkit_data::pose::RansacParams;
+use arkit_data::render::FaceRenderer;
+use arkit_data::render::RenderOptions;
 use arkit_perspnet::TrainOptions;
 use arkit_perspnet::{Architecture, PerspNetConfig};
 use arkit_perspnet::{
@@ -84,7 +84,7 @@ fn forward_shapes_and_every_output_is_a_rotation() {
 
 #[test]
 fn targets_map_back_to_the_pose_through_crop_and_camera() {
-    let k = arkit_data::pose::predict::intrinsics(256, 256);
+    let k = arkit_data::pose::intrinsics(256, 256);
     let mut rng = Rng::new(9);
     for i in 0..40 {
         let pose = Pose::from_euler(
@@ -139,7 +139,7 @@ fn targets_map_back_to_the_pose_through_crop_and_camera() {
 #[test]
 fn loss_hand_values() {
     let dev = Device::Cpu;
-    let k = arkit_data::pose::predict::intrinsics(256, 256);
+    let k = arkit_data::pose::intrinsics(256, 256);
     let pose = Pose::from_euler(
         EulerAngles::new(20.0, -10.0, 5.0),
         Vector3::new(0.01, 0.0, -0.5),
@@ -189,7 +189,7 @@ fn dataset(dir: &Path) {
         ..SynthOptions::default()
     };
     synth::generate(&FaceSource::builtin(), &options, &release, &|| {}).unwrap();
-    let topology = arkit_data::mesh::synthetic_face::builtin().topology.clone();
+    let topology = arkit_data::mesh::builtin().topology.clone();
     let ctx = ValidationContext {
         projection: Camera::release_projection(),
         topology: topology.clone(),
@@ -205,7 +205,7 @@ fn dataset(dir: &Path) {
         shard_count: 1,
         overwrite: false,
     };
-    convert::convert(&copts, &ctx, &|_| {}).unwrap();
+    ingest::convert(&copts, &ctx, &|_| {}).unwrap();
     let renderer = FaceRenderer::new(topology, Camera::release_projection()).unwrap();
     let ro = RenderOptions {
         size: 64,
@@ -216,7 +216,7 @@ fn dataset(dir: &Path) {
         full_mask: false,
         output: dir.join("pq"),
     };
-    arkit_data::render::dataset::render_dataset(&dir.join("pq"), &renderer, &ro, &|_| {}).unwrap();
+    arkit_data::render::render_dataset(&dir.join("pq"), &renderer, &ro, &|_| {}).unwrap();
 }
 
 #[test]
@@ -224,7 +224,7 @@ fn trains_saves_loads_predicts_and_evaluates() {
     let dir = tempfile::tempdir().unwrap();
     dataset(dir.path());
     let pq = dir.path().join("pq");
-    let topology = arkit_data::mesh::synthetic_face::builtin().topology.clone();
+    let topology = arkit_data::mesh::builtin().topology.clone();
     let cfg = direct_tiny();
     let examples = arkit_perspnet::read_examples(&pq, &pq, &cfg, None).unwrap();
     assert_eq!(examples.len(), 8);
@@ -294,7 +294,7 @@ fn trains_saves_loads_predicts_and_evaluates() {
     }
     // The trained samples are predicted better than the mean pose of the untrained
     // network (the offset pose): it learned from its targets.
-    let ev = arkit_data::eval::dataset::evaluate(
+    let ev = arkit_data::eval::evaluate(
         &pq,
         &rows,
         &EvalOptions {

@@ -208,7 +208,7 @@ mod layers {
     fn dropout2d_drops_whole_channels() -> Result<()> {
         let dev = Device::Cpu;
         let x = Tensor::ones((4, 64, 3, 3), candle_core::DType::F32, &dev)?;
-        let mut rng = arkit_core::rng::Rng::new(1);
+        let mut rng = arkit_core::Rng::new(1);
         let y = dropout2d(&x, 0.5, Some(&mut rng))?;
         let v: Vec<f32> = y.flatten_all()?.to_vec1()?;
         for ch in v.chunks(9) {
@@ -217,7 +217,7 @@ mod layers {
         // About half of the 256 channels dropped, and the same seed drops the same.
         let dropped = v.chunks(9).filter(|ch| ch[0] == 0.0).count();
         assert!((96..160).contains(&dropped), "{dropped}");
-        let again: Vec<f32> = dropout2d(&x, 0.5, Some(&mut arkit_core::rng::Rng::new(1)))?
+        let again: Vec<f32> = dropout2d(&x, 0.5, Some(&mut arkit_core::Rng::new(1)))?
             .flatten_all()?
             .to_vec1()?;
         assert_eq!(v, again);
@@ -935,12 +935,12 @@ mod pipeline {
     //! --model -> eval, on a few samples.
 
     use arkit_core::conventions::Camera;
-    use arkit_data::eval::dataset::EvalOptions;
-    use arkit_data::ingest::convert::{self, ConvertOptions, ValidationContext};
+    use arkit_data::eval::EvalOptions;
     use arkit_data::ingest::synth::{self, FaceSource, SynthOptions};
-    use arkit_data::pose::pnp::RansacParams;
-    use arkit_data::render::dataset::RenderOptions;
-    use arkit_data::render::face::FaceRenderer;
+    use arkit_data::ingest::{self, ConvertOptions, ValidationContext};
+    use arkit_data::pose::RansacParams;
+    use arkit_data::render::FaceRenderer;
+    use arkit_data::render::RenderOptions;
     use arkit_perspnet::PerspNetConfig;
     use arkit_perspnet::TrainOptions;
     use candle_core::Device;
@@ -957,7 +957,7 @@ mod pipeline {
             ..SynthOptions::default()
         };
         synth::generate(&FaceSource::builtin(), &options, release.path(), &|| {}).unwrap();
-        let topology = arkit_data::mesh::synthetic_face::builtin().topology.clone();
+        let topology = arkit_data::mesh::builtin().topology.clone();
         let dir = tempfile::tempdir().unwrap();
         let ctx = ValidationContext {
             projection: Camera::release_projection(),
@@ -974,7 +974,7 @@ mod pipeline {
             shard_count: 1,
             overwrite: false,
         };
-        convert::convert(&copts, &ctx, &|_| {}).unwrap();
+        ingest::convert(&copts, &ctx, &|_| {}).unwrap();
         let cfg = PerspNetConfig::tiny();
         // Targets at the wrong size are refused with the render options to use.
         let renderer = FaceRenderer::new(topology.clone(), Camera::release_projection()).unwrap();
@@ -988,25 +988,15 @@ mod pipeline {
             full_mask: false,
             output: out.to_path_buf(),
         };
-        arkit_data::render::dataset::render_dataset(
-            dir.path(),
-            &renderer,
-            &ro(96, wrong.path()),
-            &|_| {},
-        )
-        .unwrap();
+        arkit_data::render::render_dataset(dir.path(), &renderer, &ro(96, wrong.path()), &|_| {})
+            .unwrap();
         let e = match arkit_perspnet::read_examples(dir.path(), wrong.path(), &cfg, None) {
             Err(e) => e.to_string(),
             Ok(_) => panic!("targets at 96 accepted for a 64 network"),
         };
         assert!(e.contains("--size 64"), "{e}");
-        arkit_data::render::dataset::render_dataset(
-            dir.path(),
-            &renderer,
-            &ro(64, dir.path()),
-            &|_| {},
-        )
-        .unwrap();
+        arkit_data::render::render_dataset(dir.path(), &renderer, &ro(64, dir.path()), &|_| {})
+            .unwrap();
         let examples = arkit_perspnet::read_examples(dir.path(), dir.path(), &cfg, None).unwrap();
         assert_eq!(examples.len(), 6);
         // The stored coordinates are the official 4.5x scale of the mesh at the weights.
@@ -1255,7 +1245,7 @@ mod pipeline {
             split: None,
             ..EvalOptions::default()
         };
-        let ev = arkit_data::eval::dataset::evaluate(dir.path(), &a, &options).unwrap();
+        let ev = arkit_data::eval::evaluate(dir.path(), &a, &options).unwrap();
         assert_eq!(ev.summary.samples, 6);
         assert!(ev.summary.recon_mean_mm.unwrap().is_finite());
         assert!(
@@ -1284,7 +1274,7 @@ mod pipeline {
             output: biwi_pq.path().to_path_buf(),
             ..copts.clone()
         };
-        let m = convert::convert(&bopts, &bctx, &|_| {}).unwrap();
+        let m = ingest::convert(&bopts, &bctx, &|_| {}).unwrap();
         assert_eq!((m.converted, m.skipped), (6, 0));
         let (rows, summary) = arkit_perspnet::model_predictions(
             biwi_pq.path(),
@@ -1299,7 +1289,7 @@ mod pipeline {
         .unwrap();
         assert_eq!(summary.samples, 6);
         assert_eq!(rows.len(), 6);
-        let ev = arkit_data::eval::dataset::evaluate(
+        let ev = arkit_data::eval::evaluate(
             biwi_pq.path(),
             &rows,
             &EvalOptions {

@@ -3,7 +3,7 @@
 //! `arkit_tool`, not this module.
 //!
 //! What crosses the boundary:
-//! - `Loader`: `arkit_data::loader::item::FaceLoader`, one sample as the official PyTorch
+//! - `Loader`: `arkit_data::loader::FaceLoader`, one sample as the official PyTorch
 //!   loader returns it, as numpy arrays that own the Rust buffers (no copy).
 //! - `Dataset`: a converted dataset's samples, by position.
 //! - `solve_pnp_ransac`, `project`, `evaluate`: PnP, the release's projection and
@@ -17,18 +17,16 @@
 //! error, and any panic, reaches Python as `DataError` (a `ValueError`) whose message
 //! names the file and the problem, never as a Rust panic. Tested by `python/tests`.
 
+use arkit_core::SampleKey;
 use arkit_core::conventions::Camera;
-use arkit_core::release::SampleKey;
 use arkit_data::crop::RuleSet;
-use arkit_data::loader::correspondence_matrix::{
-    rewrite_correspondence_matrix, write_correspondence_matrix,
-};
-use arkit_data::loader::item::{FaceLoader, LoaderItem, LoaderMode, LoaderOptions};
-use arkit_data::store::samples_table::SampleRecord;
+use arkit_data::loader::{FaceLoader, LoaderItem, LoaderMode, LoaderOptions};
+use arkit_data::loader::{rewrite_correspondence_matrix, write_correspondence_matrix};
+use arkit_data::store::SampleRecord;
 
-use arkit_core::error::Error;
+use arkit_core::Error;
 
-use arkit_data::mesh::topology::FaceTopology;
+use arkit_data::mesh::FaceTopology;
 
 use arkit_core::conventions::{AngleConvention, Pose};
 use nalgebra::{Point2, Point3};
@@ -54,10 +52,7 @@ fn py_err(e: Error) -> PyErr {
 }
 
 /// Runs `f` without the GIL, turning an error or a panic into `DataError`.
-fn run<T: Send>(
-    py: Python<'_>,
-    f: impl FnOnce() -> arkit_core::error::Result<T> + Send,
-) -> PyResult<T> {
+fn run<T: Send>(py: Python<'_>, f: impl FnOnce() -> arkit_core::Result<T> + Send) -> PyResult<T> {
     py.detach(|| std::panic::catch_unwind(std::panic::AssertUnwindSafe(f)))
         .map_err(|p| {
             let why = p
@@ -75,21 +70,18 @@ fn run<T: Send>(
 fn topology_for(
     dir: &Path,
     resources: Option<&Path>,
-) -> arkit_core::error::Result<(FaceTopology, Option<PathBuf>)> {
+) -> arkit_core::Result<(FaceTopology, Option<PathBuf>)> {
     let from = match resources {
         Some(r) => Some(r.to_path_buf()),
         None => {
-            let data = arkit_data::store::dataset::Dataset::open(dir)?;
+            let data = arkit_data::store::Dataset::open(dir)?;
             let recorded = PathBuf::from(&data.manifest().topology);
             recorded.join("triangles.npy").is_file().then_some(recorded)
         }
     };
     match from {
         Some(r) => Ok((FaceTopology::from_resources(&r)?, Some(r))),
-        None => Ok((
-            arkit_data::mesh::synthetic_face::builtin().topology.clone(),
-            None,
-        )),
+        None => Ok((arkit_data::mesh::builtin().topology.clone(), None)),
     }
 }
 
@@ -129,7 +121,7 @@ impl Loader {
         let inner = run(py, || {
             let (topology, from) = topology_for(&dir, resources.as_deref())?;
             let uv_triangles = match &from {
-                Some(r) => arkit_data::loader::item::read_uv_triangles(r)?,
+                Some(r) => arkit_data::loader::read_uv_triangles(r)?,
                 None => None,
             };
             let mut loader = FaceLoader::open(&dir, topology, uv_triangles, options)?;
@@ -371,7 +363,7 @@ impl BatchSlices<'_> {
         loader: &FaceLoader,
         indices: &[usize],
         epoch: u64,
-    ) -> arkit_core::error::Result<Vec<(PathBuf, SampleKey)>> {
+    ) -> arkit_core::Result<Vec<(PathBuf, SampleKey)>> {
         let b = indices.len().max(1);
         let per = |len: usize| len / b;
         let (img_n, uv_n, mask_n) = (
@@ -391,7 +383,7 @@ impl BatchSlices<'_> {
             let item = loader.item_into(
                 index,
                 epoch,
-                arkit_data::loader::item::ItemPlanes {
+                arkit_data::loader::ItemPlanes {
                     img: &mut self.img[at(img_n)],
                     uvmap: &mut self.uvmap[at(uv_n)],
                 },
@@ -410,7 +402,7 @@ impl BatchSlices<'_> {
                     ),
                 ));
             }
-            arkit_data::loader::item::widen_mask_into(&item.mask, &mut self.mask[at(mask_n)]);
+            arkit_data::loader::widen_mask_into(&item.mask, &mut self.mask[at(mask_n)]);
             self.choose[at(choose_n)].copy_from_slice(&item.choose);
             self.model[at(model_n)].copy_from_slice(&item.model);
             self.nocs[at(3 * choose_n)].copy_from_slice(&item.nocs);
@@ -520,7 +512,7 @@ struct Located {
 /// A converted dataset's samples, read shard by shard (the last shard read is kept).
 #[pyclass(module = "arkit_tool._native", frozen)]
 struct Dataset {
-    inner: arkit_data::store::dataset::Dataset,
+    inner: arkit_data::store::Dataset,
     rows: Vec<Located>,
     cache: Mutex<Option<(usize, Vec<SampleRecord>)>>,
 }
@@ -530,8 +522,8 @@ impl Dataset {
     #[new]
     fn new(py: Python<'_>, dir: PathBuf) -> PyResult<Self> {
         let (inner, rows) = run(py, || {
-            let data = arkit_data::store::dataset::Dataset::open(&dir)?;
-            let splits = arkit_data::store::splits::SplitLookup::read(&dir)?;
+            let data = arkit_data::store::Dataset::open(&dir)?;
+            let splits = arkit_data::store::SplitLookup::read(&dir)?;
             let mut rows = Vec::new();
             for (k, shard) in data.shards().iter().enumerate() {
                 for (row, (key, listed)) in data.read_sample_keys(shard)?.into_iter().enumerate() {
@@ -697,20 +689,19 @@ fn solve_pnp_ransac<'py>(
         .into_iter()
         .map(|r| Point2::new(r[0], r[1]))
         .collect();
-    let intr = arkit_data::pose::pnp::Intrinsics {
+    let intr = arkit_data::pose::Intrinsics {
         fx: k[[0, 0]],
         fy: k[[1, 1]],
         cx: k[[0, 2]],
         cy: k[[1, 2]],
     };
-    let params = arkit_data::pose::pnp::RansacParams {
+    let params = arkit_data::pose::RansacParams {
         reprojection_threshold_px: reprojection_error,
         max_iterations: iterations_count,
         confidence,
         seed,
     };
-    let solved =
-        py.detach(|| arkit_data::pose::pnp::solve_pnp_ransac(&object, &image, &intr, &params));
+    let solved = py.detach(|| arkit_data::pose::solve_pnp_ransac(&object, &image, &intr, &params));
     match solved {
         Err(_) => Ok((false, None, None, None)),
         Ok(s) => {
@@ -792,23 +783,19 @@ fn evaluate(
                 .into_iter()
                 .enumerate()
                 .map(|(i, (s, a, id, rt))| {
-                    Ok(arkit_core::predictions_csv::PredictionRecord {
+                    Ok(arkit_core::PredictionRecord {
                         key: SampleKey {
                             subject_id: s,
                             facial_action: a,
                             img_id: id,
                         },
-                        rt: arkit_core::predictions_csv::rt_of(
-                            rt.as_deref(),
-                            Path::new("predictions"),
-                            i,
-                        )?,
+                        rt: arkit_core::rt_of(rt.as_deref(), Path::new("predictions"), i)?,
                         verts: None,
                         mask_rle: None,
                     })
                 })
-                .collect::<arkit_core::error::Result<Vec<_>>>()?,
-            (None, Some(path)) => arkit_data::store::predictions_table::read_predictions(&path)?,
+                .collect::<arkit_core::Result<Vec<_>>>()?,
+            (None, Some(path)) => arkit_data::store::read_predictions(&path)?,
             _ => {
                 return Err(Error::invalid(
                     "predictions",
@@ -816,12 +803,12 @@ fn evaluate(
                 ));
             }
         };
-        let options = arkit_data::eval::dataset::EvalOptions {
+        let options = arkit_data::eval::EvalOptions {
             split,
             keep_worst: 0,
             ..Default::default()
         };
-        let ev = arkit_data::eval::dataset::evaluate(&dir, &rows, &options)?;
+        let ev = arkit_data::eval::evaluate(&dir, &rows, &options)?;
         let p = &ev.problems;
         Ok(serde_json::json!({
             "summary": ev.summary,
@@ -847,13 +834,13 @@ fn default_crop_store(dir: PathBuf, compat: &str, img_size: u32) -> PyResult<Pat
     ))
 }
 
-/// An image file decoded as the loader decodes it (`arkit_data::picture::image_decode`: PNG or
+/// An image file decoded as the loader decodes it (`arkit_data::picture::read_rgb8_checked`: PNG or
 /// JPEG, its size checked from the header against the limits before decoding, 16-bit
 /// scaled to 8): `(H, W, 3)` uint8 RGB.
 #[pyfunction]
 fn read_image<'py>(py: Python<'py>, path: PathBuf) -> PyResult<Bound<'py, PyAny>> {
     let img = run(py, || {
-        arkit_data::picture::image_decode::read_rgb8_checked(&path, |_| Ok(()))
+        arkit_data::picture::read_rgb8_checked(&path, |_| Ok(()))
     })?;
     let (w, h) = img.dimensions();
     Ok(img
@@ -864,7 +851,7 @@ fn read_image<'py>(py: Python<'py>, path: PathBuf) -> PyResult<Bound<'py, PyAny>
 }
 
 /// A photo made ready for the network as the official `demo.py` makes it
-/// (`arkit_data::picture::photo`): padded with black to a square, resized to `side`
+/// (`arkit_data::picture::demo_crop`): padded with black to a square, resized to `side`
 /// (`cv2.resize`, bilinear), and the crop of `box` (`[x0, y0, x1, y1]` in the photo's
 /// pixels; finite, `x0 < x1`, `y0 < y1`, overlapping the photo) by the 0.75 rule through
 /// `cv2.warpAffine`. Returns a dict: `square` (side x
@@ -880,7 +867,7 @@ fn photo_crop<'py>(
     size: u32,
     side: u32,
 ) -> PyResult<Bound<'py, PyDict>> {
-    use arkit_data::picture::photo::{DemoSquare, demo_crop};
+    use arkit_data::picture::{DemoSquare, demo_crop};
     let shape = photo.shape().to_vec();
     let limit = arkit_core::limits::MAX_IMAGE_SIDE as usize;
     if shape[2] != 3
@@ -897,7 +884,7 @@ fn photo_crop<'py>(
     let raw: Vec<u8> = photo.as_array().iter().copied().collect();
     let (h, w) = (shape[0] as u32, shape[1] as u32);
     let (square, crop, frame, b) = run(py, || {
-        arkit_data::pose::photo::check_box(r#box, w, h)?;
+        arkit_data::pose::check_box(r#box, w, h)?;
         let img = image::RgbImage::from_raw(w, h, raw).expect("size matches");
         let frame = DemoSquare::of(w, h, side);
         let square = frame.image(&img);
@@ -915,7 +902,7 @@ fn photo_crop<'py>(
             .reshape([side, side, 3])?,
     )?;
     let size = size as usize;
-    let input = arkit_data::loader::item::normalise(crop.as_raw());
+    let input = arkit_data::loader::normalise(crop.as_raw());
     d.set_item("input", input.into_pyarray(py).reshape([3, size, size])?)?;
     d.set_item(
         "crop",
@@ -949,8 +936,8 @@ fn photo_pose<'py>(
     threshold_px: f64,
     seed: u64,
 ) -> PyResult<Option<Bound<'py, PyDict>>> {
-    use arkit_data::picture::photo::{DEMO_SIDE, DemoSquare, demo_crop};
-    use arkit_data::pose::photo::{PhotoCamera, face_pose};
+    use arkit_data::picture::{DEMO_SIDE, DemoSquare, demo_crop};
+    use arkit_data::pose::{PhotoCamera, face_pose};
     let limit = arkit_core::limits::MAX_IMAGE_SIDE;
     if !(1..=limit).contains(&width)
         || !(1..=limit).contains(&height)
@@ -983,13 +970,13 @@ fn photo_pose<'py>(
         .collect::<PyResult<_>>()?;
     let p3: Vec<[f32; 3]> = pts.rows().into_iter().map(|r| [r[0], r[1], r[2]]).collect();
     let camera = focal_px.map_or(PhotoCamera::Demo, PhotoCamera::FocalPx);
-    let ransac = arkit_data::pose::pnp::RansacParams {
+    let ransac = arkit_data::pose::RansacParams {
         reprojection_threshold_px: threshold_px,
         seed,
         ..Default::default()
     };
     let found = run(py, || {
-        arkit_data::pose::photo::check_box(r#box, width, height)?;
+        arkit_data::pose::check_box(r#box, width, height)?;
         let square = DemoSquare::of(width, height, DEMO_SIDE);
         let crop = demo_crop(square.box_to_square(r#box), size)?;
         face_pose(&square, &crop, &camera, &px, &p3, &ransac)
@@ -1032,13 +1019,13 @@ fn detect_faces(
     }
     let raw: Vec<u8> = photo.as_array().iter().copied().collect();
     let (h, w) = (shape[0] as u32, shape[1] as u32);
-    let options = arkit_data::picture::detect::DetectOptions {
+    let options = arkit_data::picture::DetectOptions {
         min_face_px,
         score_threshold,
     };
     let faces = run(py, || {
         let img = image::RgbImage::from_raw(w, h, raw).expect("size matches");
-        arkit_data::picture::detect::detect_faces(&img, &options)
+        arkit_data::picture::detect_faces(&img, &options)
     })?;
     Ok(faces.iter().map(|f| (f.bbox, f.score)).collect())
 }
@@ -1180,7 +1167,7 @@ fn paired<A: Copy, B: Copy>(a: &[A], b: &[B], names: (&str, &str)) -> PyResult<V
 fn convert_each<'py, T: Send + Sync, const K: usize>(
     py: Python<'py>,
     items: Vec<T>,
-    f: impl Fn(&T) -> arkit_core::error::Result<[f64; K]> + Send + Sync,
+    f: impl Fn(&T) -> arkit_core::Result<[f64; K]> + Send + Sync,
 ) -> PyResult<Bound<'py, PyAny>> {
     let n = items.len();
     let out = run(py, || {
@@ -1357,7 +1344,7 @@ fn poses_from_img2pose<'py>(
 }
 
 /// `DataError` (through `Error`) when a value of `v` is NaN or infinite.
-fn finite(v: &[f64], name: &str) -> arkit_core::error::Result<()> {
+fn finite(v: &[f64], name: &str) -> arkit_core::Result<()> {
     match v.iter().position(|x| !x.is_finite()) {
         Some(k) => Err(Error::invalid(
             name,
@@ -1372,7 +1359,7 @@ fn finite(v: &[f64], name: &str) -> arkit_core::error::Result<()> {
 /// The pixels PerspNet reads, chosen from a predicted mask as `predict --model` chooses
 /// them (`arkit_perspnet::predict_crop_raw`): the candidates are the mask's pixels in
 /// flat order (every pixel when the mask is empty), and
-/// `arkit_data::render::face::sample_points(len(candidates), m, seed)` picks `m` of
+/// `arkit_data::render::sample_points(len(candidates), m, seed)` picks `m` of
 /// them (distinct, increasing, when there are more than `m`; else with wrap-around).
 /// `mask`: bool, any shape, read in C order. Returns the `m` flat indices (int64).
 #[pyfunction]
@@ -1402,7 +1389,7 @@ fn choose_points<'py>(
         if candidates.is_empty() {
             candidates = (0..flat.len() as u32).collect();
         }
-        arkit_data::render::face::sample_points(candidates.len(), m, seed)
+        arkit_data::render::sample_points(candidates.len(), m, seed)
             .into_iter()
             .map(|k| candidates[k as usize] as i64)
             .collect::<Vec<i64>>()

@@ -18,7 +18,7 @@
 //!    from its source to its destination positions (the rings and contour move with the
 //!    new pose, the anchors do not): the *band* layer.
 //! 4. **Face layer**: the mesh triangles and the triangles filling the eyes and the
-//!    mouth are rasterized at the new pose with the depth test ([`arkit_core::raster`]); each
+//!    mouth are rasterized at the new pose with the depth test ([`arkit_core::VisibilityBuffer`]); each
 //!    covered pixel's perspective-correct barycentrics give the canonical surface point,
 //!    which is projected with the *old* pose to find where to read the source image.
 //!    This texture lookup is exact (no per-triangle affine approximation).
@@ -47,7 +47,7 @@
 
 use crate::mesh::topology::FaceTopology;
 use arkit_core::conventions::{Camera, EulerAngles, Pose};
-use arkit_core::raster::{ScreenVertex, TriangleSetup, VisibilityBuffer};
+use arkit_core::{ScreenVertex, TriangleSetup, VisibilityBuffer};
 use image::{Rgb, RgbImage};
 use nalgebra::{Matrix3, Point2, Point3, Rotation3, Vector3};
 
@@ -397,7 +397,7 @@ pub fn profile(
     }
     let (width, height) = input.image.dimensions();
     // The rasterizer's buffer has a size limit (it panics beyond it).
-    let max = arkit_core::raster::MAX_VIEWPORT;
+    let max = arkit_core::MAX_VIEWPORT;
     if !(1..=max).contains(&width) || !(1..=max).contains(&height) {
         return Err(Skip::BadInput(format!(
             "image {width}x{height}: profiling renders images of at most {max} pixels a side"
@@ -441,8 +441,7 @@ pub fn profile(
             y: dst[i as usize].y as f32,
             inv_w: 1.0,
         });
-        if let Some(setup) = TriangleSetup::new(v, width, height, arkit_core::raster::Culling::None)
-        {
+        if let Some(setup) = TriangleSetup::new(v, width, height, arkit_core::Culling::None) {
             setup.for_each_covered(|f| {
                 let idx = f.y as usize * width as usize + f.x as usize;
                 let mut s = [0.0f32; 2];

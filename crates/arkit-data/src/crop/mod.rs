@@ -7,22 +7,28 @@
 //! at the integer point `(i, j)` (OpenCV's, the official loader's). Which box is cut
 //! around a face follows the [`RuleSet`] too: ours ([`CropTransform::around_landmarks`], the
 //! square of half-side 0.75 x the larger side of the 68 projected landmarks' bounding
-//! box) or the official loader's ([`official::official_crop`]).
+//! box) or the official loader's ([`official_crop`]).
 //!
 //! [`CropTransform::crop_image`] resamples an image into the crop: bilinear with black
 //! outside for pixel centres (table-driven, with SSE2/AVX2 paths whose bits equal the
 //! scalar path's), and `cv2.warpAffine`'s fixed-point bilinear for pixel corners
-//! ([`official::warp_affine`]).
+//! ([`warp_affine`]).
 //!
 //! Tested here: the map's round trip and its affine matrix against each other, the
 //! table-driven crop against per-pixel bilinear sampling across the image border, each
-//! vector path against the scalar one bit for bit; in [`official`], the box and warp
+//! vector path against the scalar one bit for bit; in `official.rs`, the box and warp
 //! against OpenCV's formulas (and `tests/official_crop.rs` against OpenCV's output).
 
-pub mod official;
+pub(crate) mod official;
 mod rules;
 
-pub use rules::RuleSet;
+pub use self::{
+    official::{
+        LandmarkExtent, affine_transform, box_crop, official_box, official_crop, warp_affine,
+        warp_mask,
+    },
+    rules::RuleSet,
+};
 
 use crate::lanes::{
     self,
@@ -40,7 +46,7 @@ pub struct CropTransform {
     /// Width of the box in image pixels.
     pub side: f64,
     /// Height of the box in image pixels: `side` for our square box; the official box
-    /// ([`official`]) can be a pixel taller or wider.
+    /// ([`official_crop`]) can be a pixel taller or wider.
     pub side_y: f64,
     /// Side of the crop in pixels.
     pub size: u32,
@@ -120,7 +126,7 @@ impl CropTransform {
     /// that chose this shape are in `docs/performance.md` ("The crop").
     ///
     /// A crop with [`RuleSet::Official`] is resampled as `cv2.warpAffine` does
-    /// instead ([`official::warp_affine`]).
+    /// instead ([`warp_affine`]).
     pub fn crop_image(&self, image: &RgbImage) -> RgbImage {
         let out = self.crop_window(image, 0, self.size as usize);
         RgbImage::from_raw(self.size, self.size, out).expect("size matches")

@@ -466,7 +466,7 @@ pub(crate) fn warp_mask_of(crop: &CropTransform, is_face: impl Fn(i64, i64) -> b
 /// window), then each pixel two of those values (tested equal to the tap-by-tap sum).
 pub(crate) fn warp_mask_in(
     crop: &CropTransform,
-    window: arkit_core::raster::PixelWindow,
+    window: arkit_core::PixelWindow,
     mask: &[bool],
 ) -> Vec<bool> {
     let (ww, wh) = (window.width as usize, window.height as usize);
@@ -671,7 +671,7 @@ mod tests {
     fn the_separable_warp_is_the_tap_by_tap_sum() {
         // Boxes inside the image, across each edge and beyond it, shrinking and
         // enlarging, grey and RGB, crops and windows around them: byte for byte.
-        let mut r = arkit_core::rng::Rng::new(7);
+        let mut r = arkit_core::Rng::new(7);
         for case in 0..200 {
             let (w, h) = (20 + r.below(60) as u32, 20 + r.below(60) as u32);
             let ch = if case % 2 == 0 { 3 } else { 1 };
@@ -702,9 +702,9 @@ mod tests {
     #[test]
     fn the_windowed_mask_warp_is_the_closures() {
         // Random masks over windows inside, across and off the crop's taps.
-        let mut r = arkit_core::rng::Rng::new(11);
+        let mut r = arkit_core::Rng::new(11);
         for case in 0..200 {
-            let window = arkit_core::raster::PixelWindow {
+            let window = arkit_core::PixelWindow {
                 x0: r.below(30) as u32,
                 y0: r.below(30) as u32,
                 width: r.below(50) as u32,
@@ -816,7 +816,7 @@ mod tests {
     fn warp_mask_of_a_predicate_is_the_warped_full_mask() {
         // Random masks and boxes, some leaving the image: the weight rule against
         // cv2's resampling of the 0/1 image (warp_affine), tap by tap.
-        let mut r = arkit_core::rng::Rng::new(3);
+        let mut r = arkit_core::Rng::new(3);
         let (w, h) = (40u32, 30u32);
         for _ in 0..200 {
             let mask: Vec<bool> = (0..w * h).map(|_| r.below(3) == 0).collect();

@@ -12,7 +12,7 @@
 //! compiler through each `match`.
 
 use crate::crop::{CropTransform, official};
-use arkit_core::error::{Error, Result};
+use arkit_core::{Error, Result};
 
 /// Whose rules a stage follows (see the module docs).
 ///

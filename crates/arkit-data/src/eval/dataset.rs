@@ -14,10 +14,10 @@ use crate::store::dataset::Dataset;
 use crate::store::samples_table::SampleRecord;
 use crate::store::splits::SplitLookup;
 use crate::store::targets_table;
+use arkit_core::PredictionRecord;
+use arkit_core::SampleKey;
 use arkit_core::conventions::Pose;
-use arkit_core::error::{Error, Result};
-use arkit_core::predictions_csv::PredictionRecord;
-use arkit_core::release::SampleKey;
+use arkit_core::{Error, Result};
 use image::{Rgb, RgbImage};
 use nalgebra::Point3;
 use polars::prelude::*;
@@ -332,7 +332,7 @@ fn score_sample(
             None => problems
                 .unscored_masks
                 .push((r.key.clone(), "no target mask (run render)".into())),
-            Some(target) => match arkit_core::target_codec::rle_decode(rle, target.len()) {
+            Some(target) => match arkit_core::rle_decode(rle, target.len()) {
                 Ok(m) => errors.mask = Some(crate::eval::metrics::mask_scores(&m, target)),
                 Err(e) => problems.unscored_masks.push((r.key.clone(), e.to_string())),
             },

@@ -43,11 +43,11 @@
 
 use crate::ingest::release_camera::{principal_point_check, resample_to_release};
 use crate::mesh::topology::FaceTopology;
+use arkit_core::NpzCompression;
 use arkit_core::atomic_file;
 use arkit_core::conventions::{Camera, Pose};
-use arkit_core::error::{Error, Result};
-use arkit_core::npy::NpzCompression;
 use arkit_core::release::{self, InfoAnnotation, ReleaseLayout, SampleKey, Split};
+use arkit_core::{Error, Result};
 use nalgebra::{Matrix3, Matrix4, Point3, Rotation3, Vector3};
 use rayon::prelude::*;
 use serde::Serialize;
@@ -494,7 +494,7 @@ pub fn stage(
 }
 
 /// [`stage`] with the systematic rule's window (0: never stop; see
-/// [`crate::ingest::systematic`]): when the frame-size check refuses more than half of the
+/// [`crate::ingest::SYSTEMATIC_WINDOW`]): when the frame-size check refuses more than half of the
 /// first `window` posed frames, staging stops with the reason and what to do.
 pub fn stage_with(
     input: &Path,

@@ -38,8 +38,8 @@ use crate::store::parquet;
 use crate::store::samples_table::{self, ErrorRecord, SampleRecord};
 use arkit_core::atomic_file::FolderLock;
 use arkit_core::conventions::{Camera, Pose};
-use arkit_core::error::{Error, Result};
 use arkit_core::release::{self, ListRow, SampleKey};
+use arkit_core::{Error, Result};
 use nalgebra::{Matrix4, Point3};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
@@ -374,7 +374,7 @@ pub fn check_jpeg_framing(bytes: &[u8]) -> std::result::Result<usize, String> {
 }
 
 /// Which per-sample checks run, and the window of the systematic rule
-/// ([`crate::ingest::systematic`]).
+/// ([`crate::ingest::SYSTEMATIC_WINDOW`]).
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub struct ConvertChecks {
     /// Checks turned off (only [`Check::Points2d`] can be).
@@ -463,12 +463,12 @@ fn validate_sample_with(
     // proves the JPEG whole.
     let (width, height) = crate::picture::image_decode::decode_rgb8_checked(&bytes, &image_path, |h| {
         let (width, height) = (h.width, h.height);
-        if width > arkit_core::raster::MAX_VIEWPORT || height > arkit_core::raster::MAX_VIEWPORT {
+        if width > arkit_core::MAX_VIEWPORT || height > arkit_core::MAX_VIEWPORT {
             return Err(Error::format(
                 &image_path,
                 format!(
                     "the image is {width}x{height}: larger than the {} pixels a side the renderer takes",
-                    arkit_core::raster::MAX_VIEWPORT
+                    arkit_core::MAX_VIEWPORT
                 ),
             ));
         }
@@ -616,7 +616,7 @@ pub struct ConversionFingerprint {
     pub lists: Vec<(String, String)>,
     /// Where the topology came from.
     pub topology: String,
-    /// [`topology_digest`] of the topology.
+    /// `store::manifest::topology_digest` of the topology.
     pub topology_sha256: String,
     /// The projection matrix, row-major.
     pub projection: Vec<f64>,
@@ -892,7 +892,7 @@ fn convert_planned(
 }
 
 /// `convert_planned` with `checks` (checks turned off, the systematic rule's
-/// window). A run that the systematic rule stops ([`crate::ingest::systematic`]) returns its
+/// window). A run that the systematic rule stops ([`crate::ingest::SYSTEMATIC_WINDOW`]) returns its
 /// message as the error; the shards finished before it stay (a rerun with the check
 /// turned off is another conversion and replaces them with `--overwrite`).
 pub fn convert_planned_with(

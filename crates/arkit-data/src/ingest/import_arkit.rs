@@ -59,15 +59,15 @@
 
 use crate::ingest::release_camera::resample_to_release;
 use crate::ingest::systematic::Check;
+use arkit_core::NpzCompression;
 use arkit_core::atomic_file;
 use arkit_core::conventions::ORTHONORMAL_TOLERANCE;
 use arkit_core::conventions::{Camera, Pose};
-use arkit_core::error::{Error, Result};
 use arkit_core::limits::{MAX_CAPTURE_JSON_BYTES, MAX_IMAGE_SIDE};
-use arkit_core::npy::NpzCompression;
 use arkit_core::release::{
     self, ARKIT_VERTEX_COUNT, InfoAnnotation, ReleaseLayout, SampleKey, Split,
 };
+use arkit_core::{Error, Result};
 use image::RgbImage;
 use nalgebra::{Matrix3, Matrix4, Point3};
 use rayon::prelude::*;
@@ -361,7 +361,7 @@ pub struct FrameProblem {
     /// What is wrong.
     pub reason: String,
     /// The check a convention can break that refused the frame, if one did (for the
-    /// systematic rule, [`crate::ingest::systematic`]).
+    /// systematic rule, [`crate::ingest::SYSTEMATIC_WINDOW`]).
     #[serde(skip)]
     pub check: Option<Check>,
 }
@@ -570,13 +570,13 @@ fn import_frame(
         e => fail(&image_rel, e.reason()),
     })?;
     let side = cf.written_side(size);
-    if !(arkit_core::limits::MIN_IMAGE_SIDE..=arkit_core::raster::MAX_VIEWPORT).contains(&side) {
+    if !(arkit_core::limits::MIN_IMAGE_SIDE..=arkit_core::MAX_VIEWPORT).contains(&side) {
         return Err(fail(
             &frame.json,
             format!(
                 "the written image would be {side}x{side} pixels, outside {}..={} (pass --size)",
                 arkit_core::limits::MIN_IMAGE_SIDE,
-                arkit_core::raster::MAX_VIEWPORT
+                arkit_core::MAX_VIEWPORT
             ),
         ));
     }

@@ -1,18 +1,38 @@
 //! `ingest`: data from outside into a converted dataset.
 //!
-//! Contract: [`convert`] turns the release (or [`biwi`], or a user's captures made
-//! release-shaped by [`import_arkit`]) into validated, sharded Parquet; a bad sample is
-//! reported in the `errors` table and skipped, never substituted, and [`systematic`]
-//! stops a run when one check skips most samples (the input is in another convention).
-//! [`synth`] writes a synthetic dataset in the release's layout; [`split`] makes
-//! subject-disjoint splits from a seed; [`release_camera`] checks and resamples another
-//! camera's images into the release's. Depends on `store`, `picture`, `mesh` and
-//! `arkit_core`.
+//! Takes the release's files, BIWI's (through [`biwi`]), a user's captures (made
+//! release-shaped by [`import_capture`]) or a synthetic release ([`synth`]). Gives a
+//! converted dataset: validated, sharded Parquet ([`convert()`], [`merge`]),
+//! subject-disjoint splits from a seed ([`split_dataset`]), another camera's images
+//! resampled into the release's ([`resample_to_release`]). Guarantees: a bad sample is
+//! reported in the `errors` table and skipped, never substituted; a run stops when one
+//! check ([`Check`]) skips most samples (the input is in another convention). Depends on `store`, `picture`,
+//! `mesh` and `arkit_core`.
 
+// `pub mod`: BIWI's own vocabulary (its `Calibration`, `FramePose`, `HeadMesh`, `stage`)
+// reads as `biwi::X`; flat in `ingest` it would pass for the release's.
 pub mod biwi;
-pub mod convert;
-pub mod import_arkit;
-pub mod release_camera;
-pub mod split;
+// `pub mod`: the synthetic source's own vocabulary (`synth::generate`, `synth::plan`,
+// `synth::ranges`) names nothing without `synth::`.
+pub(crate) mod convert;
+pub(crate) mod import_arkit;
+pub(crate) mod release_camera;
+pub(crate) mod split;
 pub mod synth;
-pub mod systematic;
+pub(crate) mod systematic;
+
+pub use self::{
+    convert::{
+        CONVERSION_FILE, ConversionFingerprint, ConvertChecks, ConvertOptions, DiscoveredInput,
+        Merged, PlannedRow, Progress, Skip, ValidationContext, check_jpeg_framing, convert,
+        convert_planned_with, discover, manifest_name, merge, plan_rows, read_conversion_record,
+        read_dataset_samples, verify_dataset,
+    },
+    import_arkit::{
+        FoundFrame, FrameProblem, ImportOptions, ImportSummary, InterfaceOrientation, find_frames,
+        import_capture,
+    },
+    release_camera::resample_to_release,
+    split::{HoldOut, SplitAssignment, SplitCount, assign, split_dataset},
+    systematic::{Check, SYSTEMATIC_WINDOW},
+};

@@ -1,6 +1,6 @@
 //! `split`: subject-disjoint train/test(/val) splits, reproducible from a seed.
 //!
-//! Subjects are shuffled with the seed ([`arkit_core::rng`]), then assigned so that the test
+//! Subjects are shuffled with the seed ([`arkit_core::Rng`]), then assigned so that the test
 //! (and validation) split's share of *images* is as close as subjects allow to the
 //! requested share: for `--test-fraction F` subjects are added while that brings the
 //! image count closer to `F` of all images; for `--test-subjects N` the first `N`
@@ -8,9 +8,9 @@
 //! swap brings the image count closer to `N / subjects` of all images. No subject is
 //! ever in two splits.
 
-use arkit_core::error::{Error, Result};
-use arkit_core::release::SampleKey;
-use arkit_core::rng::Rng;
+use arkit_core::Rng;
+use arkit_core::SampleKey;
+use arkit_core::{Error, Result};
 use polars::prelude::*;
 use std::collections::BTreeMap;
 

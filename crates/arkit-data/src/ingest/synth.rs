@@ -15,13 +15,13 @@
 use crate::mesh::synthetic_face::{EXPRESSION_DIMS, FaceShapeModel, IDENTITY_DIMS};
 use crate::mesh::topology::{FaceTopology, HoleFill, LoopRole};
 use crate::picture::encode::jpeg_bytes;
+use arkit_core::NpzCompression;
+use arkit_core::Rng;
+use arkit_core::VisibilityBuffer;
 use arkit_core::atomic_file;
 use arkit_core::conventions::{Camera, EulerAngles, Pose};
-use arkit_core::error::{Error, Result};
-use arkit_core::npy::NpzCompression;
-use arkit_core::raster::VisibilityBuffer;
 use arkit_core::release::{self, InfoAnnotation, ReleaseLayout, SampleKey, Split};
-use arkit_core::rng::Rng;
+use arkit_core::{Error, Result};
 use image::{Rgb, RgbImage};
 use nalgebra::{Point3, Vector3};
 use rayon::prelude::*;
@@ -444,7 +444,7 @@ fn value_noise(p: &Point3<f32>, cell: f32, seed: u64) -> f32 {
             ^ (x as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15)
             ^ (y as u64).wrapping_mul(0xC2B2_AE3D_27D4_EB4F)
             ^ (z as u64).wrapping_mul(0x1656_67B1_9E37_79F9);
-        (arkit_core::rng::splitmix64(&mut h) >> 40) as f32 / (1u64 << 24) as f32
+        (arkit_core::splitmix64(&mut h) >> 40) as f32 / (1u64 << 24) as f32
     };
     let (bx, by, bz) = (base.x as i64, base.y as i64, base.z as i64);
     let mut acc = 0.0;

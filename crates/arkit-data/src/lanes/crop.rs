@@ -231,7 +231,7 @@ pub(crate) fn blend_columns_scalar(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use arkit_core::rng::Rng;
+    use arkit_core::Rng;
 
     #[test]
     fn blend_rows_at_every_level_equals_the_definition() {

@@ -90,7 +90,7 @@ mod tests {
         // larger ones, at every float offset from a 32-byte boundary, over old values
         // that are not zero, with random entries (negative zeros among the weights):
         // bit for bit the definition at every level the CPU has.
-        let mut r = arkit_core::rng::Rng::new(5);
+        let mut r = arkit_core::Rng::new(5);
         let mut backing = vec![0f32; 1100];
         for len in (0..=40).chain([63, 64, 65, 1000, 1061]) {
             let mut entries: Vec<(usize, f32)> = Vec::new();

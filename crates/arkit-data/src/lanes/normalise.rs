@@ -211,7 +211,7 @@ unsafe fn widen_mask_avx512(mask: &[u8], out: &mut [i64]) {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use arkit_core::rng::Rng;
+    use arkit_core::Rng;
 
     #[test]
     fn lookups_and_widening_at_every_level_equal_the_definitions() {

@@ -100,7 +100,7 @@ unsafe fn blend_rgb_columns_avx2(out: &mut [u8], pairs: &[u32], columns: &[AxisT
 #[cfg(test)]
 mod tests {
     use super::*;
-    use arkit_core::rng::Rng;
+    use arkit_core::Rng;
 
     #[test]
     fn blended_columns_at_every_level_equal_the_definition() {

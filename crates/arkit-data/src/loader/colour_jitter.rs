@@ -14,7 +14,7 @@
 //! where the CPU has it) against the scalar path on every one of the 2^24 RGB triples.
 
 use crate::lanes::jitter::{blend_bytes, luma_sum, saturate_all, shift_hue_all};
-use arkit_core::rng::Rng;
+use arkit_core::Rng;
 
 /// torchvision's `ColorJitter(0.3, 0.3, 0.2, 0.01)`: brightness, contrast and saturation
 /// factors uniform in [0.7, 1.3], [0.7, 1.3], [0.8, 1.2], a hue shift uniform in

@@ -165,9 +165,9 @@ mod tests {
         // Random matrices written in turn into one buffer, each over the last (its
         // repeated vertices and negative zeros included): bit for bit the plain matrix
         // of each, so the previous one's columns were all cleared.
-        let mut r = arkit_core::rng::Rng::new(11);
+        let mut r = arkit_core::Rng::new(11);
         let (n, v) = (97usize, 1220usize);
-        let draw = |r: &mut arkit_core::rng::Rng| {
+        let draw = |r: &mut arkit_core::Rng| {
             let ids: Vec<[u32; 3]> = (0..n)
                 .map(|_| {
                     let a = r.below(v as u64) as u32;
@@ -216,7 +216,7 @@ mod tests {
     fn streaming_writes_the_plain_matrix_at_every_alignment() {
         // Matrices large enough to stream, at every float offset from a 32-byte
         // boundary, over old values that are not zero: bit for bit the plain matrix.
-        let mut r = arkit_core::rng::Rng::new(3);
+        let mut r = arkit_core::Rng::new(3);
         for (n, v) in [(64usize, 1220usize), (57, 1201), (200, 331)] {
             let ids: Vec<[u32; 3]> = (0..n)
                 .map(|_| [0; 3].map(|_| r.below(v as u64) as u32))

@@ -27,7 +27,7 @@ use crate::loader::item::FaceLoader;
 use crate::store::crop_store::{
     self, CropStoreManifest, FORMAT, MissingCrop, WindowCodec, encode_record, margin,
 };
-use arkit_core::error::{Error, Result};
+use arkit_core::{Error, Result};
 use rayon::prelude::*;
 use serde::Serialize;
 use std::path::{Path, PathBuf};

@@ -55,11 +55,11 @@ use crate::render::face::{FaceRenderer, UvMapper, UvTexels, WindowMask, sample_p
 use crate::store::crop_store::{CropStore, StoredCrop, StoredRecord, WindowPart};
 use crate::store::dataset::Dataset;
 use crate::store::face_targets::{canonical_position, mask_pixel_indices};
+use arkit_core::Rng;
+use arkit_core::SampleKey;
 use arkit_core::conventions::{Camera, Pose};
-use arkit_core::error::{Error, Result};
-use arkit_core::raster::{ScreenVertex, VisibilityBuffer};
-use arkit_core::release::SampleKey;
-use arkit_core::rng::Rng;
+use arkit_core::{Error, Result};
+use arkit_core::{ScreenVertex, VisibilityBuffer};
 use nalgebra::Point3;
 use std::path::{Path, PathBuf};
 
@@ -419,7 +419,7 @@ impl OfficialUvLayout {
             })
             .collect();
         let mut vb = VisibilityBuffer::new(size, size);
-        arkit_core::raster::rasterize_mesh_official(&mut vb, &screen, triangles)
+        arkit_core::rasterize_mesh_official(&mut vb, &screen, triangles)
             .map_err(|e| Error::invalid("UV triangles", e.to_string()))?;
         Ok(vb)
     }
@@ -1328,7 +1328,7 @@ pub fn read_uv_triangles(resources: &Path) -> Result<Option<Vec<[u32; 3]>>> {
     if !path.exists() {
         return Ok(None);
     }
-    let a = arkit_core::npy::read_npy(&path)?;
+    let a = arkit_core::read_npy(&path)?;
     if a.shape().len() != 2 || a.shape()[1] != 3 {
         return Err(Error::format(
             &path,

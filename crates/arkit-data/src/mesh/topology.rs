@@ -15,8 +15,7 @@
 //! - [`FaceTopology::mirror_map`]: each vertex's partner under `x -> -x`, read from the
 //!   symmetric UV layout.
 
-use arkit_core::error::{Error, Result};
-use arkit_core::npy;
+use arkit_core::{Error, Result};
 use nalgebra::Point3;
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
@@ -172,7 +171,7 @@ impl FaceTopology {
     /// (its first `V` rows), `kpt_ind.npy`, and `template_verts.npy` when present.
     pub fn from_resources(dir: &Path) -> Result<Self> {
         let tri_path = dir.join("triangles.npy");
-        let tri = npy::read_npy(&tri_path)?;
+        let tri = arkit_core::read_npy(&tri_path)?;
         if tri.shape().len() != 2 || tri.shape()[1] != 3 {
             return Err(Error::format(
                 &tri_path,
@@ -190,7 +189,7 @@ impl FaceTopology {
             .collect();
 
         let uv_path = dir.join("uv_coords_std_202109.npy");
-        let uv_arr = npy::read_npy(&uv_path)?;
+        let uv_arr = arkit_core::read_npy(&uv_path)?;
         if uv_arr.shape().len() != 2 || uv_arr.shape()[1] != 2 {
             return Err(Error::format(
                 &uv_path,
@@ -213,7 +212,7 @@ impl FaceTopology {
         let uv_extension = uv.split_off(vertex_count);
 
         let kpt_path = dir.join("kpt_ind.npy");
-        let kpt = npy::read_npy(&kpt_path)?;
+        let kpt = arkit_core::read_npy(&kpt_path)?;
         let landmarks: Vec<u32> = kpt
             .to_i64_vec()
             .map_err(|e| e.in_file(&kpt_path))?
@@ -227,7 +226,7 @@ impl FaceTopology {
 
         let template_path = dir.join("template_verts.npy");
         let template = if template_path.exists() {
-            let t = npy::read_npy(&template_path)?;
+            let t = arkit_core::read_npy(&template_path)?;
             if t.shape() != [vertex_count, 3] {
                 return Err(Error::format(
                     &template_path,

@@ -9,7 +9,7 @@
 //! and tight around the eyes, nose and mouth, much like the boxes the official demo's
 //! 0.75 rule expects from a RetinaFace detector (6dof_face issue #13).
 
-use arkit_core::error::{Error, Result};
+use arkit_core::{Error, Result};
 use image::RgbImage;
 
 /// The embedded model (see the module docs).

@@ -1,7 +1,7 @@
 //! Pictures written for people and for the release layout: JPEG bytes, and contact
 //! sheets of previews.
 
-use arkit_core::error::{Error, Result};
+use arkit_core::{Error, Result};
 use image::{Rgb, RgbImage};
 
 /// Encodes an image as JPEG bytes.

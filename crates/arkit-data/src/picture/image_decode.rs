@@ -12,10 +12,10 @@
 //! (`round(v / 257)`, so 65535 is 255 and mid-grey stays mid-grey), grey is repeated
 //! into the three channels and an alpha channel is dropped.
 
-use arkit_core::error::{Error, Result};
 use arkit_core::limits::{
     MAX_DECODED_IMAGE_BYTES, MAX_DECODED_IMAGE_PIXELS, MAX_IMAGE_FILE_BYTES, MAX_IMAGE_SIDE,
 };
+use arkit_core::{Error, Result};
 use image::{ColorType, DynamicImage, ImageDecoder, ImageFormat, RgbImage};
 use std::io::{Cursor, Read};
 use std::path::Path;

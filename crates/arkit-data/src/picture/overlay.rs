@@ -2,8 +2,8 @@
 //! `synth` and `augment`, and the worst predictions of `eval`'s report.
 
 use crate::mesh::topology::FaceTopology;
+use arkit_core::Result;
 use arkit_core::conventions::{Camera, Pose};
-use arkit_core::error::Result;
 use image::{Rgb, RgbImage};
 use nalgebra::Point3;
 

@@ -14,7 +14,7 @@
 
 use crate::crop::CropTransform;
 use crate::crop::official::box_crop;
-use arkit_core::error::{Error, Result};
+use arkit_core::{Error, Result};
 use image::RgbImage;
 
 /// The side of the official demo's square (`resize_img(..., 800)`).

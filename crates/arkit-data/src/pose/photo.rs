@@ -11,7 +11,7 @@ use crate::picture::photo::DemoSquare;
 use crate::pose::pnp::{Intrinsics, RansacParams};
 use crate::pose::predict::{crop_pixel_to_image, intrinsics, pose_from_correspondences};
 use arkit_core::conventions::Pose;
-use arkit_core::error::{Error, Result};
+use arkit_core::{Error, Result};
 use nalgebra::{Point2, Point3};
 
 /// The camera a photo's faces are posed in.

@@ -1047,7 +1047,7 @@ fn solve_finite_ransac(
         .iter()
         .map(|q| Vector3::new((q.x - k.cx) / k.fx, (q.y - k.cy) / k.fy, 1.0).normalize())
         .collect();
-    let mut rng = arkit_core::rng::Rng::new(params.seed);
+    let mut rng = arkit_core::Rng::new(params.seed);
     let mut best_cost = f64::INFINITY;
     let mut best: Option<(Matrix3<f64>, Vector3<f64>)> = None;
     let mut best_inliers = 0usize;
@@ -1158,11 +1158,11 @@ mod tests {
     use super::*;
 
     /// The crate's generator with the names these tests read well with.
-    struct Rng(arkit_core::rng::Rng);
+    struct Rng(arkit_core::Rng);
 
     impl Rng {
         fn new(seed: u64) -> Self {
-            Rng(arkit_core::rng::Rng::new(seed))
+            Rng(arkit_core::Rng::new(seed))
         }
         fn uniform(&mut self) -> f64 {
             self.0.next_f64()

@@ -18,11 +18,11 @@
 use crate::crop::CropTransform;
 use crate::pose::pnp::{self, Intrinsics, RansacParams};
 use crate::store::targets_table::{self, TargetsRecord};
+use arkit_core::PredictionRecord;
+use arkit_core::Rng;
+use arkit_core::SampleKey;
 use arkit_core::conventions::{Camera, Pose};
-use arkit_core::error::{Error, Result};
-use arkit_core::predictions_csv::PredictionRecord;
-use arkit_core::release::SampleKey;
-use arkit_core::rng::Rng;
+use arkit_core::{Error, Result};
 use nalgebra::{Point2, Point3};
 use rayon::prelude::*;
 use std::collections::HashMap;

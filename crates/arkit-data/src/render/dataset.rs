@@ -23,9 +23,9 @@ use crate::store::manifest::dataset_fingerprint;
 use crate::store::parquet;
 use crate::store::samples_table::{self, ErrorRecord};
 use crate::store::targets_table::{self, TargetsRecord};
+use arkit_core::VisibilityBuffer;
 use arkit_core::conventions::Pose;
-use arkit_core::error::{Error, Result};
-use arkit_core::raster::VisibilityBuffer;
+use arkit_core::{Error, Result};
 use nalgebra::Point3;
 use rayon::prelude::*;
 use std::collections::HashMap;
@@ -546,7 +546,7 @@ fn check_row(r: &samples_table::SampleRecord, vertex_count: usize) -> Result<()>
             ),
         ));
     }
-    let max = arkit_core::raster::MAX_VIEWPORT;
+    let max = arkit_core::MAX_VIEWPORT;
     if !(1..=max).contains(&r.image_width) || !(1..=max).contains(&r.image_height) {
         return Err(Error::invalid(
             "image size",
@@ -587,7 +587,7 @@ impl SkipTally {
 mod tests {
     use super::*;
     use crate::store::manifest::Manifest;
-    use arkit_core::release::SampleKey;
+    use arkit_core::SampleKey;
 
     fn records(range: std::ops::Range<usize>) -> Vec<ErrorRecord> {
         range

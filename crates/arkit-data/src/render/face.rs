@@ -9,7 +9,7 @@
 //!    `conventions::camera`).
 //! 2. **Visibility** ([`FaceRenderer::render`]): the mesh plus the fans that close the
 //!    eyes and mouth, projected with the release camera, mapped into the crop and
-//!    rasterized ([`arkit_core::raster`]) with the depth test. The fans take part in the
+//!    rasterized ([`arkit_core::VisibilityBuffer`]) with the depth test. The fans take part in the
 //!    depth test (a cheek seen through an eye opening at large yaw stays hidden) but are
 //!    not face pixels.
 //! 3. **Targets** ([`FaceTargets`]): the mask (visible mesh triangles), and per mask pixel
@@ -30,10 +30,10 @@
 //! the image's edges and one in the middle).
 
 use crate::mesh::topology::{FaceTopology, HoleFill, LoopRole};
+use arkit_core::Rng;
 use arkit_core::conventions::{Camera, Pose};
-use arkit_core::error::{Error, Result};
-use arkit_core::raster::{PixelWindow, ScreenVertex, VisibilityBuffer};
-use arkit_core::rng::Rng;
+use arkit_core::{Error, Result};
+use arkit_core::{PixelWindow, ScreenVertex, VisibilityBuffer};
 
 use crate::crop::{CropTransform, RuleSet};
 use crate::lanes;
@@ -52,9 +52,9 @@ pub struct FaceRenderer {
     /// Whose rasterization rules [`FaceRenderer::render`] follows:
     /// [`RuleSet::Exact`] (pixel centres, the top-left fill rule, perspective-correct
     /// weights) or [`RuleSet::Official`] (the official loader's pipeline,
-    /// [`crate::crop::official`]: its crop box and `cv2` affine map (corner sampling),
+    /// [`crate::crop::official_crop`]: its crop box and `cv2` affine map (corner sampling),
     /// its rasterizer over the whole image
-    /// ([`arkit_core::raster::rasterize_mesh_official`]: integer sample points, its
+    /// ([`arkit_core::rasterize_mesh_official`]: integer sample points, its
     /// inside test, screen-space weights, earlier triangle on ties), its mask warped
     /// into the crop as `cv2.warpAffine` does, and each crop mask pixel's
     /// correspondence from the full-resolution buffer at its heaviest face tap).
@@ -201,7 +201,7 @@ impl FaceRenderer {
     }
 
     /// [`FaceRenderer::render`] in [`RuleSet::Official`]: the official loader's
-    /// pipeline ([`crate::crop::official`]): rasterize over the whole image with its
+    /// pipeline ([`crate::crop::official_crop`]): rasterize over the whole image with its
     /// rules, warp the mask into the crop as `cv2.warpAffine` does, and take each crop
     /// mask pixel's correspondence from the heaviest face pixel among its bilinear taps.
     fn render_official(
@@ -347,13 +347,8 @@ impl FaceRenderer {
         let screen = self.project(verts, pose, width, height)?;
         check_viewport(width, height, "image size")?;
         let window = PixelWindow::official_extent(&screen, width, height);
-        arkit_core::raster::rasterize_official_visibility_in(
-            buffer,
-            window,
-            &screen,
-            &self.triangles,
-        )
-        .map_err(|e| Error::invalid("mesh", e.to_string()))?;
+        arkit_core::rasterize_official_visibility_in(buffer, window, &screen, &self.triangles)
+            .map_err(|e| Error::invalid("mesh", e.to_string()))?;
         let mask = self.face_pixels(buffer);
         Ok(WindowMask {
             window,
@@ -445,7 +440,7 @@ impl FaceRenderer {
             RuleSet::Exact if weights => buffer.rasterize_mesh(&screen, &self.triangles),
             RuleSet::Exact => buffer.rasterize_visibility(&screen, &self.triangles),
             RuleSet::Official => {
-                arkit_core::raster::rasterize_mesh_official(buffer, &screen, &self.triangles)
+                arkit_core::rasterize_mesh_official(buffer, &screen, &self.triangles)
             }
         }
         .map_err(|e| Error::invalid("mesh", e.to_string()))?;
@@ -457,7 +452,7 @@ impl FaceRenderer {
 /// `1..=MAX_VIEWPORT`: the rasterizer's buffer panics beyond its limit, and a crop size
 /// or an image size read from a file must fail instead.
 fn check_viewport(width: u32, height: u32, what: &str) -> Result<()> {
-    let max = arkit_core::raster::MAX_VIEWPORT;
+    let max = arkit_core::MAX_VIEWPORT;
     if !(1..=max).contains(&width) || !(1..=max).contains(&height) {
         return Err(Error::invalid(
             what,
@@ -522,9 +517,9 @@ impl WindowMask {
     /// pixel `(x, y)` when `triangle` (the renderer's, as the buffer's triangle index
     /// names it) is the one shown there: the buffer's weights are left out of the
     /// window raster, and computed here with the same float32 operations
-    /// ([`arkit_core::raster::official_weights`]).
+    /// ([`arkit_core::official_weights`]).
     pub fn official_weights(&self, triangle: [u32; 3], x: i64, y: i64) -> [f32; 3] {
-        arkit_core::raster::official_weights(&self.screen, triangle, x, y)
+        arkit_core::official_weights(&self.screen, triangle, x, y)
     }
 
     /// Whether image pixel `(x, y)` shows the face (never outside the window, nor
@@ -588,7 +583,7 @@ fn face_mask(triangle: &[u32], n_mesh: u32) -> Vec<bool> {
 }
 
 /// How far the official loader's rasterizer (corner sampling, screen-space weights,
-/// [`arkit_core::raster::rasterize_mesh_official`]) and ours (centre sampling, perspective-
+/// [`arkit_core::rasterize_mesh_official`]) and ours (centre sampling, perspective-
 /// correct weights) differ on one face in a full `width x height` image.
 #[derive(Clone, Copy, Debug, PartialEq, serde::Serialize)]
 pub struct ModeDifference {
@@ -629,7 +624,7 @@ impl FaceRenderer {
             })
             .collect();
         let mut theirs = VisibilityBuffer::new(width, height);
-        arkit_core::raster::rasterize_mesh_official(&mut theirs, &shifted, &self.triangles)
+        arkit_core::rasterize_mesh_official(&mut theirs, &shifted, &self.triangles)
             .map_err(|e| Error::invalid("mesh", e.to_string()))?;
         let n_mesh = self.topology.triangles.len() as u32;
         let mut d = ModeDifference {

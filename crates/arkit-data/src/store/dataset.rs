@@ -22,8 +22,8 @@
 
 use crate::store::manifest::{Manifest, ShardEntry, check_shard_file, read_manifest};
 use crate::store::samples_table::{self, SampleRecord};
-use arkit_core::error::{Error, Result};
-use arkit_core::release::SampleKey;
+use arkit_core::SampleKey;
+use arkit_core::{Error, Result};
 use image::RgbImage;
 use std::path::{Path, PathBuf};
 

@@ -9,7 +9,7 @@
 //! readers to refuse them, naming the file.
 
 use crate::mesh::topology::FaceTopology;
-use arkit_core::error::{Error, Result};
+use arkit_core::{Error, Result};
 use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};
 use std::path::Path;

@@ -2,7 +2,7 @@
 //! and Arrow schema metadata), reads of whole files or columns, row counts, and typed
 //! column values with errors that name the file.
 
-use arkit_core::error::{Error, Result};
+use arkit_core::{Error, Result};
 use polars::prelude::*;
 use std::path::Path;
 

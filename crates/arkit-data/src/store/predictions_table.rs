@@ -13,11 +13,11 @@
 //! and an empty field is null. A header line names the columns.
 
 use crate::store::parquet::{read_parquet, str_values, write_parquet};
-use arkit_core::error::{Error, Result};
-use arkit_core::release::SampleKey;
+use arkit_core::SampleKey;
+use arkit_core::{Error, Result};
 use polars::prelude::*;
 
-use arkit_core::predictions_csv::{PredictionRecord, parse_csv, rt_of};
+use arkit_core::{PredictionRecord, parse_predictions_csv as parse_csv, rt_of};
 use std::path::Path;
 
 /// The rows as a DataFrame. Optional columns are written only when some row has them.
@@ -150,7 +150,7 @@ fn read_parquet_predictions(path: &Path) -> Result<Vec<PredictionRecord>> {
                     .enumerate()
                     .map(|(i, b)| {
                         b.map(|b| {
-                            arkit_core::target_codec::unpack_u32_le(b, "mask_rle")
+                            arkit_core::unpack_u32_le(b, "mask_rle")
                                 .map_err(|e| Error::format(path, format!("row {i}: {e}")))
                         })
                         .transpose()

@@ -19,8 +19,8 @@ use crate::store::parquet::{
     column, f64_values, parquet_key_value_metadata, polars_err, read_parquet, read_parquet_columns,
     str_values, write_parquet_with_metadata,
 };
-use arkit_core::error::{Error, Result};
-use arkit_core::release::SampleKey;
+use arkit_core::SampleKey;
+use arkit_core::{Error, Result};
 use polars::prelude::*;
 use std::path::Path;
 

@@ -4,8 +4,8 @@
 
 use crate::store::parquet;
 use crate::store::samples_table::SampleRecord;
-use arkit_core::error::Result;
-use arkit_core::release::SampleKey;
+use arkit_core::Result;
+use arkit_core::SampleKey;
 use std::collections::HashMap;
 use std::path::Path;
 

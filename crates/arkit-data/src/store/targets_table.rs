@@ -22,7 +22,8 @@
 //!   keeps about 3 significant digits: a relative error of at most 2^-11, 0.031 mm for
 //!   |x| < 0.125 m.
 //!
-//! The byte codecs live in [`arkit_core::target_codec`] (re-exported here) so they can
+//! The byte codecs live in `arkit_core` ([`arkit_core::rle_encode`] and the others,
+//! re-exported here) so they can
 //! be fuzzed without polars. Reading never trusts a size from the file: `crop_size`,
 //! `uv_size`, `image_width` and `image_height` are checked against [`arkit_core::limits`]
 //! (a null is an error naming the column and row) before anything is sized from them;
@@ -32,14 +33,14 @@
 
 use crate::crop::{CropTransform, RuleSet};
 use crate::store::face_targets::FaceTargets;
-use arkit_core::error::{Error, Result};
+use arkit_core::SampleKey;
 use arkit_core::limits;
-use arkit_core::release::SampleKey;
+use arkit_core::{Error, Result};
 use half::f16;
 use polars::prelude::*;
 use std::path::Path;
 
-use arkit_core::target_codec::{
+use arkit_core::{
     decode_uv_map, encode_uv_map, mask_len, pack_u16_le, pack_u32_le, rle_decode, rle_encode,
     unpack_u32_le,
 };
@@ -280,7 +281,7 @@ pub fn read_targets(path: &Path) -> Result<Vec<TargetsRecord>> {
     let mut out = Vec::with_capacity(df.height());
     for i in 0..df.height() {
         let (corr_vertices, corr_weights_q) =
-            arkit_core::target_codec::decode_correspondences(&cv[i], &cw[i]).map_err(at(i))?;
+            arkit_core::decode_correspondences(&cv[i], &cw[i]).map_err(at(i))?;
         out.push(TargetsRecord {
             key: SampleKey {
                 subject_id: subj[i].clone(),

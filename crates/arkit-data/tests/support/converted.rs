@@ -1,8 +1,8 @@
 //! A small synthetic release, converted: the dataset most loader tests start from.
 
 use arkit_core::conventions::Camera;
-use arkit_data::ingest::convert::{self, ConvertOptions, ValidationContext};
 use arkit_data::ingest::synth::{self, FaceSource, SynthOptions};
+use arkit_data::ingest::{self, ConvertOptions, ValidationContext};
 use std::path::Path;
 
 /// A synthetic release of `subjects x images` images of `size x size` pixels (built-in
@@ -28,7 +28,7 @@ pub fn converted_synthetic(
     synth::generate(&FaceSource::builtin(), &options, release, &|| {}).unwrap();
     let ctx = ValidationContext {
         projection: Camera::release_projection(),
-        topology: arkit_data::mesh::synthetic_face::builtin().topology.clone(),
+        topology: arkit_data::mesh::builtin().topology.clone(),
         embed_images: false,
     };
     let copts = ConvertOptions {
@@ -41,5 +41,5 @@ pub fn converted_synthetic(
         shard_count: 1,
         overwrite: false,
     };
-    convert::convert(&copts, &ctx, &|_| {}).unwrap();
+    ingest::convert(&copts, &ctx, &|_| {}).unwrap();
 }

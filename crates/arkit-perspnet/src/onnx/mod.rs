@@ -1,7 +1,7 @@
 //! ONNX export of a trained PerspNet: two graphs and a manifest in a folder.
 //!
 //! PerspNet reads the pixels its own mask selects, chosen by our seeded sampler
-//! (`arkit_data::render::face::sample_points`), a step no ONNX operator reproduces.
+//! (`arkit_data::render::sample_points`), a step no ONNX operator reproduces.
 //! The network is therefore cut there into two graphs (opset 17, float32, the batch
 //! dimension a symbolic `batch`):
 //!
@@ -30,8 +30,8 @@ mod proto;
 use crate::config::{Architecture, PerspNetConfig};
 use crate::layers::{PointSampler, positional_encoding_at};
 use crate::training::checkpoint::TrainedModel;
-use arkit_core::error::{Error, Result};
-use arkit_data::mesh::topology::FaceTopology;
+use arkit_core::{Error, Result};
+use arkit_data::mesh::FaceTopology;
 use graph::Graph;
 use proto::{Attr, Dim, FLOAT, INT64};
 use serde::Serialize;
@@ -52,7 +52,7 @@ pub const ONNX_FILES: [&str; 3] = ["dense.onnx", "points.onnx", "onnx.json"];
 /// The rule by which the pixels fed to `points.onnx` are chosen (as `predict` does).
 pub const POINT_SELECTION: &str = "mask = seg_logits[1] >= seg_logits[0] per pixel; \
 candidates = the flat indices y * S + x of the mask's pixels in increasing order (every \
-pixel of the crop when the mask is empty); picks = arkit_data::render::face::sample_points(\
+pixel of the crop when the mask is empty); picks = arkit_data::render::sample_points(\
 len(candidates), M, seed) (arkit_tool._native.sample_points in Python): M distinct picks \
 in increasing order when there are more than M candidates, else 0, 1, ..., n-1, 0, 1, ... \
 (wrap-around); choose = candidates[picks]. `predict` seeds sample i of shard k with \
@@ -209,8 +209,8 @@ pub fn export_onnx(
         input_size: cfg.input_size,
         points: cfg.points,
         vertices: cfg.vertices,
-        normalisation_mean: arkit_data::loader::item::IMAGENET_MEAN,
-        normalisation_std: arkit_data::loader::item::IMAGENET_STD,
+        normalisation_mean: arkit_data::loader::IMAGENET_MEAN,
+        normalisation_std: arkit_data::loader::IMAGENET_STD,
         uv_scale: crate::model::UV_SCALE,
         normalisation: "image[c] = (rgb[c] / 255 - mean[c]) / std[c], channels R, G, B, \
             laid out channels x rows x columns, of the S x S crop"
@@ -792,7 +792,7 @@ mod tests {
     /// starts with `ir_version = 8` (key 0x08, value 0x08) and the manifest matches.
     #[test]
     fn the_shipped_model_exports_and_the_manifest_describes_it() {
-        let topology = arkit_data::mesh::synthetic_face::builtin().topology.clone();
+        let topology = arkit_data::mesh::builtin().topology.clone();
         let model = crate::shipped_model(&topology).unwrap();
         let dir = tempfile::tempdir().unwrap();
         let out = dir.path().join("onnx");

@@ -10,16 +10,16 @@
 
 use crate::candle_err;
 use crate::{Architecture, CorrTarget, PerspNetConfig};
+use arkit_core::Rng;
 use arkit_core::conventions::Pose;
-use arkit_core::error::{Error, Result};
-use arkit_core::rng::Rng;
+use arkit_core::{Error, Result};
 use arkit_data::crop::CropTransform;
-use arkit_data::loader::colour_jitter::{ColourJitter, ColourJitterRanges};
-use arkit_data::loader::item::{LoaderItem, normalise};
-use arkit_data::store::dataset::Dataset;
-use arkit_data::store::samples_table::SampleRecord;
-use arkit_data::store::splits::SplitLookup;
-use arkit_data::store::targets_table::{self, TargetsRecord};
+use arkit_data::loader::{ColourJitter, ColourJitterRanges};
+use arkit_data::loader::{LoaderItem, normalise};
+use arkit_data::store::Dataset;
+use arkit_data::store::SampleRecord;
+use arkit_data::store::SplitLookup;
+use arkit_data::store::{self, TargetsRecord};
 use candle_core::{Device, Tensor};
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
@@ -75,7 +75,7 @@ impl Example {
 pub struct Augmentation {
     /// Colour jitter strength `c`: torchvision's `ColorJitter(c, c, 2c/3, c/30)` on
     /// the crop's bytes, the Python loader's jitter
-    /// ([`arkit_data::loader::colour_jitter::ColourJitterRanges::of_strength`]; 0.3 is the
+    /// ([`arkit_data::loader::ColourJitterRanges::of_strength`]; 0.3 is the
     /// official loader's, 0 turns it off).
     #[serde(rename = "colour_jitter", default)]
     pub colour: f32,
@@ -142,7 +142,7 @@ impl Example {
 
     /// What the network sees of this example in one step, drawn from `rng`: the crop
     /// shifted by `(dx, dy)` pixels (drawn first, up to `aug.shift_px`), its bytes
-    /// colour-jittered ([`arkit_data::loader::colour_jitter::ColourJitter`], the loader's, at
+    /// colour-jittered ([`arkit_data::loader::ColourJitter`], the loader's, at
     /// strength `aug.colour`) and normalised, and `m` face pixels (fresh ones, or the
     /// stored points cycled) with their targets. The item is the loader's type: what
     /// the Python package serves for a sample, with the shifted crop as its `crop` and
@@ -176,7 +176,7 @@ impl Example {
             return self.stored_item();
         }
         let points: Vec<u32> = if aug.resample_points {
-            arkit_data::render::face::sample_points(kept.len(), m, rng.next_u64())
+            arkit_data::render::sample_points(kept.len(), m, rng.next_u64())
                 .into_iter()
                 .map(|i| kept[i as usize])
                 .collect()
@@ -226,7 +226,7 @@ impl Example {
             mask,
             corr_vertices: Vec::with_capacity(points.len()),
             corr_weights: Vec::with_capacity(points.len()),
-            tform_inv: arkit_data::loader::item::tform_inv(&crop),
+            tform_inv: arkit_data::loader::tform_inv(&crop),
             rt: self.sample.rt,
             crop,
             official_box: None,
@@ -278,7 +278,7 @@ fn shift_planes<T: Copy + Default>(
 }
 
 /// The crop of a sample's image, as the network's input: `3 x S x S` floats,
-/// ImageNet-normalised ([`arkit_data::loader::item::normalise`]: the loader's, with no
+/// ImageNet-normalised ([`arkit_data::loader::normalise`]: the loader's, with no
 /// colour jitter; the evaluation input).
 pub fn network_input(image: &image::RgbImage, crop: &CropTransform) -> Vec<f32> {
     normalise(crop.crop_image(image).as_raw())
@@ -317,7 +317,7 @@ pub fn example(
         ));
     }
     let mask = targets.mask()?;
-    let pixels = arkit_data::store::face_targets::mask_pixel_indices(&mask);
+    let pixels = arkit_data::store::mask_pixel_indices(&mask);
     let weights = targets.weights();
     let verts = &sample.verts;
     if pixels.len() != targets.corr_vertices.len() {
@@ -449,7 +449,7 @@ pub struct ShardedExamples {
     /// `(shard index, samples file, examples in the split)`.
     shards: Vec<(usize, String, usize)>,
     /// Samples left out because their image could not be read, with the reason.
-    unreadable: Vec<(arkit_core::release::SampleKey, String)>,
+    unreadable: Vec<(arkit_core::SampleKey, String)>,
 }
 
 impl ShardedExamples {
@@ -469,20 +469,20 @@ impl ShardedExamples {
         let mut shards = Vec::new();
         let mut unreadable = Vec::new();
         for shard in data.shards() {
-            let tpath = targets_table::shard_path(targets_dir, shard.index);
+            let tpath = store::shard_path(targets_dir, shard.index);
             if !tpath.exists() {
                 return Err(Error::format(
                     &tpath,
                     "no targets for this shard: run `arkit-tool render` first",
                 ));
             }
-            let skipped = targets_table::read_skipped_keys(targets_dir, shard.index)?;
+            let skipped = store::read_skipped_keys(targets_dir, shard.index)?;
             let kept: Vec<SampleRecord> = data
                 .read_samples(shard)?
                 .into_iter()
                 .filter(|r| splits.keeps(r, split) && !skipped.contains(&r.key))
                 .collect();
-            let checks: Vec<Option<(arkit_core::release::SampleKey, String)>> = {
+            let checks: Vec<Option<(arkit_core::SampleKey, String)>> = {
                 use rayon::prelude::*;
                 kept.par_iter()
                     .map(|r| {
@@ -515,7 +515,7 @@ impl ShardedExamples {
 impl ShardedExamples {
     /// The samples left out because their image could not be read (key, reason naming
     /// the file), in shard order.
-    pub fn unreadable(&self) -> &[(arkit_core::release::SampleKey, String)] {
+    pub fn unreadable(&self) -> &[(arkit_core::SampleKey, String)] {
         &self.unreadable
     }
 }
@@ -531,12 +531,12 @@ impl ExampleShards for ShardedExamples {
 
     fn load(&self, k: usize) -> Result<std::borrow::Cow<'_, [Example]>> {
         let (index, samples_file, n) = &self.shards[k];
-        let tpath = targets_table::shard_path(&self.targets_dir, *index);
-        let targets = targets_table::read_targets_by_key(&tpath)?;
+        let tpath = store::shard_path(&self.targets_dir, *index);
+        let targets = store::read_targets_by_key(&tpath)?;
         // Samples `render` reported it could not render have no row: leave them out.
-        let skipped = targets_table::read_skipped_keys(&self.targets_dir, *index)?;
+        let skipped = store::read_skipped_keys(&self.targets_dir, *index)?;
         let mut out = Vec::with_capacity(*n);
-        let unreadable: std::collections::HashSet<&arkit_core::release::SampleKey> =
+        let unreadable: std::collections::HashSet<&arkit_core::SampleKey> =
             self.unreadable.iter().map(|(k, _)| k).collect();
         let shard = self
             .data
@@ -625,10 +625,7 @@ pub fn batch(
             let mut d = Vec::with_capacity(12 * b);
             for (e, i) in examples.iter().zip(items) {
                 let pose = Pose::from_release_rt(&i.rt)?;
-                let k = arkit_data::pose::predict::intrinsics(
-                    e.sample.image_width,
-                    e.sample.image_height,
-                );
+                let k = arkit_data::pose::intrinsics(e.sample.image_width, e.sample.image_height);
                 // The item's crop is the shifted one.
                 d.extend(crate::direct::direct_target(&pose, &i.crop, &k, (0, 0)));
             }
@@ -686,7 +683,7 @@ mod tests {
         let ids: Vec<u32> = pixels.iter().flat_map(|&p| [p, p + 1, p + 2]).collect();
         let weights: Vec<f32> = pixels.iter().flat_map(|_| [0.5, 0.25, 0.25]).collect();
         let sample = SampleRecord {
-            key: arkit_core::release::SampleKey {
+            key: arkit_core::SampleKey {
                 subject_id: "1".into(),
                 facial_action: "01_Neutral".into(),
                 img_id: "1".into(),
@@ -809,7 +806,7 @@ mod tests {
         // ranges at 0.3, the same draw from the same generator state), normalised.
         let item = e.item(2, &aug, &mut Rng::new(5));
         let mut rgb = e.rgb.clone();
-        arkit_data::loader::colour_jitter::jitter_colour(&mut rgb, &mut Rng::new(5));
+        arkit_data::loader::jitter_colour(&mut rgb, &mut Rng::new(5));
         assert_ne!(rgb, e.rgb);
         assert_eq!(item.img, normalise(&rgb));
     }

@@ -6,7 +6,7 @@ use crate::network::Network;
 use crate::training::checkpoint::{
     Checkpoint, MODEL_FILES, save_renamed, verify_model, write_record,
 };
-use arkit_core::error::{Error, Result};
+use arkit_core::{Error, Result};
 use candle_core::{DType, Device, Tensor};
 use candle_nn::{VarBuilder, VarMap};
 use std::collections::HashMap;

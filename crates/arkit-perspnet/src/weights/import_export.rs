@@ -8,8 +8,8 @@ use crate::training::checkpoint::{
 };
 use crate::training::data::Augmentation;
 use crate::{Architecture, PerspNet, PerspNetConfig};
-use arkit_core::error::{Error, Result};
-use arkit_data::mesh::topology::FaceTopology;
+use arkit_core::{Error, Result};
+use arkit_data::mesh::FaceTopology;
 use candle_core::{DType, Device, Tensor};
 use candle_nn::{VarBuilder, VarMap};
 use std::collections::HashMap;

@@ -13,7 +13,7 @@ pub mod state_dict;
 pub use half::write_half_model;
 pub use import_export::{export_weights, import_weights};
 
-use arkit_core::error::{Error, Result};
+use arkit_core::{Error, Result};
 use candle_core::DType;
 use candle_nn::VarMap;
 use safetensors_file::SafetensorsFile;

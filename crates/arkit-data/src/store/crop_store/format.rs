@@ -21,7 +21,7 @@
 //! and [`window_parts`] cuts it into the centre and the four parts of the ring around
 //! it. Every number is little endian. A leaf: it imports no other file of the store.
 
-use arkit_core::error::{Error, Result};
+use arkit_core::{Error, Result};
 use std::path::Path;
 
 /// The manifest's file name in a store folder.

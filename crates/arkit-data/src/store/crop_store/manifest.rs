@@ -6,7 +6,7 @@
 use super::codec::WindowCodec;
 use super::format::{FORMAT, HEADER_BYTES, MANIFEST_FILE, PartHeader};
 use crate::crop::RuleSet;
-use arkit_core::error::{Error, Result};
+use arkit_core::{Error, Result};
 use serde::{Deserialize, Serialize};
 use std::path::Path;
 

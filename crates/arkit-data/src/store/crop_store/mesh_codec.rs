@@ -2,7 +2,7 @@
 //! bytes and back, bit for bit. Uses [`super::zstd_frame`].
 
 use super::zstd_frame::zstd_frame;
-use arkit_core::error::{Error, Result};
+use arkit_core::{Error, Result};
 use nalgebra::Point3;
 
 /// The bytes a record stores for `verts`: their float32 bits, coordinate by coordinate

@@ -11,7 +11,7 @@ use super::manifest::{CropStoreManifest, read_manifest};
 use super::mesh_codec::max_mesh_bytes;
 use super::records::StoredRecord;
 use crate::crop::RuleSet;
-use arkit_core::error::{Error, Result};
+use arkit_core::{Error, Result};
 use std::fs::File;
 use std::path::{Path, PathBuf};
 

@@ -12,7 +12,7 @@ use super::format::{
 use super::manifest::CropStoreManifest;
 use super::mesh_codec::{decode_mesh, encode_mesh, max_mesh_bytes};
 use crate::crop::CropTransform;
-use arkit_core::error::{Error, Result};
+use arkit_core::{Error, Result};
 use nalgebra::Point3;
 use std::path::{Path, PathBuf};
 

@@ -14,7 +14,7 @@ use super::reader::CropStore;
 use super::records::{StoredCrop, encode_record};
 use super::writer::write_shard_file;
 use crate::crop::{CropTransform, RuleSet};
-use arkit_core::error::Result;
+use arkit_core::Result;
 use nalgebra::Point3;
 use std::path::Path;
 

@@ -6,7 +6,7 @@
 
 use super::format::{FOOTER_BYTES, HEADER_BYTES, INDEX_MAGIC, shard_file_name};
 use super::manifest::{CropShard, CropStoreManifest};
-use arkit_core::error::{Error, Result};
+use arkit_core::{Error, Result};
 use std::path::Path;
 
 /// Writes `dir/part-K.bin` (atomically) from its records, in row order: the header,

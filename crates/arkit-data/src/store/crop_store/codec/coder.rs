@@ -2,7 +2,7 @@
 //! the table in `codec/mod.rs` dispatches to it. Uses only [`super::super::format`].
 
 use super::super::format::{WindowPart, window_centre};
-use arkit_core::error::Result;
+use arkit_core::Result;
 
 /// A window codec: the bytes a record stores for the window of crop side `size` (`W x W`
 /// RGB, `W =` [`super::super::format::window_side`]`(size)`) and the pixels back, losslessly.

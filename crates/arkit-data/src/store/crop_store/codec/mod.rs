@@ -20,7 +20,7 @@ mod predictor;
 pub use predictor::{predict_rect, unpredict_in_place, unpredict_rect};
 
 use super::format::{WindowPart, window_side};
-use arkit_core::error::{Error, Result};
+use arkit_core::{Error, Result};
 use coder::WindowCoder;
 
 /// Declares each codec's file and builds [`WindowCodec`] and its dispatch from the table.

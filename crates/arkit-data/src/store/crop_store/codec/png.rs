@@ -3,7 +3,7 @@
 
 use super::super::format::window_side;
 use super::coder::WindowCoder;
-use arkit_core::error::{Error, Result};
+use arkit_core::{Error, Result};
 
 /// The `png` codec.
 pub(super) struct Png;

@@ -15,7 +15,7 @@ use super::coder::WindowCoder;
 use super::predictor::{
     RectIo, predict_rect, transposed, unpredict_in_place, unpredict_io, unpredict_rect_raw,
 };
-use arkit_core::error::{Error, Result};
+use arkit_core::{Error, Result};
 
 /// The `pred-zstd` codec.
 pub(super) struct PredZstd;
