@@ -1,6 +1,6 @@
-//! `lanes`: the one place that decides which SIMD instructions the workspace uses, and
-//! the core crate's lane kernels (one module per family, each kernel beside its scalar
-//! definition, as tiny-skia's `wide`).
+//! `lanes`: the one place that decides which SIMD instructions the workspace uses. The
+//! core crate's lane kernels (the rasterizers') are in `raster::lanes`, each beside its
+//! scalar definition, as tiny-skia's `wide`; the pipeline's are in arkit-data's `lanes`.
 //!
 //! The [`Level`] is detected once from the CPU and capped by the environment variable
 //! `ARKIT_SIMD` (read once, at the first dispatch):
@@ -18,8 +18,6 @@
 //! definitions.
 
 use std::sync::OnceLock;
-
-pub(crate) mod raster;
 
 /// The environment variable that caps the SIMD level.
 pub const ENV: &str = "ARKIT_SIMD";

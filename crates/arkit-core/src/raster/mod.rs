@@ -57,10 +57,12 @@
 //! - Depth test: the fragment with the larger `inv_w` wins; on an exact tie the
 //!   earlier triangle keeps the pixel.
 
+use crate::lanes::Level;
 #[cfg(test)]
-use crate::lanes::raster::ScalarRowCoverage;
-use crate::lanes::raster::{BoxCoverage, RowCoverage};
-use crate::lanes::{self, Level};
+use lanes::ScalarRowCoverage;
+use lanes::{BoxCoverage, RowCoverage};
+
+mod lanes;
 
 /// Largest supported viewport side, in pixels.
 pub const MAX_VIEWPORT: u32 = 16384;
@@ -665,12 +667,12 @@ impl VisibilityBuffer {
         vertices: &[ScreenVertex],
         triangles: &[[u32; 3]],
     ) -> Result<(), BadTriangle> {
-        self.visibility_with(vertices, triangles, lanes::level())
+        self.visibility_with(vertices, triangles, crate::lanes::level())
             .map(|_| ())
     }
 
     /// [`VisibilityBuffer::rasterize_visibility`] at SIMD `level` (lowered to the CPU's;
-    /// [`crate::lanes::raster::visibility`]): the same buffer at every level (tested).
+    /// [`lanes::visibility`]): the same buffer at every level (tested).
     /// Returns whether the AVX-512 lanes drew.
     fn visibility_with(
         &mut self,
@@ -685,7 +687,7 @@ impl VisibilityBuffer {
         let n = self.triangle.len();
         let (depth, triangle) = (&mut self.inv_w[..n], &mut self.triangle[..n]);
         let (w, h, culling) = (self.width, self.height, self.culling);
-        Ok(lanes::raster::visibility(
+        Ok(lanes::visibility(
             level,
             vertices,
             triangles,
@@ -893,7 +895,14 @@ pub fn rasterize_mesh_official_in(
     vertices: &[ScreenVertex],
     triangles: &[[u32; 3]],
 ) -> Result<(), BadTriangle> {
-    official_in(buffer, window, vertices, triangles, lanes::level(), true)
+    official_in(
+        buffer,
+        window,
+        vertices,
+        triangles,
+        crate::lanes::level(),
+        true,
+    )
 }
 
 /// [`rasterize_mesh_official_in`] for a mask: fills `triangle` and `inv_w` with the
@@ -905,11 +914,18 @@ pub fn rasterize_official_visibility_in(
     vertices: &[ScreenVertex],
     triangles: &[[u32; 3]],
 ) -> Result<(), BadTriangle> {
-    official_in(buffer, window, vertices, triangles, lanes::level(), false)
+    official_in(
+        buffer,
+        window,
+        vertices,
+        triangles,
+        crate::lanes::level(),
+        false,
+    )
 }
 
 /// [`rasterize_mesh_official_in`] at SIMD `level` (lowered to the CPU's;
-/// [`crate::lanes::raster::OfficialTriangles`]): the same buffer at every level
+/// [`lanes::OfficialTriangles`]): the same buffer at every level
 /// (tested); the weights written or not
 /// (`weights`, [`rasterize_official_visibility_in`]).
 fn official_in(
@@ -926,7 +942,7 @@ fn official_in(
     buffer.inv_w.fill(f32::NEG_INFINITY);
     let (ox, oy) = (window.x0 as i64, window.y0 as i64);
     let (w, h) = (window.width as i64, window.height as i64);
-    let kernel = lanes::raster::OfficialTriangles::new(level, weights);
+    let kernel = lanes::OfficialTriangles::new(level, weights);
     // Each vertex's depth once (`-1 / inv_w`), NaN where it is not drawn.
     let depths: Vec<f32> = vertices
         .iter()
@@ -1547,7 +1563,7 @@ mod tests {
                 scalar
                     .visibility_with(&vertices, &triangles, Level::Scalar)
                     .unwrap();
-                for level in lanes::available() {
+                for level in crate::lanes::available() {
                     let mut wide = VisibilityBuffer::new(w, h);
                     wide.culling = culling;
                     let used = wide.visibility_with(&vertices, &triangles, level).unwrap();
@@ -1627,10 +1643,13 @@ mod tests {
                 official_in(&mut b, window, &vertices, &triangles, level, weights).unwrap();
                 b
             };
-            let (scalar, widest) = (run(Level::Scalar, true), run(lanes::detected(), true));
+            let (scalar, widest) = (
+                run(Level::Scalar, true),
+                run(crate::lanes::detected(), true),
+            );
             // Without the weights, each level the CPU has (AVX-512's two rows where it
             // has them) gives the same triangles and depths.
-            for visibility in lanes::available().map(|level| run(level, false)) {
+            for visibility in crate::lanes::available().map(|level| run(level, false)) {
                 assert_eq!(visibility.triangle, scalar.triangle, "case {case}");
                 let bits =
                     |b: &VisibilityBuffer| b.inv_w.iter().map(|v| v.to_bits()).collect::<Vec<_>>();
@@ -1710,7 +1729,7 @@ mod tests {
             // One pixel at a time, then the CPU's widest lanes (AVX-512 rows, where
             // the CPU has them).
             let mut visible = VisibilityBuffer::new(w, h);
-            for level in lanes::available() {
+            for level in crate::lanes::available() {
                 visible.clear();
                 visible.culling = culling;
                 visible.bary.fill([7.0; 3]);

@@ -3,14 +3,14 @@
 //! of small triangles in AVX-512 ([`visibility`]), and the official rules' per-pixel
 //! test eight or sixteen pixels at a time ([`OfficialTriangles`]), each beside its
 //! scalar definition and chosen by [`crate::lanes::level`]. Every kernel gives its
-//! definition's bits; the tests in `raster.rs` compare them at every level the CPU has
+//! definition's bits; the tests in `raster/mod.rs` compare them at every level the CPU has
 //! (random meshes, boxes of every width up to the lanes' and past them).
 
-use super::Level;
-use crate::raster::{
+use super::{
     Culling, OfficialSpan, OfficialTriangle, ScreenVertex, TriangleSetup, VisibilityBuffer,
     for_each_drawable, step,
 };
+use crate::lanes::Level;
 
 /// The coverage of a box's rows as bit masks, row after row, for boxes up to 64 pixels
 /// wide: bit `i` of a row's mask is set when pixel `i` of the row is inside, that is
@@ -234,7 +234,7 @@ impl ScalarRowCoverage {
 #[cfg(not(target_arch = "x86_64"))]
 pub(crate) use ScalarRowCoverage as RowCoverage;
 
-/// [`crate::raster::VisibilityBuffer::rasterize_visibility`]'s triangle loop at `level`
+/// [`super::VisibilityBuffer::rasterize_visibility`]'s triangle loop at `level`
 /// (lowered to the CPU's): in AVX-512, small triangles' boxes a row or two at a time
 /// ([`visibility_avx512`]); otherwise, the definition, [`visibility_scalar`]. `depth`
 /// and `triangle` are the buffer's, `size.0 * size.1` long. Returns whether the AVX-512
