@@ -152,13 +152,15 @@ hold=()
 [ "$faults" = 1 ] && hold=(SBATCH_HOLD=1)
 task_bin=$bin
 if [ "$faults" = 1 ]; then
-  # Render task 1's first run stops itself (SIGSTOP) before it starts, so that step 3b
-  # can run it in slices of 10 ms and kill it between two shards, whatever the speed.
+  # Render task 1's first run stops for good just before it renames its second shard
+  # (1 + N) into place (ARKIT_PAUSE_BEFORE_RENAME, the kill harness's hook), so that
+  # step 3b kills it between two shards whatever the machine's speed.
   task_bin="$work/tool-pausing-render-1"
+  second=$(printf 'targets/part-%05d.parquet' $((1 + n)))
   cat >"$task_bin" <<TOOL
 #!/usr/bin/env bash
 if [ "\${SLURM_ARRAY_TASK_ID:-}" = 1 ] && [ "\$1" = render ] && mkdir "$work/paused-once" 2>/dev/null; then
-  kill -STOP \$\$
+  export ARKIT_PAUSE_BEFORE_RENAME="$second"
 fi
 exec "$bin" "\$@"
 TOOL
@@ -222,19 +224,14 @@ if [ "$faults" = 1 ]; then
   # (shard 1) of several; (3) render task 2 re-queued (scontrol requeue) once running.
   t=$(date +%s)
   scontrol release "$render"
-  # Task 1 stopped itself: run it 10 ms at a time until it has written a shard, then
-  # kill it (SIGKILL, through Slurm) with shards still to write.
-  until pid=$(pgrep -f "tool-pausing-render-1 render") && [[ "$(ps -o stat= -p "$pid")" == T* ]]; do
-    [ "$(date +%s)" -le "$deadline" ] || fail "render task 1 never started"
+  # Task 1 holds its second shard, complete, under its temporary name: kill it there
+  # (SIGKILL, through Slurm) with shards still to write.
+  until grep -q "paused before renaming" "$work/slurm-${render}_1.out" 2>/dev/null; do
+    [ "$(date +%s)" -le "$deadline" ] || fail "render task 1 never reached its second shard"
     sleep 0.05
   done
   task1() { for k in $(seq 1 "$n" $((shards - 1))); do [ -e "$out/targets/part-$(printf %05d "$k").parquet" ] && echo "$k"; done; }
   shards=$(grep -c '"samples_file"' "$out/dataset.json")
-  slices=0
-  while [ -z "$(task1)" ]; do
-    kill -CONT "$pid"; sleep 0.01; kill -STOP "$pid"
-    slices=$((slices + 1))
-  done
   scancel --full --signal=KILL "${render}_1"
   # Task 2 starts when task 1's CPU is free; once it has written its first shard
   # (running, or already done: either can be re-queued), it is re-queued.
@@ -248,7 +245,7 @@ if [ "$faults" = 1 ]; then
   # Task 1's shards: 1, 1 + N, ... of the dataset's.
   missing=$(for k in $(seq 1 "$n" $((shards - 1))); do [ -e "$out/targets/part-$(printf %05d "$k").parquet" ] || echo "$k"; done | tr '\n' ' ')
   [ -n "$missing" ] || fail "render task 1 was killed but every shard of it is there (it finished first)"
-  echo "slurm: fault 2: render task ${render}_1 killed mid-way (after $slices slices of 10 ms); its shards written: $(task1 | tr '\n' ' ')missing: $missing"
+  echo "slurm: fault 2: render task ${render}_1 killed mid-way (before renaming its second shard); its shards written: $(task1 | tr '\n' ' ')missing: $missing"
   if "$bin" train --dataset "$out" --resources "$resources" --split all --steps 1 --batch 1 \
       --output "$work/model" >/dev/null 2>"$work/train-refused.txt"; then
     fail "train accepted targets with render task 1's shards missing"
