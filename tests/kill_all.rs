@@ -909,21 +909,9 @@ fn a_second_writer_of_the_same_outputs_is_refused_naming_the_lock_and_its_holder
             "split" => Case::Split.prepare(&fx, &dir),
             _ => std::fs::create_dir_all(&dir).unwrap(),
         }
-        let mut first = make(&dir)
-            .env(arkit_core::atomic_file::PAUSE_BEFORE_RENAME, pause)
-            .stdout(Stdio::null())
-            .stderr(Stdio::piped())
-            .spawn()
-            .unwrap();
         // Held once it reports its pause (its lock is taken before any output).
-        let mut lines = BufReader::new(first.stderr.take().unwrap())
-            .lines()
-            .map_while(|l| l.ok());
-        let line = lines.find(|l| l.contains("paused before renaming"));
+        let (mut first, line, drain) = start_paused(&mut make(&dir), pause);
         assert!(line.is_some(), "{name} never paused at {pause}");
-        // Drained until the kill: a writer whose stderr is closed would die of its
-        // next line (another thread's pause) and let go of its lock.
-        let drain = std::thread::spawn(move || for _ in lines {});
         let t = Instant::now();
         let second = make(&dir).output().unwrap();
         let refused_in = t.elapsed();
@@ -971,6 +959,32 @@ fn a_second_writer_of_the_same_outputs_is_refused_naming_the_lock_and_its_holder
     }
 }
 
+/// Starts `command` held just before it renames a file whose path contains `part`
+/// (`ARKIT_PAUSE_BEFORE_RENAME`): the running child, its "paused before renaming TMP to
+/// PATH" line, and the thread draining its stderr until it is killed (a writer whose
+/// stderr is closed would die of its next line and let go of its locks).
+fn start_paused(
+    command: &mut Command,
+    part: &str,
+) -> (
+    std::process::Child,
+    Option<String>,
+    std::thread::JoinHandle<()>,
+) {
+    let mut child = command
+        .env(arkit_core::atomic_file::PAUSE_BEFORE_RENAME, part)
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let mut lines = BufReader::new(child.stderr.take().unwrap())
+        .lines()
+        .map_while(|l| l.ok());
+    let line = lines.find(|l| l.contains("paused before renaming"));
+    let drain = std::thread::spawn(move || for _ in lines {});
+    (child, line, drain)
+}
+
 /// `convert --overwrite` of another conversion into a folder whose conversion is still
 /// being written (a part paused before it renames its first shard) is refused, naming
 /// the writers' lock and the running part, and removes nothing; once that part is gone
@@ -983,23 +997,9 @@ fn convert_overwrite_is_refused_while_another_writer_of_the_folder_runs() {
     let dir = root.path().join("overwrite");
     std::fs::create_dir_all(&dir).unwrap();
     let out = Case::ShardConvert.output(&dir);
-    let mut first = Case::ShardConvert
-        .command(&fx, &dir)
-        .env(
-            arkit_core::atomic_file::PAUSE_BEFORE_RENAME,
-            "samples/part-",
-        )
-        .stdout(Stdio::null())
-        .stderr(Stdio::piped())
-        .spawn()
-        .unwrap();
-    let mut lines = BufReader::new(first.stderr.take().unwrap())
-        .lines()
-        .map_while(|l| l.ok());
-    let line = lines
-        .find(|l| l.contains("paused before renaming"))
-        .expect("the part never paused");
-    let drain = std::thread::spawn(move || for _ in lines {});
+    let (mut first, line, drain) =
+        start_paused(&mut Case::ShardConvert.command(&fx, &dir), "samples/part-");
+    let line = line.expect("the part never paused");
     let tmp = line
         .split("renaming ")
         .nth(1)
