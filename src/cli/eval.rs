@@ -32,7 +32,8 @@ use std::process::ExitCode;
 /// BIWI:    arkit-tool eval --dataset data/biwi-pq --predictions pred.parquet --split all --exclude no_box.csv
 #[derive(Args, Debug)]
 pub struct EvalArgs {
-    /// A folder written by `convert`.
+    /// A folder written by `convert`. Or a dataset published with `arkit-tool push`: s3://BUCKET/PREFIX (its tables
+    /// are mirrored in the cache folder, $ARKIT_CACHE_DIR or ~/.cache/arkit-tool).
     #[arg(long)]
     dataset: PathBuf,
     /// The predictions file (.parquet, or .csv).
@@ -84,7 +85,9 @@ enum Euler {
     Wrapped,
 }
 
-pub fn run(a: EvalArgs) -> Result<ExitCode> {
+pub fn run(mut a: EvalArgs) -> Result<ExitCode> {
+    let (dir, _remote) = super::remote::dataset_folder(&a.dataset)?;
+    a.dataset = dir;
     let predictions = read_predictions(&a.predictions)?;
     let options = EvalOptions {
         split: (a.split != "all").then(|| a.split.clone()),

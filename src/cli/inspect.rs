@@ -19,7 +19,8 @@ use std::process::ExitCode;
 /// Example: arkit-tool inspect --dataset data/parquet --plot poses.svg
 #[derive(Args, Debug)]
 pub struct InspectArgs {
-    /// A folder written by `convert` (with dataset.json).
+    /// A folder written by `convert` (with dataset.json). Or a dataset published with `arkit-tool push`: s3://BUCKET/PREFIX (its tables
+    /// are mirrored in the cache folder, $ARKIT_CACHE_DIR or ~/.cache/arkit-tool).
     #[arg(long)]
     dataset: PathBuf,
     /// Also draw the four histograms as a chart into this SVG file (titled axes with
@@ -36,7 +37,9 @@ pub struct InspectArgs {
     json: bool,
 }
 
-pub fn run(a: InspectArgs) -> Result<ExitCode> {
+pub fn run(mut a: InspectArgs) -> Result<ExitCode> {
+    let (dir, _remote) = super::remote::dataset_folder(&a.dataset)?;
+    a.dataset = dir;
     if let Some(path) = &a.plot
         && !path
             .extension()

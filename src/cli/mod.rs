@@ -15,6 +15,8 @@ mod inspect;
 mod predict;
 #[cfg(feature = "model")]
 mod predict_image;
+mod push;
+mod remote;
 mod render;
 mod split;
 mod synth;
@@ -65,6 +67,7 @@ enum Command {
     ExportOnnx(export_onnx::ExportOnnxArgs),
     Predict(predict::PredictArgs),
     Eval(eval::EvalArgs),
+    Push(push::PushArgs),
     Augment(augment::AugmentArgs),
     Topology(topology::TopologyArgs),
     Info(info::InfoArgs),
@@ -95,6 +98,7 @@ pub fn run(cli: Cli) -> Result<ExitCode> {
         Command::ExportOnnx(a) => export_onnx::run(a),
         Command::Predict(a) => predict::run(a),
         Command::Eval(a) => eval::run(a),
+        Command::Push(a) => push::run(a),
         Command::Augment(a) => augment::run(a),
         Command::Topology(a) => topology::run(a),
         Command::Info(a) => info::run(a),

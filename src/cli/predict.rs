@@ -49,7 +49,8 @@ use std::process::ExitCode;
 #[command(group(ArgGroup::new("predictor").required(true).args(["oracle", "model", "mean_pose"])))]
 #[command(group(ArgGroup::new("input").required(true).args(["dataset", "image"])))]
 pub struct PredictArgs {
-    /// A folder written by `convert` (and `render`).
+    /// A folder written by `convert` (and `render`). Or a dataset published with `arkit-tool push`: s3://BUCKET/PREFIX (its tables
+    /// are mirrored in the cache folder, $ARKIT_CACHE_DIR or ~/.cache/arkit-tool).
     #[arg(long)]
     dataset: Option<PathBuf>,
     /// Photos to find head poses in (PNG, JPEG or WebP files, or folders of them; repeat
@@ -178,7 +179,15 @@ enum MaskSource {
     Truth,
 }
 
-pub fn run(a: PredictArgs) -> Result<ExitCode> {
+pub fn run(mut a: PredictArgs) -> Result<ExitCode> {
+    let _remote = match a.dataset.take() {
+        Some(d) => {
+            let (dir, remote) = super::remote::dataset_folder(&d)?;
+            a.dataset = Some(dir);
+            remote
+        }
+        None => None,
+    };
     let ransac = RansacParams {
         reprojection_threshold_px: a.threshold_px,
         seed: a.seed,

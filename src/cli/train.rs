@@ -42,7 +42,8 @@ use std::process::ExitCode;
 ///          arkit-tool train --dataset data/pq --targets data/t64 --config tiny --loss paper --epochs 5 --output model/
 #[derive(Args, Debug)]
 pub struct TrainArgs {
-    /// A folder written by `convert`.
+    /// A folder written by `convert`. Or a dataset published with `arkit-tool push`: s3://BUCKET/PREFIX (its tables
+    /// are mirrored in the cache folder, $ARKIT_CACHE_DIR or ~/.cache/arkit-tool).
     #[arg(long)]
     dataset: PathBuf,
     /// Where `render` wrote targets/ (default: the dataset).
@@ -159,7 +160,17 @@ pub fn config_named(name: &str) -> Result<PerspNetConfig> {
     }
 }
 
-pub fn run(a: TrainArgs) -> Result<ExitCode> {
+pub fn run(mut a: TrainArgs) -> Result<ExitCode> {
+    let (dir, _remote) = super::remote::dataset_folder(&a.dataset)?;
+    a.dataset = dir;
+    let _remote_targets = match a.targets.take() {
+        Some(t) => {
+            let (dir, remote) = super::remote::dataset_folder(&t)?;
+            a.targets = Some(dir);
+            remote
+        }
+        None => None,
+    };
     let mut config = config_named(&a.config)?;
     if let Some(loss) = a.loss {
         config.loss = loss;

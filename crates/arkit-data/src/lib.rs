@@ -165,6 +165,7 @@ pub mod mesh;
 pub mod picture;
 pub mod pose;
 pub mod render;
+pub mod storage;
 pub mod store;
 
 // The names a pipeline is written with: open a dataset, render, load, solve, score.

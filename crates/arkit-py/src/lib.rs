@@ -13,7 +13,9 @@
 //!   (N, k) float64 rows; `arkit_tool.conventions` shapes them.
 //!
 //! Invariants: the GIL is released while Rust works (`Python::detach`); nothing here
-//! starts a thread, so a loader is safe to use after `fork` (DataLoader workers); every
+//! keeps a thread running (a dataset read from a bucket drives its requests on the
+//! calling thread, and makes its client again in a forked child), so a loader is safe
+//! to use after `fork` (DataLoader workers); every
 //! error, and any panic, reaches Python as `DataError` (a `ValueError`) whose message
 //! names the file and the problem, never as a Rust panic. Tested by `python/tests`.
 
@@ -89,18 +91,61 @@ fn topology_for(
 #[pyclass(module = "arkit_tool._native", frozen)]
 struct Loader {
     inner: FaceLoader,
+    /// The published dataset, when read from a bucket (kept for its mirror and client).
+    remote: Option<arkit_data::storage::RemoteDataset>,
+    /// The crop store as the user knows it: its folder, or its URL.
+    store_shown: Option<String>,
+}
+
+/// The crop store of a dataset read from a bucket: its folder relative to the dataset,
+/// from `crop_store` (`"auto"` or None: the default store's, `crops/<compat>-<S>`; a
+/// path relative to the dataset; or a URL inside the dataset's prefix), and whether the
+/// user named it.
+fn remote_store_relative(
+    url: &arkit_data::storage::RemoteUrl,
+    crop_store: Option<&str>,
+    rules: RuleSet,
+    img_size: u32,
+) -> arkit_core::Result<(String, bool)> {
+    match crop_store {
+        None | Some("auto") => Ok((format!("crops/{}-{img_size}", rules.name()), false)),
+        Some(s) if arkit_data::storage::DatasetLocation::is_remote_arg(s) => {
+            let store = arkit_data::storage::RemoteUrl::parse(s)?;
+            let prefix = format!("{}/", url.prefix());
+            let inside = store.bucket() == url.bucket()
+                && (url.prefix().is_empty() || store.prefix().starts_with(&prefix));
+            if !inside {
+                return Err(Error::invalid(
+                    "crop_store",
+                    format!("{store}: not inside the dataset's prefix {url}"),
+                ));
+            }
+            let rel = if url.prefix().is_empty() {
+                store.prefix().to_string()
+            } else {
+                store.prefix()[prefix.len()..].to_string()
+            };
+            Ok((rel, true))
+        }
+        Some(s) => Ok((s.trim_matches('/').to_string(), true)),
+    }
 }
 
 #[pymethods]
 impl Loader {
     #[new]
+    /// `dir`: a dataset folder, or the URL of a published one (`s3://bucket/prefix`).
     /// `crop_store`: a store folder `arkit-tool crops` wrote (pixels and meshes read
-    /// from it), or None (the release's images decoded).
-    #[pyo3(signature = (dir, split, mode, compat, img_size, n_pts, seed, resources=None, crop_store=None))]
+    /// from it), or None (the release's images decoded); for a URL, `"auto"` (the
+    /// default store of these rules and size), a path relative to the dataset, or a
+    /// URL inside it. `cache_dir` and `cache_bytes`: the local cache of a dataset read
+    /// from a bucket (records cached up to `cache_bytes`, 10 GiB by default);
+    /// `storage_options`: client settings over the environment's (`aws_endpoint`, ...).
+    #[pyo3(signature = (dir, split, mode, compat, img_size, n_pts, seed, resources=None, crop_store=None, cache_dir=None, cache_bytes=None, storage_options=None))]
     #[allow(clippy::too_many_arguments)]
     fn new(
         py: Python<'_>,
-        dir: PathBuf,
+        dir: String,
         split: Option<String>,
         mode: &str,
         compat: &str,
@@ -108,8 +153,12 @@ impl Loader {
         n_pts: usize,
         seed: u64,
         resources: Option<PathBuf>,
-        crop_store: Option<PathBuf>,
+        crop_store: Option<String>,
+        cache_dir: Option<PathBuf>,
+        cache_bytes: Option<u64>,
+        storage_options: Option<std::collections::BTreeMap<String, String>>,
     ) -> PyResult<Self> {
+        let settings: Vec<(String, String)> = storage_options.unwrap_or_default().into_iter().collect();
         let options = LoaderOptions {
             split,
             mode: LoaderMode::parse(mode).map_err(py_err)?,
@@ -118,29 +167,94 @@ impl Loader {
             n_pts,
             seed,
         };
-        let inner = run(py, || {
-            let (topology, from) = topology_for(&dir, resources.as_deref())?;
+        let (inner, remote, store_shown) = run(py, || {
+            use arkit_data::storage::{DatasetLocation, MirrorSet, RemoteOptions, open_remote};
+            let (local, remote) = match DatasetLocation::parse(&dir)? {
+                DatasetLocation::Local(p) => (p, None),
+                DatasetLocation::Remote(url) => {
+                    let (rel, named) =
+                        remote_store_relative(&url, crop_store.as_deref(), options.rules, img_size)?;
+                    let remote = open_remote(
+                        &url,
+                        &MirrorSet::Loader {
+                            crop_store: Some(rel.clone()),
+                        },
+                        &RemoteOptions {
+                            cache_dir: cache_dir.clone(),
+                            cache_bytes,
+                            settings: settings.clone(),
+                        },
+                    )?;
+                    (remote.local_dir().to_path_buf(), Some((remote, rel, named)))
+                }
+            };
+            let (topology, from) = topology_for(&local, resources.as_deref())?;
             let uv_triangles = match &from {
                 Some(r) => arkit_data::loader::read_uv_triangles(r)?,
                 None => None,
             };
-            let mut loader = FaceLoader::open(&dir, topology, uv_triangles, options)?;
-            if let Some(store) = &crop_store {
-                loader.open_crop_store(store)?;
-            }
-            Ok(loader)
+            let mut loader = FaceLoader::open(&local, topology, uv_triangles, options)?;
+            let mut shown = None;
+            let remote = match remote {
+                None => {
+                    if let Some(store) = &crop_store {
+                        loader.open_crop_store(Path::new(store))?;
+                        shown = Some(store.clone());
+                    }
+                    None
+                }
+                Some((remote, rel, named)) => {
+                    let manifest = format!("{rel}/crops.json");
+                    if remote.publication().object(&manifest).is_some() {
+                        let dir = remote.local_dir().join(&rel);
+                        loader.open_remote_crop_store(&dir, &remote, &rel)?;
+                        shown = Some(remote.url().join(&rel).to_string());
+                    } else if named
+                        || (crop_store.as_deref() == Some("auto")
+                            && !loader.dataset().manifest().embed_images)
+                    {
+                        return Err(Error::format(
+                            remote.url().shown_path(&manifest),
+                            format!(
+                                "not in the dataset's publication: a dataset read from a bucket needs a crop store (`arkit-tool crops --dataset DIR --compat {compat} --size {img_size}`, then `arkit-tool push` again) unless its images are embedded"
+                            ),
+                        ));
+                    }
+                    Some(remote)
+                }
+            };
+            Ok((loader, remote, shown))
         })?;
-        Ok(Loader { inner })
+        Ok(Loader {
+            inner,
+            remote,
+            store_shown,
+        })
+    }
+
+    /// The URL the dataset is read from, or None for a local folder.
+    #[getter]
+    fn url(&self) -> Option<String> {
+        self.remote.as_ref().map(|r| r.url().to_string())
+    }
+
+    /// Fetches the records of samples `indices` ahead (concurrently, from a bucket; a
+    /// no-op for a local store), kept for the items that follow (at most 1,024).
+    fn prefetch(&self, py: Python<'_>, indices: Vec<usize>) -> PyResult<()> {
+        run(py, || {
+            self.inner.prefetch(&indices);
+            Ok(())
+        })
     }
 
     fn __len__(&self) -> usize {
         self.inner.len()
     }
 
-    /// The crop store folder items are read from, or None.
+    /// The crop store items are read from (its folder, or its URL), or None.
     #[getter]
-    fn crop_store(&self) -> Option<PathBuf> {
-        self.inner.crop_store().map(|s| s.dir().to_path_buf())
+    fn crop_store(&self) -> Option<String> {
+        self.store_shown.clone()
     }
 
     /// `(subject_id, facial_action, img_id, split)` of sample `index`.
@@ -377,6 +491,8 @@ impl BatchSlices<'_> {
             per(self.corr_mat.len()),
         );
         let v = loader.mesh_vertex_count();
+        // A store in a bucket: the batch's records fetched together, concurrently.
+        loader.prefetch(indices);
         let mut keys = Vec::with_capacity(indices.len());
         for (k, &index) in indices.iter().enumerate() {
             let at = |len: usize| k * len..(k + 1) * len;
@@ -520,8 +636,31 @@ struct Dataset {
 #[pymethods]
 impl Dataset {
     #[new]
-    fn new(py: Python<'_>, dir: PathBuf) -> PyResult<Self> {
+    /// `dir`: a dataset folder, or the URL of a published one (`s3://bucket/prefix`:
+    /// its tables mirrored in the cache folder).
+    #[pyo3(signature = (dir, cache_dir=None, storage_options=None))]
+    fn new(
+        py: Python<'_>,
+        dir: String,
+        cache_dir: Option<PathBuf>,
+        storage_options: Option<std::collections::BTreeMap<String, String>>,
+    ) -> PyResult<Self> {
         let (inner, rows) = run(py, || {
+            use arkit_data::storage::{DatasetLocation, MirrorSet, RemoteOptions, open_remote};
+            let dir = match DatasetLocation::parse(&dir)? {
+                DatasetLocation::Local(p) => p,
+                DatasetLocation::Remote(url) => open_remote(
+                    &url,
+                    &MirrorSet::Loader { crop_store: None },
+                    &RemoteOptions {
+                        cache_dir,
+                        cache_bytes: None,
+                        settings: storage_options.unwrap_or_default().into_iter().collect(),
+                    },
+                )?
+                .local_dir()
+                .to_path_buf(),
+            };
             let data = arkit_data::store::Dataset::open(&dir)?;
             let splits = arkit_data::store::SplitLookup::read(&dir)?;
             let mut rows = Vec::new();

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import json
 import os
-from typing import Any, Dict, List, Optional, Union, cast
+from typing import Any, Dict, List, Mapping, Optional, Union, cast
 
 import numpy as np
 import numpy.typing as npt
@@ -20,9 +20,15 @@ from .types import Key, PathLike, SampleRow
 class ConvertedDataset:
     """A dataset written by `arkit-tool convert` (the folder holding `dataset.json`)."""
 
-    def __init__(self, path: PathLike) -> None:
+    def __init__(
+        self,
+        path: PathLike,
+        cache_dir: Optional[PathLike] = None,
+        storage_options: Optional[Mapping[str, str]] = None,
+    ) -> None:
         self.path = os.fspath(path)
-        self._native = _native.Dataset(self.path)
+        options = None if storage_options is None else {str(k): str(v) for k, v in storage_options.items()}
+        self._native = _native.Dataset(self.path, None if cache_dir is None else os.fspath(cache_dir), options)
         self._keys = self._native.keys()
         self._index: Optional[Dict[Key, int]] = None
 
@@ -94,9 +100,14 @@ class ConvertedDataset:
         return pa.concat_tables([pq.read_table(f) for f in self.shard_files])
 
 
-def open_dataset(path: PathLike) -> ConvertedDataset:
-    """Opens a dataset written by `arkit-tool convert`."""
-    return ConvertedDataset(path)
+def open_dataset(
+    path: PathLike,
+    cache_dir: Optional[PathLike] = None,
+    storage_options: Optional[Mapping[str, str]] = None,
+) -> ConvertedDataset:
+    """Opens a dataset written by `arkit-tool convert`: its folder, or the URL it was
+    published to with `arkit-tool push` (`s3://bucket/prefix`)."""
+    return ConvertedDataset(path, cache_dir, storage_options)
 
 
 def read_image(path: PathLike) -> npt.NDArray[np.uint8]:

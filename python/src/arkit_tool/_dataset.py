@@ -18,6 +18,7 @@ from typing import (
     Generic,
     List,
     Literal,
+    Mapping,
     Optional,
     Sequence,
     Tuple,
@@ -29,6 +30,7 @@ from typing import (
 import numpy as np
 
 from . import _native, _shared_batches
+from ._storage import is_url
 from ._collate import ItemBatch, _teach_default_collate, collate
 from ._native import DataError
 from .correspondences import CorrespondenceMatrix
@@ -115,6 +117,9 @@ class ARKitFaceDataset(_DatasetBase[_ItemT]):
         corr: Corr = ...,
         tensors: Literal[False] = ...,
         crop_store: Optional[PathLike] = ...,
+        cache_dir: Optional[PathLike] = ...,
+        cache_bytes: Optional[int] = ...,
+        storage_options: Optional[Mapping[str, str]] = ...,
     ) -> None: ...
 
     @overload
@@ -132,6 +137,9 @@ class ARKitFaceDataset(_DatasetBase[_ItemT]):
         *,
         tensors: Literal[True],
         crop_store: Optional[PathLike] = ...,
+        cache_dir: Optional[PathLike] = ...,
+        cache_bytes: Optional[int] = ...,
+        storage_options: Optional[Mapping[str, str]] = ...,
     ) -> None: ...
 
     @overload
@@ -148,6 +156,9 @@ class ARKitFaceDataset(_DatasetBase[_ItemT]):
         corr: Corr = ...,
         tensors: bool = ...,
         crop_store: Optional[PathLike] = ...,
+        cache_dir: Optional[PathLike] = ...,
+        cache_bytes: Optional[int] = ...,
+        storage_options: Optional[Mapping[str, str]] = ...,
     ) -> None: ...
 
     def __init__(
@@ -163,6 +174,9 @@ class ARKitFaceDataset(_DatasetBase[_ItemT]):
         corr: Corr = "dense",
         tensors: bool = False,
         crop_store: Optional[PathLike] = "auto",
+        cache_dir: Optional[PathLike] = None,
+        cache_bytes: Optional[int] = None,
+        storage_options: Optional[Mapping[str, str]] = None,
     ) -> None:
         if corr not in ("dense", "sparse", "both"):
             raise DataError(f"corr: {corr!r}: expected 'dense', 'sparse' or 'both'")
@@ -183,6 +197,11 @@ class ARKitFaceDataset(_DatasetBase[_ItemT]):
         self.resources = None if resources is None else os.fspath(resources)
         self.corr = corr
         self.tensors = bool(tensors)
+        self.cache_dir = None if cache_dir is None else os.fspath(cache_dir)
+        if cache_bytes is not None and (not isinstance(cache_bytes, (int, np.integer)) or not 0 < cache_bytes < 1 << 63):
+            raise DataError(f"cache_bytes: {cache_bytes!r}: expected a positive integer")
+        self.cache_bytes = None if cache_bytes is None else int(cache_bytes)
+        self.storage_options = None if storage_options is None else {str(k): str(v) for k, v in storage_options.items()}
         self.crop_store = self._find_store(crop_store)
         # The epoch of `ds[i]`, in shared memory: worker processes (forked or spawned,
         # persistent or not) read the value `set_epoch` wrote.
@@ -195,6 +214,9 @@ class ARKitFaceDataset(_DatasetBase[_ItemT]):
     def _find_store(self, crop_store: Optional[PathLike]) -> Optional[str]:
         if crop_store is None:
             return None
+        if is_url(self.path):
+            # Resolved by the native loader against the dataset's publication record.
+            return os.fspath(crop_store)
         if isinstance(crop_store, str) and crop_store == "auto":
             folder = os.fspath(_native.default_crop_store(self.path, self.compat, self.img_size))
             return folder if os.path.isfile(os.path.join(folder, "crops.json")) else None
@@ -211,6 +233,9 @@ class ARKitFaceDataset(_DatasetBase[_ItemT]):
             self.seed,
             self.resources,
             self.crop_store,
+            self.cache_dir,
+            self.cache_bytes,
+            self.storage_options,
         )
 
     # Pickled for spawn-started workers: the native loader is reopened there, the

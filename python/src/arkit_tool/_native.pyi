@@ -3,7 +3,7 @@
 Checked against the built module by `mypy.stubtest` (python/tests/test_typing.py)."""
 
 import pathlib
-from typing import Any, Dict, List, Optional, Sequence, Tuple
+from typing import Any, Dict, List, Mapping, Optional, Sequence, Tuple
 
 import numpy as np
 import numpy.typing as npt
@@ -49,7 +49,7 @@ class DataError(ValueError): ...
 class Loader:
     def __new__(
         cls,
-        dir: _Path,
+        dir: str,
         split: Optional[str],
         mode: Mode,
         compat: Compat,
@@ -57,11 +57,17 @@ class Loader:
         n_pts: int,
         seed: int,
         resources: Optional[_Path] = None,
-        crop_store: Optional[_Path] = None,
+        crop_store: Optional[str] = None,
+        cache_dir: Optional[_Path] = None,
+        cache_bytes: Optional[int] = None,
+        storage_options: Optional[Mapping[str, str]] = None,
     ) -> "Loader": ...
     def __len__(self) -> int: ...
     @property
-    def crop_store(self) -> Optional[pathlib.Path]: ...
+    def crop_store(self) -> Optional[str]: ...
+    @property
+    def url(self) -> Optional[str]: ...
+    def prefetch(self, indices: Sequence[int]) -> None: ...
     def key(self, index: int) -> _Key: ...
     def item(
         self,
@@ -82,7 +88,12 @@ class Loader:
 
 @final
 class Dataset:
-    def __new__(cls, dir: _Path) -> "Dataset": ...
+    def __new__(
+        cls,
+        dir: str,
+        cache_dir: Optional[_Path] = None,
+        storage_options: Optional[Mapping[str, str]] = None,
+    ) -> "Dataset": ...
     def __len__(self) -> int: ...
     def keys(self) -> List[_Key]: ...
     def shard_files(self) -> List[str]: ...

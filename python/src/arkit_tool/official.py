@@ -359,10 +359,18 @@ def write_dataset_file(official_dir: str, force: bool = False) -> str:
     return target
 
 
+def _absolute(dataset: str) -> str:
+    """`dataset` as the official scripts are given it: a bucket URL as it is, a folder
+    made absolute (the scripts run in the official checkout)."""
+    from ._storage import is_url
+
+    return dataset if is_url(dataset) else os.path.abspath(dataset)
+
+
 def flags(dataset: str, compat: str = "official", train_split: str = "train",
           test_split: str = "test", seed: int = 0) -> List[str]:
     """The official scripts' flags that select the converted dataset `dataset`."""
-    out = ["--dataset_mode", NAME, "--arkittool_dataset", os.path.abspath(dataset)]
+    out = ["--dataset_mode", NAME, "--arkittool_dataset", _absolute(dataset)]
     if compat != "official":
         out += ["--arkittool_compat", compat]
     if train_split != "train":
@@ -410,7 +418,8 @@ See docs/python.md, "The official scripts".""",
     p.add_argument("official_dir", metavar="OFFICIAL_DIR",
                    help="a checkout of the official code (holding train.py and data/)")
     p.add_argument("--dataset", required=True, metavar="DIR",
-                   help="the converted dataset (the folder holding dataset.json)")
+                   help="the converted dataset (the folder holding dataset.json), or the URL "
+                        "it was published to with `arkit-tool push` (s3://bucket/prefix)")
     p.add_argument("--compat", default="official", choices=["official", "exact"],
                    help="the official loader's rules (default) or arkit-tool's own")
     p.add_argument("--train-split", default="train", help="the split train.py trains on (default train)")
@@ -440,12 +449,15 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
                          "predicts the 1,220 vertices of the ARKit face (convert with --resources)")
     target = write_dataset_file(a.official_dir, a.force)
     f = flags(a.dataset, a.compat, a.train_split, a.test_split, a.seed)
-    store = os.path.join(os.path.abspath(a.dataset), "crops", f"{a.compat}-192")
+    from ._storage import is_url
+
+    where = _absolute(a.dataset)
     print(f"wrote {target}")
-    print(f"dataset: {os.path.abspath(a.dataset)}: {splits}")
-    if not os.path.isfile(os.path.join(store, "crops.json")):
+    print(f"dataset: {where}: {splits}")
+    store = os.path.join(where, "crops", f"{a.compat}-192")
+    if not is_url(a.dataset) and not os.path.isfile(os.path.join(store, "crops.json")):
         print(f"no crop store at {store}: every epoch decodes the JPEGs; to store the crops once:\n"
-              f"  arkit-tool crops --dataset {os.path.abspath(a.dataset)} --compat {a.compat}")
+              f"  arkit-tool crops --dataset {where} --compat {a.compat}")
     print("flags for the official train.py and test.py:")
     print("  " + " ".join(f))
     print("for example, in the official code's folder:")

@@ -655,6 +655,20 @@ pub struct FaceLoader {
     buffers: std::sync::Mutex<Vec<VisibilityBuffer>>,
     /// The crop store items read their pixels and meshes from, when opened.
     store: Option<CropStore>,
+    /// Records fetched ahead by [`FaceLoader::prefetch`], by sample index (at most
+    /// [`PREFETCH_RECORDS`]; the oldest dropped first).
+    prefetched: std::sync::Mutex<Prefetched>,
+}
+
+/// The most records [`FaceLoader::prefetch`] holds (bounded memory: about 50 KB a
+/// record at `S = 192`).
+const PREFETCH_RECORDS: usize = 1024;
+
+/// Records fetched ahead, by sample index, and the order they came in.
+#[derive(Debug, Default)]
+struct Prefetched {
+    records: std::collections::HashMap<usize, StoredRecord>,
+    order: std::collections::VecDeque<usize>,
 }
 
 impl FaceLoader {
@@ -736,6 +750,7 @@ impl FaceLoader {
             options,
             buffers: std::sync::Mutex::new(Vec::new()),
             store: None,
+            prefetched: Default::default(),
         })
     }
 
@@ -758,6 +773,74 @@ impl FaceLoader {
             self.renderer.topology().vertex_count,
         )?);
         Ok(())
+    }
+
+    /// [`FaceLoader::open_crop_store`] for a dataset opened from a bucket: the store's
+    /// manifest read from `dir` (its mirror), its part files by ranged GETs from
+    /// `remote` at `relative` (`crops/official-192`); see [`CropStore::open_remote`].
+    pub fn open_remote_crop_store(
+        &mut self,
+        dir: &Path,
+        remote: &crate::storage::RemoteDataset,
+        relative: &str,
+    ) -> Result<()> {
+        self.store = Some(CropStore::open_remote(
+            dir,
+            remote,
+            relative,
+            &self.dataset,
+            self.options.rules,
+            self.options.img_size,
+            self.renderer.topology().vertex_count,
+        )?);
+        Ok(())
+    }
+
+    /// Fetches the crop-store records of samples `indices` now, concurrently when the
+    /// store is in a bucket, and keeps them (at most 1,024; the oldest dropped) for the
+    /// items of those samples that follow, each record used once. Nothing to do
+    /// without a store or for a local one. A record that fails is not kept: its item
+    /// reads it again and reports the error, naming it.
+    pub fn prefetch(&self, indices: &[usize]) {
+        let Some(store) = &self.store else { return };
+        let remote = store.is_remote();
+        if !remote {
+            return;
+        }
+        let keys: Vec<(usize, (usize, usize), String)> = indices
+            .iter()
+            .filter(|i| {
+                !self
+                    .prefetched
+                    .lock()
+                    .unwrap_or_else(|p| p.into_inner())
+                    .records
+                    .contains_key(i)
+            })
+            .filter_map(|&i| {
+                self.rows
+                    .get(i)
+                    .map(|r| (i, r.location, r.sample.key.to_string()))
+            })
+            .collect();
+        let wanted: Vec<(usize, usize, &str)> = keys
+            .iter()
+            .map(|(_, (shard, row), key)| (*shard, *row, key.as_str()))
+            .collect();
+        let got = store.read_many(&wanted);
+        let mut p = self.prefetched.lock().unwrap_or_else(|p| p.into_inner());
+        for ((i, _, _), r) in keys.iter().zip(got) {
+            if let Ok(record) = r {
+                if p.records.insert(*i, record).is_none() {
+                    p.order.push_back(*i);
+                }
+                while p.order.len() > PREFETCH_RECORDS {
+                    if let Some(old) = p.order.pop_front() {
+                        p.records.remove(&old);
+                    }
+                }
+            }
+        }
     }
 
     /// The crop store in use, if any.
@@ -965,7 +1048,18 @@ impl FaceLoader {
                 // The record must be this sample's (checked in every mode).
                 // The window is decoded when the crop is known, as much of it as the
                 // crop reaches.
-                let mut stored = store.read(shard, r, &row.sample.key.to_string())?;
+                let ahead = {
+                    let mut p = self.prefetched.lock().unwrap_or_else(|p| p.into_inner());
+                    let taken = p.records.remove(&index);
+                    if taken.is_some() {
+                        p.order.retain(|&i| i != index);
+                    }
+                    taken
+                };
+                let mut stored = match ahead {
+                    Some(record) => record,
+                    None => store.read(shard, r, &row.sample.key.to_string())?,
+                };
                 (
                     std::mem::take(&mut stored.verts),
                     PixelSource::Stored(stored),

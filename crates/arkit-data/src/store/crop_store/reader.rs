@@ -11,8 +11,8 @@ use super::manifest::{CropStoreManifest, read_manifest};
 use super::mesh_codec::max_mesh_bytes;
 use super::records::StoredRecord;
 use crate::crop::RuleSet;
+use crate::storage::{LocalFile, ReadAt, RemoteDataset};
 use arkit_core::{Error, Result};
-use std::fs::File;
 use std::path::{Path, PathBuf};
 
 /// The largest record a store accepts: the largest window and the largest mesh.
@@ -29,8 +29,9 @@ fn max_record_bytes(size: u32, vertex_count: usize, key_bytes: usize) -> u64 {
 /// every file's header and record index (a part of another store, of another dataset or
 /// of another shard, swapped or renamed, is refused by name; a truncated part or a
 /// damaged index when the store is opened); [`CropStore::read`] checks each record, in
-/// training and in evaluation alike. Reads are positional (`pread`): a store is safe to
-/// share between threads and forked processes.
+/// training and in evaluation alike. Reads are positional (`pread` of a local file, or a
+/// ranged GET of an object, through [`ReadAt`]): a store is safe to share between
+/// threads and forked processes.
 #[derive(Debug)]
 pub struct CropStore {
     dir: PathBuf,
@@ -43,7 +44,7 @@ pub struct CropStore {
 /// offsets (`records + 1`).
 #[derive(Debug)]
 struct PartFile {
-    file: File,
+    file: Box<dyn ReadAt>,
     path: PathBuf,
     offsets: Vec<u64>,
 }
@@ -53,16 +54,16 @@ impl PartFile {
     /// store `manifest`: its header checked first (a file of another store, dataset or
     /// shard is named as such, whatever its length), then its index ([`read_index`]).
     fn open(
-        path: PathBuf,
+        file: Box<dyn ReadAt>,
         manifest: &CropStoreManifest,
         index: usize,
         records: usize,
     ) -> Result<PartFile> {
-        let file = File::open(&path).map_err(|e| Error::io(&path, e))?;
-        let len = file.metadata().map_err(|e| Error::io(&path, e))?.len();
+        let path = file.name().to_path_buf();
+        let len = file.len();
         let mut head = [0u8; HEADER_BYTES as usize];
         if len >= HEADER_BYTES {
-            read_exact_at(&file, &mut head, 0).map_err(|e| Error::io(&path, e))?;
+            file.read_exact_at(&mut head, 0)?;
         }
         let want_head = manifest.part_header(index, records)?;
         if len >= HEADER_BYTES && head != want_head {
@@ -81,7 +82,7 @@ impl PartFile {
                 ),
             ));
         }
-        let offsets = read_index(&file, &path, len, records, manifest)?;
+        let offsets = read_index(&*file, &path, len, records, manifest)?;
         Ok(PartFile {
             file,
             path,
@@ -95,7 +96,7 @@ impl PartFile {
 /// index's CRC, offsets that start after the header, increase by at least a record's
 /// prefix and at most [`max_record_bytes`], and end where the index starts.
 fn read_index(
-    file: &File,
+    file: &dyn ReadAt,
     path: &Path,
     len: u64,
     records: usize,
@@ -114,13 +115,13 @@ fn read_index(
         return Err(truncated("too short for its header, index and footer"));
     }
     let mut footer = [0u8; FOOTER_BYTES as usize];
-    read_exact_at(file, &mut footer, len - FOOTER_BYTES).map_err(|e| Error::io(path, e))?;
+    file.read_exact_at(&mut footer, len - FOOTER_BYTES)?;
     if &footer[..8] != INDEX_MAGIC {
         return Err(truncated("no index footer at its end"));
     }
     let index_at = len - FOOTER_BYTES - index_bytes;
     let mut index = vec![0u8; index_bytes as usize];
-    read_exact_at(file, &mut index, index_at).map_err(|e| Error::io(path, e))?;
+    file.read_exact_at(&mut index, index_at)?;
     if crc32fast::hash(&index).to_le_bytes() != footer[8..12] {
         return Err(Error::format(
             path,
@@ -247,6 +248,40 @@ impl CropStore {
         img_size: u32,
         vertex_count: usize,
     ) -> Result<Self> {
+        let open_part = |file: &str| -> Result<Box<dyn ReadAt>> {
+            Ok(Box::new(LocalFile::open(&dir.join(file))?))
+        };
+        Self::open_with(dir, &open_part, dataset, rules, img_size, vertex_count)
+    }
+
+    /// [`CropStore::open`] of a store in a bucket: its manifest read from `dir` (the
+    /// mirror of the store's folder, [`RemoteDataset::mirror_file`]), its part files read
+    /// by ranged GETs from `remote` at `relative` (the store's folder in the dataset,
+    /// `crops/official-192`), each pinned to the ETag it was published with.
+    pub fn open_remote(
+        dir: &Path,
+        remote: &RemoteDataset,
+        relative: &str,
+        dataset: &crate::store::dataset::Dataset,
+        rules: RuleSet,
+        img_size: u32,
+        vertex_count: usize,
+    ) -> Result<Self> {
+        let relative = relative.trim_end_matches('/');
+        let open_part = |file: &str| -> Result<Box<dyn ReadAt>> {
+            Ok(Box::new(remote.open_object(&format!("{relative}/{file}"))?))
+        };
+        Self::open_with(dir, &open_part, dataset, rules, img_size, vertex_count)
+    }
+
+    fn open_with(
+        dir: &Path,
+        open_part: &dyn Fn(&str) -> Result<Box<dyn ReadAt>>,
+        dataset: &crate::store::dataset::Dataset,
+        rules: RuleSet,
+        img_size: u32,
+        vertex_count: usize,
+    ) -> Result<Self> {
         let manifest = read_manifest(dir)?;
         let mpath = dir.join(MANIFEST_FILE);
         check_for_loader(&manifest, &mpath, rules, img_size, vertex_count)?;
@@ -282,8 +317,12 @@ impl CropStore {
                     ),
                 ));
             }
-            let path = dir.join(&entry.file);
-            files[s.index] = Some(PartFile::open(path, &manifest, s.index, entry.records)?);
+            files[s.index] = Some(PartFile::open(
+                open_part(&entry.file)?,
+                &manifest,
+                s.index,
+                entry.records,
+            )?);
         }
         Ok(CropStore {
             dir: dir.to_path_buf(),
@@ -304,7 +343,7 @@ impl CropStore {
         shard: usize,
         records: usize,
     ) -> Result<Self> {
-        let part = PartFile::open(path.to_path_buf(), manifest, shard, records)?;
+        let part = PartFile::open(Box::new(LocalFile::open(path)?), manifest, shard, records)?;
         let mut files: Vec<Option<PartFile>> = (0..shard).map(|_| None).collect();
         files.push(Some(part));
         Ok(CropStore {
@@ -314,7 +353,12 @@ impl CropStore {
         })
     }
 
-    /// The store folder.
+    /// Whether its part files are read from a bucket.
+    pub fn is_remote(&self) -> bool {
+        self.files.iter().flatten().any(|p| p.file.is_remote())
+    }
+
+    /// The store folder (for a store in a bucket: its local mirror).
     pub fn dir(&self) -> &Path {
         &self.dir
     }
@@ -341,51 +385,105 @@ impl CropStore {
     /// its window when asked for (`StoredRecord::crop_pixels`,
     /// [`StoredRecord::decode`]).
     pub fn read(&self, shard: usize, row: usize, key: &str) -> Result<StoredRecord> {
+        let (part, at, len) = self.locate(shard, row)?;
+        let m = &self.manifest;
+        // `len` was bounded when the index was read. The head (CRC to the lengths) and
+        // the rest (the window, then the mesh) read into their own buffers, so a raw
+        // window is returned as read, not moved out of the record; a remote record is
+        // read in one request and split.
+        let prefix = record_prefix(m.key_bytes);
+        let head_len = (len as usize).min(prefix);
+        if part.file.is_remote() {
+            let bytes = part.file.read_spans(&[(at, len)])?.pop().expect("one span");
+            return self.check_remote(part, (shard, row, key), (at, len), bytes);
+        }
+        let mut r = vec![0u8; head_len];
+        let mut tail = vec![0u8; len as usize - head_len];
+        part.file.read_exact_at(&mut r, at)?;
+        part.file.read_exact_at(&mut tail, at + head_len as u64)?;
+        StoredRecord::from_bytes(m, &part.path, (shard, row, key), r, tail)
+    }
+
+    /// The records of `wanted` (`(shard, row, key)` each), checked as
+    /// [`CropStore::read`] checks one; a remote store fetches them concurrently (one
+    /// ranged GET a record, many in flight). One result per record, in order.
+    pub fn read_many(&self, wanted: &[(usize, usize, &str)]) -> Vec<Result<StoredRecord>> {
+        let remote = self
+            .files
+            .iter()
+            .flatten()
+            .next()
+            .is_some_and(|p| p.file.is_remote());
+        if !remote {
+            return wanted
+                .iter()
+                .map(|&(shard, row, key)| self.read(shard, row, key))
+                .collect();
+        }
+        let mut out: Vec<Option<Result<StoredRecord>>> = wanted.iter().map(|_| None).collect();
+        let mut by_part: std::collections::BTreeMap<usize, Vec<(usize, u64, u64)>> =
+            Default::default();
+        for (i, &(shard, row, _)) in wanted.iter().enumerate() {
+            match self.locate(shard, row) {
+                Ok((_, at, len)) => by_part.entry(shard).or_default().push((i, at, len)),
+                Err(e) => out[i] = Some(Err(e)),
+            }
+        }
+        for (shard, items) in by_part {
+            let part = self.files[shard].as_ref().expect("located");
+            let spans: Vec<(u64, u64)> = items.iter().map(|&(_, at, len)| (at, len)).collect();
+            match part.file.read_spans(&spans) {
+                Ok(bytes) => {
+                    for (&(i, at, len), b) in items.iter().zip(bytes) {
+                        let (shard, row, key) = wanted[i];
+                        out[i] = Some(self.check_remote(part, (shard, row, key), (at, len), b));
+                    }
+                }
+                Err(e) => {
+                    let msg = e.to_string();
+                    for &(i, _, _) in &items {
+                        out[i] = Some(Err(Error::invalid("crop store", msg.clone())));
+                    }
+                }
+            }
+        }
+        out.into_iter().map(|r| r.expect("every record")).collect()
+    }
+
+    /// The part, offset and length of row `row` of samples shard `shard`.
+    fn locate(&self, shard: usize, row: usize) -> Result<(&PartFile, u64, u64)> {
         let part = self
             .files
             .get(shard)
             .and_then(|f| f.as_ref())
             .ok_or_else(|| Error::invalid("crop store", format!("no samples shard {shard}")))?;
-        let path = &part.path;
         let (at, len) = self.record_span(shard, row).ok_or_else(|| {
-            Error::invalid("crop store", format!("{}: no record {row}", path.display()))
+            Error::invalid("crop store", format!("{}: no record {row}", part.path.display()))
         })?;
-        let m = &self.manifest;
-        // `len` was bounded when the index was read. The head (CRC to the lengths) and
-        // the rest (the window, then the mesh) read into their own buffers, so a raw
-        // window is returned as read, not moved out of the record.
-        let prefix = record_prefix(m.key_bytes);
-        let head_len = (len as usize).min(prefix);
-        let mut r = vec![0u8; head_len];
-        let mut tail = vec![0u8; len as usize - head_len];
-        read_exact_at(&part.file, &mut r, at).map_err(|e| Error::io(path, e))?;
-        read_exact_at(&part.file, &mut tail, at + head_len as u64)
-            .map_err(|e| Error::io(path, e))?;
-        StoredRecord::from_bytes(m, path, (shard, row, key), r, tail)
+        Ok((part, at, len))
     }
-}
 
-/// `pread` of exactly `buf.len()` bytes at `offset` (positional: safe to share the file
-/// between threads and forked processes).
-fn read_exact_at(file: &File, buf: &mut [u8], offset: u64) -> std::io::Result<()> {
-    #[cfg(unix)]
-    {
-        std::os::unix::fs::FileExt::read_exact_at(file, buf, offset)
-    }
-    #[cfg(windows)]
-    {
-        let mut done = 0;
-        while done < buf.len() {
-            let n = std::os::windows::fs::FileExt::seek_read(
-                file,
-                &mut buf[done..],
-                offset + done as u64,
-            )?;
-            if n == 0 {
-                return Err(std::io::ErrorKind::UnexpectedEof.into());
+    /// A record fetched whole from a remote part, checked; when its checks fail (a body
+    /// damaged on the way, or a damaged cache entry), its cache entry is dropped and it
+    /// is fetched once more before the error is returned.
+    fn check_remote(
+        &self,
+        part: &PartFile,
+        id: (usize, usize, &str),
+        (at, len): (u64, u64),
+        mut bytes: Vec<u8>,
+    ) -> Result<StoredRecord> {
+        let m = &self.manifest;
+        let head_len = (len as usize).min(record_prefix(m.key_bytes));
+        let tail = bytes.split_off(head_len);
+        match StoredRecord::from_bytes(m, &part.path, id, bytes, tail) {
+            Ok(r) => Ok(r),
+            Err(_) => {
+                part.file.forget(at, len);
+                let mut again = part.file.read_spans(&[(at, len)])?.pop().expect("one span");
+                let tail = again.split_off(head_len);
+                StoredRecord::from_bytes(m, &part.path, id, again, tail)
             }
-            done += n;
         }
-        Ok(())
     }
 }

@@ -1,0 +1,169 @@
+//! `cache`: an optional local cache of the byte spans read from object storage
+//! ([`RecordCache`]), with a size cap, safe for several processes on one node: each
+//! entry is written under a temporary name and renamed (readers see a whole entry or
+//! none), entries are keyed by the object's URL, size and ETag (a replaced object is
+//! never served from an older entry) and checked for their length when read; when the
+//! folder grows past its cap the oldest entries are removed (by modification time).
+
+use sha2::{Digest, Sha256};
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicU64, Ordering};
+
+/// A folder of cached spans, at most `cap` bytes (kept within it to about one eighth).
+#[derive(Debug)]
+pub struct RecordCache {
+    dir: PathBuf,
+    cap: u64,
+    /// Bytes this process wrote since it last measured the folder.
+    written: AtomicU64,
+}
+
+impl RecordCache {
+    /// A cache in `dir` (made if missing) holding at most `cap` bytes.
+    pub fn new(dir: &Path, cap: u64) -> arkit_core::Result<Self> {
+        std::fs::create_dir_all(dir).map_err(|e| arkit_core::Error::io(dir, e))?;
+        Ok(RecordCache {
+            dir: dir.to_path_buf(),
+            cap,
+            written: AtomicU64::new(0),
+        })
+    }
+
+    /// The folder.
+    pub fn dir(&self) -> &Path {
+        &self.dir
+    }
+
+    fn entry(&self, id: &str, at: u64, len: u64) -> PathBuf {
+        let digest = Sha256::digest(format!("{id}@{at}+{len}").as_bytes());
+        let hex: String = digest[..16].iter().map(|b| format!("{b:02x}")).collect();
+        self.dir.join(&hex[..2]).join(&hex[2..])
+    }
+
+    /// The span `(at, len)` of the object `id`, if cached whole.
+    pub fn get(&self, id: &str, at: u64, len: u64) -> Option<Vec<u8>> {
+        let bytes = std::fs::read(self.entry(id, at, len)).ok()?;
+        (bytes.len() as u64 == len).then_some(bytes)
+    }
+
+    /// Caches `bytes`, the span at `at` of the object `id` (errors are ignored: the
+    /// cache only saves requests).
+    pub fn put(&self, id: &str, at: u64, bytes: &[u8]) {
+        if bytes.len() as u64 > self.cap / 4 {
+            return;
+        }
+        let path = self.entry(id, at, bytes.len() as u64);
+        let Some(parent) = path.parent() else { return };
+        if std::fs::create_dir_all(parent).is_err() {
+            return;
+        }
+        let tmp = parent.join(format!(
+            ".{}.tmp-{}-{:x}",
+            path.file_name().and_then(|n| n.to_str()).unwrap_or("entry"),
+            std::process::id(),
+            rand_suffix()
+        ));
+        if std::fs::write(&tmp, bytes).is_err() || std::fs::rename(&tmp, &path).is_err() {
+            let _ = std::fs::remove_file(&tmp);
+            return;
+        }
+        let w = self.written.fetch_add(bytes.len() as u64, Ordering::Relaxed) + bytes.len() as u64;
+        if w > self.cap / 8 {
+            self.written.store(0, Ordering::Relaxed);
+            self.evict();
+        }
+    }
+
+    /// Removes the entry of a span that failed its checks.
+    pub fn forget(&self, id: &str, at: u64, len: u64) {
+        let _ = std::fs::remove_file(self.entry(id, at, len));
+    }
+
+    /// The bytes the folder holds now.
+    pub fn bytes(&self) -> u64 {
+        self.entries().iter().map(|e| e.1).sum()
+    }
+
+    fn entries(&self) -> Vec<(PathBuf, u64, std::time::SystemTime)> {
+        let mut out = Vec::new();
+        let Ok(top) = std::fs::read_dir(&self.dir) else {
+            return out;
+        };
+        for sub in top.flatten() {
+            let Ok(files) = std::fs::read_dir(sub.path()) else {
+                continue;
+            };
+            for f in files.flatten() {
+                let Ok(meta) = f.metadata() else { continue };
+                if !meta.is_file() {
+                    continue;
+                }
+                let modified = meta.modified().unwrap_or(std::time::UNIX_EPOCH);
+                let name = f.file_name();
+                let is_tmp = name.to_str().is_some_and(|n| n.contains(".tmp-"));
+                if is_tmp {
+                    // A writer killed between its write and its rename: gone after an hour.
+                    if modified.elapsed().is_ok_and(|a| a.as_secs() > 3600) {
+                        let _ = std::fs::remove_file(f.path());
+                    }
+                    continue;
+                }
+                out.push((f.path(), meta.len(), modified));
+            }
+        }
+        out
+    }
+
+    /// Removes the oldest entries until the folder holds at most seven eighths of the
+    /// cap (another process removing the same entry is not an error).
+    fn evict(&self) {
+        let mut entries = self.entries();
+        let mut total: u64 = entries.iter().map(|e| e.1).sum();
+        if total <= self.cap {
+            return;
+        }
+        entries.sort_by_key(|e| e.2);
+        let target = self.cap - self.cap / 8;
+        for (path, len, _) in entries {
+            if total <= target {
+                break;
+            }
+            let _ = std::fs::remove_file(path);
+            total = total.saturating_sub(len);
+        }
+    }
+}
+
+fn rand_suffix() -> u64 {
+    use std::hash::{BuildHasher, Hasher};
+    let mut h = std::collections::hash_map::RandomState::new().build_hasher();
+    h.write_u128(
+        std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .map(|d| d.as_nanos())
+            .unwrap_or_default(),
+    );
+    h.finish()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn spans_round_trip_and_the_cap_holds() {
+        let dir = tempfile::tempdir().unwrap();
+        let cache = RecordCache::new(dir.path(), 64 * 1024).unwrap();
+        assert_eq!(cache.get("s3://b/k#1#e", 0, 4), None);
+        cache.put("s3://b/k#1#e", 0, b"abcd");
+        assert_eq!(cache.get("s3://b/k#1#e", 0, 4).as_deref(), Some(&b"abcd"[..]));
+        // Another ETag is another object.
+        assert_eq!(cache.get("s3://b/k#1#f", 0, 4), None);
+        for i in 0..200u64 {
+            cache.put("s3://b/big#1#e", i * 1000, &[7u8; 1000]);
+        }
+        assert!(cache.bytes() <= 64 * 1024, "{} bytes", cache.bytes());
+        cache.forget("s3://b/k#1#e", 0, 4);
+        assert_eq!(cache.get("s3://b/k#1#e", 0, 4), None);
+    }
+}
