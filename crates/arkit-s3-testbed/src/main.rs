@@ -82,19 +82,22 @@ fn run(args: Args) -> Result<(), Box<dyn std::error::Error>> {
     let proxy = FaultProxy::start(server.addr(), plan)?;
 
     let line = serde_json::json!({ "s3": server.endpoint(), "proxy": proxy.endpoint() });
-    let mut stdout = std::io::stdout().lock();
-    writeln!(stdout, "{line}")?;
-    stdout.flush()?;
-    drop(stdout);
-
-    wait_for_stop(args.ignore_stdin)?;
+    wait_for_stop(args.ignore_stdin, || {
+        let mut stdout = std::io::stdout().lock();
+        writeln!(stdout, "{line}")?;
+        stdout.flush()
+    })?;
     drop(proxy);
     drop(server);
     Ok(())
 }
 
-/// Returns at the end of stdin (unless ignored), or on SIGTERM or SIGINT.
-fn wait_for_stop(ignore_stdin: bool) -> std::io::Result<()> {
+/// Calls `announce` once SIGTERM and SIGINT are caught, then returns at the end of
+/// stdin (unless ignored), or on SIGTERM or SIGINT.
+fn wait_for_stop(
+    ignore_stdin: bool,
+    announce: impl FnOnce() -> std::io::Result<()>,
+) -> std::io::Result<()> {
     let runtime = tokio::runtime::Builder::new_current_thread()
         .enable_all()
         .build()?;
@@ -102,6 +105,7 @@ fn wait_for_stop(ignore_stdin: bool) -> std::io::Result<()> {
         use tokio::signal::unix::{SignalKind, signal};
         let mut term = signal(SignalKind::terminate())?;
         let mut int = signal(SignalKind::interrupt())?;
+        announce()?;
         let (eof_tx, eof_rx) = tokio::sync::oneshot::channel::<()>();
         if !ignore_stdin {
             // A plain thread: it blocks in read until the writer closes the pipe.
