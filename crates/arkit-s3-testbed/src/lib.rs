@@ -320,6 +320,9 @@ pub struct ProxyStats {
     pub response_body_bytes: u64,
     /// How many times a rule fired.
     pub faults_fired: u64,
+    /// Client connections accepted (a client reusing keep-alive connections opens
+    /// few).
+    pub connections: u64,
 }
 
 // ---------------------------------------------------------------------------------
@@ -511,7 +514,7 @@ impl std::fmt::Debug for FaultControl {
 ///   fault is one of `{"status":N}`, `{"reset":true}`, `{"truncate":N}` (bytes) or
 ///   `{"stall_ms":N}`.
 /// - `GET /__testbed/stats` answers the counters, [`ProxyStats`] as JSON:
-///   `{"requests":N,"requests_by_method":{"GET":N},"response_body_bytes":N,"faults_fired":N}`.
+///   `{"requests":N,"requests_by_method":{"GET":N},"response_body_bytes":N,"faults_fired":N,"connections":N}`.
 /// - `POST /__testbed/reset` removes every rule and zeroes the counters.
 /// - `POST /__testbed/config` sets `{"latency_ms":N,"bandwidth_bytes_per_sec":N}`
 ///   (either may be left out; `GET` answers the current values).
@@ -691,6 +694,7 @@ async fn serve_proxy_connection(
     shared: Arc<Shared>,
     client: Client<HttpConnector, Incoming>,
 ) {
+    lock(&shared.stats).connections += 1;
     let reset = Arc::new(AtomicBool::new(false));
     let io = ResettableSocket {
         socket,

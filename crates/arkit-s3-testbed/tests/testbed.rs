@@ -197,6 +197,8 @@ async fn proxy_round_trip_and_counters() {
         "{stats:?}"
     );
     assert_eq!(stats.faults_fired, 0);
+    // Sequential requests reuse one keep-alive connection.
+    assert_eq!(stats.connections, 1, "{stats:?}");
     proxy.control().reset_stats();
     assert_eq!(proxy.control().stats().requests, 0);
 
@@ -403,10 +405,37 @@ async fn many_concurrent_requests() {
         n += 1;
     }
     assert_eq!(n, 48);
-    assert_eq!(
-        proxy.control().stats().requests_by_method.get("GET"),
-        Some(&48)
-    );
+    let stats = proxy.control().stats();
+    assert_eq!(stats.requests_by_method.get("GET"), Some(&48));
+    assert!(stats.connections > 1, "{stats:?}");
+}
+
+#[tokio::test]
+async fn multipart_upload_through_the_proxy() {
+    let (_dir, _server, proxy) = proxied(FaultPlan::default());
+    let store = client(&proxy.endpoint(), SECRET, 3);
+    let data = payload(6 * 1024 * 1024 + 12_345, 8);
+    let path = Path::from("m/big.bin");
+    let mut upload = store.put_multipart(&path).await.unwrap();
+    // The first part upload fails once with 503; the client retries it.
+    proxy
+        .control()
+        .push_rule(FaultRule::new(Fault::Status(503), 1).method("PUT"));
+    upload
+        .put_part(PutPayload::from(data[..5 * 1024 * 1024].to_vec()))
+        .await
+        .unwrap();
+    upload
+        .put_part(PutPayload::from(data[5 * 1024 * 1024..].to_vec()))
+        .await
+        .unwrap();
+    upload.complete().await.unwrap();
+    assert_eq!(get(&store, "m/big.bin").await.unwrap(), data);
+    let stats = proxy.control().stats();
+    assert_eq!(stats.faults_fired, 1);
+    // Create, 2 parts + 1 retry, complete; then the GET.
+    assert_eq!(stats.requests_by_method.get("PUT"), Some(&3), "{stats:?}");
+    assert_eq!(stats.requests_by_method.get("POST"), Some(&2), "{stats:?}");
 }
 
 #[tokio::test]
