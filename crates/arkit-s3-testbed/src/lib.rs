@@ -21,11 +21,37 @@
 //! The binary `arkit-s3-testbed` starts both and prints their endpoints as one line
 //! of JSON, for tests written in other languages.
 //!
+//! ```
+//! use std::time::Duration;
+//! use arkit_s3_testbed::{Fault, FaultPlan, FaultProxy, FaultRule, S3Server};
+//!
+//! let root = tempfile::tempdir()?;
+//! let server = S3Server::start(root.path(), "access", "secret")?;
+//! server.create_bucket("faces")?;
+//! let plan = FaultPlan {
+//!     latency: Duration::from_millis(20),
+//!     bandwidth_bytes_per_sec: 125_000_000, // 1 Gbit/s
+//!     ..FaultPlan::default()
+//! };
+//! let proxy = FaultProxy::start(server.addr(), plan)?;
+//! // The next two GETs of a key containing "part-0" fail with 503.
+//! proxy.control().push_rule(
+//!     FaultRule::new(Fault::Status(503), 2).method("GET").key_contains("part-0"),
+//! );
+//! // Point the S3 client (path style, region us-east-1, these keys) at
+//! // proxy.endpoint(), or at server.endpoint() to bypass the proxy.
+//! assert!(proxy.endpoint().starts_with("http://127.0.0.1:"));
+//! assert_eq!(proxy.control().stats().requests, 0);
+//! # Ok::<(), std::io::Error>(())
+//! ```
+//!
 //! Everything binds the loopback address `127.0.0.1` on a port the system picks,
 //! never another address: nothing here is reachable from outside the machine. Each
 //! server runs on its own thread with its own tokio runtime, so it serves callers
 //! that are synchronous or run any async runtime, and stops (its port freed) when it
 //! is dropped.
+
+#![warn(missing_docs)]
 
 use std::collections::{BTreeMap, VecDeque};
 use std::convert::Infallible;
@@ -760,6 +786,10 @@ async fn proxy_request(
     let mut truncate = None;
     match fault {
         Some(Fault::Status(code)) => {
+            // Read the request body first (as a server answering after it would), so
+            // that the client, still sending, sees the answer and not a reset.
+            let mut body = req.into_body();
+            while let Some(Ok(_)) = body.frame().await {}
             let status = StatusCode::from_u16(code).unwrap_or(StatusCode::INTERNAL_SERVER_ERROR);
             return Ok(s3_error(status, "fault injected by arkit-s3-testbed"));
         }

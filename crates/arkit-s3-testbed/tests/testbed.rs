@@ -240,6 +240,17 @@ async fn status_rule_fails_the_next_gets_then_is_spent() {
     assert!(control.rules().is_empty());
     assert_eq!(control.stats().faults_fired, 2);
 
+    // A PUT refused with 503 while its body is being sent: the client sees the 503.
+    control.push_rule(FaultRule::new(Fault::Status(503), 1).method("PUT"));
+    let err = store
+        .put(
+            &Path::from("s/big.bin"),
+            PutPayload::from(payload(8_000_000, 9)),
+        )
+        .await
+        .unwrap_err();
+    assert!(err.to_string().contains("503"), "{err}");
+
     // With retries, the client gets through, and the proxy saw the retries.
     let patient = client(&proxy.endpoint(), SECRET, 5);
     control.reset();
