@@ -8,6 +8,7 @@ mod support;
 mod biwi;
 mod charts;
 mod cli;
+mod cloud;
 mod convert;
 #[cfg(feature = "model")]
 mod direct_commands;
