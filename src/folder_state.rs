@@ -116,6 +116,23 @@ impl FolderState {
 
 /// The state of every output of the dataset folder `dir`.
 pub fn folder_state(dir: &Path) -> FolderState {
+    folder_state_of(dir, None)
+}
+
+/// [`folder_state`] of the local mirror `dir` of a dataset published to a bucket: the
+/// crop stores' part files, left in the bucket, are taken at the sizes its publication
+/// record names (each is checked again against it when a reader opens it).
+pub fn published_folder_state(
+    dir: &Path,
+    publication: &arkit_data::storage::Publication,
+) -> FolderState {
+    folder_state_of(dir, Some(publication))
+}
+
+fn folder_state_of(
+    dir: &Path,
+    published: Option<&arkit_data::storage::Publication>,
+) -> FolderState {
     let (samples, manifest) = samples_state(dir);
     let targets = manifest.as_ref().map(|m| targets_state(dir, m));
     let fingerprint = manifest
@@ -125,7 +142,7 @@ pub fn folder_state(dir: &Path) -> FolderState {
     FolderState {
         samples,
         targets,
-        crop_stores: crop_store_states(dir, fingerprint.as_deref(), shards),
+        crop_stores: crop_store_states(dir, fingerprint.as_deref(), shards, published),
         temporaries: temporaries(dir),
     }
 }
@@ -430,6 +447,7 @@ fn crop_store_states(
     dir: &Path,
     fingerprint: Option<&str>,
     shards: Option<usize>,
+    published: Option<&arkit_data::storage::Publication>,
 ) -> Vec<OutputState> {
     let Ok(entries) = std::fs::read_dir(dir.join("crops")) else {
         return Vec::new();
@@ -442,7 +460,7 @@ fn crop_store_states(
     stores.sort();
     stores
         .iter()
-        .map(|store| crop_store_state(dir, store, fingerprint, shards))
+        .map(|store| crop_store_state(dir, store, fingerprint, shards, published))
         .collect()
 }
 
@@ -451,6 +469,7 @@ fn crop_store_state(
     store: &Path,
     fingerprint: Option<&str>,
     shards: Option<usize>,
+    published: Option<&arkit_data::storage::Publication>,
 ) -> OutputState {
     let name = store.file_name().unwrap_or_default().to_string_lossy();
     let output = format!("crops/{name}");
@@ -525,18 +544,21 @@ fn crop_store_state(
             continue;
         };
         let path = store.join(file);
-        match std::fs::metadata(&path) {
-            Ok(m) if m.len() == bytes => {}
-            Ok(m) => {
+        let size = match published.and_then(|p| p.object(&format!("{output}/{file}"))) {
+            Some(o) => Ok(o.bytes),
+            None => std::fs::metadata(&path).map(|m| m.len()),
+        };
+        match size {
+            Ok(len) if len == bytes => {}
+            Ok(len) => {
                 return state(
                     &output,
                     State::Damaged,
                     None,
                     shards,
                     format!(
-                        "{output}: damaged: {} is {} bytes, crops.json says {bytes}; rerun {rerun}",
+                        "{output}: damaged: {} is {len} bytes, crops.json says {bytes}; rerun {rerun}",
                         path.display(),
-                        m.len()
                     ),
                 );
             }

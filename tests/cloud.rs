@@ -141,7 +141,8 @@ fn topology() -> arkit_data::FaceTopology {
 
 fn local_loader(dir: &Path) -> FaceLoader {
     let mut l = FaceLoader::open(dir, topology(), None, loader_options()).unwrap();
-    l.open_crop_store(&dir.join("crops").join("official-64")).unwrap();
+    l.open_crop_store(&dir.join("crops").join("official-64"))
+        .unwrap();
     l
 }
 
@@ -173,15 +174,25 @@ fn a_pushed_dataset_reads_as_its_folder_does_one_request_a_sample() {
 
     // inspect --json from the bucket says what it says of the folder.
     let local = ok(
-        tool().args(["inspect", "--json", "--dataset"]).arg(&dir).output().unwrap(),
+        tool()
+            .args(["inspect", "--json", "--dataset"])
+            .arg(&dir)
+            .output()
+            .unwrap(),
         "inspect local",
     );
     let remote = ok(
-        cloud.tool().args(["inspect", "--json", "--dataset", &url]).output().unwrap(),
+        cloud
+            .tool()
+            .args(["inspect", "--json", "--dataset", &url])
+            .output()
+            .unwrap(),
         "inspect remote",
     );
-    let (l, r): (serde_json::Value, serde_json::Value) =
-        (serde_json::from_str(&local).unwrap(), serde_json::from_str(&remote).unwrap());
+    let (l, r): (serde_json::Value, serde_json::Value) = (
+        serde_json::from_str(&local).unwrap(),
+        serde_json::from_str(&remote).unwrap(),
+    );
     for key in ["samples", "subjects", "yaw", "pitch", "roll", "distance"] {
         if l.get(key).is_some() {
             assert_eq!(l[key], r[key], "inspect's {key}");
@@ -241,7 +252,13 @@ fn push_is_incremental_and_refuses_another_dataset_without_overwrite() {
     assert_eq!(again["unchanged"], first["objects"], "{again}");
 
     // Another dataset: refused, naming the URL, and nothing changed.
-    let out = cloud.tool().arg("push").arg(&other).arg(&url).output().unwrap();
+    let out = cloud
+        .tool()
+        .arg("push")
+        .arg(&other)
+        .arg(&url)
+        .output()
+        .unwrap();
     assert!(!out.status.success());
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(err.contains("--overwrite") && err.contains(&url), "{err}");
@@ -254,7 +271,10 @@ fn push_is_incremental_and_refuses_another_dataset_without_overwrite() {
     let replaced = push_json(&cloud, &other, &url, &["--overwrite"]);
     assert!(replaced["uploaded"].as_u64().unwrap() > 0, "{replaced}");
     let (l, _r) = remote_loader(&cloud, &url);
-    assert_eq!(l.item(0, 0).unwrap(), local_loader(&other).item(0, 0).unwrap());
+    assert_eq!(
+        l.item(0, 0).unwrap(),
+        local_loader(&other).item(0, 0).unwrap()
+    );
 }
 
 #[test]
@@ -275,8 +295,19 @@ fn a_killed_push_is_never_read_and_its_rerun_uploads_only_what_is_missing() {
         .spawn()
         .unwrap();
     let started = Instant::now();
-    while cloud.control().stats().requests_by_method.get("PUT").copied().unwrap_or(0) < 3 {
-        assert!(started.elapsed() < Duration::from_secs(60), "push never uploaded");
+    while cloud
+        .control()
+        .stats()
+        .requests_by_method
+        .get("PUT")
+        .copied()
+        .unwrap_or(0)
+        < 3
+    {
+        assert!(
+            started.elapsed() < Duration::from_secs(60),
+            "push never uploaded"
+        );
         std::thread::sleep(Duration::from_millis(20));
     }
     child.kill().unwrap();
@@ -290,7 +321,10 @@ fn a_killed_push_is_never_read_and_its_rerun_uploads_only_what_is_missing() {
         .unwrap();
     assert!(!out.status.success());
     let err = String::from_utf8_lossy(&out.stderr);
-    assert!(err.contains("no published dataset") && err.contains(&url), "{err}");
+    assert!(
+        err.contains("no published dataset") && err.contains(&url),
+        "{err}"
+    );
     let rerun = push_json(&cloud, &dir, &url, &[]);
     let (uploaded, objects) = (
         rerun["uploaded"].as_u64().unwrap(),
@@ -301,7 +335,10 @@ fn a_killed_push_is_never_read_and_its_rerun_uploads_only_what_is_missing() {
         "the rerun uploaded {uploaded} of {objects}: {rerun}"
     );
     let (l, _r) = remote_loader(&cloud, &url);
-    assert_eq!(l.item(1, 0).unwrap(), local_loader(&dir).item(1, 0).unwrap());
+    assert_eq!(
+        l.item(1, 0).unwrap(),
+        local_loader(&dir).item(1, 0).unwrap()
+    );
 }
 
 #[test]
@@ -321,10 +358,15 @@ fn faults_end_in_retries_then_an_error_naming_the_bucket_and_key_and_no_secret()
         (Fault::Status(500), "500"),
         (Fault::Reset, "a reset"),
         (Fault::Truncate { after_bytes: 7 }, "a truncated body"),
-        (Fault::Stall(Duration::from_millis(2500)), "a stall past the time-out"),
+        (
+            Fault::Stall(Duration::from_millis(2500)),
+            "a stall past the time-out",
+        ),
     ] {
         c.reset_stats();
-        c.set_rules(vec![FaultRule::new(fault, 2).method("GET").key_contains(part)]);
+        c.set_rules(vec![
+            FaultRule::new(fault, 2).method("GET").key_contains(part),
+        ]);
         let got = l.item(2, 0).unwrap_or_else(|e| panic!("after {what}: {e}"));
         assert_eq!(got, expected.item(2, 0).unwrap(), "after {what}");
         let s = c.stats();
@@ -336,14 +378,20 @@ fn faults_end_in_retries_then_an_error_naming_the_bucket_and_key_and_no_secret()
         (Fault::Status(503), "after 4 tries"),
         (Fault::Truncate { after_bytes: 5 }, "after 4 tries"),
     ] {
-        c.set_rules(vec![FaultRule::new(fault, 1000).method("GET").key_contains(part)]);
+        c.set_rules(vec![
+            FaultRule::new(fault, 1000).method("GET").key_contains(part),
+        ]);
         let started = Instant::now();
         let err = l.item(3, 0).unwrap_err().to_string();
         assert!(
             err.contains(&format!("s3://{BUCKET}/faults/{part}")) && err.contains(says),
             "{err}"
         );
-        assert!(started.elapsed() < Duration::from_secs(20), "took {:?}", started.elapsed());
+        assert!(
+            started.elapsed() < Duration::from_secs(20),
+            "took {:?}",
+            started.elapsed()
+        );
         assert!(!err.contains(SECRET), "{err}");
     }
     c.clear_rules();

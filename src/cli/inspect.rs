@@ -38,7 +38,9 @@ pub struct InspectArgs {
 }
 
 pub fn run(mut a: InspectArgs) -> Result<ExitCode> {
-    let (dir, _remote) = super::remote::dataset_folder(&a.dataset)?;
+    let (dir, remote) = super::remote::dataset_folder(&a.dataset)?;
+    // What the user named: the folder, or the URL (never the mirror's folder).
+    let shown = a.dataset.display().to_string();
     a.dataset = dir;
     if let Some(path) = &a.plot
         && !path
@@ -53,7 +55,10 @@ pub fn run(mut a: InspectArgs) -> Result<ExitCode> {
             ),
         ));
     }
-    let state = arkit_tool::folder_state::folder_state(&a.dataset);
+    let state = match &remote {
+        Some(r) => arkit_tool::folder_state::published_folder_state(&a.dataset, r.publication()),
+        None => arkit_tool::folder_state::folder_state(&a.dataset),
+    };
     if state.samples.state != arkit_tool::folder_state::State::Complete {
         // Nothing else can be read: the state, and the way out, alone.
         if a.json {
@@ -62,7 +67,7 @@ pub fn run(mut a: InspectArgs) -> Result<ExitCode> {
                 serde_json::to_string_pretty(&serde_json::json!({"state": state})).expect("json")
             );
         } else {
-            println!("{}", a.dataset.display());
+            println!("{shown}");
             for line in state.lines() {
                 println!("  {line}");
             }
@@ -130,7 +135,7 @@ pub fn run(mut a: InspectArgs) -> Result<ExitCode> {
             .expect("json")
         );
     } else {
-        println!("{}", a.dataset.display());
+        println!("{shown}");
         for line in state.lines() {
             println!("  {line}");
         }
@@ -159,7 +164,7 @@ pub fn run(mut a: InspectArgs) -> Result<ExitCode> {
         }
     }
     if let Some(path) = &a.plot {
-        let title = format!("Poses of {}", a.dataset.display());
+        let title = format!("Poses of {shown}");
         let svg = arkit_tool::report::pose_chart(&title, &hists);
         arkit_core::atomic_file::write_bytes(path, svg.as_bytes())?;
         if a.json {

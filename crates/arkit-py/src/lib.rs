@@ -158,7 +158,8 @@ impl Loader {
         cache_bytes: Option<u64>,
         storage_options: Option<std::collections::BTreeMap<String, String>>,
     ) -> PyResult<Self> {
-        let settings: Vec<(String, String)> = storage_options.unwrap_or_default().into_iter().collect();
+        let settings: Vec<(String, String)> =
+            storage_options.unwrap_or_default().into_iter().collect();
         let options = LoaderOptions {
             split,
             mode: LoaderMode::parse(mode).map_err(py_err)?,
@@ -172,8 +173,12 @@ impl Loader {
             let (local, remote) = match DatasetLocation::parse(&dir)? {
                 DatasetLocation::Local(p) => (p, None),
                 DatasetLocation::Remote(url) => {
-                    let (rel, named) =
-                        remote_store_relative(&url, crop_store.as_deref(), options.rules, img_size)?;
+                    let (rel, named) = remote_store_relative(
+                        &url,
+                        crop_store.as_deref(),
+                        options.rules,
+                        img_size,
+                    )?;
                     let remote = open_remote(
                         &url,
                         &MirrorSet::Loader {

@@ -208,6 +208,9 @@ class ARKitFaceDataset(_DatasetBase[_ItemT]):
         self._epoch: Any = multiprocessing.RawValue("Q", 0)
         self._samplers: Optional[weakref.WeakSet[EpochSampler]] = weakref.WeakSet()
         self._loader = self._open()
+        if is_url(self.path):
+            # The store the publication record gave (its URL), as reopened in a worker.
+            self.crop_store = self._loader.crop_store
         if self.tensors:
             import torch  # noqa: F401  (fail now, not in a worker)
 

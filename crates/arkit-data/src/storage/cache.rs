@@ -2,14 +2,17 @@
 //! ([`RecordCache`]), with a size cap, safe for several processes on one node: each
 //! entry is written under a temporary name and renamed (readers see a whole entry or
 //! none), entries are keyed by the object's URL, size and ETag (a replaced object is
-//! never served from an older entry) and checked for their length when read; when the
-//! folder grows past its cap the oldest entries are removed (by modification time).
+//! never served from an older entry) and checked for their length when read. Each
+//! process measures the folder after every sixteenth of the cap it writes and removes the
+//! oldest entries (by modification time) down to three quarters of it: the folder stays
+//! within the cap with up to four processes writing at once (each may add a sixteenth
+//! between its measures).
 
 use sha2::{Digest, Sha256};
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicU64, Ordering};
 
-/// A folder of cached spans, at most `cap` bytes (kept within it to about one eighth).
+/// A folder of cached spans, at most `cap` bytes (see the module's docs).
 #[derive(Debug)]
 pub struct RecordCache {
     dir: PathBuf,
@@ -67,8 +70,11 @@ impl RecordCache {
             let _ = std::fs::remove_file(&tmp);
             return;
         }
-        let w = self.written.fetch_add(bytes.len() as u64, Ordering::Relaxed) + bytes.len() as u64;
-        if w > self.cap / 8 {
+        let w = self
+            .written
+            .fetch_add(bytes.len() as u64, Ordering::Relaxed)
+            + bytes.len() as u64;
+        if w > self.cap / 16 {
             self.written.store(0, Ordering::Relaxed);
             self.evict();
         }
@@ -114,16 +120,17 @@ impl RecordCache {
         out
     }
 
-    /// Removes the oldest entries until the folder holds at most seven eighths of the
-    /// cap (another process removing the same entry is not an error).
+    /// Removes the oldest entries until the folder holds at most three quarters of the
+    /// cap, when it holds more than the cap less a sixteenth (another process removing
+    /// the same entry is not an error).
     fn evict(&self) {
         let mut entries = self.entries();
         let mut total: u64 = entries.iter().map(|e| e.1).sum();
-        if total <= self.cap {
+        if total <= self.cap - self.cap / 16 {
             return;
         }
         entries.sort_by_key(|e| e.2);
-        let target = self.cap - self.cap / 8;
+        let target = self.cap / 4 * 3;
         for (path, len, _) in entries {
             if total <= target {
                 break;
@@ -156,7 +163,10 @@ mod tests {
         let cache = RecordCache::new(dir.path(), 64 * 1024).unwrap();
         assert_eq!(cache.get("s3://b/k#1#e", 0, 4), None);
         cache.put("s3://b/k#1#e", 0, b"abcd");
-        assert_eq!(cache.get("s3://b/k#1#e", 0, 4).as_deref(), Some(&b"abcd"[..]));
+        assert_eq!(
+            cache.get("s3://b/k#1#e", 0, 4).as_deref(),
+            Some(&b"abcd"[..])
+        );
         // Another ETag is another object.
         assert_eq!(cache.get("s3://b/k#1#f", 0, 4), None);
         for i in 0..200u64 {

@@ -12,8 +12,7 @@ use bytes::Bytes;
 use futures::StreamExt;
 use object_store::{
     Attribute, Attributes, GetOptions, GetRange, ObjectMeta, ObjectStore, ObjectStoreExt,
-    PutOptions, PutPayload,
-    path::Path as ObjectPath,
+    PutOptions, PutPayload, path::Path as ObjectPath,
 };
 use std::path::{Path, PathBuf};
 use std::sync::{Arc, Mutex};
@@ -136,7 +135,11 @@ impl RemoteStore {
             secrets.push(u.password().unwrap_or_default().to_string());
         }
         if let Some(q) = u.query() {
-            secrets.extend(q.split('&').filter_map(|kv| kv.split_once('=')).map(|(_, v)| v.to_string()));
+            secrets.extend(
+                q.split('&')
+                    .filter_map(|kv| kv.split_once('='))
+                    .map(|(_, v)| v.to_string()),
+            );
         }
         secrets.retain(|s| s.len() >= 4);
         let store = Arc::new(RemoteStore {
@@ -198,7 +201,10 @@ impl RemoteStore {
         if endpoint_is_http || url.scheme() == "http" {
             opts.push(("allow_http".into(), "true".into()));
         }
-        opts.push(("timeout".into(), format!("{}ms", self.retry.timeout.as_millis())));
+        opts.push((
+            "timeout".into(),
+            format!("{}ms", self.retry.timeout.as_millis()),
+        ));
         opts.push(("connect_timeout".into(), "5s".into()));
         // Our own retries (`retrying`) are the only ones: the crate's would multiply them.
         let no_retry = object_store::RetryConfig {
@@ -272,9 +278,9 @@ impl RemoteStore {
                 "{op}: the object changed since this job opened it (another ETag): the dataset was published again under a running job; start the job again"
             ),
             Failure::Store(e) => format!("{op} failed{after}: {e}"),
-            Failure::Short { got, want } => format!(
-                "{op}: the body came back with {got} bytes, {want} were asked for{after}"
-            ),
+            Failure::Short { got, want } => {
+                format!("{op}: the body came back with {got} bytes, {want} were asked for{after}")
+            }
             Failure::Changed { was, now } => format!(
                 "{op}: the object changed since this job opened it (ETag {was}, now {now}): the dataset was published again under a running job; start the job again"
             ),
@@ -327,7 +333,10 @@ impl RemoteStore {
 
     /// The size, ETag and stored SHA-256 (user metadata `arkit-sha256`, written by
     /// `push`) of `relative`; `None` when there is no such object.
-    pub(crate) fn head_with_sha(&self, relative: &str) -> Result<Option<(ObjectMeta, Option<String>)>> {
+    pub(crate) fn head_with_sha(
+        &self,
+        relative: &str,
+    ) -> Result<Option<(ObjectMeta, Option<String>)>> {
         let (_, store) = self.client()?;
         let path = self.path(relative);
         let r = self.block_on(async {
@@ -423,10 +432,8 @@ impl RemoteStore {
                     .await
                 }
             });
-            let results: Vec<Result<Bytes>> = futures::stream::iter(fetches)
-                .buffered(64)
-                .collect()
-                .await;
+            let results: Vec<Result<Bytes>> =
+                futures::stream::iter(fetches).buffered(64).collect().await;
             results.into_iter().collect()
         })
     }
@@ -511,7 +518,12 @@ impl RemoteStore {
                 let r = upload.put_part(payload).await;
                 if let Err(e) = r {
                     let _ = upload.abort().await;
-                    return Err(self.error(relative, &format!("multipart upload (part {part})"), Failure::Store(e), 1));
+                    return Err(self.error(
+                        relative,
+                        &format!("multipart upload (part {part})"),
+                        Failure::Store(e),
+                        1,
+                    ));
                 }
                 on_bytes(n as u64);
                 if n < part_bytes {
@@ -522,7 +534,12 @@ impl RemoteStore {
                 Ok(r) => Ok(r.e_tag),
                 Err(e) => {
                     let _ = upload.abort().await;
-                    Err(self.error(relative, "multipart upload (complete)", Failure::Store(e), 1))
+                    Err(self.error(
+                        relative,
+                        "multipart upload (complete)",
+                        Failure::Store(e),
+                        1,
+                    ))
                 }
             }
         })
@@ -597,7 +614,11 @@ fn environment_config(scheme: &str) -> (Vec<(String, String)>, Vec<String>) {
         let secret_like = ["SECRET", "TOKEN", "KEY", "PASSWORD", "SAS", "CREDENTIAL"]
             .iter()
             .any(|w| upper.contains(w));
-        if secret_like && (upper.starts_with("AWS_") || upper.starts_with("GOOGLE_") || upper.starts_with("AZURE_")) {
+        if secret_like
+            && (upper.starts_with("AWS_")
+                || upper.starts_with("GOOGLE_")
+                || upper.starts_with("AZURE_"))
+        {
             secrets.push(v.clone());
         }
         if !family.is_empty() && upper.starts_with(family) {
@@ -614,7 +635,10 @@ fn environment_config(scheme: &str) -> (Vec<(String, String)>, Vec<String>) {
                 config.push((k, v));
             }
         }
-        if !config.iter().any(|(k, _)| k == "aws_region" || k == "aws_default_region") {
+        if !config
+            .iter()
+            .any(|(k, _)| k == "aws_region" || k == "aws_default_region")
+        {
             config.push(("aws_region".into(), "us-east-1".into()));
         }
     }
@@ -642,7 +666,10 @@ fn aws_profile() -> Vec<(String, String)> {
         ("endpoint_url", "aws_endpoint_url"),
     ];
     for (path, section) in [
-        (file("AWS_SHARED_CREDENTIALS_FILE", "credentials"), profile.clone()),
+        (
+            file("AWS_SHARED_CREDENTIALS_FILE", "credentials"),
+            profile.clone(),
+        ),
         (
             file("AWS_CONFIG_FILE", "config"),
             if profile == "default" {
@@ -723,7 +750,12 @@ impl RemoteObject {
     }
 
     fn cache_id(&self) -> String {
-        format!("{}#{}#{}", self.shown.display(), self.len, self.etag.as_deref().unwrap_or(""))
+        format!(
+            "{}#{}#{}",
+            self.shown.display(),
+            self.len,
+            self.etag.as_deref().unwrap_or("")
+        )
     }
 }
 
@@ -747,7 +779,11 @@ impl ReadAt for RemoteObject {
             if at.checked_add(len).is_none_or(|end| end > self.len) {
                 return Err(Error::format(
                     &self.shown,
-                    format!("bytes {at}..{} asked of an object of {} bytes", at.saturating_add(len), self.len),
+                    format!(
+                        "bytes {at}..{} asked of an object of {} bytes",
+                        at.saturating_add(len),
+                        self.len
+                    ),
                 ));
             }
         }
@@ -769,7 +805,10 @@ impl ReadAt for RemoteObject {
                 out[i] = Some(bytes.to_vec());
             }
         }
-        Ok(out.into_iter().map(|b| b.expect("every span read")).collect())
+        Ok(out
+            .into_iter()
+            .map(|b| b.expect("every span read"))
+            .collect())
     }
 
     fn forget(&self, offset: u64, len: u64) {
@@ -790,7 +829,10 @@ mod tests {
     #[test]
     fn profiles_are_read_from_their_section() {
         let text = "[default]\naws_access_key_id = A\n[profile x]\nregion = eu-west-1\nendpoint_url=http://h:1\n";
-        assert_eq!(ini_section(text, "default"), vec![("aws_access_key_id".into(), "A".into())]);
+        assert_eq!(
+            ini_section(text, "default"),
+            vec![("aws_access_key_id".into(), "A".into())]
+        );
         assert_eq!(
             ini_section(text, "profile x"),
             vec![

@@ -44,9 +44,7 @@ pub struct RemoteUrl {
     prefix: String,
 }
 
-const SCHEMES: [&str; 8] = [
-    "s3", "s3a", "gs", "az", "abfs", "abfss", "http", "https",
-];
+const SCHEMES: [&str; 8] = ["s3", "s3a", "gs", "az", "abfs", "abfss", "http", "https"];
 
 impl RemoteUrl {
     fn scheme_of(arg: &str) -> Option<&'static str> {
@@ -152,7 +150,11 @@ impl fmt::Debug for RemoteUrl {
 
 /// `text` (a URL, perhaps not a valid one) without its user, password and query.
 pub(crate) fn redact_url_text(text: &str) -> String {
-    let mut out = text.split(['?', '#']).next().unwrap_or_default().to_string();
+    let mut out = text
+        .split(['?', '#'])
+        .next()
+        .unwrap_or_default()
+        .to_string();
     if let Some((scheme, rest)) = out.split_once("://") {
         let (authority, path) = rest.split_once('/').unwrap_or((rest, ""));
         if let Some((_, host)) = authority.rsplit_once('@') {
@@ -208,12 +210,18 @@ mod tests {
         let u = RemoteUrl::parse("s3://bucket/a/b/").unwrap();
         assert_eq!(u.prefix(), "a/b");
         assert_eq!(u.key("dataset.json"), "a/b/dataset.json");
-        assert_eq!(u.join("crops/x").key("part-0.bin"), "a/b/crops/x/part-0.bin");
+        assert_eq!(
+            u.join("crops/x").key("part-0.bin"),
+            "a/b/crops/x/part-0.bin"
+        );
         let root = RemoteUrl::parse("s3://bucket").unwrap();
         assert_eq!(root.key("dataset.json"), "dataset.json");
         let secret = RemoteUrl::parse("https://user:pw@host.example/c/d?sig=SECRET").unwrap();
         let shown = secret.to_string();
-        assert!(!shown.contains("SECRET") && !shown.contains("pw"), "{shown}");
+        assert!(
+            !shown.contains("SECRET") && !shown.contains("pw"),
+            "{shown}"
+        );
         assert_eq!(shown, "https://host.example/c/d");
         assert_eq!(
             redact_url_text("az://k:s@acct/x?sv=1&sig=abc"),

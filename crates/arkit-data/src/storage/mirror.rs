@@ -97,7 +97,11 @@ fn hex(bytes: &[u8]) -> String {
 /// the URL when there is none), copies the objects `set` names into the local mirror
 /// (those already there with the recorded SHA-256 are not fetched again), each checked
 /// for its size and SHA-256 against the record.
-pub fn open_remote(url: &RemoteUrl, set: &MirrorSet, options: &RemoteOptions) -> Result<RemoteDataset> {
+pub fn open_remote(
+    url: &RemoteUrl,
+    set: &MirrorSet,
+    options: &RemoteOptions,
+) -> Result<RemoteDataset> {
     let store = RemoteStore::with_settings(url, &options.settings)?;
     let (publication, _) = Publication::read(&store)?;
     let base = options.cache_dir.clone().unwrap_or_else(default_cache_dir);
@@ -129,7 +133,11 @@ pub fn open_remote(url: &RemoteUrl, set: &MirrorSet, options: &RemoteOptions) ->
         .filter(|o| set.wants(&o.path))
         .cloned()
         .collect();
-    if remote.publication.object(crate::store::manifest::MANIFEST_FILE).is_none() {
+    if remote
+        .publication
+        .object(crate::store::manifest::MANIFEST_FILE)
+        .is_none()
+    {
         return Err(Error::format(
             url.shown_path(super::PUBLICATION_FILE),
             "names no dataset.json: not a published dataset",
@@ -141,7 +149,9 @@ pub fn open_remote(url: &RemoteUrl, set: &MirrorSet, options: &RemoteOptions) ->
     let manifest = crate::store::manifest::read_manifest(
         &remote.mirror.join(crate::store::manifest::MANIFEST_FILE),
     )?;
-    if crate::store::manifest::dataset_fingerprint(&manifest) != remote.publication.dataset_fingerprint {
+    if crate::store::manifest::dataset_fingerprint(&manifest)
+        != remote.publication.dataset_fingerprint
+    {
         return Err(Error::format(
             url.shown_path(crate::store::manifest::MANIFEST_FILE),
             "is not the dataset its publication record names (another fingerprint): push it again",
@@ -219,9 +229,10 @@ impl RemoteDataset {
     /// then pinned to that ETag.
     pub fn open_object(&self, relative: &str) -> Result<RemoteObject> {
         let shown = self.url().shown_path(relative);
-        let o = self.publication.object(relative).ok_or_else(|| {
-            Error::format(&shown, "not in the dataset's publication record")
-        })?;
+        let o = self
+            .publication
+            .object(relative)
+            .ok_or_else(|| Error::format(&shown, "not in the dataset's publication record"))?;
         let obj = RemoteObject::open(self.store.clone(), relative, self.cache.clone())?;
         use super::read_at::ReadAt;
         if obj.len() != o.bytes {
@@ -239,7 +250,9 @@ impl RemoteDataset {
         {
             return Err(Error::format(
                 &shown,
-                format!("ETag {now}, the publication record says {was}: it changed since it was published"),
+                format!(
+                    "ETag {now}, the publication record says {was}: it changed since it was published"
+                ),
             ));
         }
         Ok(obj)

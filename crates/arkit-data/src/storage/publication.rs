@@ -72,7 +72,10 @@ impl Publication {
         if bytes.len() > MAX_PUBLICATION_BYTES {
             return Err(Error::format(
                 shown,
-                format!("{} bytes, more than a publication record can be", bytes.len()),
+                format!(
+                    "{} bytes, more than a publication record can be",
+                    bytes.len()
+                ),
             ));
         }
         let p: Publication = serde_json::from_slice(bytes)
@@ -89,12 +92,17 @@ impl Publication {
         for o in &p.objects {
             let bad = o.path.is_empty()
                 || o.path.starts_with('/')
-                || o.path.split('/').any(|c| c.is_empty() || c == "." || c == "..")
+                || o.path
+                    .split('/')
+                    .any(|c| c.is_empty() || c == "." || c == "..")
                 || o.sha256.len() != 64;
             if bad {
                 return Err(Error::format(
                     shown,
-                    format!("names an object '{}' that cannot be part of a dataset", o.path),
+                    format!(
+                        "names an object '{}' that cannot be part of a dataset",
+                        o.path
+                    ),
                 ));
             }
         }
@@ -254,9 +262,11 @@ pub fn push(
     let remote_manifest = store.get_opt(crate::store::manifest::MANIFEST_FILE)?;
     let remote_fingerprint = match (&previous, &remote_manifest) {
         (Some(p), _) => Some(p.dataset_fingerprint.clone()),
-        (None, Some((bytes, _))) => serde_json::from_slice::<crate::store::manifest::Manifest>(bytes)
-            .ok()
-            .map(|m| crate::store::manifest::dataset_fingerprint(&m)),
+        (None, Some((bytes, _))) => {
+            serde_json::from_slice::<crate::store::manifest::Manifest>(bytes)
+                .ok()
+                .map(|m| crate::store::manifest::dataset_fingerprint(&m))
+        }
         (None, None) => None,
     };
     if let Some(theirs) = &remote_fingerprint
@@ -288,11 +298,9 @@ pub fn push(
             .zip(&local)
             .all(|(r, l)| r.path == l.path && r.sha256 == l.sha256 && r.bytes == l.bytes)
     {
-        let all_there = local.iter().all(|l| {
-            store
-                .head(&l.path)
-                .is_ok_and(|m| m.size == l.bytes)
-        });
+        let all_there = local
+            .iter()
+            .all(|l| store.head(&l.path).is_ok_and(|m| m.size == l.bytes));
         if all_there {
             summary.unchanged = local.len();
             on_bytes(total);
@@ -319,10 +327,21 @@ pub fn push(
             summary.uploaded_bytes += l.bytes;
             if l.bytes >= options.multipart_threshold {
                 summary.multipart += 1;
-                store.put_multipart(&l.path, &l.file, &l.sha256, options.part_bytes.max(5 << 20), on_bytes)?
+                store.put_multipart(
+                    &l.path,
+                    &l.file,
+                    &l.sha256,
+                    options.part_bytes.max(5 << 20),
+                    on_bytes,
+                )?
             } else {
                 let bytes = std::fs::read(&l.file).map_err(|e| Error::io(&l.file, e))?;
-                if Sha256::digest(&bytes).iter().map(|b| format!("{b:02x}")).collect::<String>() != l.sha256 {
+                if Sha256::digest(&bytes)
+                    .iter()
+                    .map(|b| format!("{b:02x}"))
+                    .collect::<String>()
+                    != l.sha256
+                {
                     return Err(Error::format(
                         &l.file,
                         "changed while it was being pushed; push again when no writer runs",
@@ -348,7 +367,10 @@ pub fn push(
         objects: published,
     };
     let text = serde_json::to_vec_pretty(&record).expect("the record serialises");
-    let sha: String = Sha256::digest(&text).iter().map(|b| format!("{b:02x}")).collect();
+    let sha: String = Sha256::digest(&text)
+        .iter()
+        .map(|b| format!("{b:02x}"))
+        .collect();
     store.put(PUBLICATION_FILE, Bytes::from(text), &sha)?;
     Ok(summary)
 }

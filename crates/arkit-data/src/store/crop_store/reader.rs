@@ -458,7 +458,10 @@ impl CropStore {
             .and_then(|f| f.as_ref())
             .ok_or_else(|| Error::invalid("crop store", format!("no samples shard {shard}")))?;
         let (at, len) = self.record_span(shard, row).ok_or_else(|| {
-            Error::invalid("crop store", format!("{}: no record {row}", part.path.display()))
+            Error::invalid(
+                "crop store",
+                format!("{}: no record {row}", part.path.display()),
+            )
         })?;
         Ok((part, at, len))
     }
