@@ -90,7 +90,7 @@ fn topology_for(
 /// One sample after another as the official loader returns them.
 #[pyclass(module = "arkit_tool._native", frozen)]
 struct Loader {
-    inner: FaceLoader,
+    inner: std::sync::Arc<FaceLoader>,
     /// The published dataset, when read from a bucket (kept for its mirror and client).
     remote: Option<arkit_data::storage::RemoteDataset>,
     /// The crop store as the user knows it: its folder, or its URL.
@@ -231,7 +231,7 @@ impl Loader {
             Ok((loader, remote, shown))
         })?;
         Ok(Loader {
-            inner,
+            inner: std::sync::Arc::new(inner),
             remote,
             store_shown,
         })
@@ -241,6 +241,53 @@ impl Loader {
     #[getter]
     fn url(&self) -> Option<String> {
         self.remote.as_ref().map(|r| r.url().to_string())
+    }
+
+    /// The crop-store record of sample `index` as stored (bytes): for carrying records
+    /// by another transport (the LitData comparison of python/bench/cloud.py).
+    fn record<'py>(&self, py: Python<'py>, index: usize) -> PyResult<Bound<'py, pyo3::types::PyBytes>> {
+        let bytes = run(py, || self.inner.record_bytes(index))?;
+        Ok(pyo3::types::PyBytes::new(py, &bytes))
+    }
+
+    /// Takes `records[k]` (what `record` gave) as the record of sample `indices[k]` for
+    /// its next item, each checked as a record read from the store is.
+    fn supply(
+        &self,
+        py: Python<'_>,
+        indices: Vec<usize>,
+        records: Vec<Bound<'_, pyo3::types::PyBytes>>,
+    ) -> PyResult<()> {
+        use pyo3::types::PyBytesMethods;
+        let records: Vec<Vec<u8>> = records.iter().map(|b| b.as_bytes().to_vec()).collect();
+        if indices.len() != records.len() {
+            return Err(DataError::new_err(format!(
+                "{} indices and {} records",
+                indices.len(),
+                records.len()
+            )));
+        }
+        run(py, || {
+            for (i, r) in indices.into_iter().zip(records) {
+                self.inner.supply_record(i, r)?;
+            }
+            Ok(())
+        })
+    }
+
+    /// Starts fetching the records of samples `indices` on a thread of its own and
+    /// returns at once (a no-op for a local store): the items of those samples wait for
+    /// it. For DataLoader workers, which do not fork again; at most 1,024 records kept.
+    fn prefetch_async(&self, indices: Vec<usize>) {
+        if !self.inner.crop_store().is_some_and(|s| s.is_remote()) {
+            return;
+        }
+        let loader = self.inner.clone();
+        std::thread::spawn(move || {
+            let _ = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+                loader.prefetch(&indices)
+            }));
+        });
     }
 
     /// Fetches the records of samples `indices` ahead (concurrently, from a bucket; a

@@ -252,6 +252,7 @@ class ARKitFaceDataset(_DatasetBase[_ItemT]):
             state["_epoch"] = int(self._epoch.value)
         state.pop("_batch_pool", None)
         state.pop("_segment_pool", None)
+        state.pop("_ahead", None)
         return state
 
     def __setstate__(self, state: Dict[str, Any]) -> None:
@@ -360,6 +361,8 @@ class ARKitFaceDataset(_DatasetBase[_ItemT]):
         native_corr: Corr = "sparse" if self.corr in ("dense", "both") else self.corr
         evaluation = self.mode == "eval"
         positions = [i for _, i in pairs]
+        if any(isinstance(i, tuple) for i in indices):
+            self._prefetch_ahead(epoch, positions)
         segment: Optional[_shared_batches.Segment] = None
         if _shared_batches.in_worker() and _shared_batches.enabled():
             # In a DataLoader worker: computed straight into shared memory that the
@@ -375,6 +378,39 @@ class ARKitFaceDataset(_DatasetBase[_ItemT]):
         if "torch" in sys.modules:
             _teach_default_collate()
         return ItemBatch(arrays, self.tensors, segment)
+
+    def _prefetch_ahead(self, epoch: int, positions: List[int]) -> None:
+        """From a bucket, in a DataLoader worker of `ds.loader`: starts fetching the
+        records of this worker's next two batches (torch hands a worker every
+        `num_workers`-th batch of the sampler's order, which this process can compute),
+        so that the network's wait overlaps this batch's work. Bounded: two batches
+        ahead, at most 1,024 records held. Nothing for a local dataset, outside a
+        worker, or when the order is not this dataset's one `EpochSampler`'s."""
+        if not positions or not is_url(self.path) or not _shared_batches.in_worker():
+            return
+        samplers = list(self._samplers or ())
+        if len(samplers) != 1:
+            return
+        import torch
+
+        info = torch.utils.data.get_worker_info()
+        sampler = samplers[0]
+        ahead = self.__dict__.get("_ahead")
+        if ahead is None or ahead[0] != (epoch, id(sampler)):
+            order = sampler.indices(epoch)
+            where: Dict[int, int] = {}
+            for k, p in enumerate(order):
+                where.setdefault(p, k)
+            ahead = self.__dict__["_ahead"] = ((epoch, id(sampler)), order, where)
+        _, order, where = ahead
+        k = where.get(positions[0])
+        if k is None or order[k:k + len(positions)] != positions:
+            return
+        step = info.num_workers * len(positions)
+        for d in (1, 2):
+            upcoming = order[k + d * step:k + d * step + len(positions)]
+            if upcoming:
+                self._loader.prefetch_async(upcoming)
 
     def _batch_in_segment(
         self, positions: List[int], epoch: int, corr: Corr, evaluation: bool

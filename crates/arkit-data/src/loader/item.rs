@@ -658,17 +658,21 @@ pub struct FaceLoader {
     /// Records fetched ahead by [`FaceLoader::prefetch`], by sample index (at most
     /// [`PREFETCH_RECORDS`]; the oldest dropped first).
     prefetched: std::sync::Mutex<Prefetched>,
+    /// Signalled when a fetch under way ends.
+    prefetch_done: std::sync::Condvar,
 }
 
 /// The most records [`FaceLoader::prefetch`] holds (bounded memory: about 50 KB a
 /// record at `S = 192`).
 const PREFETCH_RECORDS: usize = 1024;
 
-/// Records fetched ahead, by sample index, and the order they came in.
+/// Records fetched ahead, by sample index, and the order they came in; the indices
+/// whose fetch is under way (an item of one of them waits for it).
 #[derive(Debug, Default)]
 struct Prefetched {
     records: std::collections::HashMap<usize, StoredRecord>,
     order: std::collections::VecDeque<usize>,
+    in_flight: std::collections::HashSet<usize>,
 }
 
 impl FaceLoader {
@@ -751,6 +755,7 @@ impl FaceLoader {
             buffers: std::sync::Mutex::new(Vec::new()),
             store: None,
             prefetched: Default::default(),
+            prefetch_done: std::sync::Condvar::new(),
         })
     }
 
@@ -803,41 +808,97 @@ impl FaceLoader {
     /// reads it again and reports the error, naming it.
     pub fn prefetch(&self, indices: &[usize]) {
         let Some(store) = &self.store else { return };
-        let remote = store.is_remote();
-        if !remote {
+        if !store.is_remote() {
             return;
         }
-        let keys: Vec<(usize, (usize, usize), String)> = indices
-            .iter()
-            .filter(|i| {
-                !self
-                    .prefetched
-                    .lock()
-                    .unwrap_or_else(|p| p.into_inner())
-                    .records
-                    .contains_key(i)
-            })
-            .filter_map(|&i| {
-                self.rows
-                    .get(i)
-                    .map(|r| (i, r.location, r.sample.key.to_string()))
-            })
-            .collect();
+        let keys: Vec<(usize, (usize, usize), String)> = {
+            let mut p = self.prefetched.lock().unwrap_or_else(|p| p.into_inner());
+            let mut keys = Vec::new();
+            for &i in indices {
+                if p.records.contains_key(&i) || p.in_flight.contains(&i) {
+                    continue;
+                }
+                if let Some(r) = self.rows.get(i) {
+                    p.in_flight.insert(i);
+                    keys.push((i, r.location, r.sample.key.to_string()));
+                }
+            }
+            keys
+        };
+        if keys.is_empty() {
+            return;
+        }
         let wanted: Vec<(usize, usize, &str)> = keys
             .iter()
             .map(|(_, (shard, row), key)| (*shard, *row, key.as_str()))
             .collect();
         let got = store.read_many(&wanted);
+        self.keep_prefetched(
+            keys.iter()
+                .zip(got)
+                .filter_map(|((i, _, _), r)| r.ok().map(|record| (*i, record)))
+                .collect(),
+        );
         let mut p = self.prefetched.lock().unwrap_or_else(|p| p.into_inner());
-        for ((i, _, _), r) in keys.iter().zip(got) {
-            if let Ok(record) = r {
-                if p.records.insert(*i, record).is_none() {
-                    p.order.push_back(*i);
-                }
-                while p.order.len() > PREFETCH_RECORDS {
-                    if let Some(old) = p.order.pop_front() {
-                        p.records.remove(&old);
-                    }
+        for (i, _, _) in &keys {
+            p.in_flight.remove(i);
+        }
+        drop(p);
+        self.prefetch_done.notify_all();
+    }
+
+    /// The record of sample `index` fetched ahead, waiting for its fetch when one is
+    /// under way; `None` when there is none (the item reads it then).
+    fn take_prefetched(&self, index: usize) -> Option<StoredRecord> {
+        let mut p = self.prefetched.lock().unwrap_or_else(|p| p.into_inner());
+        loop {
+            if let Some(record) = p.records.remove(&index) {
+                p.order.retain(|&i| i != index);
+                return Some(record);
+            }
+            if !p.in_flight.contains(&index) {
+                return None;
+            }
+            p = self
+                .prefetch_done
+                .wait(p)
+                .unwrap_or_else(|p| p.into_inner());
+        }
+    }
+
+    /// The crop-store record of sample `index` as stored (its bytes, for a transport
+    /// of the caller's: see [`FaceLoader::supply_record`]); an error without a store.
+    pub fn record_bytes(&self, index: usize) -> Result<Vec<u8>> {
+        let row = self.row(index)?;
+        let store = self.store.as_ref().ok_or_else(|| {
+            Error::invalid("record", "the loader reads no crop store")
+        })?;
+        store.raw_record(row.location.0, row.location.1)
+    }
+
+    /// Takes `bytes` (what [`FaceLoader::record_bytes`] gave, carried by other means) as
+    /// the record of sample `index` for its next item, after every check a record read
+    /// from the store gets; kept as [`FaceLoader::prefetch`] keeps records.
+    pub fn supply_record(&self, index: usize, bytes: Vec<u8>) -> Result<()> {
+        let row = self.row(index)?;
+        let store = self.store.as_ref().ok_or_else(|| {
+            Error::invalid("record", "the loader reads no crop store")
+        })?;
+        let (shard, r) = row.location;
+        let record = store.record_from_bytes(shard, r, &row.sample.key.to_string(), bytes)?;
+        self.keep_prefetched(vec![(index, record)]);
+        Ok(())
+    }
+
+    fn keep_prefetched(&self, records: Vec<(usize, StoredRecord)>) {
+        let mut p = self.prefetched.lock().unwrap_or_else(|p| p.into_inner());
+        for (i, record) in records {
+            if p.records.insert(i, record).is_none() {
+                p.order.push_back(i);
+            }
+            while p.order.len() > PREFETCH_RECORDS {
+                if let Some(old) = p.order.pop_front() {
+                    p.records.remove(&old);
                 }
             }
         }
@@ -1048,15 +1109,7 @@ impl FaceLoader {
                 // The record must be this sample's (checked in every mode).
                 // The window is decoded when the crop is known, as much of it as the
                 // crop reaches.
-                let ahead = {
-                    let mut p = self.prefetched.lock().unwrap_or_else(|p| p.into_inner());
-                    let taken = p.records.remove(&index);
-                    if taken.is_some() {
-                        p.order.retain(|&i| i != index);
-                    }
-                    taken
-                };
-                let mut stored = match ahead {
+                let mut stored = match self.take_prefetched(index) {
                     Some(record) => record,
                     None => store.read(shard, r, &row.sample.key.to_string())?,
                 };

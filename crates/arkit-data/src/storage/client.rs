@@ -409,21 +409,15 @@ impl RemoteStore {
         }))
     }
 
-    /// The spans `(offset, length)` of `relative`, fetched concurrently (at most 64 in
-    /// flight), each checked for its length and for the ETag `etag` the object must
-    /// still have.
-    pub(crate) fn get_spans(
-        &self,
-        relative: &str,
-        etag: Option<&str>,
-        spans: &[(u64, u64)],
-    ) -> Result<Vec<Bytes>> {
+    /// Spans of several objects, `(relative, etag, offset, length)` each, fetched
+    /// concurrently (at most 64 in flight), in order.
+    pub(crate) fn get_spans_of(&self, wanted: &[(&str, Option<&str>, u64, u64)]) -> Result<Vec<Bytes>> {
         let (_, store) = self.client()?;
-        let path = self.path(relative);
-        let etag = etag.map(str::to_string);
         self.block_on(async {
-            let fetches = spans.iter().map(|&(at, len)| {
-                let (store, path, etag) = (store.clone(), path.clone(), etag.clone());
+            let fetches = wanted.iter().map(|&(relative, etag, at, len)| {
+                let path = self.path(relative);
+                let etag = etag.map(str::to_string);
+                let store = store.clone();
                 async move {
                     self.retrying(relative, &format!("GET bytes {at}..{}", at + len), || {
                         let (store, path, etag) = (store.clone(), path.clone(), etag.clone());
@@ -432,8 +426,10 @@ impl RemoteStore {
                     .await
                 }
             });
-            let results: Vec<Result<Bytes>> =
-                futures::stream::iter(fetches).buffered(64).collect().await;
+            let results: Vec<Result<Bytes>> = futures::stream::iter(fetches)
+                .buffered(64)
+                .collect()
+                .await;
             results.into_iter().collect()
         })
     }
@@ -749,6 +745,50 @@ impl RemoteObject {
         self.etag.as_deref()
     }
 
+    /// Spans of several objects of one store, `(object, offset, length)` each: those
+    /// cached served from the cache, the others fetched together (concurrently, one
+    /// ranged GET a span), each checked for its length and its object's ETag.
+    pub fn read_across(wanted: &[(&RemoteObject, u64, u64)]) -> Result<Vec<Vec<u8>>> {
+        for &(o, at, len) in wanted {
+            if at.checked_add(len).is_none_or(|end| end > o.len) {
+                return Err(Error::format(
+                    &o.shown,
+                    format!(
+                        "bytes {at}..{} asked of an object of {} bytes",
+                        at.saturating_add(len),
+                        o.len
+                    ),
+                ));
+            }
+        }
+        let ids: Vec<String> = wanted.iter().map(|(o, _, _)| o.cache_id()).collect();
+        let mut out: Vec<Option<Vec<u8>>> = wanted
+            .iter()
+            .zip(&ids)
+            .map(|(&(o, at, len), id)| o.cache.as_ref().and_then(|c| c.get(id, at, len)))
+            .collect();
+        let missing: Vec<usize> = (0..wanted.len()).filter(|&i| out[i].is_none()).collect();
+        if let Some(&first) = missing.first() {
+            let store = &wanted[first].0.store;
+            let requests: Vec<(&str, Option<&str>, u64, u64)> = missing
+                .iter()
+                .map(|&i| {
+                    let (o, at, len) = wanted[i];
+                    (o.relative.as_str(), o.etag.as_deref(), at, len)
+                })
+                .collect();
+            let fetched = store.get_spans_of(&requests)?;
+            for (&i, bytes) in missing.iter().zip(fetched) {
+                let (o, at, _) = wanted[i];
+                if let Some(c) = &o.cache {
+                    c.put(&ids[i], at, &bytes);
+                }
+                out[i] = Some(bytes.to_vec());
+            }
+        }
+        Ok(out.into_iter().map(|b| b.expect("every span read")).collect())
+    }
+
     fn cache_id(&self) -> String {
         format!(
             "{}#{}#{}",
@@ -775,40 +815,13 @@ impl ReadAt for RemoteObject {
     }
 
     fn read_spans(&self, spans: &[(u64, u64)]) -> Result<Vec<Vec<u8>>> {
-        for &(at, len) in spans {
-            if at.checked_add(len).is_none_or(|end| end > self.len) {
-                return Err(Error::format(
-                    &self.shown,
-                    format!(
-                        "bytes {at}..{} asked of an object of {} bytes",
-                        at.saturating_add(len),
-                        self.len
-                    ),
-                ));
-            }
-        }
-        let id = self.cache_id();
-        let mut out: Vec<Option<Vec<u8>>> = spans
-            .iter()
-            .map(|&(at, len)| self.cache.as_ref().and_then(|c| c.get(&id, at, len)))
-            .collect();
-        let missing: Vec<usize> = (0..spans.len()).filter(|&i| out[i].is_none()).collect();
-        if !missing.is_empty() {
-            let want: Vec<(u64, u64)> = missing.iter().map(|&i| spans[i]).collect();
-            let fetched = self
-                .store
-                .get_spans(&self.relative, self.etag.as_deref(), &want)?;
-            for (&i, bytes) in missing.iter().zip(fetched) {
-                if let Some(c) = &self.cache {
-                    c.put(&id, spans[i].0, &bytes);
-                }
-                out[i] = Some(bytes.to_vec());
-            }
-        }
-        Ok(out
-            .into_iter()
-            .map(|b| b.expect("every span read"))
-            .collect())
+        let wanted: Vec<(&RemoteObject, u64, u64)> =
+            spans.iter().map(|&(at, len)| (self, at, len)).collect();
+        RemoteObject::read_across(&wanted)
+    }
+
+    fn as_remote(&self) -> Option<&RemoteObject> {
+        Some(self)
     }
 
     fn forget(&self, offset: u64, len: u64) {
@@ -817,9 +830,6 @@ impl ReadAt for RemoteObject {
         }
     }
 
-    fn is_remote(&self) -> bool {
-        true
-    }
 }
 
 #[cfg(test)]

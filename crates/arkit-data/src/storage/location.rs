@@ -173,7 +173,7 @@ pub(crate) fn redact_url_text_in(text: &str) -> String {
         }
         if word.contains("://") {
             let end = word
-                .find(|c: char| c == '"' || c == ')' || c == ',')
+                .find(['"', ')', ','])
                 .unwrap_or(word.len());
             out.push_str(&redact_url_text(&word[..end]));
             out.push_str(&word[end..]);

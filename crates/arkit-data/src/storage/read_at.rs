@@ -45,7 +45,13 @@ pub trait ReadAt: Send + Sync + Debug {
 
     /// Whether reads go over a network (and a failed check is worth one more fetch).
     fn is_remote(&self) -> bool {
-        false
+        self.as_remote().is_some()
+    }
+
+    /// The object in a bucket this reads, if it is one (so that reads of several
+    /// objects can go out together: [`super::RemoteObject::read_across`]).
+    fn as_remote(&self) -> Option<&super::RemoteObject> {
+        None
     }
 }
 

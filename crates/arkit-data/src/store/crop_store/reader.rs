@@ -429,25 +429,70 @@ impl CropStore {
                 Err(e) => out[i] = Some(Err(e)),
             }
         }
+        // Every part's records in one go: one ranged GET a record, all in flight together.
+        let mut flat: Vec<(usize, usize, u64, u64)> = Vec::new();
         for (shard, items) in by_part {
-            let part = self.files[shard].as_ref().expect("located");
-            let spans: Vec<(u64, u64)> = items.iter().map(|&(_, at, len)| (at, len)).collect();
-            match part.file.read_spans(&spans) {
-                Ok(bytes) => {
-                    for (&(i, at, len), b) in items.iter().zip(bytes) {
-                        let (shard, row, key) = wanted[i];
-                        out[i] = Some(self.check_remote(part, (shard, row, key), (at, len), b));
-                    }
+            flat.extend(items.into_iter().map(|(i, at, len)| (shard, i, at, len)));
+        }
+        let objects: Option<Vec<(&crate::storage::RemoteObject, u64, u64)>> = flat
+            .iter()
+            .map(|&(shard, _, at, len)| {
+                let part = self.files[shard].as_ref().expect("located");
+                part.file.as_remote().map(|o| (o, at, len))
+            })
+            .collect();
+        let fetched = match objects {
+            Some(objects) => crate::storage::RemoteObject::read_across(&objects),
+            None => Err(Error::invalid("crop store", "a store of local and remote parts")),
+        };
+        match fetched {
+            Ok(bytes) => {
+                for (&(shard, i, at, len), b) in flat.iter().zip(bytes) {
+                    let part = self.files[shard].as_ref().expect("located");
+                    let (shard, row, key) = wanted[i];
+                    out[i] = Some(self.check_remote(part, (shard, row, key), (at, len), b));
                 }
-                Err(e) => {
-                    let msg = e.to_string();
-                    for &(i, _, _) in &items {
-                        out[i] = Some(Err(Error::invalid("crop store", msg.clone())));
-                    }
+            }
+            Err(e) => {
+                let msg = e.to_string();
+                for &(_, i, _, _) in &flat {
+                    out[i] = Some(Err(Error::invalid("crop store", msg.clone())));
                 }
             }
         }
         out.into_iter().map(|r| r.expect("every record")).collect()
+    }
+
+    /// The bytes of the record of row `row` of samples shard `shard`, as stored (not
+    /// checked: [`CropStore::record_from_bytes`] checks them).
+    pub fn raw_record(&self, shard: usize, row: usize) -> Result<Vec<u8>> {
+        let (part, at, len) = self.locate(shard, row)?;
+        Ok(part.file.read_spans(&[(at, len)])?.pop().expect("one span"))
+    }
+
+    /// `bytes` taken as the record of row `row` of samples shard `shard`, which must be
+    /// that of sample `key`: every check of [`CropStore::read`] (length, CRC, dataset,
+    /// shard, row and key) before anything of it is decoded.
+    pub fn record_from_bytes(
+        &self,
+        shard: usize,
+        row: usize,
+        key: &str,
+        mut bytes: Vec<u8>,
+    ) -> Result<StoredRecord> {
+        let (part, _, len) = self.locate(shard, row)?;
+        if bytes.len() as u64 != len {
+            return Err(Error::format(
+                &part.path,
+                format!(
+                    "record {row}: {} bytes given, the index says {len}",
+                    bytes.len()
+                ),
+            ));
+        }
+        let head_len = (len as usize).min(record_prefix(self.manifest.key_bytes));
+        let tail = bytes.split_off(head_len);
+        StoredRecord::from_bytes(&self.manifest, &part.path, (shard, row, key), bytes, tail)
     }
 
     /// The part, offset and length of row `row` of samples shard `shard`.
