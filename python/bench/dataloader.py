@@ -164,9 +164,10 @@ def main():
                   f"goal {goal}x; ms a sample, ours/theirs: {ms}) = {sorted(ratios)[ROUNDS // 2]:.1f}x")
 
 
-def synthetic_dataset(binary, tmp, samples, resources):
+def synthetic_dataset(binary, tmp, samples, resources, seed=1):
     """`samples` (rounded up to whole subjects of 16) 800x800 synthetic images in the
-    release's layout under `tmp/release` (the real topology when `resources` holds it),
+    release's layout under `tmp/release` (the real topology when `resources` holds it;
+    synth's `seed`),
     converted into `tmp/data`: (the dataset folder, the `--resources` arguments used,
     the number of images)."""
     res = ["--resources", resources] if (pathlib.Path(resources) / "triangles.npy").exists() else []
@@ -174,7 +175,7 @@ def synthetic_dataset(binary, tmp, samples, resources):
     subjects = max(1, (samples + per_subject - 1) // per_subject)
     subprocess.run([binary, "synth", "--output", tmp / "release", "--subjects", str(subjects),
                     "--images-per-subject", str(per_subject), "--size", "800x800",
-                    "--test-fraction", "0", "--seed", "1", *res], check=True, stdout=subprocess.DEVNULL)
+                    "--test-fraction", "0", "--seed", str(seed), *res], check=True, stdout=subprocess.DEVNULL)
     subprocess.run([binary, "convert", "--input", tmp / "release", "--output", tmp / "data", *res],
                    check=True, stdout=subprocess.DEVNULL)
     return tmp / "data", res, subjects * per_subject

@@ -245,7 +245,11 @@ impl Loader {
 
     /// The crop-store record of sample `index` as stored (bytes): for carrying records
     /// by another transport (the LitData comparison of python/bench/cloud.py).
-    fn record<'py>(&self, py: Python<'py>, index: usize) -> PyResult<Bound<'py, pyo3::types::PyBytes>> {
+    fn record<'py>(
+        &self,
+        py: Python<'py>,
+        index: usize,
+    ) -> PyResult<Bound<'py, pyo3::types::PyBytes>> {
         let bytes = run(py, || self.inner.record_bytes(index))?;
         Ok(pyo3::types::PyBytes::new(py, &bytes))
     }

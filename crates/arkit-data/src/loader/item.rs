@@ -870,9 +870,10 @@ impl FaceLoader {
     /// of the caller's: see [`FaceLoader::supply_record`]); an error without a store.
     pub fn record_bytes(&self, index: usize) -> Result<Vec<u8>> {
         let row = self.row(index)?;
-        let store = self.store.as_ref().ok_or_else(|| {
-            Error::invalid("record", "the loader reads no crop store")
-        })?;
+        let store = self
+            .store
+            .as_ref()
+            .ok_or_else(|| Error::invalid("record", "the loader reads no crop store"))?;
         store.raw_record(row.location.0, row.location.1)
     }
 
@@ -881,9 +882,10 @@ impl FaceLoader {
     /// from the store gets; kept as [`FaceLoader::prefetch`] keeps records.
     pub fn supply_record(&self, index: usize, bytes: Vec<u8>) -> Result<()> {
         let row = self.row(index)?;
-        let store = self.store.as_ref().ok_or_else(|| {
-            Error::invalid("record", "the loader reads no crop store")
-        })?;
+        let store = self
+            .store
+            .as_ref()
+            .ok_or_else(|| Error::invalid("record", "the loader reads no crop store"))?;
         let (shard, r) = row.location;
         let record = store.record_from_bytes(shard, r, &row.sample.key.to_string(), bytes)?;
         self.keep_prefetched(vec![(index, record)]);

@@ -411,7 +411,10 @@ impl RemoteStore {
 
     /// Spans of several objects, `(relative, etag, offset, length)` each, fetched
     /// concurrently (at most 64 in flight), in order.
-    pub(crate) fn get_spans_of(&self, wanted: &[(&str, Option<&str>, u64, u64)]) -> Result<Vec<Bytes>> {
+    pub(crate) fn get_spans_of(
+        &self,
+        wanted: &[(&str, Option<&str>, u64, u64)],
+    ) -> Result<Vec<Bytes>> {
         let (_, store) = self.client()?;
         self.block_on(async {
             let fetches = wanted.iter().map(|&(relative, etag, at, len)| {
@@ -426,10 +429,8 @@ impl RemoteStore {
                     .await
                 }
             });
-            let results: Vec<Result<Bytes>> = futures::stream::iter(fetches)
-                .buffered(64)
-                .collect()
-                .await;
+            let results: Vec<Result<Bytes>> =
+                futures::stream::iter(fetches).buffered(64).collect().await;
             results.into_iter().collect()
         })
     }
@@ -786,7 +787,10 @@ impl RemoteObject {
                 out[i] = Some(bytes.to_vec());
             }
         }
-        Ok(out.into_iter().map(|b| b.expect("every span read")).collect())
+        Ok(out
+            .into_iter()
+            .map(|b| b.expect("every span read"))
+            .collect())
     }
 
     fn cache_id(&self) -> String {
@@ -829,7 +833,6 @@ impl ReadAt for RemoteObject {
             c.forget(&self.cache_id(), offset, len);
         }
     }
-
 }
 
 #[cfg(test)]

@@ -172,9 +172,7 @@ pub(crate) fn redact_url_text_in(text: &str) -> String {
             out.push(' ');
         }
         if word.contains("://") {
-            let end = word
-                .find(['"', ')', ','])
-                .unwrap_or(word.len());
+            let end = word.find(['"', ')', ',']).unwrap_or(word.len());
             out.push_str(&redact_url_text(&word[..end]));
             out.push_str(&word[end..]);
         } else {

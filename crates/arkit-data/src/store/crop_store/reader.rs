@@ -443,7 +443,10 @@ impl CropStore {
             .collect();
         let fetched = match objects {
             Some(objects) => crate::storage::RemoteObject::read_across(&objects),
-            None => Err(Error::invalid("crop store", "a store of local and remote parts")),
+            None => Err(Error::invalid(
+                "crop store",
+                "a store of local and remote parts",
+            )),
         };
         match fetched {
             Ok(bytes) => {
