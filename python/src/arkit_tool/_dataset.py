@@ -394,6 +394,8 @@ class ARKitFaceDataset(_DatasetBase[_ItemT]):
         import torch
 
         info = torch.utils.data.get_worker_info()
+        if info is None:
+            return
         sampler = samplers[0]
         ahead = self.__dict__.get("_ahead")
         if ahead is None or ahead[0] != (epoch, id(sampler)):
@@ -403,12 +405,12 @@ class ARKitFaceDataset(_DatasetBase[_ItemT]):
                 where.setdefault(p, k)
             ahead = self.__dict__["_ahead"] = ((epoch, id(sampler)), order, where)
         _, order, where = ahead
-        k = where.get(positions[0])
-        if k is None or order[k:k + len(positions)] != positions:
+        at = where.get(positions[0])
+        if at is None or order[at:at + len(positions)] != positions:
             return
         step = info.num_workers * len(positions)
         for d in (1, 2):
-            upcoming = order[k + d * step:k + d * step + len(positions)]
+            upcoming = order[at + d * step:at + d * step + len(positions)]
             if upcoming:
                 self._loader.prefetch_async(upcoming)
 
