@@ -110,6 +110,26 @@ def test_dataloader_batches_from_the_bucket_equal_the_folders(store_dataset, env
     assert_same(batches(make(env.url("ds")), workers), batches(make(store_dataset), workers))
 
 
+def test_train_py_dataloader_from_the_bucket_equals_the_folders(store_dataset, env):
+    """train.py's plain DataLoader (torch's sampler; the workers read their queued batch
+    ahead): the same batches from the bucket, one GET a sample once the dataset is open
+    (opening reads each crop-store part's header, footer and index)."""
+    def run(ds):
+        torch.manual_seed(7)
+        loader = torch.utils.data.DataLoader(ds, batch_size=BATCH, shuffle=True, num_workers=2,
+                                             multiprocessing_context="fork", drop_last=True)
+        return [list(loader) for _ in range(2)]
+
+    want = run(make(store_dataset))
+    remote = make(env.url("ds"))
+    env.reset()
+    got = run(remote)
+    for a, b in zip(got, want):
+        assert_same(a, b)
+    samples = sum(len(batch["img"]) for epoch in got for batch in epoch)
+    assert env.stats()["requests_by_method"].get("GET", 0) == samples
+
+
 @pytest.mark.parametrize("first, then", [("bucket", "folder"), ("folder", "bucket")])
 def test_a_mid_epoch_state_resumes_with_the_other_backend(store_dataset, env, first, then):
     where = {"bucket": env.url("ds"), "folder": store_dataset}

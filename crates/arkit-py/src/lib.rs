@@ -283,15 +283,7 @@ impl Loader {
     /// returns at once (a no-op for a local store): the items of those samples wait for
     /// it. For DataLoader workers, which do not fork again; at most 1,024 records kept.
     fn prefetch_async(&self, indices: Vec<usize>) {
-        if !self.inner.crop_store().is_some_and(|s| s.is_remote()) {
-            return;
-        }
-        let loader = self.inner.clone();
-        std::thread::spawn(move || {
-            let _ = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
-                loader.prefetch(&indices)
-            }));
-        });
+        self.inner.prefetch_in_background(&indices);
     }
 
     /// Fetches the records of samples `indices` ahead (concurrently, from a bucket; a

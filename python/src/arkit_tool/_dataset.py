@@ -5,15 +5,18 @@ loaders (`sampling`)."""
 
 from __future__ import annotations
 
+import collections
 import multiprocessing
 import multiprocessing.context
 import os
+import queue
 import sys
 import weakref
 from typing import (
     TYPE_CHECKING,
     Any,
     Callable,
+    Deque,
     Dict,
     Generic,
     List,
@@ -363,6 +366,8 @@ class ARKitFaceDataset(_DatasetBase[_ItemT]):
         positions = [i for _, i in pairs]
         if any(isinstance(i, tuple) for i in indices):
             self._prefetch_ahead(epoch, positions)
+        else:
+            self._prefetch_queued()
         segment: Optional[_shared_batches.Segment] = None
         if _shared_batches.in_worker() and _shared_batches.enabled():
             # In a DataLoader worker: computed straight into shared memory that the
@@ -413,6 +418,26 @@ class ARKitFaceDataset(_DatasetBase[_ItemT]):
             upcoming = order[at + d * step:at + d * step + len(positions)]
             if upcoming:
                 self._loader.prefetch_async(upcoming)
+
+    def _prefetch_queued(self) -> None:
+        """From a bucket, in a worker of a plain DataLoader (the official train.py's,
+        whose sampler this process cannot see): starts fetching the records of the batch
+        torch has already queued for this worker (`_WorkerLookahead`), so that the
+        network's wait overlaps this batch's work. Nothing for a local dataset, outside a
+        worker, or when torch's worker loop is not the one this was written against."""
+        if not is_url(self.path) or not _shared_batches.in_worker():
+            return
+        lookahead = _WorkerLookahead.of_this_worker()
+        if lookahead is None:
+            return
+        n = len(self)
+        for queued in lookahead.peek(1):
+            if not (isinstance(queued, tuple) and len(queued) == 2 and isinstance(queued[1], list)):
+                continue
+            batch = queued[1]
+            if batch and all(isinstance(i, (int, np.integer)) and not isinstance(i, bool) and 0 <= i < n
+                             for i in batch):
+                self._loader.prefetch_async([int(i) for i in batch])
 
     def _batch_in_segment(
         self, positions: List[int], epoch: int, corr: Corr, evaluation: bool
@@ -548,6 +573,53 @@ class ARKitFaceDataset(_DatasetBase[_ItemT]):
 
         sampler = self.sampler(shuffle, seed, num_replicas, rank, remainder)
         return loader_class()(self, batch_size=batch_size, sampler=sampler, **kwargs)
+
+
+class _WorkerLookahead:
+    """The index queue of this DataLoader worker process, read one task ahead: torch's
+    worker loop (`torch.utils.data._utils.worker._worker_loop`) takes its next task with
+    `index_queue.get(...)`; this replaces that method on the queue object with one that
+    hands out first the tasks `peek` already took, in order, so `peek` can show the next
+    batch's indices while the current one is computed. Found once per process by its
+    frame (the loop's `index_queue`); `None` where it is not there (another torch), and
+    then nothing is read ahead."""
+
+    _this: Optional[Tuple[int, Optional[_WorkerLookahead]]] = None
+
+    def __init__(self, index_queue: Any) -> None:
+        self._queue = index_queue
+        self._get = index_queue.get
+        self._taken: Deque[Any] = collections.deque()
+        index_queue.get = self.get
+
+    def get(self, block: bool = True, timeout: Optional[float] = None) -> Any:
+        if self._taken:
+            return self._taken.popleft()
+        return self._get(block, timeout)
+
+    def peek(self, most: int) -> List[Any]:
+        """Up to `most` tasks queued for this worker, without waiting for any."""
+        while len(self._taken) < most:
+            try:
+                self._taken.append(self._get(False))
+            except queue.Empty:
+                break
+        return list(self._taken)[:most]
+
+    @classmethod
+    def of_this_worker(cls) -> Optional[_WorkerLookahead]:
+        this = cls._this
+        if this is not None and this[0] == os.getpid():
+            return this[1]
+        found: Optional[_WorkerLookahead] = None
+        frame = sys._getframe(1)
+        while frame is not None:
+            if frame.f_code.co_name == "_worker_loop" and "index_queue" in frame.f_locals:
+                found = cls(frame.f_locals["index_queue"])
+                break
+            frame = frame.f_back  # type: ignore[assignment]
+        cls._this = (os.getpid(), found)
+        return found
 
 
 # Batch arrays written over again once nobody holds them (`__getitems__`): arrays of a

@@ -807,24 +807,53 @@ impl FaceLoader {
     /// without a store or for a local one. A record that fails is not kept: its item
     /// reads it again and reports the error, naming it.
     pub fn prefetch(&self, indices: &[usize]) {
-        let Some(store) = &self.store else { return };
-        if !store.is_remote() {
+        let claimed = self.claim_prefetch(indices);
+        self.fetch_claimed(claimed);
+    }
+
+    /// [`FaceLoader::prefetch`] on a thread of its own: the records are claimed (marked
+    /// under way, so that the items of those samples wait for them) before this returns,
+    /// and fetched by the thread. For processes that do not fork afterwards (DataLoader
+    /// workers).
+    pub fn prefetch_in_background(self: &std::sync::Arc<Self>, indices: &[usize]) {
+        let claimed = self.claim_prefetch(indices);
+        if claimed.is_empty() {
             return;
         }
-        let keys: Vec<(usize, (usize, usize), String)> = {
-            let mut p = self.prefetched.lock().unwrap_or_else(|p| p.into_inner());
-            let mut keys = Vec::new();
-            for &i in indices {
-                if p.records.contains_key(&i) || p.in_flight.contains(&i) {
-                    continue;
-                }
-                if let Some(r) = self.rows.get(i) {
-                    p.in_flight.insert(i);
-                    keys.push((i, r.location, r.sample.key.to_string()));
-                }
-            }
-            keys
+        let loader = self.clone();
+        std::thread::spawn(move || {
+            let _ = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+                loader.fetch_claimed(claimed)
+            }));
+        });
+    }
+
+    /// Marks the records of `indices` that are neither held nor under way as under way:
+    /// their sample, location and key.
+    fn claim_prefetch(&self, indices: &[usize]) -> Vec<(usize, (usize, usize), String)> {
+        let Some(store) = &self.store else {
+            return Vec::new();
         };
+        if !store.is_remote() {
+            return Vec::new();
+        }
+        let mut p = self.prefetched.lock().unwrap_or_else(|p| p.into_inner());
+        let mut keys = Vec::new();
+        for &i in indices {
+            if p.records.contains_key(&i) || p.in_flight.contains(&i) {
+                continue;
+            }
+            if let Some(r) = self.rows.get(i) {
+                p.in_flight.insert(i);
+                keys.push((i, r.location, r.sample.key.to_string()));
+            }
+        }
+        keys
+    }
+
+    /// Fetches the claimed records, keeps those that check out, and ends their claims.
+    fn fetch_claimed(&self, keys: Vec<(usize, (usize, usize), String)>) {
+        let Some(store) = &self.store else { return };
         if keys.is_empty() {
             return;
         }
