@@ -11,12 +11,12 @@ import multiprocessing.context
 import os
 import queue
 import sys
+import threading
 import weakref
 from typing import (
     TYPE_CHECKING,
     Any,
     Callable,
-    Deque,
     Dict,
     Generic,
     List,
@@ -421,23 +421,24 @@ class ARKitFaceDataset(_DatasetBase[_ItemT]):
 
     def _prefetch_queued(self) -> None:
         """From a bucket, in a worker of a plain DataLoader (the official train.py's,
-        whose sampler this process cannot see): starts fetching the records of the batch
-        torch has already queued for this worker (`_WorkerLookahead`), so that the
-        network's wait overlaps this batch's work. Nothing for a local dataset, outside a
-        worker, or when torch's worker loop is not the one this was written against."""
+        whose sampler runs in the training process): has `_WorkerLookahead` start each
+        batch's fetch as soon as torch assigns the batch to this worker, so that the
+        network's wait overlaps the work of the batch before it. Nothing for a local
+        dataset, outside a worker, or when torch's worker loop is not the one this was
+        written against."""
         if not is_url(self.path) or not _shared_batches.in_worker():
             return
-        lookahead = _WorkerLookahead.of_this_worker()
-        if lookahead is None:
+        _WorkerLookahead.of_this_worker(self._prefetch_task)
+
+    def _prefetch_task(self, task: Any) -> None:
+        """Starts the fetch of a batch task `(idx, indices)` torch sent this worker."""
+        if not (isinstance(task, tuple) and len(task) == 2 and isinstance(task[1], list)):
             return
         n = len(self)
-        for queued in lookahead.peek(1):
-            if not (isinstance(queued, tuple) and len(queued) == 2 and isinstance(queued[1], list)):
-                continue
-            batch = queued[1]
-            if batch and all(isinstance(i, (int, np.integer)) and not isinstance(i, bool) and 0 <= i < n
-                             for i in batch):
-                self._loader.prefetch_async([int(i) for i in batch])
+        batch = task[1]
+        if batch and all(isinstance(i, (int, np.integer)) and not isinstance(i, bool) and 0 <= i < n
+                         for i in batch):
+            self._loader.prefetch_async([int(i) for i in batch])
 
     def _batch_in_segment(
         self, positions: List[int], epoch: int, corr: Corr, evaluation: bool
@@ -576,38 +577,44 @@ class ARKitFaceDataset(_DatasetBase[_ItemT]):
 
 
 class _WorkerLookahead:
-    """The index queue of this DataLoader worker process, read one task ahead: torch's
-    worker loop (`torch.utils.data._utils.worker._worker_loop`) takes its next task with
-    `index_queue.get(...)`; this replaces that method on the queue object with one that
-    hands out first the tasks `peek` already took, in order, so `peek` can show the next
-    batch's indices while the current one is computed. Found once per process by its
-    frame (the loop's `index_queue`); `None` where it is not there (another torch), and
-    then nothing is read ahead."""
+    """This DataLoader worker's index queue, drained by a thread: torch's worker loop
+    (`torch.utils.data._utils.worker._worker_loop`) takes its next task with
+    `index_queue.get(...)`; that method of the queue object is replaced by one that hands
+    out, in order, the tasks the thread took, and the thread shows each task to
+    `on_task` as soon as it arrives (a batch's records are then fetched while the batch
+    before it is computed). Found once per process by its frame (the loop's
+    `index_queue`); where it is not there (another torch), nothing changes."""
 
     _this: Optional[Tuple[int, Optional[_WorkerLookahead]]] = None
 
-    def __init__(self, index_queue: Any) -> None:
-        self._queue = index_queue
+    def __init__(self, index_queue: Any, on_task: Callable[[Any], None]) -> None:
         self._get = index_queue.get
-        self._taken: Deque[Any] = collections.deque()
+        self._tasks: queue.Queue[Any] = queue.Queue()
+        self._on_task = on_task
         index_queue.get = self.get
+        threading.Thread(target=self._drain, name="arkit-lookahead", daemon=True).start()
+
+    def _drain(self) -> None:
+        while True:
+            try:
+                task = self._get(True, 1.0)
+            except queue.Empty:
+                continue
+            except Exception:  # the queue closed as the worker ends
+                return
+            self._tasks.put(task)
+            if task is None:  # torch's final signal
+                return
+            try:
+                self._on_task(task)
+            except Exception:  # a fetch ahead only saves time; the item reports errors
+                pass
 
     def get(self, block: bool = True, timeout: Optional[float] = None) -> Any:
-        if self._taken:
-            return self._taken.popleft()
-        return self._get(block, timeout)
-
-    def peek(self, most: int) -> List[Any]:
-        """Up to `most` tasks queued for this worker, without waiting for any."""
-        while len(self._taken) < most:
-            try:
-                self._taken.append(self._get(False))
-            except queue.Empty:
-                break
-        return list(self._taken)[:most]
+        return self._tasks.get(block, timeout)
 
     @classmethod
-    def of_this_worker(cls) -> Optional[_WorkerLookahead]:
+    def of_this_worker(cls, on_task: Callable[[Any], None]) -> Optional[_WorkerLookahead]:
         this = cls._this
         if this is not None and this[0] == os.getpid():
             return this[1]
@@ -615,7 +622,7 @@ class _WorkerLookahead:
         frame = sys._getframe(1)
         while frame is not None:
             if frame.f_code.co_name == "_worker_loop" and "index_queue" in frame.f_locals:
-                found = cls(frame.f_locals["index_queue"])
+                found = cls(frame.f_locals["index_queue"], on_task)
                 break
             frame = frame.f_back  # type: ignore[assignment]
         cls._this = (os.getpid(), found)
