@@ -113,7 +113,7 @@ def test_dataloader_batches_from_the_bucket_equal_the_folders(store_dataset, env
 def test_train_py_dataloader_from_the_bucket_equals_the_folders(store_dataset, env):
     """train.py's plain DataLoader (torch's sampler; the workers read their queued batch
     ahead): the same batches from the bucket, one GET a sample once the dataset is open
-    (opening reads each crop-store part's header, footer and index)."""
+    (opening reads each crop-store part's header, then its index and footer)."""
     def run(ds):
         torch.manual_seed(7)
         loader = torch.utils.data.DataLoader(ds, batch_size=BATCH, shuffle=True, num_workers=2,

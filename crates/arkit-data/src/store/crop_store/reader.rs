@@ -114,14 +114,14 @@ fn read_index(
     if len < HEADER_BYTES + index_bytes + FOOTER_BYTES {
         return Err(truncated("too short for its header, index and footer"));
     }
-    let mut footer = [0u8; FOOTER_BYTES as usize];
-    file.read_exact_at(&mut footer, len - FOOTER_BYTES)?;
+    // The index and the footer after it, in one read (one request from a bucket).
+    let index_at = len - FOOTER_BYTES - index_bytes;
+    let mut index = vec![0u8; (index_bytes + FOOTER_BYTES) as usize];
+    file.read_exact_at(&mut index, index_at)?;
+    let footer = index.split_off(index_bytes as usize);
     if &footer[..8] != INDEX_MAGIC {
         return Err(truncated("no index footer at its end"));
     }
-    let index_at = len - FOOTER_BYTES - index_bytes;
-    let mut index = vec![0u8; index_bytes as usize];
-    file.read_exact_at(&mut index, index_at)?;
     if crc32fast::hash(&index).to_le_bytes() != footer[8..12] {
         return Err(Error::format(
             path,
