@@ -39,7 +39,7 @@ impl RecordCache {
 
     fn entry(&self, id: &str, at: u64, len: u64) -> PathBuf {
         let digest = Sha256::digest(format!("{id}@{at}+{len}").as_bytes());
-        let hex: String = digest[..16].iter().map(|b| format!("{b:02x}")).collect();
+        let hex = crate::store::manifest::hex(&digest[..16]);
         self.dir.join(&hex[..2]).join(&hex[2..])
     }
 

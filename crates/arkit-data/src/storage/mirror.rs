@@ -7,6 +7,7 @@ use super::cache::RecordCache;
 use super::client::{RemoteObject, RemoteStore};
 use super::location::RemoteUrl;
 use super::publication::{Publication, PublishedObject};
+use crate::store::manifest::hex;
 use arkit_core::{Error, Result};
 use sha2::{Digest, Sha256};
 use std::path::{Path, PathBuf};
@@ -87,10 +88,6 @@ fn default_cache_dir() -> PathBuf {
         Some(h) => PathBuf::from(h).join(".cache").join("arkit-tool"),
         None => std::env::temp_dir().join("arkit-tool-cache"),
     }
-}
-
-fn hex(bytes: &[u8]) -> String {
-    bytes.iter().map(|b| format!("{b:02x}")).collect()
 }
 
 /// Opens the dataset published at `url`: reads its publication record (an error naming
@@ -202,7 +199,7 @@ impl RemoteDataset {
             return Ok(local);
         }
         let shown = self.url().shown_path(&o.path);
-        let (bytes, etag) = self.store.get(&o.path)?;
+        let (bytes, _) = self.store.get(&o.path)?;
         let sha = hex(&Sha256::digest(&bytes));
         if bytes.len() as u64 != o.bytes || sha != o.sha256 {
             return Err(Error::format(
@@ -216,7 +213,6 @@ impl RemoteDataset {
                 ),
             ));
         }
-        let _ = etag;
         if let Some(parent) = local.parent() {
             std::fs::create_dir_all(parent).map_err(|e| Error::io(parent, e))?;
         }

@@ -6,6 +6,7 @@
 use super::client::RemoteStore;
 use super::location::RemoteUrl;
 use crate::store::Dataset;
+use crate::store::manifest::hex;
 use arkit_core::{Error, Result};
 use bytes::Bytes;
 use serde::{Deserialize, Serialize};
@@ -246,8 +247,32 @@ pub fn push(
 ) -> Result<PushSummary> {
     let dataset = Dataset::open(dir)?;
     let fingerprint = crate::store::manifest::dataset_fingerprint(dataset.manifest());
-    crate::ingest::convert::verify_dataset(dir)?;
     let local = local_objects(dir)?;
+    // What `inspect --verify` checks, from the hashes just taken (each file read once):
+    // every samples and errors file the manifest names, against its full SHA-256.
+    for s in dataset.shards() {
+        for (file, sha) in [
+            (&s.samples_file, &s.sha256),
+            (&s.errors_file, &s.errors_sha256),
+        ] {
+            let path = dir.join(file);
+            match local.iter().find(|o| o.path == *file) {
+                Some(o) if o.sha256 == *sha => {}
+                Some(_) => {
+                    return Err(Error::format(
+                        &path,
+                        "its SHA-256 differs from the manifest's: the file changed after convert wrote it; rerun `arkit-tool convert`",
+                    ));
+                }
+                None => {
+                    return Err(Error::format(
+                        &path,
+                        "named by dataset.json but not in the folder; rerun `arkit-tool convert`",
+                    ));
+                }
+            }
+        }
+    }
     let total: u64 = local.iter().map(|o| o.bytes).sum();
     on_total(total);
     let store: Arc<RemoteStore> = RemoteStore::with_settings(url, &options.settings)?;
@@ -336,12 +361,7 @@ pub fn push(
                 )?
             } else {
                 let bytes = std::fs::read(&l.file).map_err(|e| Error::io(&l.file, e))?;
-                if Sha256::digest(&bytes)
-                    .iter()
-                    .map(|b| format!("{b:02x}"))
-                    .collect::<String>()
-                    != l.sha256
-                {
+                if hex(&Sha256::digest(&bytes)) != l.sha256 {
                     return Err(Error::format(
                         &l.file,
                         "changed while it was being pushed; push again when no writer runs",
@@ -367,10 +387,7 @@ pub fn push(
         objects: published,
     };
     let text = serde_json::to_vec_pretty(&record).expect("the record serialises");
-    let sha: String = Sha256::digest(&text)
-        .iter()
-        .map(|b| format!("{b:02x}"))
-        .collect();
+    let sha = hex(&Sha256::digest(&text));
     store.put(PUBLICATION_FILE, Bytes::from(text), &sha)?;
     Ok(summary)
 }
