@@ -35,6 +35,7 @@ import argparse
 import json
 import os
 import pathlib
+import resource
 import shutil
 import statistics
 import subprocess
@@ -50,6 +51,12 @@ ROOT = HERE.parents[1]
 sys.path.insert(0, str(HERE))
 
 ACCESS, SECRET, BUCKET = "bench-access", "bench-secret-0f3k", "arkit"
+
+
+def own_cpu_seconds():
+    """User and system CPU seconds of this process and its reaped children."""
+    me, kids = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
+    return me.ru_utime + me.ru_stime + kids.ru_utime + kids.ru_stime
 
 
 def cpu_seconds(pid):
@@ -191,6 +198,7 @@ def main():
         times = {k: [] for k in loaders}
         first = {k: [] for k in loaders}
         server_share = {k: [] for k in loaders}
+        client_us = {k: [] for k in loaders}
         traffic = {}
         for rnd in range(a.rounds + 1):
             for name, ld in loaders.items():
@@ -204,6 +212,7 @@ def main():
                     # release's 40 GB of records), so that each epoch streams.
                     shutil.rmtree(tmp / "litdata-cache", ignore_errors=True)
                 server_cpu = cpu_seconds(server.pid)
+                client_cpu = own_cpu_seconds()
                 started = time.perf_counter()
                 count, t_first = 0, None
                 for batch in ld:
@@ -212,6 +221,9 @@ def main():
                     count += len(batch["img"])
                 elapsed = time.perf_counter() - started
                 server_share[name].append((cpu_seconds(server.pid) - server_cpu) / elapsed)
+                # The workers are reaped at the end of each epoch (not persistent), so
+                # their CPU is in this process's children's by now.
+                client_us[name].append((own_cpu_seconds() - client_cpu) * 1e6 / count)
                 if rnd == 1:
                     s = control(proxy, "stats")
                     traffic[name] = (s["requests_by_method"].get("GET", 0), s["response_body_bytes"], count)
@@ -226,6 +238,9 @@ def main():
             if not name.startswith("disk"):
                 print(f"{name}: the S3 server and proxy, on this machine's cores too, used "
                       f"{statistics.median(server_share[name]):.2f} cores during the epoch")
+        for name in loaders:
+            print(f"{name}: the loader's CPU (main process and workers): "
+                  f"{statistics.median(client_us[name]):.0f} us a sample")
         for name, (gets, body, count) in traffic.items():
             if name.startswith("disk"):
                 continue
@@ -236,6 +251,9 @@ def main():
               "(goal >= 0.9)")
         print(f"ratio: bucket / disk samples a second, ds.loader = "
               f"{med['bucket ds.loader'] / med['disk ds.loader']:.2f} (goal >= 0.9)")
+        cpu = {k: statistics.median(v) for k, v in client_us.items()}
+        print(f"ratio: disk / bucket loader CPU a sample, train.py's DataLoader = {cpu['disk'] / cpu['bucket']:.2f} "
+              "(the bucket's ceiling against the disk with the server on other machines)")
         if "litdata" in med:
             print(f"ratio: bucket / litdata samples a second = {med['bucket'] / med['litdata']:.2f} (goal >= 2)")
         gets, body, count = traffic["bucket"]

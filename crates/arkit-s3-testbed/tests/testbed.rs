@@ -9,7 +9,9 @@ use std::time::{Duration, Instant};
 use arkit_s3_testbed::{Fault, FaultPlan, FaultProxy, FaultRule, S3Server};
 use object_store::aws::{AmazonS3, AmazonS3Builder};
 use object_store::path::Path;
-use object_store::{BackoffConfig, ObjectStore, ObjectStoreExt, PutPayload, RetryConfig};
+use object_store::{
+    BackoffConfig, GetOptions, GetRange, ObjectStore, ObjectStoreExt, PutPayload, RetryConfig,
+};
 
 const ACCESS: &str = "testbed-access";
 const SECRET: &str = "testbed-secret-key";
@@ -147,6 +149,87 @@ async fn direct_round_trip_range_list_head_etag() {
             .join("shards/part-1.bin")
             .is_file()
     );
+}
+
+/// The server's own object reads: every range of an object (suffix, open end, one
+/// byte, pieces over 1 MiB) is the file's bytes, the GET's `ETag` is the HEAD's, a
+/// rewritten object is read anew, and `If-Match` with another `ETag` is refused with
+/// 412 (which the client reports as a changed precondition).
+#[tokio::test]
+async fn get_ranges_etag_and_if_match() {
+    let (_dir, server) = server();
+    let store = client(&server.endpoint(), SECRET, 0);
+    let key = Path::from("crops/part-0.bin");
+    let data = payload(3 * 1024 * 1024 + 17, 5);
+    put(&store, "crops/part-0.bin", &data).await;
+    let n = data.len() as u64;
+    for range in [
+        GetRange::Bounded(0..1),
+        GetRange::Bounded(4_096..53_000),
+        GetRange::Bounded(1_000_000..n),
+        GetRange::Offset(n - 5),
+        GetRange::Suffix(70_000),
+    ] {
+        let got = store
+            .get_opts(
+                &key,
+                GetOptions {
+                    range: Some(range.clone()),
+                    ..GetOptions::default()
+                },
+            )
+            .await
+            .unwrap();
+        let want = match &range {
+            GetRange::Bounded(r) => r.start as usize..r.end as usize,
+            GetRange::Offset(o) => *o as usize..data.len(),
+            GetRange::Suffix(s) => data.len() - *s as usize..data.len(),
+        };
+        assert_eq!(got.meta.size, n, "{range:?}");
+        assert_eq!(&got.bytes().await.unwrap()[..], &data[want], "{range:?}");
+    }
+    assert_eq!(get(&store, "crops/part-0.bin").await.unwrap(), data);
+
+    let etag = store.head(&key).await.unwrap().e_tag.unwrap();
+    let read = |if_match: Option<String>| {
+        let store = &store;
+        let key = &key;
+        async move {
+            store
+                .get_opts(
+                    key,
+                    GetOptions {
+                        range: Some(GetRange::Bounded(10..20)),
+                        if_match,
+                        ..GetOptions::default()
+                    },
+                )
+                .await
+        }
+    };
+    let pinned = read(Some(etag.clone())).await.unwrap();
+    assert_eq!(pinned.meta.e_tag.as_deref(), Some(etag.as_str()));
+    let refused = read(Some("\"0123456789abcdef0123456789abcdef\"".into()))
+        .await
+        .unwrap_err();
+    assert!(
+        matches!(refused, object_store::Error::Precondition { .. }),
+        "{refused}"
+    );
+
+    // Rewritten: the new bytes, a new ETag, and the old ETag refused.
+    let again = payload(200_000, 6);
+    put(&store, "crops/part-0.bin", &again).await;
+    let got = read(None).await.unwrap();
+    let new_etag = got.meta.e_tag.clone().unwrap();
+    assert_ne!(new_etag, etag);
+    assert_eq!(&got.bytes().await.unwrap()[..], &again[10..20]);
+    assert!(matches!(
+        read(Some(etag)).await.unwrap_err(),
+        object_store::Error::Precondition { .. }
+    ));
+    let beyond = store.get_range(&key, 300_000..300_010).await.unwrap_err();
+    assert!(!beyond.to_string().is_empty());
 }
 
 #[tokio::test]
