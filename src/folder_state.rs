@@ -2,7 +2,8 @@
 //! samples `convert` wrote (complete, torn by an interrupted run, or damaged), the
 //! targets of `render` (`targets/`: how many of the shards are finished), the crop
 //! stores of `crops` (`crops/*/`), and the temporaries killed writers left behind
-//! (`.NAME.tmp-PID`, [`arkit_core::atomic_file::is_temporary_name`]).
+//! (`.NAME.tmp-TOKEN`, [`arkit_core::atomic_file::leftovers`]: each with its size and
+//! whether its writer is gone, told by its lock).
 //!
 //! Every writer publishes a file by renaming a complete temporary over it, and writes
 //! its folder's record last (`dataset.json`, `targets/`'s shard pairs, `crops.json`),
@@ -53,8 +54,12 @@ pub struct OutputState {
 pub struct Temporary {
     /// Relative to the dataset.
     pub path: String,
-    /// Whether the process that its name ends with (`.tmp-PID`) is running.
-    pub writer_running: bool,
+    /// Its size in bytes (a folder's: its files').
+    pub bytes: u64,
+    /// `true`: its writer is gone (no process holds its lock), and `arkit-tool clean`
+    /// (or the next run of the command that writes there) removes it; `false`: a
+    /// running writer holds it; `null`: the file system gives no locks to tell.
+    pub abandoned: Option<bool>,
 }
 
 /// The state of every output of a dataset folder.
@@ -78,7 +83,7 @@ impl FolderState {
         self.samples.state == State::Complete
             && self.targets.as_ref().is_none_or(ok)
             && self.crop_stores.iter().all(ok)
-            && self.temporaries.iter().all(|t| t.writer_running)
+            && self.temporaries.iter().all(|t| t.abandoned == Some(false))
     }
 
     /// The lines `inspect` prints (no indentation).
@@ -87,28 +92,29 @@ impl FolderState {
         out.extend(self.targets.iter().map(|t| t.message.clone()));
         out.extend(self.crop_stores.iter().map(|c| c.message.clone()));
         if !self.temporaries.is_empty() {
-            let dead = self
-                .temporaries
-                .iter()
-                .filter(|t| !t.writer_running)
-                .count();
-            let names: Vec<&str> = self
-                .temporaries
-                .iter()
-                .take(3)
-                .map(|t| t.path.as_str())
-                .collect();
-            let more = if self.temporaries.len() > 3 {
-                ", ..."
-            } else {
-                ""
-            };
-            out.push(format!(
-                "temporaries: {} ({}{more}); {dead} left by killed runs (the next run of the command that writes there removes them), {} being written by a running one",
+            let count =
+                |v: Option<bool>| self.temporaries.iter().filter(|t| t.abandoned == v).count();
+            let (dead, live, unknown) = (count(Some(true)), count(Some(false)), count(None));
+            let bytes: u64 = self.temporaries.iter().map(|t| t.bytes).sum();
+            let mut line = format!(
+                "temporaries: {} ({}): {dead} abandoned by killed runs (`arkit-tool clean` or the next run of the command that writes there removes them), {live} being written by a running one",
                 self.temporaries.len(),
-                names.join(", "),
-                self.temporaries.len() - dead
-            ));
+                human_bytes(bytes)
+            );
+            if unknown > 0 {
+                line.push_str(&format!(
+                    ", {unknown} of unknown state (this file system gives no locks: `arkit-tool clean --force` when no writer runs)"
+                ));
+            }
+            out.push(line);
+            for t in &self.temporaries {
+                let state = match t.abandoned {
+                    Some(true) => "abandoned",
+                    Some(false) => "being written",
+                    None => "unknown",
+                };
+                out.push(format!("  {} ({}, {state})", t.path, human_bytes(t.bytes)));
+            }
         }
         out
     }
@@ -593,34 +599,28 @@ fn crop_store_state(
 
 /// The temporaries under `dir` (its sub-folders included), sorted.
 fn temporaries(dir: &Path) -> Vec<Temporary> {
-    let mut out = Vec::new();
-    let mut stack = vec![dir.to_path_buf()];
-    while let Some(d) = stack.pop() {
-        let Ok(entries) = std::fs::read_dir(&d) else {
-            continue;
-        };
-        for e in entries.flatten() {
-            let Ok(kind) = e.file_type() else { continue };
-            if kind.is_dir() {
-                stack.push(e.path());
-                continue;
-            }
-            let name = e.file_name().to_string_lossy().into_owned();
-            if kind.is_file() && arkit_core::atomic_file::is_temporary_name(&name) {
-                let pid = name.rsplit_once(".tmp-").map_or("", |(_, p)| p);
-                let path = e.path();
-                out.push(Temporary {
-                    path: path
-                        .strip_prefix(dir)
-                        .unwrap_or(&path)
-                        .display()
-                        .to_string(),
-                    writer_running: Path::new("/proc/self").exists()
-                        && Path::new(&format!("/proc/{pid}")).exists(),
-                });
-            }
-        }
+    let found = arkit_core::atomic_file::leftovers(dir, true).unwrap_or_default();
+    found
+        .into_iter()
+        .map(|l| Temporary {
+            path: l
+                .path
+                .strip_prefix(dir)
+                .unwrap_or(&l.path)
+                .display()
+                .to_string(),
+            bytes: l.bytes,
+            abandoned: l.abandoned,
+        })
+        .collect()
+}
+
+/// `bytes` for people: `812 B`, `3.4 MB`, `2.1 GB`.
+pub fn human_bytes(bytes: u64) -> String {
+    match bytes {
+        b if b < 1_000 => format!("{b} B"),
+        b if b < 1_000_000 => format!("{:.1} kB", b as f64 / 1e3),
+        b if b < 1_000_000_000 => format!("{:.1} MB", b as f64 / 1e6),
+        b => format!("{:.1} GB", b as f64 / 1e9),
     }
-    out.sort_by(|a, b| a.path.cmp(&b.path));
-    out
 }

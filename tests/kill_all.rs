@@ -369,9 +369,77 @@ fn replace_bytes(bytes: &[u8], from: &[u8], to: &[u8]) -> Vec<u8> {
     out
 }
 
-/// Runs `command` with the output's `what` paused before its rename, then kills it.
-/// Returns the temporary the writer had completed (as it reported it).
-fn kill_before_rename(mut command: Command, what: &str) -> String {
+/// How a killed writer ends, and what its process id then says.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord)]
+enum Death {
+    /// Killed and reaped: its process id names no process.
+    Reaped,
+    /// Killed and left a zombie (its parent, the harness, does not reap it until the
+    /// rerun and the check for leftovers are done): its process id still names a
+    /// process, as in a container whose PID 1 reaps nothing.
+    Zombie,
+    /// Run as PID 1 of a PID namespace of its own (`unshare --pid`), then killed: the
+    /// process id it knew itself by names a live process here (PID 1 always runs), as
+    /// another node's or another container's would.
+    OtherPidNamespace,
+}
+
+impl Death {
+    const ALL: [Death; 3] = [Death::Reaped, Death::Zombie, Death::OtherPidNamespace];
+
+    fn name(self) -> &'static str {
+        match self {
+            Death::Reaped => "reaped",
+            Death::Zombie => "zombie",
+            Death::OtherPidNamespace => "own PID namespace",
+        }
+    }
+}
+
+/// Whether `unshare --pid` works here (root, or user namespaces allowed).
+fn pid_namespaces() -> bool {
+    static WORKS: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
+    *WORKS.get_or_init(|| {
+        Command::new("unshare")
+            .args(["--pid", "--fork", "--kill-child", "--mount-proc", "true"])
+            .stdout(Stdio::null())
+            .stderr(Stdio::null())
+            .status()
+            .is_ok_and(|s| s.success())
+    })
+}
+
+/// `command` run as PID 1 of a new PID namespace (killed with `unshare`).
+fn in_own_pid_namespace(command: &Command) -> Command {
+    let mut c = Command::new("unshare");
+    c.args(["--pid", "--fork", "--kill-child", "--mount-proc"])
+        .arg(command.get_program())
+        .args(command.get_args());
+    for (k, v) in command.get_envs() {
+        match v {
+            Some(v) => c.env(k, v),
+            None => c.env_remove(k),
+        };
+    }
+    if let Some(d) = command.get_current_dir() {
+        c.current_dir(d);
+    }
+    c
+}
+
+/// Runs `command` with the output's `what` paused before its rename, then kills it
+/// the way `death` says. Returns the temporary the writer had completed (as it
+/// reported it), and the killed process when it is left a zombie (the caller reaps it
+/// once it has checked what the writer left).
+fn kill_before_rename(
+    command: Command,
+    what: &str,
+    death: Death,
+) -> (String, Option<std::process::Child>) {
+    let mut command = match death {
+        Death::OtherPidNamespace => in_own_pid_namespace(&command),
+        _ => command,
+    };
     let mut child = command
         .env(arkit_core::atomic_file::PAUSE_BEFORE_RENAME, what)
         .stdout(Stdio::null())
@@ -397,9 +465,27 @@ fn kill_before_rename(mut command: Command, what: &str) -> String {
     });
     let got = rx.recv_timeout(Duration::from_secs(300));
     child.kill().unwrap();
-    child.wait().unwrap();
+    let zombie = match death {
+        Death::Zombie => {
+            // Dead but not reaped: /proc still lists it, in state Z.
+            let stat = format!("/proc/{}/stat", child.id());
+            let deadline = Instant::now() + Duration::from_secs(10);
+            while !std::fs::read_to_string(&stat).is_ok_and(|s| s.contains(") Z ")) {
+                assert!(
+                    Instant::now() < deadline,
+                    "the killed writer never became a zombie"
+                );
+                std::thread::sleep(Duration::from_millis(5));
+            }
+            Some(child)
+        }
+        _ => {
+            child.wait().unwrap();
+            None
+        }
+    };
     match got {
-        Ok(Ok(line)) => line,
+        Ok(Ok(line)) => (line, zombie),
         Ok(Err(stderr)) => panic!("{command:?} never wrote a file containing '{what}': {stderr}"),
         Err(e) => panic!("{command:?} did not pause at '{what}' in 300 s: {e}"),
     }
@@ -688,6 +774,7 @@ struct Row {
     identical: usize,
     leftovers: usize,
     states: BTreeMap<String, usize>,
+    deaths: BTreeMap<&'static str, usize>,
 }
 
 #[test]
@@ -733,16 +820,31 @@ fn every_other_writer_killed_leaves_readable_outputs_and_reruns_give_the_same_fi
             pauses: case.pauses().len(),
             ..Row::default()
         };
-        let kills = (0..points)
-            .map(|_| None)
-            .chain(case.pauses().iter().map(|p| Some(*p)))
-            .collect::<Vec<_>>();
-        for (k, pause) in kills.into_iter().enumerate() {
+        // Each pause is killed one way in turn; the first pause every other way too, so
+        // that each writer dies each way.
+        let deaths: Vec<Death> = Death::ALL
+            .into_iter()
+            .filter(|d| *d != Death::OtherPidNamespace || pid_namespaces())
+            .collect();
+        let mut kills: Vec<(Option<&str>, Death)> =
+            (0..points).map(|_| (None, Death::Reaped)).collect();
+        for (i, p) in case.pauses().iter().enumerate() {
+            kills.push((Some(*p), deaths[i % deaths.len()]));
+        }
+        for d in deaths.iter().skip(1) {
+            kills.push((Some(case.pauses()[0]), *d));
+        }
+        row.pauses = kills.iter().filter(|(p, _)| p.is_some()).count();
+        for (k, (pause, death)) in kills.into_iter().enumerate() {
             let dir = root.path().join(format!("{case:?}-{k}"));
             case.prepare(&fx, &dir);
+            let mut zombie = None;
             let finished = match pause {
                 Some(what) => {
-                    let line = kill_before_rename(case.command(&fx, &dir), what);
+                    *row.deaths.entry(death.name()).or_default() += 1;
+                    let (line, left_zombie) =
+                        kill_before_rename(case.command(&fx, &dir), what, death);
+                    zombie = left_zombie;
                     // The file the writer completed is under its temporary name only.
                     let tmp = line
                         .split("renaming ")
@@ -794,7 +896,15 @@ fn every_other_writer_killed_leaves_readable_outputs_and_reruns_give_the_same_fi
             row.identical += 1;
             let left = temporaries(&dir);
             row.leftovers += left.len();
-            assert!(left.is_empty(), "{} rerun left {left:?}", case.name());
+            assert!(
+                left.is_empty(),
+                "{} rerun after a kill ({}) left {left:?}",
+                case.name(),
+                death.name()
+            );
+            if let Some(mut z) = zombie {
+                z.wait().unwrap();
+            }
             std::fs::remove_dir_all(&dir).unwrap();
         }
         table.push((case, duration, row));
@@ -804,16 +914,21 @@ fn every_other_writer_killed_leaves_readable_outputs_and_reruns_give_the_same_fi
         started.elapsed().as_secs_f64()
     );
     println!(
-        "| command | run (s) | seeded points | paused before rename | killed mid-run | readers said | refused | read last complete | reruns identical | leftovers |"
+        "| command | run (s) | seeded points | paused before rename | killed as | killed mid-run | readers said | refused | read last complete | reruns identical | leftovers |"
     );
-    println!("|---|---|---|---|---|---|---|---|---|---|");
+    println!("|---|---|---|---|---|---|---|---|---|---|---|");
     for (case, d, r) in &table {
         println!(
-            "| {} | {:.2} | {} | {} | {} | {} | {} | {} | {}/{} | {} |",
+            "| {} | {:.2} | {} | {} | {} | {} | {} | {} | {} | {}/{} | {} |",
             case.name(),
             d.as_secs_f64(),
             r.points,
             r.pauses,
+            r.deaths
+                .iter()
+                .map(|(s, n)| format!("{s} x{n}"))
+                .collect::<Vec<_>>()
+                .join(", "),
             r.mid_run,
             r.states
                 .iter()

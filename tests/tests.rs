@@ -18,6 +18,7 @@ mod kill;
 mod kill_all;
 mod official_crop;
 mod options;
+mod ownership;
 #[cfg(feature = "model")]
 mod photos;
 #[cfg(feature = "model")]

@@ -2,6 +2,7 @@
 //! progress and errors; they hold no geometry.
 
 mod augment;
+mod clean;
 mod convert;
 mod crops;
 #[cfg(feature = "model")]
@@ -68,6 +69,7 @@ enum Command {
     Predict(predict::PredictArgs),
     Eval(eval::EvalArgs),
     Push(push::PushArgs),
+    Clean(clean::CleanArgs),
     Augment(augment::AugmentArgs),
     Topology(topology::TopologyArgs),
     Info(info::InfoArgs),
@@ -99,6 +101,7 @@ pub fn run(cli: Cli) -> Result<ExitCode> {
         Command::Predict(a) => predict::run(a),
         Command::Eval(a) => eval::run(a),
         Command::Push(a) => push::run(a),
+        Command::Clean(a) => clean::run(a),
         Command::Augment(a) => augment::run(a),
         Command::Topology(a) => topology::run(a),
         Command::Info(a) => info::run(a),

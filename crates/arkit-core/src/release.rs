@@ -434,17 +434,16 @@ pub fn list_csv_text(keys: &[SampleKey]) -> String {
 /// one list of this run beside one of another (or a train list without its test list).
 pub fn write_lists(root: &Path, lists: &[(&str, &[SampleKey])]) -> Result<()> {
     let dir = root.join("ARKitFace_list");
-    let tmp = crate::atomic_file::temporary_name(&dir);
-    if tmp.exists() {
-        std::fs::remove_dir_all(&tmp).map_err(|e| Error::io(&tmp, e))?;
-    }
+    let tmp = crate::atomic_file::TemporaryDir::create(&dir)?;
     for (split, keys) in lists {
         write_list(
-            &tmp.join("list").join(format!("ARKitFace_{split}.csv")),
+            &tmp.path()
+                .join("list")
+                .join(format!("ARKitFace_{split}.csv")),
             keys,
         )?;
     }
-    crate::atomic_file::publish_dir(&tmp, &dir)
+    crate::atomic_file::publish_dir(tmp, &dir)
 }
 
 /// Writes a list CSV atomically.

@@ -120,28 +120,20 @@ fn no_augmentation() -> Augmentation {
 ///
 /// The safetensors library that `save` calls writes a temporary of its own beside the
 /// file it is given (`.tmpXXXXXX`) and renames it: so it is given a file inside a
-/// folder of ours named as a temporary (`.NAME.tmp-PID/`), and a run killed at any
+/// temporary folder of ours (`.NAME.tmp-TOKEN/`, owned while this process lives), and a run killed at any
 /// point leaves only what `atomic_file::remove_stale_temporaries` removes.
 pub(crate) fn save_renamed(
     path: &Path,
     save: &dyn Fn(&Path) -> candle_core::Result<()>,
 ) -> Result<()> {
-    let scratch = arkit_core::atomic_file::temporary_name(path);
-    // One left by this process id's earlier run (a folder, or a file of the old
-    // naming) goes first.
-    match std::fs::symlink_metadata(&scratch) {
-        Ok(m) if m.is_dir() => std::fs::remove_dir_all(&scratch),
-        Ok(_) => std::fs::remove_file(&scratch),
-        Err(_) => Ok(()),
-    }
-    .map_err(|e| Error::io(&scratch, e))?;
-    std::fs::create_dir_all(&scratch).map_err(|e| Error::io(&scratch, e))?;
-    let tmp = scratch.join(path.file_name().unwrap_or_default());
+    let scratch = arkit_core::atomic_file::TemporaryDir::create(path)?;
+    let tmp = scratch.path().join(path.file_name().unwrap_or_default());
     let published = match save(&tmp) {
         Err(e) => Err(Error::format(path, e.to_string())),
         Ok(()) => arkit_core::atomic_file::publish_written(&tmp, path),
     };
-    let _ = std::fs::remove_dir_all(&scratch);
+    // The folder (with what the library left in it) and its owner file go.
+    drop(scratch);
     published
 }
 

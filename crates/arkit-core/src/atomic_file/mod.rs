@@ -1,15 +1,17 @@
 //! Writing files so that no half-written output is ever left behind.
 //!
 //! Every file the tool writes goes through [`write_atomically`]: the bytes are written to
-//! a temporary name in the same directory (`.NAME.tmp-PID`), flushed, and renamed over
-//! the final name. A crash or an error leaves either the old file or the new one, never a
-//! truncated one; the temporary is removed on error.
+//! a temporary name in the same directory (`.NAME.tmp-TOKEN`, TOKEN random), flushed,
+//! and renamed over the final name. A crash or an error leaves either the old file or
+//! the new one, never a truncated one; the temporary is removed on error.
 //!
-//! A process killed while writing (kill -9, power loss) leaves its temporary behind. The
-//! writer holds an exclusive lock on the temporary while it fills it, so
-//! [`remove_stale_temporaries`] can tell a live write (locked) from a dead one's
-//! left-over (lockable) and removes only the latter; every command that writes a folder
-//! calls it on that folder when it starts.
+//! A process killed while writing (kill -9, power loss) leaves its temporary behind.
+//! Who owns a temporary is proved by a lock its writer holds from the instant it exists,
+//! never by a process id (`ownership`'s docs): [`remove_stale_temporaries`] removes only
+//! what no live writer holds, whether the writer was reaped, left a zombie, ran in
+//! another PID namespace or on another node of a shared folder. Every command that
+//! writes a folder calls it on that folder when it starts; [`leftovers`] lists them for
+//! `inspect` and `arkit-tool clean`.
 //!
 //! [`FolderLock`] is the writer's claim on a whole output folder: a second writer of the
 //! same folder is refused with a message naming the folder, instead of interleaving its
@@ -19,20 +21,23 @@
 //!
 //! Tested: a failed write leaves nothing; a second lock on a folder is refused while the
 //! first is held and granted after it is dropped; a temporary that is locked survives
-//! the clean-up and an unlocked one does not.
+//! the clean-up and an unlocked one does not, whatever process its name names.
+
+mod ownership;
+
+pub use ownership::{
+    Leftover, LockSupport, TemporaryDir, leftovers, lock_support, remove_all_temporaries,
+};
 
 use crate::error::{Error, Result};
 use std::fs;
 use std::io::Write;
 use std::path::{Path, PathBuf};
 
-/// The temporary name used while `path` is being written.
+/// A fresh temporary name for `path` (`.NAME.tmp-TOKEN` beside it). It names nothing
+/// owned: writers make their temporaries with [`write_atomically`] or [`TemporaryDir`].
 pub fn temporary_name(path: &Path) -> PathBuf {
-    let name = path
-        .file_name()
-        .map(|n| n.to_string_lossy().into_owned())
-        .unwrap_or_default();
-    path.with_file_name(format!(".{name}.tmp-{}", std::process::id()))
+    ownership::fresh_name(path)
 }
 
 /// Writes `path` by calling `fill` on a buffered writer over a temporary file, then
@@ -44,12 +49,9 @@ where
     if let Some(parent) = path.parent().filter(|p| !p.as_os_str().is_empty()) {
         fs::create_dir_all(parent).map_err(|e| Error::io(parent, e))?;
     }
-    let tmp = temporary_name(path);
+    // Locked until the rename: a live write for `remove_stale_temporaries`.
+    let (file, tmp) = ownership::create_file(path)?;
     let result = (|| {
-        let file = fs::File::create(&tmp).map_err(|e| Error::io(&tmp, e))?;
-        // Held until the rename: marks the temporary as a live write for
-        // `remove_stale_temporaries`. A file system without locks still writes.
-        let _ = file.try_lock();
         let mut writer = std::io::BufWriter::new(file);
         fill(&mut writer)?;
         // Errors name the file being written, not its temporary.
@@ -80,24 +82,22 @@ pub fn publish(file: &fs::File, tmp: &Path, path: &Path) -> Result<()> {
 /// together (a release's train and test lists): the old folder is renamed aside, `tmp`
 /// renamed into place, the old one removed. A reader sees the old folder, the new one,
 /// or (in the instant between the two renames, or after a kill there) none, never some
-/// files of each. A kill leaves `tmp` or the old folder aside under a temporary name
-/// (`.NAME.tmp-PID`, `.NAME.old.tmp-PID`), which [`remove_stale_temporaries`] removes.
-pub fn publish_dir(tmp: &Path, path: &Path) -> Result<()> {
-    pause_before_rename(tmp, path);
-    let name = path
-        .file_name()
-        .map(|n| n.to_string_lossy().into_owned())
-        .unwrap_or_default();
-    let aside = path.with_file_name(format!(".{name}.old.tmp-{}", std::process::id()));
+/// files of each. A kill leaves `tmp`, or the old folder aside, owned by `tmp`'s owner
+/// file: [`remove_stale_temporaries`] removes them once that writer is gone.
+pub fn publish_dir(tmp: TemporaryDir, path: &Path) -> Result<()> {
+    pause_before_rename(tmp.path(), path);
+    let aside = tmp.aside();
     let had_old = match fs::rename(path, &aside) {
         Ok(()) => true,
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => false,
         Err(e) => return Err(Error::io(path, e)),
     };
-    fs::rename(tmp, path).map_err(|e| Error::io(path, e))?;
+    fs::rename(tmp.path(), path).map_err(|e| Error::io(path, e))?;
     if had_old {
         fs::remove_dir_all(&aside).map_err(|e| Error::io(&aside, e))?;
     }
+    // Its owner file goes last.
+    drop(tmp);
     Ok(())
 }
 
@@ -141,74 +141,21 @@ pub fn write_bytes(path: &Path, bytes: &[u8]) -> Result<()> {
     write_atomically(path, |w| w.write_all(bytes).map_err(|e| Error::io(path, e)))
 }
 
-/// Whether `name` is a temporary of [`write_atomically`] (`.NAME.tmp-PID`).
+/// Whether `name` is a temporary of ours: `.NAME.tmp-TOKEN` (a file of
+/// [`write_atomically`] or a folder of [`TemporaryDir`]), its owner file
+/// (`.NAME.tmp-TOKEN.owner`) or an old folder set aside (`.NAME.tmp-TOKEN.aside`).
 pub fn is_temporary_name(name: &str) -> bool {
-    name.starts_with('.')
-        && name
-            .rsplit_once(".tmp-")
-            .is_some_and(|(_, pid)| !pid.is_empty() && pid.bytes().all(|b| b.is_ascii_digit()))
+    ownership::parse(name).is_some()
 }
 
-/// Removes the temporaries (files, and the folders of [`publish_dir`]) that killed
-/// writers left in `dir` and, when `recursive`, in its sub-folders. A temporary is left alone when a live writer holds it locked, or
-/// when the process its name ends with (`.tmp-PID`) is still running: a writer creates
-/// its temporary an instant before it locks it, and another process cleaning the same
-/// folder in that instant must not take the file from under it. Returns the files
-/// removed. A folder that does not exist has none.
+/// Removes the temporaries (files, and the folders of [`TemporaryDir`]) that killed
+/// writers left in `dir` and, when `recursive`, in its sub-folders: those whose lock (or
+/// owner file's lock) no live process holds, told while the folder's own lock is held
+/// exclusively, so a writer making a temporary at that moment waits. Returns what it
+/// removed. Where the file system gives no locks it removes nothing and says so on
+/// stderr. A folder that does not exist has none.
 pub fn remove_stale_temporaries(dir: &Path, recursive: bool) -> Result<Vec<PathBuf>> {
-    let mut removed = Vec::new();
-    let mut stack = vec![dir.to_path_buf()];
-    while let Some(d) = stack.pop() {
-        let entries = match fs::read_dir(&d) {
-            Ok(e) => e,
-            Err(e) if e.kind() == std::io::ErrorKind::NotFound => continue,
-            Err(e) => return Err(Error::io(&d, e)),
-        };
-        for entry in entries {
-            let entry = entry.map_err(|e| Error::io(&d, e))?;
-            let path = entry.path();
-            let kind = entry.file_type().map_err(|e| Error::io(&path, e))?;
-            let name = entry.file_name();
-            let name = name.to_string_lossy();
-            if kind.is_dir() {
-                // A folder being filled for `publish_dir` (or set aside by it) has no
-                // lock: the process its name ends with tells.
-                if is_temporary_name(&name) && !writer_is_running(&name) {
-                    fs::remove_dir_all(&path).map_err(|e| Error::io(&path, e))?;
-                    removed.push(path);
-                } else if recursive {
-                    stack.push(path);
-                }
-                continue;
-            }
-            if !kind.is_file() || !is_temporary_name(&name) || writer_is_running(&name) {
-                continue;
-            }
-            let Ok(file) = fs::File::open(&path) else {
-                continue;
-            };
-            if file.try_lock().is_ok() {
-                fs::remove_file(&path).map_err(|e| Error::io(&path, e))?;
-                removed.push(path);
-            }
-        }
-    }
-    removed.sort();
-    Ok(removed)
-}
-
-/// Whether the process named by a temporary's `.tmp-PID` suffix is running (this
-/// process included: another of its threads may be writing). Where processes cannot
-/// be looked up (no `/proc`), only the lock tells.
-fn writer_is_running(name: &str) -> bool {
-    let Some((_, pid)) = name.rsplit_once(".tmp-") else {
-        return false;
-    };
-    let Ok(pid) = pid.parse::<u32>() else {
-        return false;
-    };
-    pid == std::process::id()
-        || (Path::new("/proc/self").exists() && Path::new(&format!("/proc/{pid}")).exists())
+    ownership::remove_abandoned(dir, recursive)
 }
 
 /// Opens (creating it and its folder if needed) the lock file `dir/.NAME.lock`.
@@ -439,44 +386,41 @@ mod tests {
     }
 
     #[test]
-    fn a_running_writers_temporary_stays_before_it_is_locked() {
-        // A writer creates its temporary an instant before it locks it; a cleaner in
-        // that instant sees an unlocked file named after a running process.
+    fn an_unlocked_temporary_named_after_a_running_process_goes() {
+        // Process ids lie (a zombie, an id given again, another node's id): a
+        // temporary named after a running process but locked by nobody is abandoned.
         let dir = tempfile::tempdir().unwrap();
-        let mut writer = std::process::Command::new("sleep")
+        let mut other = std::process::Command::new("sleep")
             .arg("30")
             .spawn()
             .unwrap();
-        let theirs = dir.path().join(format!(".a.parquet.tmp-{}", writer.id()));
-        let ours = temporary_name(&dir.path().join("b.parquet"));
-        for p in [&theirs, &ours] {
+        let theirs = dir.path().join(format!(".a.parquet.tmp-{}", other.id()));
+        let mine = dir
+            .path()
+            .join(format!(".b.parquet.tmp-{}", std::process::id()));
+        for p in [&theirs, &mine] {
             fs::write(p, b"x").unwrap();
         }
-        assert!(
-            remove_stale_temporaries(dir.path(), false)
-                .unwrap()
-                .is_empty()
-        );
-        assert!(theirs.exists() && ours.exists());
-        writer.kill().unwrap();
-        writer.wait().unwrap();
-        assert_eq!(
-            remove_stale_temporaries(dir.path(), false).unwrap(),
-            vec![theirs]
-        );
-        assert!(ours.exists());
+        let removed = remove_stale_temporaries(dir.path(), false).unwrap();
+        other.kill().unwrap();
+        other.wait().unwrap();
+        assert_eq!(removed, vec![theirs, mine]);
     }
 
     #[test]
     fn temporary_names_are_recognised() {
         let t = temporary_name(Path::new("/a/b/part-00001.parquet"));
         assert!(is_temporary_name(&t.file_name().unwrap().to_string_lossy()));
+        for n in [".x.tmp-12a", ".x.tmp-12a.owner", ".x.tmp-12a.aside"] {
+            assert!(is_temporary_name(n), "{n}");
+        }
         for n in [
             "part.parquet",
             ".hidden",
             ".x.tmp-",
-            ".x.tmp-12a",
+            ".x.tmp-12g",
             "x.tmp-12",
+            ".x.tmp-12.old",
         ] {
             assert!(!is_temporary_name(n), "{n}");
         }
