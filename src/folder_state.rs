@@ -73,6 +73,9 @@ pub struct FolderState {
     pub crop_stores: Vec<OutputState>,
     /// Temporaries in the folder and its sub-folders.
     pub temporaries: Vec<Temporary>,
+    /// Why the folder's file system gives no working locks, when it does not: then no
+    /// temporary can be told abandoned, and none is removed by the writers.
+    pub no_locks: Option<String>,
 }
 
 impl FolderState {
@@ -91,6 +94,11 @@ impl FolderState {
         let mut out = vec![self.samples.message.clone()];
         out.extend(self.targets.iter().map(|t| t.message.clone()));
         out.extend(self.crop_stores.iter().map(|c| c.message.clone()));
+        if let Some(why) = &self.no_locks {
+            out.push(format!(
+                "locks: this file system gives no working locks ({why}): temporaries of killed writers are not removed; `arkit-tool clean --force` when no writer runs"
+            ));
+        }
         if !self.temporaries.is_empty() {
             let count =
                 |v: Option<bool>| self.temporaries.iter().filter(|t| t.abandoned == v).count();
@@ -150,6 +158,10 @@ fn folder_state_of(
         targets,
         crop_stores: crop_store_states(dir, fingerprint.as_deref(), shards, published),
         temporaries: temporaries(dir),
+        no_locks: match arkit_core::atomic_file::lock_support(dir) {
+            arkit_core::atomic_file::LockSupport::Working => None,
+            arkit_core::atomic_file::LockSupport::Missing(why) => Some(why),
+        },
     }
 }
 

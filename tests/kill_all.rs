@@ -138,6 +138,8 @@ enum Case {
     Train,
     #[cfg(feature = "model")]
     ExportWeights,
+    #[cfg(feature = "model")]
+    ExportOnnx,
 }
 
 /// What a reader made of a torn folder.
@@ -163,6 +165,8 @@ impl Case {
             Case::Train,
             #[cfg(feature = "model")]
             Case::ExportWeights,
+            #[cfg(feature = "model")]
+            Case::ExportOnnx,
         ]
     }
 
@@ -179,6 +183,8 @@ impl Case {
             Case::Train => "train (2 epochs)",
             #[cfg(feature = "model")]
             Case::ExportWeights => "export-weights",
+            #[cfg(feature = "model")]
+            Case::ExportOnnx => "export-onnx",
         }
     }
 
@@ -211,6 +217,8 @@ impl Case {
             ],
             #[cfg(feature = "model")]
             Case::ExportWeights => &["official.safetensors"],
+            #[cfg(feature = "model")]
+            Case::ExportOnnx => &["dense.onnx", "points.onnx", "onnx.json"],
         }
     }
 
@@ -306,6 +314,13 @@ impl Case {
             #[cfg(feature = "model")]
             Case::ExportWeights => {
                 c.arg("export-weights")
+                    .arg(&fx.model)
+                    .arg("--output")
+                    .arg(&out);
+            }
+            #[cfg(feature = "model")]
+            Case::ExportOnnx => {
+                c.args(["export-onnx", "--model"])
                     .arg(&fx.model)
                     .arg("--output")
                     .arg(&out);
@@ -541,6 +556,8 @@ struct Expected {
     split_states: Vec<Vec<u8>>,
     /// The exported weights.
     file: Vec<u8>,
+    /// The files of an uninterrupted run's output folder (export-onnx).
+    tree: BTreeMap<String, Vec<u8>>,
 }
 
 /// Runs the readers of the torn output of `case` in `dir`; panics on a reader that
@@ -709,6 +726,24 @@ fn check_readers(
             }
         }
         #[cfg(feature = "model")]
+        Case::ExportOnnx => {
+            // A user's reader opens onnx.json (written last) and the files it names: with
+            // it, every file is the uninterrupted run's; without it, nothing is declared.
+            if out.join("onnx.json").is_file() {
+                let got = case.outputs(dir);
+                assert!(
+                    differences(&expected.tree, &got).is_empty(),
+                    "onnx.json beside a torn export: {:?}",
+                    differences(&expected.tree, &got)
+                );
+                verdicts.push(Verdict::LastComplete);
+                state = "complete".into();
+            } else {
+                verdicts.push(Verdict::Refused);
+                state = "no onnx.json".into();
+            }
+        }
+        #[cfg(feature = "model")]
         Case::ExportWeights => match std::fs::read(&out) {
             Ok(bytes) => {
                 assert_eq!(bytes, expected.file, "a torn {} is readable", out.display());
@@ -810,6 +845,8 @@ fn every_other_writer_killed_leaves_readable_outputs_and_reruns_give_the_same_fi
                 .push(mean_pose(&case.output(&reference), "test", root.path()).unwrap()),
             #[cfg(feature = "model")]
             Case::ExportWeights => expected.file = std::fs::read(case.output(&reference)).unwrap(),
+            #[cfg(feature = "model")]
+            Case::ExportOnnx => expected.tree = case.outputs(&reference),
             _ => {}
         }
         // Every reader accepts the uninterrupted run's output: a reader that refuses a
@@ -1281,6 +1318,8 @@ fn every_writer_on_a_full_disk_names_the_file_leaves_nothing_readable_and_reruns
                 .push(mean_pose(&case.output(&reference), "test", root.path()).unwrap()),
             #[cfg(feature = "model")]
             Case::ExportWeights => expected.file = std::fs::read(case.output(&reference)).unwrap(),
+            #[cfg(feature = "model")]
+            Case::ExportOnnx => expected.tree = case.outputs(&reference),
             _ => {}
         }
         let want = case.outputs(&reference);

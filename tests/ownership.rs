@@ -141,7 +141,11 @@ fn two_nodes_in_one_folder_a_killed_nodes_temporary_goes_and_a_live_ones_stays()
     // `unshare --kill-child` kills the node's writer as it dies; that takes an instant.
     gone(&b_tmp);
     // A torn folder: inspect exits 1, with the state and the temporaries.
-    let inspect = tool().args(["inspect", "--dataset"]).arg(&out).output().unwrap();
+    let inspect = tool()
+        .args(["inspect", "--dataset"])
+        .arg(&out)
+        .output()
+        .unwrap();
     let shown = format!("{}{}", text(&inspect.stdout), text(&inspect.stderr));
     assert!(
         shown.contains("1 abandoned by killed runs") && shown.contains("1 being written"),

@@ -336,7 +336,7 @@ pub fn remove_abandoned(dir: &Path, recursive: bool) -> Result<Vec<PathBuf>> {
     let mut stack = vec![dir.to_path_buf()];
     while let Some(d) = stack.pop() {
         let (found, folders, section) = judge(&d)?;
-        if section.is_none() && !found.is_empty() {
+        if section.is_none() && d.is_dir() {
             warn_no_locks(&d);
         }
         // Folders first, their owner files after (an owner removed first would leave
