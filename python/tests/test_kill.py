@@ -156,3 +156,46 @@ def test_a_loader_beside_crops_rewriting_its_store_keeps_serving_the_store_it_op
     for i, img in enumerate(before):
         # The codecs are lossless: the new store's crops are the same pixels.
         np.testing.assert_array_equal(fresh[i]["img"], img)
+
+
+@pytest.mark.parametrize("workers,context", [(0, None), (2, "fork"), (2, "spawn")])
+def test_a_dataset_converted_again_under_a_loader_never_mixes_two_generations(
+        base, tmp_path, workers, context):
+    """`convert --overwrite` of another release and `crops` again, into the folder a
+    loader has open: the loader and workers forked from it keep serving what it opened,
+    item for item; a worker that must open the folder again (spawned) refuses, naming
+    the folder, instead of serving the new generation beside the old one's order."""
+    torch = pytest.importorskip("torch")
+    data = tmp_path / "pq"
+    shutil.copytree(base / "converted", data)
+    crops = [str(BIN), "crops", "--dataset", str(data), "--size", "64"]
+    subprocess.run(crops, check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    ds = arkit_tool.ARKitFaceDataset(data, split=None, mode="eval", n_pts=16, img_size=64)
+    before = [ds[i]["img"].copy() for i in range(len(ds))]
+
+    other = tmp_path / "other"
+    subprocess.run([str(BIN), "synth", "--output", str(other), "--subjects", "3",
+                    "--images-per-subject", "4", "--size", "200x200", "--seed", "11",
+                    "--test-fraction", "0.34"], check=True, stdout=subprocess.DEVNULL)
+    subprocess.run([str(BIN), "convert", "--input", str(other), "--output", str(data),
+                    "--rows-per-shard", "5", "--overwrite"], check=True,
+                   stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    subprocess.run(crops, check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    fresh = arkit_tool.ARKitFaceDataset(data, split=None, mode="eval", n_pts=16, img_size=64)
+    assert any(not np.array_equal(fresh[i]["img"], before[i])
+               for i in range(min(len(fresh), len(before)))), "the new release gave the same crops"
+
+    kw = dict(batch_size=4, shuffle=False, num_workers=workers)
+    if workers:
+        kw["multiprocessing_context"] = context
+    loader = torch.utils.data.DataLoader(ds, **kw)
+    if context == "spawn":
+        with pytest.raises(Exception) as refused:
+            next(iter(loader))
+        assert str(data) in str(refused.value) and "changed since this job opened it" in str(
+            refused.value), str(refused.value)
+        return
+    got = [img for batch in loader for img in batch["img"].numpy()]
+    assert len(got) == len(before)
+    for i, img in enumerate(got):
+        np.testing.assert_array_equal(img, before[i], err_msg=f"item {i}")

@@ -237,6 +237,22 @@ impl Loader {
         })
     }
 
+    /// What this loader serves, as one text: the dataset's fingerprint and a hash of
+    /// its crop store's record. A loader opened again (in a spawned worker) that gives
+    /// another text is serving another generation of the folder.
+    #[getter]
+    fn generation(&self) -> String {
+        use std::hash::{Hash, Hasher};
+        let mut g = self.inner.dataset().manifest().fingerprint.clone();
+        if let Some(store) = self.inner.crop_store() {
+            let record = serde_json::to_vec(store.manifest()).unwrap_or_default();
+            let mut h = std::hash::DefaultHasher::new();
+            record.hash(&mut h);
+            g.push_str(&format!(":{:016x}", h.finish()));
+        }
+        g
+    }
+
     /// The URL the dataset is read from, or None for a local folder.
     #[getter]
     fn url(&self) -> Option<String> {

@@ -60,6 +60,20 @@ else:
     _DatasetBase = Generic
 
 
+class _ChangedLoader:
+    """Stands for a native loader whose folder was rewritten under the job: every use
+    raises the `DataError` it was made with."""
+
+    def __init__(self, message: str) -> None:
+        self._message = message
+
+    def __getattr__(self, name: str) -> Any:
+        raise DataError(self._message)
+
+    def __len__(self) -> int:
+        raise DataError(self._message)
+
+
 class ARKitFaceDataset(_DatasetBase[_ItemT]):
     """What the official `ARKitDataset.get_item` returns, computed on the fly.
 
@@ -249,6 +263,8 @@ class ARKitFaceDataset(_DatasetBase[_ItemT]):
     # any other copy, e.g. copy.deepcopy, gets the value).
     def __getstate__(self) -> Dict[str, Any]:
         state = dict(self.__dict__)
+        # What the parent serves: a reopened loader serving anything else is refused.
+        state["_generation"] = self._loader.generation if self._loader is not None else None
         state["_loader"] = None
         state["_samplers"] = None
         if multiprocessing.context.get_spawning_popen() is None:
@@ -264,6 +280,17 @@ class ARKitFaceDataset(_DatasetBase[_ItemT]):
             self._epoch = multiprocessing.RawValue("Q", self._epoch)
         self._samplers = weakref.WeakSet()
         self._loader = self._open()
+        # The folder rewritten (`convert --overwrite`, `render`, `crops`) between the
+        # parent's open and this one: serving it would mix two generations.
+        # Refused at the first item, so that the DataLoader carries the error (with the
+        # folder's name) to the training process instead of a worker dying unpickling.
+        parent = self.__dict__.pop("_generation", None)
+        if parent is not None and self._loader.generation != parent:
+            self._loader = _ChangedLoader(  # type: ignore[assignment]
+                f"{self.path}: the dataset changed since this job opened it (dataset.json's "
+                "fingerprint or the crop store's crops.json differs): a worker cannot serve "
+                "another generation than its parent's; start the job again"
+            )
 
     def __len__(self) -> int:
         return len(self._loader)
