@@ -6,6 +6,7 @@ use arkit_data::crop::RuleSet;
 use arkit_data::pose::RansacParams;
 use arkit_data::pose::{self, OracleOptions};
 use arkit_data::store::write_predictions;
+use arkit_data::video::OneEuroParams;
 use clap::{ArgGroup, Args};
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -40,14 +41,23 @@ use std::process::ExitCode;
 /// OpenCV's rvec/tvec, the inlier count), or writes it to --output (.json, or .csv
 /// with one row per face); --draw pictures the mesh on the photo. docs/photos.md.
 ///
+/// --video FILE --model DIR: the faces of a video (an H.264 MP4 or MOV, or a folder of
+/// numbered frames), frame by frame as with --image: the detector every frame (or
+/// every --detect-every N, boxes carried between; or the boxes of a --boxes JSON-lines
+/// file), faces matched across frames into tracks, each track's pose smoothed by a
+/// One-Euro filter on SO(3) (--no-smooth for the raw poses). Writes one row per frame
+/// and track to --output (.jsonl, .csv or .parquet; JSON lines on the standard output
+/// without it); --draw writes an .mp4 or a folder of frames. docs/video.md.
+///
 /// Example: arkit-tool predict --oracle --dataset data/pq --noise-px 1 --output oracle.parquet
 ///          arkit-tool predict --model model/ --dataset data/pq --output pred.parquet
 ///          arkit-tool predict --mean-pose --dataset data/pq --output baseline.parquet
 ///          arkit-tool predict --model model/ --image group.jpg --draw result.jpg
 ///          arkit-tool predict --model model/ --image photo.jpg --box "120 80 260 240" --fov-deg 70
+///          arkit-tool predict --model model/ --video clip.mp4 --output poses.jsonl --draw drawn.mp4
 #[derive(Args, Debug)]
 #[command(group(ArgGroup::new("predictor").required(true).args(["oracle", "model", "mean_pose"])))]
-#[command(group(ArgGroup::new("input").required(true).args(["dataset", "image"])))]
+#[command(group(ArgGroup::new("input").required(true).args(["dataset", "image", "video"])))]
 pub struct PredictArgs {
     /// A folder written by `convert` (and `render`). Or a dataset published with `arkit-tool push`: s3://BUCKET/PREFIX (its tables
     /// are mirrored in the cache folder, $ARKIT_CACHE_DIR or ~/.cache/arkit-tool).
@@ -57,6 +67,35 @@ pub struct PredictArgs {
     /// for several), with --model (a PerspNet).
     #[arg(long, value_name = "PHOTO", num_args = 1..)]
     image: Vec<PathBuf>,
+    /// A video to find head poses in: an MP4 or MOV with H.264 video (as phones and
+    /// webcams record them), or a folder of numbered frames (PNG, JPEG or WebP), with
+    /// --model (a PerspNet). docs/video.md.
+    #[arg(long, value_name = "FILE_OR_FOLDER", conflicts_with = "image")]
+    video: Option<PathBuf>,
+    /// With --video (a folder of frames): its frames a second.
+    #[arg(long, default_value_t = 30.0)]
+    fps: f64,
+    /// With --video: run the detector on every Nth frame only (1: every frame); the
+    /// boxes are carried between, moved by each track's speed.
+    #[arg(long, value_name = "N", default_value_t = 1)]
+    detect_every: u32,
+    /// With --video: detector runs a track survives without its face before it ends.
+    #[arg(long, default_value_t = 2)]
+    max_missed: u32,
+    /// With --video: the One-Euro filter's cutoff at rest, Hz (lower: smoother, more
+    /// lag). Measured defaults: docs/video.md.
+    #[arg(long, default_value_t = OneEuroParams::default().min_cutoff_hz)]
+    smooth_min_cutoff: f64,
+    /// With --video: how fast the cutoff rises with the head's turning speed, Hz per
+    /// rad/s (higher: less lag when moving).
+    #[arg(long, default_value_t = OneEuroParams::default().beta_rotation)]
+    smooth_beta: f64,
+    /// With --video: how fast the cutoff rises with the head's speed, Hz per m/s.
+    #[arg(long, default_value_t = OneEuroParams::default().beta_translation)]
+    smooth_beta_translation: f64,
+    /// With --video: write the raw per-frame poses, unsmoothed.
+    #[arg(long)]
+    no_smooth: bool,
     /// With --image (one photo): a face box "x0 y0 x1 y1" in the photo's pixels, as the
     /// official demo takes it; repeat for several faces.
     #[arg(long = "box", value_name = "X0 Y0 X1 Y1", allow_hyphen_values = true)]
@@ -193,6 +232,9 @@ pub fn run(mut a: PredictArgs) -> Result<ExitCode> {
         seed: a.seed,
         ..RansacParams::default()
     };
+    if a.video.is_some() {
+        return run_video(&a, ransac);
+    }
     if !a.image.is_empty() {
         return run_image(&a, ransac);
     }
@@ -429,6 +471,72 @@ fn run_image(a: &PredictArgs, ransac: RansacParams) -> Result<ExitCode> {
         strict: a.strict,
         json: a.json,
     })
+}
+
+#[cfg(feature = "model")]
+fn run_video(a: &PredictArgs, ransac: RansacParams) -> Result<ExitCode> {
+    let video = a.video.as_deref().expect("checked by the caller");
+    let Some(model) = a.model.as_deref() else {
+        return Err(arkit_core::Error::invalid(
+            "--video",
+            "poses faces with a trained PerspNet: give --model DIR (models/tiny-synthetic is shipped)",
+        ));
+    };
+    for (given, flag) in [
+        (a.dump.is_some(), "--dump"),
+        (a.targets.is_some(), "--targets"),
+        (!a.boxes.is_empty(), "--box"),
+        (a.vertices, "--vertices"),
+        (a.dump_crops.is_some(), "--dump-crops"),
+        (
+            a.noise_px != 0.0 || a.outliers != 0.0,
+            "--noise-px/--outliers",
+        ),
+        (matches!(a.mask, MaskSource::Truth), "--mask truth"),
+    ] {
+        if given {
+            return Err(arkit_core::Error::invalid(
+                flag,
+                "is not for --video (docs/video.md lists its options)",
+            ));
+        }
+    }
+    super::predict_video::run(super::predict_video::VideoRequest {
+        video,
+        model,
+        resources: a.resources.as_deref(),
+        boxes_file: a.boxes_file.as_deref(),
+        fps: a.fps,
+        detect_every: a.detect_every,
+        tracker: arkit_data::video::TrackerOptions {
+            max_missed: a.max_missed,
+            ..Default::default()
+        },
+        smooth: (!a.no_smooth).then_some(OneEuroParams {
+            min_cutoff_hz: a.smooth_min_cutoff,
+            beta_rotation: a.smooth_beta,
+            beta_translation: a.smooth_beta_translation,
+            ..OneEuroParams::default()
+        }),
+        min_face_px: a.min_face_px,
+        detector_score: a.detector_score,
+        focal_px: a.focal_px,
+        fov_deg: a.fov_deg,
+        angles: a.angles,
+        draw: a.draw.as_deref(),
+        output: a.output.as_deref(),
+        seed: a.seed,
+        ransac,
+        json: a.json,
+    })
+}
+
+#[cfg(not(feature = "model"))]
+fn run_video(_: &PredictArgs, _: RansacParams) -> Result<ExitCode> {
+    Err(arkit_core::Error::invalid(
+        "--video",
+        "this arkit-tool was built without the `model` feature (candle); rebuild with default features",
+    ))
 }
 
 #[cfg(not(feature = "model"))]
