@@ -305,6 +305,7 @@ pub fn run(r: VideoRequest<'_>) -> Result<ExitCode> {
         "posed": posed,
         "frames_per_second": if seconds > 0.0 { frames as f64 / seconds } else { 0.0 },
         "max_frames_held": source.max_frames_held(),
+        "peak_rss_mb": peak_rss_mb(),
         "detect_every": r.detect_every,
         "smoothing": r.smooth,
         "tracks": spans.iter().map(|(id, s)| json!({
@@ -337,6 +338,14 @@ pub fn run(r: VideoRequest<'_>) -> Result<ExitCode> {
         return Ok(ExitCode::FAILURE);
     }
     Ok(ExitCode::SUCCESS)
+}
+
+/// The process's peak resident memory, MB (Linux's VmHWM; `None` elsewhere).
+fn peak_rss_mb() -> Option<f64> {
+    let status = std::fs::read_to_string("/proc/self/status").ok()?;
+    let line = status.lines().find(|l| l.starts_with("VmHWM:"))?;
+    let kb: f64 = line.split_whitespace().nth(1)?.parse().ok()?;
+    Some(kb / 1024.0)
 }
 
 fn row_pose(
