@@ -121,9 +121,18 @@ fn the_turn_clip_is_one_track_and_smoothing_meets_its_figures() {
     let (j_raw, j_smooth) = (at_rest(raw), at_rest(smooth));
     let yaw = |p: &[Pose]| p.iter().map(yaw_of).collect::<Vec<f64>>();
     let window = first.saturating_sub(5)..(last + 10).min(raw.len());
-    let lag = lag_frames(&yaw(smooth), &yaw(raw), window, 10.0);
+    let lag = lag_frames(&yaw(smooth), &yaw(raw), window.clone(), 10.0);
+    // For the record: each behind the true yaw (the raw poses' own error moves this).
+    let true_yaw: Vec<f64> = truth
+        .iter()
+        .map(|t| t["faces"][0]["angles"]["yaw"].as_f64().unwrap())
+        .collect();
+    let (raw_vs_truth, smooth_vs_truth) = (
+        lag_frames(&yaw(raw), &true_yaw, window.clone(), 10.0),
+        lag_frames(&yaw(smooth), &true_yaw, window, 10.0),
+    );
     eprintln!(
-        "turn clip: jitter at rest {j_raw:.3} deg raw, {j_smooth:.3} smoothed ({:.1}x); lag {lag:.2} frames",
+        "turn clip: jitter at rest {j_raw:.3} deg raw, {j_smooth:.3} smoothed ({:.1}x); lag {lag:.2} frames behind raw; behind the truth: raw {raw_vs_truth:.2}, smoothed {smooth_vs_truth:.2}",
         j_raw / j_smooth
     );
     assert!(
@@ -163,8 +172,11 @@ fn two_crossing_faces_keep_their_ids() {
     assert_eq!(kept + 1, ClipPlan::cross(30.0).frames(), "frame 44 dropped");
     std::fs::write(&boxes, text).unwrap();
     let out = dir.path().join("rows.csv");
+    let drawn = dir.path().join("drawn.mp4");
     let summary: Value = serde_json::from_str(&ok(&[
         "predict",
+        "--draw",
+        &s(&drawn),
         "--model",
         TINY,
         "--video",
@@ -179,6 +191,13 @@ fn two_crossing_faces_keep_their_ids() {
     ]))
     .unwrap();
     assert_eq!(summary["tracks"].as_array().unwrap().len(), 2, "{summary}");
+    // The drawing is an H.264 MP4 of every frame, read back by our own reader.
+    let mut back = VideoSource::open(&drawn, 30.0).unwrap();
+    assert_eq!(back.frame_count() as usize, ClipPlan::cross(30.0).frames());
+    assert_eq!(
+        back.next_frame().unwrap().unwrap().image.dimensions(),
+        (640, 360)
+    );
     let text = std::fs::read_to_string(&out).unwrap();
     let header: Vec<&str> = text.lines().next().unwrap().split(',').collect();
     let col = |n: &str| header.iter().position(|h| *h == n).unwrap();
@@ -318,4 +337,53 @@ fn other_codecs_are_refused_by_name() {
     let (ok, _, stderr) = run(&["predict", "--model", TINY, "--video", &s(&text)]);
     assert!(!ok);
     assert!(stderr.contains("not an MP4 or MOV"), "{stderr}");
+}
+
+/// A folder of frames with a damaged one and a stray file: the damaged frame is
+/// reported and skipped (the others keep their frame numbers), `--strict` exits 1; a
+/// boxes file naming a frame past the end is refused, naming it.
+#[test]
+fn a_damaged_frame_is_skipped_and_named() {
+    let dir = tempfile::tempdir().unwrap();
+    let frames = dir.path().join("frames");
+    std::fs::create_dir(&frames).unwrap();
+    for i in [1, 2, 3, 10] {
+        let img = image::RgbImage::from_pixel(64, 48, image::Rgb([i as u8 * 20, 90, 120]));
+        img.save(frames.join(format!("f{i}.png"))).unwrap();
+    }
+    std::fs::write(frames.join("f5.png"), b"\x89PNG\r\n\x1a\n half a file").unwrap();
+    std::fs::write(frames.join("notes.txt"), "not a frame").unwrap();
+    let out = dir.path().join("rows.jsonl");
+    let args = [
+        "predict",
+        "--model",
+        TINY,
+        "--video",
+        frames.to_str().unwrap(),
+        "--fps",
+        "10",
+        "--output",
+        out.to_str().unwrap(),
+        "--json",
+    ];
+    let (ok, stdout, stderr) = run(&args);
+    assert!(ok, "{stderr}");
+    let summary: Value = serde_json::from_str(&stdout).unwrap();
+    assert_eq!(summary["frames"], 4);
+    assert!(stderr.contains("f5.png"), "{stderr}");
+    assert_eq!(summary["skipped"].as_array().unwrap().len(), 1);
+    let mut strict = args.to_vec();
+    strict.push("--strict");
+    assert!(!run(&strict).0);
+    // Frames past the folder's five.
+    let boxes = dir.path().join("boxes.jsonl");
+    std::fs::write(&boxes, "{\"frame\": 7, \"boxes\": [[1, 1, 30, 30]]}\n").unwrap();
+    let mut with_boxes = args.to_vec();
+    with_boxes.extend(["--boxes", boxes.to_str().unwrap()]);
+    let (ok, _, stderr) = run(&with_boxes);
+    assert!(!ok);
+    assert!(
+        stderr.contains("frame 7") && stderr.contains("boxes.jsonl"),
+        "{stderr}"
+    );
 }

@@ -72,30 +72,9 @@ pub struct PredictArgs {
     /// --model (a PerspNet). docs/video.md.
     #[arg(long, value_name = "FILE_OR_FOLDER", conflicts_with = "image")]
     video: Option<PathBuf>,
-    /// With --video (a folder of frames): its frames a second.
-    #[arg(long, default_value_t = 30.0)]
-    fps: f64,
-    /// With --video: run the detector on every Nth frame only (1: every frame); the
-    /// boxes are carried between, moved by each track's speed.
-    #[arg(long, value_name = "N", default_value_t = 1)]
-    detect_every: u32,
-    /// With --video: detector runs a track survives without its face before it ends.
-    #[arg(long, default_value_t = 2)]
-    max_missed: u32,
-    /// With --video: the One-Euro filter's cutoff at rest, Hz (lower: smoother, more
-    /// lag). Measured defaults: docs/video.md.
-    #[arg(long, default_value_t = OneEuroParams::default().min_cutoff_hz)]
-    smooth_min_cutoff: f64,
-    /// With --video: how fast the cutoff rises with the head's turning speed, Hz per
-    /// rad/s (higher: less lag when moving).
-    #[arg(long, default_value_t = OneEuroParams::default().beta_rotation)]
-    smooth_beta: f64,
-    /// With --video: how fast the cutoff rises with the head's speed, Hz per m/s.
-    #[arg(long, default_value_t = OneEuroParams::default().beta_translation)]
-    smooth_beta_translation: f64,
-    /// With --video: write the raw per-frame poses, unsmoothed.
-    #[arg(long)]
-    no_smooth: bool,
+    /// --video's options.
+    #[command(flatten)]
+    video_options: Box<VideoOptions>,
     /// With --image (one photo): a face box "x0 y0 x1 y1" in the photo's pixels, as the
     /// official demo takes it; repeat for several faces.
     #[arg(long = "box", value_name = "X0 Y0 X1 Y1", allow_hyphen_values = true)]
@@ -202,6 +181,54 @@ pub struct PredictArgs {
     /// Print the summary as JSON.
     #[arg(long)]
     json: bool,
+}
+
+/// `predict --video`'s options (boxed: they are read once).
+#[derive(Args, Debug)]
+struct VideoOptions {
+    /// With --video (a folder of frames): its frames a second, in (0, 1000].
+    #[arg(long, allow_negative_numbers = true, default_value_t = 30.0, value_parser = frame_rate)]
+    fps: f64,
+    /// With --video: run the detector on every Nth frame only (1: every frame), 1..=10000;
+    /// the boxes are carried between, moved by each track's speed.
+    #[arg(long, value_name = "N", allow_negative_numbers = true, default_value_t = 1,
+          value_parser = clap::builder::RangedU64ValueParser::<u32>::new().range(1..=10_000))]
+    detect_every: u32,
+    /// With --video: detector runs a track survives without its face before it ends,
+    /// 0..=1000.
+    #[arg(long, allow_negative_numbers = true, default_value_t = 2,
+          value_parser = clap::builder::RangedU64ValueParser::<u32>::new().range(0..=1000))]
+    max_missed: u32,
+    /// With --video: the One-Euro filter's cutoff at rest, Hz, in (0, 1000] (lower:
+    /// smoother, more lag). Measured defaults: docs/video.md.
+    #[arg(long, allow_negative_numbers = true, default_value_t = OneEuroParams::default().min_cutoff_hz, value_parser = cutoff_hz)]
+    smooth_min_cutoff: f64,
+    /// With --video: how fast the cutoff rises with the head's turning speed, Hz per
+    /// rad/s, in [0, 1000] (higher: less lag when moving).
+    #[arg(long, allow_negative_numbers = true, default_value_t = OneEuroParams::default().beta_rotation, value_parser = smoothing_beta)]
+    smooth_beta: f64,
+    /// With --video: how fast the cutoff rises with the head's speed, Hz per m/s, in
+    /// [0, 1000].
+    #[arg(long, allow_negative_numbers = true, default_value_t = OneEuroParams::default().beta_translation, value_parser = smoothing_beta)]
+    smooth_beta_translation: f64,
+    /// With --video: write the raw per-frame poses, unsmoothed.
+    #[arg(long)]
+    no_smooth: bool,
+}
+
+/// Frames a second in (0, 1000] (`--fps`).
+pub(super) fn frame_rate(s: &str) -> std::result::Result<f64, String> {
+    super::float_in(s, 0.0, false, 1000.0, true)
+}
+
+/// A One-Euro cutoff in (0, 1000] Hz.
+fn cutoff_hz(s: &str) -> std::result::Result<f64, String> {
+    super::float_in(s, 0.0, false, 1000.0, true)
+}
+
+/// A One-Euro beta in [0, 1000].
+fn smoothing_beta(s: &str) -> std::result::Result<f64, String> {
+    super::float_in(s, 0.0, true, 1000.0, true)
 }
 
 /// `--crop` values.
@@ -506,16 +533,16 @@ fn run_video(a: &PredictArgs, ransac: RansacParams) -> Result<ExitCode> {
         model,
         resources: a.resources.as_deref(),
         boxes_file: a.boxes_file.as_deref(),
-        fps: a.fps,
-        detect_every: a.detect_every,
+        fps: a.video_options.fps,
+        detect_every: a.video_options.detect_every,
         tracker: arkit_data::video::TrackerOptions {
-            max_missed: a.max_missed,
+            max_missed: a.video_options.max_missed,
             ..Default::default()
         },
-        smooth: (!a.no_smooth).then_some(OneEuroParams {
-            min_cutoff_hz: a.smooth_min_cutoff,
-            beta_rotation: a.smooth_beta,
-            beta_translation: a.smooth_beta_translation,
+        smooth: (!a.video_options.no_smooth).then_some(OneEuroParams {
+            min_cutoff_hz: a.video_options.smooth_min_cutoff,
+            beta_rotation: a.video_options.smooth_beta,
+            beta_translation: a.video_options.smooth_beta_translation,
             ..OneEuroParams::default()
         }),
         min_face_px: a.min_face_px,
@@ -527,6 +554,7 @@ fn run_video(a: &PredictArgs, ransac: RansacParams) -> Result<ExitCode> {
         output: a.output.as_deref(),
         seed: a.seed,
         ransac,
+        strict: a.strict,
         json: a.json,
     })
 }

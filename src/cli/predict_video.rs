@@ -33,6 +33,7 @@ pub struct VideoRequest<'a> {
     pub output: Option<&'a Path>,
     pub seed: u64,
     pub ransac: RansacParams,
+    pub strict: bool,
     pub json: bool,
 }
 
@@ -102,7 +103,7 @@ fn track_colour(track: u64) -> image::Rgb<u8> {
 
 /// Where `--draw` frames go: an MP4, or a folder of JPEGs (published when complete).
 enum DrawTarget {
-    Mp4(Mp4Encoder),
+    Mp4(Box<Mp4Encoder>),
     Folder { tmp: PathBuf, path: PathBuf },
 }
 
@@ -112,7 +113,7 @@ impl DrawTarget {
             .extension()
             .is_some_and(|x| x.eq_ignore_ascii_case("mp4"));
         if is_mp4 {
-            return Ok(DrawTarget::Mp4(Mp4Encoder::create(path, fps)?));
+            return Ok(DrawTarget::Mp4(Box::new(Mp4Encoder::create(path, fps)?)));
         }
         if path.extension().is_some() {
             return Err(Error::invalid(
@@ -176,6 +177,19 @@ pub fn run(r: VideoRequest<'_>) -> Result<ExitCode> {
     }
     let boxes = r.boxes_file.map(read_frame_boxes).transpose()?;
     let mut source = VideoSource::open(r.video, r.fps)?;
+    if let (Some(table), Some(path)) = (&boxes, r.boxes_file)
+        && let Some(f) = table.keys().filter(|&&f| f >= source.frame_count()).min()
+    {
+        return Err(Error::format(
+            path,
+            format!(
+                "has boxes for frame {f}, but {} has {} frames (0 to {})",
+                r.video.display(),
+                source.frame_count(),
+                source.frame_count().saturating_sub(1)
+            ),
+        ));
+    }
     let topology = super::load_topology(r.resources)?;
     let model = arkit_perspnet::load(r.model, &topology)?;
     model.net.perspnet("predict --video")?;
@@ -305,6 +319,7 @@ pub fn run(r: VideoRequest<'_>) -> Result<ExitCode> {
         "posed": posed,
         "frames_per_second": if seconds > 0.0 { frames as f64 / seconds } else { 0.0 },
         "max_frames_held": source.max_frames_held(),
+        "skipped": source.skipped().iter().map(|(what, why)| json!({"frame": what, "error": why})).collect::<Vec<_>>(),
         "peak_rss_mb": peak_rss_mb(),
         "detect_every": r.detect_every,
         "smoothing": r.smooth,
@@ -333,11 +348,18 @@ pub fn run(r: VideoRequest<'_>) -> Result<ExitCode> {
                 .unwrap_or_default()
         );
     }
+    for (what, why) in source.skipped() {
+        eprintln!("predict: skipped {what}: {why}");
+    }
     if frames == 0 {
         eprintln!("predict: {}: no frame could be read", r.video.display());
         return Ok(ExitCode::FAILURE);
     }
-    Ok(ExitCode::SUCCESS)
+    Ok(if r.strict && !source.skipped().is_empty() {
+        ExitCode::FAILURE
+    } else {
+        ExitCode::SUCCESS
+    })
 }
 
 /// The process's peak resident memory, MB (Linux's VmHWM; `None` elsewhere).

@@ -49,8 +49,8 @@ pub struct SynthArgs {
     /// With --video: which clip, `turn` or `cross`.
     #[arg(long, value_enum, default_value = "turn")]
     clip: ClipChoice,
-    /// With --video: frames a second.
-    #[arg(long, default_value_t = 30.0)]
+    /// With --video: frames a second, in (0, 1000].
+    #[arg(long, allow_negative_numbers = true, default_value_t = 30.0, value_parser = super::predict::frame_rate)]
     fps: f64,
     /// With --group-photo: how many faces, 1..=8.
     #[arg(long, default_value_t = 3)]

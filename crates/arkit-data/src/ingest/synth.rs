@@ -839,6 +839,10 @@ pub fn group_photo(
     })
 }
 
+/// A frame of a synthetic video: the picture, the focal length (pixels) and each
+/// face's landmark box (`None` when it is not wholly in the picture).
+pub type VideoFrame = (RgbImage, f64, Vec<Option<[f64; 4]>>);
+
 /// One frame of a synthetic video (`synth --video`): the faces of `faces` (each a
 /// subject index and its pose in the release's camera frame) drawn in order (a later
 /// face covers an earlier one) on the background of `seed`, in a `width x height`
@@ -852,7 +856,7 @@ pub fn video_frame(
     width: u32,
     height: u32,
     faces: &[(usize, Pose)],
-) -> Result<(RgbImage, f64, Vec<Option<[f64; 4]>>)> {
+) -> Result<VideoFrame> {
     let long = width.max(height) as f64;
     let f = Camera::RELEASE_FOCAL_NDC * long / 2.0;
     let mut projection = Camera::release_projection();

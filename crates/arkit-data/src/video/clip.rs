@@ -98,7 +98,7 @@ impl ClipPlan {
         match self.kind {
             ClipKind::Turn => {
                 let (first, last) = self.turn_frames();
-                let per_frame = self.turn_deg_s / self.fps * self.start_yaw_deg.signum() * -1.0;
+                let per_frame = -(self.turn_deg_s / self.fps * self.start_yaw_deg.signum());
                 let yaw = self.start_yaw_deg + per_frame * (i.clamp(first, last) - first) as f64;
                 let t = place(w / 2.0, h / 2.0, 0.45);
                 vec![(0, Pose::from_euler(EulerAngles::new(yaw, 5.0, 0.0), t))]

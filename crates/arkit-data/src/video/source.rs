@@ -37,6 +37,7 @@ pub struct VideoSource {
     kind: Kind,
     next_index: u64,
     max_held: usize,
+    skipped: Vec<(String, String)>,
 }
 
 enum Kind {
@@ -102,12 +103,11 @@ pub fn video_codecs(path: &Path) -> Result<Vec<[u8; 4]>> {
         else {
             break;
         };
-        if &kind == b"trak" {
-            if let Some(code) =
+        if &kind == b"trak"
+            && let Some(code) =
                 trak_video_codec(&mut file, start, end).map_err(|e| Error::io(path, e))?
-            {
-                out.push(code);
-            }
+        {
+            out.push(code);
         }
         at = end;
     }
@@ -224,6 +224,7 @@ impl VideoSource {
             kind,
             next_index: 0,
             max_held: 0,
+            skipped: Vec::new(),
         })
     }
 
@@ -258,25 +259,40 @@ impl VideoSource {
         }
     }
 
+    /// The frames skipped so far, each with why: a frame file that could not be read
+    /// (named by its path), or an H.264 sample the decoder refused (named by its number).
+    pub fn skipped(&self) -> &[(String, String)] {
+        &self.skipped
+    }
+
     /// The next frame, or `None` at the end. A frame file that cannot be read, or a
-    /// sample the decoder refuses, is an error naming the file and the frame.
+    /// sample the decoder refuses, is skipped and listed in [`Self::skipped`]; a
+    /// folder's frame keeps its place (index and time) in the folder.
     pub fn next_frame(&mut self) -> Result<Option<Frame>> {
-        let index = self.next_index;
         let frame = match &mut self.kind {
-            Kind::Folder { files, fps } => {
+            Kind::Folder { files, fps } => loop {
+                let index = self.next_index;
                 let Some(path) = files.get(index as usize) else {
                     return Ok(None);
                 };
-                let image = crate::picture::read_rgb8_checked(path, |_| Ok(()))?;
-                self.max_held = self.max_held.max(1);
-                Some(Frame {
-                    index,
-                    time_s: index as f64 / *fps,
-                    image,
-                })
-            }
+                self.next_index += 1;
+                match crate::picture::read_rgb8_checked(path, |_| Ok(())) {
+                    Ok(image) => {
+                        self.max_held = self.max_held.max(1);
+                        return Ok(Some(Frame {
+                            index,
+                            time_s: index as f64 / *fps,
+                            image,
+                        }));
+                    }
+                    Err(e) => self
+                        .skipped
+                        .push((path.display().to_string(), e.to_string())),
+                }
+            },
             Kind::Mp4(m) => {
-                let got = m.next()?;
+                let index = self.next_index;
+                let got = m.next(&mut self.skipped)?;
                 self.max_held = self.max_held.max(m.pending.len() + got.is_some() as usize);
                 got.map(|(t, image)| Frame {
                     index,
@@ -419,8 +435,9 @@ impl Mp4Frames {
         })
     }
 
-    /// The next frame in display order, with its time in seconds.
-    fn next(&mut self) -> Result<Option<(f64, RgbImage)>> {
+    /// The next frame in display order, with its time in seconds; a sample the decoder
+    /// refuses is listed in `skipped` and left out.
+    fn next(&mut self, skipped: &mut Vec<(String, String)>) -> Result<Option<(f64, RgbImage)>> {
         while self.pending.is_empty() && !self.flushed {
             if self.next_sample > self.samples {
                 let frames = self.decoder.flush_remaining().map_err(|e| {
@@ -441,9 +458,8 @@ impl Mp4Frames {
                 .read_sample(self.track, id)
                 .map_err(|e| Error::format(&self.path, format!("frame sample {id}: {e}")))?;
             let Some(sample) = sample else { continue };
-            self.times.push(std::cmp::Reverse(
-                sample.start_time as i64 + sample.rendering_offset as i64,
-            ));
+            let pts = sample.start_time as i64 + sample.rendering_offset as i64;
+            self.times.push(std::cmp::Reverse(pts));
             let mut packet = if id == 1 {
                 self.header.clone()
             } else {
@@ -466,14 +482,20 @@ impl Mp4Frames {
                 packet.extend_from_slice(&rest[..n]);
                 rest = &rest[n..];
             }
-            let decoded = self
-                .decoder
-                .decode(&packet)
-                .map_err(|e| Error::format(&self.path, format!("frame sample {id}: H.264: {e}")))?;
-            if let Some(yuv) = decoded {
-                let image = rgb_image(&yuv);
-                let t = self.times.pop().map(|r| r.0).unwrap_or(0);
-                self.pending.push_back((t, image));
+            match self.decoder.decode(&packet) {
+                Ok(Some(yuv)) => {
+                    let image = rgb_image(&yuv);
+                    let t = self.times.pop().map(|r| r.0).unwrap_or(0);
+                    self.pending.push_back((t, image));
+                }
+                Ok(None) => {}
+                Err(e) => {
+                    skipped.push((
+                        format!("{} (sample {id})", self.path.display()),
+                        format!("H.264: {e}"),
+                    ));
+                    self.times.retain(|r| r.0 != pts);
+                }
             }
         }
         Ok(self.pending.pop_front().map(|(t, image)| {

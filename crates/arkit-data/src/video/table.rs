@@ -262,11 +262,11 @@ fn frame(rows: &[FrameRow], names: &[&str; 3]) -> Result<DataFrame> {
                 .collect::<Vec<Option<f64>>>(),
         ));
     };
-    for i in 0..3 {
-        pose_col(names[i].to_string(), &|p| p.angles[i]);
+    for (i, n) in names.iter().enumerate() {
+        pose_col(n.to_string(), &|p| p.angles[i]);
     }
-    for i in 0..3 {
-        pose_col(format!("raw_{}", names[i]), &|p| p.raw_angles[i]);
+    for (i, n) in names.iter().enumerate() {
+        pose_col(format!("raw_{n}"), &|p| p.raw_angles[i]);
     }
     for (i, n) in ["tx_m", "ty_m", "tz_m"].iter().enumerate() {
         pose_col(n.to_string(), &|p| p.translation_m[i]);

@@ -127,9 +127,8 @@ impl Tracker {
                 Some(ti) => {
                     let t = &mut self.tracks[ti];
                     let frames = (t.since_seen + 1) as f64;
-                    for i in 0..4 {
-                        let v = (d[i] - t.bbox[i]) / frames;
-                        t.velocity[i] = 0.5 * t.velocity[i] + 0.5 * v;
+                    for (i, v) in t.velocity.iter_mut().enumerate() {
+                        *v = 0.5 * *v + 0.5 * (d[i] - t.bbox[i]) / frames;
                     }
                     t.bbox = *d;
                     t.since_seen = 0;
@@ -234,7 +233,7 @@ mod tests {
             let a = square(50.0 + 10.0 * f as f64, 100.0, 90.0);
             let b = square(450.0 - 10.0 * f as f64, 110.0, 80.0);
             // Listed in screen order (left first), so the list order swaps too.
-            let mut found = vec![(0u64, a), (1u64, b)];
+            let mut found = [(0u64, a), (1u64, b)];
             found.sort_by(|x, y| x.1[0].total_cmp(&y.1[0]));
             let boxes: Vec<[f64; 4]> = found.iter().map(|x| x.1).collect();
             let got = t.detected(&boxes);
