@@ -387,3 +387,62 @@ fn a_damaged_frame_is_skipped_and_named() {
         "{stderr}"
     );
 }
+
+/// An MP4 written by [`Mp4Encoder`] is read by OpenCV's FFmpeg (under the Python named
+/// by `ARKIT_OPENCV_PYTHON`, as tests/official_crop.rs): the same frame count, frame
+/// rate and pictures as our decoder gives; and OpenCV's own MPEG-4 Part 2 clip is
+/// refused by name. Skips with a message without it.
+#[test]
+fn opencv_reads_our_mp4_and_its_mpeg4_clip_is_refused() {
+    let Some(python) = std::env::var_os("ARKIT_OPENCV_PYTHON") else {
+        eprintln!(
+            "SKIPPED: set ARKIT_OPENCV_PYTHON to a Python with numpy and opencv-python-headless to read our MP4 with OpenCV"
+        );
+        return;
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let clip = dir.path().join("clip.mp4");
+    let mut enc = Mp4Encoder::create(&clip, 25.0).unwrap();
+    for i in 0..40u32 {
+        let img = image::RgbImage::from_fn(96, 64, |x, y| {
+            let inside = (x as i64 - 10 - 2 * i as i64).pow(2) + (y as i64 - 32).pow(2) < 200;
+            if inside {
+                image::Rgb([240, 240, 240])
+            } else {
+                image::Rgb([(x * 2) as u8, (y * 3) as u8, (i * 5) as u8])
+            }
+        });
+        enc.push(&img).unwrap();
+    }
+    enc.finish().unwrap();
+    let ours = dir.path().join("ours");
+    std::fs::create_dir(&ours).unwrap();
+    let mut source = VideoSource::open(&clip, 30.0).unwrap();
+    assert!((source.fps() - 25.0).abs() < 1e-6);
+    while let Some(f) = source.next_frame().unwrap() {
+        f.image
+            .save(ours.join(format!("frame-{:06}.png", f.index)))
+            .unwrap();
+    }
+    let other = dir.path().join("mp4v.mp4");
+    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/video_opencv.py");
+    let out = std::process::Command::new(&python)
+        .args([
+            script.as_os_str(),
+            clip.as_os_str(),
+            ours.as_os_str(),
+            other.as_os_str(),
+        ])
+        .output()
+        .unwrap();
+    let text = String::from_utf8_lossy(&out.stdout).to_string();
+    eprintln!("{text}{}", String::from_utf8_lossy(&out.stderr));
+    assert!(out.status.success(), "{text}");
+    assert!(text.starts_with("40 frames, fps 25.00"), "{text}");
+    let worst: f64 = text.trim().rsplit(' ').next().unwrap().parse().unwrap();
+    // The same stream decoded twice; only the YUV to RGB conversions differ.
+    assert!(worst < 4.0, "{text}");
+    let (ok, _, stderr) = run(&["predict", "--model", TINY, "--video", &s(&other)]);
+    assert!(!ok);
+    assert!(stderr.contains("MPEG-4 Part 2 ('mp4v')"), "{stderr}");
+}

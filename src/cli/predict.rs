@@ -185,6 +185,7 @@ pub struct PredictArgs {
 
 /// `predict --video`'s options (boxed: they are read once).
 #[derive(Args, Debug)]
+#[cfg_attr(not(feature = "model"), allow(dead_code))]
 struct VideoOptions {
     /// With --video (a folder of frames): its frames a second, in (0, 1000].
     #[arg(long, allow_negative_numbers = true, default_value_t = 30.0, value_parser = frame_rate)]

@@ -296,7 +296,7 @@ pub fn run(r: VideoRequest<'_>) -> Result<ExitCode> {
             };
             match rows.as_mut() {
                 Some(w) => w.push(&row)?,
-                None => stdout_rows.push(arkit_data::video::table::json_row(&row, &names)),
+                None => stdout_rows.push(arkit_data::video::json_row(&row, &names)),
             }
         }
         if let (Some(d), Some(img)) = (draw.as_mut(), drawn) {
