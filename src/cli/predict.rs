@@ -82,6 +82,8 @@ pub struct PredictArgs {
     /// With --image: face boxes from a file: JSON (`[[x0, y0, x1, y1], ...]` for one
     /// photo, or `{"PHOTO": [[...], ...]}`) or CSV (header `image,x0,y0,x1,y1`), photos
     /// named as given or by file name. A photo with no box is given to the detector.
+    /// With --video: JSON lines, `{"frame": N, "boxes": [[x0, y0, x1, y1], ...]}`, used
+    /// instead of the detector (as `synth --video` writes them).
     #[arg(long = "boxes", value_name = "FILE")]
     boxes_file: Option<PathBuf>,
     /// With --image: the detector's smallest face, pixels (at least 20).
@@ -108,7 +110,8 @@ pub struct PredictArgs {
     #[arg(long)]
     vertices: bool,
     /// With --image: draw each face's mesh and box on the photo into this JPEG (a folder
-    /// of NAME.jpg for several photos), as the official demo's result.jpg.
+    /// of NAME.jpg for several photos), as the official demo's result.jpg. With --video:
+    /// an .mp4 (H.264), or a folder of frame-NNNNNN.jpg (a path with no extension).
     #[arg(long, value_name = "OUT.jpg")]
     draw: Option<PathBuf>,
     /// With --image: write each face's crop as the network saw it (before
@@ -154,7 +157,9 @@ pub struct PredictArgs {
     #[arg(long, allow_negative_numbers = true, default_value_t = 8.0, value_parser = super::threshold_px)]
     threshold_px: f64,
     /// The predictions file to write (Parquet, schemas/predictions.json). With --image:
-    /// .json or .csv (default: JSON on the standard output).
+    /// .json or .csv (default: JSON on the standard output). With --video: .jsonl, .csv
+    /// or .parquet, a row per frame and track (default: JSON lines on the standard
+    /// output).
     #[arg(long)]
     output: Option<PathBuf>,
     /// Worker threads, 1..=1024 (default: all cores).
