@@ -28,4 +28,6 @@ mod shard_processes;
 mod shipped_model;
 mod synth_dataset;
 #[cfg(feature = "model")]
+mod video;
+#[cfg(feature = "model")]
 mod weights;

@@ -16,6 +16,8 @@ mod inspect;
 mod predict;
 #[cfg(feature = "model")]
 mod predict_image;
+#[cfg(feature = "model")]
+mod predict_video;
 mod push;
 mod remote;
 mod render;

@@ -6,6 +6,7 @@ use arkit_data::crop::RuleSet;
 use arkit_data::pose::RansacParams;
 use arkit_data::pose::{self, OracleOptions};
 use arkit_data::store::write_predictions;
+use arkit_data::video::OneEuroParams;
 use clap::{ArgGroup, Args};
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -40,14 +41,23 @@ use std::process::ExitCode;
 /// OpenCV's rvec/tvec, the inlier count), or writes it to --output (.json, or .csv
 /// with one row per face); --draw pictures the mesh on the photo. docs/photos.md.
 ///
+/// --video FILE --model DIR: the faces of a video (an H.264 MP4 or MOV, or a folder of
+/// numbered frames), frame by frame as with --image: the detector every frame (or
+/// every --detect-every N, boxes carried between; or the boxes of a --boxes JSON-lines
+/// file), faces matched across frames into tracks, each track's pose smoothed by a
+/// One-Euro filter on SO(3) (--no-smooth for the raw poses). Writes one row per frame
+/// and track to --output (.jsonl, .csv or .parquet; JSON lines on the standard output
+/// without it); --draw writes an .mp4 or a folder of frames. docs/video.md.
+///
 /// Example: arkit-tool predict --oracle --dataset data/pq --noise-px 1 --output oracle.parquet
 ///          arkit-tool predict --model model/ --dataset data/pq --output pred.parquet
 ///          arkit-tool predict --mean-pose --dataset data/pq --output baseline.parquet
 ///          arkit-tool predict --model model/ --image group.jpg --draw result.jpg
 ///          arkit-tool predict --model model/ --image photo.jpg --box "120 80 260 240" --fov-deg 70
+///          arkit-tool predict --model model/ --video clip.mp4 --output poses.jsonl --draw drawn.mp4
 #[derive(Args, Debug)]
 #[command(group(ArgGroup::new("predictor").required(true).args(["oracle", "model", "mean_pose"])))]
-#[command(group(ArgGroup::new("input").required(true).args(["dataset", "image"])))]
+#[command(group(ArgGroup::new("input").required(true).args(["dataset", "image", "video"])))]
 pub struct PredictArgs {
     /// A folder written by `convert` (and `render`). Or a dataset published with `arkit-tool push`: s3://BUCKET/PREFIX (its tables
     /// are mirrored in the cache folder, $ARKIT_CACHE_DIR or ~/.cache/arkit-tool).
@@ -57,6 +67,14 @@ pub struct PredictArgs {
     /// for several), with --model (a PerspNet).
     #[arg(long, value_name = "PHOTO", num_args = 1..)]
     image: Vec<PathBuf>,
+    /// A video to find head poses in: an MP4 or MOV with H.264 video (as phones and
+    /// webcams record them), or a folder of numbered frames (PNG, JPEG or WebP), with
+    /// --model (a PerspNet). docs/video.md.
+    #[arg(long, value_name = "FILE_OR_FOLDER", conflicts_with = "image")]
+    video: Option<PathBuf>,
+    /// --video's options.
+    #[command(flatten)]
+    video_options: Box<VideoOptions>,
     /// With --image (one photo): a face box "x0 y0 x1 y1" in the photo's pixels, as the
     /// official demo takes it; repeat for several faces.
     #[arg(long = "box", value_name = "X0 Y0 X1 Y1", allow_hyphen_values = true)]
@@ -64,6 +82,8 @@ pub struct PredictArgs {
     /// With --image: face boxes from a file: JSON (`[[x0, y0, x1, y1], ...]` for one
     /// photo, or `{"PHOTO": [[...], ...]}`) or CSV (header `image,x0,y0,x1,y1`), photos
     /// named as given or by file name. A photo with no box is given to the detector.
+    /// With --video: JSON lines, `{"frame": N, "boxes": [[x0, y0, x1, y1], ...]}`, used
+    /// instead of the detector (as `synth --video` writes them).
     #[arg(long = "boxes", value_name = "FILE")]
     boxes_file: Option<PathBuf>,
     /// With --image: the detector's smallest face, pixels (at least 20).
@@ -90,7 +110,8 @@ pub struct PredictArgs {
     #[arg(long)]
     vertices: bool,
     /// With --image: draw each face's mesh and box on the photo into this JPEG (a folder
-    /// of NAME.jpg for several photos), as the official demo's result.jpg.
+    /// of NAME.jpg for several photos), as the official demo's result.jpg. With --video:
+    /// an .mp4 (H.264), or a folder of frame-NNNNNN.jpg (a path with no extension).
     #[arg(long, value_name = "OUT.jpg")]
     draw: Option<PathBuf>,
     /// With --image: write each face's crop as the network saw it (before
@@ -136,7 +157,9 @@ pub struct PredictArgs {
     #[arg(long, allow_negative_numbers = true, default_value_t = 8.0, value_parser = super::threshold_px)]
     threshold_px: f64,
     /// The predictions file to write (Parquet, schemas/predictions.json). With --image:
-    /// .json or .csv (default: JSON on the standard output).
+    /// .json or .csv (default: JSON on the standard output). With --video: .jsonl, .csv
+    /// or .parquet, a row per frame and track (default: JSON lines on the standard
+    /// output).
     #[arg(long)]
     output: Option<PathBuf>,
     /// Worker threads, 1..=1024 (default: all cores).
@@ -163,6 +186,55 @@ pub struct PredictArgs {
     /// Print the summary as JSON.
     #[arg(long)]
     json: bool,
+}
+
+/// `predict --video`'s options (boxed: they are read once).
+#[derive(Args, Debug)]
+#[cfg_attr(not(feature = "model"), allow(dead_code))]
+struct VideoOptions {
+    /// With --video (a folder of frames): its frames a second, in (0, 1000].
+    #[arg(long, allow_negative_numbers = true, default_value_t = 30.0, value_parser = frame_rate)]
+    fps: f64,
+    /// With --video: run the detector on every Nth frame only (1: every frame), 1..=10000;
+    /// the boxes are carried between, moved by each track's speed.
+    #[arg(long, value_name = "N", allow_negative_numbers = true, default_value_t = 1,
+          value_parser = clap::builder::RangedU64ValueParser::<u32>::new().range(1..=10_000))]
+    detect_every: u32,
+    /// With --video: detector runs a track survives without its face before it ends,
+    /// 0..=1000.
+    #[arg(long, allow_negative_numbers = true, default_value_t = 2,
+          value_parser = clap::builder::RangedU64ValueParser::<u32>::new().range(0..=1000))]
+    max_missed: u32,
+    /// With --video: the One-Euro filter's cutoff at rest, Hz, in (0, 1000] (lower:
+    /// smoother, more lag). Measured defaults: docs/video.md.
+    #[arg(long, allow_negative_numbers = true, default_value_t = OneEuroParams::default().min_cutoff_hz, value_parser = cutoff_hz)]
+    smooth_min_cutoff: f64,
+    /// With --video: how fast the cutoff rises with the head's turning speed, Hz per
+    /// rad/s, in [0, 1000] (higher: less lag when moving).
+    #[arg(long, allow_negative_numbers = true, default_value_t = OneEuroParams::default().beta_rotation, value_parser = smoothing_beta)]
+    smooth_beta: f64,
+    /// With --video: how fast the cutoff rises with the head's speed, Hz per m/s, in
+    /// [0, 1000].
+    #[arg(long, allow_negative_numbers = true, default_value_t = OneEuroParams::default().beta_translation, value_parser = smoothing_beta)]
+    smooth_beta_translation: f64,
+    /// With --video: write the raw per-frame poses, unsmoothed.
+    #[arg(long)]
+    no_smooth: bool,
+}
+
+/// Frames a second in (0, 1000] (`--fps`).
+pub(super) fn frame_rate(s: &str) -> std::result::Result<f64, String> {
+    super::float_in(s, 0.0, false, 1000.0, true)
+}
+
+/// A One-Euro cutoff in (0, 1000] Hz.
+fn cutoff_hz(s: &str) -> std::result::Result<f64, String> {
+    super::float_in(s, 0.0, false, 1000.0, true)
+}
+
+/// A One-Euro beta in [0, 1000].
+fn smoothing_beta(s: &str) -> std::result::Result<f64, String> {
+    super::float_in(s, 0.0, true, 1000.0, true)
 }
 
 /// `--crop` values.
@@ -193,6 +265,9 @@ pub fn run(mut a: PredictArgs) -> Result<ExitCode> {
         seed: a.seed,
         ..RansacParams::default()
     };
+    if a.video.is_some() {
+        return run_video(&a, ransac);
+    }
     if !a.image.is_empty() {
         return run_image(&a, ransac);
     }
@@ -429,6 +504,73 @@ fn run_image(a: &PredictArgs, ransac: RansacParams) -> Result<ExitCode> {
         strict: a.strict,
         json: a.json,
     })
+}
+
+#[cfg(feature = "model")]
+fn run_video(a: &PredictArgs, ransac: RansacParams) -> Result<ExitCode> {
+    let video = a.video.as_deref().expect("checked by the caller");
+    let Some(model) = a.model.as_deref() else {
+        return Err(arkit_core::Error::invalid(
+            "--video",
+            "poses faces with a trained PerspNet: give --model DIR (models/tiny-synthetic is shipped)",
+        ));
+    };
+    for (given, flag) in [
+        (a.dump.is_some(), "--dump"),
+        (a.targets.is_some(), "--targets"),
+        (!a.boxes.is_empty(), "--box"),
+        (a.vertices, "--vertices"),
+        (a.dump_crops.is_some(), "--dump-crops"),
+        (
+            a.noise_px != 0.0 || a.outliers != 0.0,
+            "--noise-px/--outliers",
+        ),
+        (matches!(a.mask, MaskSource::Truth), "--mask truth"),
+    ] {
+        if given {
+            return Err(arkit_core::Error::invalid(
+                flag,
+                "is not for --video (docs/video.md lists its options)",
+            ));
+        }
+    }
+    super::predict_video::run(super::predict_video::VideoRequest {
+        video,
+        model,
+        resources: a.resources.as_deref(),
+        boxes_file: a.boxes_file.as_deref(),
+        fps: a.video_options.fps,
+        detect_every: a.video_options.detect_every,
+        tracker: arkit_data::video::TrackerOptions {
+            max_missed: a.video_options.max_missed,
+            ..Default::default()
+        },
+        smooth: (!a.video_options.no_smooth).then_some(OneEuroParams {
+            min_cutoff_hz: a.video_options.smooth_min_cutoff,
+            beta_rotation: a.video_options.smooth_beta,
+            beta_translation: a.video_options.smooth_beta_translation,
+            ..OneEuroParams::default()
+        }),
+        min_face_px: a.min_face_px,
+        detector_score: a.detector_score,
+        focal_px: a.focal_px,
+        fov_deg: a.fov_deg,
+        angles: a.angles,
+        draw: a.draw.as_deref(),
+        output: a.output.as_deref(),
+        seed: a.seed,
+        ransac,
+        strict: a.strict,
+        json: a.json,
+    })
+}
+
+#[cfg(not(feature = "model"))]
+fn run_video(_: &PredictArgs, _: RansacParams) -> Result<ExitCode> {
+    Err(arkit_core::Error::invalid(
+        "--video",
+        "this arkit-tool was built without the `model` feature (candle); rebuild with default features",
+    ))
 }
 
 #[cfg(not(feature = "model"))]

@@ -23,17 +23,35 @@ use std::process::ExitCode;
 /// beside it FILE.boxes.json (the faces' landmark boxes, for --boxes) and
 /// FILE.truth.json (each face's box, R_t, yaw/pitch/roll and translation).
 ///
+/// --video OUT.mp4 (or a folder) instead writes a clip of the synthetic head moving
+/// along a known trajectory, for `predict --video`: `--clip turn` (1 s at rest at yaw
+/// -30, a 90 degree/s turn to +30, 1 s at rest; the clip docs/video.md measures the
+/// smoothing on) or `--clip cross` (two heads that pass each other). Beside it:
+/// OUT.truth.jsonl (each frame's faces: box, R_t, yaw/pitch/roll, translation) and
+/// OUT.boxes.jsonl (each frame's boxes, for `predict --video --boxes`).
+///
 /// Example: arkit-tool synth --output data/synth --subjects 10 --images-per-subject 20
 ///          arkit-tool synth --group-photo group.jpg --faces 3 --size 1280x720
+///          arkit-tool synth --video turn.mp4 --size 640x480
 #[derive(Args, Debug)]
 pub struct SynthArgs {
     /// Folder to write (`ARKitFace_image_train/`, `ARKitFace_info_train/`, ..., `ARKitFace_list/`).
-    #[arg(long, required_unless_present = "group_photo")]
+    #[arg(long, required_unless_present_any = ["group_photo", "video"])]
     output: Option<PathBuf>,
     /// Write a group photo (JPEG) instead of a dataset (see above); --size is the
     /// photo's (e.g. 1280x720).
     #[arg(long, value_name = "FILE.jpg", conflicts_with = "output")]
     group_photo: Option<PathBuf>,
+    /// Write a clip (an .mp4, or a folder of PNG frames: a path with no extension)
+    /// instead of a dataset (see above); --size is the frames' (e.g. 640x480).
+    #[arg(long, value_name = "OUT.mp4", conflicts_with_all = ["output", "group_photo"])]
+    video: Option<PathBuf>,
+    /// With --video: which clip, `turn` or `cross`.
+    #[arg(long, value_enum, default_value = "turn")]
+    clip: ClipChoice,
+    /// With --video: frames a second, in (0, 1000].
+    #[arg(long, allow_negative_numbers = true, default_value_t = 30.0, value_parser = super::predict::frame_rate)]
+    fps: f64,
     /// With --group-photo: how many faces, 1..=8.
     #[arg(long, default_value_t = 3)]
     faces: usize,
@@ -87,6 +105,9 @@ pub fn run(a: SynthArgs) -> Result<ExitCode> {
         Some(dir) => FaceSource::new(arkit_data::mesh::FaceTopology::from_resources(dir)?)?,
         None => FaceSource::builtin(),
     };
+    if let Some(path) = &a.video {
+        return video(&source, &options, &a, path);
+    }
     if let Some(path) = &a.group_photo {
         return group_photo(&source, &options, a.faces, path, a.json);
     }
@@ -202,6 +223,135 @@ fn group_photo(
             path.display(),
             boxes_path.display(),
             truth_path.display()
+        );
+    }
+    Ok(ExitCode::SUCCESS)
+}
+
+/// `--clip` values.
+#[derive(Clone, Copy, Debug, clap::ValueEnum)]
+enum ClipChoice {
+    Turn,
+    Cross,
+}
+
+/// `synth --video`: the clip, its truth and its boxes.
+fn video(
+    source: &FaceSource,
+    options: &SynthOptions,
+    a: &SynthArgs,
+    path: &std::path::Path,
+) -> Result<ExitCode> {
+    use arkit_data::video::{ClipPlan, Mp4Encoder};
+    if !(a.fps.is_finite() && a.fps >= 1.0 && a.fps <= 240.0) {
+        return Err(Error::invalid(
+            "--fps",
+            format!("{}: must be in [1, 240]", a.fps),
+        ));
+    }
+    let plan = match a.clip {
+        ClipChoice::Turn => ClipPlan::turn(a.fps),
+        ClipChoice::Cross => ClipPlan::cross(a.fps),
+    };
+    let (w, h) = (options.width, options.height);
+    let is_mp4 = path
+        .extension()
+        .is_some_and(|x| x.eq_ignore_ascii_case("mp4"));
+    if !is_mp4 && path.extension().is_some() {
+        return Err(Error::invalid(
+            "--video",
+            format!(
+                "{}: writes an .mp4 or a folder of frames (a path with no extension)",
+                path.display()
+            ),
+        ));
+    }
+    let stem = path
+        .file_stem()
+        .map(|s| s.to_string_lossy().to_string())
+        .unwrap_or_default();
+    let beside = |suffix: &str| path.with_file_name(format!("{stem}.{suffix}"));
+    let mut encoder = if is_mp4 {
+        Some(Mp4Encoder::create(path, a.fps)?)
+    } else {
+        None
+    };
+    let folder_tmp = arkit_core::atomic_file::temporary_name(path);
+    if !is_mp4 {
+        std::fs::create_dir_all(&folder_tmp).map_err(|e| Error::io(path, e))?;
+    }
+    let (mut truth, mut boxes) = (String::new(), String::new());
+    let frames = plan.frames();
+    let bar = super::progress_bar(frames as u64, "synth", "frames");
+    let focal = arkit_core::conventions::Camera::RELEASE_FOCAL_NDC * w.max(h) as f64 / 2.0;
+    for i in 0..frames {
+        bar.inc(1);
+        let faces = plan.faces(i, focal, w, h);
+        let (image, _, found) = synth::video_frame(source, options.seed, w, h, &faces)?;
+        let time_s = i as f64 / a.fps;
+        let entries: Vec<serde_json::Value> = faces
+            .iter()
+            .zip(&found)
+            .map(|((subject, pose), b)| {
+                let rt = pose.to_release_rt();
+                let e = pose.euler();
+                let t = pose.translation_m();
+                serde_json::json!({
+                    "subject": subject,
+                    "box": b,
+                    "R_t": [[rt[0], rt[1], rt[2], rt[3]], [rt[4], rt[5], rt[6], rt[7]],
+                            [rt[8], rt[9], rt[10], rt[11]], [rt[12], rt[13], rt[14], rt[15]]],
+                    "angles": {"yaw": e.yaw_deg, "pitch": e.pitch_deg, "roll": e.roll_deg},
+                    "translation_m": [t.x, t.y, t.z],
+                })
+            })
+            .collect();
+        truth.push_str(
+            &serde_json::json!({"frame": i, "time_s": time_s, "faces": entries}).to_string(),
+        );
+        truth.push('\n');
+        let visible: Vec<[f64; 4]> = found.iter().flatten().copied().collect();
+        boxes.push_str(&serde_json::json!({"frame": i, "boxes": visible}).to_string());
+        boxes.push('\n');
+        match encoder.as_mut() {
+            Some(e) => e.push(&image)?,
+            None => {
+                let mut png = std::io::Cursor::new(Vec::new());
+                image
+                    .write_to(&mut png, image::ImageFormat::Png)
+                    .map_err(|e| Error::invalid("frame", e.to_string()))?;
+                let file = folder_tmp.join(format!("frame-{i:06}.png"));
+                std::fs::write(&file, png.get_ref()).map_err(|e| Error::io(path, e))?;
+            }
+        }
+    }
+    bar.finish_and_clear();
+    match encoder {
+        Some(e) => e.finish()?,
+        None => arkit_core::atomic_file::publish_dir(&folder_tmp, path)?,
+    }
+    let (truth_path, boxes_path) = (beside("truth.jsonl"), beside("boxes.jsonl"));
+    arkit_core::atomic_file::write_bytes(&truth_path, truth.as_bytes())?;
+    arkit_core::atomic_file::write_bytes(&boxes_path, boxes.as_bytes())?;
+    let summary = serde_json::json!({
+        "video": path.display().to_string(),
+        "frames": frames,
+        "fps": a.fps,
+        "width": w,
+        "height": h,
+        "focal_px": focal,
+        "truth": truth_path.display().to_string(),
+        "boxes": boxes_path.display().to_string(),
+    });
+    if a.json {
+        println!("{}", serde_json::to_string_pretty(&summary).expect("json"));
+    } else {
+        println!(
+            "wrote a {w}x{h} clip of {frames} frames at {} fps to {}, its truth to {} and its boxes to {}",
+            a.fps,
+            path.display(),
+            truth_path.display(),
+            boxes_path.display()
         );
     }
     Ok(ExitCode::SUCCESS)

@@ -167,6 +167,7 @@ pub mod pose;
 pub mod render;
 pub mod storage;
 pub mod store;
+pub mod video;
 
 // The names a pipeline is written with: open a dataset, render, load, solve, score.
 pub use crate::{

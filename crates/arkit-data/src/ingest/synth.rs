@@ -838,3 +838,56 @@ pub fn group_photo(
         faces: out,
     })
 }
+
+/// A frame of a synthetic video: the picture, the focal length (pixels) and each
+/// face's landmark box (`None` when it is not wholly in the picture).
+pub type VideoFrame = (RgbImage, f64, Vec<Option<[f64; 4]>>);
+
+/// One frame of a synthetic video (`synth --video`): the faces of `faces` (each a
+/// subject index and its pose in the release's camera frame) drawn in order (a later
+/// face covers an earlier one) on the background of `seed`, in a `width x height`
+/// camera with the focal length of [`group_photo`] (`1.57443701 x max(W, H) / 2` px,
+/// principal point at the centre). Gives the picture, the focal length and each face's
+/// landmark box (`None` when a vertex is behind the camera or a landmark leaves the
+/// picture).
+pub fn video_frame(
+    source: &FaceSource,
+    seed: u64,
+    width: u32,
+    height: u32,
+    faces: &[(usize, Pose)],
+) -> Result<VideoFrame> {
+    let long = width.max(height) as f64;
+    let f = Camera::RELEASE_FOCAL_NDC * long / 2.0;
+    let mut projection = Camera::release_projection();
+    projection[(0, 0)] = 2.0 * f / width as f64;
+    projection[(1, 1)] = 2.0 * f / height as f64;
+    let camera = Camera::new(projection, width, height)?;
+    let mut r = Rng::for_stream(seed, 1 << 42);
+    let mut image = background(width, height, &mut r);
+    let light = Vector3::new(0.3, 0.4, 1.0).normalize().cast::<f32>();
+    let mut boxes = Vec::with_capacity(faces.len());
+    for (k, (subject_index, pose)) in faces.iter().enumerate() {
+        let subject = subject_look(seed, *subject_index);
+        let expression = FACIAL_ACTIONS[k % FACIAL_ACTIONS.len()].1;
+        let verts = source.shape.shape(&subject.identity, &expression);
+        let verts64: Vec<Point3<f64>> = verts.iter().map(|p| p.cast()).collect();
+        let projected = camera.project_all(pose, &verts64);
+        if projected.iter().any(|q| q.depth_m <= 0.05) {
+            boxes.push(None);
+            continue;
+        }
+        draw_face(&mut image, source, &subject, &verts, pose, &camera, &light);
+        let (mut x0, mut y0, mut x1, mut y1) = (f64::MAX, f64::MAX, f64::MIN, f64::MIN);
+        for &l in &source.topology.landmarks {
+            let q = &projected[l as usize];
+            x0 = x0.min(q.u);
+            y0 = y0.min(q.v);
+            x1 = x1.max(q.u);
+            y1 = y1.max(q.v);
+        }
+        let inside = x0 >= 0.0 && y0 >= 0.0 && x1 <= width as f64 && y1 <= height as f64;
+        boxes.push(inside.then_some([x0, y0, x1, y1]));
+    }
+    Ok((image, f, boxes))
+}
