@@ -7,7 +7,8 @@ Makes folders of synthetic frames (`arkit-tool synth --group-photo`, 1280x720, 1
 faces, a new scene each frame) and times, for the `tiny` config (the shipped
 models/tiny-synthetic) and the `paper` config (random weights: no trained paper model
 ships), with the face detector on every frame and on every 5th (boxes carried to the
-frames between), each on `--threads` threads:
+frames between), each on `--threads` threads, each cell the best of `--rounds` runs
+(on a shared machine a run that lost a core is noise, not speed):
 
 - ours: `arkit-tool predict --model M --image FOLDER` (with `--boxes` for the carried
   frames), the whole process: JPEG decode, detector, the network (the faces of a frame
@@ -30,7 +31,8 @@ run the same weights; without it, a paper model is trained one step from a synth
 dataset. The vertex UVs the official network reads its UV map at are a grid here (the
 timing does not depend on them).
 
-Then the network alone, ms a crop (random crops, 1 and 3 in a batch): onnxruntime,
+Then the network alone, ms a crop (random crops, 1 and 3 in a batch; the best of
+`--reps`): onnxruntime,
 PyTorch (the official network: one pass, and demo.py's two), and candle through
 `cargo bench --bench perspnet -- network MODEL` (skipped with `--no-cargo`).
 
@@ -39,6 +41,7 @@ _native), onnxruntime, and for the demo.py column torch and cv2.
 """
 
 import argparse
+import gc
 import itertools
 import json
 import math
@@ -237,16 +240,22 @@ def demo_fps(net, frames, every, threads):
     return len(frames) / (time.perf_counter() - t)
 
 
-def median_ms(f, reps):
+def best_ms(f, reps):
+    """The fastest of `reps` calls, ms: on a shared machine a call that lost its core
+    (an OpenMP barrier waiting on a thread that was not running) is noise, not speed."""
     t = []
     for _ in range(reps):
         s = time.perf_counter()
         f()
         t.append((time.perf_counter() - s) * 1e3)
-    return sorted(t)[len(t) // 2]
+    return min(t)
 
 
 def network_alone(name, onnx_dir, net, threads, reps, model, cargo):
+    """The network alone, ms a crop: each runtime timed with no other runtime's threads
+    alive (onnxruntime's spin after a run; so do OpenMP's)."""
+    import gc
+
     import onnxruntime as ort
     from arkit_tool.onnx import OnnxPerspNet
 
@@ -256,27 +265,34 @@ def network_alone(name, onnx_dir, net, threads, reps, model, cargo):
     o = OnnxPerspNet(onnx_dir, session_options=so)
     s = o.input_size
     rng = np.random.default_rng(0)
-    for b in (1, 3):
-        x = rng.standard_normal((b, 3, s, s)).astype(np.float32)
+    crops = {b: rng.standard_normal((b, 3, s, s)).astype(np.float32) for b in (1, 3)}
+    lines = {}
+    for b, x in crops.items():
         o.predict(x, list(range(b)))
-        line = f"network alone {name}, {b} crop(s) a batch, ms a crop: onnxruntime {median_ms(lambda: o.predict(x, list(range(b))), reps) / b:.1f}"
-        if net is not None:
-            import torch
+        lines[b] = (f"network alone {name}, {b} crop(s) a batch, ms a crop: onnxruntime "
+                    f"{best_ms(lambda: o.predict(x, list(range(b))), reps) / b:.1f}")
+    del o
+    gc.collect()
+    time.sleep(1)
+    if net is not None:
+        import torch
 
+        torch.set_num_threads(threads)
+        for b, x in crops.items():
             xt = torch.from_numpy(x)
             ch = torch.from_numpy(rng.integers(0, s * s, (b, 1024)))
             with torch.no_grad():
                 net(xt, ch)
-                one = median_ms(lambda: net(xt, ch), reps) / b
-                two = median_ms(lambda: (net.cnn(xt), net(xt, ch)), reps) / b
-            line += f", PyTorch {one:.1f} (demo.py's two passes {two:.1f})"
-        print(line)
+                one = best_ms(lambda: net(xt, ch), reps) / b
+                two = best_ms(lambda: (net.cnn(xt), net(xt, ch)), reps) / b
+            lines[b] += f", PyTorch {one:.1f} (demo.py's two passes {two:.1f})"
+    print("\n".join(lines.values()))
     if cargo:
         env = dict(os.environ, RAYON_NUM_THREADS=str(threads))
         r = subprocess.run(["cargo", "bench", "--bench", "perspnet", "--", "network", str(model), str(reps)],
                            cwd=ROOT, capture_output=True, text=True, env=env)
-        lines = [l for l in r.stdout.splitlines() if l.startswith(("network", "ratio"))]
-        print("\n".join(lines) if lines else f"candle: cargo bench failed:\n{r.stderr[-2000:]}")
+        found = [l for l in r.stdout.splitlines() if l.startswith(("network", "ratio"))]
+        print("\n".join(found) if found else f"candle: cargo bench failed:\n{r.stderr[-2000:]}")
 
 
 def main():
@@ -285,7 +301,8 @@ def main():
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--faces", default="1,3")
     p.add_argument("--configs", default="tiny,paper")
-    p.add_argument("--reps", type=int, default=5, help="repetitions of the network-alone timings")
+    p.add_argument("--reps", type=int, default=5, help="repetitions of the network-alone timings (the best is kept)")
+    p.add_argument("--rounds", type=int, default=2, help="runs over the frames a cell (the best is kept)")
     p.add_argument("--bin", default=str(pathlib.Path(os.environ.get("CARGO_TARGET_DIR", ROOT / "target")) / "release" / "arkit-tool"))
     p.add_argument("--official", metavar="DIR",
                    help="a checkout of the official code (cbsropenproject/6dof_face; not part of this "
@@ -329,9 +346,11 @@ def main():
         found = detections(frames)
         for c in configs:
             for every in (1, EVERY):
-                fo = ours(tool, models[c], frames, found, every, a.threads, work)
-                fx = onnx_fps(onnx[c], frames, found, every, a.threads)
-                fd = demo_fps(official, frames, every, a.threads) if (official is not None and c == "paper") else None
+                fo = max(ours(tool, models[c], frames, found, every, a.threads, work) for _ in range(a.rounds))
+                fx = max(onnx_fps(onnx[c], frames, found, every, a.threads) for _ in range(a.rounds))
+                gc.collect()
+                fd = (max(demo_fps(official, frames, every, a.threads) for _ in range(a.rounds))
+                      if (official is not None and c == "paper") else None)
                 cell = lambda v: f"{v:6.1f} ({1e3 / v:5.0f})" if v else f"{'-':>14}"
                 det = "every" if every == 1 else f"every {every}"
                 print(f"{c:6} {nf:>5} {det:>9} | {cell(fo)} | {cell(fx)} | {cell(fd)}", flush=True)
