@@ -1,6 +1,13 @@
 //! Timing of forward (batch 1) and a full training step (batch 4) for the
 //! `tiny` and `paper` configurations. Run with
 //! `cargo bench --bench perspnet -- [tiny|paper|both] [reps]`.
+//!
+//! `cargo bench --bench perspnet -- network MODEL_DIR [reps]` times inference alone on
+//! a model folder (built-in topology): milliseconds a crop (the best of `reps`) for the network as
+//! `predict --image` ran it before (the dense network once for the mask, then the whole
+//! network), as it runs now (`predict_crops`: the dense network once), for one crop and
+//! for three in one batch. `python/bench/predict.py` runs it beside onnxruntime and
+//! PyTorch.
 
 use std::time::Instant;
 
@@ -131,6 +138,57 @@ fn run(name: &str, cfg: &PerspNetConfig, reps: usize) -> Result<()> {
     Ok(())
 }
 
+/// `network MODEL_DIR`: inference alone, milliseconds a crop.
+fn network(dir: &str, reps: usize) -> std::result::Result<(), Box<dyn std::error::Error>> {
+    use arkit_perspnet::{CropInput, predict_crops};
+    let topology = arkit_data::mesh::builtin().topology.clone();
+    let model = arkit_perspnet::load(std::path::Path::new(dir), &topology)?;
+    let net = model.net.perspnet("the network bench")?;
+    let s = model.checkpoint.config.input_size;
+    let inputs: Vec<Vec<f32>> = (0..3)
+        .map(|k| {
+            (0..3 * s * s)
+                .map(|i| ((i * 7 + k * 131) % 97) as f32 / 48.0 - 1.0)
+                .collect()
+        })
+        .collect();
+    let crops: Vec<CropInput> = inputs
+        .iter()
+        .map(|input| CropInput {
+            input,
+            seed: 0,
+            truth: None,
+        })
+        .collect();
+    let dev = Device::Cpu;
+    let img1 = Tensor::from_slice(&inputs[0], (1, 3, s, s), &dev)?;
+    predict_crops(&model, &crops, false)?; // warm-up
+    let (mut dense, mut one, mut three) = (Vec::new(), Vec::new(), Vec::new());
+    for _ in 0..reps {
+        let t = Instant::now();
+        net.forward_dense(&img1, false)?;
+        dense.push(t.elapsed().as_secs_f64() * 1e3);
+        let t = Instant::now();
+        predict_crops(&model, &crops[..1], false)?;
+        one.push(t.elapsed().as_secs_f64() * 1e3);
+        let t = Instant::now();
+        predict_crops(&model, &crops, false)?;
+        three.push(t.elapsed().as_secs_f64() * 1e3 / 3.0);
+    }
+    // The best of the repetitions: on a shared machine a slow one lost its core.
+    let best = |v: Vec<f64>| v.into_iter().fold(f64::INFINITY, f64::min);
+    let (dense, one, three) = (best(dense), best(one), best(three));
+    println!(
+        "network {dir}: ms a crop: two passes (before) {:.1}, one pass {one:.1}, 3 crops in one batch {three:.1} (dense part alone {dense:.1})",
+        dense + one
+    );
+    println!(
+        "ratio: network {dir}: two passes / one batch of 3 = {:.2}x",
+        (dense + one) / three
+    );
+    Ok(())
+}
+
 fn main() -> Result<()> {
     // As the `arkit-tool` binary does (`arkit_tool::allocator`).
     arkit_tool::allocator::keep_freed_memory();
@@ -140,6 +198,12 @@ fn main() -> Result<()> {
         .filter(|a| !a.starts_with("--"))
         .collect();
     let which = args.first().map(String::as_str).unwrap_or("both");
+    if which == "network" {
+        let dir = args.get(1).expect("network MODEL_DIR [reps]");
+        let reps = args.get(2).and_then(|s| s.parse().ok()).unwrap_or(5);
+        network(dir, reps).map_err(candle_core::Error::msg)?;
+        return Ok(());
+    }
     let reps: usize = args.get(1).and_then(|s| s.parse().ok()).unwrap_or(5);
     if which == "tiny" || which == "both" {
         run("tiny", &PerspNetConfig::tiny(), reps)?;

@@ -100,6 +100,30 @@ pub(crate) unsafe fn gemm_raw(
     }
 }
 
+/// [`gemm_raw`] whose product may itself run on rayon's threads (`parallel`): for a
+/// task of a parallel loop with fewer tasks than threads. Each element of `dst` is the
+/// same sum, in the same order, either way (the product is split by blocks of `dst`).
+///
+/// # Safety
+/// As [`gemm_raw`].
+pub(crate) unsafe fn gemm_raw_maybe_par(
+    dst: (*mut f32, usize),
+    d: Mat,
+    lhs: &[f32],
+    l: Mat,
+    rhs: &[f32],
+    r: Mat,
+    parallel: bool,
+) {
+    let parallelism = if parallel {
+        gemm::Parallelism::Rayon(0)
+    } else {
+        gemm::Parallelism::None
+    };
+    // SAFETY: the caller's promise, passed on.
+    unsafe { gemm_with(dst, (d, lhs, l, rhs, r), false, parallelism) }
+}
+
 /// The product with the given parallelism.
 ///
 /// # Safety

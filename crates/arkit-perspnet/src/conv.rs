@@ -30,7 +30,7 @@
 
 use rayon::prelude::*;
 
-use super::blas::{Mat, gemm, gemm_raw};
+use super::blas::{Mat, gemm, gemm_raw_maybe_par};
 
 /// Target size of one block of the patch matrix, in floats (1 MiB).
 pub(crate) const BLOCK_FLOATS: usize = 1 << 18;
@@ -231,6 +231,10 @@ pub fn forward(x: &[f32], w: &[f32], s: &ConvShape) -> Vec<f32> {
             .flat_map(|bi| blocks.iter().map(move |&(a, e)| (bi, a, e)))
             .collect()
     };
+    // Fewer tasks than twice the threads (the deep layers of one image: one block
+    // each): each task's product is split over the threads too, or one thread would
+    // do a layer alone while the others wait.
+    let nested = tasks.len() < 2 * rayon::current_num_threads();
     tasks.par_iter().for_each(|&(bi, oy0, oy1)| {
         let nb = (oy1 - oy0) * wo;
         let xb = &x[bi * img..(bi + 1) * img];
@@ -239,19 +243,25 @@ pub fn forward(x: &[f32], w: &[f32], s: &ConvShape) -> Vec<f32> {
             // image bi's rows, each once; no two tasks share a (bi, block) pair;
             // `y` outlives the parallel loop and nothing else touches it during it.
             unsafe {
-                gemm_raw(
+                gemm_raw_maybe_par(
                     out.at(bi * co * n + oy0 * wo),
                     Mat::row_major(co, nb, n),
                     w,
                     wm,
                     cols,
                     Mat::row_major(k, nb, nb),
-                    false,
+                    nested,
                 )
             }
         };
         if s.is_pointwise() {
             product(xb);
+        } else if nested {
+            // Not this thread's scratch: while its product waits on the other
+            // threads, this thread may run another task of this loop.
+            let mut cols = vec![0f32; k * nb];
+            im2col_block(xb, s, oy0, oy1, &mut cols);
+            product(&cols);
         } else {
             with_scratch(k * nb, |cols| {
                 im2col_block(xb, s, oy0, oy1, cols);
@@ -516,23 +526,46 @@ mod tests {
 
     #[test]
     fn results_do_not_depend_on_the_thread_count() {
-        let s = shapes()[1];
-        let x = values(s.b * s.c * s.h * s.w, 1);
-        let w = values(s.co * s.k(), 2);
-        let g = values(s.b * s.co * s.n(), 3);
-        let run = |threads| {
-            rayon::ThreadPoolBuilder::new()
-                .num_threads(threads)
-                .build()
-                .unwrap()
-                .install(|| {
-                    (
-                        forward(&x, &w, &s),
-                        input_grad(&g, &w, &s),
-                        kernel_grad(&x, &g, &s),
-                    )
-                })
+        // A batch of several blocks, and a deep layer of one image (one block, fewer
+        // tasks than threads: its product is split over the threads).
+        let deep = ConvShape {
+            b: 1,
+            c: 96,
+            h: 6,
+            w: 6,
+            co: 160,
+            kh: 3,
+            kw: 3,
+            stride: 1,
+            pad: 1,
         };
-        assert_eq!(run(1), run(3));
+        for s in [shapes()[1], deep] {
+            let x = values(s.b * s.c * s.h * s.w, 1);
+            let w = values(s.co * s.k(), 2);
+            let g = values(s.b * s.co * s.n(), 3);
+            let run = |threads| {
+                rayon::ThreadPoolBuilder::new()
+                    .num_threads(threads)
+                    .build()
+                    .unwrap()
+                    .install(|| {
+                        (
+                            forward(&x, &w, &s),
+                            input_grad(&g, &w, &s),
+                            kernel_grad(&x, &g, &s),
+                        )
+                    })
+            };
+            let one = run(1);
+            assert_eq!(one, run(3), "{s:?}");
+            assert_eq!(one.0, run(2).0, "{s:?}");
+            let d = one
+                .0
+                .iter()
+                .zip(&naive(&x, &w, &s))
+                .map(|(p, q)| (p - q).abs())
+                .fold(0f32, f32::max);
+            assert!(d < 1e-4, "{s:?}: {d}");
+        }
     }
 }

@@ -75,62 +75,147 @@ pub fn predict_crop_raw(
     truth: Option<&[bool]>,
     keep_raw: bool,
 ) -> Result<(NetworkPrediction, Option<RawOutputs>)> {
+    let crop = CropInput { input, seed, truth };
+    let mut out = predict_crops(model, std::slice::from_ref(&crop), keep_raw)?;
+    Ok(out.pop().expect("one crop in, one prediction out"))
+}
+
+/// One crop for [`predict_crops`]: the normalised `3 x S x S` input, the seed of its
+/// chosen pixels, and the mask to choose them from instead of the predicted one.
+#[derive(Clone, Copy, Debug)]
+pub struct CropInput<'a> {
+    /// The normalised crop, `3 x S x S`.
+    pub input: &'a [f32],
+    /// The seed of the chosen pixels.
+    pub seed: u64,
+    /// The mask to choose the pixels from (`S x S`), or `None` for the predicted one.
+    pub truth: Option<&'a [bool]>,
+}
+
+/// The most crops [`predict_crops`] puts through the network at once (a bigger batch
+/// gains little and holds its activations in memory: about 25 MB a crop at 192 px).
+pub const MAX_CROP_BATCH: usize = 8;
+
+/// [`predict_crop_raw`] for several crops, batched: the dense network runs once on
+/// up to [`MAX_CROP_BATCH`] crops, the mask of each is read off it, its pixels chosen
+/// (from its own seed), and the correspondence head runs once on the batch. Each
+/// crop's prediction is the one [`predict_crop`] gives it alone, bit for bit (every
+/// kernel computes each batch element on its own).
+pub fn predict_crops(
+    model: &TrainedModel,
+    crops: &[CropInput<'_>],
+    keep_raw: bool,
+) -> Result<Vec<(NetworkPrediction, Option<RawOutputs>)>> {
+    let s = model.checkpoint.config.input_size;
+    for c in crops {
+        if c.input.len() != 3 * s * s {
+            return Err(Error::invalid(
+                "network input",
+                format!("{} values; a {s}x{s} crop has {}", c.input.len(), 3 * s * s),
+            ));
+        }
+        if let Some(t) = c.truth.filter(|t| t.len() != s * s) {
+            return Err(Error::invalid(
+                "--mask truth",
+                format!("a mask of {} pixels; the crop has {}", t.len(), s * s),
+            ));
+        }
+    }
+    let mut out = Vec::with_capacity(crops.len());
+    for batch in crops.chunks(MAX_CROP_BATCH) {
+        out.extend(predict_batch(model, batch, keep_raw)?);
+    }
+    Ok(out)
+}
+
+/// One batch of [`predict_crops`] (inputs checked).
+fn predict_batch(
+    model: &TrainedModel,
+    crops: &[CropInput<'_>],
+    keep_raw: bool,
+) -> Result<Vec<(NetworkPrediction, Option<RawOutputs>)>> {
     let cfg = &model.checkpoint.config;
-    let s = cfg.input_size;
+    let (s, m, b) = (cfg.input_size, cfg.points, crops.len());
     let device = Device::Cpu;
     let net = model.net.perspnet("predicting correspondences")?;
-    let run = || -> candle_core::Result<(NetworkPrediction, Option<RawOutputs>)> {
-        let img = Tensor::from_slice(input, (1, 3, s, s), &device)?;
+    let run = || -> candle_core::Result<Vec<(NetworkPrediction, Option<RawOutputs>)>> {
+        let flat: Vec<f32> = crops.iter().flat_map(|c| c.input.iter().copied()).collect();
+        let img = Tensor::from_vec(flat, (b, 3, s, s), &device)?;
         let dense = net.forward_dense(&img, false)?;
-        let logits = dense.seg_logits.squeeze(0)?; // 2 x S x S
-        let face = logits
-            .get(1)?
-            .ge(&logits.get(0)?)?
-            .flatten_all()?
-            .to_vec1::<u8>()?;
-        let mask: Vec<bool> = face.iter().map(|&v| v != 0).collect();
-        let sample_from = truth.unwrap_or(&mask);
-        let mut candidates: Vec<u32> = (0..sample_from.len() as u32)
-            .filter(|&i| sample_from[i as usize])
-            .collect();
-        if candidates.is_empty() {
-            candidates = (0..mask.len() as u32).collect();
+        // The face mask: class 1's logit at least class 0's, pixel by pixel.
+        let logits = dense.seg_logits.flatten_all()?.to_vec1::<f32>()?; // B x 2 x S x S
+        let (mut masks, mut chosen) = (Vec::with_capacity(b), Vec::with_capacity(b * m));
+        for (k, c) in crops.iter().enumerate() {
+            let l = &logits[k * 2 * s * s..(k + 1) * 2 * s * s];
+            let (bg, face) = l.split_at(s * s);
+            let mask: Vec<bool> = face.iter().zip(bg).map(|(f, g)| f >= g).collect();
+            chosen.extend(choose_pixels(c.truth.unwrap_or(&mask), m, c.seed));
+            masks.push(mask);
         }
-        let picks = arkit_data::render::sample_points(candidates.len(), cfg.points, seed);
-        let pixels: Vec<u32> = picks.iter().map(|&k| candidates[k as usize]).collect();
-        let choose = Tensor::from_slice(&pixels, (1, cfg.points), &device)?;
-        let out = net.forward(&img, &choose, false)?;
-        let corr = out
-            .correspondences()?
+        // The head face by face (each its own products, as alone), the rest batched.
+        let (mut logits_k, mut vertices_k) = (Vec::with_capacity(b), Vec::with_capacity(b));
+        for k in 0..b {
+            let one = |t: &Tensor| t.narrow(0, k, 1);
+            let choose = Tensor::from_slice(&chosen[k * m..(k + 1) * m], (1, m), &device)?;
+            let (l, v) = net.head(
+                &one(&dense.image_features)?,
+                &one(&dense.uv_features)?,
+                &one(&dense.uv_map)?,
+                &choose,
+            )?;
+            logits_k.push(l);
+            vertices_k.push(v);
+        }
+        let assign_logits = Tensor::cat(&logits_k, 0)?;
+        let vertices = Tensor::cat(&vertices_k, 0)?;
+        let assignment = crate::layers::softmax_last(&assign_logits)?;
+        let points = assignment.matmul(&vertices)?; // B x M x 3, UV-map units
+        let corr = points
             .affine(1.0 / crate::model::UV_SCALE, 0.0)?
-            .squeeze(0)?
-            .to_vec2::<f32>()?;
-        let verts = out.vertices_canonical()?.flatten_all()?.to_vec1::<f32>()?;
-        let raw = if keep_raw {
-            let flat = |t: &Tensor| t.flatten_all()?.to_vec1::<f32>();
-            Some(RawOutputs {
-                image: input.to_vec(),
-                choose: pixels.clone(),
-                seg_logits: flat(&out.dense.seg_logits)?,
-                uv_map: flat(&out.dense.uv_map)?,
-                assignment: flat(&out.assignment()?)?,
-                points: flat(&out.correspondences()?)?,
-                vertices: flat(&out.vertices)?,
-            })
-        } else {
-            None
-        };
-        Ok((
-            NetworkPrediction {
-                mask,
-                pixels,
-                points: corr.iter().map(|p| [p[0], p[1], p[2]]).collect(),
-                verts,
-            },
-            raw,
-        ))
+            .to_vec3::<f32>()?;
+        let verts = vertices.affine(1.0 / crate::model::UV_SCALE, 0.0)?;
+        let mut out = Vec::with_capacity(b);
+        for (k, (c, mask)) in crops.iter().zip(masks).enumerate() {
+            let one = |t: &Tensor| t.narrow(0, k, 1)?.flatten_all()?.to_vec1::<f32>();
+            let raw = if keep_raw {
+                Some(RawOutputs {
+                    image: c.input.to_vec(),
+                    choose: chosen[k * m..(k + 1) * m].to_vec(),
+                    seg_logits: one(&dense.seg_logits)?,
+                    uv_map: one(&dense.uv_map)?,
+                    assignment: one(&assignment)?,
+                    points: one(&points)?,
+                    vertices: one(&vertices)?,
+                })
+            } else {
+                None
+            };
+            out.push((
+                NetworkPrediction {
+                    mask,
+                    pixels: chosen[k * m..(k + 1) * m].to_vec(),
+                    points: corr[k].iter().map(|p| [p[0], p[1], p[2]]).collect(),
+                    verts: one(&verts)?,
+                },
+                raw,
+            ));
+        }
+        Ok(out)
     };
     run().map_err(|e| candle_err("network forward", e))
+}
+
+/// `m` pixels chosen from the set ones of `mask` (every pixel when none is set) by
+/// [`arkit_data::render::sample_points`] from `seed`.
+fn choose_pixels(mask: &[bool], m: usize, seed: u64) -> Vec<u32> {
+    let mut candidates: Vec<u32> = (0..mask.len() as u32)
+        .filter(|&i| mask[i as usize])
+        .collect();
+    if candidates.is_empty() {
+        candidates = (0..mask.len() as u32).collect();
+    }
+    let picks = arkit_data::render::sample_points(candidates.len(), m, seed);
+    picks.iter().map(|&k| candidates[k as usize]).collect()
 }
 
 /// The direct baseline's pose for one crop (`3 x S x S` normalised) cut by `crop` from

@@ -17,7 +17,7 @@
 //!   ([`Example`]), the loop, checkpoints ([`Checkpoint`], [`load`]);
 //! - weights ([`load_weights`], [`import_weights`], [`export_weights`],
 //!   [`write_half_model`]);
-//! - inference ([`predict_crop`], [`model_predictions`]) and the faces of a photo
+//! - inference ([`predict_crop`], [`predict_crops`] for a batch, [`model_predictions`]) and the faces of a photo
 //!   ([`predict_photo`]);
 //! - ONNX export ([`export_onnx`]: the network as two ONNX graphs, docs/onnx.md).
 //!
@@ -53,8 +53,9 @@ pub use direct::{
     rotation_from_6d_f64,
 };
 pub use inference::{
-    ModelPredictSummary, NetworkPrediction, RawOutputs, direct_pose, model_predictions,
-    model_predictions_dump, pose_of, predict_crop, predict_crop_raw, write_dump,
+    CropInput, MAX_CROP_BATCH, ModelPredictSummary, NetworkPrediction, RawOutputs, direct_pose,
+    model_predictions, model_predictions_dump, pose_of, predict_crop, predict_crop_raw,
+    predict_crops, write_dump,
 };
 pub use loss::{
     CorrTarget, LossTargets, LossTerms, LossWeights, PerspNetLoss, kl_loss, perspnet_loss,

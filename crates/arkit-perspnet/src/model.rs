@@ -206,11 +206,6 @@ impl PerspNetOutput {
     pub fn correspondences(&self) -> Result<Tensor> {
         self.assignment()?.matmul(&self.vertices)
     }
-
-    /// Vertices in canonical mesh units (`vertices / 9`), as used for PnP in the official eval.
-    pub(crate) fn vertices_canonical(&self) -> Result<Tensor> {
-        self.vertices.affine(1.0 / UV_SCALE, 0.0)
-    }
 }
 
 /// PerspNet (official `DeformNetUV2` with its `Resnet18_8s` backbone).
@@ -392,21 +387,50 @@ impl PerspNet {
         })
     }
 
-    /// Full forward pass.
+    /// Full forward pass: [`PerspNet::forward_dense`], then [`PerspNet::forward_head`].
     ///
     /// * `img`: normalised `B x 3 x H x W` crop (see [`super::layers::imagenet_normalize`]).
     /// * `choose`: `B x M` (u32 or i64) flat pixel indices `y * W + x` of the sampled pixels.
     /// * `train`: batch-norm batch statistics and channel dropout when true.
     pub fn forward(&self, img: &Tensor, choose: &Tensor, train: bool) -> Result<PerspNetOutput> {
         let dense = self.forward_dense(img, train)?;
+        let (assign_logits, vertices) = self.forward_head(&dense, choose)?;
+        Ok(PerspNetOutput {
+            dense,
+            assign_logits,
+            vertices,
+        })
+    }
+
+    /// The correspondence head on dense outputs already computed (inference runs the
+    /// dense network once, reads the mask off it, chooses the pixels, then calls this):
+    /// the assignment logits `B x M x V` and the vertices read from the UV map
+    /// `B x V x 3` (UV-map units), for the `B x M` pixels `choose` of `dense`'s images.
+    pub fn forward_head(&self, dense: &DenseOutput, choose: &Tensor) -> Result<(Tensor, Tensor)> {
+        self.head(
+            &dense.image_features,
+            &dense.uv_features,
+            &dense.uv_map,
+            choose,
+        )
+    }
+
+    /// [`PerspNet::forward_head`] on the three dense outputs it reads.
+    pub(crate) fn head(
+        &self,
+        image_features: &Tensor,
+        uv_features: &Tensor,
+        uv_map: &Tensor,
+        choose: &Tensor,
+    ) -> Result<(Tensor, Tensor)> {
         let (b, m) = choose.dims2()?;
-        let w = img.dim(3)?;
+        let w = image_features.dim(3)?;
 
         // Local 2D features: sampled image features (1x1 conv + ReLU) ++ position encoding.
-        let emb = gather_pixels(&dense.image_features, choose)?; // B x M x F
+        let emb = gather_pixels(image_features, choose)?; // B x M x F
         let color = relu(&self.instance_color.forward(&emb)?)?;
         let local = if self.cfg.position_encoding {
-            let pos = positional_encoding_points(choose, self.cfg.pos_channels, w, img.device())?
+            let pos = positional_encoding_points(choose, self.cfg.pos_channels, w, emb.device())?
                 .to_dtype(color.dtype())?;
             Tensor::cat(&[&color, &pos], 2)? // B x M x 128
         } else {
@@ -415,7 +439,7 @@ impl PerspNet {
         let g2 = mlp_global(&self.instance_global, &local)?; // B x 1 x 1024
 
         // 3D global feature from the UV features read at the vertex UVs.
-        let uv_local = self.sampler.sample(&dense.uv_features)?.transpose(1, 2)?; // B x V x F
+        let uv_local = self.sampler.sample(uv_features)?.transpose(1, 2)?; // B x V x F
         let g3 = mlp_global(&self.category_global, &uv_local.contiguous()?)?; // B x 1 x 1024
 
         // Assignment MLP on [local, g2, g3]; the first layer is applied to the three
@@ -433,16 +457,8 @@ impl PerspNet {
         let assign_logits = self.assignment[2].forward(&h)?; // B x M x V
         debug_assert_eq!(assign_logits.dims(), &[b, m, self.cfg.vertices]);
 
-        let vertices = self
-            .sampler
-            .sample(&dense.uv_map)?
-            .transpose(1, 2)?
-            .contiguous()?; // B x V x 3
-        Ok(PerspNetOutput {
-            dense,
-            assign_logits,
-            vertices,
-        })
+        let vertices = self.sampler.sample(uv_map)?.transpose(1, 2)?.contiguous()?; // B x V x 3
+        Ok((assign_logits, vertices))
     }
 }
 

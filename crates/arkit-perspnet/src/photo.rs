@@ -1,10 +1,10 @@
 //! Poses of the faces in a photo, as the official `demo.py` finds them: the photo padded
 //! to a square and resized to 800 px ([`DemoSquare`]), each face box cut by the 0.75 rule
 //! into the network's crop ([`demo_crop`]), the network's mask, chosen pixels and
-//! correspondences ([`predict_crop`]), and the pose by our PnP in the camera asked for
+//! correspondences (all the faces of a photo in one batch, [`predict_crops`]), and the pose by our PnP in the camera asked for
 //! ([`face_pose`]).
 
-use crate::inference::{NetworkPrediction, predict_crop};
+use crate::inference::{CropInput, NetworkPrediction, predict_crops};
 use crate::training::checkpoint::TrainedModel;
 use arkit_core::Result;
 use arkit_data::crop::CropTransform;
@@ -60,14 +60,29 @@ pub fn predict_photo(
     let size = model.checkpoint.config.input_size as u32;
     let square = DemoSquare::of(w, h, DEMO_SIDE);
     let padded = square.image(photo);
-    boxes
+    let mut crops = Vec::with_capacity(boxes.len());
+    for b in boxes {
+        let crop = demo_crop(square.box_to_square(*b), size)?;
+        let crop_image = crop.crop_image(&padded);
+        let input = normalise(crop_image.as_raw());
+        crops.push((crop, crop_image, input));
+    }
+    // The faces go through the network together (one batch), each with its own seed.
+    let inputs: Vec<CropInput> = crops
         .iter()
         .enumerate()
-        .map(|(k, b)| {
-            let crop = demo_crop(square.box_to_square(*b), size)?;
-            let crop_image = crop.crop_image(&padded);
-            let input = normalise(crop_image.as_raw());
-            let prediction = predict_crop(model, &input, face_seed(seed, k), None)?;
+        .map(|(k, (_, _, input))| CropInput {
+            input,
+            seed: face_seed(seed, k),
+            truth: None,
+        })
+        .collect();
+    let predictions = predict_crops(model, &inputs, false)?;
+    boxes
+        .iter()
+        .zip(crops)
+        .zip(predictions)
+        .map(|((b, (crop, crop_image, _)), (prediction, _))| {
             let pose = face_pose(
                 &square,
                 &crop,
