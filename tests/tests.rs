@@ -19,6 +19,8 @@ mod kill_all;
 mod official_crop;
 mod options;
 #[cfg(feature = "model")]
+mod photo_defects;
+#[cfg(feature = "model")]
 mod photos;
 #[cfg(feature = "model")]
 mod report_browser;
