@@ -115,9 +115,7 @@ fn a_truncated_jpeg_is_refused_by_name_and_skipped_in_a_folder() {
     let r: Value = serde_json::from_str(&stdout).unwrap();
     assert_eq!(r["summary"]["photos"], 2);
     assert_eq!(r["summary"]["skipped"], 1);
-    let (code, _, _) = run(&[
-        "predict", "--model", TINY, "--image", &folder, "--strict",
-    ]);
+    let (code, _, _) = run(&["predict", "--model", TINY, "--image", &folder, "--strict"]);
     assert_eq!(code, Some(1));
 }
 
@@ -213,7 +211,10 @@ fn exif_orientation_6_is_turned_upright_before_anything_else() {
     ]);
     let phone_report: Value = serde_json::from_str(&out).unwrap();
     let p = &phone_report["photos"][0];
-    assert_eq!((p["width"].as_u64(), p["height"].as_u64()), (Some(640), Some(480)));
+    assert_eq!(
+        (p["width"].as_u64(), p["height"].as_u64()),
+        (Some(640), Some(480))
+    );
     assert_eq!(p["exif_orientation"], 6);
     let hand_report = predict_one(&by_hand, b);
     assert_eq!(
@@ -222,10 +223,9 @@ fn exif_orientation_6_is_turned_upright_before_anything_else() {
         "the same pose as the photo turned by hand"
     );
     // And the upright photo's pose is the truth's, roughly (the tiny model, 12 degrees).
-    let truth: Value = serde_json::from_slice(
-        &std::fs::read(dir.path().join("upright.truth.json")).unwrap(),
-    )
-    .unwrap();
+    let truth: Value =
+        serde_json::from_slice(&std::fs::read(dir.path().join("upright.truth.json")).unwrap())
+            .unwrap();
     for a in ["yaw", "pitch", "roll"] {
         let (x, y) = (
             p["faces"][0]["angles"][a].as_f64().unwrap(),
@@ -261,15 +261,25 @@ fn boxes_that_name_no_given_photo_are_an_error_naming_the_key() {
         &s(&boxes),
     ]);
     assert_ne!(code, Some(0), "{stderr}");
-    assert!(
-        stderr.contains("someone-else.jpg"),
-        "{stderr}"
-    );
+    assert!(stderr.contains("someone-else.jpg"), "{stderr}");
     // A CSV keyed by another photo, likewise.
     let csv = dir.path().join("boxes.csv");
-    std::fs::write(&csv, format!("image,x0,y0,x1,y1\nother.png,{}\n", b.map(|v| v.to_string()).join(","))).unwrap();
+    std::fs::write(
+        &csv,
+        format!(
+            "image,x0,y0,x1,y1\nother.png,{}\n",
+            b.map(|v| v.to_string()).join(",")
+        ),
+    )
+    .unwrap();
     let (code, _, stderr) = run(&[
-        "predict", "--model", TINY, "--image", &s(&photo), "--boxes", &s(&csv),
+        "predict",
+        "--model",
+        TINY,
+        "--image",
+        &s(&photo),
+        "--boxes",
+        &s(&csv),
     ]);
     assert_ne!(code, Some(0), "{stderr}");
     assert!(stderr.contains("other.png"), "{stderr}");
@@ -295,7 +305,15 @@ fn boxes_that_name_no_given_photo_are_an_error_naming_the_key() {
         serde_json::to_string(&serde_json::json!({"mine.jpg": [b]})).unwrap(),
     )
     .unwrap();
-    ok(&["predict", "--model", TINY, "--image", &s(&photo), "--boxes", &s(&boxes)]);
+    ok(&[
+        "predict",
+        "--model",
+        TINY,
+        "--image",
+        &s(&photo),
+        "--boxes",
+        &s(&boxes),
+    ]);
 }
 
 /// A folder this process cannot write in: a read-only copy of a temporary folder, or
@@ -353,7 +371,10 @@ fn photos_with_one_file_name_in_two_folders_never_share_an_output() {
     let (a, a_boxes, _) = face_photo(&dir.path().join("trip1"), "face", 7);
     let (b, b_boxes, _) = face_photo(&dir.path().join("trip2"), "face", 8);
     // Their boxes files out of the folders, so that each folder holds one photo.
-    let (ab, bb) = (dir.path().join("a.boxes.json"), dir.path().join("b.boxes.json"));
+    let (ab, bb) = (
+        dir.path().join("a.boxes.json"),
+        dir.path().join("b.boxes.json"),
+    );
     std::fs::rename(&a_boxes, &ab).unwrap();
     std::fs::rename(&b_boxes, &bb).unwrap();
     for t in ["trip1", "trip2"] {

@@ -21,6 +21,8 @@ mod options;
 #[cfg(feature = "model")]
 mod photo_defects;
 #[cfg(feature = "model")]
+mod photo_mesh;
+#[cfg(feature = "model")]
 mod photos;
 #[cfg(feature = "model")]
 mod report_browser;

@@ -46,7 +46,9 @@ where
     }
     let tmp = temporary_name(path);
     let result = (|| {
-        let file = fs::File::create(&tmp).map_err(|e| Error::io(&tmp, e))?;
+        // Errors name the file the user asked for (a read-only folder, say), never our
+        // temporary.
+        let file = fs::File::create(&tmp).map_err(|e| Error::io(path, e))?;
         // Held until the rename: marks the temporary as a live write for
         // `remove_stale_temporaries`. A file system without locks still writes.
         let _ = file.try_lock();
@@ -339,6 +341,17 @@ mod tests {
         assert!(err.is_err());
         assert!(!path.exists());
         assert_eq!(fs::read_dir(dir.path()).unwrap().count(), 0);
+    }
+
+    #[test]
+    fn an_error_creating_the_temporary_names_the_users_file() {
+        // A name of 250 bytes is a valid file name; its temporary (`.NAME.tmp-PID`) is
+        // longer than the 255 a name may have, so creating it fails.
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join(format!("{}.json", "a".repeat(245)));
+        let e = write_bytes(&path, b"{}").unwrap_err().to_string();
+        assert!(e.starts_with(&format!("{}:", path.display())), "{e}");
+        assert!(!e.contains(".tmp-"), "{e}");
     }
 
     #[test]
