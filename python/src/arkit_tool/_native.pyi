@@ -21,6 +21,7 @@ __all__ = [
     "project",
     "evaluate",
     "read_image",
+    "read_photo_upright",
     "default_crop_store",
     "topology",
     "write_correspondence_matrix_into",
