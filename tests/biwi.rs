@@ -143,7 +143,7 @@ fn bad_files_are_reported_and_the_rest_converted() {
             .clone()
     };
     assert!(why("01/frame_00004_pose.txt").contains("not a rotation"));
-    assert!(why("01/frame_00005_rgb.png").contains("not a PNG or JPEG"));
+    assert!(why("01/frame_00005_rgb.png").contains("not a PNG, JPEG or WebP"));
     assert!(why("02/rgb.cal").contains("distortion"));
     // A folder that is not BIWI's is a clear error naming it.
     let empty = dir.path().join("empty");

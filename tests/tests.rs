@@ -20,6 +20,10 @@ mod official_crop;
 mod options;
 mod ownership;
 #[cfg(feature = "model")]
+mod photo_defects;
+#[cfg(feature = "model")]
+mod photo_mesh;
+#[cfg(feature = "model")]
 mod photos;
 #[cfg(feature = "model")]
 mod report_browser;

@@ -39,7 +39,10 @@ use std::process::ExitCode;
 /// camera (or the photo's own: --focal-px, --fov-deg). Prints JSON (R_t in the
 /// release's convention, yaw/pitch/roll in --angles' convention, the translation,
 /// OpenCV's rvec/tvec, the inlier count), or writes it to --output (.json, or .csv
-/// with one row per face); --draw pictures the mesh on the photo. docs/photos.md.
+/// with one row per face); --draw pictures the mesh on the photo; --mesh DIR writes
+/// each face's mesh (.obj, .ply) and landmarks. Photos are turned upright by their
+/// EXIF orientation first: boxes and outputs are in the pixels people see. A truncated
+/// or corrupt photo is refused by name (skipped when found in a folder). docs/photos.md.
 ///
 /// --video FILE --model DIR: the faces of a video (an H.264 MP4 or MOV, or a folder of
 /// numbered frames), frame by frame as with --image: the detector every frame (or
@@ -54,6 +57,7 @@ use std::process::ExitCode;
 ///          arkit-tool predict --mean-pose --dataset data/pq --output baseline.parquet
 ///          arkit-tool predict --model model/ --image group.jpg --draw result.jpg
 ///          arkit-tool predict --model model/ --image photo.jpg --box "120 80 260 240" --fov-deg 70
+///          arkit-tool predict --model model/ --image trip1/ trip2/ --mesh meshes/ --draw drawn/
 ///          arkit-tool predict --model model/ --video clip.mp4 --output poses.jsonl --draw drawn.mp4
 #[derive(Args, Debug)]
 #[command(group(ArgGroup::new("predictor").required(true).args(["oracle", "model", "mean_pose"])))]
@@ -110,17 +114,27 @@ pub struct PredictArgs {
     #[arg(long)]
     vertices: bool,
     /// With --image: draw each face's mesh and box on the photo into this JPEG (a folder
-    /// of NAME.jpg for several photos), as the official demo's result.jpg. With --video:
-    /// an .mp4 (H.264), or a folder of frame-NNNNNN.jpg (a path with no extension).
+    /// of NAME.jpg for several photos, NAME the photo's path under the deepest folder
+    /// holding them all: trip1/face.jpg and trip2/face.jpg stay apart), as the official
+    /// demo's result.jpg. With --video: an .mp4 (H.264), or a folder of
+    /// frame-NNNNNN.jpg (a path with no extension).
     #[arg(long, value_name = "OUT.jpg")]
     draw: Option<PathBuf>,
     /// With --image: write each face's crop as the network saw it (before
     /// normalisation) into this folder, as NAME-faceK.png.
     #[arg(long, value_name = "DIR")]
     dump_crops: Option<PathBuf>,
+    /// With --image: write each posed face's predicted mesh in camera space (the
+    /// release's frame, metres) into this folder as NAME-faceK.obj and .ply (the model's
+    /// triangles and UVs), and its 68 landmarks (the topology's, kpt_ind.npy for the
+    /// release) as NAME-faceK.landmarks.json: 3D points and the photo's pixels.
+    #[arg(long, value_name = "DIR")]
+    mesh: Option<PathBuf>,
     /// With --model: exit with status 1 if any sample's image could not be read (the
     /// predictions of the others are still written; without it such samples are
-    /// reported and left out, and `eval` counts them missing).
+    /// reported and left out, and `eval` counts them missing). With --image: exit 1 if
+    /// any photo found in a folder was skipped (unreadable, truncated, a bad box); a
+    /// photo named on the command line that cannot be posed always exits 1.
     #[arg(long)]
     strict: bool,
     /// Use the stored ground-truth correspondences.
@@ -279,6 +293,7 @@ pub fn run(mut a: PredictArgs) -> Result<ExitCode> {
         (a.vertices, "--vertices"),
         (a.draw.is_some(), "--draw"),
         (a.dump_crops.is_some(), "--dump-crops"),
+        (a.mesh.is_some(), "--mesh"),
     ];
     if let Some((_, flag)) = image_only.iter().find(|(given, _)| *given) {
         return Err(arkit_core::Error::invalid(
@@ -498,6 +513,7 @@ fn run_image(a: &PredictArgs, ransac: RansacParams) -> Result<ExitCode> {
         vertices: a.vertices,
         draw: a.draw.as_deref(),
         dump_crops: a.dump_crops.as_deref(),
+        mesh: a.mesh.as_deref(),
         output: a.output.as_deref(),
         seed: a.seed,
         ransac,

@@ -3,7 +3,7 @@
 
 use arkit_core::conventions::{AngleConvention, AngleUnit};
 use arkit_core::{Error, Result};
-use arkit_data::picture::read_rgb8_checked;
+use arkit_data::picture::read_photo_upright;
 use arkit_data::picture::{DEMO_SIDE, DemoSquare};
 use arkit_data::picture::{DetectOptions, detect_faces};
 use arkit_data::pose::PhotoCamera;
@@ -28,6 +28,7 @@ pub struct ImageRequest<'a> {
     pub vertices: bool,
     pub draw: Option<&'a Path>,
     pub dump_crops: Option<&'a Path>,
+    pub mesh: Option<&'a Path>,
     pub output: Option<&'a Path>,
     pub seed: u64,
     pub ransac: RansacParams,
@@ -35,9 +36,26 @@ pub struct ImageRequest<'a> {
     pub json: bool,
 }
 
+/// One photo of a run: its path as found, whether it was named on the command line (not
+/// found in a folder), and its name in output folders (see [`output_names`]).
+struct PhotoFile {
+    path: PathBuf,
+    named: bool,
+    /// The path relative to the deepest folder holding every photo of the run, with
+    /// its extension (`face.jpg`, or `trip1/face.jpg` for photos of two folders).
+    relative: PathBuf,
+}
+
+impl PhotoFile {
+    /// The output name: `relative` without its extension.
+    fn stem(&self) -> PathBuf {
+        self.relative.with_extension("")
+    }
+}
+
 /// The image files of `--image` arguments: files as given, folders' images (`.jpg`,
 /// `.jpeg`, `.png`, `.webp`, any case) sorted by name, not recursing.
-fn photo_files(images: &[PathBuf]) -> Result<Vec<PathBuf>> {
+fn photo_files(images: &[PathBuf]) -> Result<Vec<PhotoFile>> {
     let mut out = Vec::new();
     for p in images {
         let meta = std::fs::metadata(p).map_err(|e| Error::io(p, e))?;
@@ -63,12 +81,72 @@ fn photo_files(images: &[PathBuf]) -> Result<Vec<PathBuf>> {
                     ),
                 ));
             }
-            out.extend(found);
+            out.extend(found.into_iter().map(|path| (path, false)));
         } else {
-            out.push(p.clone());
+            out.push((p.clone(), true));
         }
     }
-    Ok(out)
+    let relative = output_names(out.iter().map(|(p, _)| p.as_path()))?;
+    Ok(out
+        .into_iter()
+        .zip(relative)
+        .map(|((path, named), relative)| PhotoFile {
+            path,
+            named,
+            relative,
+        })
+        .collect())
+}
+
+/// Each photo's path relative to the deepest folder that holds them all (their folders
+/// resolved, symbolic links followed): the file name when they share one folder,
+/// `trip1/face.jpg` and `trip2/face.jpg` for photos of two folders.
+fn output_names<'a>(paths: impl Iterator<Item = &'a Path>) -> Result<Vec<PathBuf>> {
+    let mut full = Vec::new();
+    for p in paths {
+        let parent = p.parent().filter(|d| !d.as_os_str().is_empty());
+        let dir = parent.unwrap_or(Path::new("."));
+        let dir = std::fs::canonicalize(dir).map_err(|e| Error::io(dir, e))?;
+        let name = p
+            .file_name()
+            .ok_or_else(|| Error::invalid("--image", format!("{}: not a file", p.display())))?;
+        full.push(dir.join(name));
+    }
+    let Some(first) = full.first() else {
+        return Ok(Vec::new());
+    };
+    let mut common: PathBuf = first.parent().expect("a file in a folder").to_path_buf();
+    for f in &full[1..] {
+        while !f.starts_with(&common) {
+            if !common.pop() {
+                break;
+            }
+        }
+    }
+    Ok(full
+        .iter()
+        .map(|f| f.strip_prefix(&common).unwrap_or(f).to_path_buf())
+        .collect())
+}
+
+/// Refuses a run whose photos would write the same output file (`face.jpg` and
+/// `face.png` of one folder, or a photo given twice): the two photos and the option.
+fn check_unique_outputs(photos: &[PhotoFile], options: &str) -> Result<()> {
+    let mut seen: HashMap<PathBuf, &Path> = HashMap::new();
+    for p in photos {
+        if let Some(other) = seen.insert(p.stem(), &p.path) {
+            return Err(Error::invalid(
+                options,
+                format!(
+                    "{} and {} would write the same files ({}.*): rename one, or run them separately",
+                    other.display(),
+                    p.path.display(),
+                    p.stem().display()
+                ),
+            ));
+        }
+    }
+    Ok(())
 }
 
 /// One `--box "x0 y0 x1 y1"` (spaces or commas).
@@ -174,20 +252,89 @@ fn read_boxes_file(path: &Path) -> Result<HashMap<String, Vec<[f64; 4]>>> {
     Ok(out)
 }
 
-/// The boxes a `--boxes` file gives `photo` (by the path as given, or its file name).
+/// The names a `--boxes` key may give a photo: its path as given, its path relative to
+/// the run's common folder, its file name.
+fn box_keys(photo: &PhotoFile) -> [String; 3] {
+    [
+        photo.path.display().to_string(),
+        photo.relative.display().to_string(),
+        photo
+            .path
+            .file_name()
+            .map(|n| n.to_string_lossy().to_string())
+            .unwrap_or_default(),
+    ]
+}
+
+/// The boxes a `--boxes` file gives `photo` (by the path as given, its path under the
+/// common folder, or its file name).
 fn boxes_for<'a>(
     table: &'a HashMap<String, Vec<[f64; 4]>>,
-    photo: &Path,
+    photo: &PhotoFile,
     single: bool,
 ) -> Option<&'a Vec<[f64; 4]>> {
     if let Some(b) = table.get("").filter(|_| single) {
         return Some(b);
     }
-    table.get(&photo.display().to_string()).or_else(|| {
-        photo
-            .file_name()
-            .and_then(|n| table.get(&n.to_string_lossy().to_string()))
-    })
+    box_keys(photo).iter().find_map(|k| table.get(k))
+}
+
+/// Checks that every key of a `--boxes` file names exactly one given photo (and that a
+/// bare list of boxes is given with one photo): boxes meant for a photo that is not
+/// there, or for two, are a mistake worth stopping for.
+fn check_box_keys(
+    file: &Path,
+    table: &HashMap<String, Vec<[f64; 4]>>,
+    photos: &[PhotoFile],
+) -> Result<()> {
+    if table.contains_key("") && photos.len() != 1 {
+        return Err(Error::format(
+            file,
+            format!(
+                "a bare list of boxes is for one photo, and {} were given: key the boxes by photo ({{\"PHOTO\": [[x0, y0, x1, y1], ...]}})",
+                photos.len()
+            ),
+        ));
+    }
+    let keys: Vec<[String; 3]> = photos.iter().map(box_keys).collect();
+    let mut unmatched: Vec<&str> = Vec::new();
+    for key in table.keys().filter(|k| !k.is_empty()) {
+        let matching: Vec<&PhotoFile> = photos
+            .iter()
+            .zip(&keys)
+            .filter(|(_, names)| names.contains(key))
+            .map(|(p, _)| p)
+            .collect();
+        match matching.len() {
+            0 => unmatched.push(key),
+            1 => {}
+            _ => {
+                return Err(Error::format(
+                    file,
+                    format!(
+                        "'{key}' names {} photos ({}): key their boxes by path",
+                        matching.len(),
+                        matching
+                            .iter()
+                            .map(|p| p.path.display().to_string())
+                            .collect::<Vec<_>>()
+                            .join(", ")
+                    ),
+                ));
+            }
+        }
+    }
+    if !unmatched.is_empty() {
+        unmatched.sort();
+        return Err(Error::format(
+            file,
+            format!(
+                "boxes for photos that were not given: {} (a key is a photo's path as given, its path under the folder given, or its file name)",
+                unmatched.join(", ")
+            ),
+        ));
+    }
+    Ok(())
 }
 
 fn rt_rows(rt: &[f64; 16]) -> Value {
@@ -221,17 +368,25 @@ struct PhotoOutcome {
     entry: Value,
     rows: Vec<Vec<String>>,
     skipped: bool,
+    /// Skipped, and named on the command line: the run exits 1.
+    refused: bool,
     faces: usize,
     posed: usize,
 }
 
 impl PhotoOutcome {
-    fn skipped(path: &Path, e: &Error) -> Self {
-        eprintln!("predict: skipped {}: {e}", path.display());
+    fn skipped(photo: &PhotoFile, e: &Error) -> Self {
+        let path = &photo.path;
+        if photo.named {
+            eprintln!("predict: refused {}: {e}", path.display());
+        } else {
+            eprintln!("predict: skipped {}: {e}", path.display());
+        }
         PhotoOutcome {
             entry: json!({"path": path.display().to_string(), "error": e.to_string()}),
             rows: Vec::new(),
             skipped: true,
+            refused: photo.named,
             faces: 0,
             posed: 0,
         }
@@ -263,6 +418,21 @@ pub fn run(r: ImageRequest<'_>) -> Result<ExitCode> {
         .map(|s| parse_box(s))
         .collect::<Result<_>>()?;
     let table = r.boxes_file.map(read_boxes_file).transpose()?;
+    if let (Some(file), Some(table)) = (r.boxes_file, &table) {
+        check_box_keys(file, table, &photos)?;
+    }
+    let writes: Vec<&str> = [
+        (r.draw.is_some() && !single, "--draw"),
+        (r.dump_crops.is_some(), "--dump-crops"),
+        (r.mesh.is_some(), "--mesh"),
+    ]
+    .iter()
+    .filter(|(given, _)| *given)
+    .map(|(_, flag)| *flag)
+    .collect();
+    if !writes.is_empty() {
+        check_unique_outputs(&photos, &writes.join("/"))?;
+    }
     if let Some(f) = r.focal_px {
         PhotoCamera::FocalPx(f).check()?;
     }
@@ -272,7 +442,7 @@ pub fn run(r: ImageRequest<'_>) -> Result<ExitCode> {
     let topology = super::load_topology(r.resources)?;
     let model = arkit_perspnet::load(r.model, &topology)?;
     model.net.perspnet("predict --image")?;
-    for dir in [r.dump_crops, r.draw.filter(|_| !single)]
+    for dir in [r.dump_crops, r.draw.filter(|_| !single), r.mesh]
         .into_iter()
         .flatten()
     {
@@ -294,10 +464,12 @@ pub fn run(r: ImageRequest<'_>) -> Result<ExitCode> {
     let bar = super::progress_bar(photos.len() as u64, "predict", "photos");
     let (mut entries, mut rows) = (Vec::new(), Vec::new());
     let (mut skipped, mut faces, mut posed) = (0usize, 0usize, 0usize);
-    for (pi, path) in photos.iter().enumerate() {
+    let mut refused = false;
+    for (pi, photo) in photos.iter().enumerate() {
         bar.inc(1);
-        let outcome = run.photo(pi, path)?;
+        let outcome = run.photo(pi, photo)?;
         skipped += outcome.skipped as usize;
+        refused |= outcome.refused;
         faces += outcome.faces;
         posed += outcome.posed;
         entries.push(outcome.entry);
@@ -339,7 +511,9 @@ pub fn run(r: ImageRequest<'_>) -> Result<ExitCode> {
                 .unwrap_or_default()
         );
     }
-    Ok(if r.strict && skipped > 0 {
+    // A photo named on the command line that could not be posed fails the run; one
+    // found in a folder does only under --strict.
+    Ok(if refused || (r.strict && skipped > 0) {
         ExitCode::FAILURE
     } else {
         ExitCode::SUCCESS
@@ -376,14 +550,14 @@ fn csv_text(names: &[&str; 3], rows: &[Vec<String>]) -> String {
 impl Run<'_> {
     /// The boxes of a photo: `--box`, its `--boxes` entry, or the detector's (with
     /// their scores), and where they came from.
-    fn boxes(&self, photo: &image::RgbImage, path: &Path) -> Result<PhotoBoxes> {
+    fn boxes(&self, photo: &image::RgbImage, file: &PhotoFile) -> Result<PhotoBoxes> {
         if !self.given.is_empty() {
             return Ok((self.given.clone(), vec![None; self.given.len()], "--box"));
         }
         if let Some(b) = self
             .table
             .as_ref()
-            .and_then(|t| boxes_for(t, path, self.single))
+            .and_then(|t| boxes_for(t, file, self.single))
         {
             return Ok((b.clone(), vec![None; b.len()], "--boxes"));
         }
@@ -397,11 +571,14 @@ impl Run<'_> {
 
     /// Predicts one photo (the `pi`-th): an unreadable photo, or a bad box from a
     /// `--boxes` file, skips it; a bad `--box` or a model error stops the run.
-    fn photo(&self, pi: usize, path: &Path) -> Result<PhotoOutcome> {
+    fn photo(&self, pi: usize, file: &PhotoFile) -> Result<PhotoOutcome> {
         let r = self.r;
-        let photo = match read_rgb8_checked(path, |_| Ok(())) {
+        let path = file.path.as_path();
+        // Upright first (its EXIF orientation applied): boxes, outputs and drawings are
+        // in the pixels people see.
+        let (photo, orientation) = match read_photo_upright(path) {
             Ok(p) => p,
-            Err(e) => return Ok(PhotoOutcome::skipped(path, &e)),
+            Err(e) => return Ok(PhotoOutcome::skipped(file, &e)),
         };
         let (w, h) = photo.dimensions();
         let camera = match (r.focal_px, r.fov_deg) {
@@ -410,7 +587,7 @@ impl Run<'_> {
             (None, None) => PhotoCamera::Demo,
         };
         let square = DemoSquare::of(w, h, DEMO_SIDE);
-        let (boxes, scores, source) = self.boxes(&photo, path)?;
+        let (boxes, scores, source) = self.boxes(&photo, file)?;
         // A box given on the command line that does not fit the photo is a mistake in
         // the command; one in a --boxes file skips its photo only.
         if let Some(e) = boxes
@@ -420,7 +597,7 @@ impl Run<'_> {
             if source == "--box" {
                 return Err(e);
             }
-            return Ok(PhotoOutcome::skipped(path, &e));
+            return Ok(PhotoOutcome::skipped(file, &e));
         }
         let faces = arkit_perspnet::predict_photo(
             &self.model,
@@ -437,10 +614,7 @@ impl Run<'_> {
                 r.min_face_px
             );
         }
-        let stem = path
-            .file_stem()
-            .map(|s| s.to_string_lossy().to_string())
-            .unwrap_or_else(|| format!("photo-{pi}"));
+        let stem = file.stem().display().to_string();
         let mut drawn = r.draw.map(|_| photo.clone());
         let (mut entries, mut rows, mut posed) = (Vec::new(), Vec::new(), 0);
         for (fi, face) in faces.iter().enumerate() {
@@ -467,6 +641,19 @@ impl Run<'_> {
             }
             posed += face.pose.is_some() as usize;
             self.pose_fields(face, &camera, &square, &mut entry, &mut row, drawn.as_mut())?;
+            if let (Some(dir), Some(fp)) = (r.mesh, &face.pose) {
+                let files = self.write_mesh(
+                    dir,
+                    &format!("{stem}-face{fi}"),
+                    path,
+                    fi,
+                    face,
+                    fp,
+                    &camera,
+                    &square,
+                )?;
+                entry["mesh"] = files;
+            }
             if let Some(img) = drawn.as_mut() {
                 arkit_data::picture::draw_box(img, face.bbox, 2, image::Rgb([255, 200, 0]));
             }
@@ -492,12 +679,14 @@ impl Run<'_> {
                 "path": path.display().to_string(),
                 "width": w,
                 "height": h,
+                "exif_orientation": orientation,
                 "boxes_from": source,
                 "camera": {"fx": k.fx, "fy": k.fy, "cx": k.cx, "cy": k.cy, "pixels": pixels},
                 "faces": entries,
             }),
             rows,
             skipped: false,
+            refused: false,
             faces: faces.len(),
             posed,
         })
@@ -568,5 +757,59 @@ impl Run<'_> {
         row.extend([fp.inliers.to_string(), fp.points.to_string()]);
         row.extend(rt.iter().map(|x| x.to_string()));
         Ok(())
+    }
+
+    /// Writes a posed face's mesh (`NAME.obj`, `NAME.ply`) and landmarks
+    /// (`NAME.landmarks.json`: camera-space points and photo pixels) into `dir`;
+    /// returns the files' paths for the report.
+    #[allow(clippy::too_many_arguments)]
+    fn write_mesh(
+        &self,
+        dir: &Path,
+        name: &str,
+        photo: &Path,
+        fi: usize,
+        face: &arkit_perspnet::PhotoFace,
+        fp: &arkit_data::pose::FacePose,
+        camera: &PhotoCamera,
+        square: &DemoSquare,
+    ) -> Result<Value> {
+        let canonical: Vec<nalgebra::Point3<f64>> = face
+            .prediction
+            .verts
+            .chunks_exact(3)
+            .map(|p| nalgebra::Point3::new(p[0] as f64, p[1] as f64, p[2] as f64))
+            .collect();
+        let mesh = arkit_data::mesh::FaceMesh::new(
+            &self.topology,
+            canonical.iter().map(|p| fp.pose.to_camera(p)).collect(),
+        )?;
+        let (r_cv, t_cv) = fp.pose.to_opencv();
+        let pixels: Vec<Option<(f64, f64)>> = self
+            .topology
+            .landmarks
+            .iter()
+            .map(|&i| camera.project_to_photo(square, &(r_cv * canonical[i as usize] + t_cv)))
+            .collect();
+        let (obj, ply, marks) = (
+            dir.join(format!("{name}.obj")),
+            dir.join(format!("{name}.ply")),
+            dir.join(format!("{name}.landmarks.json")),
+        );
+        mesh.write_obj(&obj)?;
+        mesh.write_ply(&ply)?;
+        let mut about = serde_json::Map::new();
+        about.insert("photo".into(), json!(photo.display().to_string()));
+        about.insert("face".into(), json!(fi));
+        about.insert(
+            "pixels_in".into(),
+            json!("the upright photo's pixels (x right, y down), as --box takes them"),
+        );
+        mesh.write_landmarks(&marks, &pixels, about)?;
+        Ok(json!({
+            "obj": obj.display().to_string(),
+            "ply": ply.display().to_string(),
+            "landmarks": marks.display().to_string(),
+        }))
     }
 }

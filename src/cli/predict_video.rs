@@ -104,7 +104,10 @@ fn track_colour(track: u64) -> image::Rgb<u8> {
 /// Where `--draw` frames go: an MP4, or a folder of JPEGs (published when complete).
 enum DrawTarget {
     Mp4(Box<Mp4Encoder>),
-    Folder { tmp: PathBuf, path: PathBuf },
+    Folder {
+        tmp: arkit_core::atomic_file::TemporaryDir,
+        path: PathBuf,
+    },
 }
 
 impl DrawTarget {
@@ -124,8 +127,7 @@ impl DrawTarget {
                 ),
             ));
         }
-        let tmp = arkit_core::atomic_file::temporary_name(path);
-        std::fs::create_dir_all(&tmp).map_err(|e| Error::io(path, e))?;
+        let tmp = arkit_core::atomic_file::TemporaryDir::create(path)?;
         Ok(DrawTarget::Folder {
             tmp,
             path: path.to_path_buf(),
@@ -137,7 +139,7 @@ impl DrawTarget {
             DrawTarget::Mp4(m) => m.push(image),
             DrawTarget::Folder { tmp, path } => {
                 let bytes = arkit_data::picture::jpeg_bytes(image, 90)?;
-                let file = tmp.join(format!("frame-{index:06}.jpg"));
+                let file = tmp.path().join(format!("frame-{index:06}.jpg"));
                 std::fs::write(&file, bytes)
                     .map_err(|e| Error::io(path.join(file.file_name().expect("named")), e))
             }
@@ -147,7 +149,7 @@ impl DrawTarget {
     fn finish(self) -> Result<()> {
         match self {
             DrawTarget::Mp4(m) => m.finish(),
-            DrawTarget::Folder { tmp, path } => arkit_core::atomic_file::publish_dir(&tmp, &path),
+            DrawTarget::Folder { tmp, path } => arkit_core::atomic_file::publish_dir(tmp, &path),
         }
     }
 }

@@ -276,10 +276,10 @@ fn video(
     } else {
         None
     };
-    let folder_tmp = arkit_core::atomic_file::temporary_name(path);
-    if !is_mp4 {
-        std::fs::create_dir_all(&folder_tmp).map_err(|e| Error::io(path, e))?;
-    }
+    let folder_tmp = match is_mp4 {
+        true => None,
+        false => Some(arkit_core::atomic_file::TemporaryDir::create(path)?),
+    };
     let (mut truth, mut boxes) = (String::new(), String::new());
     let frames = plan.frames();
     let bar = super::progress_bar(frames as u64, "synth", "frames");
@@ -313,22 +313,24 @@ fn video(
         let visible: Vec<[f64; 4]> = found.iter().flatten().copied().collect();
         boxes.push_str(&serde_json::json!({"frame": i, "boxes": visible}).to_string());
         boxes.push('\n');
-        match encoder.as_mut() {
-            Some(e) => e.push(&image)?,
-            None => {
+        match (encoder.as_mut(), folder_tmp.as_ref()) {
+            (Some(e), _) => e.push(&image)?,
+            (None, None) => unreachable!("a clip is written as an MP4 or a folder"),
+            (None, Some(folder_tmp)) => {
                 let mut png = std::io::Cursor::new(Vec::new());
                 image
                     .write_to(&mut png, image::ImageFormat::Png)
                     .map_err(|e| Error::invalid("frame", e.to_string()))?;
-                let file = folder_tmp.join(format!("frame-{i:06}.png"));
+                let file = folder_tmp.path().join(format!("frame-{i:06}.png"));
                 std::fs::write(&file, png.get_ref()).map_err(|e| Error::io(path, e))?;
             }
         }
     }
     bar.finish_and_clear();
-    match encoder {
-        Some(e) => e.finish()?,
-        None => arkit_core::atomic_file::publish_dir(&folder_tmp, path)?,
+    match (encoder, folder_tmp) {
+        (Some(e), _) => e.finish()?,
+        (None, Some(folder_tmp)) => arkit_core::atomic_file::publish_dir(folder_tmp, path)?,
+        (None, None) => unreachable!("a clip is written as an MP4 or a folder"),
     }
     let (truth_path, boxes_path) = (beside("truth.jsonl"), beside("boxes.jsonl"));
     arkit_core::atomic_file::write_bytes(&truth_path, truth.as_bytes())?;

@@ -1037,14 +1037,28 @@ fn default_crop_store(dir: PathBuf, compat: &str, img_size: u32) -> PyResult<Pat
     ))
 }
 
-/// An image file decoded as the loader decodes it (`arkit_data::picture::read_rgb8_checked`: PNG or
-/// JPEG, its size checked from the header against the limits before decoding, 16-bit
+/// An image file decoded as the loader decodes it (`arkit_data::picture::read_rgb8_checked`: PNG,
+/// JPEG or WebP, its size checked from the header against the limits before decoding, 16-bit
 /// scaled to 8): `(H, W, 3)` uint8 RGB.
 #[pyfunction]
 fn read_image<'py>(py: Python<'py>, path: PathBuf) -> PyResult<Bound<'py, PyAny>> {
     let img = run(py, || {
         arkit_data::picture::read_rgb8_checked(&path, |_| Ok(()))
     })?;
+    let (w, h) = img.dimensions();
+    Ok(img
+        .into_raw()
+        .into_pyarray(py)
+        .reshape([h as usize, w as usize, 3])?
+        .into_any())
+}
+
+/// A photo as people see it (`arkit_data::picture::read_photo_upright`): decoded as
+/// `read_image` decodes it, then turned upright by its EXIF orientation. `(H, W, 3)`
+/// uint8 RGB of the upright photo.
+#[pyfunction]
+fn read_photo_upright<'py>(py: Python<'py>, path: PathBuf) -> PyResult<Bound<'py, PyAny>> {
+    let (img, _) = run(py, || arkit_data::picture::read_photo_upright(&path))?;
     let (w, h) = img.dimensions();
     Ok(img
         .into_raw()
@@ -1610,6 +1624,7 @@ fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(project, m)?)?;
     m.add_function(wrap_pyfunction!(evaluate, m)?)?;
     m.add_function(wrap_pyfunction!(read_image, m)?)?;
+    m.add_function(wrap_pyfunction!(read_photo_upright, m)?)?;
     m.add_function(wrap_pyfunction!(photo_crop, m)?)?;
     m.add_function(wrap_pyfunction!(photo_pose, m)?)?;
     m.add_function(wrap_pyfunction!(detect_faces, m)?)?;

@@ -73,9 +73,11 @@ class CropNetwork(Protocol):
 
 
 def read_photo(path: Union[str, "os.PathLike[str]"]) -> npt.NDArray[np.uint8]:
-    """A PNG, JPEG or WebP file as an `(H, W, 3)` RGB uint8 array (its size checked
-    from its header first; `DataError` names the file and the problem)."""
-    return _native.read_image(path)
+    """A PNG, JPEG or WebP file as an `(H, W, 3)` RGB uint8 array, turned upright by
+    its EXIF orientation as `arkit-tool predict --image` turns it (its size checked
+    from its header first; a truncated JPEG refused; `DataError` names the file and the
+    problem)."""
+    return _native.read_photo_upright(os.fspath(path))
 
 
 def detect_faces(

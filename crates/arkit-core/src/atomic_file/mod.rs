@@ -35,9 +35,19 @@ use std::io::Write;
 use std::path::{Path, PathBuf};
 
 /// A fresh temporary name for `path` (`.NAME.tmp-TOKEN` beside it). It names nothing
-/// owned: writers make their temporaries with [`write_atomically`] or [`TemporaryDir`].
-pub fn temporary_name(path: &Path) -> PathBuf {
+/// owned: writers make their temporaries with [`write_atomically`],
+/// [`create_temporary`] or [`TemporaryDir`].
+#[cfg(test)]
+fn temporary_name(path: &Path) -> PathBuf {
     ownership::fresh_name(path)
+}
+
+/// Creates the temporary file of `path` (`.NAME.tmp-TOKEN` beside it; the folder must
+/// exist), owned by the returned handle's lock until it is closed, for a writer that
+/// fills it itself (a stream of frames or rows): write through the handle, then
+/// [`publish`] it, or remove the temporary on failure. Errors name `path`.
+pub fn create_temporary(path: &Path) -> Result<(fs::File, PathBuf)> {
+    ownership::create_file(path)
 }
 
 /// Writes `path` by calling `fill` on a buffered writer over a temporary file, then
@@ -286,6 +296,17 @@ mod tests {
         assert!(err.is_err());
         assert!(!path.exists());
         assert_eq!(fs::read_dir(dir.path()).unwrap().count(), 0);
+    }
+
+    #[test]
+    fn an_error_creating_the_temporary_names_the_users_file() {
+        // A name of 250 bytes is a valid file name; its temporary (`.NAME.tmp-PID`) is
+        // longer than the 255 a name may have, so creating it fails.
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join(format!("{}.json", "a".repeat(245)));
+        let e = write_bytes(&path, b"{}").unwrap_err().to_string();
+        assert!(e.starts_with(&format!("{}:", path.display())), "{e}");
+        assert!(!e.contains(".tmp-"), "{e}");
     }
 
     #[test]

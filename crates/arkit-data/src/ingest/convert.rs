@@ -300,79 +300,6 @@ pub struct ValidationContext {
     pub embed_images: bool,
 }
 
-/// Checks that `bytes` are a complete JPEG: the start-of-image marker, then marker
-/// segments (each within the file) and entropy-coded scans up to an end-of-image marker.
-/// Bytes after the end-of-image marker (camera padding, appended data) are allowed and
-/// ignored, as decoders ignore them. Returns the offset just past the end marker.
-pub fn check_jpeg_framing(bytes: &[u8]) -> std::result::Result<usize, String> {
-    if bytes.len() < 4 || bytes[..3] != [0xFF, 0xD8, 0xFF] {
-        return Err("not a JPEG file (no start-of-image marker)".into());
-    }
-    let truncated = |at: usize| {
-        format!(
-            "truncated JPEG (the data ends at byte {at} of {} before the end-of-image marker)",
-            bytes.len()
-        )
-    };
-    let mut pos = 2;
-    loop {
-        if pos >= bytes.len() {
-            return Err(truncated(bytes.len()));
-        }
-        if bytes[pos] != 0xFF {
-            return Err(format!(
-                "corrupt JPEG: byte {pos} should start a marker (0xFF), found {:#04x}",
-                bytes[pos]
-            ));
-        }
-        while pos < bytes.len() && bytes[pos] == 0xFF {
-            pos += 1;
-        }
-        let Some(&marker) = bytes.get(pos) else {
-            return Err(truncated(bytes.len()));
-        };
-        pos += 1;
-        match marker {
-            0xD9 => return Ok(pos),
-            0x01 | 0xD0..=0xD7 => continue,
-            0x00 => return Err(format!("corrupt JPEG: stray 0xFF00 at byte {}", pos - 2)),
-            _ => {}
-        }
-        let Some(len) = bytes
-            .get(pos..pos + 2)
-            .map(|b| u16::from_be_bytes([b[0], b[1]]) as usize)
-        else {
-            return Err(truncated(bytes.len()));
-        };
-        if len < 2 {
-            return Err(format!(
-                "corrupt JPEG: marker {marker:#04x} at byte {} has length {len}",
-                pos - 2
-            ));
-        }
-        pos += len;
-        if pos > bytes.len() {
-            return Err(truncated(bytes.len()));
-        }
-        if marker == 0xDA {
-            // Entropy-coded data: 0xFF is followed by 0x00 (a stuffed byte), a restart
-            // marker, or fill; anything else is the next marker.
-            loop {
-                match bytes[pos..].iter().position(|&b| b == 0xFF) {
-                    None => return Err(truncated(bytes.len())),
-                    Some(k) => pos += k,
-                }
-                match bytes.get(pos + 1) {
-                    None => return Err(truncated(bytes.len())),
-                    Some(0x00 | 0xD0..=0xD7) => pos += 2,
-                    Some(0xFF) => pos += 1,
-                    Some(_) => break,
-                }
-            }
-        }
-    }
-}
-
 /// Which per-sample checks run, and the window of the systematic rule
 /// ([`crate::ingest::SYSTEMATIC_WINDOW`]).
 #[derive(Clone, Debug, PartialEq, Eq)]
@@ -458,7 +385,7 @@ fn validate_sample_with(
     let image_path = root.join(&row.image);
     let bytes = crate::picture::image_decode::read_image_file(&image_path)
         .map_err(|e| fail(&row.image, e.reason()))?;
-    check_jpeg_framing(&bytes).map_err(|m| fail(&row.image, m))?;
+    crate::picture::check_jpeg_framing(&bytes).map_err(|m| fail(&row.image, m))?;
     // The size from the header, checked before any pixel is decoded; the decode then
     // proves the JPEG whole.
     let (width, height) = crate::picture::image_decode::decode_rgb8_checked(&bytes, &image_path, |h| {

@@ -21,12 +21,16 @@ pub(crate) mod split;
 pub mod synth;
 pub(crate) mod systematic;
 
+/// The JPEG framing check `convert` runs on the release's images (it lives with the
+/// image decoder, which runs it on every JPEG).
+pub use crate::picture::check_jpeg_framing;
+
 pub use self::{
     convert::{
         CONVERSION_FILE, ConversionFingerprint, ConvertChecks, ConvertOptions, DiscoveredInput,
-        Merged, PlannedRow, Progress, Skip, ValidationContext, check_jpeg_framing, convert,
-        convert_planned_with, discover, manifest_name, merge, plan_rows, read_conversion_record,
-        read_dataset_samples, verify_dataset,
+        Merged, PlannedRow, Progress, Skip, ValidationContext, convert, convert_planned_with,
+        discover, manifest_name, merge, plan_rows, read_conversion_record, read_dataset_samples,
+        verify_dataset,
     },
     import_arkit::{
         FoundFrame, FrameProblem, ImportOptions, ImportSummary, InterfaceOrientation, find_frames,

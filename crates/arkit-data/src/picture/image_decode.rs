@@ -1,6 +1,6 @@
 //! Every image the tool reads, decoded in one place and bounded before decoding.
 //!
-//! A PNG or JPEG declares its size in its header, and a few hundred compressed bytes
+//! A PNG, JPEG or WebP declares its size in its header, and a few hundred compressed bytes
 //! can declare gigabytes of pixels. `decode_rgb8` reads the header first (no pixel
 //! data), checks the size and colour type against [`MAX_DECODED_IMAGE_PIXELS`] and
 //! [`MAX_DECODED_IMAGE_BYTES`] (and any check of the caller's, such as "the image has
@@ -29,7 +29,7 @@ pub struct ImageHeader {
     pub height: u32,
     /// The file's colour type (before conversion to 8-bit RGB).
     pub color: ColorType,
-    /// PNG or JPEG.
+    /// PNG, JPEG or WebP.
     pub format: ImageFormat,
 }
 
@@ -99,11 +99,90 @@ pub(crate) fn read_image_file(path: &Path) -> Result<Vec<u8>> {
     Ok(bytes)
 }
 
+/// Checks that `bytes` are a complete JPEG: the start-of-image marker, then marker
+/// segments (each within the file) and entropy-coded scans up to an end-of-image marker.
+/// Bytes after the end-of-image marker (camera padding, appended data) are allowed and
+/// ignored, as decoders ignore them. Returns the offset just past the end marker.
+pub fn check_jpeg_framing(bytes: &[u8]) -> std::result::Result<usize, String> {
+    if bytes.len() < 4 || bytes[..3] != [0xFF, 0xD8, 0xFF] {
+        return Err("not a JPEG file (no start-of-image marker)".into());
+    }
+    let truncated = |at: usize| {
+        format!(
+            "truncated JPEG (the data ends at byte {at} of {} before the end-of-image marker)",
+            bytes.len()
+        )
+    };
+    let mut pos = 2;
+    loop {
+        if pos >= bytes.len() {
+            return Err(truncated(bytes.len()));
+        }
+        if bytes[pos] != 0xFF {
+            return Err(format!(
+                "corrupt JPEG: byte {pos} should start a marker (0xFF), found {:#04x}",
+                bytes[pos]
+            ));
+        }
+        while pos < bytes.len() && bytes[pos] == 0xFF {
+            pos += 1;
+        }
+        let Some(&marker) = bytes.get(pos) else {
+            return Err(truncated(bytes.len()));
+        };
+        pos += 1;
+        match marker {
+            0xD9 => return Ok(pos),
+            0x01 | 0xD0..=0xD7 => continue,
+            0x00 => return Err(format!("corrupt JPEG: stray 0xFF00 at byte {}", pos - 2)),
+            _ => {}
+        }
+        let Some(len) = bytes
+            .get(pos..pos + 2)
+            .map(|b| u16::from_be_bytes([b[0], b[1]]) as usize)
+        else {
+            return Err(truncated(bytes.len()));
+        };
+        if len < 2 {
+            return Err(format!(
+                "corrupt JPEG: marker {marker:#04x} at byte {} has length {len}",
+                pos - 2
+            ));
+        }
+        pos += len;
+        if pos > bytes.len() {
+            return Err(truncated(bytes.len()));
+        }
+        if marker == 0xDA {
+            // Entropy-coded data: 0xFF is followed by 0x00 (a stuffed byte), a restart
+            // marker, or fill; anything else is the next marker.
+            loop {
+                match bytes[pos..].iter().position(|&b| b == 0xFF) {
+                    None => return Err(truncated(bytes.len())),
+                    Some(k) => pos += k,
+                }
+                match bytes.get(pos + 1) {
+                    None => return Err(truncated(bytes.len())),
+                    Some(0x00 | 0xD0..=0xD7) => pos += 2,
+                    Some(0xFF) => pos += 1,
+                    Some(_) => break,
+                }
+            }
+        }
+    }
+}
+
 fn decoder<'a>(bytes: &'a [u8], path: &Path) -> Result<(ImageHeader, impl ImageDecoder + 'a)> {
     let format = image::guess_format(bytes)
         .ok()
-        .filter(|f| matches!(f, ImageFormat::Png | ImageFormat::Jpeg))
-        .ok_or_else(|| Error::format(path, "not a PNG or JPEG image"))?;
+        .filter(|f| matches!(f, ImageFormat::Png | ImageFormat::Jpeg | ImageFormat::WebP))
+        .ok_or_else(|| Error::format(path, "not a PNG, JPEG or WebP image"))?;
+    // A JPEG decoder fills missing data with grey and reports nothing: the framing
+    // (every marker segment and scan up to the end-of-image marker) is checked first,
+    // as `convert` checks the release's images.
+    if format == ImageFormat::Jpeg {
+        check_jpeg_framing(bytes).map_err(|m| Error::format(path, m))?;
+    }
     let mut reader = image::ImageReader::with_format(Cursor::new(bytes), format);
     reader.limits(limits());
     let d = reader.into_decoder().map_err(|e| {
@@ -123,7 +202,7 @@ fn decoder<'a>(bytes: &'a [u8], path: &Path) -> Result<(ImageHeader, impl ImageD
 }
 
 #[cfg(test)]
-/// The header of an image in memory (PNG or JPEG), no pixel decoded.
+/// The header of an image in memory (PNG, JPEG or WebP), no pixel decoded.
 pub(crate) fn read_header(bytes: &[u8], path: &Path) -> Result<ImageHeader> {
     decoder(bytes, path).map(|(h, _)| h)
 }
@@ -148,7 +227,7 @@ fn check_budget(h: &ImageHeader, path: &Path) -> Result<()> {
     Ok(())
 }
 
-/// Decodes a PNG or JPEG in memory into 8-bit RGB (module docs), after `check` has
+/// Decodes a PNG, JPEG or WebP in memory into 8-bit RGB (module docs), after `check` has
 /// accepted its header (for example: the size the caller expects) and the header has
 /// passed `check_budget`. `path` names the image in errors.
 pub(crate) fn decode_rgb8_checked(
@@ -176,6 +255,25 @@ pub fn read_rgb8_checked(
     check: impl FnOnce(&ImageHeader) -> Result<()>,
 ) -> Result<RgbImage> {
     decode_rgb8_checked(&read_image_file(path)?, path, check)
+}
+
+/// A photo as people see it: decoded as [`read_rgb8_checked`] decodes it, then turned
+/// upright by its EXIF orientation (1 to 8; a phone stores a portrait photo sideways
+/// with orientation 6), before anything else looks at it. Returns the upright image
+/// and the orientation applied (1 when the file has none). The dataset's images are
+/// read without this: their calibration is for the pixels as stored.
+pub fn read_photo_upright(path: &Path) -> Result<(RgbImage, u8)> {
+    let bytes = read_image_file(path)?;
+    let (header, mut d) = decoder(&bytes, path)?;
+    check_budget(&header, path)?;
+    // An unreadable EXIF block is no orientation, as viewers treat it.
+    let orientation = d
+        .orientation()
+        .unwrap_or(image::metadata::Orientation::NoTransforms);
+    let mut image = DynamicImage::from_decoder(d)
+        .map_err(|e| Error::format(path, format!("the image does not decode: {e}")))?;
+    image.apply_orientation(orientation);
+    Ok((image.into_rgb8(), orientation.to_exif()))
 }
 
 #[cfg(test)]
@@ -275,7 +373,7 @@ mod tests {
         bytes.truncate(bytes.len() - 20);
         assert!(decode_rgb8(&bytes, p).is_err());
         let e = decode_rgb8(b"GIF89a......", p).unwrap_err().to_string();
-        assert!(e.contains("not a PNG or JPEG"), "{e}");
+        assert!(e.contains("not a PNG, JPEG or WebP"), "{e}");
     }
 
     #[test]

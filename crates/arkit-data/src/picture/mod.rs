@@ -18,7 +18,7 @@ pub(crate) mod plot;
 pub use self::{
     detect::{DetectOptions, DetectedFace, detect_faces},
     encode::{contact_sheet, jpeg_bytes},
-    image_decode::{ImageHeader, read_rgb8_checked},
+    image_decode::{ImageHeader, check_jpeg_framing, read_photo_upright, read_rgb8_checked},
     overlay::{MeshStyle, draw_box, draw_projected_mesh},
     photo::{DEMO_SIDE, DemoSquare, demo_crop},
     plot::{Bars, Histogram, LINE_PLOT, PANEL_HEIGHT, PANEL_WIDTH, Series, bars_svg, log_line_svg},

@@ -40,8 +40,7 @@ impl Mp4Encoder {
         if let Some(parent) = path.parent().filter(|p| !p.as_os_str().is_empty()) {
             std::fs::create_dir_all(parent).map_err(|e| Error::io(parent, e))?;
         }
-        let tmp = arkit_core::atomic_file::temporary_name(path);
-        let file = File::create(&tmp).map_err(|e| Error::io(path, e))?;
+        let (file, tmp) = arkit_core::atomic_file::create_temporary(path)?;
         let config = mp4::Mp4Config {
             major_brand: str::parse("isom").expect("fourcc"),
             minor_version: 512,

@@ -82,11 +82,13 @@ impl RowWriter {
         if let Some(parent) = path.parent().filter(|p| !p.as_os_str().is_empty()) {
             std::fs::create_dir_all(parent).map_err(|e| Error::io(parent, e))?;
         }
-        let tmp = arkit_core::atomic_file::temporary_name(path);
-        let open = || -> Result<BufWriter<File>> {
-            Ok(BufWriter::new(
-                File::create(&tmp).map_err(|e| Error::io(path, e))?,
-            ))
+        // JSON lines and CSV are streamed into a temporary of their own; Parquet is
+        // written at the end (atomically, by `write_parquet`).
+        let mut tmp = PathBuf::new();
+        let mut open = || -> Result<BufWriter<File>> {
+            let (file, t) = arkit_core::atomic_file::create_temporary(path)?;
+            tmp = t;
+            Ok(BufWriter::new(file))
         };
         let kind = match ext.as_str() {
             "jsonl" => Kind::Jsonl(open()?),
@@ -145,7 +147,7 @@ impl RowWriter {
 
 impl Drop for RowWriter {
     fn drop(&mut self) {
-        if !self.done {
+        if !self.done && !self.tmp.as_os_str().is_empty() {
             let _ = std::fs::remove_file(&self.tmp);
         }
     }
@@ -341,7 +343,14 @@ mod tests {
                 w.push(&r).unwrap();
             }
             w.finish().unwrap();
-            assert!(!arkit_core::atomic_file::temporary_name(&path).exists());
+            let left: Vec<_> = std::fs::read_dir(dir.path())
+                .unwrap()
+                .flatten()
+                .filter(|e| {
+                    arkit_core::atomic_file::is_temporary_name(&e.file_name().to_string_lossy())
+                })
+                .collect();
+            assert!(left.is_empty(), "{left:?}");
             match ext {
                 "jsonl" => {
                     let text = std::fs::read_to_string(&path).unwrap();

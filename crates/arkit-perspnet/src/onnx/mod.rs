@@ -53,10 +53,13 @@ pub const ONNX_FILES: [&str; 3] = ["dense.onnx", "points.onnx", "onnx.json"];
 pub const POINT_SELECTION: &str = "mask = seg_logits[1] >= seg_logits[0] per pixel; \
 candidates = the flat indices y * S + x of the mask's pixels in increasing order (every \
 pixel of the crop when the mask is empty); picks = arkit_data::render::sample_points(\
-len(candidates), M, seed) (arkit_tool._native.sample_points in Python): M distinct picks \
-in increasing order when there are more than M candidates, else 0, 1, ..., n-1, 0, 1, ... \
-(wrap-around); choose = candidates[picks]. `predict` seeds sample i of shard k with \
-seed ^ ((k << 32) | i).";
+len(candidates), M, seed): M distinct picks in increasing order when there are more than M \
+candidates (a partial Fisher-Yates shuffle of 0..n-1 driven by xoshiro256++ seeded through \
+SplitMix64, then sorted), else 0, 1, ..., n-1, 0, 1, ... (wrap-around); choose = \
+candidates[picks]. In Python, arkit_tool._native.choose_points(mask, M, seed) does all of \
+this; docs/onnx.md writes the sampler out. `predict --dataset` seeds sample i of shard k \
+with seed ^ ((k << 32) | i); `predict --image` seeds face f of photo p with \
+seed ^ (p << 32) ^ f.";
 
 /// One input or output of an exported graph, as the manifest lists it.
 #[derive(Debug, Clone, Serialize)]
