@@ -68,7 +68,7 @@ enum Command {
     HalfModel(weights::HalfModelArgs),
     #[cfg(feature = "model")]
     ExportOnnx(export_onnx::ExportOnnxArgs),
-    Predict(predict::PredictArgs),
+    Predict(Box<predict::PredictArgs>),
     Eval(eval::EvalArgs),
     Push(push::PushArgs),
     Clean(clean::CleanArgs),
@@ -100,7 +100,7 @@ pub fn run(cli: Cli) -> Result<ExitCode> {
         Command::HalfModel(a) => weights::run_half(a),
         #[cfg(feature = "model")]
         Command::ExportOnnx(a) => export_onnx::run(a),
-        Command::Predict(a) => predict::run(a),
+        Command::Predict(a) => predict::run(*a),
         Command::Eval(a) => eval::run(a),
         Command::Push(a) => push::run(a),
         Command::Clean(a) => clean::run(a),
