@@ -49,6 +49,32 @@ pub(crate) fn env_number(name: &str, default: u64) -> u64 {
     }
 }
 
+/// Reads the stderr of `child`, a writer run with `ARKIT_PAUSE_BEFORE_RENAME`, until it
+/// reports its pause (`... paused before renaming TMP to PATH`) and returns that line,
+/// then drains the rest on a thread (a writer whose stderr is closed would die of its
+/// next line instead of waiting for its kill). `Err` holds what it printed when it
+/// ended without pausing, or says so after 300 s.
+pub(crate) fn await_pause(child: &mut std::process::Child) -> Result<String, String> {
+    use std::io::{BufRead, BufReader};
+    let stderr = child.stderr.take().expect("stderr piped");
+    let (tx, rx) = std::sync::mpsc::channel();
+    std::thread::spawn(move || {
+        let mut lines = BufReader::new(stderr).lines().map_while(|l| l.ok());
+        let mut seen = Vec::new();
+        while let Some(line) = lines.next() {
+            if line.contains("paused before renaming") {
+                let _ = tx.send(Ok(line));
+                for _ in lines.by_ref() {}
+                return;
+            }
+            seen.push(line);
+        }
+        let _ = tx.send(Err(seen.join("\n")));
+    });
+    rx.recv_timeout(std::time::Duration::from_secs(300))
+        .map_err(|e| format!("no pause in 300 s: {e}"))?
+}
+
 pub(crate) fn run_ok(command: &mut Command) -> Output {
     let out = command.output().expect("run arkit-tool");
     assert!(

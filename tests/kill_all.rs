@@ -20,7 +20,7 @@
 //! `ARKIT_KILL_POINTS` (default 3) sets the seeded points per command, `ARKIT_KILL_SEED`
 //! (default 53) the seed; the between-write-and-rename points are always all tried.
 
-use crate::kill::{Points, differences, env_number, run_ok, temporaries, text, tree};
+use crate::kill::{Points, await_pause, differences, env_number, run_ok, temporaries, text, tree};
 use crate::support::tool;
 use std::collections::BTreeMap;
 use std::io::{BufRead, BufReader};
@@ -461,24 +461,7 @@ fn kill_before_rename(
         .stderr(Stdio::piped())
         .spawn()
         .unwrap();
-    let stderr = child.stderr.take().unwrap();
-    let (tx, rx) = std::sync::mpsc::channel();
-    std::thread::spawn(move || {
-        let mut lines = BufReader::new(stderr).lines().map_while(|l| l.ok());
-        let mut seen = Vec::new();
-        while let Some(line) = lines.next() {
-            if line.contains("paused before renaming") {
-                let _ = tx.send(Ok(line));
-                // Drained to the end: a writer whose stderr is closed dies of the next
-                // line (another thread's pause) instead of waiting for its kill.
-                for _ in lines.by_ref() {}
-                return;
-            }
-            seen.push(line);
-        }
-        let _ = tx.send(Err(seen.join("\n")));
-    });
-    let got = rx.recv_timeout(Duration::from_secs(300));
+    let got = await_pause(&mut child);
     child.kill().unwrap();
     let zombie = match death {
         Death::Zombie => {
@@ -500,9 +483,8 @@ fn kill_before_rename(
         }
     };
     match got {
-        Ok(Ok(line)) => (line, zombie),
-        Ok(Err(stderr)) => panic!("{command:?} never wrote a file containing '{what}': {stderr}"),
-        Err(e) => panic!("{command:?} did not pause at '{what}' in 300 s: {e}"),
+        Ok(line) => (line, zombie),
+        Err(why) => panic!("{command:?} did not pause at '{what}': {why}"),
     }
 }
 

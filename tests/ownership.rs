@@ -6,9 +6,8 @@
 //! though the two writers' process ids are the same number; `inspect` lists both with
 //! their sizes and states.
 
-use crate::kill::{run_ok, temporaries, text};
+use crate::kill::{await_pause, run_ok, temporaries, text};
 use crate::support::tool;
-use std::io::{BufRead, BufReader};
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::time::Duration;
@@ -47,26 +46,16 @@ fn paused_on_node(host: &str, args: &[&str], pause: &str) -> (Child, PathBuf) {
         .stderr(Stdio::piped())
         .spawn()
         .unwrap();
-    let stderr = child.stderr.take().unwrap();
-    let (tx, rx) = std::sync::mpsc::channel();
-    std::thread::spawn(move || {
-        let mut lines = BufReader::new(stderr).lines().map_while(|l| l.ok());
-        let mut seen = Vec::new();
-        while let Some(line) = lines.next() {
-            if let Some(rest) = line.split("paused before renaming ").nth(1) {
-                let tmp = rest.split(" to ").next().unwrap_or_default().to_string();
-                let _ = tx.send(Ok(PathBuf::from(tmp)));
-                for _ in lines.by_ref() {}
-                return;
-            }
-            seen.push(line);
+    match await_pause(&mut child) {
+        Ok(line) => {
+            let rest = line
+                .split("paused before renaming ")
+                .nth(1)
+                .unwrap_or_default();
+            let tmp = PathBuf::from(rest.split(" to ").next().unwrap_or_default());
+            (child, tmp)
         }
-        let _ = tx.send(Err(seen.join("\n")));
-    });
-    match rx.recv_timeout(Duration::from_secs(300)) {
-        Ok(Ok(tmp)) => (child, tmp),
-        Ok(Err(stderr)) => panic!("the writer on {host} never paused at '{pause}': {stderr}"),
-        Err(e) => panic!("the writer on {host} did not pause in 300 s: {e}"),
+        Err(why) => panic!("the writer on {host} never paused at '{pause}': {why}"),
     }
 }
 
