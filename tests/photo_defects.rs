@@ -2,26 +2,11 @@
 //! photo with an EXIF orientation, a boxes file naming other photos, a read-only output
 //! folder, and two photos with the same file name in two folders.
 
-use crate::support::tool;
+use crate::support::{run_tool as run, tool_ok as ok};
 use serde_json::Value;
 use std::path::{Path, PathBuf};
 
-const TINY: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/models/tiny-synthetic");
-
-fn run(args: &[&str]) -> (Option<i32>, String, String) {
-    let out = tool().args(args).output().unwrap();
-    (
-        out.status.code(),
-        String::from_utf8_lossy(&out.stdout).to_string(),
-        String::from_utf8_lossy(&out.stderr).to_string(),
-    )
-}
-
-fn ok(args: &[&str]) -> String {
-    let (code, stdout, stderr) = run(args);
-    assert_eq!(code, Some(0), "{args:?}: {stdout}{stderr}");
-    stdout
-}
+const TINY: &str = crate::support::TINY_MODEL;
 
 fn s(p: &Path) -> String {
     p.to_str().unwrap().to_string()

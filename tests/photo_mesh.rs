@@ -6,7 +6,7 @@ use crate::support::tool;
 use serde_json::Value;
 use std::path::Path;
 
-const TINY: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/models/tiny-synthetic");
+const TINY: &str = crate::support::TINY_MODEL;
 
 fn s(p: &Path) -> String {
     p.to_str().unwrap().to_string()

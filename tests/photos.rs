@@ -4,7 +4,7 @@
 //! several faces of different sizes whose poses are known (`synth --group-photo`), on
 //! a photo with no face, and against bad input.
 
-use crate::support::tool;
+use crate::support::tool_ok as ok;
 use arkit_data::crop::{CropTransform, RuleSet};
 use arkit_data::crop::{LandmarkExtent, official_box};
 use arkit_data::picture::{DEMO_SIDE, DemoSquare, demo_crop};
@@ -12,21 +12,12 @@ use arkit_data::store::Dataset;
 use serde_json::Value;
 use std::path::{Path, PathBuf};
 
-const TINY: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/models/tiny-synthetic");
+const TINY: &str = crate::support::TINY_MODEL;
 
+/// `arkit-tool ARGS`: whether it succeeded, its standard output and error.
 fn run(args: &[&str]) -> (bool, String, String) {
-    let out = tool().args(args).output().unwrap();
-    (
-        out.status.success(),
-        String::from_utf8_lossy(&out.stdout).to_string(),
-        String::from_utf8_lossy(&out.stderr).to_string(),
-    )
-}
-
-fn ok(args: &[&str]) -> String {
-    let (ok, stdout, stderr) = run(args);
-    assert!(ok, "{args:?}: {stdout}{stderr}");
-    stdout
+    let (code, stdout, stderr) = crate::support::run_tool(args);
+    (code == Some(0), stdout, stderr)
 }
 
 fn refused(args: &[&str]) -> String {

@@ -3,27 +3,18 @@
 //! lag figures (docs/video.md), two crossing faces whose ids do not swap, a
 //! 10-minute H.264 stream read in bounded memory, and other codecs refused by name.
 
-use crate::support::tool;
+use crate::support::tool_ok as ok;
 use arkit_core::conventions::Pose;
 use arkit_data::video::{ClipPlan, Mp4Encoder, VideoSource, lag_frames, rest_jitter_deg};
 use serde_json::Value;
 use std::path::Path;
 
-const TINY: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/models/tiny-synthetic");
+const TINY: &str = crate::support::TINY_MODEL;
 
+/// `arkit-tool ARGS`: whether it succeeded, its standard output and error.
 fn run(args: &[&str]) -> (bool, String, String) {
-    let out = tool().args(args).output().unwrap();
-    (
-        out.status.success(),
-        String::from_utf8_lossy(&out.stdout).to_string(),
-        String::from_utf8_lossy(&out.stderr).to_string(),
-    )
-}
-
-fn ok(args: &[&str]) -> String {
-    let (ok, stdout, stderr) = run(args);
-    assert!(ok, "{args:?}: {stdout}{stderr}");
-    stdout
+    let (code, stdout, stderr) = crate::support::run_tool(args);
+    (code == Some(0), stdout, stderr)
 }
 
 fn s(p: &Path) -> String {

@@ -16,6 +16,26 @@ pub fn tool() -> Command {
     Command::new(env!("CARGO_BIN_EXE_arkit-tool"))
 }
 
+/// The tiny PerspNet shipped with arkit-tool (for the built-in synthetic face).
+pub const TINY_MODEL: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/models/tiny-synthetic");
+
+/// Runs `arkit-tool ARGS`: its exit code, standard output and standard error.
+pub fn run_tool(args: &[&str]) -> (Option<i32>, String, String) {
+    let out = tool().args(args).output().unwrap();
+    (
+        out.status.code(),
+        String::from_utf8_lossy(&out.stdout).to_string(),
+        String::from_utf8_lossy(&out.stderr).to_string(),
+    )
+}
+
+/// Runs `arkit-tool ARGS`, which must succeed; its standard output.
+pub fn tool_ok(args: &[&str]) -> String {
+    let (code, stdout, stderr) = run_tool(args);
+    assert_eq!(code, Some(0), "{args:?}: {stdout}{stderr}");
+    stdout
+}
+
 /// What `convert` checks samples against: the release's camera and the built-in face.
 pub fn convert_context() -> ValidationContext {
     ValidationContext {
