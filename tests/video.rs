@@ -331,6 +331,36 @@ fn other_codecs_are_refused_by_name() {
     assert!(stderr.contains("not an MP4 or MOV"), "{stderr}");
 }
 
+/// The photo path's options are refused with --video, naming the option, never
+/// silently ignored (before `--mesh` was).
+#[test]
+fn photo_only_options_are_refused_with_a_video() {
+    let dir = tempfile::tempdir().unwrap();
+    let clip = dir.path().join("clip.mp4");
+    let mut enc = Mp4Encoder::create(&clip, 30.0).unwrap();
+    enc.push(&image::RgbImage::new(32, 32)).unwrap();
+    enc.finish().unwrap();
+    let out = s(&dir.path().join("out"));
+    for extra in [
+        vec!["--mesh", out.as_str()],
+        vec!["--dump-crops", out.as_str()],
+        vec!["--vertices"],
+        vec!["--box", "1 2 30 31"],
+    ] {
+        let mut args = vec!["predict", "--model", TINY, "--video"];
+        let c = s(&clip);
+        args.push(&c);
+        args.extend(extra.iter().copied());
+        let (ok, _, stderr) = run(&args);
+        assert!(!ok, "{extra:?}");
+        assert!(
+            stderr.contains(extra[0]) && stderr.contains("is not for --video"),
+            "{extra:?}: {stderr}"
+        );
+    }
+    assert!(!dir.path().join("out").exists());
+}
+
 /// A folder of frames with a damaged one and a stray file: the damaged frame is
 /// reported and skipped (the others keep their frame numbers), `--strict` exits 1; a
 /// boxes file naming a frame past the end is refused, naming it.

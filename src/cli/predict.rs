@@ -483,22 +483,10 @@ fn run_image(a: &PredictArgs, ransac: RansacParams) -> Result<ExitCode> {
             "poses faces with a trained PerspNet: give --model DIR (models/tiny-synthetic is shipped)",
         ));
     };
-    for (given, flag) in [
-        (a.dump.is_some(), "--dump"),
-        (a.targets.is_some(), "--targets"),
-        (
-            a.noise_px != 0.0 || a.outliers != 0.0,
-            "--noise-px/--outliers",
-        ),
-        (matches!(a.mask, MaskSource::Truth), "--mask truth"),
-    ] {
-        if given {
-            return Err(arkit_core::Error::invalid(
-                flag,
-                "is for --dataset; with --image use --dump-crops, --draw or --vertices",
-            ));
-        }
-    }
+    refuse_given(
+        &dataset_only_flags(a),
+        "is for --dataset; with --image use --dump-crops, --draw or --vertices",
+    )?;
     super::predict_image::run(super::predict_image::ImageRequest {
         images: &a.image,
         model,
@@ -522,6 +510,29 @@ fn run_image(a: &PredictArgs, ransac: RansacParams) -> Result<ExitCode> {
     })
 }
 
+/// The options of `--dataset` alone, each with whether it was given.
+#[cfg(feature = "model")]
+fn dataset_only_flags(a: &PredictArgs) -> [(bool, &'static str); 4] {
+    [
+        (a.dump.is_some(), "--dump"),
+        (a.targets.is_some(), "--targets"),
+        (
+            a.noise_px != 0.0 || a.outliers != 0.0,
+            "--noise-px/--outliers",
+        ),
+        (matches!(a.mask, MaskSource::Truth), "--mask truth"),
+    ]
+}
+
+/// The first of `flags` that was given, refused with `why`.
+#[cfg(feature = "model")]
+fn refuse_given(flags: &[(bool, &'static str)], why: &str) -> Result<()> {
+    match flags.iter().find(|(given, _)| *given) {
+        Some((_, flag)) => Err(arkit_core::Error::invalid(*flag, why)),
+        None => Ok(()),
+    }
+}
+
 #[cfg(feature = "model")]
 fn run_video(a: &PredictArgs, ransac: RansacParams) -> Result<ExitCode> {
     let video = a.video.as_deref().expect("checked by the caller");
@@ -531,25 +542,16 @@ fn run_video(a: &PredictArgs, ransac: RansacParams) -> Result<ExitCode> {
             "poses faces with a trained PerspNet: give --model DIR (models/tiny-synthetic is shipped)",
         ));
     };
-    for (given, flag) in [
-        (a.dump.is_some(), "--dump"),
-        (a.targets.is_some(), "--targets"),
+    let photo_only = [
         (!a.boxes.is_empty(), "--box"),
         (a.vertices, "--vertices"),
         (a.dump_crops.is_some(), "--dump-crops"),
-        (
-            a.noise_px != 0.0 || a.outliers != 0.0,
-            "--noise-px/--outliers",
-        ),
-        (matches!(a.mask, MaskSource::Truth), "--mask truth"),
-    ] {
-        if given {
-            return Err(arkit_core::Error::invalid(
-                flag,
-                "is not for --video (docs/video.md lists its options)",
-            ));
-        }
-    }
+        (a.mesh.is_some(), "--mesh"),
+    ];
+    refuse_given(
+        &[dataset_only_flags(a).as_slice(), &photo_only].concat(),
+        "is not for --video (docs/video.md lists its options)",
+    )?;
     super::predict_video::run(super::predict_video::VideoRequest {
         video,
         model,

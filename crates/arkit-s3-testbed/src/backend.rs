@@ -298,7 +298,6 @@ impl S3 for Backend {
         &self,
         req: S3Request<PutObjectInput>,
     ) -> S3Result<S3Response<PutObjectOutput>> {
-        self.forget_heads();
         let out = self.fs.put_object(req).await;
         self.forget_heads();
         out
@@ -308,7 +307,6 @@ impl S3 for Backend {
         &self,
         req: S3Request<CopyObjectInput>,
     ) -> S3Result<S3Response<CopyObjectOutput>> {
-        self.forget_heads();
         let out = self.fs.copy_object(req).await;
         self.forget_heads();
         out
@@ -318,7 +316,6 @@ impl S3 for Backend {
         &self,
         req: S3Request<DeleteObjectInput>,
     ) -> S3Result<S3Response<DeleteObjectOutput>> {
-        self.forget_heads();
         let out = self.fs.delete_object(req).await;
         self.forget_heads();
         out
@@ -328,7 +325,6 @@ impl S3 for Backend {
         &self,
         req: S3Request<DeleteObjectsInput>,
     ) -> S3Result<S3Response<DeleteObjectsOutput>> {
-        self.forget_heads();
         let out = self.fs.delete_objects(req).await;
         self.forget_heads();
         out
@@ -338,7 +334,6 @@ impl S3 for Backend {
         &self,
         req: S3Request<CompleteMultipartUploadInput>,
     ) -> S3Result<S3Response<CompleteMultipartUploadOutput>> {
-        self.forget_heads();
         let out = self.fs.complete_multipart_upload(req).await;
         self.forget_heads();
         out

@@ -339,24 +339,12 @@ pub fn remove_abandoned(dir: &Path, recursive: bool) -> Result<Vec<PathBuf>> {
         if section.is_none() && d.is_dir() {
             warn_no_locks(&d);
         }
-        // Folders first, their owner files after (an owner removed first would leave
-        // its folder looking abandoned to nobody else, but keep the order anyway).
+        // Folders before their owner files, as a writer removes them.
         let mut found = found;
         found.sort_by_key(|l| !l.path.is_dir());
         for leftover in found {
-            if leftover.abandoned != Some(true) {
-                continue;
-            }
-            let path = leftover.path;
-            let gone = if path.is_dir() {
-                fs::remove_dir_all(&path)
-            } else {
-                fs::remove_file(&path)
-            };
-            match gone {
-                Ok(()) => removed.push(path),
-                Err(e) if e.kind() == std::io::ErrorKind::NotFound => {}
-                Err(e) => return Err(Error::io(&path, e)),
+            if leftover.abandoned == Some(true) && remove_entry(&leftover.path)? {
+                removed.push(leftover.path);
             }
         }
         drop(section);
@@ -373,19 +361,25 @@ pub fn remove_abandoned(dir: &Path, recursive: bool) -> Result<Vec<PathBuf>> {
 pub fn remove_all_temporaries(dir: &Path, recursive: bool) -> Result<Vec<PathBuf>> {
     let mut removed = Vec::new();
     for leftover in leftovers(dir, recursive)? {
-        let path = leftover.path;
-        let gone = if path.is_dir() {
-            fs::remove_dir_all(&path)
-        } else {
-            fs::remove_file(&path)
-        };
-        match gone {
-            Ok(()) => removed.push(path),
-            Err(e) if e.kind() == std::io::ErrorKind::NotFound => {}
-            Err(e) => return Err(Error::io(&path, e)),
+        if remove_entry(&leftover.path)? {
+            removed.push(leftover.path);
         }
     }
     Ok(removed)
+}
+
+/// Removes the file or folder `path`: `false` when it was already gone.
+fn remove_entry(path: &Path) -> Result<bool> {
+    let gone = if path.is_dir() {
+        fs::remove_dir_all(path)
+    } else {
+        fs::remove_file(path)
+    };
+    match gone {
+        Ok(()) => Ok(true),
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(false),
+        Err(e) => Err(Error::io(path, e)),
+    }
 }
 
 /// Says once per process that `dir` gives no locks, so its leftovers stay.
