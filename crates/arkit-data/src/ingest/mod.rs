@@ -15,7 +15,9 @@ pub mod biwi;
 // `pub mod`: the synthetic source's own vocabulary (`synth::generate`, `synth::plan`,
 // `synth::ranges`) names nothing without `synth::`.
 pub(crate) mod convert;
+pub(crate) mod discover;
 pub(crate) mod import_arkit;
+pub(crate) mod merge;
 pub(crate) mod release_camera;
 pub(crate) mod split;
 pub mod synth;
@@ -27,15 +29,16 @@ pub use crate::picture::check_jpeg_framing;
 
 pub use self::{
     convert::{
-        CONVERSION_FILE, ConversionFingerprint, ConvertChecks, ConvertOptions, DiscoveredInput,
-        Merged, PlannedRow, Progress, Skip, ValidationContext, convert, convert_planned_with,
-        discover, manifest_name, merge, plan_rows, read_conversion_record, read_dataset_samples,
-        verify_dataset,
+        CONVERSION_FILE, ConversionFingerprint, ConvertChecks, ConvertOptions, Progress, Skip,
+        ValidationContext, convert, convert_planned_with, manifest_name, read_conversion_record,
+        read_dataset_samples, verify_dataset,
     },
+    discover::{DiscoveredInput, PlannedRow, discover, plan_rows},
     import_arkit::{
         FoundFrame, FrameProblem, ImportOptions, ImportSummary, InterfaceOrientation, find_frames,
         import_capture,
     },
+    merge::{Merged, merge},
     release_camera::resample_to_release,
     split::{HoldOut, SplitAssignment, SplitCount, assign, split_dataset},
     systematic::{Check, SYSTEMATIC_WINDOW},

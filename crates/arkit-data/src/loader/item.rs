@@ -689,7 +689,7 @@ impl FaceLoader {
         let dataset = Dataset::open(dir)?;
         crate::store::manifest::check_topology(dataset.manifest(), &topology)?;
         let splits = crate::store::splits::SplitLookup::read(dir)?;
-        let layout = crate::ingest::convert::DiscoveredInput {
+        let layout = crate::ingest::discover::DiscoveredInput {
             root: dataset.image_root().to_path_buf(),
             kind: dataset.manifest().layout,
             lists: Vec::new(),
