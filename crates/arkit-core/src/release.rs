@@ -43,10 +43,11 @@ impl fmt::Display for SampleKey {
 
 /// The release's two splits.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord, Hash)]
+#[cfg_attr(feature = "clap", derive(clap::ValueEnum))]
 pub enum Split {
-    /// `train`
+    /// `train`: the frames a model trains on
     Train,
-    /// `test`
+    /// `test`: the frames it is evaluated on
     Test,
 }
 
