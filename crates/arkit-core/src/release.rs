@@ -45,9 +45,9 @@ impl fmt::Display for SampleKey {
 #[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord, Hash)]
 #[cfg_attr(feature = "clap", derive(clap::ValueEnum))]
 pub enum Split {
-    /// `train`: the frames a model trains on
+    /// The frames a model trains on (`train`).
     Train,
-    /// `test`: the frames it is evaluated on
+    /// The frames it is evaluated on (`test`).
     Test,
 }
 
