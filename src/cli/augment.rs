@@ -1,7 +1,6 @@
 //! `arkit-tool augment`.
 
 use arkit_core::Result;
-use arkit_data::augment::Axis;
 use arkit_data::augment::{AugmentOptions, AxisChoice, ProfilingRule};
 use clap::Args;
 use std::path::PathBuf;
@@ -35,7 +34,7 @@ pub struct AugmentArgs {
     output: PathBuf,
     /// Which axis: auto (the rule), or always yaw, pitch or roll.
     #[arg(long, value_enum, default_value = "auto")]
-    axis: AxisArg,
+    axis: AxisChoice,
     /// No angle goes past +/- this (degrees), in (0, 90].
     #[arg(long, allow_negative_numbers = true, default_value_t = 90.0, value_parser = super::degrees_up_to_90)]
     max_angle: f64,
@@ -79,24 +78,10 @@ pub struct AugmentArgs {
     json: bool,
 }
 
-/// `--axis` values.
-#[derive(Clone, Copy, Debug, clap::ValueEnum)]
-enum AxisArg {
-    Auto,
-    Yaw,
-    Pitch,
-    Roll,
-}
-
 pub fn run(a: AugmentArgs) -> Result<ExitCode> {
     let options = AugmentOptions {
         output: a.output.clone(),
-        axis: match a.axis {
-            AxisArg::Auto => AxisChoice::Auto,
-            AxisArg::Yaw => AxisChoice::Fixed(Axis::Yaw),
-            AxisArg::Pitch => AxisChoice::Fixed(Axis::Pitch),
-            AxisArg::Roll => AxisChoice::Fixed(Axis::Roll),
-        },
+        axis: a.axis,
         rule: ProfilingRule {
             min_change: a.min_change,
             max_change: a.max_change,

@@ -62,7 +62,7 @@ pub struct CropsArgs {
     /// `raw` (the bytes as they are: no decoding, about four times the disk, the
     /// fastest).
     #[arg(long, value_enum, default_value = "pred-zstd")]
-    codec: CodecArg,
+    codec: WindowCodec,
     /// The release's resource folder (real topology); the built-in face without it.
     /// Needed when the dataset was converted with it.
     #[arg(long)]
@@ -73,14 +73,6 @@ pub struct CropsArgs {
     /// Print the summary as JSON.
     #[arg(long)]
     json: bool,
-}
-
-/// `--codec` values.
-#[derive(Clone, Copy, Debug, clap::ValueEnum)]
-enum CodecArg {
-    PredZstd,
-    Png,
-    Raw,
 }
 
 pub fn run(a: CropsArgs) -> Result<ExitCode> {
@@ -101,11 +93,7 @@ pub fn run(a: CropsArgs) -> Result<ExitCode> {
         .unwrap_or_else(|| FaceLoader::default_crop_store(&a.dataset, rules, a.size));
     let bar = super::progress_bar(loader.len() as u64, "crops", "samples");
     let pool = super::thread_pool(a.jobs)?;
-    let codec = match a.codec {
-        CodecArg::PredZstd => WindowCodec::PredZstd,
-        CodecArg::Png => WindowCodec::Png,
-        CodecArg::Raw => WindowCodec::Raw,
-    };
+    let codec = a.codec;
     let summary = pool.install(|| {
         loader::write_crop_store_with(&loader, &output, codec, &|n| bar.inc(n as u64))
     })?;

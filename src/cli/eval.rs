@@ -46,7 +46,7 @@ pub struct EvalArgs {
     /// Euler differences: `official` (|a - b|, no wrap-around at +/-180) or `wrapped`
     /// (the shortest angle).
     #[arg(long, value_enum, default_value = "official")]
-    euler: Euler,
+    euler: EulerDifference,
     /// Whose yaw, pitch and roll the per-axis errors use: `official` (the release's and
     /// the paper's: SciPy 'yxz' of R_t[:3,:3]^T), `wcpa` (the same angles), `trg` (its
     /// frame flipped: the same errors, the yaw and roll signs reversed), `6drepnet` or
@@ -78,23 +78,13 @@ pub struct EvalArgs {
     exclude: Option<PathBuf>,
 }
 
-/// `--euler` values.
-#[derive(Clone, Copy, Debug, clap::ValueEnum)]
-enum Euler {
-    Official,
-    Wrapped,
-}
-
 pub fn run(mut a: EvalArgs) -> Result<ExitCode> {
     let (dir, _remote) = super::remote::dataset_folder(&a.dataset)?;
     a.dataset = dir;
     let predictions = read_predictions(&a.predictions)?;
     let options = EvalOptions {
         split: (a.split != "all").then(|| a.split.clone()),
-        euler: match a.euler {
-            Euler::Official => EulerDifference::Official,
-            Euler::Wrapped => EulerDifference::Wrapped,
-        },
+        euler: a.euler,
         angles: a.angles,
         targets: a.targets.clone(),
         keep_worst: if a.report.is_some() { 8 } else { 0 },

@@ -5,15 +5,9 @@ use arkit_core::{ReleaseLayout, Split};
 use arkit_data::ingest::{self, ImportOptions};
 
 use arkit_core::Result;
-use clap::{Args, ValueEnum};
+use clap::Args;
 use std::path::PathBuf;
 use std::process::ExitCode;
-
-#[derive(Clone, Copy, Debug, ValueEnum)]
-enum SplitArg {
-    Train,
-    Test,
-}
 
 /// Turn your own ARKit face captures into a release-layout dataset.
 ///
@@ -55,7 +49,7 @@ pub struct ImportArkitArgs {
     subject: Option<String>,
     /// Which list names the frames: test (to evaluate on them) or train.
     #[arg(long, value_enum, default_value = "test")]
-    split: SplitArg,
+    split: Split,
     /// Side of the written square images, 32..=16384 pixels (default: the side that
     /// keeps the capture's focal length in pixels, round(2 fx / 1.57443701)).
     #[arg(long, allow_negative_numbers = true, value_parser = clap::value_parser!(u32).range(32..=16384))]
@@ -95,10 +89,7 @@ pub struct ImportArkitArgs {
 }
 
 pub fn run(a: ImportArkitArgs) -> Result<ExitCode> {
-    let split = match a.split {
-        SplitArg::Train => Split::Train,
-        SplitArg::Test => Split::Test,
-    };
+    let split = a.split;
     let options = ImportOptions {
         input: a.input.clone(),
         output: a.output.clone(),

@@ -43,10 +43,11 @@ impl fmt::Display for SampleKey {
 
 /// The release's two splits.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord, Hash)]
+#[cfg_attr(feature = "clap", derive(clap::ValueEnum))]
 pub enum Split {
-    /// `train`
+    /// The frames a model trains on (`train`).
     Train,
-    /// `test`
+    /// The frames it is evaluated on (`test`).
     Test,
 }
 

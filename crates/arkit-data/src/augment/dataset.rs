@@ -78,6 +78,28 @@ pub enum AxisChoice {
     Fixed(Axis),
 }
 
+/// `--axis`'s values: `auto`, or one axis by its name.
+#[cfg(feature = "clap")]
+impl clap::ValueEnum for AxisChoice {
+    fn value_variants<'a>() -> &'a [Self] {
+        &[
+            AxisChoice::Auto,
+            AxisChoice::Fixed(Axis::Yaw),
+            AxisChoice::Fixed(Axis::Pitch),
+            AxisChoice::Fixed(Axis::Roll),
+        ]
+    }
+
+    fn to_possible_value(&self) -> Option<clap::builder::PossibleValue> {
+        Some(clap::builder::PossibleValue::new(match self {
+            AxisChoice::Auto => "auto",
+            AxisChoice::Fixed(Axis::Yaw) => "yaw",
+            AxisChoice::Fixed(Axis::Pitch) => "pitch",
+            AxisChoice::Fixed(Axis::Roll) => "roll",
+        }))
+    }
+}
+
 impl ProfilingRule {
     /// The axes the rule allows for a face at `e` (roll always).
     pub fn allowed(&self, e: &EulerAngles) -> (bool, bool) {

@@ -34,6 +34,7 @@ use serde::Serialize;
 /// How Euler angle differences are taken.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Default)]
 #[serde(rename_all = "lowercase")]
+#[cfg_attr(feature = "clap", derive(clap::ValueEnum))]
 pub enum EulerDifference {
     /// `|a - b|` as the official evaluation does (no wrap-around at +/-180).
     #[default]

@@ -98,6 +98,18 @@ window_codecs! {
     #[cfg(any(test, fuzzing))] #[doc = "A codec of the tests (and of the fuzz targets, built with `--cfg fuzzing`) only."] Xor = 255, "xor", xor::Xor;
 }
 
+/// `--codec`'s values: every codec of the table, by its name.
+#[cfg(feature = "clap")]
+impl clap::ValueEnum for WindowCodec {
+    fn value_variants<'a>() -> &'a [Self] {
+        WindowCodec::ALL
+    }
+
+    fn to_possible_value(&self) -> Option<clap::builder::PossibleValue> {
+        Some(clap::builder::PossibleValue::new(self.name()))
+    }
+}
+
 impl serde::Serialize for WindowCodec {
     fn serialize<S: serde::Serializer>(&self, s: S) -> std::result::Result<S::Ok, S::Error> {
         s.serialize_str(self.name())
