@@ -669,3 +669,32 @@ fn video_meshes_follow_the_rows_smoothed_pose() {
     assert!((k["cx"].as_f64().unwrap() - 240.0).abs() < 1e-9, "{k}");
     assert!((k["cy"].as_f64().unwrap() - 135.0).abs() < 1e-9, "{k}");
 }
+
+/// `--mesh` naming a file, not a folder: refused with the user's path, before any
+/// output is written.
+#[test]
+fn a_mesh_folder_that_is_a_file_is_refused_by_name() {
+    let dir = tempfile::tempdir().unwrap();
+    let clip = dir.path().join("clip.mp4");
+    let mut enc = Mp4Encoder::create(&clip, 30.0).unwrap();
+    enc.push(&image::RgbImage::new(32, 32)).unwrap();
+    enc.finish().unwrap();
+    let taken = dir.path().join("meshes");
+    std::fs::write(&taken, b"a file").unwrap();
+    let rows = dir.path().join("rows.jsonl");
+    let (ok, _, stderr) = run(&[
+        "predict",
+        "--model",
+        TINY,
+        "--video",
+        &s(&clip),
+        "--mesh",
+        &s(&taken),
+        "--output",
+        &s(&rows),
+    ]);
+    assert!(!ok);
+    assert!(stderr.contains(&s(&taken)), "{stderr}");
+    assert!(!rows.exists());
+    assert_eq!(std::fs::read(&taken).unwrap(), b"a file");
+}

@@ -196,15 +196,15 @@ pub fn run(r: VideoRequest<'_>) -> Result<ExitCode> {
     let topology = super::load_topology(r.resources)?;
     let model = arkit_perspnet::load(r.model, &topology)?;
     model.net.perspnet("predict --video")?;
+    if let Some(dir) = r.mesh {
+        std::fs::create_dir_all(dir).map_err(|e| Error::io(dir, e))?;
+    }
     let names = r.angles.order();
     let mut rows = r.output.map(|p| RowWriter::create(p, names)).transpose()?;
     let mut draw = r
         .draw
         .map(|p| DrawTarget::create(p, source.fps()))
         .transpose()?;
-    if let Some(dir) = r.mesh {
-        std::fs::create_dir_all(dir).map_err(|e| Error::io(dir, e))?;
-    }
     let mut meshes = 0u64;
     let detect = DetectOptions {
         min_face_px: r.min_face_px,
