@@ -698,3 +698,53 @@ fn a_mesh_folder_that_is_a_file_is_refused_by_name() {
     assert!(!rows.exists());
     assert_eq!(std::fs::read(&taken).unwrap(), b"a file");
 }
+
+/// `--mesh-every N` keeps the meshes of frames 0, N, 2N, ... (the rows stay all); it
+/// needs `--mesh`.
+#[test]
+fn mesh_every_keeps_every_nth_frame() {
+    let dir = tempfile::tempdir().unwrap();
+    let clip = dir.path().join("turn.mp4");
+    ok(&["synth", "--video", &s(&clip), "--size", "320x240"]);
+    let (rows, meshes) = (dir.path().join("rows.jsonl"), dir.path().join("m"));
+    let base = [
+        "predict",
+        "--model",
+        TINY,
+        "--video",
+        clip.to_str().unwrap(),
+        "--boxes",
+        &s(&dir.path().join("turn.boxes.jsonl")),
+        "--output",
+        rows.to_str().unwrap(),
+    ];
+    let (refused, _, stderr) = run(&[&base[..], &["--mesh-every", "7"]].concat());
+    assert!(!refused && stderr.contains("--mesh"), "{stderr}");
+    assert!(!rows.exists());
+    ok(&[
+        &base[..],
+        &["--mesh", meshes.to_str().unwrap(), "--mesh-every", "7"],
+    ]
+    .concat());
+    let mut want: Vec<String> = lines(&rows)
+        .iter()
+        .filter(|r| r["status"] == "ok" && r["frame"].as_u64().unwrap() % 7 == 0)
+        .map(|r| {
+            format!(
+                "frame-{:06}-track-{}.obj",
+                r["frame"].as_u64().unwrap(),
+                r["track"]
+            )
+        })
+        .collect();
+    want.sort();
+    let mut got: Vec<String> = std::fs::read_dir(&meshes)
+        .unwrap()
+        .map(|e| e.unwrap().file_name().into_string().unwrap())
+        .filter(|n| n.ends_with(".obj"))
+        .collect();
+    got.sort();
+    assert!(want.len() >= 10, "{want:?}");
+    assert_eq!(got, want);
+    assert_eq!(lines(&rows).len(), ClipPlan::turn(30.0).frames());
+}

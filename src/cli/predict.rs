@@ -131,7 +131,8 @@ pub struct PredictArgs {
     /// 68 landmarks (the topology's, kpt_ind.npy for the release) as .landmarks.json: 3D
     /// points and pixels. With --image: NAME-faceK.*. With --video:
     /// frame-NNNNNN-track-K.* for each frame and track posed, the mesh at the smoothed
-    /// pose (the raw one with --no-smooth); about 300 kB a face a frame.
+    /// pose (the raw one with --no-smooth); about 300 kB a face a frame (--mesh-every N
+    /// keeps every Nth frame).
     #[arg(long, value_name = "DIR")]
     mesh: Option<PathBuf>,
     /// With --model: exit with status 1 if any sample's image could not be read (the
@@ -238,6 +239,11 @@ struct VideoOptions {
     /// With --video: write the raw per-frame poses, unsmoothed.
     #[arg(long)]
     no_smooth: bool,
+    /// With --video --mesh: write the meshes of every Nth frame only (frames 0, N, 2N,
+    /// ...), 1..=10000.
+    #[arg(long, value_name = "N", allow_negative_numbers = true, default_value_t = 1, requires = "mesh",
+          value_parser = clap::builder::RangedU64ValueParser::<u32>::new().range(1..=10_000))]
+    mesh_every: u32,
 }
 
 /// Frames a second in (0, 1000] (`--fps`).
@@ -579,6 +585,7 @@ fn run_video(a: &PredictArgs, ransac: RansacParams) -> Result<ExitCode> {
         angles: a.angles,
         draw: a.draw.as_deref(),
         mesh: a.mesh.as_deref(),
+        mesh_every: a.video_options.mesh_every,
         output: a.output.as_deref(),
         seed: a.seed,
         ransac,

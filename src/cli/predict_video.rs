@@ -31,6 +31,7 @@ pub struct VideoRequest<'a> {
     pub angles: AngleConvention,
     pub draw: Option<&'a Path>,
     pub mesh: Option<&'a Path>,
+    pub mesh_every: u32,
     pub output: Option<&'a Path>,
     pub seed: u64,
     pub ransac: RansacParams,
@@ -289,7 +290,9 @@ pub fn run(r: VideoRequest<'_>) -> Result<ExitCode> {
                 }
                 arkit_data::picture::draw_box(img, *bbox, 2, track_colour(t.track));
             }
-            if let (Some(dir), Some((_, smoothed, _, _))) = (r.mesh, &pose) {
+            if let (Some(dir), Some((_, smoothed, _, _))) = (r.mesh, &pose)
+                && frame.index % r.mesh_every as u64 == 0
+            {
                 let at = MeshFrame {
                     video: r.video,
                     frame: frame.index,
