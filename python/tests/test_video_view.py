@@ -143,6 +143,16 @@ def test_a_missing_track_is_cleared_and_a_bad_line_skipped(crossing, tmp_path):
     cleared = sorted(f for f, c in e["/world/track-1"].items() if c.get("Clear:is_recursive"))
     assert cleared == [40], cleared
     assert sorted(f for f, c in e["/image/track-1"].items() if c.get("Clear:is_recursive")) == [40]
+    # Rows out of frame order: refused, naming the file, and no recording is left.
+    jumbled = tmp_path / "jumbled.jsonl"
+    jumbled.write_text("\n".join(json.dumps(r) for r in rows[10:] + rows[:10]) + "\n")
+    with pytest.raises(video_view.DataError, match="jumbled.jsonl"):
+        video_view.record(jumbled, path=tmp_path / "jumbled.rrd")
+    assert not list(tmp_path.glob("jumbled.rrd*"))
+    # A file Rerun cannot read as a video: refused before anything is written.
+    with pytest.raises(video_view.DataError, match="cut.jsonl: Rerun cannot read"):
+        video_view.record(cut, video=cut, path=tmp_path / "notvideo.rrd")
+    assert not list(tmp_path.glob("notvideo.rrd*"))
     # Track 0 is never cleared.
     assert "/world/track-0" not in e or not any(c.get("Clear:is_recursive") for c in e["/world/track-0"].values())
 

@@ -208,6 +208,14 @@ def record(
         elif not os.path.isfile(video_path):
             raise DataError(f"{video_path}: no such file or folder")
     camera = None if mesh_dir is None else _first_camera(mesh_dir)
+    asset: Any = None
+    timestamps: Optional[np.ndarray] = None
+    if video_path is not None and frames_in_folder is None:
+        try:
+            asset = rr.AssetVideo(path=video_path)
+            timestamps = np.asarray(asset.read_frame_timestamps_nanos(), dtype=np.int64)
+        except Exception as e:  # rerun's own errors for a file it cannot read
+            raise DataError(f"{video_path}: Rerun cannot read this video ({e})") from None
 
     tmp = None
     if recording is None:
@@ -227,88 +235,90 @@ def record(
         rec.log("world/camera", rr.Pinhole(image_from_camera=k, resolution=[camera["width"], camera["height"]],
                                            camera_xyz=rr.ViewCoordinates.RUB, image_plane_distance=0.3),
                 static=True)
-    timestamps: Optional[np.ndarray] = None
-    if video_path is not None and frames_in_folder is None:
-        try:
-            asset = rr.AssetVideo(path=video_path)
-            timestamps = np.asarray(asset.read_frame_timestamps_nanos(), dtype=np.int64)
-        except Exception as e:  # rerun's own errors for a file it cannot read
-            raise DataError(f"{video_path}: Rerun cannot read this video ({e})") from None
+    if asset is not None:
         rec.log(image, asset, static=True)
 
     skipped: List[str] = []
     tracks: Set[int] = set()
     shown: Set[int] = set()
     rows = frames = meshes = 0
-    for frame, group in _by_frame(read_rows(poses, skipped), poses):
-        frames += 1
-        rec.set_time("frame", sequence=frame)
-        time_s = group[0].get("time_s")
-        if isinstance(time_s, (int, float)):
-            rec.set_time("video_time", duration=float(time_s))
-        if frames_in_folder is not None:
-            if frame < len(frames_in_folder):
-                rec.log(image, rr.EncodedImage(path=frames_in_folder[frame]))
-            else:
-                skipped.append(f"{poses}: frame {frame}: the folder {video_path} has {len(frames_in_folder)} frames")
-        elif timestamps is not None:
-            if frame < len(timestamps):
-                rec.log(image, rr.VideoFrameReference(nanoseconds=int(timestamps[frame])))
-            elif isinstance(time_s, (int, float)):
-                rec.log(image, rr.VideoFrameReference(seconds=float(time_s)))
-        here: Set[int] = set()
-        for row in group:
-            track = int(row["track"])
-            rows += 1
-            tracks.add(track)
-            here.add(track)
-            colour = _COLOURS[track % len(_COLOURS)]
-            angles = row.get("angles") if row.get("status") == "ok" else None
-            label = f"track {track}"
-            if isinstance(angles, dict):
-                label += " " + " ".join(f"{k} {float(v):.1f}" for k, v in angles.items())
-            rec.log(f"{image}/track-{track}/box", rr.Boxes2D(array=np.asarray(row["box"], dtype=np.float64),
-                                                              array_format=rr.Box2DFormat.XYXY,
-                                                              colors=colour, labels=label))
-            if not isinstance(angles, dict) or "R_t" not in row:
-                # The PnP failed: no pose here.
-                rec.log(f"world/track-{track}", rr.Clear(recursive=True))
-                rec.log(f"{image}/track-{track}/landmarks", rr.Clear(recursive=False))
-                continue
-            r, t = _rotation_translation(row["R_t"])
-            rec.log(f"world/track-{track}/head", rr.Transform3D(translation=t, mat3x3=r),
-                    rr.TransformAxes3D(0.05))
-            for name, v in angles.items():
-                rec.log(f"angles/track-{track}/{name}", rr.Scalars(float(v)))
-            raw = row.get("raw_angles")
-            if isinstance(raw, dict):
-                for name, v in raw.items():
-                    rec.log(f"raw_angles/track-{track}/{name}", rr.Scalars(float(v)))
-            if isinstance(row.get("inliers"), int):
-                rec.log(f"inliers/track-{track}", rr.Scalars(float(row["inliers"])))
-            if mesh_dir is not None:
-                stem = os.path.join(mesh_dir, f"frame-{frame:06d}-track-{track}")
-                try:
-                    verts, tris = read_obj(stem + ".obj")
-                    with open(stem + ".landmarks.json", encoding="utf-8") as f:
-                        marks = json.load(f)
-                except (OSError, ValueError) as e:
-                    message = f"{stem}.obj: {e}; the mesh of frame {frame}, track {track} skipped"
-                    print(f"arkit_tool.video_view: {message}", file=sys.stderr)
-                    skipped.append(message)
+    try:
+        for frame, group in _by_frame(read_rows(poses, skipped), poses):
+            frames += 1
+            rec.set_time("frame", sequence=frame)
+            time_s = group[0].get("time_s")
+            if isinstance(time_s, (int, float)):
+                rec.set_time("video_time", duration=float(time_s))
+            if frames_in_folder is not None:
+                if frame < len(frames_in_folder):
+                    rec.log(image, rr.EncodedImage(path=frames_in_folder[frame]))
+                else:
+                    skipped.append(f"{poses}: frame {frame}: the folder {video_path} has {len(frames_in_folder)} frames")
+            elif timestamps is not None:
+                if frame < len(timestamps):
+                    rec.log(image, rr.VideoFrameReference(nanoseconds=int(timestamps[frame])))
+                elif isinstance(time_s, (int, float)):
+                    rec.log(image, rr.VideoFrameReference(seconds=float(time_s)))
+            here: Set[int] = set()
+            for row in group:
+                track = int(row["track"])
+                rows += 1
+                tracks.add(track)
+                here.add(track)
+                colour = _COLOURS[track % len(_COLOURS)]
+                angles = row.get("angles") if row.get("status") == "ok" else None
+                label = f"track {track}"
+                if isinstance(angles, dict):
+                    label += " " + " ".join(f"{k} {float(v):.1f}" for k, v in angles.items())
+                rec.log(f"{image}/track-{track}/box", rr.Boxes2D(array=np.asarray(row["box"], dtype=np.float64),
+                                                                  array_format=rr.Box2DFormat.XYXY,
+                                                                  colors=colour, labels=label))
+                if not isinstance(angles, dict) or "R_t" not in row:
+                    # The PnP failed: no pose here.
+                    rec.log(f"world/track-{track}", rr.Clear(recursive=True))
+                    rec.log(f"{image}/track-{track}/landmarks", rr.Clear(recursive=False))
                     continue
-                rec.log(f"world/track-{track}/mesh", rr.Mesh3D(vertex_positions=verts, triangle_indices=tris,
-                                                                albedo_factor=(*colour, 255)))
-                rec.log(f"world/track-{track}/landmarks",
-                        rr.Points3D(np.asarray(marks["points_m"], dtype=np.float64), colors=colour, radii=0.0015))
-                pixels = [p for p in marks["pixels"] if p is not None]
-                rec.log(f"{image}/track-{track}/landmarks",
-                        rr.Points2D(np.asarray(pixels, dtype=np.float64).reshape(-1, 2), colors=colour, radii=1.5))
-                meshes += 1
-        for gone in shown - here:
-            rec.log(f"world/track-{gone}", rr.Clear(recursive=True))
-            rec.log(f"{image}/track-{gone}", rr.Clear(recursive=True))
-        shown = here
+                r, t = _rotation_translation(row["R_t"])
+                rec.log(f"world/track-{track}/head", rr.Transform3D(translation=t, mat3x3=r),
+                        rr.TransformAxes3D(0.05))
+                for name, v in angles.items():
+                    rec.log(f"angles/track-{track}/{name}", rr.Scalars(float(v)))
+                raw = row.get("raw_angles")
+                if isinstance(raw, dict):
+                    for name, v in raw.items():
+                        rec.log(f"raw_angles/track-{track}/{name}", rr.Scalars(float(v)))
+                if isinstance(row.get("inliers"), int):
+                    rec.log(f"inliers/track-{track}", rr.Scalars(float(row["inliers"])))
+                if mesh_dir is not None:
+                    stem = os.path.join(mesh_dir, f"frame-{frame:06d}-track-{track}")
+                    try:
+                        verts, tris = read_obj(stem + ".obj")
+                        with open(stem + ".landmarks.json", encoding="utf-8") as f:
+                            marks = json.load(f)
+                    except (OSError, ValueError) as e:
+                        message = f"{stem}.obj: {e}; the mesh of frame {frame}, track {track} skipped"
+                        print(f"arkit_tool.video_view: {message}", file=sys.stderr)
+                        skipped.append(message)
+                        continue
+                    rec.log(f"world/track-{track}/mesh", rr.Mesh3D(vertex_positions=verts, triangle_indices=tris,
+                                                                    albedo_factor=(*colour, 255)))
+                    rec.log(f"world/track-{track}/landmarks",
+                            rr.Points3D(np.asarray(marks["points_m"], dtype=np.float64), colors=colour, radii=0.0015))
+                    pixels = [p for p in marks["pixels"] if p is not None]
+                    rec.log(f"{image}/track-{track}/landmarks",
+                            rr.Points2D(np.asarray(pixels, dtype=np.float64).reshape(-1, 2), colors=colour, radii=1.5))
+                    meshes += 1
+            for gone in shown - here:
+                rec.log(f"world/track-{gone}", rr.Clear(recursive=True))
+                rec.log(f"{image}/track-{gone}", rr.Clear(recursive=True))
+            shown = here
+    except BaseException:
+        # No half-written recording survives.
+        if tmp is not None:
+            rec.disconnect()
+            if os.path.exists(tmp):
+                os.remove(tmp)
+        raise
     out_path = None
     if tmp is not None:
         rec.flush()
