@@ -1,7 +1,8 @@
 //! `predict --video`: the synthetic clips of `synth --video` (known poses) through the
 //! shipped tiny model: one track over the whole turn clip, the smoothing's jitter and
 //! lag figures (docs/video.md), two crossing faces whose ids do not swap, a
-//! 10-minute H.264 stream read in bounded memory, and other codecs refused by name.
+//! 10-minute H.264 stream read in bounded memory, other codecs refused by name, and
+//! `--mesh`'s files (read by tobj) posed by the smoothed pose.
 
 use crate::support::tool_ok as ok;
 use arkit_core::conventions::Pose;
@@ -332,7 +333,7 @@ fn other_codecs_are_refused_by_name() {
 }
 
 /// The photo path's options are refused with --video, naming the option, never
-/// silently ignored (before `--mesh` was).
+/// silently ignored.
 #[test]
 fn photo_only_options_are_refused_with_a_video() {
     let dir = tempfile::tempdir().unwrap();
@@ -342,7 +343,6 @@ fn photo_only_options_are_refused_with_a_video() {
     enc.finish().unwrap();
     let out = s(&dir.path().join("out"));
     for extra in [
-        vec!["--mesh", out.as_str()],
         vec!["--dump-crops", out.as_str()],
         vec!["--vertices"],
         vec!["--box", "1 2 30 31"],
@@ -467,4 +467,284 @@ fn opencv_reads_our_mp4_and_its_mpeg4_clip_is_refused() {
     let (ok, _, stderr) = run(&["predict", "--model", TINY, "--video", &s(&other)]);
     assert!(!ok);
     assert!(stderr.contains("MPEG-4 Part 2 ('mp4v')"), "{stderr}");
+}
+
+/// A camera-space point of the release's frame from a row's `R_t` (`[x y z 1] @ R_t`)
+/// and back: `(R, t)` with `p = R x + t`.
+fn rigid_of(row: &Value) -> (nalgebra::Matrix3<f64>, nalgebra::Vector3<f64>) {
+    let m: Vec<Vec<f64>> = row["R_t"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|r| {
+            r.as_array()
+                .unwrap()
+                .iter()
+                .map(|x| x.as_f64().unwrap())
+                .collect()
+        })
+        .collect();
+    let r = nalgebra::Matrix3::from_fn(|i, j| m[j][i]);
+    (r, nalgebra::Vector3::new(m[3][0], m[3][1], m[3][2]))
+}
+
+/// The vertices of an OBJ as tobj (an independent reader) reads them, in the file's
+/// vertex order (`FaceTopology::from_obj`), after checking its triangles and UVs are the
+/// topology's.
+fn obj_vertices(
+    path: &Path,
+    topology: &arkit_data::mesh::FaceTopology,
+) -> Vec<nalgebra::Vector3<f64>> {
+    let back = arkit_data::mesh::FaceTopology::from_obj(path, topology.landmarks.clone()).unwrap();
+    assert_eq!(back.triangles, topology.triangles, "{}", path.display());
+    for (a, b) in back.uv.iter().zip(&topology.uv) {
+        assert!((a[0] - b[0]).abs() < 1e-6 && (a[1] - b[1]).abs() < 1e-6);
+    }
+    back.template
+        .unwrap()
+        .iter()
+        .map(|p| nalgebra::Vector3::new(p.x as f64, p.y as f64, p.z as f64))
+        .collect()
+}
+
+/// `--mesh DIR` on the crossing clip (two tracks): one `frame-NNNNNN-track-K` set of
+/// files per posed row, no temporaries; the smoothed run's meshes are the raw run's
+/// moved by the rigid map from each row's raw pose to its smoothed pose (the same
+/// network output, posed by the pose the rows report); the landmark file's points are
+/// the mesh's landmark vertices and its pixels their projection through the pinhole it
+/// states, their mean inside the row's box.
+#[test]
+fn video_meshes_follow_the_rows_smoothed_pose() {
+    let dir = tempfile::tempdir().unwrap();
+    let clip = dir.path().join("cross");
+    ok(&[
+        "synth",
+        "--video",
+        &s(&clip),
+        "--clip",
+        "cross",
+        "--size",
+        "480x270",
+    ]);
+    let boxes = dir.path().join("cross.boxes.jsonl");
+    let topology = &arkit_data::mesh::builtin().topology;
+    let mut runs = Vec::new();
+    for (name, extra) in [("smooth", None), ("raw", Some("--no-smooth"))] {
+        let out = dir.path().join(format!("{name}.jsonl"));
+        let meshes = dir.path().join(format!("meshes-{name}"));
+        let mut args = vec![
+            "predict",
+            "--model",
+            TINY,
+            "--video",
+            clip.to_str().unwrap(),
+            "--boxes",
+            boxes.to_str().unwrap(),
+            "--output",
+            out.to_str().unwrap(),
+            "--json",
+        ];
+        let m = s(&meshes);
+        args.extend(["--mesh", m.as_str()]);
+        args.extend(extra);
+        let summary: Value = serde_json::from_str(&ok(&args)).unwrap();
+        let rows = lines(&out);
+        let posed: Vec<&Value> = rows.iter().filter(|r| r["status"] == "ok").collect();
+        assert!(posed.len() >= 150, "{} posed rows", posed.len());
+        assert_eq!(summary["meshes"]["faces"], posed.len(), "{summary}");
+        let mut names: Vec<String> = std::fs::read_dir(&meshes)
+            .unwrap()
+            .map(|e| e.unwrap().file_name().into_string().unwrap())
+            .collect();
+        names.sort();
+        let mut want: Vec<String> = posed
+            .iter()
+            .flat_map(|r| {
+                let stem = format!(
+                    "frame-{:06}-track-{}",
+                    r["frame"].as_u64().unwrap(),
+                    r["track"]
+                );
+                ["landmarks.json", "obj", "ply"].map(|x| format!("{stem}.{x}"))
+            })
+            .collect();
+        want.sort();
+        let first_difference = names.iter().zip(&want).find(|(a, b)| a != b);
+        assert!(
+            names.len() == want.len() && first_difference.is_none(),
+            "{} files for {} expected (exactly the posed rows', no temporaries); first difference {first_difference:?}",
+            names.len(),
+            want.len()
+        );
+        runs.push((rows, meshes));
+    }
+    let (smooth_rows, smooth_dir) = &runs[0];
+    let (raw_rows, raw_dir) = &runs[1];
+    let mut moved = 0.0f64;
+    let mut checked = 0;
+    for (sr, rr) in smooth_rows.iter().zip(raw_rows) {
+        assert_eq!((&sr["frame"], &sr["track"]), (&rr["frame"], &rr["track"]));
+        if sr["status"] != "ok" {
+            continue;
+        }
+        let stem = format!(
+            "frame-{:06}-track-{}",
+            sr["frame"].as_u64().unwrap(),
+            sr["track"]
+        );
+        let vs = obj_vertices(&smooth_dir.join(format!("{stem}.obj")), topology);
+        let vr = obj_vertices(&raw_dir.join(format!("{stem}.obj")), topology);
+        assert_eq!(vs.len(), topology.vertex_count);
+        // Without smoothing, the rows' pose is the raw one.
+        let (r_raw, t_raw) = rigid_of(rr);
+        let (r_s, t_s) = rigid_of(sr);
+        for (a, b) in vs.iter().zip(&vr) {
+            let canonical = r_raw.transpose() * (b - t_raw);
+            let expected = r_s * canonical + t_s;
+            // tobj reads f32: a few micrometres.
+            assert!(
+                (a - expected).norm() < 2e-5,
+                "{stem}: {a:?} vs {expected:?}"
+            );
+            moved = moved.max((a - b).norm());
+        }
+        let marks: Value = serde_json::from_slice(
+            &std::fs::read(smooth_dir.join(format!("{stem}.landmarks.json"))).unwrap(),
+        )
+        .unwrap();
+        assert_eq!(marks["pose"], "smoothed");
+        assert_eq!(marks["frame_index"], sr["frame"]);
+        assert_eq!(marks["track"], sr["track"]);
+        let k = &marks["camera"];
+        let f = |n: &str| k[n].as_f64().unwrap();
+        let b: Vec<f64> = sr["box"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|x| x.as_f64().unwrap())
+            .collect();
+        let mut mean = (0.0, 0.0);
+        for (j, &id) in topology.landmarks.iter().enumerate() {
+            let p: Vec<f64> = marks["points_m"][j]
+                .as_array()
+                .unwrap()
+                .iter()
+                .map(|x| x.as_f64().unwrap())
+                .collect();
+            assert!((nalgebra::Vector3::new(p[0], p[1], p[2]) - vs[id as usize]).norm() < 2e-5);
+            // The release's camera (y up, looking down -z) to OpenCV's: (x, -y, -z).
+            let (u, v) = (
+                f("fx") * p[0] / -p[2] + f("cx"),
+                f("fy") * -p[1] / -p[2] + f("cy"),
+            );
+            let px = marks["pixels"][j].as_array().unwrap();
+            let (x, y) = (px[0].as_f64().unwrap(), px[1].as_f64().unwrap());
+            assert!(
+                (x - u).abs() < 1e-6 && (y - v).abs() < 1e-6,
+                "{stem}: ({x}, {y}) vs ({u}, {v})"
+            );
+            mean = (mean.0 + x / 68.0, mean.1 + y / 68.0);
+        }
+        // The landmarks lie on the face: their mean in the row's box (a wrong padding or
+        // scale of the pinhole, 105 rows or 0.6x here, would put it out).
+        assert!(
+            (b[0]..=b[2]).contains(&mean.0) && (b[1]..=b[3]).contains(&mean.1),
+            "{stem}: landmarks' mean {mean:?} outside the box {b:?}"
+        );
+        checked += 1;
+    }
+    assert!(checked >= 150);
+    // Smoothing moved the meshes (else the check above could not fail).
+    assert!(moved > 1e-4, "largest move {moved} m");
+    // The demo's camera for 480 x 270: padded to 480 (105 rows on top), f = P00 x 240.
+    let marks: Value = serde_json::from_slice(
+        &std::fs::read(smooth_dir.join("frame-000000-track-0.landmarks.json")).unwrap(),
+    )
+    .unwrap();
+    let k = &marks["camera"];
+    assert!(
+        (k["fx"].as_f64().unwrap() - 1.57443701 * 240.0).abs() < 1e-6,
+        "{k}"
+    );
+    assert!((k["cx"].as_f64().unwrap() - 240.0).abs() < 1e-9, "{k}");
+    assert!((k["cy"].as_f64().unwrap() - 135.0).abs() < 1e-9, "{k}");
+}
+
+/// `--mesh` naming a file, not a folder: refused with the user's path, before any
+/// output is written.
+#[test]
+fn a_mesh_folder_that_is_a_file_is_refused_by_name() {
+    let dir = tempfile::tempdir().unwrap();
+    let clip = dir.path().join("clip.mp4");
+    let mut enc = Mp4Encoder::create(&clip, 30.0).unwrap();
+    enc.push(&image::RgbImage::new(32, 32)).unwrap();
+    enc.finish().unwrap();
+    let taken = dir.path().join("meshes");
+    std::fs::write(&taken, b"a file").unwrap();
+    let rows = dir.path().join("rows.jsonl");
+    let (ok, _, stderr) = run(&[
+        "predict",
+        "--model",
+        TINY,
+        "--video",
+        &s(&clip),
+        "--mesh",
+        &s(&taken),
+        "--output",
+        &s(&rows),
+    ]);
+    assert!(!ok);
+    assert!(stderr.contains(&s(&taken)), "{stderr}");
+    assert!(!rows.exists());
+    assert_eq!(std::fs::read(&taken).unwrap(), b"a file");
+}
+
+/// `--mesh-every N` keeps the meshes of frames 0, N, 2N, ... (the rows stay all); it
+/// needs `--mesh`.
+#[test]
+fn mesh_every_keeps_every_nth_frame() {
+    let dir = tempfile::tempdir().unwrap();
+    let clip = dir.path().join("turn.mp4");
+    ok(&["synth", "--video", &s(&clip), "--size", "320x240"]);
+    let (rows, meshes) = (dir.path().join("rows.jsonl"), dir.path().join("m"));
+    let base = [
+        "predict",
+        "--model",
+        TINY,
+        "--video",
+        clip.to_str().unwrap(),
+        "--boxes",
+        &s(&dir.path().join("turn.boxes.jsonl")),
+        "--output",
+        rows.to_str().unwrap(),
+    ];
+    let (refused, _, stderr) = run(&[&base[..], &["--mesh-every", "7"]].concat());
+    assert!(!refused && stderr.contains("--mesh"), "{stderr}");
+    assert!(!rows.exists());
+    ok(&[
+        &base[..],
+        &["--mesh", meshes.to_str().unwrap(), "--mesh-every", "7"],
+    ]
+    .concat());
+    let mut want: Vec<String> = lines(&rows)
+        .iter()
+        .filter(|r| r["status"] == "ok" && r["frame"].as_u64().unwrap() % 7 == 0)
+        .map(|r| {
+            format!(
+                "frame-{:06}-track-{}.obj",
+                r["frame"].as_u64().unwrap(),
+                r["track"]
+            )
+        })
+        .collect();
+    want.sort();
+    let mut got: Vec<String> = std::fs::read_dir(&meshes)
+        .unwrap()
+        .map(|e| e.unwrap().file_name().into_string().unwrap())
+        .filter(|n| n.ends_with(".obj"))
+        .collect();
+    got.sort();
+    assert!(want.len() >= 10, "{want:?}");
+    assert_eq!(got, want);
+    assert_eq!(lines(&rows).len(), ClipPlan::turn(30.0).frames());
 }

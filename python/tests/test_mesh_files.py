@@ -51,3 +51,45 @@ def test_obj_and_ply_read_back_by_trimesh(tmp_path, dataset):
         np.testing.assert_array_equal(ids, np.asarray(topo["landmarks"]))
         np.testing.assert_allclose(np.asarray(marks["points_m"]), verts[ids], atol=1e-12)
         assert len(marks["pixels"]) == 68
+
+
+def test_video_meshes_read_back_by_trimesh(tmp_path, dataset):
+    """`predict --video --mesh DIR`: one frame-NNNNNN-track-K set a posed row, each read
+    by trimesh with the topology's triangles and UVs, the .obj and .ply the same
+    vertices, the landmarks file's points among them; the vertices lie at the row's
+    distance from the camera."""
+    if not BIN.exists():
+        pytest.skip(f"SKIPPED: no arkit-tool binary at {BIN}")
+    clip = tmp_path / "turn.mp4"
+    subprocess.run([str(BIN), "synth", "--video", str(clip), "--size", "320x240"], check=True,
+                   capture_output=True)
+    meshes, rows_path = tmp_path / "meshes", tmp_path / "rows.jsonl"
+    subprocess.run([str(BIN), "predict", "--model", TINY, "--video", str(clip),
+                    "--boxes", str(tmp_path / "turn.boxes.jsonl"), "--output", str(rows_path),
+                    "--mesh", str(meshes)], check=True, capture_output=True)
+    rows = [json.loads(line) for line in open(rows_path)]
+    posed = [r for r in rows if r["status"] == "ok"]
+    assert len(posed) > 50
+    assert len(list(meshes.iterdir())) == 3 * len(posed)
+    topo = _native.topology(str(dataset))
+    triangles = np.asarray(topo["triangles"], dtype=np.int64)
+    uv_up = np.asarray(topo["uv"], dtype=np.float64).copy()
+    uv_up[:, 1] = 1.0 - uv_up[:, 1]
+    for r in (posed[0], posed[len(posed) // 2], posed[-1]):
+        stem = meshes / f"frame-{r['frame']:06d}-track-{r['track']}"
+        obj = trimesh.load(f"{stem}.obj", process=False, maintain_order=True)
+        ply = trimesh.load(f"{stem}.ply", process=False)
+        for mesh in (obj, ply):
+            assert mesh.vertices.shape == (1220, 3)
+            np.testing.assert_array_equal(mesh.faces, triangles)
+            np.testing.assert_allclose(mesh.visual.uv, uv_up, rtol=0, atol=1e-6)
+        np.testing.assert_allclose(obj.vertices, ply.vertices, rtol=0, atol=1e-12)
+        marks = json.load(open(f"{stem}.landmarks.json"))
+        assert (marks["frame_index"], marks["track"], marks["pose"]) == (r["frame"], r["track"], "smoothed")
+        np.testing.assert_allclose(np.asarray(marks["points_m"]), obj.vertices[np.asarray(topo["landmarks"])],
+                                   atol=1e-12)
+        # The face sits where the row's pose puts it: its centre within 10 cm of the
+        # row's translation (the model's head origin), in front of the camera (-z).
+        centre = obj.vertices.mean(axis=0)
+        assert np.linalg.norm(centre - np.asarray(r["translation_m"])) < 0.1
+        assert centre[2] < 0

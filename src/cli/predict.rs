@@ -50,7 +50,9 @@ use std::process::ExitCode;
 /// file), faces matched across frames into tracks, each track's pose smoothed by a
 /// One-Euro filter on SO(3) (--no-smooth for the raw poses). Writes one row per frame
 /// and track to --output (.jsonl, .csv or .parquet; JSON lines on the standard output
-/// without it); --draw writes an .mp4 or a folder of frames. docs/video.md.
+/// without it); --draw writes an .mp4 or a folder of frames; --mesh DIR each frame's
+/// meshes and landmarks. A Rerun recording of the rows: python -m arkit_tool.video_view.
+/// docs/video.md.
 ///
 /// Example: arkit-tool predict --oracle --dataset data/pq --noise-px 1 --output oracle.parquet
 ///          arkit-tool predict --model model/ --dataset data/pq --output pred.parquet
@@ -124,10 +126,13 @@ pub struct PredictArgs {
     /// normalisation) into this folder, as NAME-faceK.png.
     #[arg(long, value_name = "DIR")]
     dump_crops: Option<PathBuf>,
-    /// With --image: write each posed face's predicted mesh in camera space (the
-    /// release's frame, metres) into this folder as NAME-faceK.obj and .ply (the model's
-    /// triangles and UVs), and its 68 landmarks (the topology's, kpt_ind.npy for the
-    /// release) as NAME-faceK.landmarks.json: 3D points and the photo's pixels.
+    /// Write each posed face's predicted mesh in camera space (the release's frame,
+    /// metres) into this folder as .obj and .ply (the model's triangles and UVs), and its
+    /// 68 landmarks (the topology's, kpt_ind.npy for the release) as .landmarks.json: 3D
+    /// points and pixels. With --image: NAME-faceK.*. With --video:
+    /// frame-NNNNNN-track-K.* for each frame and track posed, the mesh at the smoothed
+    /// pose (the raw one with --no-smooth); about 300 kB a face a frame (--mesh-every N
+    /// keeps every Nth frame).
     #[arg(long, value_name = "DIR")]
     mesh: Option<PathBuf>,
     /// With --model: exit with status 1 if any sample's image could not be read (the
@@ -234,6 +239,11 @@ struct VideoOptions {
     /// With --video: write the raw per-frame poses, unsmoothed.
     #[arg(long)]
     no_smooth: bool,
+    /// With --video --mesh: write the meshes of every Nth frame only (frames 0, N, 2N,
+    /// ...), 1..=10000.
+    #[arg(long, value_name = "N", allow_negative_numbers = true, default_value_t = 1, requires = "mesh",
+          value_parser = clap::builder::RangedU64ValueParser::<u32>::new().range(1..=10_000))]
+    mesh_every: u32,
 }
 
 /// Frames a second in (0, 1000] (`--fps`).
@@ -546,7 +556,6 @@ fn run_video(a: &PredictArgs, ransac: RansacParams) -> Result<ExitCode> {
         (!a.boxes.is_empty(), "--box"),
         (a.vertices, "--vertices"),
         (a.dump_crops.is_some(), "--dump-crops"),
-        (a.mesh.is_some(), "--mesh"),
     ];
     refuse_given(
         &[dataset_only_flags(a).as_slice(), &photo_only].concat(),
@@ -575,6 +584,8 @@ fn run_video(a: &PredictArgs, ransac: RansacParams) -> Result<ExitCode> {
         fov_deg: a.fov_deg,
         angles: a.angles,
         draw: a.draw.as_deref(),
+        mesh: a.mesh.as_deref(),
+        mesh_every: a.video_options.mesh_every,
         output: a.output.as_deref(),
         seed: a.seed,
         ransac,

@@ -30,6 +30,8 @@ pub struct VideoRequest<'a> {
     pub fov_deg: Option<f64>,
     pub angles: AngleConvention,
     pub draw: Option<&'a Path>,
+    pub mesh: Option<&'a Path>,
+    pub mesh_every: u32,
     pub output: Option<&'a Path>,
     pub seed: u64,
     pub ransac: RansacParams,
@@ -195,12 +197,16 @@ pub fn run(r: VideoRequest<'_>) -> Result<ExitCode> {
     let topology = super::load_topology(r.resources)?;
     let model = arkit_perspnet::load(r.model, &topology)?;
     model.net.perspnet("predict --video")?;
+    if let Some(dir) = r.mesh {
+        std::fs::create_dir_all(dir).map_err(|e| Error::io(dir, e))?;
+    }
     let names = r.angles.order();
     let mut rows = r.output.map(|p| RowWriter::create(p, names)).transpose()?;
     let mut draw = r
         .draw
         .map(|p| DrawTarget::create(p, source.fps()))
         .transpose()?;
+    let mut meshes = 0u64;
     let detect = DetectOptions {
         min_face_px: r.min_face_px,
         score_threshold: r.detector_score,
@@ -284,6 +290,27 @@ pub fn run(r: VideoRequest<'_>) -> Result<ExitCode> {
                 }
                 arkit_data::picture::draw_box(img, *bbox, 2, track_colour(t.track));
             }
+            if let (Some(dir), Some((_, smoothed, _, _))) = (r.mesh, &pose)
+                && frame.index % r.mesh_every as u64 == 0
+            {
+                let at = MeshFrame {
+                    video: r.video,
+                    frame: frame.index,
+                    time_s: frame.time_s,
+                    track: t.track,
+                    smoothed: r.smooth.is_some(),
+                };
+                write_mesh(
+                    dir,
+                    &at,
+                    &topology,
+                    &face.prediction.verts,
+                    smoothed,
+                    &camera,
+                    &square,
+                )?;
+                meshes += 1;
+            }
             let row = FrameRow {
                 frame: frame.index,
                 time_s: frame.time_s,
@@ -325,6 +352,7 @@ pub fn run(r: VideoRequest<'_>) -> Result<ExitCode> {
         "peak_rss_mb": peak_rss_mb(),
         "detect_every": r.detect_every,
         "smoothing": r.smooth,
+        "meshes": r.mesh.map(|d| json!({"folder": d.display().to_string(), "faces": meshes})),
         "tracks": spans.iter().map(|(id, s)| json!({
             "track": id, "first_frame": s.first, "last_frame": s.last,
             "frames": s.frames, "posed": s.posed,
@@ -391,6 +419,93 @@ fn row_pose(
         inliers,
         points,
     }
+}
+
+/// Where a `--mesh` file's face is in the video.
+struct MeshFrame<'a> {
+    video: &'a Path,
+    frame: u64,
+    time_s: f64,
+    track: u64,
+    smoothed: bool,
+}
+
+/// The file stem of a face's `--mesh` files: `frame-NNNNNN-track-K` (the frame index
+/// as `--draw`'s frames number it).
+fn mesh_stem(frame: u64, track: u64) -> String {
+    format!("frame-{frame:06}-track-{track}")
+}
+
+/// The pinhole, in the frame's own pixels, equivalent to `camera` on a frame whose
+/// demo square is `square`: `[fx, fy, cx, cy]` (OpenCV's frame: x right, y down, z
+/// forward). The demo's camera lives in the 800-px square; the square's pixel `u` is
+/// the frame's `u / scale - pad`, a map linear in `u`, so the pinhole scales with it.
+fn frame_pinhole(camera: &PhotoCamera, square: &DemoSquare) -> [f64; 4] {
+    let k = camera.intrinsics(square);
+    match camera {
+        PhotoCamera::Demo => {
+            let s = square.scale();
+            [
+                k.fx / s,
+                k.fy / s,
+                k.cx / s - square.pad_left as f64,
+                k.cy / s - square.pad_top as f64,
+            ]
+        }
+        PhotoCamera::FocalPx(_) => [k.fx, k.fy, k.cx, k.cy],
+    }
+}
+
+/// Writes one face's mesh at `pose` (its predicted canonical vertices `verts` posed in
+/// camera space) as `DIR/frame-NNNNNN-track-K.obj`, `.ply` and `.landmarks.json`
+/// (camera-space points, the frame's pixels, the frame's pinhole), each atomically.
+fn write_mesh(
+    dir: &Path,
+    at: &MeshFrame<'_>,
+    topology: &arkit_data::mesh::FaceTopology,
+    verts: &[f32],
+    pose: &Pose,
+    camera: &PhotoCamera,
+    square: &DemoSquare,
+) -> Result<()> {
+    let canonical: Vec<nalgebra::Point3<f64>> = verts
+        .chunks_exact(3)
+        .map(|p| nalgebra::Point3::new(p[0] as f64, p[1] as f64, p[2] as f64))
+        .collect();
+    let mesh = arkit_data::mesh::FaceMesh::new(
+        topology,
+        canonical.iter().map(|p| pose.to_camera(p)).collect(),
+    )?;
+    let (r_cv, t_cv) = pose.to_opencv();
+    let pixels: Vec<Option<(f64, f64)>> = topology
+        .landmarks
+        .iter()
+        .map(|&i| camera.project_to_photo(square, &(r_cv * canonical[i as usize] + t_cv)))
+        .collect();
+    let stem = mesh_stem(at.frame, at.track);
+    mesh.write_obj(&dir.join(format!("{stem}.obj")))?;
+    mesh.write_ply(&dir.join(format!("{stem}.ply")))?;
+    let [fx, fy, cx, cy] = frame_pinhole(camera, square);
+    let mut about = serde_json::Map::new();
+    about.insert("video".into(), json!(at.video.display().to_string()));
+    about.insert("frame_index".into(), json!(at.frame));
+    about.insert("time_s".into(), json!(at.time_s));
+    about.insert("track".into(), json!(at.track));
+    about.insert(
+        "pose".into(),
+        json!(if at.smoothed { "smoothed" } else { "raw" }),
+    );
+    about.insert(
+        "pixels_in".into(),
+        json!("the frame's pixels (x right, y down), as the rows' boxes"),
+    );
+    about.insert(
+        "camera".into(),
+        json!({"fx": fx, "fy": fy, "cx": cx, "cy": cy,
+               "width": square.width, "height": square.height,
+               "axes": "OpenCV's: x right, y down, z forward (the points' (x, -y, -z))"}),
+    );
+    mesh.write_landmarks(&dir.join(format!("{stem}.landmarks.json")), &pixels, about)
 }
 
 fn draw_mesh(
