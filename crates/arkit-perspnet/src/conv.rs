@@ -30,7 +30,7 @@
 
 use rayon::prelude::*;
 
-use super::blas::{Mat, gemm, gemm_raw_maybe_par};
+use crate::blas::{Mat, gemm, gemm_raw_maybe_par};
 
 /// Target size of one block of the patch matrix, in floats (1 MiB).
 pub(crate) const BLOCK_FLOATS: usize = 1 << 18;

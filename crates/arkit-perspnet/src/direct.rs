@@ -40,9 +40,9 @@ use candle_core::{Module, Result, Tensor};
 use candle_nn::{Linear, VarBuilder};
 use nalgebra::{Matrix3, Vector3};
 
-use super::config::PerspNetConfig;
-use super::layers::{linear, relu};
-use super::model::ResNetTrunk;
+use crate::config::PerspNetConfig;
+use crate::layers::{linear, relu};
+use crate::model::ResNetTrunk;
 use arkit_core::conventions::Pose;
 use arkit_data::crop::CropTransform;
 use arkit_data::pose::Intrinsics;

@@ -5,11 +5,12 @@
 //! The network's input is the crop of the official evaluation box, normalised
 //! ([`crate::network_input`]); no colour jitter.
 
-use crate::candle_err;
+use crate::candle_error::candle_err;
+use crate::config::PerspNetConfig;
+use crate::direct::DirectNet;
 use crate::network::Network;
 use crate::training::checkpoint::TrainedModel;
 use crate::training::data::network_input;
-use crate::{DirectNet, PerspNetConfig};
 use arkit_core::conventions::Pose;
 use arkit_core::{Error, Result};
 use arkit_data::crop::CropTransform;

@@ -30,6 +30,7 @@
 
 mod adam;
 mod blas;
+mod candle_error;
 mod config;
 mod conv;
 mod direct;
@@ -39,6 +40,7 @@ mod inference;
 pub mod layers;
 mod loss;
 mod model;
+mod model_conversion;
 mod network;
 mod onnx;
 mod ops;
@@ -65,6 +67,7 @@ pub use model::{
     DenseOutput, EncoderFeatures, PerspNet, PerspNetOutput, UV_SCALE, named_trainable_vars,
     parameter_count, synthetic_vertex_uv, trainable_vars,
 };
+pub use model_conversion::{export_weights, import_weights, write_half_model};
 pub use network::{Network, vertex_uv};
 pub use onnx::{
     ONNX_FILES, ONNX_OPSET, OnnxExport, OnnxGraphInfo, OnnxManifest, OnnxValue, POINT_SELECTION,
@@ -84,9 +87,4 @@ pub use training::run::{
 };
 pub use weights::safetensors_file::SafetensorsFile;
 pub use weights::state_dict::{export_state_dict, state_dict_entries};
-pub use weights::{export_weights, import_weights, load_weights, open_weights, write_half_model};
-
-/// A candle error as ours, naming what failed.
-fn candle_err(what: &str, e: candle_core::Error) -> arkit_core::Error {
-    arkit_core::Error::invalid(what, e.to_string())
-}
+pub use weights::{load_weights, open_weights};

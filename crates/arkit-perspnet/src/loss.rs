@@ -39,8 +39,9 @@
 use candle_core::{D, DType, Result, Tensor};
 use serde::{Deserialize, Serialize};
 
-use super::config::LossVariant;
-use super::model::{PerspNetOutput, UV_SCALE};
+use crate::config::{LossVariant, PerspNetConfig};
+use crate::layers;
+use crate::model::{PerspNetOutput, UV_SCALE};
 
 /// Factor between canonical units and the ground-truth coordinate map in the
 /// official loss (`coords = bmm(softmax(A), X / 9 * 4.5)`).
@@ -214,7 +215,7 @@ impl PerspNetLoss {
     }
 
     /// The loss a network of `cfg` trains with: its variant, with or without `L_M`.
-    pub(crate) fn for_config(cfg: &super::PerspNetConfig) -> Self {
+    pub(crate) fn for_config(cfg: &PerspNetConfig) -> Self {
         Self {
             assignment: cfg.assignment_loss,
             ..Self::new(cfg.loss)
@@ -300,10 +301,10 @@ fn loss_terms_with_corr(
     corr: Tensor,
 ) -> Result<LossTerms> {
     let (b, m, _v) = assign_logits.dims3()?;
-    let log_p = super::layers::log_softmax_last(assign_logits)?;
+    let log_p = layers::log_softmax_last(assign_logits)?;
 
     let kl = kl_loss(&log_p, t.corr)?.affine(w.kl / (b * m) as f64, 0.0)?;
-    let entropy = super::layers::row_entropy(&log_p)?
+    let entropy = layers::row_entropy(&log_p)?
         .mean_all()?
         .affine(w.entropy, 0.0)?;
     let model = t.model.to_dtype(vertices.dtype())?.affine(UV_SCALE, 0.0)?;
@@ -340,7 +341,7 @@ pub fn corr_loss_parts(
     nocs: &Tensor,
     threshold: f64,
 ) -> Result<Tensor> {
-    let coords = super::layers::softmax_last(assign_logits)?
+    let coords = layers::softmax_last(assign_logits)?
         .matmul(vertices)?
         .affine(NOCS_SCALE / UV_SCALE, 0.0)?;
     smooth_l1_sum_mean(&coords, nocs, threshold)
@@ -464,7 +465,7 @@ mod tests {
         );
         // Without L_M (the "w/o L_M" ablation): the KL and entropy are 0 and the total
         // is the other three terms.
-        let mut cfg = crate::PerspNetConfig::tiny();
+        let mut cfg = PerspNetConfig::tiny();
         cfg.loss = LossVariant::Paper;
         cfg.assignment_loss = false;
         let off = PerspNetLoss::for_config(&cfg);

@@ -8,8 +8,8 @@
 use candle_core::{DType, Device, Module, ModuleT, Result, Tensor, Var};
 use candle_nn::{VarBuilder, VarMap};
 
-use super::config::PerspNetConfig;
-use super::layers::{
+use crate::config::PerspNetConfig;
+use crate::layers::{
     Act, BatchNorm2d, Conv2d, ConvBn, PointLinear, PointSampler, add_relu, add_rows_relu,
     dropout2d, gather_pixels, max_pool_3x3_s2_p1, mean_points, point_linear,
     positional_encoding_points, relu, softmax_last, upsample2x_bilinear,
@@ -389,7 +389,7 @@ impl PerspNet {
 
     /// Full forward pass: [`PerspNet::forward_dense`], then [`PerspNet::forward_head`].
     ///
-    /// * `img`: normalised `B x 3 x H x W` crop (see [`super::layers::imagenet_normalize`]).
+    /// * `img`: normalised `B x 3 x H x W` crop (see [`crate::layers::imagenet_normalize`]).
     /// * `choose`: `B x M` (u32 or i64) flat pixel indices `y * W + x` of the sampled pixels.
     /// * `train`: batch-norm batch statistics and channel dropout when true.
     pub fn forward(&self, img: &Tensor, choose: &Tensor, train: bool) -> Result<PerspNetOutput> {

@@ -1,8 +1,10 @@
 //! The network of a config, PerspNet or the direct baseline, and the vertex UV table
 //! PerspNet reads its UV map at.
 
-use crate::candle_err;
-use crate::{Architecture, DirectNet, PerspNet, PerspNetConfig};
+use crate::candle_error::candle_err;
+use crate::config::{Architecture, PerspNetConfig};
+use crate::direct::DirectNet;
+use crate::model::PerspNet;
 use arkit_core::{Error, Result};
 use arkit_data::mesh::FaceTopology;
 use candle_core::{Device, Tensor};

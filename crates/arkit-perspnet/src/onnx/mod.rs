@@ -250,7 +250,7 @@ impl Weights {
                 .flatten_all()
                 .and_then(|t| t.to_dtype(candle_core::DType::F32))
                 .and_then(|t| t.to_vec1::<f32>())
-                .map_err(|e| crate::candle_err(k, e))?;
+                .map_err(|e| crate::candle_error::candle_err(k, e))?;
             map.insert(k.clone(), (t.dims().to_vec(), values));
         }
         Ok(Self(map))
@@ -721,7 +721,8 @@ fn points_graph(
 
     // The vertex UVs' bilinear taps (exactly `PointSampler`'s).
     let uv = crate::network::vertex_uv(topology, &candle_core::Device::Cpu)?;
-    let sampler = PointSampler::new(&uv, s, s).map_err(|e| crate::candle_err("vertex UVs", e))?;
+    let sampler = PointSampler::new(&uv, s, s)
+        .map_err(|e| crate::candle_error::candle_err("vertex UVs", e))?;
     let (tap_idx, tap_w) = sampler.taps();
     let tap_idx: Vec<i64> = tap_idx.iter().map(|&i| i as i64).collect();
     let tap_idx = g.constant_i64("vertex_taps", &[4 * v], &tap_idx);
@@ -796,7 +797,7 @@ mod tests {
     #[test]
     fn the_shipped_model_exports_and_the_manifest_describes_it() {
         let topology = arkit_data::mesh::builtin().topology.clone();
-        let model = crate::shipped_model(&topology).unwrap();
+        let model = crate::training::checkpoint::shipped_model(&topology).unwrap();
         let dir = tempfile::tempdir().unwrap();
         let out = dir.path().join("onnx");
         let e = export_onnx(&model, &topology, &out).unwrap();

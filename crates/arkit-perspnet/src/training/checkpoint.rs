@@ -7,12 +7,13 @@
 
 use super::data::Augmentation;
 use crate::adam::Adam;
-use crate::candle_err;
+use crate::candle_error::candle_err;
+use crate::config::{Architecture, PerspNetConfig};
+use crate::loss::LossWeights;
 use crate::network::{Network, vertex_uv};
 use crate::weights::load_weights;
 use crate::weights::open_weights;
 use crate::weights::safetensors_file::SafetensorsFile;
-use crate::{Architecture, LossWeights, PerspNetConfig};
 use arkit_core::{Error, Result};
 use arkit_data::mesh::FaceTopology;
 use candle_core::{DType, Device};

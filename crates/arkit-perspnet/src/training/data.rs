@@ -8,8 +8,9 @@
 //! with at least M points (`render --size S --points M`); a mismatch is an error that
 //! says which `render` options to use.
 
-use crate::candle_err;
-use crate::{Architecture, CorrTarget, PerspNetConfig};
+use crate::candle_error::candle_err;
+use crate::config::{Architecture, PerspNetConfig};
+use crate::loss::CorrTarget;
 use arkit_core::Rng;
 use arkit_core::conventions::Pose;
 use arkit_core::{Error, Result};

@@ -6,12 +6,14 @@ use super::checkpoint::{
     ADAM_FILE, Checkpoint, StepLoss, holds_checkpoint, verify_checkpoint, write_checkpoint,
 };
 use super::data::{Augmentation, Example, ExampleShards, batch};
-use crate::candle_err;
+use crate::adam::Adam;
+use crate::candle_error::candle_err;
+use crate::config::PerspNetConfig;
+use crate::loss::LossTargets;
 use crate::loss::PerspNetLoss;
 use crate::model::named_trainable_vars;
 use crate::network::{Network, vertex_uv};
 use crate::weights::{load_weights, open_weights};
-use crate::{Adam, LossTargets, PerspNetConfig};
 use arkit_core::Rng;
 use arkit_core::{Error, Result};
 use arkit_data::loader::LoaderItem;
@@ -97,7 +99,7 @@ impl TrainOptions {
                 format!("{} is not a fraction in [0, 1]", self.lr_hold),
             );
         }
-        if self.lowered_start && self.config.loss == crate::LossVariant::Paper {
+        if self.lowered_start && self.config.loss == crate::config::LossVariant::Paper {
             return bad(
                 "--lowered-start",
                 "lowers the official schedule's weights; --loss paper holds the paper's fixed weights".into(),

@@ -1,17 +1,11 @@
-//! Weights in and out of the network: a model folder's `model.safetensors` read into
-//! the network ([`load_weights`], float32 or float16), PyTorch `state_dict`s of the
-//! official network imported and exported ([`import_weights`], [`export_weights`],
-//! [`state_dict`]), a model folder rewritten at half precision
-//! ([`write_half_model`]), and safetensors files read without trusting them
-//! ([`safetensors_file`]).
+//! Weight files: a model folder's `model.safetensors` read into the network
+//! ([`load_weights`], float32 or float16), PyTorch `state_dict`s of the official network
+//! read and written by name ([`state_dict`]), and safetensors files read without trusting
+//! them ([`safetensors_file`]). The conversions of whole model folders built on them are
+//! `model_conversion`'s.
 
-mod half;
-mod import_export;
 pub mod safetensors_file;
 pub mod state_dict;
-
-pub use half::write_half_model;
-pub use import_export::{export_weights, import_weights};
 
 use arkit_core::{Error, Result};
 use candle_core::DType;
@@ -31,7 +25,7 @@ pub fn open_weights(path: &Path) -> Result<SafetensorsFile<std::io::BufReader<st
 
 /// Sets every variable of `varmap` from the safetensors file `st` (read from `file`,
 /// which errors name), matched by name and shape and converted to float32: a model
-/// folder may hold float32 weights (`train`) or float16 ones ([`write_half_model`]).
+/// folder may hold float32 weights (`train`) or float16 ones (`write_half_model`).
 /// Every name, shape and type in the header is checked before any tensor is read; a
 /// missing, misshapen, extra or non-float tensor is an error that names it. The
 /// tensors are then read one at a time.

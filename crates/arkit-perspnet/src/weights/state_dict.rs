@@ -380,7 +380,8 @@ impl WeightFile {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::{PerspNet, PerspNetConfig, model::synthetic_vertex_uv};
+    use crate::config::PerspNetConfig;
+    use crate::model::{PerspNet, synthetic_vertex_uv};
     use candle_nn::VarBuilder;
 
     fn varmap(cfg: &PerspNetConfig) -> VarMap {

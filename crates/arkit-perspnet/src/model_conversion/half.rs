@@ -1,11 +1,11 @@
 //! Model folders with their weights stored as float16.
 
-use super::{load_weights, open_weights};
-use crate::candle_err;
+use crate::candle_error::candle_err;
 use crate::network::Network;
 use crate::training::checkpoint::{
     Checkpoint, MODEL_FILES, save_renamed, verify_model, write_record,
 };
+use crate::weights::{load_weights, open_weights};
 use arkit_core::{Error, Result};
 use candle_core::{DType, Device, Tensor};
 use candle_nn::{VarBuilder, VarMap};

@@ -1,13 +1,14 @@
 //! The official network's PyTorch `state_dict` into a model folder and out of one.
 
-use super::{load_weights, open_weights};
-use crate::candle_err;
+use crate::candle_error::candle_err;
+use crate::config::{Architecture, PerspNetConfig};
+use crate::model::PerspNet;
 use crate::network::vertex_uv;
 use crate::training::checkpoint::{
     Checkpoint, MODEL_FILES, save_renamed, verify_model, write_record,
 };
 use crate::training::data::Augmentation;
-use crate::{Architecture, PerspNet, PerspNetConfig};
+use crate::weights::{load_weights, open_weights};
 use arkit_core::{Error, Result};
 use arkit_data::mesh::FaceTopology;
 use candle_core::{DType, Device, Tensor};
@@ -26,7 +27,7 @@ pub fn import_weights(
     topology: &FaceTopology,
     output: &Path,
 ) -> Result<Checkpoint> {
-    use super::state_dict::{WeightError, WeightFile};
+    use crate::weights::state_dict::{WeightError, WeightFile};
     if config.architecture == Architecture::Direct {
         return Err(Error::invalid(
             "--config",
@@ -103,7 +104,7 @@ pub fn export_weights(model_dir: &Path, output: &Path) -> Result<usize> {
     PerspNet::new(cfg, &uv, vb).map_err(|e| candle_err("network", e))?;
     let w = model_dir.join("model.safetensors");
     load_weights(&varmap, &mut open_weights(&w)?, &w)?;
-    let entries = super::state_dict::export_state_dict(&varmap, checkpoint.steps as i64)
+    let entries = crate::weights::state_dict::export_state_dict(&varmap, checkpoint.steps as i64)
         .map_err(|e| candle_err("export", e))?;
     let n = entries.len();
     let map: HashMap<String, Tensor> = entries.into_iter().collect();
