@@ -34,6 +34,7 @@
 //! image pixel nearest to where the crop pixel looks.
 
 use super::{CropTransform, RuleSet};
+use crate::lanes::warp::{AxisTap, COEF_BITS, INTER_BITS, round_sum};
 use crate::lanes::{self, Level};
 
 /// The official crop box and its affine map (module docs, steps 1-2) around the
@@ -171,12 +172,8 @@ pub fn affine_transform(src: [[f32; 2]; 3], dst: [[f32; 2]; 3]) -> Option<[f64; 
     Some(b)
 }
 
-/// Fractional bits of OpenCV's source positions (`INTER_BITS`).
-pub(crate) const INTER_BITS: u32 = 5;
 /// Fractional bits of the inverse map's per-row and per-column terms (`AB_BITS`).
 const AB_BITS: u32 = 10;
-/// Fractional bits of the bilinear weights (`INTER_REMAP_COEF_BITS`).
-pub(crate) const COEF_BITS: u32 = 15;
 
 /// Half of the weights' sum: the warped 0/1 mask rounds to 1 from this face weight up.
 pub(crate) const HALF_WEIGHT: u32 = 1 << (COEF_BITS - 1);
@@ -233,10 +230,6 @@ fn warp_taps_window(crop: &CropTransform, first: i64, count: usize) -> Vec<WarpT
     }
     taps
 }
-
-/// One axis's tap of a crop column or row: the first image column or row it reads and
-/// the fraction past it, in 1/32 pixel.
-pub(crate) type AxisTap = (i32, u32);
 
 /// The taps of crop pixels `first..first + count` along each axis: `(column, fraction)`
 /// of every crop column, then `(row, fraction)` of every crop row. The crop's map is
@@ -400,12 +393,6 @@ pub(crate) fn warp_affine_window(
         }
     }
     out
-}
-
-/// OpenCV's rounding of a pixel's tap sum (in units of 2^-15) to a byte.
-#[inline(always)]
-pub(crate) fn round_sum(sum: u32) -> u8 {
-    ((sum + (1 << (COEF_BITS - 1))) >> COEF_BITS).min(255) as u8
 }
 
 /// One pixel of [`warp_affine_window`] whose four taps are in the image, `channels`

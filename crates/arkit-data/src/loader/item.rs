@@ -49,6 +49,7 @@ use crate::crop::official::{
 use crate::crop::{CropTransform, RuleSet};
 use crate::lanes;
 use crate::lanes::jitter::UNIT;
+use crate::lanes::uv::TexelRun;
 use crate::loader::colour_jitter::jitter_colour;
 use crate::mesh::topology::FaceTopology;
 use crate::render::face::{FaceRenderer, UvMapper, UvTexels, WindowMask, sample_points};
@@ -301,20 +302,6 @@ impl PixelSource {
 /// The release's UV layout: `tris_2500x3_202110.npy` and the 1,279 rows of
 /// `uv_coords_std_202109.npy`.
 pub(crate) type ReleaseUvLayout = (Vec<[u32; 3]>, Vec<[f32; 2]>);
-
-/// Texels of an [`OfficialUvLayout`] next to each other that one UV triangle covers:
-/// texels `start..start + len`, whose weights are `first..first + len` of the layout's
-/// weight planes.
-#[derive(Clone, Copy, Debug)]
-pub(crate) struct TexelRun {
-    /// Row-major index in the map of the run's first texel.
-    pub(crate) start: u32,
-    pub(crate) len: u32,
-    /// Where the run's weights begin in the weight planes.
-    pub(crate) first: u32,
-    /// The triangle's corners (extended vertex indices).
-    pub(crate) corners: [u32; 3],
-}
 
 /// The official UV layout rasterized once for one map size: per texel the UV triangle
 /// and its screen-space weights, by the official rasterizer's rules at `uv * (S - 1)`.
