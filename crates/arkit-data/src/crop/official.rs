@@ -33,9 +33,12 @@
 //! bottom-right on a tie): every stored row is one the official loader computes, at the
 //! image pixel nearest to where the crop pixel looks.
 
+use super::rules::{MaskRule, RuleBook, UvLayout};
 use super::{CropTransform, RuleSet};
 use crate::lanes::warp::{AxisTap, COEF_BITS, INTER_BITS, round_sum};
 use crate::lanes::{self, Level};
+use arkit_core::{ScreenVertex, VisibilityBuffer};
+use image::RgbImage;
 
 /// The official crop box and its affine map (module docs, steps 1-2) around the
 /// projected landmarks `(u, v)`, or `None` when the box is empty (the official loader
@@ -573,6 +576,81 @@ pub(crate) fn nearest_face_tap(
         }
     }
     best.map(|(p, _)| p)
+}
+
+/// The official loader's rule set's book: its integer box and `cv2` affine map
+/// sampled at pixel corners ([`official_crop`], [`warp_affine`]); the projection matrix
+/// read as float32, as the official loader reads it (`np.loadtxt(..., dtype=np.float32)`);
+/// its rasterizer over the whole image ([`arkit_core::rasterize_mesh_official`]:
+/// integer sample points, its inside test, screen-space weights, earlier triangle on
+/// ties), the mask warped into the crop; its UV layout.
+pub(crate) struct Official;
+
+impl RuleBook for Official {
+    fn name(&self) -> &'static str {
+        "official"
+    }
+
+    fn sampling_name(&self) -> &'static str {
+        "corner"
+    }
+
+    fn header_code(&self) -> u32 {
+        1
+    }
+
+    fn sample_offset(&self) -> f64 {
+        0.0
+    }
+
+    fn crop_around(
+        &self,
+        landmarks: &[(f64, f64)],
+        size: u32,
+    ) -> std::result::Result<CropTransform, String> {
+        let [l, t, r, b] = official_box(LandmarkExtent::of(landmarks.iter().copied()), None);
+        if !(r > l && b > t) || size < 2 {
+            return Err(format!("the box {:?} is empty", [l, t, r, b]));
+        }
+        Ok(box_crop(l, t, r, b, size))
+    }
+
+    fn crop_window(
+        &self,
+        crop: &CropTransform,
+        image: &RgbImage,
+        first: i64,
+        count: usize,
+    ) -> Vec<u8> {
+        let (w, h) = image.dimensions();
+        warp_affine_window(image.as_raw(), w, h, 3, crop, first, count)
+    }
+
+    fn window_reach(&self, crop: &CropTransform, first: i64, count: usize) -> [(i64, i64); 2] {
+        warp_reach(crop, first, count)
+    }
+
+    fn projection(&self, release: nalgebra::Matrix4<f64>) -> nalgebra::Matrix4<f64> {
+        release.map(|x| x as f32 as f64)
+    }
+
+    fn rasterize(
+        &self,
+        buffer: &mut VisibilityBuffer,
+        screen: &[ScreenVertex],
+        triangles: &[[u32; 3]],
+        _weights: bool,
+    ) -> std::result::Result<(), String> {
+        arkit_core::rasterize_mesh_official(buffer, screen, triangles).map_err(|e| e.to_string())
+    }
+
+    fn mask(&self) -> MaskRule {
+        MaskRule::WarpedFromImage
+    }
+
+    fn uv_layout(&self) -> UvLayout {
+        UvLayout::Official
+    }
 }
 
 #[cfg(test)]

@@ -46,6 +46,7 @@
 use crate::crop::official::{
     LandmarkExtent, affine_transform, box_crop, official_box, warp_mask_in,
 };
+use crate::crop::rules::{MaskRule, UvLayout};
 use crate::crop::{CropTransform, RuleSet};
 use crate::lanes;
 use crate::lanes::jitter::UNIT;
@@ -714,14 +715,11 @@ impl FaceLoader {
             OfficialUvLayout::new(&uv, release_uv, topology.vertex_count, options.img_size)?;
         // The official loader reads the projection matrix as float32
         // (`np.loadtxt(..., dtype=np.float32)`): its screen positions follow those values.
-        let projection = match options.rules {
-            RuleSet::Exact => Camera::release_projection(),
-            RuleSet::Official => Camera::release_projection().map(|x| x as f32 as f64),
-        };
+        let rules = options.rules.book();
+        let projection = rules.projection(Camera::release_projection());
         let topology_uv = topology.uv.clone();
-        let mut renderer = FaceRenderer::new(topology, projection)?;
-        renderer.rules = options.rules;
-        if options.rules == RuleSet::Official {
+        let mut renderer = FaceRenderer::new(topology, projection)?.with_rules(options.rules);
+        if rules.mask() == MaskRule::WarpedFromImage {
             // The holes as the official mask closes them. The layout's loops are the
             // mouth's and the two eyes'; the official list has the eyes first.
             let l = &official_uv.centroid_loops;
@@ -987,24 +985,13 @@ impl FaceLoader {
     /// The evaluation crop of these landmarks under the loader's rules: ours, or the
     /// official integer box (an error when that box is empty).
     fn eval_crop(&self, row: &IndexRow, landmarks: &[(f64, f64)]) -> Result<CropTransform> {
-        let s = self.options.img_size;
-        match self.options.rules {
-            RuleSet::Exact => Ok(CropTransform::around_landmarks(
-                &flat_landmarks(landmarks),
-                s,
-            )),
-            RuleSet::Official => {
-                let [l, t, r, b] =
-                    official_box(LandmarkExtent::of(landmarks.iter().copied()), None);
-                if r <= l || b <= t {
-                    return Err(Error::invalid(
-                        "official box",
-                        format!("{}: the box {:?} is empty", row.sample.key, [l, t, r, b]),
-                    ));
-                }
-                Ok(box_crop(l, t, r, b, s))
-            }
-        }
+        let rules = self.options.rules;
+        rules
+            .book()
+            .crop_around(landmarks, self.options.img_size)
+            .map_err(|why| {
+                Error::invalid(format!("{rules} box"), format!("{}: {why}", row.sample.key))
+            })
     }
 
     /// Samples served.
@@ -1113,9 +1100,9 @@ impl FaceLoader {
 
     /// The side, in texels, of an item's `uvmap` (`S` under both rule sets).
     pub fn uvmap_size(&self) -> u32 {
-        match self.options.rules {
-            RuleSet::Exact => self.options.img_size,
-            RuleSet::Official => self.official_uv.size(),
+        match self.options.rules.book().uv_layout() {
+            UvLayout::TexelCentres => self.options.img_size,
+            UvLayout::Official => self.official_uv.size(),
         }
     }
 
@@ -1150,11 +1137,11 @@ impl FaceLoader {
         let mut rng = Rng::for_stream(self.options.seed, stream);
         let landmarks = self.landmarks(row, &verts, &pose)?;
         let train = self.options.mode == LoaderMode::Train;
-        let mut item = match self.options.rules {
-            RuleSet::Exact => self.exact(
+        let mut item = match self.options.rules.book().mask() {
+            MaskRule::Crop => self.exact(
                 row, &verts, &pose, &source, &landmarks, train, &mut rng, planes,
             )?,
-            RuleSet::Official => self.official(
+            MaskRule::WarpedFromImage => self.official(
                 row, &verts, &pose, &source, &landmarks, train, &mut rng, planes,
             )?,
         };
@@ -1190,7 +1177,7 @@ impl FaceLoader {
         mut planes: Planes<'_>,
     ) -> Result<LoaderItem> {
         let s = self.options.img_size;
-        let mut crop = CropTransform::around_landmarks(&flat_landmarks(landmarks), s);
+        let mut crop = self.eval_crop(row, landmarks)?;
         if train {
             // The landmarks' box size is 2/3 of the crop's side (half-side 0.75 size).
             let size = crop.side / 1.5;
@@ -1206,7 +1193,7 @@ impl FaceLoader {
                 side,
                 side_y: side,
                 size: s,
-                rules: RuleSet::Exact,
+                rules: crop.rules,
             };
         }
         let mut buffer = self.take_buffer();
@@ -1478,14 +1465,6 @@ impl FaceLoader {
     }
 }
 
-/// Landmarks `(u, v)` as the flat `[u0, v0, u1, v1, ...]` float32 list the crop takes.
-fn flat_landmarks(landmarks: &[(f64, f64)]) -> Vec<f32> {
-    landmarks
-        .iter()
-        .flat_map(|&(u, v)| [u as f32, v as f32])
-        .collect()
-}
-
 /// The release's UV triangles (`tris_2500x3_202110.npy`) from a resources folder, when
 /// the file is there: `(N, 3)` integer vertex ids.
 pub fn read_uv_triangles(resources: &Path) -> Result<Option<Vec<[u32; 3]>>> {
@@ -1717,5 +1696,115 @@ mod tests {
         };
         assert!(o.validate().unwrap_err().to_string().contains("n_pts"));
         assert!(RuleSet::parse("opencv").is_err() && LoaderMode::parse("test").is_err());
+    }
+
+    #[test]
+    fn a_third_rule_set_cuts_renders_and_loads() {
+        use crate::ingest::synth::{self, FaceSource, SynthOptions};
+        use crate::ingest::{self, ConvertOptions, ValidationContext};
+
+        // A synthetic release of four 256x256 images, converted.
+        let tmp = tempfile::tempdir().unwrap();
+        let (release, data) = (tmp.path().join("release"), tmp.path().join("pq"));
+        let options = SynthOptions {
+            subjects: 2,
+            images_per_subject: 2,
+            width: 256,
+            height: 256,
+            ..SynthOptions::default()
+        };
+        synth::generate(&FaceSource::builtin(), &options, &release, &|| {}).unwrap();
+        let topology = crate::mesh::builtin().topology.clone();
+        let context = ValidationContext {
+            projection: Camera::release_projection(),
+            topology: topology.clone(),
+            embed_images: false,
+        };
+        let convert = ConvertOptions {
+            input: release,
+            output: data.clone(),
+            resources: None,
+            rows_per_shard: 4,
+            embed_images: false,
+            shard_index: 0,
+            shard_count: 1,
+            overwrite: false,
+        };
+        ingest::convert(&convert, &context, &|_| {}).unwrap();
+        let dataset = Dataset::open(&data).unwrap();
+        let ours_renderer =
+            FaceRenderer::new(topology.clone(), Camera::release_projection()).unwrap();
+        let probe_renderer = ours_renderer.clone().with_rules(RuleSet::Probe);
+        let as_ours = |c: &CropTransform| CropTransform {
+            rules: RuleSet::Exact,
+            ..*c
+        };
+        let mut vb = VisibilityBuffer::new(1, 1);
+        for sample in dataset.read_all_samples().unwrap() {
+            let verts: Vec<Point3<f32>> = (sample.verts.chunks(3))
+                .map(|c| Point3::new(c[0], c[1], c[2]))
+                .collect();
+            let pose = Pose::from_release_rt(&sample.rt).unwrap();
+            let (w, h) = (sample.image_width, sample.image_height);
+            // The crop: ours widened about the same centre, following the probe's rules.
+            let ours = RuleSet::Exact
+                .crop_around_landmarks(&sample.landmarks_2d, 128)
+                .unwrap();
+            let probe =
+                (probe_renderer.crop_of(&verts, &pose, (w, h), &sample.landmarks_2d, 128)).unwrap();
+            assert_eq!(probe.rules, RuleSet::Probe);
+            assert!((probe.side - ours.side * crate::crop::probe::HALF_SIDE / 0.75).abs() < 1e-9);
+            let centre = |c: &CropTransform| (c.x0 + c.side / 2.0, c.y0 + c.side_y / 2.0);
+            let (a, b) = (centre(&ours), centre(&probe));
+            assert!((a.0 - b.0).abs() < 1e-9 && (a.1 - b.1).abs() < 1e-9);
+            // Its pixels are our resampling of its box.
+            let image = dataset.image(&sample).unwrap();
+            assert_eq!(probe.crop_image(&image), as_ours(&probe).crop_image(&image));
+            // Its targets are ours over its box; the wider box holds a smaller face.
+            let t = (probe_renderer.render(&verts, &pose, w, h, &probe, &mut vb)).unwrap();
+            let want =
+                (ours_renderer.render(&verts, &pose, w, h, &as_ours(&probe), &mut vb)).unwrap();
+            assert_eq!(
+                (&t.mask, &t.corr_vertices),
+                (&want.mask, &want.corr_vertices)
+            );
+            let narrower = (ours_renderer.render(&verts, &pose, w, h, &ours, &mut vb)).unwrap();
+            let face = |m: &[bool]| m.iter().filter(|&&m| m).count();
+            assert!(0 < face(&t.mask) && face(&t.mask) < face(&narrower.mask));
+        }
+        // The loader's items under the probe's rules: its box, and the render's mask there.
+        let open = |rules| {
+            let options = LoaderOptions {
+                split: None,
+                mode: LoaderMode::Eval,
+                rules,
+                img_size: 128,
+                n_pts: 64,
+                seed: 5,
+            };
+            FaceLoader::open(&data, topology.clone(), None, options).unwrap()
+        };
+        let (ours_loader, probe_loader) = (open(RuleSet::Exact), open(RuleSet::Probe));
+        assert_eq!(probe_loader.len(), 4);
+        for i in 0..probe_loader.len() {
+            let (ours, probe) = (
+                ours_loader.item(i, 0).unwrap(),
+                probe_loader.item(i, 0).unwrap(),
+            );
+            assert_eq!(probe.crop.rules, RuleSet::Probe);
+            assert!(
+                (probe.crop.side - ours.crop.side * crate::crop::probe::HALF_SIDE / 0.75).abs()
+                    < 1e-9
+            );
+            let verts = probe_loader.mesh(i).unwrap();
+            let pose = Pose::from_release_rt(&probe.rt).unwrap();
+            let t = ours_renderer
+                .render(&verts, &pose, 256, 256, &as_ours(&probe.crop), &mut vb)
+                .unwrap();
+            let mask: Vec<u8> = t.mask.iter().map(|&m| m as u8).collect();
+            assert_eq!(probe.mask, mask);
+            assert_eq!(probe.uvmap.len(), 3 * 128 * 128);
+            assert_ne!(probe.mask, ours.mask);
+        }
     }
 }

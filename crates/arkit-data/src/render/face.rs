@@ -35,6 +35,7 @@ use arkit_core::conventions::{Camera, Pose};
 use arkit_core::{Error, Result};
 use arkit_core::{PixelWindow, ScreenVertex, VisibilityBuffer};
 
+use crate::crop::rules::MaskRule;
 use crate::crop::{CropTransform, RuleSet};
 use crate::lanes;
 use crate::lanes::texels::TexelWeights;
@@ -58,7 +59,8 @@ pub struct FaceRenderer {
     /// inside test, screen-space weights, earlier triangle on ties), its mask warped
     /// into the crop as `cv2.warpAffine` does, and each crop mask pixel's
     /// correspondence from the full-resolution buffer at its heaviest face tap).
-    pub rules: RuleSet,
+    /// Set by [`FaceRenderer::with_rules`].
+    rules: RuleSet,
 }
 
 impl FaceRenderer {
@@ -106,6 +108,17 @@ impl FaceRenderer {
         Ok(())
     }
 
+    /// This renderer following `rules` (a new renderer follows [`RuleSet::Exact`]).
+    pub fn with_rules(mut self, rules: RuleSet) -> Self {
+        self.rules = rules;
+        self
+    }
+
+    /// Whose rasterization rules the renderer follows ([`FaceRenderer::with_rules`]).
+    pub fn rules(&self) -> RuleSet {
+        self.rules
+    }
+
     /// The topology.
     pub fn topology(&self) -> &FaceTopology {
         &self.topology
@@ -122,7 +135,7 @@ impl FaceRenderer {
         crop: &CropTransform,
         buffer: &mut VisibilityBuffer,
     ) -> Result<FaceTargets> {
-        if self.rules == RuleSet::Official {
+        if self.rules.book().mask() == MaskRule::WarpedFromImage {
             return self.render_official(verts, pose, width, height, crop, buffer);
         }
         self.rasterize(verts, pose, width, height, Some(crop), buffer, true)?;
@@ -156,7 +169,7 @@ impl FaceRenderer {
         crop: &CropTransform,
         buffer: &'a mut VisibilityBuffer,
     ) -> Result<CropVisibility<'a>> {
-        if self.rules != RuleSet::Exact {
+        if self.rules.book().mask() != MaskRule::Crop {
             return Err(Error::invalid(
                 "raster mode",
                 "render_visibility follows the exact rules; the official rules' targets come from render",
@@ -183,6 +196,61 @@ impl FaceRenderer {
         height: u32,
         size: u32,
     ) -> Result<CropTransform> {
+        let projected = self.landmarks_in_f64(verts, pose, width, height)?;
+        crate::crop::official::official_crop(projected, size)
+            .ok_or_else(|| Error::invalid("landmarks", "the official crop box is empty"))
+    }
+
+    /// The crop of a sample under the renderer's rules: its box around the landmarks,
+    /// at side `size`. Under [`MaskRule::Crop`] the landmarks are the samples table's
+    /// (`landmarks_2d`, float32); under [`MaskRule::WarpedFromImage`] they are `verts`'
+    /// projected at `pose` in `f64`, as the official loader projects them
+    /// ([`FaceRenderer::official_crop`]).
+    pub(crate) fn crop_of(
+        &self,
+        verts: &[Point3<f32>],
+        pose: &Pose,
+        (width, height): (u32, u32),
+        landmarks_2d: &[f32],
+        size: u32,
+    ) -> Result<CropTransform> {
+        let empty = || {
+            Error::invalid(
+                "landmarks",
+                format!("the {} crop box is empty", self.rules.name()),
+            )
+        };
+        match self.rules.book().mask() {
+            MaskRule::Crop => self
+                .rules
+                .crop_around_landmarks(landmarks_2d, size)
+                .ok_or_else(empty),
+            MaskRule::WarpedFromImage => {
+                let projected: Vec<(f64, f64)> =
+                    self.landmarks_in_f64(verts, pose, width, height)?.collect();
+                self.rules
+                    .book()
+                    .crop_around(&projected, size)
+                    .map_err(|_| empty())
+            }
+        }
+    }
+
+    /// Whether [`FaceRenderer::render`] rasterizes the whole image (its buffer then
+    /// holds the full-image raster: [`FaceRenderer::face_pixels`]).
+    pub(crate) fn renders_whole_image(&self) -> bool {
+        self.rules.book().mask() == MaskRule::WarpedFromImage
+    }
+
+    /// The topology's landmarks of `verts` at `pose` projected in `f64` to image pixels
+    /// of a `width x height` image.
+    fn landmarks_in_f64(
+        &self,
+        verts: &[Point3<f32>],
+        pose: &Pose,
+        width: u32,
+        height: u32,
+    ) -> Result<impl Iterator<Item = (f64, f64)>> {
         let camera = Camera::new(self.camera_projection, width, height)?;
         let points: Vec<Point3<f64>> = self
             .topology
@@ -196,8 +264,7 @@ impl FaceRenderer {
             })
             .collect::<Result<_>>()?;
         let projected = camera.project_all(pose, &points);
-        crate::crop::official::official_crop(projected.iter().map(|p| (p.u, p.v)), size)
-            .ok_or_else(|| Error::invalid("landmarks", "the official crop box is empty"))
+        Ok(projected.into_iter().map(|p| (p.u, p.v)))
     }
 
     /// [`FaceRenderer::render`] in [`RuleSet::Official`]: the official loader's
@@ -213,7 +280,7 @@ impl FaceRenderer {
         crop: &CropTransform,
         buffer: &mut VisibilityBuffer,
     ) -> Result<FaceTargets> {
-        if crop.rules != RuleSet::Official {
+        if crop.rules != self.rules {
             return Err(Error::invalid(
                 "crop",
                 "the official pipeline needs the official crop (corner sampling)",
@@ -334,7 +401,7 @@ impl FaceRenderer {
         height: u32,
         buffer: &mut VisibilityBuffer,
     ) -> Result<WindowMask> {
-        if self.rules == RuleSet::Exact {
+        if self.rules.book().mask() == MaskRule::Crop {
             let mask = self.render_full_mask(verts, pose, width, height, buffer)?;
             let window = PixelWindow::whole(width, height);
             let screen = Vec::new();
@@ -436,14 +503,10 @@ impl FaceRenderer {
         } else {
             buffer.clear();
         }
-        match self.rules {
-            RuleSet::Exact if weights => buffer.rasterize_mesh(&screen, &self.triangles),
-            RuleSet::Exact => buffer.rasterize_visibility(&screen, &self.triangles),
-            RuleSet::Official => {
-                arkit_core::rasterize_mesh_official(buffer, &screen, &self.triangles)
-            }
-        }
-        .map_err(|e| Error::invalid("mesh", e.to_string()))?;
+        self.rules
+            .book()
+            .rasterize(buffer, &screen, &self.triangles, weights)
+            .map_err(|e| Error::invalid("mesh", e))?;
         Ok(screen)
     }
 }
