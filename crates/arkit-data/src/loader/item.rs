@@ -767,16 +767,16 @@ impl FaceLoader {
 
     /// [`FaceLoader::open_crop_store`] for a dataset opened from a bucket: the store's
     /// manifest read from `dir` (its mirror), its part files by ranged GETs from
-    /// `remote` at `relative` (`crops/official-192`); see [`CropStore::open_remote`].
+    /// `remote` at `relative` (`crops/official-192`); see
+    /// [`RemoteDataset::open_crop_store`](crate::storage::RemoteDataset::open_crop_store).
     pub fn open_remote_crop_store(
         &mut self,
         dir: &Path,
         remote: &crate::storage::RemoteDataset,
         relative: &str,
     ) -> Result<()> {
-        self.store = Some(CropStore::open_remote(
+        self.store = Some(remote.open_crop_store(
             dir,
-            remote,
             relative,
             &self.dataset,
             self.options.rules,
