@@ -138,7 +138,7 @@ pub(crate) enum MaskRule {
 /// The loader's UV position map's layout.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub(crate) enum UvLayout {
-    /// Ours: texel centres, `S` texels a side (`render::face::UvMapper`).
+    /// Ours: texel centres, `S` texels a side (`render::uv_map::UvMapper`).
     TexelCentres,
     /// The official: the UV triangles drawn at `uv * (S - 1)` (`OfficialUvLayout`).
     Official,

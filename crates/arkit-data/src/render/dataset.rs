@@ -18,7 +18,8 @@
 //! ([`crate::store::targets_table::read_skipped_keys`]) skip those samples.
 
 use crate::crop::RuleSet;
-use crate::render::face::{FaceRenderer, UvMapper, sample_points};
+use crate::render::face::{FaceRenderer, sample_points};
+use crate::render::uv_map::UvMapper;
 use crate::store::manifest::dataset_fingerprint;
 use crate::store::parquet;
 use crate::store::samples_table::{self, ErrorRecord};
@@ -395,7 +396,7 @@ fn render_rows(
     renderer: &FaceRenderer,
     options: &RenderOptions,
     uv: &UvMapper,
-    uv_texels: &crate::render::face::UvTexels,
+    uv_texels: &crate::render::uv_map::UvTexels,
     offset: u64,
     progress: &(dyn Fn(usize) + Sync),
 ) -> (Vec<Result<TargetsRecord>>, usize) {
