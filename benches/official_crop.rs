@@ -60,7 +60,7 @@ fn main() {
     // official pipeline's full-resolution render, warp and tap choice.
     let topo = arkit_data::mesh::builtin().topology.clone();
     let verts = topo.template.clone().expect("template");
-    let mut renderer = FaceRenderer::new(topo.clone(), Camera::release_projection()).unwrap();
+    let renderer = FaceRenderer::new(topo.clone(), Camera::release_projection()).unwrap();
     let pose = Pose::from_euler(
         EulerAngles::new(25.0, -10.0, 5.0),
         Vector3::new(0.01, 0.0, -0.5),
@@ -83,7 +83,7 @@ fn main() {
         || drop(renderer.render(&verts, &pose, w, h, &exact_crop, &mut vb)),
         n,
     );
-    renderer.rules = RuleSet::Official;
+    let renderer = renderer.with_rules(RuleSet::Official);
     let t_pipeline = median_ms(
         || drop(renderer.render(&verts, &pose, w, h, &official_crop, &mut vb)),
         n,

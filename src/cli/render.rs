@@ -97,8 +97,8 @@ pub fn run(a: RenderArgs) -> Result<ExitCode> {
         .clone();
     let topology = super::load_topology(a.resources.as_deref())?;
     arkit_data::store::check_topology(&manifest, &topology)?;
-    let mut renderer = FaceRenderer::new(topology, Camera::release_projection())?;
-    renderer.rules = a.compat.into();
+    let renderer =
+        FaceRenderer::new(topology, Camera::release_projection())?.with_rules(a.compat.into());
     let (part, parts) = options.shard;
     let mine: usize = manifest
         .shards

@@ -49,8 +49,9 @@ fn rendered_in(dir: &Path, mode: RuleSet) {
         overwrite: false,
     };
     ingest::convert(&copts, &ctx, &|_| {}).unwrap();
-    let mut renderer = FaceRenderer::new(topology, Camera::release_projection()).unwrap();
-    renderer.rules = mode;
+    let renderer = FaceRenderer::new(topology, Camera::release_projection())
+        .unwrap()
+        .with_rules(mode);
     let ro = RenderOptions {
         size: 192,
         uv_size: 32,

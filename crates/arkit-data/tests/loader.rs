@@ -128,8 +128,9 @@ fn official_items_follow_the_official_rules() {
     let data = arkit_data::store::Dataset::open(dir.path()).unwrap();
     let samples = data.read_all_samples().unwrap();
     let topology = arkit_data::mesh::builtin().topology.clone();
-    let mut renderer = FaceRenderer::new(topology.clone(), Camera::release_projection()).unwrap();
-    renderer.rules = RuleSet::Official;
+    let mut renderer = FaceRenderer::new(topology.clone(), Camera::release_projection())
+        .unwrap()
+        .with_rules(RuleSet::Official);
     // The holes closed as the official mask closes them: eyes first, then the mouth.
     let loops = arkit_data::render::UvMapper::derive(&topology)
         .unwrap()

@@ -19,16 +19,30 @@
 //! vector path against the scalar one bit for bit; in `official.rs`, the box and warp
 //! against OpenCV's formulas (and `tests/official_crop.rs` against OpenCV's output).
 
+mod exact;
 pub(crate) mod official;
-mod rules;
+#[cfg(test)]
+pub(crate) mod probe;
+pub(crate) mod rules;
 
-pub use self::{
-    official::{
-        LandmarkExtent, affine_transform, box_crop, official_box, official_crop, warp_affine,
-        warp_mask,
-    },
-    rules::RuleSet,
+pub use self::official::{
+    LandmarkExtent, affine_transform, box_crop, official_box, official_crop, warp_affine, warp_mask,
 };
+
+// The registration of the rule sets (see `rules`): one line each.
+rules::rule_sets! {
+    /// Ours: the square box of half-side 0.75 x the landmarks' larger side, sampled at
+    /// pixel centres with our bilinear crop; the top-left fill rule and
+    /// perspective-correct weights, rendered at the crop's resolution.
+    Exact => exact::Exact,
+    /// The official loader's: its integer box and `cv2` affine map sampled at pixel
+    /// corners (`cv2.warpAffine`), its rasterizer over the whole image with
+    /// screen-space weights, the mask warped into the crop.
+    Official => official::Official,
+    #[cfg(test)]
+    /// A third rule set, for the tests only: ours with a wider box.
+    Probe => probe::Probe,
+}
 
 use crate::lanes::{
     self,
@@ -125,8 +139,8 @@ impl CropTransform {
     /// sampling with black outside (tested across the image border). The measurements
     /// that chose this shape are in `docs/performance.md` ("The crop").
     ///
-    /// A crop with [`RuleSet::Official`] is resampled as `cv2.warpAffine` does
-    /// instead ([`warp_affine`]).
+    /// Resampled by the crop's rules ([`RuleSet`]): a crop with [`RuleSet::Official`] is
+    /// resampled as `cv2.warpAffine` does instead ([`warp_affine`]).
     pub fn crop_image(&self, image: &RgbImage) -> RgbImage {
         let out = self.crop_window(image, 0, self.size as usize);
         RgbImage::from_raw(self.size, self.size, out).expect("size matches")
@@ -139,10 +153,12 @@ impl CropTransform {
     /// same. `crop_image` is `crop_window(image, 0, size)`; the crop store keeps such a
     /// window around each sample's evaluation crop (`crate::store::crop_store`).
     pub(crate) fn crop_window(&self, image: &RgbImage, first: i64, count: usize) -> Vec<u8> {
-        if self.rules == RuleSet::Official {
-            let (w, h) = image.dimensions();
-            return official::warp_affine_window(image.as_raw(), w, h, 3, self, first, count);
-        }
+        self.rules.book().crop_window(self, image, first, count)
+    }
+
+    /// [`CropTransform::crop_window`] by our rules: bilinear at pixel centres, black
+    /// outside the image (see [`CropTransform::crop_image`]).
+    pub(crate) fn bilinear_window(&self, image: &RgbImage, first: i64, count: usize) -> Vec<u8> {
         let n = count;
         let mut out = vec![0u8; n * n * 3];
         if image.width() == 0 || image.height() == 0 || n == 0 {
@@ -181,21 +197,22 @@ impl CropTransform {
         if count == 0 {
             return None;
         }
+        Some(self.rules.book().window_reach(self, first, count))
+    }
+
+    /// [`CropTransform::window_reach`] of [`CropTransform::bilinear_window`], for a
+    /// window of `count > 0` pixels.
+    pub(crate) fn bilinear_reach(&self, first: i64, count: usize) -> [(i64, i64); 2] {
         let last = first + count as i64 - 1;
-        Some(match self.rules {
-            RuleSet::Exact => {
-                // The taps move with the pixel index (a positive scale): the window's
-                // first and last pixels reach furthest.
-                let (sx, sy) = self.scales();
-                let reach = |origin: f64, scale: f64| {
-                    let (lo, _) = bilinear_position(first, origin, scale);
-                    let (hi, _) = bilinear_position(last, origin, scale);
-                    (lo, hi + 1)
-                };
-                [reach(self.x0, sx), reach(self.y0, sy)]
-            }
-            RuleSet::Official => official::warp_reach(self, first, count),
-        })
+        // The taps move with the pixel index (a positive scale): the window's first and
+        // last pixels reach furthest.
+        let (sx, sy) = self.scales();
+        let reach = |origin: f64, scale: f64| {
+            let (lo, _) = bilinear_position(first, origin, scale);
+            let (hi, _) = bilinear_position(last, origin, scale);
+            (lo, hi + 1)
+        };
+        [reach(self.x0, sx), reach(self.y0, sy)]
     }
 
     /// This crop in the pixel grid of `window`'s crop window `first..first + count`
@@ -354,7 +371,7 @@ mod tests {
             x ^= x << 5;
             Rgb([x as u8, (x >> 8) as u8, (x >> 16) as u8])
         });
-        for rules in RuleSet::ALL {
+        for &rules in RuleSet::ALL {
             for (x0, y0, side, first, count) in [
                 (10.3, 7.8, 30.0, 0, 16usize),
                 (-5.5, 20.25, 41.7, -3, 22),
@@ -427,7 +444,7 @@ mod tests {
             let v = |a: f32| (128.0 + 100.0 * a.sin()) as u8;
             Rgb([v(x / 17.0), v(y / 23.0 + x / 41.0), v((x - y) / 29.0)])
         });
-        for rules in RuleSet::ALL {
+        for &rules in RuleSet::ALL {
             // Near the image's corner, so the window runs off the image.
             let c = CropTransform {
                 x0: -12.3,

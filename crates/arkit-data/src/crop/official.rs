@@ -33,8 +33,12 @@
 //! bottom-right on a tie): every stored row is one the official loader computes, at the
 //! image pixel nearest to where the crop pixel looks.
 
+use super::rules::{MaskRule, RuleBook, UvLayout};
 use super::{CropTransform, RuleSet};
+use crate::lanes::warp::{AxisTap, COEF_BITS, INTER_BITS, round_sum};
 use crate::lanes::{self, Level};
+use arkit_core::{ScreenVertex, VisibilityBuffer};
+use image::RgbImage;
 
 /// The official crop box and its affine map (module docs, steps 1-2) around the
 /// projected landmarks `(u, v)`, or `None` when the box is empty (the official loader
@@ -171,12 +175,8 @@ pub fn affine_transform(src: [[f32; 2]; 3], dst: [[f32; 2]; 3]) -> Option<[f64; 
     Some(b)
 }
 
-/// Fractional bits of OpenCV's source positions (`INTER_BITS`).
-pub(crate) const INTER_BITS: u32 = 5;
 /// Fractional bits of the inverse map's per-row and per-column terms (`AB_BITS`).
 const AB_BITS: u32 = 10;
-/// Fractional bits of the bilinear weights (`INTER_REMAP_COEF_BITS`).
-pub(crate) const COEF_BITS: u32 = 15;
 
 /// Half of the weights' sum: the warped 0/1 mask rounds to 1 from this face weight up.
 pub(crate) const HALF_WEIGHT: u32 = 1 << (COEF_BITS - 1);
@@ -233,10 +233,6 @@ fn warp_taps_window(crop: &CropTransform, first: i64, count: usize) -> Vec<WarpT
     }
     taps
 }
-
-/// One axis's tap of a crop column or row: the first image column or row it reads and
-/// the fraction past it, in 1/32 pixel.
-pub(crate) type AxisTap = (i32, u32);
 
 /// The taps of crop pixels `first..first + count` along each axis: `(column, fraction)`
 /// of every crop column, then `(row, fraction)` of every crop row. The crop's map is
@@ -400,12 +396,6 @@ pub(crate) fn warp_affine_window(
         }
     }
     out
-}
-
-/// OpenCV's rounding of a pixel's tap sum (in units of 2^-15) to a byte.
-#[inline(always)]
-pub(crate) fn round_sum(sum: u32) -> u8 {
-    ((sum + (1 << (COEF_BITS - 1))) >> COEF_BITS).min(255) as u8
 }
 
 /// One pixel of [`warp_affine_window`] whose four taps are in the image, `channels`
@@ -586,6 +576,81 @@ pub(crate) fn nearest_face_tap(
         }
     }
     best.map(|(p, _)| p)
+}
+
+/// The official loader's rule set's book: its integer box and `cv2` affine map
+/// sampled at pixel corners ([`official_crop`], [`warp_affine`]); the projection matrix
+/// read as float32, as the official loader reads it (`np.loadtxt(..., dtype=np.float32)`);
+/// its rasterizer over the whole image ([`arkit_core::rasterize_mesh_official`]:
+/// integer sample points, its inside test, screen-space weights, earlier triangle on
+/// ties), the mask warped into the crop; its UV layout.
+pub(crate) struct Official;
+
+impl RuleBook for Official {
+    fn name(&self) -> &'static str {
+        "official"
+    }
+
+    fn sampling_name(&self) -> &'static str {
+        "corner"
+    }
+
+    fn header_code(&self) -> u32 {
+        1
+    }
+
+    fn sample_offset(&self) -> f64 {
+        0.0
+    }
+
+    fn crop_around(
+        &self,
+        landmarks: &[(f64, f64)],
+        size: u32,
+    ) -> std::result::Result<CropTransform, String> {
+        let [l, t, r, b] = official_box(LandmarkExtent::of(landmarks.iter().copied()), None);
+        if !(r > l && b > t) || size < 2 {
+            return Err(format!("the box {:?} is empty", [l, t, r, b]));
+        }
+        Ok(box_crop(l, t, r, b, size))
+    }
+
+    fn crop_window(
+        &self,
+        crop: &CropTransform,
+        image: &RgbImage,
+        first: i64,
+        count: usize,
+    ) -> Vec<u8> {
+        let (w, h) = image.dimensions();
+        warp_affine_window(image.as_raw(), w, h, 3, crop, first, count)
+    }
+
+    fn window_reach(&self, crop: &CropTransform, first: i64, count: usize) -> [(i64, i64); 2] {
+        warp_reach(crop, first, count)
+    }
+
+    fn projection(&self, release: nalgebra::Matrix4<f64>) -> nalgebra::Matrix4<f64> {
+        release.map(|x| x as f32 as f64)
+    }
+
+    fn rasterize(
+        &self,
+        buffer: &mut VisibilityBuffer,
+        screen: &[ScreenVertex],
+        triangles: &[[u32; 3]],
+        _weights: bool,
+    ) -> std::result::Result<(), String> {
+        arkit_core::rasterize_mesh_official(buffer, screen, triangles).map_err(|e| e.to_string())
+    }
+
+    fn mask(&self) -> MaskRule {
+        MaskRule::WarpedFromImage
+    }
+
+    fn uv_layout(&self) -> UvLayout {
+        UvLayout::Official
+    }
 }
 
 #[cfg(test)]

@@ -1,4 +1,4 @@
-//! The UV position map's lanes ([`crate::render::face::UvTexels`]): each covered
+//! The UV position map's lanes ([`crate::render::uv_map::UvTexels`]): each covered
 //! texel's position as its UV triangle's three positions weighted, one texel per SSE2
 //! operation (the x86-64 baseline), two per AVX and four per AVX-512 operation
 //! ([`UvTexels::fill_covered_at`]), and the map scaled and clamped into three planes
@@ -10,8 +10,8 @@ use super::{Level, level};
 use nalgebra::Point3;
 
 // The table's type lives here, beside the kernels that read its fields; its public
-// path is `render::face::UvTexels`, where its other methods are.
-/// The rasterized UV layout at one map size ([`UvMapper::texels`](crate::render::face::UvMapper::texels)): per covered texel,
+// path is `render::uv_map::UvTexels`, where its other methods are.
+/// The rasterized UV layout at one map size ([`UvMapper::texels`](crate::render::uv_map::UvMapper::texels)): per covered texel,
 /// its UV triangle's three extended vertices and their weights. A position map is then
 /// a weighted sum of three positions per texel, with no rasterization: at 192x192 the
 /// map of a mesh took 1.0 ms when the layout was rasterized for each mesh. The texels
@@ -122,7 +122,7 @@ impl UvTexels {
     /// Checks the buffers of [`UvTexels::fill_sse2`] and [`UvTexels::fill_avx`]: one
     /// padded position per extended vertex, one output per texel of the map. With the
     /// table's own invariants (every vertex id below `extended_vertices`, every texel
-    /// index below `size * size`: [`UvMapper::texels`](crate::render::face::UvMapper::texels) makes them so) this keeps their
+    /// index below `size * size`: [`UvMapper::texels`](crate::render::uv_map::UvMapper::texels) makes them so) this keeps their
     /// unchecked reads and writes in bounds.
     #[cfg(target_arch = "x86_64")]
     fn check_fill(&self, padded: &[[f32; 4]], out: &[[f32; 3]]) {

@@ -6,7 +6,21 @@
 //! clamped colours, every map size).
 
 use super::{Level, level};
-use crate::loader::item::TexelRun;
+
+/// Texels of a map next to each other that one triangle covers: texels
+/// `start..start + len` (row-major), whose weights are `first..first + len` of the
+/// weight planes, and the triangle's corners (indices into the colours).
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct TexelRun {
+    /// Row-major index in the map of the run's first texel.
+    pub(crate) start: u32,
+    /// Texels in the run.
+    pub(crate) len: u32,
+    /// Where the run's weights begin in the weight planes.
+    pub(crate) first: u32,
+    /// The triangle's corners (extended vertex indices).
+    pub(crate) corners: [u32; 3],
+}
 
 /// The covered texels' values of `runs` (weights `weights`, extended vertex colours
 /// `colors`) into the three `planes`, at the workspace's SIMD level ([`covered_at`]).

@@ -5,7 +5,23 @@
 //! arithmetic) and tested against it at every level the CPU has.
 
 use super::Level;
-use crate::crop::official::{AxisTap, COEF_BITS, INTER_BITS, round_sum};
+
+/// Fractional bits of OpenCV's source positions (`INTER_BITS`): a tap's fraction is in
+/// 1/32 pixel.
+pub(crate) const INTER_BITS: u32 = 5;
+/// Fractional bits of the bilinear weights (`INTER_REMAP_COEF_BITS`): a pixel's four
+/// weights sum to 2^15.
+pub(crate) const COEF_BITS: u32 = 15;
+
+/// One axis's tap of a crop column or row: the first image column or row it reads and
+/// the fraction past it, in 1/32 pixel.
+pub(crate) type AxisTap = (i32, u32);
+
+/// OpenCV's rounding of a pixel's tap sum (in units of 2^-15) to a byte.
+#[inline(always)]
+pub(crate) fn round_sum(sum: u32) -> u8 {
+    ((sum + (1 << (COEF_BITS - 1))) >> COEF_BITS).min(255) as u8
+}
 
 /// RGB crop pixels from their columns' blended pairs: byte `k` of column `i` (of
 /// `columns`, image column `x` and weight `fx` in 1/32) is `round_sum(((32 - fx) lo +
@@ -61,7 +77,7 @@ pub(crate) fn blend_rgb_columns_scalar(out: &mut [u8], pairs: &[u32], columns: &
 /// of `columns`, a multiple of eight), in AVX2: each lane gathers its column's pair of
 /// vertically blended values (`pairs[3 x + k]`, the left tap's and the right tap's) and
 /// multiplies and adds them with `(32 - fx, fx)` in one step, then rounds as
-/// [`round_sum`](crate::crop::official) does (`(s 32 + 2^14) >> 15` is `(s + 512) >> 10`). The same integers.
+/// [`round_sum`] does (`(s 32 + 2^14) >> 15` is `(s + 512) >> 10`). The same integers.
 ///
 /// # Safety
 ///

@@ -46,22 +46,28 @@
 use crate::crop::official::{
     LandmarkExtent, affine_transform, box_crop, official_box, warp_mask_in,
 };
+use crate::crop::rules::{MaskRule, UvLayout};
 use crate::crop::{CropTransform, RuleSet};
 use crate::lanes;
 use crate::lanes::jitter::UNIT;
 use crate::loader::colour_jitter::jitter_colour;
+use crate::loader::official_uv::{OfficialUvLayout, official_organ_triangles};
 use crate::mesh::topology::FaceTopology;
-use crate::render::face::{FaceRenderer, UvMapper, UvTexels, WindowMask, sample_points};
+use crate::render::face::{FaceRenderer, WindowMask, sample_points};
+use crate::render::uv_map::{UvMapper, UvTexels};
 use crate::store::crop_store::{CropStore, StoredCrop, StoredRecord, WindowPart};
 use crate::store::dataset::Dataset;
 use crate::store::face_targets::{canonical_position, mask_pixel_indices};
 use arkit_core::Rng;
 use arkit_core::SampleKey;
+use arkit_core::VisibilityBuffer;
 use arkit_core::conventions::{Camera, Pose};
 use arkit_core::{Error, Result};
-use arkit_core::{ScreenVertex, VisibilityBuffer};
 use nalgebra::Point3;
 use std::path::{Path, PathBuf};
+
+mod exact_item;
+mod official_item;
 
 /// Training (random box jitter and colour jitter) or evaluation (neither).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -298,286 +304,6 @@ impl PixelSource {
     }
 }
 
-/// The release's UV layout: `tris_2500x3_202110.npy` and the 1,279 rows of
-/// `uv_coords_std_202109.npy`.
-pub(crate) type ReleaseUvLayout = (Vec<[u32; 3]>, Vec<[f32; 2]>);
-
-/// Texels of an [`OfficialUvLayout`] next to each other that one UV triangle covers:
-/// texels `start..start + len`, whose weights are `first..first + len` of the layout's
-/// weight planes.
-#[derive(Clone, Copy, Debug)]
-pub(crate) struct TexelRun {
-    /// Row-major index in the map of the run's first texel.
-    pub(crate) start: u32,
-    pub(crate) len: u32,
-    /// Where the run's weights begin in the weight planes.
-    pub(crate) first: u32,
-    /// The triangle's corners (extended vertex indices).
-    pub(crate) corners: [u32; 3],
-}
-
-/// The official UV layout rasterized once for one map size: per texel the UV triangle
-/// and its screen-space weights, by the official rasterizer's rules at `uv * (S - 1)`.
-#[derive(Clone, Debug)]
-pub(crate) struct OfficialUvLayout {
-    size: u32,
-    /// The texels a triangle covers, in texel order, as runs of one triangle's texels.
-    covered: Vec<TexelRun>,
-    /// The official rasterizer's weights of each covered texel's corners (weight `k` of
-    /// the covered texels in order in plane `k`).
-    weights: [Vec<f32>; 3],
-    /// The runs of texels no triangle covers (texel indices), in order.
-    uncovered: Vec<std::ops::Range<usize>>,
-    ring_of: Vec<u32>,
-    centroid_loops: Vec<Vec<u32>>,
-    extended: usize,
-}
-
-impl OfficialUvLayout {
-    /// The layout of `uv` (its UV coordinates, triangles, ring and hole loops) drawn at
-    /// `size` by the official rasterizer's rules at `uv * (S - 1)`; with `release` (the
-    /// release's `tris_2500x3_202110.npy` and the 1,279 rows of
-    /// `uv_coords_std_202109.npy`) the release's own triangles and vertex order instead
-    /// ([`OfficialUvLayout::release_order`]).
-    pub fn new(
-        uv: &UvMapper,
-        release: Option<ReleaseUvLayout>,
-        vertex_count: usize,
-        size: u32,
-    ) -> Result<Self> {
-        let (coords, triangles, ring_of, centroid_loops) = match release {
-            Some((tris, coords)) => {
-                let (ring_of, loops) = Self::release_order(&tris, vertex_count, coords.len())?;
-                (coords, tris, ring_of, loops)
-            }
-            None => (
-                uv.uv.clone(),
-                uv.triangles.clone(),
-                uv.ring_of.clone(),
-                uv.centroid_loops.clone(),
-            ),
-        };
-        if let Some(t) = triangles
-            .iter()
-            .flatten()
-            .find(|&&v| v as usize >= coords.len())
-        {
-            return Err(Error::invalid(
-                "UV triangles",
-                format!("vertex {t} beyond the {} UV vertices", coords.len()),
-            ));
-        }
-        let vb = Self::raster(&coords, &triangles, size)?;
-        let mut covered: Vec<TexelRun> = Vec::new();
-        let mut weights: [Vec<f32>; 3] = Default::default();
-        let mut uncovered: Vec<std::ops::Range<usize>> = Vec::new();
-        for (texel, (&t, &wt)) in vb.triangle.iter().zip(&vb.bary).enumerate() {
-            if t == VisibilityBuffer::EMPTY {
-                match uncovered.last_mut() {
-                    Some(run) if run.end == texel => run.end += 1,
-                    _ => uncovered.push(texel..texel + 1),
-                }
-                continue;
-            }
-            // A texel continues the last run when it is the next texel and its triangle
-            // has the run's corners (the values depend on the corners, not the index).
-            let (texel, corners) = (texel as u32, triangles[t as usize]);
-            match covered.last_mut() {
-                Some(run) if run.corners == corners && run.start + run.len == texel => run.len += 1,
-                _ => covered.push(TexelRun {
-                    start: texel,
-                    len: 1,
-                    first: weights[0].len() as u32,
-                    corners,
-                }),
-            }
-            for (plane, w) in weights.iter_mut().zip(wt) {
-                plane.push(w);
-            }
-        }
-        Ok(OfficialUvLayout {
-            size,
-            covered,
-            weights,
-            uncovered,
-            ring_of,
-            centroid_loops,
-            extended: coords.len(),
-        })
-    }
-
-    /// The UV triangles drawn by the official rasterizer's rules at `uv * (size - 1)`
-    /// into a `size x size` buffer: each texel's triangle and weights.
-    fn raster(coords: &[[f32; 2]], triangles: &[[u32; 3]], size: u32) -> Result<VisibilityBuffer> {
-        let s = (size - 1) as f32;
-        let screen: Vec<ScreenVertex> = coords
-            .iter()
-            .map(|t| ScreenVertex {
-                x: t[0] * s,
-                y: t[1] * s,
-                inv_w: 1.0,
-            })
-            .collect();
-        let mut vb = VisibilityBuffer::new(size, size);
-        arkit_core::rasterize_mesh_official(&mut vb, &screen, triangles)
-            .map_err(|e| Error::invalid("UV triangles", e.to_string()))?;
-        Ok(vb)
-    }
-
-    /// The release's extended vertices, read off its UV triangles: after the mesh
-    /// triangles come, for ring vertex `V + k`, the pair `[c_k, V+k+1, V+k]`,
-    /// `[c_k, c_k+1, V+k+1]` (so `c_k`, the first column of every other ring triangle,
-    /// is the contour vertex the official loader scales by 1.1 for row `V + k`), then a
-    /// fan `[l_i, centre, l_i+1]` around each hole centroid (the last three rows), whose
-    /// first column is the hole's loop in the official order.
-    pub(crate) fn release_order(
-        tris: &[[u32; 3]],
-        vertex_count: usize,
-        rows: usize,
-    ) -> Result<(Vec<u32>, Vec<Vec<u32>>)> {
-        let v = vertex_count as u32;
-        let bad = |why: &str| Error::invalid("tris_2500x3_202110.npy", why.to_string());
-        if rows < vertex_count + 3 {
-            return Err(bad("fewer UV rows than the mesh and three hole centroids"));
-        }
-        let centres: Vec<u32> = (rows as u32 - 3..rows as u32).collect();
-        let first_extra = tris
-            .iter()
-            .position(|t| t.iter().any(|&x| x >= v))
-            .ok_or_else(|| bad("no triangle beyond the mesh"))?;
-        let extra = &tris[first_extra..];
-        let ring: Vec<&[u32; 3]> = extra
-            .iter()
-            .filter(|t| !t.iter().any(|x| centres.contains(x)))
-            .collect();
-        let ring_of: Vec<u32> = ring.iter().step_by(2).map(|t| t[0]).collect();
-        if ring_of.len() != rows - vertex_count - 3 || ring_of.iter().any(|&c| c >= v) {
-            return Err(bad(
-                "the ring triangles do not pair one contour vertex per ring row",
-            ));
-        }
-        let loops = centres
-            .iter()
-            .map(|&c| {
-                let fan: Vec<u32> = extra.iter().filter(|t| t[1] == c).map(|t| t[0]).collect();
-                if fan.len() < 3 || fan.iter().any(|&x| x >= v) {
-                    return Err(bad("a hole centroid without its fan"));
-                }
-                Ok(fan)
-            })
-            .collect::<Result<Vec<_>>>()?;
-        Ok((ring_of, loops))
-    }
-
-    /// The side, in texels, of the maps [`OfficialUvLayout::uv_map_into`] draws.
-    pub fn size(&self) -> u32 {
-        self.size
-    }
-
-    /// The official UV map of `verts` (metres), channels first, in [-1, 1], into `out`:
-    /// the positions mapped by `4.5 v + 0.5`, the ring at 1.1 times its contour vertex
-    /// in that space, the hole centroids their loops' means, interpolated with the
-    /// layout's weights, clipped to [0, 1] and mapped by `2 x - 1`; every value written
-    /// (`-1` where uncovered), in one pass.
-    ///
-    /// # Panics
-    /// When `out` is not `3 x size x size` values.
-    pub(crate) fn uv_map_into(&self, verts: &[Point3<f32>], out: &mut [f32]) {
-        let colors = self.colours(verts);
-        let planes = self.planes_uncovered_filled(out);
-        lanes::uv::covered(&self.covered, &self.weights, &colors, planes);
-    }
-
-    /// `out`'s three planes (`3 x size x size` values, channels first), with `-1` written
-    /// at every uncovered texel.
-    fn planes_uncovered_filled<'a>(&self, out: &'a mut [f32]) -> [&'a mut [f32]; 3] {
-        let n = (self.size * self.size) as usize;
-        assert_eq!(out.len(), 3 * n, "a 3 x size x size map");
-        let (u, rest) = out.split_at_mut(n);
-        let (v, w) = rest.split_at_mut(n);
-        for run in &self.uncovered {
-            for plane in [&mut *u, &mut *v, &mut *w] {
-                plane[run.clone()].fill(-1.0);
-            }
-        }
-        [u, v, w]
-    }
-
-    /// The official colours of the extended vertices: the positions mapped by
-    /// `4.5 v + 0.5`, then the ring's and the hole centroids'.
-    fn colours(&self, verts: &[Point3<f32>]) -> Vec<[f32; 3]> {
-        let mut colors: Vec<[f32; 3]> = verts
-            .iter()
-            .map(|p| [p.x * 4.5 + 0.5, p.y * 4.5 + 0.5, p.z * 4.5 + 0.5])
-            .collect();
-        for &c in &self.ring_of {
-            let v = colors[c as usize];
-            colors.push([v[0] * 1.1, v[1] * 1.1, v[2] * 1.1]);
-        }
-        for l in &self.centroid_loops {
-            // numpy's float32 mean over axis 0: a running float32 sum, then / n.
-            let mut sum = [0f32; 3];
-            for &i in l {
-                for (s, v) in sum.iter_mut().zip(colors[i as usize]) {
-                    *s += v;
-                }
-            }
-            colors.push(sum.map(|s| s / l.len() as f32));
-        }
-        debug_assert_eq!(colors.len(), self.extended);
-        colors
-    }
-}
-
-/// The official loader's eye and mouth triangles (`vert_index[face_em]` of its
-/// `lib/eyemouth_index.py`), which it draws after the mesh, with attribute 0, into the
-/// full-resolution mask (`arkit_dataset.py:146-151`). `loops` are the two eyes' and the
-/// mouth's boundary loops in that order and in the official direction (the release's
-/// hole fans list them so, `OfficialUvLayout::release_order`); `uv` the topology's UV
-/// coordinates. Each loop starts at its vertex of smallest `u` (an eye or mouth corner)
-/// and is closed by a strip between its two ends: `[0, 1, n-1]`, then alternately `[a,
-/// a+1, b]` and `[a, b, b-1]`. The official list departs from that pattern in the vertex
-/// order of three triangles (each eye's third is `[2, n-2, n-1]`, the mouth's last
-/// `[17, 19, 18]`); the order changes the float32 rounding of the depth, so it is kept.
-/// With the release's files this gives the official 78 triangles exactly (checked beside
-/// the official code).
-pub fn official_organ_triangles(loops: [&[u32]; 3], uv: &[[f32; 2]]) -> Vec<[u32; 3]> {
-    let mut out = Vec::new();
-    for (k, lp) in loops.into_iter().enumerate() {
-        let n = lp.len();
-        if n < 3 {
-            continue;
-        }
-        // numpy's argmin: the first smallest.
-        let start = (0..n).fold(0, |best, i| {
-            if uv[lp[i] as usize][0] < uv[lp[best] as usize][0] {
-                i
-            } else {
-                best
-            }
-        });
-        let at = |i: usize| lp[(start + i) % n];
-        let mut local = vec![[0, 1, n - 1]];
-        let (mut a, mut b, mut step_a) = (1, n - 1, true);
-        while local.len() < n - 2 {
-            if step_a {
-                local.push([a, a + 1, b]);
-                a += 1;
-            } else {
-                local.push([a, b, b - 1]);
-                b -= 1;
-            }
-            step_a = !step_a;
-        }
-        let odd = if k < 2 { 2 } else { local.len() - 1 };
-        if let Some(t) = local.get_mut(odd) {
-            t.swap(1, 2);
-        }
-        out.extend(local.into_iter().map(|t| t.map(at)));
-    }
-    out
-}
-
 /// Python's `range(len)[start:stop]` for a step of 1: the clipped, wrapped bounds.
 fn python_slice(start: i64, stop: i64, len: i64) -> std::ops::Range<i64> {
     let fix = |i: i64| {
@@ -727,14 +453,11 @@ impl FaceLoader {
             OfficialUvLayout::new(&uv, release_uv, topology.vertex_count, options.img_size)?;
         // The official loader reads the projection matrix as float32
         // (`np.loadtxt(..., dtype=np.float32)`): its screen positions follow those values.
-        let projection = match options.rules {
-            RuleSet::Exact => Camera::release_projection(),
-            RuleSet::Official => Camera::release_projection().map(|x| x as f32 as f64),
-        };
+        let rules = options.rules.book();
+        let projection = rules.projection(Camera::release_projection());
         let topology_uv = topology.uv.clone();
-        let mut renderer = FaceRenderer::new(topology, projection)?;
-        renderer.rules = options.rules;
-        if options.rules == RuleSet::Official {
+        let mut renderer = FaceRenderer::new(topology, projection)?.with_rules(options.rules);
+        if rules.mask() == MaskRule::WarpedFromImage {
             // The holes as the official mask closes them. The layout's loops are the
             // mouth's and the two eyes'; the official list has the eyes first.
             let l = &official_uv.centroid_loops;
@@ -782,16 +505,16 @@ impl FaceLoader {
 
     /// [`FaceLoader::open_crop_store`] for a dataset opened from a bucket: the store's
     /// manifest read from `dir` (its mirror), its part files by ranged GETs from
-    /// `remote` at `relative` (`crops/official-192`); see [`CropStore::open_remote`].
+    /// `remote` at `relative` (`crops/official-192`); see
+    /// [`RemoteDataset::open_crop_store`](crate::storage::RemoteDataset::open_crop_store).
     pub fn open_remote_crop_store(
         &mut self,
         dir: &Path,
         remote: &crate::storage::RemoteDataset,
         relative: &str,
     ) -> Result<()> {
-        self.store = Some(CropStore::open_remote(
+        self.store = Some(remote.open_crop_store(
             dir,
-            remote,
             relative,
             &self.dataset,
             self.options.rules,
@@ -1000,24 +723,13 @@ impl FaceLoader {
     /// The evaluation crop of these landmarks under the loader's rules: ours, or the
     /// official integer box (an error when that box is empty).
     fn eval_crop(&self, row: &IndexRow, landmarks: &[(f64, f64)]) -> Result<CropTransform> {
-        let s = self.options.img_size;
-        match self.options.rules {
-            RuleSet::Exact => Ok(CropTransform::around_landmarks(
-                &flat_landmarks(landmarks),
-                s,
-            )),
-            RuleSet::Official => {
-                let [l, t, r, b] =
-                    official_box(LandmarkExtent::of(landmarks.iter().copied()), None);
-                if r <= l || b <= t {
-                    return Err(Error::invalid(
-                        "official box",
-                        format!("{}: the box {:?} is empty", row.sample.key, [l, t, r, b]),
-                    ));
-                }
-                Ok(box_crop(l, t, r, b, s))
-            }
-        }
+        let rules = self.options.rules;
+        rules
+            .book()
+            .crop_around(landmarks, self.options.img_size)
+            .map_err(|why| {
+                Error::invalid(format!("{rules} box"), format!("{}: {why}", row.sample.key))
+            })
     }
 
     /// Samples served.
@@ -1126,9 +838,9 @@ impl FaceLoader {
 
     /// The side, in texels, of an item's `uvmap` (`S` under both rule sets).
     pub fn uvmap_size(&self) -> u32 {
-        match self.options.rules {
-            RuleSet::Exact => self.options.img_size,
-            RuleSet::Official => self.official_uv.size(),
+        match self.options.rules.book().uv_layout() {
+            UvLayout::TexelCentres => self.options.img_size,
+            UvLayout::Official => self.official_uv.size(),
         }
     }
 
@@ -1163,11 +875,11 @@ impl FaceLoader {
         let mut rng = Rng::for_stream(self.options.seed, stream);
         let landmarks = self.landmarks(row, &verts, &pose)?;
         let train = self.options.mode == LoaderMode::Train;
-        let mut item = match self.options.rules {
-            RuleSet::Exact => self.exact(
+        let mut item = match self.options.rules.book().mask() {
+            MaskRule::Crop => self.exact(
                 row, &verts, &pose, &source, &landmarks, train, &mut rng, planes,
             )?,
-            RuleSet::Official => self.official(
+            MaskRule::WarpedFromImage => self.official(
                 row, &verts, &pose, &source, &landmarks, train, &mut rng, planes,
             )?,
         };
@@ -1190,135 +902,6 @@ impl FaceLoader {
         }
     }
 
-    #[allow(clippy::too_many_arguments)]
-    fn exact(
-        &self,
-        row: &IndexRow,
-        verts: &[Point3<f32>],
-        pose: &Pose,
-        source: &PixelSource,
-        landmarks: &[(f64, f64)],
-        train: bool,
-        rng: &mut Rng,
-        mut planes: Planes<'_>,
-    ) -> Result<LoaderItem> {
-        let s = self.options.img_size;
-        let mut crop = CropTransform::around_landmarks(&flat_landmarks(landmarks), s);
-        if train {
-            // The landmarks' box size is 2/3 of the crop's side (half-side 0.75 size).
-            let size = crop.side / 1.5;
-            let (dx, dy, scale) = Self::draw_jitter(rng, size);
-            let (cx, cy) = (
-                crop.x0 + crop.side / 2.0 + dx,
-                crop.y0 + crop.side / 2.0 + dy,
-            );
-            let side = crop.side * scale;
-            crop = CropTransform {
-                x0: cx - side / 2.0,
-                y0: cy - side / 2.0,
-                side,
-                side_y: side,
-                size: s,
-                rules: RuleSet::Exact,
-            };
-        }
-        let mut buffer = self.take_buffer();
-        // The mask, then the correspondences at the sampled points only (the raster
-        // leaves the weights out): `render`'s targets there, bit for bit.
-        let t = self.renderer.render_visibility(
-            verts,
-            pose,
-            row.sample.image_width,
-            row.sample.image_height,
-            &crop,
-            &mut buffer,
-        )?;
-        let pixels = mask_pixel_indices(&t.mask);
-        if pixels.is_empty() {
-            return Err(Error::invalid(
-                "crop",
-                format!("no face pixel in the crop of {}", row.sample.key),
-            ));
-        }
-        let chosen = sample_points(pixels.len(), self.options.n_pts, rng.next_u64());
-        // A plain loop: collected through `Result`, the iterator's adapters were calls
-        // of their own per point.
-        let mut correspondences = Vec::with_capacity(chosen.len());
-        for &c in &chosen {
-            let Some(found) = t.correspondence_at(pixels[c as usize]) else {
-                return Err(Error::invalid(
-                    "crop",
-                    format!("a mask pixel of {} has no triangle", row.sample.key),
-                ));
-            };
-            correspondences.push(found);
-        }
-        let mut rgb = source.crop(&crop, train, &row.sample.key)?;
-        if train {
-            jitter_colour(&mut rgb, rng);
-        }
-        let extended = self.uv.extended_positions(verts);
-        let n = (s * s) as usize;
-        // Positions times 9 clamped to [-1, 1], uncovered texels -1.
-        let uvmap = planes.uvmap(3 * n, |uvmap| {
-            self.uv_texels.clamped_planes_into(&extended, 9.0, uvmap)
-        });
-        Ok(LoaderItem {
-            key: row.sample.key.clone(),
-            image_path: self.image_path(row),
-            img: planes.img(&rgb),
-            choose: chosen.iter().map(|&c| pixels[c as usize] as i64).collect(),
-            model: Vec::new(),
-            uvmap,
-            nocs: correspondences
-                .iter()
-                .flat_map(|&(v, w)| {
-                    let p = canonical_position(verts, v, w);
-                    [p.x * 4.5, p.y * 4.5, p.z * 4.5]
-                })
-                .collect(),
-            mask: t.mask.iter().map(|&m| m as u8).collect(),
-            corr_vertices: correspondences
-                .iter()
-                .map(|(v, _)| v.map(|v| v as u32))
-                .collect(),
-            corr_weights: correspondences.iter().map(|&(_, w)| w).collect(),
-            tform_inv: tform_inv(&crop),
-            rt: row.sample.rt,
-            crop,
-            official_box: None,
-            choose_box: Vec::new(),
-            box_clipped: false,
-        })
-    }
-
-    #[allow(clippy::too_many_arguments)]
-    fn official(
-        &self,
-        row: &IndexRow,
-        verts: &[Point3<f32>],
-        pose: &Pose,
-        source: &PixelSource,
-        landmarks: &[(f64, f64)],
-        train: bool,
-        rng: &mut Rng,
-        planes: Planes<'_>,
-    ) -> Result<LoaderItem> {
-        let mut buffer = self.take_buffer();
-        // Only the window of the image the face can cover is rasterized and kept: the
-        // slice, the lookups and the warp below read through it.
-        let face = self.renderer.render_window_mask(
-            verts,
-            pose,
-            row.sample.image_width,
-            row.sample.image_height,
-            &mut buffer,
-        )?;
-        self.official_from(
-            row, verts, source, landmarks, train, rng, &buffer, &face, planes,
-        )
-    }
-
     /// A visibility buffer from the loader's pool (or a new one), given back when
     /// dropped: items reuse its allocation instead of allocating and zeroing one each.
     fn take_buffer(&self) -> KeptBuffer<'_> {
@@ -1328,175 +911,6 @@ impl FaceLoader {
             buffer: kept.unwrap_or_else(|| VisibilityBuffer::new(1, 1)),
         }
     }
-
-    /// An item by the official loader's rules. Long (over 150 lines) on purpose: it
-    /// follows `ARKitDataset.get_item` step by step, in its order, so that the two can
-    /// be read side by side; each step calls a function of its own.
-    #[allow(clippy::too_many_arguments)]
-    fn official_from(
-        &self,
-        row: &IndexRow,
-        verts: &[Point3<f32>],
-        source: &PixelSource,
-        landmarks: &[(f64, f64)],
-        train: bool,
-        rng: &mut Rng,
-        buffer: &VisibilityBuffer,
-        face: &WindowMask,
-        mut planes: Planes<'_>,
-    ) -> Result<LoaderItem> {
-        let s = self.options.img_size;
-        let (w, h) = (
-            row.sample.image_width as i64,
-            row.sample.image_height as i64,
-        );
-        let extent = LandmarkExtent::of(landmarks.iter().copied());
-        let box_of = |jitter| official_box(extent, jitter).map(|v| v as i64);
-        // The face pixels of the official slice of the full mask, or why there are none.
-        let choose_in = |b: [i64; 4]| -> std::result::Result<(Vec<i64>, i64, i64, i64), String> {
-            let [left, top, right, bottom] = b;
-            if right <= left || bottom <= top {
-                return Err(format!("the official box {b:?} is empty"));
-            }
-            let rows = python_slice(top, bottom + 1, h);
-            let cols = python_slice(left, right + 1, w);
-            let width = cols.end - cols.start;
-            let nz = face.face_offsets(rows.clone(), cols.clone());
-            if nz.is_empty() {
-                return Err(format!(
-                    "the official box {b:?} (left, top, right, bottom) of a {w}x{h} image holds no face pixel of mask[top:bottom+1, left:right+1]{}: the official loader raises on this sample and trains on a random other one",
-                    if top < 0 || left < 0 {
-                        " (a negative start indexes from the end in Python)"
-                    } else {
-                        ""
-                    }
-                ));
-            }
-            Ok((nz, rows.start, cols.start, width))
-        };
-        let mut chosen_box = box_of(None);
-        let mut found = None;
-        if train {
-            for _ in 0..JITTER_DRAWS {
-                let b = box_of(Some(Self::draw_jitter(rng, extent.size)));
-                if let Ok(c) = choose_in(b) {
-                    chosen_box = b;
-                    found = Some(c);
-                    break;
-                }
-            }
-        }
-        let (nz, row0, col0, slice_w) = match found {
-            Some(c) => c,
-            None => choose_in(chosen_box).map_err(|why| {
-                Error::invalid("official box", format!("{}: {why}", row.sample.key))
-            })?,
-        };
-        let [left, top, right, bottom] = chosen_box;
-        let crop = box_crop(left as f64, top as f64, right as f64, bottom as f64, s);
-        let picks = sample_points(nz.len(), self.options.n_pts, rng.next_u64());
-        let choose_box: Vec<i64> = picks.iter().map(|&p| nz[p as usize]).collect();
-        // The official mapping: columns of the unclipped box width, then the affine map
-        // cv2.getAffineTransform solves (its bits, see `official_crop::affine_transform`).
-        let crop_w = right - left + 1;
-        let (l, t, r, b) = (left as f32, top as f32, right as f32, bottom as f32);
-        let last = (s - 1) as f32;
-        let corners = [[0.0, 0.0], [0.0, last], [last, 0.0]];
-        let box_corners = [[l, t], [l, b], [r, t]];
-        let singular = || {
-            Error::invalid(
-                "official box",
-                format!("{}: the box {chosen_box:?} is degenerate", row.sample.key),
-            )
-        };
-        let tform = affine_transform(box_corners, corners).ok_or_else(singular)?;
-        let tform_inv = affine_transform(corners, box_corners).ok_or_else(singular)?;
-        let n = (s * s) as i64;
-        let n_mesh = self.renderer.topology().triangles.len() as u32;
-        let triangles = &self.renderer.topology().triangles;
-        let mut choose = Vec::with_capacity(choose_box.len());
-        let mut nocs = Vec::with_capacity(3 * choose_box.len());
-        let mut corr_vertices = Vec::with_capacity(choose_box.len());
-        let mut corr_weights = Vec::with_capacity(choose_box.len());
-        for &cb in &choose_box {
-            let col = (cb % crop_w + left) as f64;
-            let rw = (cb / crop_w + top) as f64;
-            // numpy's `point2d @ W + b`.
-            let px = (col * tform[0] + rw * tform[1]) + tform[2];
-            let py = (col * tform[3] + rw * tform[4]) + tform[5];
-            let k = py.floor() as i64 * s as i64 + px.floor() as i64;
-            choose.push(k);
-            // The full-resolution pixel the slice index names.
-            let (y, x) = (row0 + cb / slice_w, col0 + cb % slice_w);
-            let i = face
-                .window
-                .index(x, y)
-                .expect("a face pixel is in the window");
-            let t = buffer.triangle[i];
-            debug_assert!(t < n_mesh);
-            let tri = triangles[t as usize];
-            let wt = face.official_weights(tri, x, y);
-            let attr = tri.map(|v| {
-                let p = verts[v as usize];
-                [p.x, p.y, p.z].map(|q| ((q as f64 * 4.5 + 0.5) * 255.0) as f32)
-            });
-            let [a0, a1, a2] = attr;
-            for ((x0, x1), x2) in a0.iter().zip(a1).zip(a2) {
-                let v = wt[0] * x0 + wt[1] * x1 + wt[2] * x2;
-                nocs.push(v / 255.0 - 0.5);
-            }
-            corr_vertices.push(tri);
-            corr_weights.push(wt);
-        }
-        // The official rule for points mapped outside the crop (only where the box leaves
-        // the image and the slice is clipped or wrapped): every index past the end becomes
-        // one random pixel, every negative index another (arkit_dataset.py:226-230).
-        let replaced = choose.iter().any(|k| !(0..n).contains(k));
-        if replaced {
-            let (high, low) = (rng.below(n as u64) as i64, rng.below(n as u64) as i64);
-            for k in &mut choose {
-                if *k >= n {
-                    *k = high;
-                } else if *k < 0 {
-                    *k = low;
-                }
-            }
-        }
-        let mut rgb = source.crop(&crop, train, &row.sample.key)?;
-        if train {
-            jitter_colour(&mut rgb, rng);
-        }
-        let mask = warp_mask_in(&crop, face.window, &face.mask);
-        let box_clipped = left < 0 || top < 0 || right >= w || bottom >= h || replaced;
-        Ok(LoaderItem {
-            key: row.sample.key.clone(),
-            image_path: self.image_path(row),
-            img: planes.img(&rgb),
-            choose,
-            model: Vec::new(),
-            uvmap: planes.uvmap(3 * (self.uvmap_size() as usize).pow(2), |out| {
-                self.official_uv.uv_map_into(verts, out)
-            }),
-            nocs,
-            mask: mask.iter().map(|&m| m as u8).collect(),
-            corr_vertices,
-            corr_weights,
-            tform_inv,
-            rt: row.sample.rt,
-            crop,
-            official_box: Some(chosen_box),
-            choose_box,
-            box_clipped,
-        })
-    }
-}
-
-/// Landmarks `(u, v)` as the flat `[u0, v0, u1, v1, ...]` float32 list the crop takes.
-fn flat_landmarks(landmarks: &[(f64, f64)]) -> Vec<f32> {
-    landmarks
-        .iter()
-        .flat_map(|&(u, v)| [u as f32, v as f32])
-        .collect()
 }
 
 /// The release's UV triangles (`tris_2500x3_202110.npy`) from a resources folder, when
@@ -1730,5 +1144,115 @@ mod tests {
         };
         assert!(o.validate().unwrap_err().to_string().contains("n_pts"));
         assert!(RuleSet::parse("opencv").is_err() && LoaderMode::parse("test").is_err());
+    }
+
+    #[test]
+    fn a_third_rule_set_cuts_renders_and_loads() {
+        use crate::ingest::synth::{self, FaceSource, SynthOptions};
+        use crate::ingest::{self, ConvertOptions, ValidationContext};
+
+        // A synthetic release of four 256x256 images, converted.
+        let tmp = tempfile::tempdir().unwrap();
+        let (release, data) = (tmp.path().join("release"), tmp.path().join("pq"));
+        let options = SynthOptions {
+            subjects: 2,
+            images_per_subject: 2,
+            width: 256,
+            height: 256,
+            ..SynthOptions::default()
+        };
+        synth::generate(&FaceSource::builtin(), &options, &release, &|| {}).unwrap();
+        let topology = crate::mesh::builtin().topology.clone();
+        let context = ValidationContext {
+            projection: Camera::release_projection(),
+            topology: topology.clone(),
+            embed_images: false,
+        };
+        let convert = ConvertOptions {
+            input: release,
+            output: data.clone(),
+            resources: None,
+            rows_per_shard: 4,
+            embed_images: false,
+            shard_index: 0,
+            shard_count: 1,
+            overwrite: false,
+        };
+        ingest::convert(&convert, &context, &|_| {}).unwrap();
+        let dataset = Dataset::open(&data).unwrap();
+        let ours_renderer =
+            FaceRenderer::new(topology.clone(), Camera::release_projection()).unwrap();
+        let probe_renderer = ours_renderer.clone().with_rules(RuleSet::Probe);
+        let as_ours = |c: &CropTransform| CropTransform {
+            rules: RuleSet::Exact,
+            ..*c
+        };
+        let mut vb = VisibilityBuffer::new(1, 1);
+        for sample in dataset.read_all_samples().unwrap() {
+            let verts: Vec<Point3<f32>> = (sample.verts.chunks(3))
+                .map(|c| Point3::new(c[0], c[1], c[2]))
+                .collect();
+            let pose = Pose::from_release_rt(&sample.rt).unwrap();
+            let (w, h) = (sample.image_width, sample.image_height);
+            // The crop: ours widened about the same centre, following the probe's rules.
+            let ours = RuleSet::Exact
+                .crop_around_landmarks(&sample.landmarks_2d, 128)
+                .unwrap();
+            let probe =
+                (probe_renderer.crop_of(&verts, &pose, (w, h), &sample.landmarks_2d, 128)).unwrap();
+            assert_eq!(probe.rules, RuleSet::Probe);
+            assert!((probe.side - ours.side * crate::crop::probe::HALF_SIDE / 0.75).abs() < 1e-9);
+            let centre = |c: &CropTransform| (c.x0 + c.side / 2.0, c.y0 + c.side_y / 2.0);
+            let (a, b) = (centre(&ours), centre(&probe));
+            assert!((a.0 - b.0).abs() < 1e-9 && (a.1 - b.1).abs() < 1e-9);
+            // Its pixels are our resampling of its box.
+            let image = dataset.image(&sample).unwrap();
+            assert_eq!(probe.crop_image(&image), as_ours(&probe).crop_image(&image));
+            // Its targets are ours over its box; the wider box holds a smaller face.
+            let t = (probe_renderer.render(&verts, &pose, w, h, &probe, &mut vb)).unwrap();
+            let want =
+                (ours_renderer.render(&verts, &pose, w, h, &as_ours(&probe), &mut vb)).unwrap();
+            assert_eq!(
+                (&t.mask, &t.corr_vertices),
+                (&want.mask, &want.corr_vertices)
+            );
+            let narrower = (ours_renderer.render(&verts, &pose, w, h, &ours, &mut vb)).unwrap();
+            let face = |m: &[bool]| m.iter().filter(|&&m| m).count();
+            assert!(0 < face(&t.mask) && face(&t.mask) < face(&narrower.mask));
+        }
+        // The loader's items under the probe's rules: its box, and the render's mask there.
+        let open = |rules| {
+            let options = LoaderOptions {
+                split: None,
+                mode: LoaderMode::Eval,
+                rules,
+                img_size: 128,
+                n_pts: 64,
+                seed: 5,
+            };
+            FaceLoader::open(&data, topology.clone(), None, options).unwrap()
+        };
+        let (ours_loader, probe_loader) = (open(RuleSet::Exact), open(RuleSet::Probe));
+        assert_eq!(probe_loader.len(), 4);
+        for i in 0..probe_loader.len() {
+            let (ours, probe) = (
+                ours_loader.item(i, 0).unwrap(),
+                probe_loader.item(i, 0).unwrap(),
+            );
+            assert_eq!(probe.crop.rules, RuleSet::Probe);
+            assert!(
+                (probe.crop.side - ours.crop.side * crate::crop::probe::HALF_SIDE / 0.75).abs()
+                    < 1e-9
+            );
+            let verts = probe_loader.mesh(i).unwrap();
+            let pose = Pose::from_release_rt(&probe.rt).unwrap();
+            let t = ours_renderer
+                .render(&verts, &pose, 256, 256, &as_ours(&probe.crop), &mut vb)
+                .unwrap();
+            let mask: Vec<u8> = t.mask.iter().map(|&m| m as u8).collect();
+            assert_eq!(probe.mask, mask);
+            assert_eq!(probe.uvmap.len(), 3 * 128 * 128);
+            assert_ne!(probe.mask, ours.mask);
+        }
     }
 }

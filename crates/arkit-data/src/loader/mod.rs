@@ -15,6 +15,7 @@ pub(crate) mod colour_jitter;
 pub(crate) mod correspondence_matrix;
 pub(crate) mod crops_dataset;
 pub(crate) mod item;
+pub(crate) mod official_uv;
 
 pub use self::{
     colour_jitter::{ColourJitter, ColourJitterRanges, jitter_colour},
@@ -22,6 +23,7 @@ pub use self::{
     crops_dataset::{CropStoreSummary, write_crop_store, write_crop_store_with},
     item::{
         FaceLoader, IMAGENET_MEAN, IMAGENET_STD, ItemPlanes, LoaderItem, LoaderMode, LoaderOptions,
-        normalise, official_organ_triangles, read_uv_triangles, tform_inv, widen_mask_into,
+        normalise, read_uv_triangles, tform_inv, widen_mask_into,
     },
+    official_uv::official_organ_triangles,
 };

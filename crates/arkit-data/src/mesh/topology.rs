@@ -42,7 +42,7 @@ pub struct FaceTopology {
     pub template: Option<Vec<Point3<f32>>>,
     /// UV rows beyond the mesh vertices, when the source has them: the release's
     /// `uv_coords_std_202109.npy` has 59 (the ring outside the contour, then the mouth
-    /// and eye centroids), which [`crate::render::face::UvMapper`] uses.
+    /// and eye centroids), which [`crate::render::uv_map::UvMapper`] uses.
     pub uv_extension: Vec<[f32; 2]>,
 }
 

@@ -17,8 +17,9 @@
 //! so a shard is finished when both files account for all of its samples. Readers
 //! ([`crate::store::targets_table::read_skipped_keys`]) skip those samples.
 
-use crate::crop::{CropTransform, RuleSet};
-use crate::render::face::{FaceRenderer, UvMapper, sample_points};
+use crate::crop::RuleSet;
+use crate::render::face::{FaceRenderer, sample_points};
+use crate::render::uv_map::UvMapper;
 use crate::store::manifest::dataset_fingerprint;
 use crate::store::parquet;
 use crate::store::samples_table::{self, ErrorRecord};
@@ -313,7 +314,7 @@ fn render(
         bytes,
         bytes_per_sample: bytes as f64 / (samples - skipped.count).max(1) as f64,
         distinct_meshes: distinct,
-        rules: renderer.rules,
+        rules: renderer.rules(),
         skipped: skipped.count,
         skipped_examples: skipped.examples,
     })
@@ -329,7 +330,7 @@ fn render_settings(
 ) -> serde_json::Value {
     serde_json::json!({
         "size": options.size, "uv_size": options.uv_size, "points": options.points, "seed": options.seed,
-        "mode": renderer.rules, "topology": renderer.topology().source, "full_mask": options.full_mask,
+        "mode": renderer.rules(), "topology": renderer.topology().source, "full_mask": options.full_mask,
         "dataset": dataset_fingerprint(manifest),
     })
 }
@@ -395,7 +396,7 @@ fn render_rows(
     renderer: &FaceRenderer,
     options: &RenderOptions,
     uv: &UvMapper,
-    uv_texels: &crate::render::face::UvTexels,
+    uv_texels: &crate::render::uv_map::UvTexels,
     offset: u64,
     progress: &(dyn Fn(usize) + Sync),
 ) -> (Vec<Result<TargetsRecord>>, usize) {
@@ -463,15 +464,16 @@ fn render_row(
         .map(|c| Point3::new(c[0], c[1], c[2]))
         .collect();
     let pose = Pose::from_release_rt(&r.rt)?;
-    let crop = match renderer.rules {
-        RuleSet::Exact => CropTransform::around_landmarks(&r.landmarks_2d, options.size),
-        RuleSet::Official => {
-            renderer.official_crop(&verts, &pose, r.image_width, r.image_height, options.size)?
-        }
-    };
+    let crop = renderer.crop_of(
+        &verts,
+        &pose,
+        (r.image_width, r.image_height),
+        &r.landmarks_2d,
+        options.size,
+    )?;
     let t = renderer.render(&verts, &pose, r.image_width, r.image_height, &crop, buffer)?;
     let points = sample_points(t.corr_vertices.len(), options.points, seed);
-    let full_mask = if options.full_mask && renderer.rules == RuleSet::Official {
+    let full_mask = if options.full_mask && renderer.renders_whole_image() {
         // The official pipeline rendered the whole image already.
         Some(renderer.face_pixels(buffer))
     } else if options.full_mask {

@@ -11,8 +11,10 @@
 
 pub(crate) mod dataset;
 pub(crate) mod face;
+pub(crate) mod uv_map;
 
 pub use self::{
     dataset::{RenderOptions, RenderSummary, render_dataset, render_dataset_replacing},
-    face::{FaceRenderer, ModeDifference, UvMapper, UvTexels, sample_points},
+    face::{FaceRenderer, ModeDifference, sample_points},
+    uv_map::{UvMapper, UvTexels},
 };

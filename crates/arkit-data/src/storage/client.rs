@@ -6,7 +6,7 @@
 
 use super::cache::RecordCache;
 use super::location::RemoteUrl;
-use super::read_at::ReadAt;
+use crate::store::ReadAt;
 use arkit_core::{Error, Result};
 use bytes::Bytes;
 use futures::StreamExt;
@@ -824,8 +824,26 @@ impl ReadAt for RemoteObject {
         RemoteObject::read_across(&wanted)
     }
 
-    fn as_remote(&self) -> Option<&RemoteObject> {
-        Some(self)
+    fn is_remote(&self) -> bool {
+        true
+    }
+
+    fn read_across(&self, wanted: &[(&dyn ReadAt, u64, u64)]) -> Result<Vec<Vec<u8>>> {
+        let objects: Option<Vec<(&RemoteObject, u64, u64)>> = wanted
+            .iter()
+            .map(|&(source, at, len)| {
+                (source as &dyn std::any::Any)
+                    .downcast_ref::<RemoteObject>()
+                    .map(|o| (o, at, len))
+            })
+            .collect();
+        match objects {
+            Some(objects) => RemoteObject::read_across(&objects),
+            None => Err(Error::invalid(
+                "crop store",
+                "a store of local and remote parts",
+            )),
+        }
     }
 
     fn forget(&self, offset: u64, len: u64) {

@@ -7,7 +7,10 @@ use super::cache::RecordCache;
 use super::client::{RemoteObject, RemoteStore};
 use super::location::RemoteUrl;
 use super::publication::{Publication, PublishedObject};
+use crate::crop::RuleSet;
+use crate::store::crop_store::CropStore;
 use crate::store::manifest::hex;
+use crate::store::{Dataset, ReadAt};
 use arkit_core::{Error, Result};
 use sha2::{Digest, Sha256};
 use std::path::{Path, PathBuf};
@@ -220,6 +223,28 @@ impl RemoteDataset {
         Ok(local)
     }
 
+    /// The crop store of this dataset at `relative` (the store's folder in the
+    /// dataset, `crops/official-192`), its manifest read from `dir` (its mirror,
+    /// [`RemoteDataset::mirror_file`]), its part files read by ranged GETs, each pinned to
+    /// the ETag it was published with: [`CropStore::open`]'s checks, for `dataset`,
+    /// crops of rule set `rules` and side `img_size`, meshes of `vertex_count`
+    /// vertices.
+    pub fn open_crop_store(
+        &self,
+        dir: &Path,
+        relative: &str,
+        dataset: &Dataset,
+        rules: RuleSet,
+        img_size: u32,
+        vertex_count: usize,
+    ) -> Result<CropStore> {
+        let relative = relative.trim_end_matches('/');
+        let open_part = |file: &str| -> Result<Box<dyn ReadAt>> {
+            Ok(Box::new(self.open_object(&format!("{relative}/{file}"))?))
+        };
+        CropStore::open_with(dir, &open_part, dataset, rules, img_size, vertex_count)
+    }
+
     /// Opens the object `relative` for ranged reads (one HEAD): its size must be the
     /// recorded one and its ETag, when the store gives them, the recorded one; reads are
     /// then pinned to that ETag.
@@ -230,7 +255,6 @@ impl RemoteDataset {
             .object(relative)
             .ok_or_else(|| Error::format(&shown, "not in the dataset's publication record"))?;
         let obj = RemoteObject::open(self.store.clone(), relative, self.cache.clone())?;
-        use super::read_at::ReadAt;
         if obj.len() != o.bytes {
             return Err(Error::format(
                 &shown,

@@ -23,17 +23,17 @@
 //! time-outs, a body shorter than asked), then fails with an error naming the bucket and
 //! the key. A missing object or refused credentials fail at once.
 //!
-//! Files: `location` (the URL and its redaction), `read_at` (the seam and the local
-//! file), `client` (the object-store client, one per process, safe under fork),
+//! The seam itself ([`ReadAt`], [`LocalFile`]) is the store's (`store::read_at`): the
+//! crop store reads through it without knowing of buckets. Files: `location` (the URL
+//! and its redaction), `client` (the object-store client, one per process, safe under fork),
 //! `cache` (the optional record cache with a size cap), `publication` (the record and
-//! `push`), `mirror` (a remote dataset opened).
+//! `push`), `mirror` (a remote dataset opened, its crop stores among it).
 
 mod cache;
 mod client;
 mod location;
 mod mirror;
 mod publication;
-mod read_at;
 
 pub use self::{
     cache::RecordCache,
@@ -41,5 +41,5 @@ pub use self::{
     location::{DatasetLocation, RemoteUrl},
     mirror::{MirrorSet, RemoteDataset, RemoteOptions, open_remote},
     publication::{PUBLICATION_FILE, Publication, PublishedObject, PushOptions, PushSummary, push},
-    read_at::{LocalFile, ReadAt},
 };
+pub use crate::store::{LocalFile, ReadAt};

@@ -4,12 +4,13 @@
 //! [`Manifest`], the tables' rows ([`read_samples`] to [`SampleRecord`],
 //! [`read_targets`] to [`TargetsRecord`], [`read_predictions`]), the split files
 //! ([`SplitLookup`]), the Parquet helpers the tables share ([`read_parquet`],
-//! [`write_parquet`]), and the crop store ([`crop_store`]). Guarantees: each shard is
-//! checked against its manifest (size and hash) before it is read; every column's type
-//! and every length is checked against the schema before it is used; writers write
-//! under a temporary name and rename; the crop store refuses a record of another
-//! dataset, shard, row or sample. Depends on `mesh`, `crop`, `picture` and
-//! `arkit_core`.
+//! [`write_parquet`]), the seam the crop store reads through ([`ReadAt`],
+//! [`LocalFile`]; `storage` implements it for objects in a bucket), and the crop store
+//! ([`crop_store`]). Guarantees: each shard is checked against its manifest (size and
+//! hash) before it is read; every column's type and every length is checked against the
+//! schema before it is used; writers write under a temporary name and rename; the crop
+//! store refuses a record of another dataset, shard, row or sample. Depends on `mesh`,
+//! `crop`, `picture` and `arkit_core`.
 
 // `pub mod`: the crop store is a room of its own (one door, its `mod.rs`); its names
 // (`read_manifest`, `FORMAT`, `margin`) are the store's and would clash with the dataset's.
@@ -19,6 +20,7 @@ pub(crate) mod face_targets;
 pub(crate) mod manifest;
 pub(crate) mod parquet;
 pub(crate) mod predictions_table;
+pub(crate) mod read_at;
 pub(crate) mod samples_table;
 pub(crate) mod splits;
 pub(crate) mod targets_table;
@@ -35,6 +37,7 @@ pub use self::{
         read_parquet, read_parquet_columns, str_values, write_parquet, write_parquet_with_metadata,
     },
     predictions_table::{predictions_frame, read_predictions, write_predictions},
+    read_at::{LocalFile, ReadAt},
     samples_table::{
         ColumnSpec, ERRORS_COLUMNS, ErrorRecord, SAMPLES_COLUMNS, SAMPLES_FORMAT, SampleRecord,
         huggingface_metadata, huggingface_shapes, polars_dtype, polars_dtype_with, read_errors,

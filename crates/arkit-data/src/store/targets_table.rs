@@ -453,7 +453,7 @@ mod tests {
         let topo = crate::mesh::synthetic_face::builtin().topology.clone();
         let verts = topo.template.clone().expect("template");
         let size = 96u32;
-        let map = crate::render::face::UvMapper::derive(&topo)
+        let map = crate::render::uv_map::UvMapper::derive(&topo)
             .unwrap()
             .position_map(&verts, size);
         let bits: Vec<u16> = map

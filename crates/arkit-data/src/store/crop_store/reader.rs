@@ -11,7 +11,7 @@ use super::manifest::{CropStoreManifest, read_manifest};
 use super::mesh_codec::max_mesh_bytes;
 use super::records::StoredRecord;
 use crate::crop::RuleSet;
-use crate::storage::{LocalFile, ReadAt, RemoteDataset};
+use crate::store::{LocalFile, ReadAt};
 use arkit_core::{Error, Result};
 use std::path::{Path, PathBuf};
 
@@ -254,27 +254,10 @@ impl CropStore {
         Self::open_with(dir, &open_part, dataset, rules, img_size, vertex_count)
     }
 
-    /// [`CropStore::open`] of a store in a bucket: its manifest read from `dir` (the
-    /// mirror of the store's folder, [`RemoteDataset::mirror_file`]), its part files read
-    /// by ranged GETs from `remote` at `relative` (the store's folder in the dataset,
-    /// `crops/official-192`), each pinned to the ETag it was published with.
-    pub fn open_remote(
-        dir: &Path,
-        remote: &RemoteDataset,
-        relative: &str,
-        dataset: &crate::store::dataset::Dataset,
-        rules: RuleSet,
-        img_size: u32,
-        vertex_count: usize,
-    ) -> Result<Self> {
-        let relative = relative.trim_end_matches('/');
-        let open_part = |file: &str| -> Result<Box<dyn ReadAt>> {
-            Ok(Box::new(remote.open_object(&format!("{relative}/{file}"))?))
-        };
-        Self::open_with(dir, &open_part, dataset, rules, img_size, vertex_count)
-    }
-
-    fn open_with(
+    /// [`CropStore::open`] with the part files opened by `open_part` (a file name in
+    /// the store's folder to its reader): local files, or objects in a bucket
+    /// (`RemoteDataset::open_crop_store`).
+    pub(crate) fn open_with(
         dir: &Path,
         open_part: &dyn Fn(&str) -> Result<Box<dyn ReadAt>>,
         dataset: &crate::store::dataset::Dataset,
@@ -434,19 +417,16 @@ impl CropStore {
         for (shard, items) in by_part {
             flat.extend(items.into_iter().map(|(i, at, len)| (shard, i, at, len)));
         }
-        let objects: Option<Vec<(&crate::storage::RemoteObject, u64, u64)>> = flat
+        let sources: Vec<(&dyn ReadAt, u64, u64)> = flat
             .iter()
             .map(|&(shard, _, at, len)| {
                 let part = self.files[shard].as_ref().expect("located");
-                part.file.as_remote().map(|o| (o, at, len))
+                (&*part.file, at, len)
             })
             .collect();
-        let fetched = match objects {
-            Some(objects) => crate::storage::RemoteObject::read_across(&objects),
-            None => Err(Error::invalid(
-                "crop store",
-                "a store of local and remote parts",
-            )),
+        let fetched = match sources.first() {
+            Some(&(first, _, _)) => first.read_across(&sources),
+            None => Ok(Vec::new()),
         };
         match fetched {
             Ok(bytes) => {

@@ -389,7 +389,7 @@ mod tests {
             x ^= x << 5;
             x as u8
         };
-        for rules in RuleSet::ALL {
+        for &rules in RuleSet::ALL {
             let size = 32u32;
             let side = window_side(size);
             let window = image::RgbImage::from_fn(side as u32, side as u32, |x, y| {

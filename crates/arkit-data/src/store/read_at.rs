@@ -1,6 +1,6 @@
 //! `read_at`: the seam the crop store's reader reads through ([`ReadAt`]), and its local
 //! implementation ([`LocalFile`], positional reads of an open file). The remote one is
-//! [`super::RemoteObject`].
+//! `crate::storage::RemoteObject`, which `storage` implements on top of this seam.
 
 use arkit_core::{Error, Result};
 use std::fmt::Debug;
@@ -9,8 +9,8 @@ use std::path::{Path, PathBuf};
 
 /// Bytes read by position from one file or object of a known length. Implementations
 /// are safe to share between threads and, for [`LocalFile`], forked processes (a
-/// [`super::RemoteObject`] makes its client again in a forked child).
-pub trait ReadAt: Send + Sync + Debug {
+/// remote object makes its client again in a forked child).
+pub trait ReadAt: Send + Sync + Debug + std::any::Any {
     /// What errors name: the file's path, or the object's URL without secrets.
     fn name(&self) -> &Path;
 
@@ -45,13 +45,17 @@ pub trait ReadAt: Send + Sync + Debug {
 
     /// Whether reads go over a network (and a failed check is worth one more fetch).
     fn is_remote(&self) -> bool {
-        self.as_remote().is_some()
+        false
     }
 
-    /// The object in a bucket this reads, if it is one (so that reads of several
-    /// objects can go out together: [`super::RemoteObject::read_across`]).
-    fn as_remote(&self) -> Option<&super::RemoteObject> {
-        None
+    /// The spans `(source, offset, length)` of several sources of this one's kind, read
+    /// together (a remote object's go out concurrently: one ranged GET a span); in
+    /// order. The default reads them one after another.
+    fn read_across(&self, wanted: &[(&dyn ReadAt, u64, u64)]) -> Result<Vec<Vec<u8>>> {
+        wanted
+            .iter()
+            .map(|&(source, at, len)| Ok(source.read_spans(&[(at, len)])?.pop().expect("one span")))
+            .collect()
     }
 }
 
