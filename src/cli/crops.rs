@@ -1,6 +1,7 @@
 //! `arkit-tool crops`.
 
 use arkit_core::Result;
+use arkit_data::crop::RuleSet;
 use arkit_data::loader;
 use arkit_data::loader::{FaceLoader, LoaderMode, LoaderOptions};
 use arkit_data::store::crop_store::WindowCodec;
@@ -54,7 +55,7 @@ pub struct CropsArgs {
     /// Whose box and resampling: `exact` (ours) or `official` (the official loader's
     /// integer box and cv2.warpAffine), as the loader's `compat`.
     #[arg(long, value_enum, default_value = "exact")]
-    compat: super::RulesArg,
+    compat: RuleSet,
     /// How the windows are stored, all lossless: `pred-zstd` (the default: each pixel
     /// predicted from its neighbours, the errors compressed by zstd, the window's centre
     /// and the four parts of the ring around it apart so that a crop decodes only what
@@ -76,7 +77,7 @@ pub struct CropsArgs {
 }
 
 pub fn run(a: CropsArgs) -> Result<ExitCode> {
-    let rules = a.compat.into();
+    let rules = a.compat;
     let topology = super::load_topology(a.resources.as_deref())?;
     let options = LoaderOptions {
         split: None,

@@ -218,25 +218,6 @@ pub fn jobs(s: &str) -> Result<usize, String> {
     }
 }
 
-/// `--compat` values (`render`, `crops`): the rule set, parsed here once and passed on
-/// as [`RuleSet`](arkit_data::crop::RuleSet).
-#[derive(Clone, Copy, Debug, clap::ValueEnum)]
-pub(crate) enum RulesArg {
-    /// Ours.
-    Exact,
-    /// The official loader's.
-    Official,
-}
-
-impl From<RulesArg> for arkit_data::crop::RuleSet {
-    fn from(a: RulesArg) -> Self {
-        match a {
-            RulesArg::Exact => arkit_data::crop::RuleSet::Exact,
-            RulesArg::Official => arkit_data::crop::RuleSet::Official,
-        }
-    }
-}
-
 /// Reads the topology named by `--resources` (or the built-in face without it).
 pub fn load_topology(
     resources: Option<&std::path::Path>,

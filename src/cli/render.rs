@@ -2,6 +2,7 @@
 
 use arkit_core::Result;
 use arkit_core::conventions::Camera;
+use arkit_data::crop::RuleSet;
 use arkit_data::render::FaceRenderer;
 use arkit_data::render::RenderOptions;
 use clap::Args;
@@ -64,7 +65,7 @@ pub struct RenderArgs {
     /// pixel corners, its rasterizer over the whole image, the mask and image warped into
     /// the crop as cv2.warpAffine does, screen-space weights).
     #[arg(long, value_enum, default_value = "exact")]
-    compat: super::RulesArg,
+    compat: RuleSet,
     /// Also render the face mask over the whole image (`full_mask_rle`, run lengths;
     /// about 0.5 KiB more per 800x800 sample), with the same rules as the crop's.
     #[arg(long)]
@@ -97,8 +98,7 @@ pub fn run(a: RenderArgs) -> Result<ExitCode> {
         .clone();
     let topology = super::load_topology(a.resources.as_deref())?;
     arkit_data::store::check_topology(&manifest, &topology)?;
-    let renderer =
-        FaceRenderer::new(topology, Camera::release_projection())?.with_rules(a.compat.into());
+    let renderer = FaceRenderer::new(topology, Camera::release_projection())?.with_rules(a.compat);
     let (part, parts) = options.shard;
     let mine: usize = manifest
         .shards

@@ -144,6 +144,18 @@ pub(crate) enum UvLayout {
     Official,
 }
 
+/// `--compat`'s values: every registered rule set, by its name.
+#[cfg(feature = "clap")]
+impl clap::ValueEnum for RuleSet {
+    fn value_variants<'a>() -> &'a [Self] {
+        RuleSet::ALL
+    }
+
+    fn to_possible_value(&self) -> Option<clap::builder::PossibleValue> {
+        Some(clap::builder::PossibleValue::new(self.name()))
+    }
+}
+
 impl RuleSet {
     /// `"exact"` or `"official"`: the name the CLI, Python and the stored files use.
     pub fn parse(name: &str) -> Result<Self> {
