@@ -367,6 +367,13 @@ fn claim_targets(
                     ),
                 ));
             }
+            // render.json first: a reader never finds the old one beside shards that
+            // are going (RenderedTargets), then the shards.
+            match std::fs::remove_file(&settings_path) {
+                Ok(()) => {}
+                Err(e) if e.kind() == std::io::ErrorKind::NotFound => {}
+                Err(e) => return Err(Error::io(&settings_path, e)),
+            }
             for f in shard_files(&options.output)? {
                 std::fs::remove_file(&f).map_err(|e| Error::io(&f, e))?;
             }
