@@ -197,7 +197,7 @@ pub fn render_dataset(
     options: &RenderOptions,
     progress: &(dyn Fn(usize) + Sync),
 ) -> Result<RenderSummary> {
-    let _writers = crate::ingest::convert::hold_against_overwrite(dataset)?;
+    let _writers = hold_folders(dataset, options)?;
     render(dataset, renderer, options, false, progress)
 }
 
@@ -218,8 +218,32 @@ pub fn render_dataset_replacing(
             "not with --shard (other parts may be writing there): remove the targets folder before starting the parts instead",
         ));
     }
-    let _writers = crate::ingest::convert::hold_against_overwrite(dataset)?;
+    let _writers = hold_folders(dataset, options)?;
     render(dataset, renderer, options, true, progress)
+}
+
+/// The writers' lock (`.convert.lock`, shared) of the dataset read and, when the
+/// targets go elsewhere (`--output`), of that folder too (made if needed): a
+/// `convert --overwrite` of either is refused while this render runs, and this render
+/// is refused while one removes there.
+fn hold_folders(
+    dataset: &Path,
+    options: &RenderOptions,
+) -> Result<Vec<arkit_core::atomic_file::FolderLock>> {
+    let mut held: Vec<_> = crate::ingest::convert::hold_against_overwrite(dataset)?
+        .into_iter()
+        .collect();
+    let same = match (dataset.canonicalize(), options.output.canonicalize()) {
+        (Ok(a), Ok(b)) => a == b,
+        _ => dataset == options.output,
+    };
+    if !same {
+        std::fs::create_dir_all(&options.output).map_err(|e| Error::io(&options.output, e))?;
+        held.extend(crate::ingest::convert::hold_against_overwrite(
+            &options.output,
+        )?);
+    }
+    Ok(held)
 }
 
 fn render(
