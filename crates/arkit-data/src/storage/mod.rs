@@ -33,7 +33,7 @@ mod client;
 mod location;
 mod mirror;
 mod publication;
-mod read_at;
+pub(crate) mod read_at;
 
 pub use self::{
     cache::RecordCache,

@@ -153,11 +153,12 @@ pub fn f64_values(df: &DataFrame, name: &str, path: &Path) -> Result<Vec<f64>> {
 /// A table file a reader opened and keeps open: read through it, it gives the bytes the
 /// file had when it was opened, even after a writer (`convert --overwrite`, `render`)
 /// renamed another file over its name or removed it. So a reader keeps serving the
-/// generation it opened instead of mixing it with the next.
+/// generation it opened instead of mixing it with the next. Read by position only (no
+/// shared offset), so threads and forked processes may read it at once.
 #[derive(Debug)]
 pub struct HeldFile {
     path: std::path::PathBuf,
-    file: std::sync::Mutex<std::fs::File>,
+    file: std::fs::File,
 }
 
 impl HeldFile {
@@ -165,7 +166,7 @@ impl HeldFile {
     pub fn open(path: &Path) -> std::io::Result<HeldFile> {
         Ok(HeldFile {
             path: path.to_path_buf(),
-            file: std::sync::Mutex::new(std::fs::File::open(path)?),
+            file: std::fs::File::open(path)?,
         })
     }
 
@@ -176,8 +177,11 @@ impl HeldFile {
 
     /// Its size in bytes.
     pub fn len(&self) -> Result<u64> {
-        let file = self.file.lock().unwrap_or_else(|p| p.into_inner());
-        Ok(file.metadata().map_err(|e| Error::io(&self.path, e))?.len())
+        Ok(self
+            .file
+            .metadata()
+            .map_err(|e| Error::io(&self.path, e))?
+            .len())
     }
 
     /// Whether it holds no byte.
@@ -185,29 +189,27 @@ impl HeldFile {
         Ok(self.len()? == 0)
     }
 
+    /// `len` bytes from `at`.
+    fn bytes(&self, at: u64, len: u64) -> Result<Vec<u8>> {
+        let mut buf = vec![0u8; len as usize];
+        crate::storage::read_at::pread_exact(&self.file, &mut buf, at)
+            .map_err(|e| Error::io(&self.path, e))?;
+        Ok(buf)
+    }
+
     /// SHA-256 (hex) of its last `bytes` bytes (all of a smaller file).
     pub fn tail_sha256(&self, bytes: u64) -> Result<String> {
         use sha2::{Digest, Sha256};
-        use std::io::{Read, Seek, SeekFrom};
-        let mut file = self.file.lock().unwrap_or_else(|p| p.into_inner());
-        let len = file.metadata().map_err(|e| Error::io(&self.path, e))?.len();
+        let len = self.len()?;
         let start = len.saturating_sub(bytes);
-        let mut tail = vec![0u8; (len - start) as usize];
-        file.seek(SeekFrom::Start(start))
-            .and_then(|_| file.read_exact(&mut tail))
-            .map_err(|e| Error::io(&self.path, e))?;
+        let tail = self.bytes(start, len - start)?;
         Ok(crate::store::manifest::hex(&Sha256::digest(&tail)))
     }
 
     /// Reads the whole table, or only `columns`.
     pub fn read_frame(&self, columns: Option<&[&str]>) -> Result<DataFrame> {
-        use std::io::{Seek, SeekFrom};
-        // One reader at a time: the clones share the file's offset.
-        let mut file = self.file.lock().unwrap_or_else(|p| p.into_inner());
-        file.seek(SeekFrom::Start(0))
-            .map_err(|e| Error::io(&self.path, e))?;
-        let clone = file.try_clone().map_err(|e| Error::io(&self.path, e))?;
-        let mut reader = ParquetReader::new(clone);
+        let whole = self.bytes(0, self.len()?)?;
+        let mut reader = ParquetReader::new(std::io::Cursor::new(whole));
         if let Some(columns) = columns {
             reader = reader.with_columns(Some(columns.iter().map(|c| c.to_string()).collect()));
         }
