@@ -253,3 +253,90 @@ fn clean_keeps_a_running_writers_temporary_and_dry_run_removes_nothing() {
         text(&missing.stderr)
     );
 }
+
+/// `render --output ELSEWHERE` holds that folder's writers' lock too: while one render
+/// writes its targets into a converted folder, a `convert --overwrite` of that folder
+/// and a second render into it are refused, naming the folder; killed there, it leaves
+/// nothing that its rerun does not clean, and the rerun equals a render of that dataset
+/// into a fresh folder.
+#[test]
+fn render_elsewhere_holds_the_output_folder() {
+    let tmp = tempfile::tempdir().unwrap();
+    let root = tmp.path();
+    let (release, other) = (root.join("release"), root.join("other"));
+    for (out, seed) in [(&release, "5"), (&other, "6")] {
+        run_ok(tool().arg("synth").arg("--output").arg(out).args([
+            "--subjects",
+            "2",
+            "--images-per-subject",
+            "3",
+            "--size",
+            "160x160",
+            "--seed",
+            seed,
+        ]));
+    }
+    let (a, b, shared) = (root.join("a"), root.join("b"), root.join("shared"));
+    for (input, out) in [(&release, &a), (&release, &b), (&other, &shared)] {
+        run_ok(
+            tool()
+                .args(["convert", "--input"])
+                .arg(input)
+                .arg("--output")
+                .arg(out)
+                .args(["--rows-per-shard", "4"]),
+        );
+    }
+    let render = |dataset: &Path, output: &Path| {
+        let mut c = tool();
+        c.args(["render", "--dataset"])
+            .arg(dataset)
+            .arg("--output")
+            .arg(output)
+            .args(["--size", "32", "--points", "64"]);
+        c
+    };
+    // Render a into `shared` (another converted folder), paused before its first
+    // targets file.
+    let mut first = render(&a, &shared)
+        .env(
+            arkit_core::atomic_file::PAUSE_BEFORE_RENAME,
+            "targets/part-",
+        )
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    await_pause(&mut first).unwrap_or_else(|e| panic!("render never paused: {e}"));
+    let shown = shared.display().to_string();
+    // A convert --overwrite of that folder is refused while the render writes there.
+    let out = tool()
+        .args(["convert", "--input"])
+        .arg(&release)
+        .arg("--output")
+        .arg(&shared)
+        .args(["--rows-per-shard", "4", "--overwrite"])
+        .output()
+        .unwrap();
+    let err = text(&out.stderr);
+    assert!(
+        !out.status.success() && err.contains(&shown) && err.contains("render"),
+        "convert --overwrite beside a render into its folder: {err}"
+    );
+    // So is a second render into it, of the same dataset's copy or another.
+    let out = render(&b, &shared).output().unwrap();
+    let err = text(&out.stderr);
+    assert!(
+        !out.status.success() && err.contains(&shown),
+        "a second render into one output folder: {err}"
+    );
+    first.kill().unwrap();
+    first.wait().unwrap();
+    // Rerun: complete, nothing left, the targets a render into a fresh folder makes.
+    run_ok(&mut render(&a, &shared));
+    assert_eq!(temporaries(&shared), Vec::<String>::new());
+    let fresh = root.join("fresh");
+    run_ok(&mut render(&a, &fresh));
+    let targets = |d: &Path| crate::kill::tree(&d.join("targets"));
+    assert_eq!(targets(&shared), targets(&fresh));
+}

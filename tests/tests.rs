@@ -25,6 +25,8 @@ mod photo_defects;
 mod photo_mesh;
 #[cfg(feature = "model")]
 mod photos;
+#[cfg(unix)]
+mod readers;
 #[cfg(feature = "model")]
 mod report_browser;
 mod shard_processes;

@@ -98,9 +98,7 @@ pub fn run(a: AugmentArgs) -> Result<ExitCode> {
     // Every check between options, before anything is read.
     options.validate()?;
     let topology = super::load_topology(a.resources.as_deref())?;
-    let manifest = arkit_data::store::Dataset::open(&a.input)?
-        .manifest()
-        .clone();
+    let manifest = arkit_data::store::Dataset::read_manifest(&a.input)?;
     let bar = super::progress_bar(manifest.converted as u64, "augment", "samples");
     let pool = super::thread_pool(a.jobs)?;
     let (summary, previews) = pool.install(|| {

@@ -335,9 +335,7 @@ pub fn run(mut a: PredictArgs) -> Result<ExitCode> {
             "dumps a network's inputs and outputs: it needs --model",
         ));
     }
-    let manifest = arkit_data::store::Dataset::open(&a.dataset)?
-        .manifest()
-        .clone();
+    let manifest = arkit_data::store::Dataset::read_manifest(&a.dataset)?;
     let split = (a.split != "all").then_some(a.split.as_str());
     if a.mean_pose {
         return mean_pose(&a, split);

@@ -93,9 +93,7 @@ pub fn run(a: RenderArgs) -> Result<ExitCode> {
     };
     // The checks between options (--points at most --size squared), before any reading.
     options.validate()?;
-    let manifest = arkit_data::store::Dataset::open(&a.dataset)?
-        .manifest()
-        .clone();
+    let manifest = arkit_data::store::Dataset::read_manifest(&a.dataset)?;
     let topology = super::load_topology(a.resources.as_deref())?;
     arkit_data::store::check_topology(&manifest, &topology)?;
     let renderer = FaceRenderer::new(topology, Camera::release_projection())?.with_rules(a.compat);

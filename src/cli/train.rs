@@ -205,9 +205,7 @@ pub fn run(mut a: TrainArgs) -> Result<ExitCode> {
         ));
     }
     let topology = super::load_topology(a.resources.as_deref())?;
-    let manifest = arkit_data::store::Dataset::open(&a.dataset)?
-        .manifest()
-        .clone();
+    let manifest = arkit_data::store::Dataset::read_manifest(&a.dataset)?;
     arkit_data::store::check_topology(&manifest, &topology)?;
     let targets = a.targets.clone().unwrap_or_else(|| a.dataset.clone());
     let split = (a.split != "all").then_some(a.split.as_str());

@@ -329,16 +329,22 @@ pub fn model_predictions_dump(
     }
     let data = Dataset::open(dataset)?;
     let splits = SplitLookup::read(dataset)?;
+    // Opened with the dataset and checked to be of its generation: served to the end.
+    let rendered = match true_masks {
+        Some(dir) => Some(store::RenderedTargets::open(dir, &data)?),
+        None => None,
+    };
+    data.confirm_unchanged()?;
     let size = model.checkpoint.config.input_size as u32;
     let mut out = Vec::new();
     let mut summary = ModelPredictSummary::default();
     for shard in data.shards() {
-        let truth: HashMap<arkit_core::SampleKey, TargetsRecord> = match true_masks {
-            Some(dir) => store::read_targets_by_key(&store::shard_path(dir, shard.index))?,
+        let truth: HashMap<arkit_core::SampleKey, TargetsRecord> = match &rendered {
+            Some(t) => t.by_key(shard.index)?,
             None => HashMap::new(),
         };
-        let skipped = match true_masks {
-            Some(dir) => store::read_skipped_keys(dir, shard.index)?,
+        let skipped = match &rendered {
+            Some(t) => t.skipped(shard.index)?,
             None => Default::default(),
         };
         for (i, r) in data.read_samples(shard)?.into_iter().enumerate() {

@@ -146,6 +146,45 @@ fn pause_before_rename(tmp: &Path, path: &Path) {
     }
 }
 
+/// The environment variables of the readers' test hook [`reader_pause`]: when
+/// `ARKIT_PAUSE_READER` names a point (`opened`: a dataset's manifest read and its
+/// shards opened; `reading`: the first rows read through an opened shard), a reader
+/// reaching it the first time prints `ARKIT_PAUSE_READER: paused at POINT in DIR` on
+/// stderr and waits until the file `ARKIT_RESUME_READER` names exists (at most 300 s).
+/// For tests/readers.rs, which replaces the dataset there; not for users.
+pub const PAUSE_READER: &str = "ARKIT_PAUSE_READER";
+/// See [`PAUSE_READER`].
+pub const RESUME_READER: &str = "ARKIT_RESUME_READER";
+
+/// The test hook of [`PAUSE_READER`] at `point`, reading the dataset `dir`.
+pub fn reader_pause(point: &str, dir: &Path) {
+    static PAUSED: std::sync::Mutex<Vec<String>> = std::sync::Mutex::new(Vec::new());
+    static WANTED: std::sync::OnceLock<Option<(String, PathBuf)>> = std::sync::OnceLock::new();
+    let wanted = WANTED.get_or_init(|| {
+        let point = std::env::var(PAUSE_READER).ok().filter(|s| !s.is_empty())?;
+        let resume = std::env::var_os(RESUME_READER)?;
+        Some((point, PathBuf::from(resume)))
+    });
+    let Some((wanted, resume)) = wanted else {
+        return;
+    };
+    if wanted != point {
+        return;
+    }
+    {
+        let mut paused = PAUSED.lock().unwrap_or_else(|p| p.into_inner());
+        if paused.iter().any(|p| p == point) {
+            return;
+        }
+        paused.push(point.to_string());
+    }
+    eprintln!("{PAUSE_READER}: paused at {point} in {}", dir.display());
+    let start = std::time::Instant::now();
+    while !resume.exists() && start.elapsed() < std::time::Duration::from_secs(300) {
+        std::thread::sleep(std::time::Duration::from_millis(20));
+    }
+}
+
 /// Writes `bytes` to `path` atomically.
 pub fn write_bytes(path: &Path, bytes: &[u8]) -> Result<()> {
     write_atomically(path, |w| w.write_all(bytes).map_err(|e| Error::io(path, e)))

@@ -13,7 +13,6 @@ use crate::picture::plot::{Bars, bars_svg, sheet_labels_svg};
 use crate::store::dataset::Dataset;
 use crate::store::samples_table::SampleRecord;
 use crate::store::splits::SplitLookup;
-use crate::store::targets_table;
 use arkit_core::PredictionRecord;
 use arkit_core::SampleKey;
 use arkit_core::conventions::Pose;
@@ -127,12 +126,10 @@ fn target_masks(
     wanted: &HashSet<&SampleKey>,
 ) -> Result<HashMap<SampleKey, Vec<bool>>> {
     let mut out = HashMap::new();
+    // Opened with the dataset and checked to be of its generation.
+    let rendered = crate::store::RenderedTargets::open(dir, data)?;
     for shard in data.shards() {
-        let f = targets_table::shard_path(dir, shard.index);
-        if !f.exists() {
-            continue;
-        }
-        for r in targets_table::read_targets(&f)? {
+        for r in rendered.rows(shard.index)? {
             if wanted.contains(&r.key) {
                 let m = r.mask()?;
                 out.insert(r.key, m);
@@ -153,6 +150,9 @@ pub fn evaluate(
     let mut problems = MatchProblems::default();
     let by_key = index_predictions(predictions, &mut problems);
     let masks = prediction_masks(dataset, &data, predictions, options)?;
+    // What was read besides the shards (split files, targets) is of the generation
+    // opened; the shards are read through the files opened with it.
+    data.confirm_unchanged()?;
     // A dataset of another head mesh than ARKit's (`convert --format biwi`).
     let other_mesh = data
         .manifest()

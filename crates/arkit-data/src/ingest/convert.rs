@@ -485,15 +485,17 @@ fn claim_output(
         }
         // Nothing is removed while another writer of the folder still runs.
         let writers = FolderLock::acquire(output, WRITERS_LOCK, "convert, merge, split or render")?;
+        // dataset.json first (and written last): a reader that finds it unchanged after
+        // reading the folder read one generation (`Dataset::confirm_unchanged`).
+        let p = output.join(MANIFEST_FILE);
+        if p.exists() {
+            std::fs::remove_file(&p).map_err(|e| Error::io(&p, e))?;
+        }
         for d in ["samples", "errors", "manifest", "splits", "targets"] {
             let p = output.join(d);
             if p.exists() {
                 std::fs::remove_dir_all(&p).map_err(|e| Error::io(&p, e))?;
             }
-        }
-        let p = output.join(MANIFEST_FILE);
-        if p.exists() {
-            std::fs::remove_file(&p).map_err(|e| Error::io(&p, e))?;
         }
         write_conversion_record(&record, fingerprint)?;
         arkit_core::atomic_file::remove_stale_temporaries(output, true)?;

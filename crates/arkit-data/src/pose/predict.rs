@@ -136,22 +136,25 @@ pub fn oracle_predictions(
     }
     let data = crate::store::dataset::Dataset::open(dataset)?;
     let splits = crate::store::splits::SplitLookup::read(dataset)?;
+    // Opened with the dataset and checked to be of its generation: served to the end.
+    let rendered = crate::store::RenderedTargets::open(targets_dir, &data)?;
+    data.confirm_unchanged()?;
     let mut out = Vec::new();
     let mut summary = OracleSummary::default();
     let mut points = 0usize;
     for shard in data.shards() {
         let rows = data.read_samples(shard)?;
-        let tpath = crate::store::targets_table::shard_path(targets_dir, shard.index);
+        let tpath = rendered.shard_path(shard.index);
         // A shard without its targets file is a render that has not finished (or has
         // not run): refused, never predicted as if its samples had no targets.
-        if !tpath.exists() {
+        if !rendered.has(shard.index) {
+            rendered.confirm_unchanged()?;
             return Err(Error::format(
                 &tpath,
                 "no targets for this shard: `arkit-tool render` has not finished here (`arkit-tool inspect` says how far it got); rerun it",
             ));
         }
-        let targets: HashMap<SampleKey, TargetsRecord> =
-            targets_table::read_targets_by_key(&tpath)?;
+        let targets: HashMap<SampleKey, TargetsRecord> = rendered.by_key(shard.index)?;
         let chosen: Vec<_> = rows
             .iter()
             .enumerate()
@@ -266,6 +269,7 @@ pub fn mean_pose_predictions(
 ) -> Result<(Vec<PredictionRecord>, MeanPoseSummary)> {
     let data = crate::store::dataset::Dataset::open(dataset)?;
     let splits = crate::store::splits::SplitLookup::read(dataset)?;
+    data.confirm_unchanged()?;
     let mut fitted = Vec::new();
     let mut keys = Vec::new();
     for shard in data.shards() {

@@ -198,7 +198,7 @@ pub fn render_dataset(
     options: &RenderOptions,
     progress: &(dyn Fn(usize) + Sync),
 ) -> Result<RenderSummary> {
-    let _writers = crate::ingest::convert::hold_against_overwrite(dataset)?;
+    let _writers = hold_folders(dataset, options)?;
     render(dataset, renderer, options, false, progress)
 }
 
@@ -219,8 +219,32 @@ pub fn render_dataset_replacing(
             "not with --shard (other parts may be writing there): remove the targets folder before starting the parts instead",
         ));
     }
-    let _writers = crate::ingest::convert::hold_against_overwrite(dataset)?;
+    let _writers = hold_folders(dataset, options)?;
     render(dataset, renderer, options, true, progress)
+}
+
+/// The writers' lock (`.convert.lock`, shared) of the dataset read and, when the
+/// targets go elsewhere (`--output`), of that folder too (made if needed): a
+/// `convert --overwrite` of either is refused while this render runs, and this render
+/// is refused while one removes there.
+fn hold_folders(
+    dataset: &Path,
+    options: &RenderOptions,
+) -> Result<Vec<arkit_core::atomic_file::FolderLock>> {
+    let mut held: Vec<_> = crate::ingest::convert::hold_against_overwrite(dataset)?
+        .into_iter()
+        .collect();
+    let same = match (dataset.canonicalize(), options.output.canonicalize()) {
+        (Ok(a), Ok(b)) => a == b,
+        _ => dataset == options.output,
+    };
+    if !same {
+        std::fs::create_dir_all(&options.output).map_err(|e| Error::io(&options.output, e))?;
+        held.extend(crate::ingest::convert::hold_against_overwrite(
+            &options.output,
+        )?);
+    }
+    Ok(held)
 }
 
 fn render(
@@ -367,6 +391,13 @@ fn claim_targets(
                         options.output.join("targets").display()
                     ),
                 ));
+            }
+            // render.json first: a reader never finds the old one beside shards that
+            // are going (RenderedTargets), then the shards.
+            match std::fs::remove_file(&settings_path) {
+                Ok(()) => {}
+                Err(e) if e.kind() == std::io::ErrorKind::NotFound => {}
+                Err(e) => return Err(Error::io(&settings_path, e)),
             }
             for f in shard_files(&options.output)? {
                 std::fs::remove_file(&f).map_err(|e| Error::io(&f, e))?;

@@ -1,7 +1,9 @@
 //! `cache`: an optional local cache of the byte spans read from object storage
 //! ([`RecordCache`]), with a size cap, safe for several processes on one node: each
 //! entry is written under a temporary name and renamed (readers see a whole entry or
-//! none), entries are keyed by the object's URL, size and ETag (a replaced object is
+//! none; the temporary is owned by its writer's lock, as every temporary of
+//! `arkit_core::atomic_file`, and removed by the next eviction once no process holds
+//! it), entries are keyed by the object's URL, size and ETag (a replaced object is
 //! never served from an older entry) and checked for their length when read. Each
 //! process measures the folder after every sixteenth of the cap it writes and removes the
 //! oldest entries (by modification time) down to three quarters of it: the folder stays
@@ -60,16 +62,18 @@ impl RecordCache {
         if std::fs::create_dir_all(parent).is_err() {
             return;
         }
-        let tmp = parent.join(format!(
-            ".{}.tmp-{}-{:x}",
-            path.file_name().and_then(|n| n.to_str()).unwrap_or("entry"),
-            std::process::id(),
-            rand_suffix()
-        ));
-        if std::fs::write(&tmp, bytes).is_err() || std::fs::rename(&tmp, &path).is_err() {
+        // Owned by its lock from the instant it exists (`.NAME.tmp-TOKEN`, never a
+        // process id): a sweep removes it only once its writer is gone. Not flushed to
+        // the disk: a cache entry lost to a power cut costs one request.
+        let Ok((mut file, tmp)) = arkit_core::atomic_file::create_temporary(&path) else {
+            return;
+        };
+        let written = std::io::Write::write_all(&mut file, bytes).is_ok();
+        if !written || std::fs::rename(&tmp, &path).is_err() {
             let _ = std::fs::remove_file(&tmp);
             return;
         }
+        drop(file);
         let w = self
             .written
             .fetch_add(bytes.len() as u64, Ordering::Relaxed)
@@ -96,6 +100,10 @@ impl RecordCache {
             return out;
         };
         for sub in top.flatten() {
+            if sub.file_type().is_ok_and(|t| t.is_dir()) {
+                // Temporaries whose writer is gone, proved by their free lock.
+                let _ = arkit_core::atomic_file::remove_stale_temporaries(&sub.path(), false);
+            }
             let Ok(files) = std::fs::read_dir(sub.path()) else {
                 continue;
             };
@@ -106,12 +114,12 @@ impl RecordCache {
                 }
                 let modified = meta.modified().unwrap_or(std::time::UNIX_EPOCH);
                 let name = f.file_name();
-                let is_tmp = name.to_str().is_some_and(|n| n.contains(".tmp-"));
-                if is_tmp {
-                    // A writer killed between its write and its rename: gone after an hour.
-                    if modified.elapsed().is_ok_and(|a| a.as_secs() > 3600) {
-                        let _ = std::fs::remove_file(f.path());
-                    }
+                if name
+                    .to_str()
+                    .is_some_and(arkit_core::atomic_file::is_temporary_name)
+                {
+                    // Being written, or left by a writer killed between its write and
+                    // its rename (the sweep below removes those).
                     continue;
                 }
                 out.push((f.path(), meta.len(), modified));
@@ -141,18 +149,6 @@ impl RecordCache {
     }
 }
 
-fn rand_suffix() -> u64 {
-    use std::hash::{BuildHasher, Hasher};
-    let mut h = std::collections::hash_map::RandomState::new().build_hasher();
-    h.write_u128(
-        std::time::SystemTime::now()
-            .duration_since(std::time::UNIX_EPOCH)
-            .map(|d| d.as_nanos())
-            .unwrap_or_default(),
-    );
-    h.finish()
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -175,5 +171,23 @@ mod tests {
         assert!(cache.bytes() <= 64 * 1024, "{} bytes", cache.bytes());
         cache.forget("s3://b/k#1#e", 0, 4);
         assert_eq!(cache.get("s3://b/k#1#e", 0, 4), None);
+    }
+
+    /// A temporary left by a writer that is gone (its lock free) is removed by the next
+    /// eviction; one a live writer holds is kept; neither counts as an entry.
+    #[test]
+    fn eviction_sweeps_abandoned_temporaries_only() {
+        let dir = tempfile::tempdir().unwrap();
+        let cache = RecordCache::new(dir.path(), 64 * 1024).unwrap();
+        cache.put("s3://b/k#1#e", 0, b"abcd");
+        let entry = cache.entry("s3://b/k#1#e", 0, 4);
+        let (held, held_path) = arkit_core::atomic_file::create_temporary(&entry).unwrap();
+        let (gone, gone_path) = arkit_core::atomic_file::create_temporary(&entry).unwrap();
+        std::io::Write::write_all(&mut &gone, &[1u8; 10_000]).unwrap();
+        drop(gone);
+        assert_eq!(cache.bytes(), 4, "temporaries counted as entries");
+        assert!(held_path.exists(), "a held temporary was removed");
+        assert!(!gone_path.exists(), "an abandoned temporary was kept");
+        drop(held);
     }
 }

@@ -21,6 +21,7 @@ pub(crate) mod manifest;
 pub(crate) mod parquet;
 pub(crate) mod predictions_table;
 pub(crate) mod read_at;
+pub(crate) mod rendered_targets;
 pub(crate) mod samples_table;
 pub(crate) mod splits;
 pub(crate) mod targets_table;
@@ -33,11 +34,12 @@ pub use self::{
         check_topology, dataset_fingerprint, read_manifest, sha256_file, tail_sha256,
     },
     parquet::{
-        arrow_schema_value, f64_values, parquet_key_value_metadata, parquet_row_count,
+        HeldFile, arrow_schema_value, f64_values, parquet_key_value_metadata, parquet_row_count,
         read_parquet, read_parquet_columns, str_values, write_parquet, write_parquet_with_metadata,
     },
     predictions_table::{predictions_frame, read_predictions, write_predictions},
     read_at::{LocalFile, ReadAt},
+    rendered_targets::RenderedTargets,
     samples_table::{
         ColumnSpec, ERRORS_COLUMNS, ErrorRecord, SAMPLES_COLUMNS, SAMPLES_FORMAT, SampleRecord,
         huggingface_metadata, huggingface_shapes, polars_dtype, polars_dtype_with, read_errors,

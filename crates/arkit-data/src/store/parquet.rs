@@ -149,3 +149,70 @@ pub fn f64_values(df: &DataFrame, name: &str, path: &Path) -> Result<Vec<f64>> {
     let ca = c.f64().map_err(|e| polars_err(path, e))?;
     Ok(ca.iter().map(|v| v.unwrap_or(f64::NAN)).collect())
 }
+
+/// A table file a reader opened and keeps open: read through it, it gives the bytes the
+/// file had when it was opened, even after a writer (`convert --overwrite`, `render`)
+/// renamed another file over its name or removed it. So a reader keeps serving the
+/// generation it opened instead of mixing it with the next. Read by position only (no
+/// shared offset), so threads and forked processes may read it at once.
+#[derive(Debug)]
+pub struct HeldFile {
+    path: std::path::PathBuf,
+    file: std::fs::File,
+}
+
+impl HeldFile {
+    /// Opens `path` to hold it (the error as the operating system gave it).
+    pub fn open(path: &Path) -> std::io::Result<HeldFile> {
+        Ok(HeldFile {
+            path: path.to_path_buf(),
+            file: std::fs::File::open(path)?,
+        })
+    }
+
+    /// The path it was opened at (what errors name).
+    pub fn path(&self) -> &Path {
+        &self.path
+    }
+
+    /// Its size in bytes.
+    pub fn len(&self) -> Result<u64> {
+        Ok(self
+            .file
+            .metadata()
+            .map_err(|e| Error::io(&self.path, e))?
+            .len())
+    }
+
+    /// Whether it holds no byte.
+    pub fn is_empty(&self) -> Result<bool> {
+        Ok(self.len()? == 0)
+    }
+
+    /// `len` bytes from `at`.
+    fn bytes(&self, at: u64, len: u64) -> Result<Vec<u8>> {
+        let mut buf = vec![0u8; len as usize];
+        crate::store::read_at::pread_exact(&self.file, &mut buf, at)
+            .map_err(|e| Error::io(&self.path, e))?;
+        Ok(buf)
+    }
+
+    /// SHA-256 (hex) of its last `bytes` bytes (all of a smaller file).
+    pub fn tail_sha256(&self, bytes: u64) -> Result<String> {
+        use sha2::{Digest, Sha256};
+        let len = self.len()?;
+        let start = len.saturating_sub(bytes);
+        let tail = self.bytes(start, len - start)?;
+        Ok(crate::store::manifest::hex(&Sha256::digest(&tail)))
+    }
+
+    /// Reads the whole table, or only `columns`.
+    pub fn read_frame(&self, columns: Option<&[&str]>) -> Result<DataFrame> {
+        let whole = self.bytes(0, self.len()?)?;
+        let mut reader = ParquetReader::new(std::io::Cursor::new(whole));
+        if let Some(columns) = columns {
+            reader = reader.with_columns(Some(columns.iter().map(|c| c.to_string()).collect()));
+        }
+        reader.finish().map_err(|e| polars_err(&self.path, e))
+    }
+}

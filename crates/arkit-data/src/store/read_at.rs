@@ -96,7 +96,7 @@ impl ReadAt for LocalFile {
 
 /// `pread` of exactly `buf.len()` bytes at `offset` (positional: safe to share the file
 /// between threads and forked processes).
-fn pread_exact(file: &File, buf: &mut [u8], offset: u64) -> std::io::Result<()> {
+pub(crate) fn pread_exact(file: &File, buf: &mut [u8], offset: u64) -> std::io::Result<()> {
     #[cfg(unix)]
     {
         std::os::unix::fs::FileExt::read_exact_at(file, buf, offset)

@@ -587,7 +587,15 @@ pub fn read_samples(path: &Path) -> Result<Vec<SampleRecord>> {
 /// [`read_samples`], also requiring `vertices` vertices per mesh when given (the
 /// topology's).
 pub fn read_samples_expecting(path: &Path, vertices: Option<usize>) -> Result<Vec<SampleRecord>> {
-    let df = read_parquet(path)?;
+    samples_from_frame(&read_parquet(path)?, path, vertices)
+}
+
+/// The rows of a `samples` table read as `df` from `path` (which errors name).
+pub(crate) fn samples_from_frame(
+    df: &DataFrame,
+    path: &Path,
+    vertices: Option<usize>,
+) -> Result<Vec<SampleRecord>> {
     let subject = str_values(&df, "subject_id", path)?;
     let action = str_values(&df, "facial_action", path)?;
     let img = str_values(&df, "img_id", path)?;
@@ -692,8 +700,18 @@ pub fn read_samples_expecting(path: &Path, vertices: Option<usize>) -> Result<Ve
 
 /// Reads only the keys and the split of a `samples` file: `(key, split)` per row.
 pub fn read_sample_keys(path: &Path) -> Result<Vec<(SampleKey, String)>> {
-    let names = ["subject_id", "facial_action", "img_id", "split"];
-    let df = read_parquet_columns(path, &names)?;
+    sample_keys_from_frame(&read_parquet_columns(path, &SAMPLE_KEY_COLUMNS)?, path)
+}
+
+/// The columns [`read_sample_keys`] reads.
+pub(crate) const SAMPLE_KEY_COLUMNS: [&str; 4] = ["subject_id", "facial_action", "img_id", "split"];
+
+/// `(key, split)` per row of `df`, the [`SAMPLE_KEY_COLUMNS`] of the file at `path`.
+pub(crate) fn sample_keys_from_frame(
+    df: &DataFrame,
+    path: &Path,
+) -> Result<Vec<(SampleKey, String)>> {
+    let names = SAMPLE_KEY_COLUMNS;
     let cols: Vec<Vec<String>> = names
         .iter()
         .map(|c| str_values(&df, c, path))
@@ -719,7 +737,11 @@ fn keyed_rows(cols: &[Vec<String>]) -> impl Iterator<Item = (SampleKey, usize)> 
 
 /// Reads an `errors` Parquet file back into records.
 pub fn read_errors(path: &Path) -> Result<Vec<ErrorRecord>> {
-    let df = read_parquet(path)?;
+    errors_from_frame(&read_parquet(path)?, path)
+}
+
+/// The rows of an `errors` table read as `df` from `path` (which errors name).
+pub(crate) fn errors_from_frame(df: &DataFrame, path: &Path) -> Result<Vec<ErrorRecord>> {
     let cols: Vec<Vec<String>> = ERRORS_COLUMNS
         .iter()
         .map(|c| str_values(&df, c.name, path))

@@ -210,7 +210,11 @@ pub(crate) fn targets_frame(rows: &[TargetsRecord]) -> Result<DataFrame> {
 
 /// Reads a `targets` Parquet file back into records.
 pub fn read_targets(path: &Path) -> Result<Vec<TargetsRecord>> {
-    let df = crate::store::parquet::read_parquet(path)?;
+    targets_from_frame(&crate::store::parquet::read_parquet(path)?, path)
+}
+
+/// The rows of a `targets` table read as `df` from `path` (which errors name).
+pub(crate) fn targets_from_frame(df: &DataFrame, path: &Path) -> Result<Vec<TargetsRecord>> {
     let st = |n: &str| crate::store::parquet::str_values(&df, n, path);
     let fl = |n: &str| crate::store::parquet::f64_values(&df, n, path);
     let bad = |n: &str, e: PolarsError| Error::format(path, format!("column {n}: {e}"));

@@ -442,11 +442,12 @@ impl ExampleShards for Vec<Example> {
 /// split's. Shards without an example of the split are left out.
 pub struct ShardedExamples {
     dataset: PathBuf,
-    targets_dir: PathBuf,
     cfg: PerspNetConfig,
     split: Option<String>,
     data: Dataset,
     splits: SplitLookup,
+    /// The targets, opened with the dataset.
+    targets: store::RenderedTargets,
     /// `(shard index, samples file, examples in the split)`.
     shards: Vec<(usize, String, usize)>,
     /// Samples left out because their image could not be read, with the reason.
@@ -467,17 +468,22 @@ impl ShardedExamples {
     ) -> Result<Self> {
         let data = Dataset::open(dataset)?;
         let splits = SplitLookup::read(dataset)?;
+        // The targets opened with the dataset, and both of the generation opened: then
+        // this run serves that generation to its end, whatever replaces the folder.
+        let targets = store::RenderedTargets::open(targets_dir, &data)?;
+        data.confirm_unchanged()?;
         let mut shards = Vec::new();
         let mut unreadable = Vec::new();
         for shard in data.shards() {
-            let tpath = store::shard_path(targets_dir, shard.index);
-            if !tpath.exists() {
+            if !targets.has(shard.index) {
+                // Removed under this reader by a `render --overwrite`?
+                targets.confirm_unchanged()?;
                 return Err(Error::format(
-                    &tpath,
+                    targets.shard_path(shard.index),
                     "no targets for this shard: run `arkit-tool render` first",
                 ));
             }
-            let skipped = store::read_skipped_keys(targets_dir, shard.index)?;
+            let skipped = targets.skipped(shard.index)?;
             let kept: Vec<SampleRecord> = data
                 .read_samples(shard)?
                 .into_iter()
@@ -502,11 +508,11 @@ impl ShardedExamples {
         }
         Ok(Self {
             dataset: dataset.to_path_buf(),
-            targets_dir: targets_dir.to_path_buf(),
             cfg: cfg.clone(),
             split: split.map(str::to_string),
             data,
             splits,
+            targets,
             shards,
             unreadable,
         })
@@ -532,10 +538,10 @@ impl ExampleShards for ShardedExamples {
 
     fn load(&self, k: usize) -> Result<std::borrow::Cow<'_, [Example]>> {
         let (index, samples_file, n) = &self.shards[k];
-        let tpath = store::shard_path(&self.targets_dir, *index);
-        let targets = store::read_targets_by_key(&tpath)?;
+        let tpath = self.targets.shard_path(*index);
+        let targets = self.targets.by_key(*index)?;
         // Samples `render` reported it could not render have no row: leave them out.
-        let skipped = store::read_skipped_keys(&self.targets_dir, *index)?;
+        let skipped = self.targets.skipped(*index)?;
         let mut out = Vec::with_capacity(*n);
         let unreadable: std::collections::HashSet<&arkit_core::SampleKey> =
             self.unreadable.iter().map(|(k, _)| k).collect();
