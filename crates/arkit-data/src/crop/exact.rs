@@ -4,9 +4,8 @@
 //! crop's resolution; the UV map at texel centres.
 
 use crate::crop::CropTransform;
-use crate::crop::rules::{MaskRule, RuleBook, UvLayout};
+use crate::crop::rules::{MaskRule, Resampling, RuleBook, UvLayout};
 use arkit_core::{ScreenVertex, VisibilityBuffer};
-use image::RgbImage;
 
 /// Our rules (see the module docs).
 pub(crate) struct Exact;
@@ -41,18 +40,8 @@ impl RuleBook for Exact {
         Ok(CropTransform::around_landmarks(&flat, size))
     }
 
-    fn crop_window(
-        &self,
-        crop: &CropTransform,
-        image: &RgbImage,
-        first: i64,
-        count: usize,
-    ) -> Vec<u8> {
-        crop.bilinear_window(image, first, count)
-    }
-
-    fn window_reach(&self, crop: &CropTransform, first: i64, count: usize) -> [(i64, i64); 2] {
-        crop.bilinear_reach(first, count)
+    fn resampling(&self) -> Resampling {
+        Resampling::Bilinear
     }
 
     fn projection(&self, release: nalgebra::Matrix4<f64>) -> nalgebra::Matrix4<f64> {

@@ -25,6 +25,8 @@ pub(crate) mod official;
 pub(crate) mod probe;
 pub(crate) mod rules;
 
+use self::rules::Resampling;
+
 pub use self::official::{
     LandmarkExtent, affine_transform, box_crop, official_box, official_crop, warp_affine, warp_mask,
 };
@@ -153,11 +155,18 @@ impl CropTransform {
     /// same. `crop_image` is `crop_window(image, 0, size)`; the crop store keeps such a
     /// window around each sample's evaluation crop (`crate::store::crop_store`).
     pub(crate) fn crop_window(&self, image: &RgbImage, first: i64, count: usize) -> Vec<u8> {
-        self.rules.book().crop_window(self, image, first, count)
+        match self.rules.book().resampling() {
+            Resampling::Bilinear => self.bilinear_window(image, first, count),
+            Resampling::WarpAffine => {
+                let (w, h) = image.dimensions();
+                official::warp_affine_window(image.as_raw(), w, h, 3, self, first, count)
+            }
+        }
     }
 
     /// [`CropTransform::crop_window`] by our rules: bilinear at pixel centres, black
     /// outside the image (see [`CropTransform::crop_image`]).
+    #[inline]
     pub(crate) fn bilinear_window(&self, image: &RgbImage, first: i64, count: usize) -> Vec<u8> {
         let n = count;
         let mut out = vec![0u8; n * n * 3];
@@ -197,7 +206,10 @@ impl CropTransform {
         if count == 0 {
             return None;
         }
-        Some(self.rules.book().window_reach(self, first, count))
+        Some(match self.rules.book().resampling() {
+            Resampling::Bilinear => self.bilinear_reach(first, count),
+            Resampling::WarpAffine => official::warp_reach(self, first, count),
+        })
     }
 
     /// [`CropTransform::window_reach`] of [`CropTransform::bilinear_window`], for a

@@ -33,12 +33,11 @@
 //! bottom-right on a tie): every stored row is one the official loader computes, at the
 //! image pixel nearest to where the crop pixel looks.
 
-use super::rules::{MaskRule, RuleBook, UvLayout};
+use super::rules::{MaskRule, Resampling, RuleBook, UvLayout};
 use super::{CropTransform, RuleSet};
 use crate::lanes::warp::{AxisTap, COEF_BITS, INTER_BITS, round_sum};
 use crate::lanes::{self, Level};
 use arkit_core::{ScreenVertex, VisibilityBuffer};
-use image::RgbImage;
 
 /// The official crop box and its affine map (module docs, steps 1-2) around the
 /// projected landmarks `(u, v)`, or `None` when the box is empty (the official loader
@@ -615,19 +614,8 @@ impl RuleBook for Official {
         Ok(box_crop(l, t, r, b, size))
     }
 
-    fn crop_window(
-        &self,
-        crop: &CropTransform,
-        image: &RgbImage,
-        first: i64,
-        count: usize,
-    ) -> Vec<u8> {
-        let (w, h) = image.dimensions();
-        warp_affine_window(image.as_raw(), w, h, 3, crop, first, count)
-    }
-
-    fn window_reach(&self, crop: &CropTransform, first: i64, count: usize) -> [(i64, i64); 2] {
-        warp_reach(crop, first, count)
+    fn resampling(&self) -> Resampling {
+        Resampling::WarpAffine
     }
 
     fn projection(&self, release: nalgebra::Matrix4<f64>) -> nalgebra::Matrix4<f64> {

@@ -5,10 +5,9 @@
 //! (`a_third_rule_set_cuts_renders_and_loads`).
 
 use crate::crop::exact::Exact;
-use crate::crop::rules::{MaskRule, RuleBook, UvLayout};
+use crate::crop::rules::{MaskRule, Resampling, RuleBook, UvLayout};
 use crate::crop::{CropTransform, RuleSet};
 use arkit_core::{ScreenVertex, VisibilityBuffer};
-use image::RgbImage;
 
 /// Ours with a wider box (see the module docs).
 pub(crate) struct Probe;
@@ -51,18 +50,8 @@ impl RuleBook for Probe {
         })
     }
 
-    fn crop_window(
-        &self,
-        crop: &CropTransform,
-        image: &RgbImage,
-        first: i64,
-        count: usize,
-    ) -> Vec<u8> {
-        Exact.crop_window(crop, image, first, count)
-    }
-
-    fn window_reach(&self, crop: &CropTransform, first: i64, count: usize) -> [(i64, i64); 2] {
-        Exact.window_reach(crop, first, count)
+    fn resampling(&self) -> Resampling {
+        Resampling::Bilinear
     }
 
     fn projection(&self, release: nalgebra::Matrix4<f64>) -> nalgebra::Matrix4<f64> {

@@ -9,7 +9,7 @@
 //! the rule sets:
 //! - the crop: the box around the landmarks ([`RuleBook::crop_around`]), where a crop
 //!   pixel samples it ([`RuleBook::sample_offset`]) and how an image is resampled into it
-//!   ([`RuleBook::crop_window`], [`RuleBook::window_reach`]);
+//!   ([`RuleBook::resampling`]);
 //! - the raster's rounding: the projection as read ([`RuleBook::projection`]) and the
 //!   rasterizer's rules ([`RuleBook::rasterize`]);
 //! - the mask rules ([`RuleBook::mask`], [`MaskRule`]): where the mask is rasterized,
@@ -30,7 +30,6 @@
 
 use crate::crop::{CropTransform, RuleSet};
 use arkit_core::{Error, Result, ScreenVertex, VisibilityBuffer};
-use image::RgbImage;
 
 /// The rule sets and their books: `Variant => book,` per rule set (a `#[cfg(...)]`
 /// before a line is kept on the variant and its book). Makes the [`RuleSet`] enum,
@@ -86,19 +85,8 @@ pub(crate) trait RuleBook: Sync {
         size: u32,
     ) -> std::result::Result<CropTransform, String>;
 
-    /// Crop pixels `first..first + count` of `crop` in both axes resampled from
-    /// `image` (see [`CropTransform::crop_window`]).
-    fn crop_window(
-        &self,
-        crop: &CropTransform,
-        image: &RgbImage,
-        first: i64,
-        count: usize,
-    ) -> Vec<u8>;
-
-    /// The image columns and rows (inclusive) that [`RuleBook::crop_window`] can read
-    /// for a window of `count > 0` pixels from `first`.
-    fn window_reach(&self, crop: &CropTransform, first: i64, count: usize) -> [(i64, i64); 2];
+    /// How an image is resampled into the crop ([`CropTransform::crop_window`]).
+    fn resampling(&self) -> Resampling;
 
     /// The release camera's projection matrix as this rule set's loader reads it.
     fn projection(&self, release: nalgebra::Matrix4<f64>) -> nalgebra::Matrix4<f64>;
@@ -133,6 +121,18 @@ pub(crate) enum MaskRule {
     /// projected in `f64`; a loader item's points drawn from the official slice of
     /// the full-resolution mask.
     WarpedFromImage,
+}
+
+/// How an image is resampled into a crop: a choice of the crop's own code, so that a
+/// crop's pixel loop is the one the rule picked, inlined where the crop is cut.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(crate) enum Resampling {
+    /// Ours: bilinear at pixel centres, black outside the image
+    /// ([`CropTransform::crop_image`]).
+    Bilinear,
+    /// `cv2.warpAffine`'s fixed-point bilinear at pixel corners
+    /// ([`crate::crop::warp_affine`]).
+    WarpAffine,
 }
 
 /// The loader's UV position map's layout.
