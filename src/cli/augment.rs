@@ -36,13 +36,13 @@ pub struct AugmentArgs {
     #[arg(long, value_enum, default_value = "auto")]
     axis: AxisChoice,
     /// No angle goes past +/- this (degrees), in (0, 90].
-    #[arg(long, allow_negative_numbers = true, default_value_t = 90.0, value_parser = super::degrees_up_to_90)]
+    #[arg(long, allow_negative_numbers = true, default_value_t = 90.0, value_parser = super::values::degrees_up_to_90)]
     max_angle: f64,
     /// Smallest change (degrees), in (0, 90]; at most --max-change and --max-angle.
-    #[arg(long, allow_negative_numbers = true, default_value_t = 5.0, value_parser = super::degrees_up_to_90)]
+    #[arg(long, allow_negative_numbers = true, default_value_t = 5.0, value_parser = super::values::degrees_up_to_90)]
     min_change: f64,
     /// Largest change (degrees), in (0, 90].
-    #[arg(long, allow_negative_numbers = true, default_value_t = 30.0, value_parser = super::degrees_up_to_90)]
+    #[arg(long, allow_negative_numbers = true, default_value_t = 30.0, value_parser = super::values::degrees_up_to_90)]
     max_change: f64,
     /// Augmentations drawn per sample, 0..=100 (0: only --flip and/or
     /// --with-originals).
@@ -67,7 +67,7 @@ pub struct AugmentArgs {
     #[arg(long)]
     resources: Option<PathBuf>,
     /// Worker threads, 1..=1024 (default: all cores).
-    #[arg(long, allow_negative_numbers = true, value_parser = super::jobs)]
+    #[arg(long, allow_negative_numbers = true, value_parser = super::values::jobs)]
     jobs: Option<usize>,
     /// Exit with status 1 if any source sample could not be read (after augmenting
     /// everything else).
@@ -97,10 +97,10 @@ pub fn run(a: AugmentArgs) -> Result<ExitCode> {
     };
     // Every check between options, before anything is read.
     options.validate()?;
-    let topology = super::load_topology(a.resources.as_deref())?;
+    let topology = super::setup::load_topology(a.resources.as_deref())?;
     let manifest = arkit_data::store::Dataset::read_manifest(&a.input)?;
-    let bar = super::progress_bar(manifest.converted as u64, "augment", "samples");
-    let pool = super::thread_pool(a.jobs)?;
+    let bar = super::console::progress_bar(manifest.converted as u64, "augment", "samples");
+    let pool = super::setup::thread_pool(a.jobs)?;
     let (summary, previews) = pool.install(|| {
         arkit_data::augment::augment_dataset(&a.input, &topology, &options, &|n| bar.inc(n as u64))
     })?;
@@ -134,7 +134,7 @@ pub fn run(a: AugmentArgs) -> Result<ExitCode> {
             println!("wrote {}", p.display());
         }
     }
-    super::report_unreadable(&summary.unreadable, "augment");
+    super::console::report_unreadable(&summary.unreadable, "augment");
     if a.strict && !summary.unreadable.is_empty() {
         return Ok(ExitCode::FAILURE);
     }

@@ -70,13 +70,13 @@ pub struct ConvertArgs {
     #[arg(long, allow_negative_numbers = true, default_value_t = 4096, value_parser = clap::builder::RangedU64ValueParser::<usize>::new().range(1..=100_000))]
     rows_per_shard: usize,
     /// Worker threads, 1..=1024 (default: all cores).
-    #[arg(long, allow_negative_numbers = true, value_parser = super::jobs)]
+    #[arg(long, allow_negative_numbers = true, value_parser = super::values::jobs)]
     jobs: Option<usize>,
     /// Store each JPEG's bytes in the samples table.
     #[arg(long)]
     embed_images: bool,
     /// Convert only part I of N (shards k with k % N == I), for job arrays.
-    #[arg(long, value_name = "I/N", value_parser = super::parse_shard)]
+    #[arg(long, value_name = "I/N", value_parser = super::values::parse_shard)]
     shard: Option<(usize, usize)>,
     /// Replace the output of another conversion found in --output (its samples, errors,
     /// manifests, splits and targets) instead of refusing. Without it, a folder that
@@ -130,7 +130,7 @@ pub fn run(a: ConvertArgs) -> Result<ExitCode> {
     if a.format == InputFormat::Biwi {
         return run_biwi(a);
     }
-    let topology = super::load_topology(a.resources.as_deref())?;
+    let topology = super::setup::load_topology(a.resources.as_deref())?;
     let projection = match &a.resources {
         Some(dir) if dir.join("projection_matrix.txt").exists() => {
             Camera::read_projection_txt(&dir.join("projection_matrix.txt"))?
@@ -164,8 +164,8 @@ fn run_biwi(a: ConvertArgs) -> Result<ExitCode> {
         .clone()
         .unwrap_or_else(|| a.output.join("biwi-release"));
     let total = arkit_data::ingest::biwi::count_frames(&a.input);
-    let bar = super::progress_bar(total as u64, "biwi", "frames");
-    let pool = super::thread_pool(a.jobs)?;
+    let bar = super::console::progress_bar(total as u64, "biwi", "frames");
+    let pool = super::setup::thread_pool(a.jobs)?;
     let (summary, topology) = pool.install(|| {
         arkit_data::ingest::biwi::stage_with(&a.input, &staging, a.biwi_size, a.window(), &|| {
             bar.inc(1)
@@ -254,8 +254,8 @@ fn convert_with(
             .collect::<Vec<_>>()
             .join(", ")
     );
-    let bar = super::progress_bar(rows.len() as u64, "convert", "samples");
-    let pool = super::thread_pool(a.jobs)?;
+    let bar = super::console::progress_bar(rows.len() as u64, "convert", "samples");
+    let pool = super::setup::thread_pool(a.jobs)?;
     let manifest = pool.install(|| {
         ingest::convert_planned_with(&options, &ctx, &checks, &input, plan, &|n| {
             bar.inc(n as u64)

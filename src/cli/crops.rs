@@ -69,7 +69,7 @@ pub struct CropsArgs {
     #[arg(long)]
     resources: Option<PathBuf>,
     /// Worker threads, 1..=1024 (default: all cores).
-    #[arg(long, allow_negative_numbers = true, value_parser = super::jobs)]
+    #[arg(long, allow_negative_numbers = true, value_parser = super::values::jobs)]
     jobs: Option<usize>,
     /// Print the summary as JSON.
     #[arg(long)]
@@ -78,7 +78,7 @@ pub struct CropsArgs {
 
 pub fn run(a: CropsArgs) -> Result<ExitCode> {
     let rules = a.compat;
-    let topology = super::load_topology(a.resources.as_deref())?;
+    let topology = super::setup::load_topology(a.resources.as_deref())?;
     let options = LoaderOptions {
         split: None,
         mode: LoaderMode::Eval,
@@ -92,8 +92,8 @@ pub fn run(a: CropsArgs) -> Result<ExitCode> {
         .output
         .clone()
         .unwrap_or_else(|| FaceLoader::default_crop_store(&a.dataset, rules, a.size));
-    let bar = super::progress_bar(loader.len() as u64, "crops", "samples");
-    let pool = super::thread_pool(a.jobs)?;
+    let bar = super::console::progress_bar(loader.len() as u64, "crops", "samples");
+    let pool = super::setup::thread_pool(a.jobs)?;
     let codec = a.codec;
     let summary = pool.install(|| {
         loader::write_crop_store_with(&loader, &output, codec, &|n| bar.inc(n as u64))

@@ -33,7 +33,7 @@ pub struct DemoArgs {
     #[arg(long, default_value_t = 0)]
     seed: u64,
     /// Worker threads, 1..=1024 (default: all cores).
-    #[arg(long, allow_negative_numbers = true, value_parser = super::jobs)]
+    #[arg(long, allow_negative_numbers = true, value_parser = super::values::jobs)]
     jobs: Option<usize>,
     /// Print the summary (timings, both eval summaries) as JSON.
     #[arg(long)]
@@ -58,7 +58,7 @@ pub fn run(a: DemoArgs) -> Result<ExitCode> {
     } else {
         DemoPlan::full(a.seed)
     };
-    let topology = super::load_topology(None)?;
+    let topology = super::setup::load_topology(None)?;
     let bar = indicatif::ProgressBar::new(plan.units()).with_style(
         indicatif::ProgressStyle::with_template(
             "{spinner} demo {prefix} [{bar:30}] {percent}% elapsed {elapsed}",
@@ -67,7 +67,7 @@ pub fn run(a: DemoArgs) -> Result<ExitCode> {
         .progress_chars("=> "),
     );
     let progress = Bar(bar);
-    let pool = super::thread_pool(a.jobs)?;
+    let pool = super::setup::thread_pool(a.jobs)?;
     let summary = pool.install(|| demo::run_demo(&a.output, &plan, &topology, &progress))?;
     progress.0.finish_and_clear();
     if a.json {

@@ -103,7 +103,7 @@ pub fn run(mut a: EvalArgs) -> Result<ExitCode> {
     }
     let mut written = Vec::new();
     if let Some(dir) = &a.report {
-        let topology = super::load_topology(a.resources.as_deref())?;
+        let topology = super::setup::load_topology(a.resources.as_deref())?;
         written = arkit_data::eval::write_report(dir, &ev, &topology)?.files;
     }
     let p = &ev.problems;

@@ -72,7 +72,7 @@ pub fn run(a: ExportOnnxArgs) -> Result<ExitCode> {
             ),
         ));
     }
-    let topology = super::load_topology(a.resources.as_deref())?;
+    let topology = super::setup::load_topology(a.resources.as_deref())?;
     let model = arkit_perspnet::load(&a.model, &topology)?;
     let export = arkit_perspnet::export_onnx(&model, &topology, &a.output)?;
     if a.json {

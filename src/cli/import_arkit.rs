@@ -72,7 +72,7 @@ pub struct ImportArkitArgs {
     #[arg(long)]
     strict: bool,
     /// Worker threads, 1..=1024 (default: all cores).
-    #[arg(long, allow_negative_numbers = true, value_parser = super::jobs)]
+    #[arg(long, allow_negative_numbers = true, value_parser = super::values::jobs)]
     jobs: Option<usize>,
     /// Do not stop when one check skips more than half of the first 1,000 frames (the
     /// sign of a capture app writing another convention: row-major matrices, images
@@ -106,8 +106,8 @@ pub fn run(a: ImportArkitArgs) -> Result<ExitCode> {
     };
     let subject_guess = a.subject.clone().unwrap_or_default();
     let total = ingest::find_frames(&a.input, &subject_guess)?.len();
-    let bar = super::progress_bar(total as u64, "import-arkit", "frames");
-    let pool = super::thread_pool(a.jobs)?;
+    let bar = super::console::progress_bar(total as u64, "import-arkit", "frames");
+    let pool = super::setup::thread_pool(a.jobs)?;
     let summary = pool.install(|| ingest::import_capture(&options, &|| bar.inc(1)))?;
     bar.finish_and_clear();
     if let Some(path) = &a.preview {
@@ -146,7 +146,7 @@ pub fn run(a: ImportArkitArgs) -> Result<ExitCode> {
 
 /// The first six written frames, each as written and with its mesh drawn over it.
 fn write_preview(a: &ImportArkitArgs, split: Split, path: &std::path::Path) -> Result<()> {
-    let topology = super::load_topology(a.resources.as_deref())?;
+    let topology = super::setup::load_topology(a.resources.as_deref())?;
     let layout = ReleaseLayout::new(&a.output);
     let keys = arkit_core::release::read_list(&layout.list_path(split))?;
     let mut images = Vec::new();

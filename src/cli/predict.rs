@@ -161,10 +161,10 @@ pub struct PredictArgs {
     targets: Option<PathBuf>,
     /// Gaussian pixel noise added to each point (standard deviation, pixels), in
     /// [0, 100].
-    #[arg(long, allow_negative_numbers = true, default_value_t = 0.0, value_parser = super::noise_px)]
+    #[arg(long, allow_negative_numbers = true, default_value_t = 0.0, value_parser = super::values::noise_px)]
     noise_px: f64,
     /// Share of points replaced by random image points, in [0, 1).
-    #[arg(long, allow_negative_numbers = true, default_value_t = 0.0, value_parser = super::unit_interval_open)]
+    #[arg(long, allow_negative_numbers = true, default_value_t = 0.0, value_parser = super::values::unit_interval_open)]
     outliers: f64,
     /// Only this split (as `eval` chooses it); `all` for every sample.
     #[arg(long, default_value = "test")]
@@ -173,7 +173,7 @@ pub struct PredictArgs {
     #[arg(long, default_value_t = 0)]
     seed: u64,
     /// RANSAC reprojection threshold, pixels, in (0, 1000].
-    #[arg(long, allow_negative_numbers = true, default_value_t = 8.0, value_parser = super::threshold_px)]
+    #[arg(long, allow_negative_numbers = true, default_value_t = 8.0, value_parser = super::values::threshold_px)]
     threshold_px: f64,
     /// The predictions file to write (Parquet, schemas/predictions.json). With --image:
     /// .json or .csv (default: JSON on the standard output). With --video: .jsonl, .csv
@@ -182,7 +182,7 @@ pub struct PredictArgs {
     #[arg(long)]
     output: Option<PathBuf>,
     /// Worker threads, 1..=1024 (default: all cores).
-    #[arg(long, allow_negative_numbers = true, value_parser = super::jobs)]
+    #[arg(long, allow_negative_numbers = true, value_parser = super::values::jobs)]
     jobs: Option<usize>,
     /// With --model: sample the points from the `predicted` face mask, or from the
     /// `truth` that `render` stored (at the network's input size, in --targets), to
@@ -212,7 +212,7 @@ pub struct PredictArgs {
 #[cfg_attr(not(feature = "model"), allow(dead_code))]
 struct VideoOptions {
     /// With --video (a folder of frames): its frames a second, in (0, 1000].
-    #[arg(long, allow_negative_numbers = true, default_value_t = 30.0, value_parser = frame_rate)]
+    #[arg(long, allow_negative_numbers = true, default_value_t = 30.0, value_parser = super::values::frame_rate)]
     fps: f64,
     /// With --video: run the detector on every Nth frame only (1: every frame), 1..=10000;
     /// the boxes are carried between, moved by each track's speed.
@@ -226,15 +226,15 @@ struct VideoOptions {
     max_missed: u32,
     /// With --video: the One-Euro filter's cutoff at rest, Hz, in (0, 1000] (lower:
     /// smoother, more lag). Measured defaults: docs/video.md.
-    #[arg(long, allow_negative_numbers = true, default_value_t = OneEuroParams::default().min_cutoff_hz, value_parser = cutoff_hz)]
+    #[arg(long, allow_negative_numbers = true, default_value_t = OneEuroParams::default().min_cutoff_hz, value_parser = super::values::cutoff_hz)]
     smooth_min_cutoff: f64,
     /// With --video: how fast the cutoff rises with the head's turning speed, Hz per
     /// rad/s, in [0, 1000] (higher: less lag when moving).
-    #[arg(long, allow_negative_numbers = true, default_value_t = OneEuroParams::default().beta_rotation, value_parser = smoothing_beta)]
+    #[arg(long, allow_negative_numbers = true, default_value_t = OneEuroParams::default().beta_rotation, value_parser = super::values::smoothing_beta)]
     smooth_beta: f64,
     /// With --video: how fast the cutoff rises with the head's speed, Hz per m/s, in
     /// [0, 1000].
-    #[arg(long, allow_negative_numbers = true, default_value_t = OneEuroParams::default().beta_translation, value_parser = smoothing_beta)]
+    #[arg(long, allow_negative_numbers = true, default_value_t = OneEuroParams::default().beta_translation, value_parser = super::values::smoothing_beta)]
     smooth_beta_translation: f64,
     /// With --video: write the raw per-frame poses, unsmoothed.
     #[arg(long)]
@@ -244,21 +244,6 @@ struct VideoOptions {
     #[arg(long, value_name = "N", allow_negative_numbers = true, default_value_t = 1, requires = "mesh",
           value_parser = clap::builder::RangedU64ValueParser::<u32>::new().range(1..=10_000))]
     mesh_every: u32,
-}
-
-/// Frames a second in (0, 1000] (`--fps`).
-pub(super) fn frame_rate(s: &str) -> std::result::Result<f64, String> {
-    super::float_in(s, 0.0, false, 1000.0, true)
-}
-
-/// A One-Euro cutoff in (0, 1000] Hz.
-fn cutoff_hz(s: &str) -> std::result::Result<f64, String> {
-    super::float_in(s, 0.0, false, 1000.0, true)
-}
-
-/// A One-Euro beta in [0, 1000].
-fn smoothing_beta(s: &str) -> std::result::Result<f64, String> {
-    super::float_in(s, 0.0, true, 1000.0, true)
 }
 
 /// `--crop` values.
@@ -358,8 +343,8 @@ pub fn run(mut a: PredictArgs) -> Result<ExitCode> {
         split: (a.split != "all").then(|| a.split.clone()),
         ransac,
     };
-    let bar = super::progress_bar(manifest.converted as u64, "predict", "samples");
-    let pool = super::thread_pool(a.jobs)?;
+    let bar = super::console::progress_bar(manifest.converted as u64, "predict", "samples");
+    let pool = super::setup::thread_pool(a.jobs)?;
     let targets = a.targets.clone().unwrap_or_else(|| a.dataset.clone());
     let (rows, summary) = pool.install(|| {
         pose::oracle_predictions(&a.dataset, &targets, &options, &|n| bar.inc(n as u64))
@@ -414,9 +399,9 @@ fn model(
     manifest: &arkit_data::store::Manifest,
     ransac: &RansacParams,
 ) -> Result<ExitCode> {
-    let topology = super::load_topology(a.resources.as_deref())?;
+    let topology = super::setup::load_topology(a.resources.as_deref())?;
     let model = arkit_perspnet::load(dir, &topology)?;
-    let bar = super::progress_bar(manifest.converted as u64, "predict", "samples");
+    let bar = super::console::progress_bar(manifest.converted as u64, "predict", "samples");
     let targets = a.targets.clone().unwrap_or_else(|| a.dataset.clone());
     let mut dump = Vec::new();
     let (rows, summary) = arkit_perspnet::model_predictions_dump(
@@ -462,7 +447,7 @@ fn model(
             );
         }
     }
-    super::report_unreadable(&summary.unreadable, "predict");
+    super::console::report_unreadable(&summary.unreadable, "predict");
     if a.strict && !summary.unreadable.is_empty() {
         return Ok(ExitCode::FAILURE);
     }

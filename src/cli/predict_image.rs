@@ -439,7 +439,7 @@ pub fn run(r: ImageRequest<'_>) -> Result<ExitCode> {
     if let Some(fov) = r.fov_deg {
         PhotoCamera::from_horizontal_fov(fov, 1)?;
     }
-    let topology = super::load_topology(r.resources)?;
+    let topology = super::setup::load_topology(r.resources)?;
     let model = arkit_perspnet::load(r.model, &topology)?;
     model.net.perspnet("predict --image")?;
     for dir in [r.dump_crops, r.draw.filter(|_| !single), r.mesh]
@@ -461,7 +461,7 @@ pub fn run(r: ImageRequest<'_>) -> Result<ExitCode> {
         single,
         names: r.angles.order(),
     };
-    let bar = super::progress_bar(photos.len() as u64, "predict", "photos");
+    let bar = super::console::progress_bar(photos.len() as u64, "predict", "photos");
     let (mut entries, mut rows) = (Vec::new(), Vec::new());
     let (mut skipped, mut faces, mut posed) = (0usize, 0usize, 0usize);
     let mut refused = false;

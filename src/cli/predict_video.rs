@@ -194,7 +194,7 @@ pub fn run(r: VideoRequest<'_>) -> Result<ExitCode> {
             ),
         ));
     }
-    let topology = super::load_topology(r.resources)?;
+    let topology = super::setup::load_topology(r.resources)?;
     let model = arkit_perspnet::load(r.model, &topology)?;
     model.net.perspnet("predict --video")?;
     if let Some(dir) = r.mesh {
@@ -214,7 +214,7 @@ pub fn run(r: VideoRequest<'_>) -> Result<ExitCode> {
     let mut tracker = Tracker::new(r.tracker);
     let mut filters: HashMap<u64, PoseFilter> = HashMap::new();
     let mut spans: BTreeMap<u64, TrackSpan> = BTreeMap::new();
-    let bar = super::progress_bar(source.frame_count(), "predict", "frames");
+    let bar = super::console::progress_bar(source.frame_count(), "predict", "frames");
     let started = std::time::Instant::now();
     let (mut frames, mut faces, mut posed) = (0u64, 0u64, 0u64);
     let mut stdout_rows = Vec::new();

@@ -54,10 +54,10 @@ pub struct RenderArgs {
     resources: Option<PathBuf>,
     /// Render only part I of N (shards k with k % N == I), for job arrays: run I =
     /// 0..N with the same --output (no merge needed; the files equal a single run's).
-    #[arg(long, value_name = "I/N", value_parser = super::parse_shard)]
+    #[arg(long, value_name = "I/N", value_parser = super::values::parse_shard)]
     shard: Option<(usize, usize)>,
     /// Worker threads, 1..=1024 (default: all cores).
-    #[arg(long, allow_negative_numbers = true, value_parser = super::jobs)]
+    #[arg(long, allow_negative_numbers = true, value_parser = super::values::jobs)]
     jobs: Option<usize>,
     /// Whose targets: `exact` (ours: the box around the landmarks, pixel centres, the
     /// top-left rule, perspective-correct weights, rendered at the crop's resolution) or
@@ -94,7 +94,7 @@ pub fn run(a: RenderArgs) -> Result<ExitCode> {
     // The checks between options (--points at most --size squared), before any reading.
     options.validate()?;
     let manifest = arkit_data::store::Dataset::read_manifest(&a.dataset)?;
-    let topology = super::load_topology(a.resources.as_deref())?;
+    let topology = super::setup::load_topology(a.resources.as_deref())?;
     arkit_data::store::check_topology(&manifest, &topology)?;
     let renderer = FaceRenderer::new(topology, Camera::release_projection())?.with_rules(a.compat);
     let (part, parts) = options.shard;
@@ -104,8 +104,8 @@ pub fn run(a: RenderArgs) -> Result<ExitCode> {
         .filter(|s| s.index % parts == part)
         .map(|s| s.rows)
         .sum();
-    let bar = super::progress_bar(mine as u64, "render", "samples");
-    let pool = super::thread_pool(a.jobs)?;
+    let bar = super::console::progress_bar(mine as u64, "render", "samples");
+    let pool = super::setup::thread_pool(a.jobs)?;
     let render = if a.overwrite {
         arkit_data::render::render_dataset_replacing
     } else {

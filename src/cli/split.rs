@@ -25,7 +25,7 @@ pub struct SplitArgs {
     #[arg(long, allow_negative_numbers = true, value_parser = clap::builder::RangedU64ValueParser::<usize>::new().range(1..))]
     test_subjects: Option<usize>,
     /// Hold out about this fraction of the images (whole subjects) for test, in (0, 1).
-    #[arg(long, allow_negative_numbers = true, value_parser = super::open_unit_interval)]
+    #[arg(long, allow_negative_numbers = true, value_parser = super::values::open_unit_interval)]
     test_fraction: Option<f64>,
     /// Keep the release's own train/test lists.
     #[arg(long)]

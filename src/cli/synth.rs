@@ -50,7 +50,7 @@ pub struct SynthArgs {
     #[arg(long, value_enum, default_value = "turn")]
     clip: ClipChoice,
     /// With --video: frames a second, in (0, 1000].
-    #[arg(long, allow_negative_numbers = true, default_value_t = 30.0, value_parser = super::predict::frame_rate)]
+    #[arg(long, allow_negative_numbers = true, default_value_t = 30.0, value_parser = super::values::frame_rate)]
     fps: f64,
     /// With --group-photo: how many faces, 1..=8.
     #[arg(long, default_value_t = 3)]
@@ -65,13 +65,13 @@ pub struct SynthArgs {
     images_per_subject: usize,
     /// Image size as WIDTHxHEIGHT, each side 32..=8192 (the official evaluation uses
     /// 800x800).
-    #[arg(long, default_value = "800x800", value_parser = super::parse_size)]
+    #[arg(long, default_value = "800x800", value_parser = super::values::parse_size)]
     size: (u32, u32),
     /// Seed of every random choice.
     #[arg(long, default_value_t = 0)]
     seed: u64,
     /// Fraction of subjects put in the test split, in [0, 1].
-    #[arg(long, allow_negative_numbers = true, default_value_t = 0.2, value_parser = super::unit_interval)]
+    #[arg(long, allow_negative_numbers = true, default_value_t = 0.2, value_parser = super::values::unit_interval)]
     test_fraction: f64,
     /// JPEG quality, 1..=100.
     #[arg(long, allow_negative_numbers = true, default_value_t = 90, value_parser = clap::value_parser!(u8).range(1..=100))]
@@ -113,7 +113,7 @@ pub fn run(a: SynthArgs) -> Result<ExitCode> {
     }
     let output = a.output.clone().expect("clap: --output or --group-photo");
     let total = (options.subjects * options.images_per_subject) as u64;
-    let bar = super::progress_bar(total, "synth", "samples");
+    let bar = super::console::progress_bar(total, "synth", "samples");
     let summary = synth::generate(&source, &options, &output, &|| bar.inc(1))?;
     bar.finish_and_clear();
     if let Some(path) = &a.preview {
@@ -282,7 +282,7 @@ fn video(
     };
     let (mut truth, mut boxes) = (String::new(), String::new());
     let frames = plan.frames();
-    let bar = super::progress_bar(frames as u64, "synth", "frames");
+    let bar = super::console::progress_bar(frames as u64, "synth", "frames");
     let focal = arkit_core::conventions::Camera::RELEASE_FOCAL_NDC * w.max(h) as f64 / 2.0;
     for i in 0..frames {
         bar.inc(1);

@@ -27,7 +27,7 @@ pub struct TopologyArgs {
 }
 
 pub fn run(a: TopologyArgs) -> Result<ExitCode> {
-    let topo = super::load_topology(a.resources.as_deref())?;
+    let topo = super::setup::load_topology(a.resources.as_deref())?;
     let loops = topo.boundary_loops()?;
     let fill = topo.hole_fill()?;
     let mirror_map = topo.mirror_map()?;

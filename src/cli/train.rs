@@ -1,7 +1,7 @@
 //! `arkit-tool train`.
 
 use arkit_core::Error;
-use arkit_perspnet::{Architecture, LossVariant, PerspNetConfig};
+use arkit_perspnet::{Architecture, LossVariant};
 use arkit_perspnet::{ExampleShards, ShardedExamples, TrainOptions};
 
 use arkit_core::Result;
@@ -80,17 +80,17 @@ pub struct TrainArgs {
     #[arg(long, allow_negative_numbers = true, default_value_t = 4, value_parser = clap::builder::RangedU64ValueParser::<usize>::new().range(1..=1024))]
     batch: usize,
     /// AdamW learning rate, in (0, 1].
-    #[arg(long, allow_negative_numbers = true, default_value_t = 1e-3, value_parser = super::learning_rate)]
+    #[arg(long, allow_negative_numbers = true, default_value_t = 1e-3, value_parser = super::values::learning_rate)]
     lr: f64,
     /// Share of the steps at --lr; the rate then falls linearly to zero at the last
     /// step (the paper's schedule). In [0, 1]; 1 keeps it constant.
-    #[arg(long, allow_negative_numbers = true, default_value_t = 0.5, value_parser = super::unit_interval)]
+    #[arg(long, allow_negative_numbers = true, default_value_t = 0.5, value_parser = super::values::unit_interval)]
     lr_hold: f64,
     /// Colour jitter strength c in [0, 1]: torchvision's ColorJitter(c, c, 2c/3, c/30)
     /// on the crop's bytes (brightness, contrast and saturation factors in [1-c, 1+c],
     /// [1-c, 1+c], [1-2c/3, 1+2c/3], a hue shift of up to c/30 of a turn, in a random
     /// order), the Python loader's jitter; 0.3 is the official loader's, 0 turns it off.
-    #[arg(long, allow_negative_numbers = true, default_value_t = 0.3, value_parser = super::unit_interval)]
+    #[arg(long, allow_negative_numbers = true, default_value_t = 0.3, value_parser = super::values::unit_interval)]
     colour_jitter: f64,
     /// Crop jitter: shift each crop by up to this many pixels per axis, 0..=64.
     #[arg(long, allow_negative_numbers = true, default_value_t = 2, value_parser = clap::value_parser!(u32).range(0..=64))]
@@ -144,22 +144,6 @@ pub struct TrainArgs {
     json: bool,
 }
 
-/// The network settings named by `--config`.
-pub fn config_named(name: &str) -> Result<PerspNetConfig> {
-    match name {
-        "tiny" => Ok(PerspNetConfig::tiny()),
-        "paper" => Ok(PerspNetConfig::paper()),
-        path => {
-            let p = std::path::Path::new(path);
-            let text = std::fs::read_to_string(p).map_err(|e| Error::io(p, e))?;
-            let c: PerspNetConfig =
-                serde_json::from_str(&text).map_err(|e| Error::format(p, e.to_string()))?;
-            c.validate().map_err(|e| Error::format(p, e))?;
-            Ok(c)
-        }
-    }
-}
-
 pub fn run(mut a: TrainArgs) -> Result<ExitCode> {
     let (dir, _remote) = super::remote::dataset_folder(&a.dataset)?;
     a.dataset = dir;
@@ -171,7 +155,7 @@ pub fn run(mut a: TrainArgs) -> Result<ExitCode> {
         }
         None => None,
     };
-    let mut config = config_named(&a.config)?;
+    let mut config = super::setup::config_named(&a.config)?;
     if let Some(loss) = a.loss {
         config.loss = loss;
     }
@@ -204,14 +188,14 @@ pub fn run(mut a: TrainArgs) -> Result<ExitCode> {
             "lowers the official schedule's weights; --loss paper holds the paper's fixed weights",
         ));
     }
-    let topology = super::load_topology(a.resources.as_deref())?;
+    let topology = super::setup::load_topology(a.resources.as_deref())?;
     let manifest = arkit_data::store::Dataset::read_manifest(&a.dataset)?;
     arkit_data::store::check_topology(&manifest, &topology)?;
     let targets = a.targets.clone().unwrap_or_else(|| a.dataset.clone());
     let split = (a.split != "all").then_some(a.split.as_str());
     let source = ShardedExamples::open(&a.dataset, &targets, &config, split)?;
     let unreadable = source.unreadable().to_vec();
-    super::report_unreadable(&unreadable, "train");
+    super::console::report_unreadable(&unreadable, "train");
     if a.strict && !unreadable.is_empty() {
         return Ok(ExitCode::FAILURE);
     }
@@ -245,7 +229,7 @@ pub fn run(mut a: TrainArgs) -> Result<ExitCode> {
         Some(n) => (n.div_ceil(per_epoch), n),
         None => (a.epochs, a.epochs * per_epoch),
     };
-    let bar = super::progress_bar(steps as u64, "train", "steps");
+    let bar = super::console::progress_bar(steps as u64, "train", "steps");
     let options = TrainOptions {
         config,
         epochs,

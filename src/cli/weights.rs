@@ -101,8 +101,8 @@ pub fn run_half(a: HalfModelArgs) -> Result<ExitCode> {
 }
 
 pub fn run_import(a: ImportWeightsArgs) -> Result<ExitCode> {
-    let config = super::train::config_named(&a.config)?;
-    let topology = super::load_topology(a.resources.as_deref())?;
+    let config = super::setup::config_named(&a.config)?;
+    let topology = super::setup::load_topology(a.resources.as_deref())?;
     let c = arkit_perspnet::import_weights(&a.file, &config, &topology, &a.output)?;
     let out = a.output.display();
     let needs = match &a.resources {
