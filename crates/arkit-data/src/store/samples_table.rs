@@ -596,15 +596,15 @@ pub(crate) fn samples_from_frame(
     path: &Path,
     vertices: Option<usize>,
 ) -> Result<Vec<SampleRecord>> {
-    let subject = str_values(&df, "subject_id", path)?;
-    let action = str_values(&df, "facial_action", path)?;
-    let img = str_values(&df, "img_id", path)?;
-    let split = str_values(&df, "split", path)?;
-    let image_path = str_values(&df, "image_path", path)?;
-    let width = u32_values(&df, "image_width", path)?;
-    let height = u32_values(&df, "image_height", path)?;
+    let subject = str_values(df, "subject_id", path)?;
+    let action = str_values(df, "facial_action", path)?;
+    let img = str_values(df, "img_id", path)?;
+    let split = str_values(df, "split", path)?;
+    let image_path = str_values(df, "image_path", path)?;
+    let width = u32_values(df, "image_width", path)?;
+    let height = u32_values(df, "image_height", path)?;
     let jpeg: Vec<Option<Vec<u8>>> = {
-        let c = column(&df, "jpeg", path)?;
+        let c = column(df, "jpeg", path)?;
         let ca = c.binary().map_err(|e| polars_err(path, e))?;
         ca.iter().map(|v| v.map(|b| b.to_vec())).collect()
     };
@@ -637,7 +637,7 @@ pub(crate) fn samples_from_frame(
         ));
     }
     let (n, verts) = fixed_values(
-        &df,
+        df,
         "verts",
         path,
         &DataType::Float32,
@@ -645,9 +645,9 @@ pub(crate) fn samples_from_frame(
         vertices.or(recorded),
         f32s,
     )?;
-    let (_, rt) = fixed_values(&df, "R_t", path, &DataType::Float64, 4, Some(4), f64s)?;
+    let (_, rt) = fixed_values(df, "R_t", path, &DataType::Float64, 4, Some(4), f64s)?;
     let (_, landmarks) = fixed_values(
-        &df,
+        df,
         "landmarks_2d",
         path,
         &DataType::Float32,
@@ -656,19 +656,19 @@ pub(crate) fn samples_from_frame(
         f32s,
     )?;
     let (yaw, pitch, roll) = (
-        f64_values(&df, "yaw_deg", path)?,
-        f64_values(&df, "pitch_deg", path)?,
-        f64_values(&df, "roll_deg", path)?,
+        f64_values(df, "yaw_deg", path)?,
+        f64_values(df, "pitch_deg", path)?,
+        f64_values(df, "roll_deg", path)?,
     );
     let (tx, ty, tz) = (
-        f64_values(&df, "tx_m", path)?,
-        f64_values(&df, "ty_m", path)?,
-        f64_values(&df, "tz_m", path)?,
+        f64_values(df, "tx_m", path)?,
+        f64_values(df, "ty_m", path)?,
+        f64_values(df, "tz_m", path)?,
     );
     let (bx, by, bs) = (
-        f64_values(&df, "face_box_x0", path)?,
-        f64_values(&df, "face_box_y0", path)?,
-        f64_values(&df, "face_box_side", path)?,
+        f64_values(df, "face_box_x0", path)?,
+        f64_values(df, "face_box_y0", path)?,
+        f64_values(df, "face_box_side", path)?,
     );
     let mut out = Vec::with_capacity(df.height());
     for i in 0..df.height() {
@@ -714,7 +714,7 @@ pub(crate) fn sample_keys_from_frame(
     let names = SAMPLE_KEY_COLUMNS;
     let cols: Vec<Vec<String>> = names
         .iter()
-        .map(|c| str_values(&df, c, path))
+        .map(|c| str_values(df, c, path))
         .collect::<Result<_>>()?;
     Ok(keyed_rows(&cols)
         .map(|(key, i)| (key, cols[3][i].clone()))
@@ -744,7 +744,7 @@ pub fn read_errors(path: &Path) -> Result<Vec<ErrorRecord>> {
 pub(crate) fn errors_from_frame(df: &DataFrame, path: &Path) -> Result<Vec<ErrorRecord>> {
     let cols: Vec<Vec<String>> = ERRORS_COLUMNS
         .iter()
-        .map(|c| str_values(&df, c.name, path))
+        .map(|c| str_values(df, c.name, path))
         .collect::<Result<_>>()?;
     Ok(keyed_rows(&cols)
         .map(|(key, i)| ErrorRecord {

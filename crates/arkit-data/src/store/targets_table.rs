@@ -215,8 +215,8 @@ pub fn read_targets(path: &Path) -> Result<Vec<TargetsRecord>> {
 
 /// The rows of a `targets` table read as `df` from `path` (which errors name).
 pub(crate) fn targets_from_frame(df: &DataFrame, path: &Path) -> Result<Vec<TargetsRecord>> {
-    let st = |n: &str| crate::store::parquet::str_values(&df, n, path);
-    let fl = |n: &str| crate::store::parquet::f64_values(&df, n, path);
+    let st = |n: &str| crate::store::parquet::str_values(df, n, path);
+    let fl = |n: &str| crate::store::parquet::f64_values(df, n, path);
     let bad = |n: &str, e: PolarsError| Error::format(path, format!("column {n}: {e}"));
     // A u32 column, each value at most `max` (checked before anything is sized from it);
     // a null is an error naming the column and the row.
