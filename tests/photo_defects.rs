@@ -418,3 +418,35 @@ fn photos_with_one_file_name_in_two_folders_never_share_an_output() {
         "{stderr}"
     );
 }
+
+#[test]
+fn video_options_given_with_image_are_refused_by_name() {
+    // Each of these shapes only a video's run; with --image it used to be accepted and
+    // do nothing. It is refused before the photo is read (exit 2), naming the option
+    // and --video; the photo need not exist.
+    for (flag, value) in [
+        ("--fps", Some("25")),
+        ("--detect-every", Some("5")),
+        ("--max-missed", Some("3")),
+        ("--smooth-min-cutoff", Some("0.5")),
+        ("--smooth-beta", Some("2")),
+        ("--smooth-beta-translation", Some("5")),
+        ("--no-smooth", None),
+    ] {
+        let mut args = vec![
+            "predict",
+            "--model",
+            TINY,
+            "--image",
+            "no-such-photo.jpg",
+            flag,
+        ];
+        args.extend(value);
+        let (code, stdout, stderr) = run(&args);
+        assert_eq!(code, Some(2), "{flag}: {stdout}{stderr}");
+        assert!(
+            stderr.contains(flag) && stderr.contains("--video"),
+            "{flag}: the refusal names neither the option nor --video: {stderr}"
+        );
+    }
+}

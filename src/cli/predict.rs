@@ -207,12 +207,18 @@ pub struct PredictArgs {
     json: bool,
 }
 
+/// A folder of frames' frames a second without `--fps`.
+const FOLDER_FPS: f64 = 30.0;
+
+/// Detector runs a track survives without its face, without `--max-missed`.
+const MAX_MISSED: u32 = 2;
+
 /// `predict --video`'s options (boxed: they are read once).
 #[derive(Args, Debug)]
 #[cfg_attr(not(feature = "model"), allow(dead_code))]
 struct VideoOptions {
     /// With --video (a folder of frames): its frames a second, in (0, 1000].
-    #[arg(long, allow_negative_numbers = true, default_value_t = 30.0, value_parser = super::values::frame_rate)]
+    #[arg(long, allow_negative_numbers = true, default_value_t = FOLDER_FPS, value_parser = super::values::frame_rate)]
     fps: f64,
     /// With --video: run the detector on every Nth frame only (1: every frame), 1..=10000;
     /// the boxes are carried between, moved by each track's speed.
@@ -221,7 +227,7 @@ struct VideoOptions {
     detect_every: u32,
     /// With --video: detector runs a track survives without its face before it ends,
     /// 0..=1000.
-    #[arg(long, allow_negative_numbers = true, default_value_t = 2,
+    #[arg(long, allow_negative_numbers = true, default_value_t = MAX_MISSED,
           value_parser = clap::builder::RangedU64ValueParser::<u32>::new().range(0..=1000))]
     max_missed: u32,
     /// With --video: the One-Euro filter's cutoff at rest, Hz, in (0, 1000] (lower:
@@ -241,7 +247,7 @@ struct VideoOptions {
     no_smooth: bool,
     /// With --video --mesh: write the meshes of every Nth frame only (frames 0, N, 2N,
     /// ...), 1..=10000.
-    #[arg(long, value_name = "N", allow_negative_numbers = true, default_value_t = 1, requires = "mesh",
+    #[arg(long, value_name = "N", allow_negative_numbers = true, default_value_t = 1, requires = "mesh", requires = "video",
           value_parser = clap::builder::RangedU64ValueParser::<u32>::new().range(1..=10_000))]
     mesh_every: u32,
 }
@@ -480,6 +486,10 @@ fn run_image(a: &PredictArgs, ransac: RansacParams) -> Result<ExitCode> {
         &dataset_only_flags(a),
         "is for --dataset; with --image use --dump-crops, --draw or --vertices",
     )?;
+    refuse_given(
+        &video_only_flags(&a.video_options),
+        "is for --video (a photo has no frames, tracks or smoothing)",
+    )?;
     super::predict_image::run(super::predict_image::ImageRequest {
         images: &a.image,
         model,
@@ -514,6 +524,29 @@ fn dataset_only_flags(a: &PredictArgs) -> [(bool, &'static str); 4] {
             "--noise-px/--outliers",
         ),
         (matches!(a.mask, MaskSource::Truth), "--mask truth"),
+    ]
+}
+
+/// The options of `--video` alone, each with whether it was given (its value is not
+/// the default: clap cannot refuse them by `requires`, as `--video` conflicts with
+/// `--image` and clap then counts it as satisfied).
+#[cfg(feature = "model")]
+fn video_only_flags(v: &VideoOptions) -> [(bool, &'static str); 7] {
+    let euro = OneEuroParams::default();
+    [
+        (v.fps != FOLDER_FPS, "--fps"),
+        (v.detect_every != 1, "--detect-every"),
+        (v.max_missed != MAX_MISSED, "--max-missed"),
+        (
+            v.smooth_min_cutoff != euro.min_cutoff_hz,
+            "--smooth-min-cutoff",
+        ),
+        (v.smooth_beta != euro.beta_rotation, "--smooth-beta"),
+        (
+            v.smooth_beta_translation != euro.beta_translation,
+            "--smooth-beta-translation",
+        ),
+        (v.no_smooth, "--no-smooth"),
     ]
 }
 

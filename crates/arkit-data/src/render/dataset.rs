@@ -231,6 +231,9 @@ fn hold_folders(
     dataset: &Path,
     options: &RenderOptions,
 ) -> Result<Vec<arkit_core::atomic_file::FolderLock>> {
+    // Nothing is made for options that are refused or a folder that is no dataset:
+    // those are refused before the output folder is created for its lock.
+    options.validate()?;
     let mut held: Vec<_> = crate::ingest::convert::hold_against_overwrite(dataset)?
         .into_iter()
         .collect();
@@ -238,7 +241,10 @@ fn hold_folders(
         (Ok(a), Ok(b)) => a == b,
         _ => dataset == options.output,
     };
-    if !same {
+    let is_dataset = dataset
+        .join(crate::store::manifest::MANIFEST_FILE)
+        .is_file();
+    if !same && is_dataset {
         std::fs::create_dir_all(&options.output).map_err(|e| Error::io(&options.output, e))?;
         held.extend(crate::ingest::convert::hold_against_overwrite(
             &options.output,
