@@ -44,6 +44,7 @@ from typing import Any, Dict, Iterator, List, Optional, Sequence, Set, Tuple, ca
 import numpy as np
 
 from . import DataError
+from . import _recording
 from .types import PathLike
 
 __all__ = ["record", "read_rows", "main"]
@@ -59,11 +60,7 @@ _IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".webp")
 
 
 def _rerun() -> Any:
-    try:
-        import rerun as rr  # type: ignore[import-untyped,import-not-found,unused-ignore]
-    except ImportError:
-        raise ImportError(INSTALL_HINT) from None
-    return rr
+    return _recording.rerun_module(INSTALL_HINT)
 
 
 def read_rows(path: PathLike, skipped: Optional[List[str]] = None) -> Iterator[Dict[str, Any]]:
@@ -217,16 +214,7 @@ def record(
         except Exception as e:  # rerun's own errors for a file it cannot read
             raise DataError(f"{video_path}: Rerun cannot read this video ({e})") from None
 
-    tmp = None
-    if recording is None:
-        rec = rr.RecordingStream("arkit_tool_video")
-        if spawn:
-            rec.spawn()
-        else:
-            tmp = os.fspath(cast(PathLike, path)) + ".partial"
-            rec.save(tmp)
-    else:
-        rec = recording
+    rec, tmp = _recording.open_recording(rr, "arkit_tool_video", path, spawn, recording)
     rec.log("world", rr.ViewCoordinates.RUB, static=True)
     image = "image"
     if camera is not None:
@@ -314,17 +302,9 @@ def record(
             shown = here
     except BaseException:
         # No half-written recording survives.
-        if tmp is not None:
-            rec.disconnect()
-            if os.path.exists(tmp):
-                os.remove(tmp)
+        _recording.abandon(rec, tmp)
         raise
-    out_path = None
-    if tmp is not None:
-        rec.flush()
-        rec.disconnect()
-        os.replace(tmp, os.fspath(cast(PathLike, path)))
-        out_path = os.fspath(cast(PathLike, path))
+    out_path = _recording.finish(rec, tmp, path)
     return {"frames": frames, "rows": rows, "tracks": sorted(tracks), "meshes": meshes, "path": out_path,
             "skipped": skipped}
 

@@ -45,6 +45,7 @@ from typing import Any, Dict, Iterable, List, Optional, Sequence, Tuple, Union, 
 import numpy as np
 
 from . import DataError, ConvertedDataset, _native, decode_targets, open_dataset, read_image
+from . import _recording
 from .types import Key, PathLike, SampleRow, Targets
 
 __all__ = ["record", "intrinsics", "select", "sample_errors", "main"]
@@ -65,11 +66,7 @@ _AUGMENTED = re.compile(r"^(?P<source>.+)_(aug\d+|flip)$")
 
 
 def _rerun() -> Any:
-    try:
-        import rerun as rr  # type: ignore[import-untyped,import-not-found,unused-ignore]
-    except ImportError:
-        raise ImportError(INSTALL_HINT) from None
-    return rr
+    return _recording.rerun_module(INSTALL_HINT)
 
 
 def projection_of(dataset: ConvertedDataset) -> np.ndarray:
@@ -366,16 +363,7 @@ def record(
     targets = _targets_rows(ds.path, chosen_keys)
     by_key = {k[:3]: i for i, k in enumerate(ds._keys)}
 
-    tmp = None
-    if recording is None:
-        rec = rr.RecordingStream("arkit_tool")
-        if spawn:
-            rec.spawn()
-        else:
-            tmp = os.fspath(cast(PathLike, path)) + ".partial"
-            rec.save(tmp)
-    else:
-        rec = recording
+    rec, tmp = _recording.open_recording(rr, "arkit_tool", path, spawn, recording)
 
     rec.log("world", rr.ViewCoordinates.RUB, static=True)
     rec.log("crop/mask", rr.AnnotationContext([(0, "background", (0, 0, 0, 0)), (1, "face", (40, 200, 90, 140))]),
@@ -452,12 +440,7 @@ def record(
             # One bad sample is reported and skipped.
             skipped.append(f"{key}: {e}")
             print(f"arkit_tool.view: skipped {key}: {e}", file=sys.stderr)
-    out_path = None
-    if tmp is not None:
-        rec.flush()
-        rec.disconnect()
-        os.replace(tmp, os.fspath(cast(PathLike, path)))
-        out_path = os.fspath(cast(PathLike, path))
+    out_path = _recording.finish(rec, tmp, path)
     return {"samples": logged, "path": out_path, "skipped": skipped}
 
 
